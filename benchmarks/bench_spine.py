@@ -1,0 +1,86 @@
+"""Cost ratios of the spine, each measured within one run (not a test).
+
+    python benchmarks/bench_spine.py [--image 512] [--map 1024] [--repeats 5]
+
+Prints:
+  (a) depth-map build time / a bare ray_intersect_preliminary over the same rays
+  (b) hard frame / unshadowed frame  (Reeves 1987 reports +37..51 %)
+  (c) hard frame / raytraced frame
+warm (kernels cached: median of --repeats), with the cold (first, compiling) times too.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import mi_shadowmap  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+from mi_shadowmap.depth_maps import build_depth_map
+from mi_shadowmap.light_views import make_light_view
+from mi_shadowmap.scenes import default_scene
+
+
+def timed(fn, repeats):
+    t0 = time.perf_counter()
+    fn()
+    dr.sync_thread()
+    cold = time.perf_counter() - t0
+    warm = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        dr.sync_thread()
+        warm.append(time.perf_counter() - t0)
+    return cold, statistics.median(warm)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--image", type=int, default=512)
+    ap.add_argument("--map", type=int, default=1024)
+    ap.add_argument("--spp", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--light", default="spot", choices=["spot", "point", "directional"])
+    args = ap.parse_args(argv)
+
+    scene = mi.load_dict(default_scene(width=args.image, height=args.image, light=args.light))
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    res = args.map
+
+    def bare():
+        o, d, _ = view.texel_rays(res)
+        pi = scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=True)
+        dr.eval(pi.t)
+
+    def build():
+        build_depth_map(scene, view, res)
+
+    frames = {}
+    for method in ("unshadowed", "hard", "raytraced"):
+        integ = mi.load_dict({"type": "shadowmap", "method": method, "resolution": res})
+
+        def render(integ=integ):
+            dr.eval(mi.render(scene, integrator=integ, spp=args.spp))
+        frames[method] = timed(render, args.repeats)
+
+    cb, wb = timed(bare, args.repeats)
+    cm, wm = timed(build, args.repeats)
+    print(f"# {args.light} light, image {args.image}^2 @ {args.spp} spp, map {res}^2, "
+          f"{dr.thread_count()} threads, mitsuba {mi.__version__}")
+    print(f"{'measurement':<42}{'warm ms':>10}{'cold ms':>10}")
+    print(f"{'bare ray_intersect_preliminary':<42}{wb * 1e3:>10.2f}{cb * 1e3:>10.2f}")
+    print(f"{'depth-map build':<42}{wm * 1e3:>10.2f}{cm * 1e3:>10.2f}")
+    for m, (c, w) in frames.items():
+        print(f"{'frame: ' + m:<42}{w * 1e3:>10.2f}{c * 1e3:>10.2f}")
+    print()
+    print(f"(a) build / bare ray cast      = {wm / wb:.3f}   (target <= 1.1)")
+    print(f"(b) hard / unshadowed frame    = {frames['hard'][1] / frames['unshadowed'][1]:.3f}"
+          "   (target <= 1.4; Reeves: 1.37..1.51)")
+    print(f"(c) hard / raytraced frame     = {frames['hard'][1] / frames['raytraced'][1]:.3f}")
+
+
+if __name__ == "__main__":
+    main()

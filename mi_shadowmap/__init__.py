@@ -1,0 +1,38 @@
+"""mi_shadowmap: depth-map shadows for Mitsuba 3, measured against ray tracing.
+
+Importing the package
+
+1. finds a libLLVM >= 16 for Dr.Jit's LLVM backend and sets
+   ``DRJIT_LIBLLVM_PATH`` (unless already set; see :mod:`mi_shadowmap._llvm`),
+2. selects the ``llvm_ad_rgb`` variant if no variant is set yet,
+3. registers the ``shadowmap`` integrator for the current variant, and again
+   whenever the variant changes.
+"""
+from __future__ import annotations
+
+from ._llvm import LLVMNotFoundError, configure_llvm
+
+__version__ = "0.1.0"
+DEFAULT_VARIANT = "llvm_ad_rgb"
+
+LIBLLVM_PATH = configure_llvm()
+
+import mitsuba as mi  # noqa: E402  (after the LLVM path is configured)
+
+if mi.variant() is None:
+    mi.set_variant(DEFAULT_VARIANT)
+
+from . import integrator as _integrator  # noqa: E402
+
+
+def _on_variant_change(old, new):
+    _integrator.register(new)
+
+
+_integrator.register()
+mi.detail.add_variant_callback(_on_variant_change)
+
+from .integrator import ShadowMapIntegrator  # noqa: E402,F401
+from .options import METHODS, OptionError  # noqa: E402,F401
+from . import harness, metrics  # noqa: E402,F401
+from .harness import compare  # noqa: E402,F401

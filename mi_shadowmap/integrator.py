@@ -1,0 +1,205 @@
+"""The ``shadowmap`` integrator: direct illumination with depth-map shadows.
+
+``render()`` builds one :class:`~mi_shadowmap.depth_maps.ShadowMap` per
+emitter (first pass), guarded against Mitsuba's re-entrant call of a Python
+``render()`` override; ``sample()`` shades camera hits (second pass).
+Shading is identical for every method -- only the visibility factor differs.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import drjit as dr
+import mitsuba as mi
+
+from . import options as opt_mod
+from .depth_maps import ShadowMap, build_depth_map
+from .filters import FILTERS, NEEDS_FOOTPRINT, Lookup, RayTracedLight, shifted_grid_point
+from .light_views import emitter_kind, emitter_label, make_light_view
+
+
+class ShadowMapIntegrator(mi.SamplingIntegrator):
+    __doc__ = r"""
+Shadow-map direct illumination (``shadowmap``)
+----------------------------------------------
+
+Direct illumination from every emitter of the scene (emitter sampling only:
+one light sample per emitter per camera sample, or ``shadow_rays`` for
+``raytraced``), where visibility comes from a depth map built with Dr.Jit
+ray queries from each light (first pass) and looked up with the chosen
+``method`` (second pass). ``method='raytraced'`` traces real shadow rays and
+is the ground truth; it matches Mitsuba's ``direct`` integrator with
+``emitter_samples=1, bsdf_samples=0``.
+
+One visibility AOV per emitter, ``vis_<id>`` (``vis_<index>`` when the
+emitter has no id), carries the visibility used for it (0 where it
+contributes nothing).
+
+Maps: spot -- perspective covering the cutoff cone; point and area -- cube
+maps (area lights as their centre); directional -- orthographic, fitted to
+the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
+
+""" + opt_mod.docs_table()
+
+    def __init__(self, props=mi.Properties()):
+        super().__init__(props)
+        self.opts = opt_mod.parse_options(props)
+        self.maps: list[ShadowMap] = []
+        self.views = []
+        self.build_seconds = 0.0
+        self._in_render = False
+        self._emitter_labels: list[str] = []
+        self._diff_scale = 1.0
+
+    # ---------------------------------------------------------------- passes
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if self._in_render:   # Mitsuba re-enters a Python render() override
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        self._in_render = True
+        try:
+            self.prepare_maps(scene)
+            if isinstance(sensor, int):
+                sensor_obj = scene.sensors()[sensor]
+            else:
+                sensor_obj = sensor
+            n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
+            # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
+            self._diff_scale = math.sqrt(n_spp)
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        finally:
+            self._in_render = False
+
+    def prepare_maps(self, scene: mi.Scene) -> list[ShadowMap]:
+        """First pass: one depth map per emitter (empty for ``raytraced``)."""
+        self.check_scene(scene)
+        t0 = time.perf_counter()
+        self.views, self.maps = [], []
+        for i, e in enumerate(scene.emitters()):
+            if emitter_kind(e) == "environment" or not self.opts.uses_map:
+                self.views.append(None)
+                self.maps.append(None)
+                continue
+            view = make_light_view(e, scene, i)
+            self.views.append(view)
+            self.maps.append(build_depth_map(scene, view, self.opts.resolution))
+        dr.sync_thread()
+        self.build_seconds = time.perf_counter() - t0
+        return self.maps
+
+    def check_scene(self, scene):
+        """Raise ValueError naming any emitter this integrator cannot handle.
+
+        Called by ``render()``; call it yourself before ``mi.render`` to get the
+        error unwrapped (``mi.render`` re-raises errors of a Python
+        integrator as a RuntimeError whose ``__cause__`` holds the message).
+        """
+        labels = []
+        for i, e in enumerate(scene.emitters()):
+            if emitter_kind(e) == "environment" and self.opts.environment == "error":
+                raise ValueError(
+                    f"shadowmap: emitter '{emitter_label(e, i)}' is an environment/constant "
+                    "emitter, which has no finite frustum for a depth map; set the property "
+                    "environment='unshadowed' to light it without shadows, or remove it")
+            if emitter_kind(e) != "environment":
+                make_light_view(e, scene, i)   # raises for unsupported emitters
+            labels.append(emitter_label(e, i))
+        # AOV names must be unique: fall back to indices for duplicate ids.
+        self._emitter_labels = [
+            lab if labels.count(lab) == 1 else str(i) for i, lab in enumerate(labels)]
+
+    def aov_names(self):
+        return [f"vis_{lab}" for lab in self._emitter_labels]
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        opts = self.opts
+        ray = mi.RayDifferential3f(ray)
+        si = scene.ray_intersect(ray, active)
+        valid = active & si.is_valid()
+        result = mi.Spectrum(0.0)
+        if not opts.hide_emitters:
+            result += si.emitter(scene, active).eval(si, active)
+        bsdf = si.bsdf(ray)
+        ctx = mi.BSDFContext()
+        shade = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        if opts.method in NEEDS_FOOTPRINT:
+            dp_dx, dp_dy = self._footprint(ray, si)
+        else:
+            dp_dx = dp_dy = mi.Vector3f(0.0)
+        vis_fn = FILTERS[opts.method]
+        aovs = []
+        n_light = opts.shadow_rays if opts.method == "raytraced" else 1
+        for k, emitter in enumerate(scene.emitters()):
+            smap = self.maps[k] if opts.uses_map else RayTracedLight(scene)
+            vis_sum = mi.Float(0.0)
+            contributes = mi.Bool(False)
+            shift = None
+            for s in range(n_light):
+                if n_light == 1:
+                    u = sampler.next_2d(shade)
+                else:
+                    if s == 0:
+                        shift = sampler.next_2d(shade)
+                    u = shifted_grid_point(s, n_light, shift)
+                ds, w = emitter.sample_direction(si, u, shade)
+                lit = shade & (ds.pdf > 0)
+                wo = si.to_local(ds.d)
+                f = bsdf.eval(ctx, si, wo, lit)
+                unshadowed = w * f
+                lit &= dr.max(unshadowed) > 0
+                if smap is None:     # environment emitter lit without shadows
+                    vis = mi.Float(1.0)
+                else:
+                    lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
+                    vis = dr.select(lit, vis_fn(smap, lk, opts, lit), 0.0)
+                result += dr.select(lit, unshadowed * vis, 0.0) / n_light
+                vis_sum += vis
+                contributes |= lit
+            aovs.append(dr.select(contributes, vis_sum / n_light, 0.0))
+        return result, valid, aovs
+
+    def _footprint(self, ray: mi.RayDifferential3f, si):
+        """World-space pixel footprint on the tangent plane (ray differentials)."""
+        n = si.n
+        scale = self._diff_scale
+
+        def hit(o, d):
+            t = dr.dot(n, si.p - o) / dr.select(dr.abs(dr.dot(n, d)) > 1e-12,
+                                                dr.dot(n, d), 1e-12)
+            return o + d * t
+
+        o_x = ray.o + (ray.o_x - ray.o) * scale
+        o_y = ray.o + (ray.o_y - ray.o) * scale
+        d_x = ray.d + (ray.d_x - ray.d) * scale
+        d_y = ray.d + (ray.d_y - ray.d) * scale
+        ok = ray.has_differentials
+        dp_dx = dr.select(ok, hit(o_x, d_x) - si.p, 0.0)
+        dp_dy = dr.select(ok, hit(o_y, d_y) - si.p, 0.0)
+        return mi.Vector3f(dp_dx), mi.Vector3f(dp_dy)
+
+    def to_string(self):
+        return f"ShadowMapIntegrator[method={self.opts.method}, resolution={self.opts.resolution}]"
+
+
+class _ScalarRefusal:
+    """Registered for scalar variants: constructing it raises a clear error."""
+
+    def __init__(self, variant):
+        self.variant = variant
+
+    def __call__(self, props):
+        raise RuntimeError(
+            f"shadowmap: the Mitsuba variant '{self.variant}' is not supported; the shadowmap "
+            "integrator needs a JIT variant (llvm_ad_rgb, or cuda_ad_rgb where a GPU exists), "
+            "because a Python integrator in a scalar variant runs once per ray")
+
+
+def register(variant: str | None = None) -> None:
+    """Register ``shadowmap`` for the current Mitsuba variant."""
+    variant = variant or mi.variant()
+    if variant is None:
+        return
+    if variant.startswith("scalar"):
+        mi.register_integrator("shadowmap", _ScalarRefusal(variant))
+    else:
+        mi.register_integrator("shadowmap", lambda props: ShadowMapIntegrator(props))

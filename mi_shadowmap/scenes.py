@@ -1,0 +1,76 @@
+"""Built-in scenes, as Mitsuba dictionaries (no files needed).
+
+:func:`default_scene` is the scene of the README's main command: a sphere
+and a box on a ground plane under a spot light (the same layout as
+``scenes_xml/spot_sphere_box.xml``). Every builder takes a uniform ``scale``
+applied to geometry, lights and camera together (light intensities are
+scaled by ``scale**2`` so the image stays the same), which the scale
+invariance tests use.
+"""
+from __future__ import annotations
+
+import mitsuba as mi
+
+T = mi.ScalarTransform4f
+
+
+def _camera(scale, origin, target, width, height, spp, fov=40.0):
+    return {
+        "type": "perspective",
+        "fov": fov,
+        "near_clip": 1e-2 * scale,
+        "far_clip": 1e4 * scale,
+        "to_world": T().look_at(origin=[scale * c for c in origin],
+                                target=[scale * c for c in target], up=[0, 1, 0]),
+        "sampler": {"type": "independent", "sample_count": spp},
+        "film": {"type": "hdrfilm", "width": width, "height": height,
+                 "rfilter": {"type": "box"}},
+    }
+
+
+def _diffuse(r, g, b):
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": [r, g, b]}}
+
+
+def default_scene(scale: float = 1.0, width: int = 128, height: int = 128, spp: int = 16,
+                  light: str = "spot") -> dict:
+    """Sphere and box on a ground plane, lit by one ``light``.
+
+    ``light`` is 'spot' (default), 'point', 'directional' or 'area' (a
+    0.6-unit square area light).
+    """
+    S = T().scale(scale)
+    scene = {
+        "type": "scene",
+        "sensor": _camera(scale, [0.2, 3.5, 4.9], [0.25, 0.25, 0.0], width, height, spp),
+        "ground": {"type": "rectangle", "to_world": S @ T().rotate([1, 0, 0], -90).scale(4),
+                   "bsdf": _diffuse(0.7, 0.7, 0.7)},
+        "sphere": {"type": "sphere",
+                   "to_world": S @ T().translate([-0.85, 0.65, -0.6]).scale(0.65),
+                   "bsdf": _diffuse(0.75, 0.25, 0.2)},
+        "box": {"type": "cube",
+                "to_world": S @ T().translate([0.85, 0.5, -0.5]).rotate([0, 1, 0], 30).scale(0.5),
+                "bsdf": _diffuse(0.2, 0.4, 0.75)},
+    }
+    origin, target = [-2.4, 4.0, -3.4], [0.2, 0.0, 0.3]
+    if light == "spot":
+        scene["spot"] = {"type": "spot", "to_world": S @ T().look_at(origin=origin, target=target,
+                                                                    up=[0, 1, 0]),
+                         "intensity": {"type": "rgb", "value": 120.0 * scale**2},
+                         "cutoff_angle": 35.0, "beam_width": 28.0}
+    elif light == "point":
+        scene["point"] = {"type": "point", "position": [scale * c for c in origin],
+                          "intensity": {"type": "rgb", "value": 60.0 * scale**2}}
+    elif light == "directional":
+        scene["sun"] = {"type": "directional",
+                        "direction": [t - o for t, o in zip(target, origin)],
+                        "irradiance": {"type": "rgb", "value": 3.0}}
+    elif light == "area":
+        scene["area"] = {"type": "rectangle",
+                         "to_world": S @ T().look_at(origin=origin, target=target,
+                                                     up=[0, 1, 0]).scale(0.3),
+                         "emitter": {"type": "area",
+                                     "radiance": {"type": "rgb", "value": 40.0}}}
+    else:
+        raise ValueError(f"default_scene: light={light!r}; valid: spot, point, directional, area")
+    return scene

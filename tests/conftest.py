@@ -1,0 +1,44 @@
+"""Shared fixtures: paths, small renders, and helpers that return numpy arrays."""
+from __future__ import annotations
+
+import os
+import pathlib
+
+import numpy as np
+import pytest
+
+import mi_shadowmap  # noqa: F401  (LLVM set-up, variant, registration)
+import drjit as dr
+import mitsuba as mi
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SCENES = ROOT / "scenes_xml"
+SHARED = ROOT.parent / "shared"
+SCENE_FILES = sorted(SCENES.glob("*.xml"))
+
+
+@pytest.fixture(autouse=True)
+def _llvm_variant():
+    """Every test starts (and ends) in the default JIT variant."""
+    if mi.variant() != "llvm_ad_rgb":
+        mi.set_variant("llvm_ad_rgb")
+    yield
+    if mi.variant() != "llvm_ad_rgb":
+        mi.set_variant("llvm_ad_rgb")
+
+
+def render_np(scene, integrator, spp=16, seed=0):
+    """Render and split into (rgb, {aov_name: array})."""
+    if isinstance(integrator, dict):
+        integrator = mi.load_dict(integrator)
+    img = np.asarray(mi.render(scene, integrator=integrator, spp=spp, seed=seed))
+    names = integrator.aov_names() if hasattr(integrator, "aov_names") else []
+    return img[..., :3], {n: img[..., 3 + k] for k, n in enumerate(names)}
+
+
+def vis_stack(aovs: dict) -> np.ndarray:
+    return np.stack([aovs[k] for k in sorted(aovs)], axis=0)
+
+
+def relative_rmse(ref, test) -> float:
+    return float(np.sqrt(np.mean((ref - test) ** 2)) / max(np.sqrt(np.mean(ref ** 2)), 1e-12))

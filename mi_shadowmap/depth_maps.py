@@ -95,12 +95,29 @@ def _first_hit(scene: mi.Scene, view: LightView, o, d, max_t):
     return dr.select(pi.is_valid(), t_acc + pi.t, dr.inf)
 
 
-def build_depth_map(scene: mi.Scene, view: LightView, resolution: int) -> ShadowMap:
-    """Ray-cast the first-surface depth of every texel of ``view``."""
+#: Extra layers: ``name -> fn(scene, smap) -> mi.Float`` (``n_texels`` entries).
+#: Filters name the layers they need (``filters.LAYERS``); the integrator asks
+#: :func:`build_depth_map` for exactly those, so nothing unused is built.
+LAYER_BUILDERS: dict = {}
+
+
+def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
+                    layers=()) -> ShadowMap:
+    """Ray-cast the first-surface depth of every texel of ``view``, plus ``layers``."""
     o, d, max_t = view.texel_rays(resolution)
     depth = _first_hit(scene, view, o, d, max_t)
     dr.eval(depth)
-    return ShadowMap(view=view, resolution=resolution, depth=depth)
+    smap = ShadowMap(view=view, resolution=resolution, depth=depth)
+    for name in layers:
+        if name not in LAYER_BUILDERS:
+            raise KeyError(f"unknown depth-map layer '{name}'; known: {sorted(LAYER_BUILDERS)}")
+        data = LAYER_BUILDERS[name](scene, smap)
+        dr.eval(data)
+        if name == "second_depth":
+            smap.second_depth = data
+        else:
+            smap.extra[name] = data
+    return smap
 
 
 def write_exr(smap: ShadowMap, path: str, layer: str = "depth") -> None:

@@ -15,7 +15,7 @@ import mitsuba as mi
 
 from . import options as opt_mod
 from .depth_maps import ShadowMap, build_depth_map
-from .filters import FILTERS, NEEDS_FOOTPRINT, Lookup, RayTracedLight, shifted_grid_point
+from .filters import FILTERS, LAYERS, NEEDS_FOOTPRINT, Lookup, RayTracedLight, shifted_grid_point
 from .light_views import emitter_kind, emitter_label, make_light_view
 
 
@@ -82,7 +82,8 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
                 continue
             view = make_light_view(e, scene, i)
             self.views.append(view)
-            self.maps.append(build_depth_map(scene, view, self.opts.resolution))
+            self.maps.append(build_depth_map(scene, view, self.opts.resolution,
+                                             LAYERS.get(self.opts.method, ())))
         dr.sync_thread()
         self.build_seconds = time.perf_counter() - t0
         return self.maps

@@ -102,25 +102,8 @@ PROPERTIES: tuple[Prop, ...] = (
 _BY_NAME = {p.name: p for p in PROPERTIES}
 
 
-@dataclass(frozen=True)
-class Options:
-    """Validated integrator options (one attribute per entry of PROPERTIES)."""
-    method: str = "hard"
-    resolution: int = 1024
-    bias: float | None = None
-    slope_bias: float | None = None
-    normal_bias: float | None = None
-    shadow_rays: int = 1
-    hide_emitters: bool = False
-    environment: str = "error"
-    max_tan_slope: float = 20.0
-    num_samples: int = 16
-    min_samples: int = 2
-    res_factor: float = 1.0
-    min_size: float = 1.0
-    sampling: str = "jitter"
-    bias_range: tuple | None = None
-    given: frozenset = frozenset()
+class _OptionsBase:
+    """Resolved values and helpers shared by every :class:`Options`."""
 
     # Resolved biases (the automatic defaults are documented in PROPERTIES).
     @property
@@ -147,8 +130,13 @@ class Options:
         return parse_options({**{k: getattr(self, k) for k in self.given}, **changes})
 
 
-assert {f.name for f in dataclasses.fields(Options)} - {"given"} == set(_BY_NAME), \
-    "Options and PROPERTIES must list the same names"
+#: Validated integrator options: one attribute per entry of PROPERTIES, plus
+#: ``given`` (the names the user set explicitly).
+Options = dataclasses.make_dataclass(
+    "Options",
+    [(p.name, Any, dataclasses.field(default=p.default)) for p in PROPERTIES]
+    + [("given", frozenset, dataclasses.field(default=frozenset()))],
+    bases=(_OptionsBase,), frozen=True)
 
 
 def _type_name(v: Any) -> str:

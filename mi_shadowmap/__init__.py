@@ -10,14 +10,19 @@ Importing the package
 """
 from __future__ import annotations
 
-from ._llvm import LLVMNotFoundError, configure_llvm
+import sys
+
+from ._llvm import LLVMNotFoundError, check_loaded_llvm, configure_llvm
 
 __version__ = "0.1.0"
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
+_DRJIT_IMPORTED_BEFORE = "drjit" in sys.modules
 LIBLLVM_PATH = configure_llvm()
 
 import mitsuba as mi  # noqa: E402  (after the LLVM path is configured)
+
+LLVM_VERSION = check_loaded_llvm(_DRJIT_IMPORTED_BEFORE, mi.variant())
 
 if mi.variant() is None:
     mi.set_variant(DEFAULT_VARIANT)

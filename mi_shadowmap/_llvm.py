@@ -17,7 +17,13 @@ Search order (the first hit wins):
    ``/usr/local/lib`` and ``/opt/homebrew/opt/llvm/lib``.
 
 Candidates whose version (read from the file name) is below 16 are skipped
-and reported. When nothing usable is found, :class:`LLVMNotFoundError`
+and reported.
+
+Dr.Jit reads ``DRJIT_LIBLLVM_PATH`` once, when ``drjit`` (or ``mitsuba``) is
+first imported. So ``import mi_shadowmap`` must come before ``import
+mitsuba``/``import drjit``, unless the variable is set in the environment.
+After importing Dr.Jit, :func:`check_loaded_llvm` asks it which LLVM it
+actually loaded and refuses one older than 16 with an explanation. When nothing usable is found, :class:`LLVMNotFoundError`
 lists every path that was tried and how to fix it.
 """
 from __future__ import annotations
@@ -109,3 +115,29 @@ def configure_llvm() -> str:
     path, _ = find_libllvm()
     os.environ[ENV_VAR] = path
     return path
+
+
+def check_loaded_llvm(drjit_imported_before: bool, variant: str | None) -> tuple:
+    """Verify the LLVM version Dr.Jit actually loaded; raise if it is too old.
+
+    Only LLVM variants need it: for a CUDA variant an old LLVM is ignored.
+    """
+    import drjit as dr
+    try:
+        version = tuple(dr.detail.llvm_version())
+    except Exception:   # backend inactive: no library could be loaded
+        version = (0, 0, 0)
+    if version[0] >= MIN_LLVM_VERSION or (variant and not variant.startswith("llvm")):
+        return version
+    if version[0] == 0:
+        problem = "Dr.Jit's LLVM backend is inactive (it could not load any libLLVM)"
+    else:
+        problem = "Dr.Jit loaded LLVM %s, which crashes it (>= %d is needed)" % (
+            ".".join(map(str, version)), MIN_LLVM_VERSION)
+    why = ("drjit/mitsuba was imported before mi_shadowmap, so Dr.Jit chose its libLLVM "
+           "before mi_shadowmap could point it at %s. Import mi_shadowmap first, or set "
+           "%s=%s before starting Python." % (os.environ.get(ENV_VAR), ENV_VAR,
+                                              os.environ.get(ENV_VAR))
+           if drjit_imported_before else
+           "%s=%s was set, but Dr.Jit did not use it." % (ENV_VAR, os.environ.get(ENV_VAR)))
+    raise LLVMNotFoundError("mi_shadowmap: %s. %s" % (problem, why))

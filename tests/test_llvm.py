@@ -1,5 +1,7 @@
 """LLVM discovery: version parsing, search order and the error when nothing works."""
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -47,3 +49,26 @@ def test_user_setting_is_respected_and_checked(monkeypatch, tmp_path):
     monkeypatch.setenv(_llvm.ENV_VAR, str(tmp_path / "missing.so"))
     with pytest.raises(_llvm.LLVMNotFoundError, match="does not exist"):
         _llvm.configure_llvm()
+
+
+def _run(code, env_extra=None):
+    env = {k: v for k, v in os.environ.items() if k != _llvm.ENV_VAR}
+    env.update(env_extra or {})
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, timeout=300)
+
+
+def test_fresh_process_uses_a_recent_llvm():
+    r = _run("import mi_shadowmap, drjit as dr; print(dr.detail.llvm_version()[0])")
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout.split()[-1]) >= _llvm.MIN_LLVM_VERSION
+
+
+def test_importing_drjit_first_is_explained_not_crashed():
+    """Dr.Jit reads DRJIT_LIBLLVM_PATH at import; importing it first cannot be fixed later."""
+    r = _run("import drjit, mi_shadowmap")
+    loaded_old = r.returncode != 0
+    if not loaded_old:
+        pytest.skip("this machine's default libLLVM is recent enough; nothing to explain")
+    assert "imported before mi_shadowmap" in r.stderr
+    assert _llvm.ENV_VAR in r.stderr

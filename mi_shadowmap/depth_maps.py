@@ -72,33 +72,178 @@ class ShadowMap:
 
 
 def _first_hit(scene: mi.Scene, view: LightView, o, d, max_t):
-    """Distance to the first surface along (o, d), skipping the light's own shape."""
+    """Distance to the first surface along (o, d), skipping the light's own shape.
+
+    Hits closer to the origin than ``1e-6 * max|o|`` (about 8 float ulps of
+    the light position) are skipped too: they are numerically *at* the light,
+    e.g. the floor under a light placed exactly on it, whose rounding puts
+    the origin a hair below the plane so that every upward ray "hits" it at
+    t ~ 1e-8 and the whole face reads depth 0 (issue 6). Scale-invariant.
+    """
     ray = mi.Ray3f(o, d)
     pi = scene.ray_intersect_preliminary(ray, coherent=True)
-    if view.ignore_shape is None:
-        return dr.select(pi.is_valid(), pi.t, dr.inf)
-    own = mi.ShapePtr(view.ignore_shape)
+    own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
+    eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     t_acc = mi.Float(0.0)
+    it = dr.zeros(mi.UInt32, dr.width(pi.t))
 
-    # Continue through the emitter's own surface (it must never occlude itself).
-    def cond(ray, pi, t_acc):
-        return pi.is_valid() & (pi.shape == own)
+    def skip(pi, t_acc):
+        s = pi.is_valid() & (t_acc + pi.t <= eps_o)
+        if own is not None:   # the emitter's own surface must never occlude itself
+            s |= pi.is_valid() & (pi.shape == own)
+        return s
 
-    def body(ray, pi, t_acc):
-        step = pi.t * (1.0 + 1e-5) + 1e-7 * (t_acc + pi.t)
+    def cond(ray, pi, t_acc, it):
+        return skip(pi, t_acc) & (it < 32)
+
+    def body(ray, pi, t_acc, it):
+        # The 1e-6 * max|o| term (~8 float ulps of the origin) guarantees the origin
+        # moves: rays start ON the light's surface, whose re-hits at t ~ 1e-7 would
+        # otherwise round to no move and loop forever (issue 6). Scale-invariant.
+        step = (pi.t * (1.0 + 1e-5) + 1e-7 * (t_acc + pi.t)
+                + 1e-6 * dr.max(dr.abs(mi.Vector3f(ray.o))))
         t_acc = t_acc + step
         ray = mi.Ray3f(ray.o + ray.d * step, ray.d)
         pi = scene.ray_intersect_preliminary(ray, coherent=True)
-        return ray, pi, t_acc
+        return ray, pi, t_acc, it + 1
 
-    ray, pi, t_acc = dr.while_loop((ray, pi, t_acc), cond, body)
-    return dr.select(pi.is_valid(), t_acc + pi.t, dr.inf)
+    ray, pi, t_acc, it = dr.while_loop((ray, pi, t_acc, it), cond, body)
+    return dr.select(pi.is_valid() & ~skip(pi, t_acc), t_acc + pi.t, dr.inf)
 
 
 #: Extra layers: ``name -> fn(scene, smap) -> mi.Float`` (``n_texels`` entries).
 #: Filters name the layers they need (``filters.LAYERS``); the integrator asks
 #: :func:`build_depth_map` for exactly those, so nothing unused is built.
 LAYER_BUILDERS: dict = {}
+
+
+def shape_is_solid(shape) -> bool:
+    """Whether ``shape`` bounds a solid with outward normals (set-up time, numpy).
+
+    Meshes: watertight and consistently oriented once coincident vertices
+    are welded, with a positive signed volume
+    (:func:`mi_shadowmap.procedural.check_closed`); Mitsuba's ``sphere``:
+    yes; every other shape (rectangle, disk, open cylinder, instances, ...):
+    no -- it is a two-sided non-solid for :func:`_second_surface`.
+    """
+    if shape.is_mesh():
+        from .procedural import check_closed
+        v = shape.vertex_positions_buffer().numpy().reshape(-1, 3)
+        f = shape.faces_buffer().numpy().reshape(-1, 3)
+        if len(f) == 0:
+            return False
+        closed, volume = check_closed(v, f)
+        return bool(closed and volume > 0)
+    return str(shape).split("[", 1)[0].strip() == "Sphere"
+
+
+def _solid_table(scene: mi.Scene) -> mi.Bool:
+    """``table[id]``: is the shape with registry id ``id`` a solid (see above)."""
+    ids, flags = [], []
+    for shape in scene.shapes():
+        ids.append(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]))
+        flags.append(shape_is_solid(shape))
+    table = [False] * (max(ids, default=0) + 1)
+    for i, f in zip(ids, flags):
+        table[i] = f
+    return mi.Bool(table)
+
+
+def _second_surface(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
+    """Wang & Molnar (1994) second-depth layer: the second surface from the light.
+
+    The paper's "front-face culling" construction (sec. 3.4, Pass 1), done
+    with ray queries: one ``dr.while_loop`` (one kernel) per texel ray
+    continues past hits until it stores
+
+    * the first **back-facing** hit of a **solid** (``dot(n, d) > 0`` with
+      the geometric normal ``n``): for closed solids this is where the ray
+      leaves the first solid it entered -- the second surface from the
+      light. Front-facing hits of solids are skipped (culled);
+    * or the first hit of a **non-solid** (an open or one-sided surface,
+      either side): the paper treats non-solids as "solids with
+      infinitesimal thickness -- the first and second surface are the
+      same" (sec. 3.3) and renders a two-sided surface's side facing away
+      from the light in Pass 1, so the surface itself is stored;
+    * ``+inf`` where the ray escapes without either (no hit at all); a ray
+      that escapes after entering a solid without leaving it (a broken
+      solid) stores its first hit, like a non-solid.
+
+    Solids are found per shape at build time (:func:`shape_is_solid`), so
+    a closed solid standing in front of an open floor and an open surface
+    in front of a solid both work; interpenetrating solids are fine (the
+    ray leaves the first solid it entered at its back face). The emitter's
+    own shape (area lights) and hits numerically at the light (as in
+    :func:`_first_hit`) are skipped. Continuation rays start a relative step
+    (``1e-6 max|p| + 1e-5 z``) past the hit (Mitsuba's ``spawn_ray`` offset has an
+    absolute floor that broke scale invariance); at most 64 hits per texel.
+    """
+    view = smap.view
+    o, d, _ = view.texel_rays(smap.resolution)
+    own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
+    solid = _solid_table(scene)
+    eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
+    ray = mi.Ray3f(o, d)
+    n = dr.width(d)
+    z_first = dr.full(mi.Float, dr.inf, n)
+    z_second = dr.full(mi.Float, dr.inf, n)
+    it = dr.zeros(mi.UInt32, n)
+    active = dr.full(mi.Bool, True, n)
+
+    def cond(ray, z_first, z_second, it, active):
+        return active
+
+    def body(ray, z_first, z_second, it, active):
+        si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True, active)
+        hit = active & si.is_valid()
+        if own is not None:
+            hit_own = hit & (si.shape == own)
+        else:
+            hit_own = mi.Bool(False)
+        # Hits within ~8 ulps of the light position are AT the light (see _first_hit).
+        hit_own |= hit & (dr.dot(si.p - o, d) <= 1e-6 * dr.max(dr.abs(mi.Vector3f(o))))
+        z = dr.dot(si.p - o, d)
+        counted = hit & ~hit_own & (z > eps_o)   # hits at the light: see _first_hit
+        shape_id = dr.reinterpret_array(mi.UInt32, si.shape)
+        is_solid = dr.gather(mi.Bool, solid, shape_id, counted)
+        back = dr.dot(si.n, d) > 0
+        store = counted & (back | ~is_solid)
+        z_second = dr.select(store, z, z_second)
+        z_second = dr.select(active & ~hit, z_first, z_second)   # escaped
+        z_first = dr.select(counted & dr.isinf(z_first), z, z_first)
+        it = it + 1
+        active = active & hit & ~store & (it < 64)
+        # Continue a relative step past the hit (not si.spawn_ray: its offset has an
+        # absolute floor, (1 + max|p|) * eps, which broke scale invariance, issue 6).
+        step = 1e-6 * dr.max(dr.abs(mi.Vector3f(si.p))) + 1e-5 * dr.abs(z)
+        ray = dr.select(active, mi.Ray3f(si.p + d * step, d), ray)
+        return ray, z_first, z_second, it, active
+
+    state = dr.while_loop((ray, z_first, z_second, it, active), cond, body)
+    return state[2]
+
+
+def _neighbourhood_extreme(smap: "ShadowMap", reduce) -> mi.Float:
+    """``reduce`` (dr.minimum / dr.maximum) of the base depths over the 3 x 3 texels
+    around every texel (clamped at the face border): Pagot et al. (2004)'s
+    extra depths of a multiple-depth map, with q = 9."""
+    res = smap.resolution
+    idx = dr.arange(mi.UInt32, smap.n_texels)
+    face = idx // (res * res)
+    rem = idx - face * (res * res)
+    j = mi.Int32(rem // res)
+    i = mi.Int32(rem - (rem // res) * res)
+    out = smap.fetch(smap.depth, face, i, j)
+    for dj in (-1, 0, 1):
+        for di in (-1, 0, 1):
+            if di or dj:
+                out = reduce(out, smap.fetch(smap.depth, face, i + di, j + dj))
+    return out
+
+
+LAYER_BUILDERS["second_depth"] = _second_surface
+LAYER_BUILDERS["mdsm_min"] = lambda scene, smap: _neighbourhood_extreme(smap, dr.minimum)
+LAYER_BUILDERS["mdsm_max"] = lambda scene, smap: _neighbourhood_extreme(smap, dr.maximum)
 
 
 def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,

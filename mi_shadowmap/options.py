@@ -24,7 +24,8 @@ from dataclasses import dataclass
 from typing import Any, Iterable
 
 #: Every lookup method, in the order they are documented.
-METHODS = ("raytraced", "hard", "unshadowed")
+METHODS = ("raytraced", "hard", "unshadowed", "pcss", "pcf", "bilinear",
+           "second_depth", "mdsm")
 #: Methods that read a depth map.
 MAP_METHODS = tuple(m for m in METHODS if m not in ("raytraced", "unshadowed"))
 
@@ -57,14 +58,42 @@ class Prop:
 
 
 _ALL = None
+_BYTES_PER_TEXEL = 4   # float32 depth texels (see depth_maps.ShadowMap.nbytes)
 _PCF = ("pcf",)
+_PCSS = ("pcss",)
 PROPERTIES: tuple[Prop, ...] = (
     Prop("method", "str", "hard",
          "Visibility lookup: 'raytraced' (shadow rays, the ground truth), 'hard' (Williams "
-         "1978), 'unshadowed' (visibility 1: the cost baseline of benchmarks).",
+         "1978), 'unshadowed' (visibility 1: the cost baseline of benchmarks), 'pcf' "
+         "(Reeves et al. 1987 percentage-closer filtering of the pixel footprint), "
+         "'bilinear' (Brabec & Seidel fixed-footprint / bilinear PCF, see 'kernel').",
          choices=METHODS),
-    Prop("resolution", "int", 1024, "Depth-map resolution per map face (texels per side).",
+    Prop("resolution", "int", None,
+         "Depth-map resolution per map face (texels per side). Default: automatic -- twice "
+         "the film's larger side (Reeves et al. 1987 used maps the size of the image up to "
+         "twice it) times a camera-footprint factor in [0.5, 4] (texel width over pixel "
+         "width at the scene's centre), lowered if needed so that all maps of the scene fit "
+         "in memory_budget (see Options.map_resolution).",
          lo=1, hi=65536),
+    Prop("memory_budget", "float", 1024.0,
+         "Memory allowed for the depth maps of one render, in MiB (all emitters, faces and "
+         "layers, 4 bytes per texel). An explicit resolution that needs more is refused "
+         "before anything is allocated; the automatic resolution is capped by it.",
+         lo=0.0, lo_open=True),
+    Prop("cache_maps", "bool", True,
+         "Reuse depth maps across renders while the scene's shapes and emitters are "
+         "unchanged (maps are rebuilt after mi.traverse + params.update() changes them)."),
+    Prop("cull_faces", "bool", False,
+         "Cube maps (point and area lights): build only the faces that camera-visible points "
+         "(one camera ray per pixel, plus a few texels of margin) project into; the others "
+         "read +inf (lit). A camera change that needs a new face builds it.",
+         methods=MAP_METHODS),
+    Prop("fit_frusta", "bool", False,
+         "Spot and directional maps: fit the frustum to the camera-visible receivers inside "
+         "it (one camera ray per pixel, plus a margin of texels); every caster of a visible "
+         "shadow projects into the same window, so casters are kept. Raises the texel "
+         "density where the camera sees a small part of the scene; the maps then depend on "
+         "the camera (a camera change rebuilds them).", methods=MAP_METHODS),
     Prop("bias", "float", None,
          "Constant depth bias in world units. Default: automatic (0 plus the texel-scaled "
          "slope and normal biases, which are scale-invariant).", lo=0.0),
@@ -98,6 +127,63 @@ PROPERTIES: tuple[Prop, ...] = (
     Prop("bias_range", "pair", None,
          "Stochastic bias [bias0, bias1] in world units, drawn per sample (Reeves).",
          lo=0.0, methods=_PCF),
+    Prop("receiver_plane", "bool", True,
+         "Compare each PCF tap against the receiver's tangent plane at that texel instead of "
+         "the shading point's single depth (receiver-plane depth bias; not in Reeves 1987 or "
+         "Brabec & Seidel; false gives their single-depth comparison).",
+         methods=("pcf", "bilinear")),
+    # Brabec & Seidel: fixed-footprint (bilinear / "fast") PCF.
+    Prop("kernel", "int", 2,
+         "Footprint of the fixed-footprint PCF in texels per axis: 1 = one nearest-texel "
+         "compare (exactly 'hard'), 2 = the 2x2 bilinear hardware PCF, k = k x k texels "
+         "(a (k-1) x (k-1) grid of bilinear lookups one texel apart).",
+         lo=1, hi=8, methods=("bilinear",)),
+    # Wang & Molnar 1994 second-depth maps; Pagot, Comba & Oliveira 2004 multiple-depth maps.
+    Prop("pcf_samples", "int", None,
+         "Percentage-closer taps k (PCF(k, n) of Pagot et al.): one compare per texel of the "
+         "sqrt(k) x sqrt(k) texels nearest the lookup point. Default: 9 for mdsm (the paper's "
+         "PCF(9, n)), 4 (2 x 2) for second_depth.",
+         choices=(1, 4, 9, 16, 25), methods=("second_depth", "mdsm")),
+    Prop("virtual_samples", "bool", True,
+         "second_depth: where the neighbourhood compares disagree, compare depths of virtual "
+         "samples on the receiver's tangent plane (Wang & Molnar 1994, sec. 3.2); false keeps "
+         "the plain compares.", methods=("second_depth",)),
+    Prop("depths", "int", 2,
+         "Depths n per cell of the multiple-depth map: 1 = standard map, 2 = plus the maximum, "
+         "3 = plus maximum and minimum over the 'search' neighbourhood (Pagot et al. 2004).",
+         choices=(1, 2, 3), methods=("mdsm",)),
+    Prop("search", "int", 3,
+         "Side (texels) of the square neighbourhood of the base map searched for the extra "
+         "depths of mdsm (q = search^2 samples; the paper's 3 x 3).",
+         choices=(1, 3, 5, 7, 9), methods=("mdsm",)),
+    # Percentage-closer soft shadows (Fernando 2005; thesis 002, sec. 2.1.5 / 4).
+    Prop("blocker_samples", "int", 16, "PCSS blocker-search taps (Fernando's BLOCKER_SEARCH_"
+         "NUM_SAMPLES).", lo=1, hi=4096, methods=_PCSS),
+    Prop("filter_samples", "int", 16, "PCSS filtering (PCF) taps (Fernando's PCF_NUM_SAMPLES).",
+         lo=1, hi=4096, methods=_PCSS),
+    Prop("light_size", "float", None,
+         "Light width in world units for PCSS. Default: derived from an area emitter's shape "
+         "(side of the square of equal projected area, see light_views), 0 for point and "
+         "spot lights (hard shadows); > 0 gives point/spot lights a PCSS penumbra.",
+         lo=0.0, methods=_PCSS),
+    Prop("max_kernel", "float", 64.0,
+         "Largest PCSS blocker-search and filter kernel width, in texels of the map.",
+         lo=1.0, hi=4096.0, methods=_PCSS),
+    Prop("pattern", "str", "stratified",
+         "PCSS tap pattern: 'stratified' (square grid, shifted per camera sample) or 'poisson' "
+         "(a Poisson disk, rotated per camera sample).",
+         choices=("stratified", "poisson"), methods=_PCSS),
+    Prop("angular_diameter", "float", 0.0,
+         "Apparent diameter of a directional light (sun: about 0.53), in degrees; > 0 gives "
+         "directional lights a PCSS penumbra.", lo=0.0, hi=30.0, methods=_PCSS),
+    # Parallel-split / cascaded shadow maps (thesis 002, sec. 2.1.6-2.1.7, 5.1).
+    Prop("cascades", "int", 1,
+         "Directional lights: number of parallel-split maps over the camera's view depth "
+         "(each 'resolution' squared, fitted to its slice).", lo=1, hi=4, methods=MAP_METHODS),
+    Prop("split_lambda", "float", 0.5,
+         "Weight of the uniform split scheme against the logarithmic one (thesis eq. in "
+         "sec. 5.1: C_i = lambda*C_uni + (1-lambda)*C_log).", lo=0.0, hi=1.0,
+         methods=MAP_METHODS),
 )
 _BY_NAME = {p.name: p for p in PROPERTIES}
 
@@ -126,6 +212,50 @@ class _OptionsBase:
     def uses_map(self) -> bool:
         return self.method in MAP_METHODS
 
+    @property
+    def budget_bytes(self) -> int:
+        return int(self.memory_budget * 2**20)
+
+    def map_resolution(self, film_size, face_layers: int, footprint: float = 1.0) -> int:
+        """The per-face resolution of one render's maps; checks ``memory_budget``.
+
+        ``face_layers`` is the number of ``res x res`` float32 arrays the render
+        needs (sum over emitters of faces x layers). An explicit ``resolution``
+        that would need more than ``memory_budget`` raises :class:`OptionError`
+        stating the memory needed (nothing has been allocated yet).
+
+        The automatic resolution is ``2 * max(film width, height) * f``
+        (Reeves et al. 1987 used maps the size of the image up to twice it),
+        where ``f = footprint`` clamped to [0.5, 4] is the camera-footprint
+        correction: the world width a map spans per texel column divided by the
+        width the camera spans per pixel column, both at the centre of the
+        scene's bounds (largest over the lights; computed by the integrator,
+        1 when unknown), so that one texel covers at most about half a pixel
+        there. It is rounded up to a multiple of 8, capped at 8192, and lowered
+        to the largest value whose maps fit in the budget.
+        """
+        face_layers = max(int(face_layers), 1)
+        budget = self.budget_bytes
+        if self.resolution is not None:
+            need = face_layers * self.resolution ** 2 * _BYTES_PER_TEXEL
+            if need > budget:
+                raise OptionError(
+                    f"shadowmap: property 'resolution' = {self.resolution} would need "
+                    f"{_fmt_bytes(need)} ({face_layers} map face(s)/layer(s) of "
+                    f"{self.resolution}^2 float32 texels), more than memory_budget = "
+                    f"{self.memory_budget:g} MiB; lower 'resolution' or raise 'memory_budget'")
+            return self.resolution
+        cap = math.isqrt(budget // (_BYTES_PER_TEXEL * face_layers))
+        if cap < 1:
+            raise OptionError(
+                f"shadowmap: property 'memory_budget' = {self.memory_budget:g} MiB cannot hold "
+                f"{face_layers} map face(s)/layer(s) even at resolution 1 "
+                f"({face_layers * _BYTES_PER_TEXEL} bytes)")
+        f = min(max(float(footprint), 0.5), 4.0) if math.isfinite(footprint) else 1.0
+        auto = 2.0 * max(int(film_size[0]), int(film_size[1])) * f
+        auto = min(8 * math.ceil(auto / 8), 8192)
+        return max(1, min(auto, cap))
+
     def replace(self, **changes) -> "Options":
         return parse_options({**{k: getattr(self, k) for k in self.given}, **changes})
 
@@ -137,6 +267,10 @@ Options = dataclasses.make_dataclass(
     [(p.name, Any, dataclasses.field(default=p.default)) for p in PROPERTIES]
     + [("given", frozenset, dataclasses.field(default=frozenset()))],
     bases=(_OptionsBase,), frozen=True)
+
+
+def _fmt_bytes(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB ({n} bytes)" if n >= 2**20 else f"{n} bytes"
 
 
 def _type_name(v: Any) -> str:
@@ -201,6 +335,9 @@ def _as_float(prop: Prop, value: Any) -> float:
 
 
 def _check_range(prop: Prop, value: float) -> None:
+    if prop.choices is not None and value not in prop.choices:
+        raise OptionError(f"shadowmap: property '{prop.name}' = {value!r} is not valid; valid "
+                          f"values: {', '.join(repr(c) for c in prop.choices)}")
     bad = False
     if prop.lo is not None:
         bad |= value <= prop.lo if prop.lo_open else value < prop.lo
@@ -254,6 +391,13 @@ def parse_options(props: Any) -> Options:
             raise OptionError(
                 f"shadowmap: property '{name}' is not used by method '{method}' "
                 f"(it is used by: {', '.join(methods)})")
+    res = values.get("resolution")
+    budget = values.get("memory_budget", _BY_NAME["memory_budget"].default)
+    if res is not None and res * res * _BYTES_PER_TEXEL > budget * 2**20:
+        raise OptionError(   # one face already exceeds the budget: refuse at load time
+            f"shadowmap: property 'resolution' = {res} would need at least "
+            f"{_fmt_bytes(res * res * _BYTES_PER_TEXEL)} per map face, more than "
+            f"memory_budget = {budget:g} MiB; lower 'resolution' or raise 'memory_budget'")
     return Options(**values, given=frozenset(values))
 
 

@@ -11,7 +11,7 @@ def load(**props):
 
 def test_defaults():
     o = parse_options({})
-    assert o.method == "hard" and o.resolution == 1024 and o.shadow_rays == 1
+    assert o.method == "hard" and o.resolution is None and o.shadow_rays == 1  # None: automatic
     assert o.bias_world == 0.0 and o.slope_bias_texels == 1.0 and o.normal_bias_texels == 0.5
 
 

@@ -25,10 +25,12 @@ light, see :mod:`mi_shadowmap.light_views`): a receiver at biased depth
 """
 from __future__ import annotations
 
-from . import basic
+from . import basic, bilinear, pcf, pcss
+from . import mdsm, second_depth
 from .common import Lookup, RayTracedLight, Receiver, receiver, shifted_grid_point  # noqa: F401
 
-_MODULES = (basic,)
+_MODULES = (basic, pcss, pcf, bilinear)
+_MODULES += (second_depth, mdsm)
 
 FILTERS: dict = {}
 NEEDS_FOOTPRINT: set = set()

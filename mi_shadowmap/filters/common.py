@@ -80,7 +80,7 @@ def receiver(smap, lk: Lookup, opts) -> Receiver:
     n_towards = dr.select(cos_nl < 0, -lk.n_world, lk.n_world)
     cos_nl = dr.clip(dr.abs(cos_nl), 1e-6, 1.0)
     tan_theta = dr.minimum(dr.safe_sqrt(1.0 - cos_nl * cos_nl) / cos_nl, opts.max_tan_slope)
-    texel = view.texel_world_size(res, view.depth_of(p))
+    texel = view.texel_world_size(res, view.depth_of(p), p)   # p: cascaded maps
     if opts.normal_bias_texels > 0:
         p = p + n_towards * (opts.normal_bias_texels * texel)
     face, uv, depth, inside = view.project(p)
@@ -102,3 +102,375 @@ def shifted_grid_point(k: int, n: int, shift: mi.Point2f) -> mi.Point2f:
     return u - dr.floor(u)
 
 
+
+
+# ------------------------------------------------------------------ tap patterns
+def _poisson_disk(n: int, seed: int = 7) -> list:
+    """``n`` points of a Poisson disk in the unit disk (deterministic dart throwing).
+
+    Pure Python, run once per ``n`` at set-up; the minimum distance starts at
+    ``1.5 / sqrt(n)`` and shrinks whenever 1000 darts in a row fail.
+    """
+    import random
+    rng = random.Random(seed)
+    r_min = 1.5 / math.sqrt(n)
+    pts, fails = [], 0
+    while len(pts) < n:
+        x, y = rng.uniform(-1, 1), rng.uniform(-1, 1)
+        if x * x + y * y > 1.0:
+            continue
+        if all((x - a) ** 2 + (y - b) ** 2 >= r_min * r_min for a, b in pts):
+            pts.append((x, y))
+            fails = 0
+        else:
+            fails += 1
+            if fails > 1000:
+                r_min *= 0.9
+                fails = 0
+    return pts
+
+
+_POISSON_CACHE: dict = {}
+
+
+def tap_offset(k, n: int, pattern: str, rnd: mi.Point2f) -> mi.Point2f:
+    """Offset of tap ``k`` (``mi.UInt32``) of ``n``, in units of the kernel half-width.
+
+    * ``'stratified'``: the ``shifted_grid_point`` grid over the square
+      ``[-1, 1]^2``, toroidally shifted by ``rnd`` (uniform per camera sample);
+    * ``'poisson'``: a fixed Poisson disk in the unit disk, rotated by the
+      angle ``2 pi rnd.x``.
+    """
+    if pattern == "stratified":
+        cols = math.ceil(math.sqrt(n))
+        rows = math.ceil(n / cols)
+        kx = k % cols
+        ky = k // cols
+        u = mi.Point2f((mi.Float(kx) + 0.5) / cols, (mi.Float(ky) + 0.5) / rows) + rnd
+        u = u - dr.floor(u)
+        return u * 2.0 - 1.0
+    if n not in _POISSON_CACHE:
+        pts = _poisson_disk(n)
+        _POISSON_CACHE[n] = (mi.Float([p[0] for p in pts]), mi.Float([p[1] for p in pts]))
+    px, py = _POISSON_CACHE[n]
+    x = dr.gather(mi.Float, px, k)
+    y = dr.gather(mi.Float, py, k)
+    s, c = dr.sincos(2.0 * math.pi * rnd.x)
+    return mi.Point2f(c * x - s * y, s * x + c * y)
+
+
+# ------------------------------------------------------- receiver-plane depth
+@dataclass
+class ReceiverPlane:
+    """The receiver's tangent plane, for per-tap depth comparisons.
+
+    Comparing every tap of a wide kernel with the single receiver depth
+    makes a tilted receiver shadow itself; instead each tap's texel is
+    compared with the depth at which that texel's light ray meets the
+    receiver's tangent plane ("receiver-plane depth bias"), minus the
+    receiver's own bias (:func:`receiver`).
+    """
+    p_world: mi.Point3f
+    n_world: mi.Vector3f
+    depth0: mi.Float             # unbiased map depth of p_world
+    offset: mi.Float             # depth0 - biased receiver depth (>= the receiver's bias)
+    max_tan: float
+    light_front: tuple | None = None   # emitting normal of a planar one-sided light, or None
+
+
+def receiver_plane(smap, lk: Lookup, r: Receiver, opts, light_front: bool = False
+                   ) -> ReceiverPlane:
+    """The receiver's tangent plane; with ``light_front`` and a planar one-sided
+    area light (``view.extra['light_normal']``), texels whose ray leaves the
+    light's centre behind its emitting plane can neither block nor shadow
+    (:func:`plane_depth_at` returns -inf for them)."""
+    depth0 = smap.view.depth_of(lk.p_world)
+    front = smap.view.extra.get("light_normal") if light_front else None
+    return ReceiverPlane(lk.p_world, lk.n_world, depth0, depth0 - r.depth, opts.max_tan_slope,
+                         front)
+
+
+def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, lateral_world):
+    """Biased receiver depth to compare with the texel at ``uv_light``.
+
+    The depth where the texel's ray meets the tangent plane, clamped to
+    ``depth0 +- lateral_world * max_tan_slope`` (``lateral_world``: the tap's
+    distance from the receiver, in world units at the receiver), so that
+    grazing planes stay finite; minus ``plane.offset``.
+    """
+    o, d = smap.view.ray_through(face, uv_light)
+    denom = dr.dot(plane.n_world, d)
+    t = dr.dot(plane.n_world, plane.p_world - o) / dr.select(dr.abs(denom) > 1e-12, denom, 1e-12)
+    lim = lateral_world * plane.max_tan
+    t = dr.clip(t, plane.depth0 - lim, plane.depth0 + lim)
+    if plane.light_front is not None:   # behind a one-sided light: cannot occlude it
+        t = dr.select(dr.dot(d, mi.Vector3f(*plane.light_front)) > 0, t, -dr.inf)
+    return t - plane.offset
+
+
+def tap_texel(smap, r: Receiver, offset_texels: mi.Point2f):
+    """Integer texel (i, j) at ``offset_texels`` from the receiver, clamped to the face,
+    and the uv of its centre."""
+    res = smap.resolution
+    ij = dr.clip(mi.Point2i(dr.floor(r.uv * res + offset_texels)), 0, res - 1)
+    uv = (mi.Point2f(ij) + 0.5) / res
+    return ij, uv
+
+
+def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
+                   n: int, pattern: str, rnd: mi.Point2f, active):
+    """PCSS step 1 (Fernando 2005): mean depth of the blockers in a search region.
+
+    ``n`` taps (``tap_offset`` pattern) over the region of half-width
+    ``half_texels`` around the receiver; a texel is a blocker when its depth
+    is below the receiver plane's depth there (:func:`plane_depth_at`).
+
+    Returns ``(sum of blocker depths, number of blockers)``; one
+    ``dr.while_loop``.
+    """
+    k = mi.UInt32(0)
+    z_sum = mi.Float(0.0)
+    count = mi.Float(0.0)
+    active = mi.Bool(active)
+
+    def cond(k, z_sum, count):
+        return active & (k < n)
+
+    def body(k, z_sum, count):
+        off = tap_offset(k, n, pattern, rnd) * half_texels
+        ij, uv = tap_texel(smap, r, off)
+        z_map = smap.fetch(smap.depth, r.face, ij.x, ij.y, active)
+        lateral = dr.norm(off) * r.texel_world
+        blocked = z_map < plane_depth_at(smap, plane, r.face, uv, lateral)
+        z_sum = dr.select(blocked, z_sum + z_map, z_sum)
+        count = dr.select(blocked, count + 1.0, count)
+        return k + 1, z_sum, count
+
+    k, z_sum, count = dr.while_loop((k, z_sum, count), cond, body)
+    return z_sum, count
+
+
+def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
+              n: int, pattern: str, rnd: mi.Point2f, active) -> mi.Float:
+    """Percentage-closer filtering with receiver-plane depths (PCSS step 3).
+
+    Fraction of ``n`` taps (``tap_offset`` pattern, half-width
+    ``half_texels``) whose texel depth is not below the receiver plane's
+    depth there; one ``dr.while_loop``.
+    """
+    k = mi.UInt32(0)
+    lit = mi.Float(0.0)
+    active = mi.Bool(active)
+
+    def cond(k, lit):
+        return active & (k < n)
+
+    def body(k, lit):
+        off = tap_offset(k, n, pattern, rnd) * half_texels
+        ij, uv = tap_texel(smap, r, off)
+        z_map = smap.fetch(smap.depth, r.face, ij.x, ij.y, active)
+        lateral = dr.norm(off) * r.texel_world
+        ok = z_map >= plane_depth_at(smap, plane, r.face, uv, lateral)
+        return k + 1, dr.select(ok, lit + 1.0, lit)
+
+    k, lit = dr.while_loop((k, lit), cond, body)
+    return lit / n
+
+# ------------------------------------------------------------------ PCF taps
+# Helpers shared by every percentage-closer filter (Reeves 1987 ``pcf``, the
+# fixed-footprint ``bilinear`` of Brabec & Seidel, PCSS): taps are addressed
+# by *continuous texel coordinates* ``xy_texel = uv_light * resolution`` on a
+# face (texel ``(i, j)`` covers ``[i, i+1) x [j, j+1)``, centre at ``+0.5``).
+
+
+def uv_on_face(view, face, p_world: mi.Point3f) -> mi.Point2f:
+    """``uv_light`` of ``p_world`` on a *given* face (cube faces: even off that face).
+
+    :meth:`LightView.project` picks the face itself; footprints need the
+    projection onto the receiver's face, so that ``p + dp`` across a cube
+    seam does not jump to another face. (Non-cube views have one face.)
+    """
+    if view.projection != "cube":
+        return view.project(p_world)[1]
+    d = mi.Point3f(p_world) - mi.Point3f(view.position)
+    face = mi.UInt32(face)
+    axis = face // 2
+    sign = dr.select((face & 1) == 0, 1.0, -1.0)
+    major = sign * dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
+    u_comp = dr.select(axis == 0, d.y, dr.select(axis == 1, d.z, d.x))
+    v_comp = dr.select(axis == 0, d.z, dr.select(axis == 1, d.x, d.y))
+    inv = dr.rcp(dr.maximum(major, 1e-30))
+    return mi.Point2f(0.5 * (u_comp * inv + 1.0), 0.5 * (v_comp * inv + 1.0))
+
+
+def footprint_texels(smap, lk: Lookup, r: Receiver) -> mi.Point2f:
+    """Width in texels, per map axis, of the camera pixel's footprint.
+
+    The pixel's footprint on the surface is the parallelogram
+    ``p +- dp_dx/2 +- dp_dy/2`` (``lk.dp_dx``/``dp_dy``: one whole pixel, from
+    ray differentials, see the integrator); its corners are projected onto the
+    receiver's face and the axis-aligned bounding box of the result is
+    returned as full widths ``(w_s, w_t)`` (Reeves' ``2*sres``, ``2*tres`` in
+    texels). Non-finite widths (grazing views, no differentials) become 0 and
+    widths are capped at the map resolution.
+    """
+    view, res = smap.view, smap.resolution
+    uv0 = uv_on_face(view, r.face, lk.p_world)
+    du_x = uv_on_face(view, r.face, lk.p_world + lk.dp_dx) - uv0
+    du_y = uv_on_face(view, r.face, lk.p_world + lk.dp_dy) - uv0
+    w = (dr.abs(du_x) + dr.abs(du_y)) * res
+    w = mi.Point2f(dr.select(dr.isfinite(w.x), w.x, 0.0), dr.select(dr.isfinite(w.y), w.y, 0.0))
+    return dr.minimum(w, float(res))
+
+
+def tap_face_texel(smap, face, xy_texel: mi.Point2f):
+    """Texel hit by a tap at continuous texel coordinates ``xy_texel`` of ``face``.
+
+    Returns ``(face, i, j, inside)``. Perspective and orthographic maps: a tap
+    off the map has ``inside`` False (lit, Reeves 1987). Cube maps: a tap off
+    its face continues on the neighbouring face (its direction is
+    re-projected), so cube seams do not leak light.
+    """
+    res = smap.resolution
+    ij = mi.Point2i(dr.floor(xy_texel))
+    in_face = (ij.x >= 0) & (ij.x < res) & (ij.y >= 0) & (ij.y < res)
+    face = mi.UInt32(face)
+    if smap.view.projection != "cube":
+        return face, ij.x, ij.y, in_face
+    from ..light_views import _cube_dir, _cube_face
+    st = xy_texel * (2.0 / res) - 1.0
+    f2, s2, t2, _ = _cube_face(_cube_dir(face, st.x, st.y))
+    ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2f(s2 + 1.0, t2 + 1.0) * (0.5 * res))), 0, res - 1)
+    return (dr.select(in_face, face, f2), dr.select(in_face, ij.x, ij2.x),
+            dr.select(in_face, ij.y, ij2.y), mi.Bool(True))
+
+
+def tap_lit(smap, r: Receiver, face, xy_texel: mi.Point2f, plane: ReceiverPlane | None = None,
+            extra_bias=0.0, active=True) -> mi.Bool:
+    """One percentage-closer comparison: is the receiver lit by this tap?
+
+    The tap's texel (:func:`tap_face_texel`: off-map taps are lit, cube taps
+    continue on the neighbouring face) holds ``z_map``. The receiver depth is
+    ``r.depth`` (biases applied) or, with ``plane``, the receiver plane's
+    depth along that texel's ray through its centre (:func:`plane_depth_at`,
+    same biases); ``extra_bias`` (e.g. Reeves' stochastic bias) is
+    subtracted. Lit when ``z <= z_map``.
+    """
+    f2, i, j, inside = tap_face_texel(smap, face, xy_texel)
+    z_map = smap.fetch(smap.depth, f2, i, j, active & inside)
+    if plane is not None:
+        res = smap.resolution
+        uv_c = (mi.Point2f(i, j) + 0.5) * (1.0 / res)
+        lateral = dr.norm(dr.floor(xy_texel) + 0.5 - r.uv * res) * r.texel_world
+        z = plane_depth_at(smap, plane, f2, uv_c, lateral)
+    else:
+        z = r.depth
+    return ~inside | (z - extra_bias <= z_map)
+
+
+def reeves_sample_counts(width_s, width_t, num_samples: int, min_samples: int):
+    """Samples per axis ``(ns, nt)`` for a region of ``width_s x width_t`` texels.
+
+    Reeves, Salesin & Cook 1987, Figure 4 (with ``sres = width_s / 2``): a
+    region of fewer than ``num_samples`` texels gets about one sample per
+    texel and axis; a larger one gets ``ns * nt ~ num_samples`` with
+    ``nt / ns ~ width_t / width_s``. Each count is rounded (``+.5``, truncated)
+    and clamped to ``[min_samples, num_samples]`` (``min_samples`` wins, as in
+    the paper's CLAMP).
+    """
+    width_s, width_t = mi.Float(width_s), mi.Float(width_t)
+
+    def clamp(x):
+        return dr.select(x < min_samples, min_samples, dr.select(x > num_samples, num_samples, x))
+
+    small = width_s * width_t < num_samples
+    ns_small = clamp(dr.floor(width_s + 0.5))
+    nt_small = clamp(dr.floor(width_t + 0.5))
+    ratio = width_t * num_samples / dr.maximum(width_s, 1e-30)
+    nt_big = clamp(dr.floor(dr.sqrt(ratio) + 0.5))
+    ns_big = clamp(dr.floor(num_samples / nt_big + 0.5))
+    return (mi.UInt32(dr.select(small, ns_small, ns_big)),
+            mi.UInt32(dr.select(small, nt_small, nt_big)))
+
+
+def lane_rng(u_seed: mi.Point2f) -> mi.PCG32:
+    """A PCG32 stream per lane, seeded from one sampler draw ``u_seed``.
+
+    The float bits of ``u_seed.x`` pick the state and those of ``u_seed.y``
+    the stream, so the per-tap numbers are a deterministic function of the
+    camera sample's own random numbers (reproducible for a given sampler
+    seed), and independent between lanes.
+    """
+    bx = dr.reinterpret_array(mi.UInt32, mi.Float(u_seed.x))
+    by = dr.reinterpret_array(mi.UInt32, mi.Float(u_seed.y))
+    return mi.PCG32(size=dr.width(bx), initstate=mi.UInt64(bx),
+                    initseq=mi.UInt64(by) + mi.UInt64(0x9E3779B9))
+
+
+#: erf(sqrt(2)): the truncation of the ``gaussian`` sampling at +-2 sigma.
+_ERF_SQRT2 = math.erf(math.sqrt(2.0))
+PCF_SAMPLINGS = ("jitter", "uniform", "gaussian")
+
+
+def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2f,
+             sampling: str = "jitter", bias_range=None, plane: ReceiverPlane | None = None,
+             center_texel: mi.Point2f | None = None, active=True) -> mi.Float:
+    """Fraction of lit taps in a rectangle of the map (percentage-closer filtering).
+
+    The rectangle is ``center_texel +- half_size`` (texels; default centre:
+    the receiver, ``r.uv * resolution``) on the receiver's face, sampled by
+    ``ns x nt`` taps (per-lane ``UInt32`` or ints) placed as in Reeves et al.
+    1987, Figure 3:
+
+    * ``'jitter'`` (c): one uniformly jittered tap per cell of an ``ns x nt``
+      grid (stratified);
+    * ``'uniform'`` (a): taps uniform over the whole rectangle;
+    * ``'gaussian'`` (b): a normal distribution centred on the rectangle with
+      ``sigma = half_size / 2``, truncated at the rectangle (+-2 sigma).
+
+    ``bias_range = (bias0, bias1)``: each tap subtracts its own bias, uniform
+    in that range (world units), from the receiver depth (Reeves' stochastic
+    bias). Each tap is a :func:`tap_lit` comparison (off-map taps lit). The
+    random numbers come from :func:`lane_rng` seeded by ``u_seed`` (one
+    sampler draw per lookup). All taps run in one ``dr.while_loop``: one
+    kernel whatever the sample count.
+    """
+    if sampling not in PCF_SAMPLINGS:
+        raise ValueError(f"pcf_taps: sampling must be one of {PCF_SAMPLINGS}, got {sampling!r}")
+    res = smap.resolution
+    center = r.uv * res if center_texel is None else mi.Point2f(center_texel)
+    half = mi.Point2f(half_size)
+    ns, nt = mi.UInt32(ns), mi.UInt32(nt)
+    n_taps = ns * nt
+    cell = mi.Point2f(2.0 * half.x / mi.Float(ns), 2.0 * half.y / mi.Float(nt))
+    lo = center - half
+    face = mi.UInt32(r.face)
+    rng = lane_rng(u_seed)
+    k = mi.UInt32(0)
+    n_lit = mi.UInt32(0)
+    active = mi.Bool(active)
+    b0, b1 = (0.0, 0.0) if bias_range is None else (float(bias_range[0]), float(bias_range[1]))
+
+    def cond(k, rng, n_lit):
+        return active & (k < n_taps)
+
+    def body(k, rng, n_lit):
+        xi = mi.Point2f(rng.next_float32(), rng.next_float32())
+        if sampling == "jitter":
+            col = k % ns
+            row = k // ns
+            xy = lo + mi.Point2f(mi.Float(col) + xi.x, mi.Float(row) + xi.y) * cell
+        elif sampling == "uniform":
+            xy = lo + xi * (2.0 * half)
+        else:
+            z = dr.erfinv((2.0 * xi - 1.0) * _ERF_SQRT2) * math.sqrt(2.0)   # in [-2, 2]
+            xy = center + z * (0.5 * half)
+        bias = 0.0
+        if bias_range is not None:
+            bias = b0 + rng.next_float32() * (b1 - b0) if b1 > b0 else b0
+        lit = tap_lit(smap, r, face, xy, plane, bias, active)
+        n_lit = dr.select(lit, n_lit + 1, n_lit)
+        return k + 1, rng, n_lit
+
+    k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body)
+    return mi.Float(n_lit) / mi.Float(dr.maximum(n_taps, 1))

@@ -1,0 +1,169 @@
+"""Second-depth shadow maps with virtual samples (Wang & Molnar 1994).
+
+Y. Wang and S. Molnar, "Second-Depth Shadow Mapping", UNC Chapel Hill
+TR94-019, 1994 (``shared/papers/001``). The map stores the depth of the
+**second** surface from the light (built by
+:func:`mi_shadowmap.depth_maps._second_surface`, layer ``second_depth``,
+only when this method is used); the lookup is the per-pixel algorithm of
+the paper's Figure 10:
+
+1. compare the camera sample's depth ``z`` with the second depth
+   ``z_second`` of every nearby texel (``z <= z_second``: lit);
+2. all lit -> 1, all shadowed -> 0;
+3. otherwise fit the tangent plane (shading point + shading normal), and
+   for every nearby texel compute the depth of the **virtual sample** --
+   the point of that plane seen through the texel -- and compare it with
+   the texel's ``z_second``; return the lit fraction (percentage-closer
+   filtering).
+
+The "nearby samples" are the ``sqrt(k) x sqrt(k)`` texels nearest the lookup
+point, ``k = pcf_samples`` (default 4, i.e. 2 x 2), counted unweighted as in
+the paper's ``VirtIllumCnt / NUM_SAMPLES``.
+
+Deviations from the paper, and why:
+
+* **Depth space.** The paper solves the tangent plane in light *screen*
+  coordinates, ``z_L = -(a_L x_L + b_L y_L + d_L) / c_L``. Our maps store the
+  distance along each texel's ray (see :mod:`mi_shadowmap.light_views`), so
+  the virtual sample's depth is the same point computed directly: the ray
+  through the texel centre meets the plane at
+  ``t = n . (p - o) / (n . d)``. ``n . d`` plays the role of ``c_L``.
+* **Guard for c_L -> 0.** Where the tangent plane is nearly parallel to
+  the texel's light ray (``tan`` of the angle between ``n`` and the ray
+  above ``max_tan_slope``), or the intersection is behind the light, the
+  virtual sample is unusable; that tap keeps its ordinary comparison
+  (Figure 9 of the paper: there the ordinary comparison is right).
+* **Equality tolerance.** Sec. 3.3 makes the test ``<=`` so that planar
+  non-solids (first = second surface) light themselves. In floating
+  point the plane's depth computed from the shading point and the
+  ray-traced depth of the same plane differ by rounding (~1e-7 relative),
+  so "equal" means within ``_EQ_REL`` (1e-5) of the depth. This is a
+  rounding tolerance, not a bias: closed solids never rely on it.
+* **Solids and non-solids** are told apart per shape when the map is
+  built (closed, outward-oriented meshes and spheres are solids; see
+  :func:`mi_shadowmap.depth_maps.shape_is_solid`): the paper assumes the
+  user knows. A non-solid (open or one-sided surface) is its own second
+  surface (sec. 3.3); curved non-solids then need a ``bias`` (world units,
+  default 0), as the paper says. ``slope_bias`` and ``normal_bias`` also
+  default to 0 here and are applied like everywhere else (see
+  :func:`~.common.receiver`) when set.
+* **Thin objects** (the paper's Figure 7) remain a failure case where the
+  surface is curved: virtual samples remove the false shadows but the
+  tangent plane can still miss the surface by more than its thickness
+  (measured in ``tests/test_second_depth.py``).
+* **Off-map / face borders.** Lookups outside the map are lit; taps are
+  clamped to the receiver's face (cube-map seams are not crossed).
+* ``virtual_samples=false`` skips step 3 (plain percentage-closer
+  filtering of the second depths): used to show the paper's Figure 7
+  failure on thin objects.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from .common import Lookup, receiver
+
+#: Relative rounding tolerance of the ``<=`` test at virtual samples.
+_EQ_REL = 1e-5
+
+
+def shading_normal(lk: Lookup) -> mi.Vector3f:
+    """The shading normal (the paper's per-pixel normal), else the geometric one."""
+    si = lk.si
+    if si is not None and hasattr(si, "sh_frame"):
+        return mi.Vector3f(si.sh_frame.n)
+    return mi.Vector3f(lk.n_world)
+
+
+def block_origin(uv_light: mi.Point2f, res: int, side: int) -> mi.Point2i:
+    """First texel ``(i0, j0)`` of the ``side x side`` texels whose centres are
+    nearest ``uv_light`` (texel centres at ``(i + 0.5) / res``)."""
+    return mi.Point2i(dr.floor(uv_light * res - 0.5 * side + 0.5))
+
+
+def virtual_sample_depth(view, face, ij: mi.Point2i, res: int, p_world: mi.Point3f,
+                         n_world: mi.Vector3f, max_tan: float):
+    """Depth of the virtual sample at texel ``ij``: where the ray through that
+    texel's centre meets the plane through ``p_world`` with normal ``n_world``.
+
+    Returns ``(depth, ok)``; ``ok`` is False where the plane is within
+    ``atan(max_tan)`` of parallel to the ray (the paper's ``c_L -> 0``) or meets
+    it behind the light.
+    """
+    uv = (mi.Point2f(ij) + 0.5) * (1.0 / res)
+    o, d = view.ray_through(face, uv)
+    c = dr.dot(n_world, d)
+    cos_min = 1.0 / math.sqrt(1.0 + max_tan * max_tan)
+    ok = dr.abs(c) >= cos_min
+    t = dr.dot(n_world, p_world - o) / dr.select(ok, c, 1.0)
+    ok &= dr.isfinite(t) & (t > 0)
+    return t, ok
+
+
+def _taps_loop(k: int, body_fn, init, active):
+    """Run ``body_fn(tap, *state) -> state`` for taps 0..k-1 in one ``dr.while_loop``."""
+    tap = mi.UInt32(0)
+    active = mi.Bool(active)
+
+    def cond(tap, *state):
+        return active & (tap < k)
+
+    def body(tap, *state):
+        return (tap + 1, *body_fn(tap, *state))
+
+    out = dr.while_loop((tap, *init), cond, body)
+    return out[1:]
+
+
+def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
+    """Wang & Molnar (1994), Figure 10: percent illumination of a shading point."""
+    k = opts.pcf_samples or 4
+    side = math.isqrt(k)
+    res = smap.resolution
+    view = smap.view
+    layer = smap.second_depth
+    r = receiver(smap, lk, opts)
+    active = mi.Bool(active) & r.inside
+    i0 = block_origin(r.uv, res, side)
+
+    def tap_texel(tap):
+        return mi.Point2i(i0.x + mi.Int32(tap % side), i0.y + mi.Int32(tap // side))
+
+    def fetch(ij, act):
+        ij = dr.clip(ij, 0, res - 1)
+        return ij, smap.fetch(layer, r.face, ij.x, ij.y, act)
+
+    # 1. ordinary comparisons z_camera <= z_second
+    def count_body(tap, n_lit):
+        _, z_second = fetch(tap_texel(tap), active)
+        return (dr.select(r.depth <= z_second, n_lit + 1, n_lit),)
+
+    (n_lit,) = _taps_loop(k, count_body, (mi.UInt32(0),), active)
+    # 2. trivial shadow / illumination
+    vis = dr.select(n_lit == k, 1.0, 0.0)
+    if not opts.virtual_samples:
+        return dr.select(r.inside, mi.Float(n_lit) / k, 1.0)
+    mixed = active & (n_lit > 0) & (n_lit < k)
+    # 3. virtual samples on the tangent plane, only where the compares disagree
+    p = mi.Point3f(lk.p_world)
+    n = dr.normalize(shading_normal(lk))
+    offset = view.depth_of(p) - r.depth          # the configured biases (0 by default)
+
+    def virt_body(tap, n_virt):
+        ij, z_second = fetch(tap_texel(tap), mixed)
+        z_v, ok = virtual_sample_depth(view, r.face, ij, res, p, n, opts.max_tan_slope)
+        z_v = z_v - offset
+        lit_v = z_v <= z_second + _EQ_REL * dr.abs(z_second)
+        lit = dr.select(ok, lit_v, r.depth <= z_second)
+        return (dr.select(lit, n_virt + 1, n_virt),)
+
+    (n_virt,) = _taps_loop(k, virt_body, (mi.UInt32(0),), mixed)
+    vis = dr.select(mixed, mi.Float(n_virt) / k, vis)
+    return dr.select(r.inside, vis, 1.0)
+
+
+FILTERS = {"second_depth": second_depth}
+LAYERS = {"second_depth": ("second_depth",)}

@@ -1,0 +1,182 @@
+"""Brabec & Seidel fixed-footprint / bilinear PCF (``method="bilinear"``, ``kernel``).
+
+Unit tests on hand-made orthographic depth maps (no scene), shadow-level
+counts against the paper's 5 vs 20, scene tests against ``raytraced``.
+"""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from conftest import SCENE_FILES, render_np, vis_stack
+from mi_shadowmap import metrics
+from mi_shadowmap.depth_maps import ShadowMap
+from mi_shadowmap.filters import FILTERS
+from mi_shadowmap.filters.common import Lookup
+from mi_shadowmap.light_views import LightView
+from mi_shadowmap.options import OptionError, parse_options
+
+RES = 64
+TEXEL = 2.0 / RES
+KERNELS = (2, 3, 4, 5, 8)
+
+
+def ortho_map(depth: np.ndarray) -> ShadowMap:
+    """Orthographic map over [-1, 1]^2 looking along +z; depth[j, i] (row j = v)."""
+    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+                     mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="unit")
+    return ShadowMap(view, depth.shape[0], mi.Float(np.asarray(depth, np.float32).ravel()))
+
+
+def edge_map() -> ShadowMap:
+    d = np.full((RES, RES), np.inf, np.float32)
+    d[:, : RES // 2] = 1.0          # texel columns i < 32: occluder at depth 1
+    return ortho_map(d)
+
+
+def lookup(x, y=None, z=2.0):
+    x = np.atleast_1d(np.asarray(x, np.float64))
+    y = np.full(x.size, 0.01) if y is None else np.asarray(y, np.float64)
+    p = mi.Point3f(mi.Float(x), mi.Float(y), mi.Float(np.full(x.size, z)))
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(0, x.size)
+    return Lookup(p, mi.Vector3f(0, 0, -1), mi.Vector3f(0), mi.Vector3f(0), None, None, sampler)
+
+
+def vis(method, smap, lk, **props):
+    opts = parse_options({"method": method, **props})
+    return np.asarray(FILTERS[method](smap, lk, opts, mi.Bool(True)).numpy(), np.float64)
+
+
+# --------------------------------------------------------------- hand-made edge
+@pytest.mark.parametrize("receiver_plane", [True, False])
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_edge_is_a_linear_ramp_of_width_kernel_minus_one(kernel, receiver_plane):
+    smap = edge_map()
+    offs = np.linspace(-6.0, 6.0, 481)               # texels from the edge
+    v = vis("bilinear", smap, lookup(offs * TEXEL), kernel=kernel,
+            receiver_plane=receiver_plane)
+    assert v[np.argmin(np.abs(offs))] == 0.5         # exactly 0.5 on the edge
+    assert np.all(np.diff(v) >= 0.0)                 # monotone, exactly
+    np.testing.assert_allclose(v, np.clip(0.5 + offs / (kernel - 1), 0.0, 1.0), atol=1e-5)
+    far = vis("bilinear", smap, lookup([-0.5, -0.6, 0.5, 0.6]), kernel=kernel)
+    assert far.tolist() == [0.0, 0.0, 1.0, 1.0]      # exactly shadowed / lit
+
+
+def test_kernel_1_is_hard_on_a_hand_made_map():
+    rng = np.random.default_rng(3)
+    smap = ortho_map(np.where(rng.random((RES, RES)) < 0.5, 1.0, np.inf).astype(np.float32))
+    x, y = rng.uniform(-1, 1, (2, 5000))
+    lk = lookup(x, y)
+    a = vis("bilinear", smap, lk, kernel=1)
+    b = vis("hard", smap, lk)
+    assert np.array_equal(a, b) and set(np.unique(a)) == {0.0, 1.0}
+
+
+def test_off_map_texels_are_lit():
+    smap = ortho_map(np.full((RES, RES), 1.0, np.float32))    # everything occluded
+    x = 1.0 - 0.25 * TEXEL        # a quarter texel inside the right border
+    v = vis("bilinear", smap, lookup([x, 1.5]), kernel=2)
+    # 2x2 bilinear: the tap column beyond the border has weight 0.25 and is lit
+    np.testing.assert_allclose(v, [0.25, 1.0], atol=1e-6)
+
+
+# --------------------------------------------------------------- shadow levels
+def _level_map():
+    """Random binary occluders whose density grows from 0 (left) to 1 (right)."""
+    rng = np.random.default_rng(7)
+    p = np.linspace(0.0, 1.0, RES)[None, :]
+    return ortho_map(np.where(rng.random((RES, RES)) < p, 1.0, np.inf).astype(np.float32))
+
+
+def _corner_levels(kernel):
+    smap = _level_map()
+    c = np.arange(4, RES - 4)                       # texel corners uv = c / RES
+    cx, cy = np.meshgrid(c, c)
+    x, y = (cx.ravel() * TEXEL - 1.0), (cy.ravel() * TEXEL - 1.0)
+    return vis("bilinear", smap, lookup(x, y), kernel=kernel)
+
+
+def test_levels_paper_5_for_2x2_and_17_for_4x4():
+    """Brabec & Seidel: 2x2 PCF has 5 levels, their 4x4 (four 2x2 passes) 'about 20'.
+
+    At texel corners the bilinear weights are equal, so ``kernel=2`` is exactly
+    the paper's 2x2 compare count; ``kernel=5`` at corners weighs a 4x4 block
+    of texels equally (the paper's 4x4 footprint): 16 + 1 = 17 levels (the
+    paper's "4 * 5 = 20" counts five levels for each of its four passes).
+    """
+    v1, v2, v5 = _corner_levels(1), _corner_levels(2), _corner_levels(5)
+    print("distinct levels at texel corners: kernel 1:", metrics.distinct_levels(v1),
+          "kernel 2:", metrics.distinct_levels(v2), "kernel 5:", metrics.distinct_levels(v5))
+    assert metrics.distinct_levels(v1) == 2
+    assert sorted(np.unique(np.round(v2, 6))) == [0.0, 0.25, 0.5, 0.75, 1.0]
+    assert metrics.distinct_levels(v5) == 17
+    assert np.allclose(v5 * 16, np.round(v5 * 16), atol=1e-5)
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_bilinear_weights_give_more_than_20_levels(kernel):
+    """Anywhere between texel centres the weights vary: far more than the paper's 20."""
+    rng = np.random.default_rng(11)
+    x = np.linspace(-4 * TEXEL, 4 * TEXEL, 2000)     # across the straight edge
+    y = rng.uniform(-0.5, 0.5, x.size)
+    v = vis("bilinear", edge_map(), lookup(x, y), kernel=kernel)
+    n = metrics.distinct_levels(v)
+    print(f"kernel {kernel}: {n} distinct levels across an edge")
+    assert n > 20
+
+
+# ------------------------------------------------------------------ bad input
+@pytest.mark.parametrize("props,name", [
+    ({"kernel": 0}, "kernel"),
+    ({"kernel": 9}, "kernel"),
+    ({"kernel": 2.0}, "kernel"),
+    ({"kernel": "2"}, "kernel"),
+    ({"receiver_plane": "yes"}, "receiver_plane"),
+    ({"num_samples": 4}, "num_samples"),       # a pcf property
+])
+def test_bad_input_names_the_property(props, name):
+    with pytest.raises(OptionError, match=name):
+        parse_options({"method": "bilinear", **props})
+
+
+def test_kernel_rejected_for_other_methods():
+    with pytest.raises(OptionError, match="kernel"):
+        parse_options({"method": "hard", "kernel": 2})
+
+
+# ------------------------------------------------------------------ scenes
+def _scene(name, size=64):
+    path = [p for p in SCENE_FILES if p.stem == name][0]
+    return mi.load_file(str(path), width=size, height=size)
+
+
+@pytest.mark.parametrize("name", [p.stem for p in SCENE_FILES])
+def test_kernel_1_reproduces_hard_bitwise(name):
+    scene = _scene(name, 48)
+    rgb_h, hard = render_np(scene, {"type": "shadowmap", "method": "hard", "resolution": 256},
+                            spp=2, seed=3)
+    rgb_b, bil = render_np(scene, {"type": "shadowmap", "method": "bilinear", "kernel": 1,
+                                   "resolution": 256}, spp=2, seed=3)
+    assert sorted(hard) == sorted(bil)
+    for k in hard:
+        assert np.array_equal(hard[k], bil[k]), k
+    assert np.array_equal(rgb_h, rgb_b)
+
+
+def test_one_kernel_for_the_largest_footprint():
+    smap = edge_map()
+    lk = lookup(np.linspace(-0.1, 0.1, 256))
+    dr.eval(lk.p_world)
+    dr.sync_thread()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()                          # clear
+        v = FILTERS["bilinear"](smap, lk, parse_options({"method": "bilinear", "kernel": 8}),
+                                mi.Bool(True))
+        dr.eval(v)
+        dr.sync_thread()
+        hist = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(hist) == 1                            # 64 taps, one dr.while_loop kernel

@@ -1,0 +1,261 @@
+"""Reeves, Salesin & Cook 1987 percentage-closer filtering (``method="pcf"``).
+
+Unit tests build a :class:`ShadowMap` by hand (an orthographic light looking
+along +z, a depth array written directly) and call the filter with
+:class:`Lookup` objects; scene tests compare with the ray-traced reference.
+"""
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from conftest import SCENE_FILES, render_np, vis_stack
+from mi_shadowmap import metrics
+from mi_shadowmap.depth_maps import ShadowMap
+from mi_shadowmap.filters import FILTERS, NEEDS_FOOTPRINT
+from mi_shadowmap.filters.common import Lookup, reeves_sample_counts
+from mi_shadowmap.light_views import LightView
+from mi_shadowmap.options import OptionError, parse_options
+
+RES = 64
+TEXEL = 2.0 / RES          # world width of a texel (half_extent 1)
+SAMPLINGS = ("jitter", "uniform", "gaussian")
+
+
+def ortho_map(depth: np.ndarray) -> ShadowMap:
+    """Orthographic map over [-1, 1]^2 looking along +z; depth[j, i] (row j = v)."""
+    res = depth.shape[0]
+    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+                     mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="unit")
+    return ShadowMap(view, res, mi.Float(np.asarray(depth, np.float32).ravel()))
+
+
+def edge_map() -> ShadowMap:
+    """Columns i < RES/2 hold an occluder at depth 1; the rest is empty (+inf)."""
+    d = np.full((RES, RES), np.inf, np.float32)
+    d[:, : RES // 2] = 1.0
+    return ortho_map(d)
+
+
+def lookup(x, y=0.01, z=2.0, footprint=4.0, seed=0, n=(0.0, 0.0, -1.0)):
+    """Receivers at world (x, y, z) facing the light, pixel footprint in texels."""
+    x = np.atleast_1d(np.asarray(x, np.float64))
+    N = x.size
+    p = mi.Point3f(mi.Float(x), mi.Float(np.full(N, y)), mi.Float(np.full(N, z)))
+    w = footprint * TEXEL
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, N)
+    return Lookup(p, dr.normalize(mi.Vector3f(*n)), mi.Vector3f(w, 0, 0), mi.Vector3f(0, w, 0),
+                  None, None, sampler)
+
+
+def pcf_vis(smap, lk, **props):
+    opts = parse_options({"method": "pcf", **props})
+    v = FILTERS["pcf"](smap, lk, opts, mi.Bool(True))
+    return np.asarray(v.numpy(), np.float64)
+
+
+def repeat_sweep(offsets_texels, lanes):
+    """World x of each offset (in texels from the edge), repeated ``lanes`` times."""
+    return np.repeat(np.asarray(offsets_texels) * TEXEL, lanes)
+
+
+# --------------------------------------------------------------- hand-made edge
+@pytest.mark.parametrize("sampling", SAMPLINGS)
+def test_edge_half_far_exact_and_monotone(sampling):
+    smap = edge_map()
+    lanes = 2048
+    offs = np.arange(-4.0, 4.01, 0.5)
+    v = pcf_vis(smap, lookup(repeat_sweep(offs, lanes)), sampling=sampling)
+    mean = v.reshape(len(offs), lanes).mean(axis=1)
+    at_edge = mean[np.argmin(np.abs(offs))]
+    print(sampling, "mean visibility across the edge:", np.round(mean, 3))
+    if sampling == "jitter":
+        # a 4x4-texel region, 4x4 stratified cells: 2 columns each side, exactly
+        # (a jitter of 1 - 2^-24 can round onto the next texel: a few lanes differ)
+        assert np.mean(v.reshape(len(offs), lanes)[np.argmin(np.abs(offs))] == 0.5) > 0.99
+    assert abs(at_edge - 0.5) < 0.02
+    if sampling == "gaussian":   # truncated normal, sigma = half-width / 2 = 1 texel
+        phi = np.vectorize(lambda z: 0.5 * (1.0 + math.erf(z / math.sqrt(2.0))))
+        expected = (phi(2.0) - phi(np.clip(-offs, -2.0, 2.0))) / (phi(2.0) - phi(-2.0))
+    else:                        # box filter of the 4-texel region: a linear ramp
+        expected = np.clip(0.5 + offs / 4.0, 0.0, 1.0)
+    np.testing.assert_allclose(mean, expected, atol=0.03)
+    assert np.all(np.diff(mean) >= -0.01)      # monotone (up to noise)
+    assert mean[-1] - mean[0] > 0.99
+    # far from the edge: exactly lit / exactly shadowed, every lane
+    far = pcf_vis(smap, lookup(np.array([-0.5] * 64 + [0.5] * 64)), sampling=sampling)
+    assert np.all(far[:64] == 0.0) and np.all(far[64:] == 1.0)
+
+
+@pytest.mark.parametrize("footprint,res_factor,min_size", [
+    (4.0, 1.0, 1.0),    # region = one pixel footprint (4 texels)
+    (4.0, 2.0, 1.0),    # res_factor scales it (8 texels)
+    (0.5, 1.0, 3.0),    # min_size raises it (3 texels)
+    (0.0, 1.0, 1.0),    # no footprint: min_size (1 texel)
+])
+def test_region_is_scaled_footprint_clamped_to_min_size(footprint, res_factor, min_size):
+    """Jittered PCF of a straight edge is the box filter of the region: a linear ramp."""
+    width = max(footprint * res_factor, min_size)
+    smap = edge_map()
+    lanes = 1024
+    offs = np.array([-0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75]) * width
+    v = pcf_vis(smap, lookup(repeat_sweep(offs, lanes), footprint=footprint),
+                res_factor=res_factor, min_size=min_size)
+    mean = v.reshape(len(offs), lanes).mean(axis=1)
+    expected = np.clip(0.5 + offs / width, 0.0, 1.0)
+    print(f"width {width}: measured {np.round(mean, 3)}, box filter {expected}")
+    np.testing.assert_allclose(mean, expected, atol=0.03)
+
+
+def test_sample_counts_follow_figure_4():
+    cases = {  # (width_s, width_t, num_samples, min_samples) -> (ns, nt), by hand
+        (4, 4, 16, 2): (4, 4),      # 16 texels: not < 16 -> sqrt branch
+        (1, 1, 16, 2): (2, 2),      # one per texel, raised to min_samples
+        (3, 5, 16, 1): (3, 5),      # small region: one per texel
+        (2, 8, 16, 2): (2, 8),      # nt = sqrt(8*16/2) = 8, ns = 16/8 = 2
+        (0.2, 30, 16, 2): (2, 16),  # 6 texels: ns = 0 -> 2, nt = 30 -> 16
+        (10, 10, 16, 1): (4, 4),
+        (100, 1, 64, 2): (32, 2),   # nt = sqrt(64/100)+.5 -> 1 -> 2; ns = 64/2 = 32
+    }
+    for (ws, wt, n, m), want in cases.items():
+        ns, nt = reeves_sample_counts(mi.Float(ws), mi.Float(wt), n, m)
+        assert (int(ns[0]), int(nt[0])) == want, (ws, wt, n, m)
+
+
+@pytest.mark.parametrize("num_samples,levels", [(16, 17), (4, 5)])
+def test_levels_are_num_samples_plus_one(num_samples, levels):
+    """Reeves: the result filters num_samples binary values -> num_samples + 1 levels."""
+    smap = edge_map()
+    x = np.linspace(-4 * TEXEL, 4 * TEXEL, 4096)
+    v = pcf_vis(smap, lookup(x), num_samples=num_samples, sampling="uniform")
+    assert np.allclose(v * num_samples, np.round(v * num_samples), atol=1e-6)
+    assert metrics.distinct_levels(v) == levels
+
+
+def test_stochastic_bias_is_drawn_per_sample():
+    """Receiver 0.015 behind a flat occluder at depth 1 (no other bias)."""
+    smap = ortho_map(np.full((RES, RES), 1.0, np.float32))
+    x = np.linspace(-0.5, 0.5, 4096)
+    base = dict(slope_bias=0.0, normal_bias=0.0)
+    assert np.all(pcf_vis(smap, lookup(x, z=1.015), **base) == 0.0)
+    v = pcf_vis(smap, lookup(x, z=1.015), bias_range="0.01, 0.02", **base)
+    print("mean visibility with bias in [0.01, 0.02]:", v.mean())
+    assert abs(v.mean() - 0.5) < 0.02          # P(bias >= 0.015) = 1/2
+    assert np.mean((v > 0) & (v < 1)) > 0.5    # per-sample draws: mostly partial values
+    assert np.all(pcf_vis(smap, lookup(x, z=1.015), bias_range="0.02, 0.03", **base) == 1.0)
+
+
+def test_off_map_samples_are_lit():
+    smap = ortho_map(np.full((RES, RES), 1.0, np.float32))   # everything occluded
+    # a receiver half a texel inside the right border, region 8 texels wide
+    x = np.full(4096, 1.0 - 0.5 * TEXEL)
+    v = pcf_vis(smap, lookup(x, footprint=8.0))
+    print("mean visibility at the border:", v.mean())
+    assert abs(v.mean() - 3.5 / 8.0) < 0.02    # 3.5 of 8 texel columns are off the map
+    assert np.all(pcf_vis(smap, lookup(np.full(8, 1.5))) == 1.0)   # receiver off the map
+
+
+def test_receiver_plane_removes_self_shadowing_of_a_slope():
+    """The map sees only a tilted plane z = 2 + x/2; receivers lie on it."""
+    i = np.arange(RES)
+    x_c = (i + 0.5) * TEXEL - 1.0
+    smap = ortho_map(np.tile(2.0 + 0.5 * x_c, (RES, 1)).astype(np.float32))
+    x = np.linspace(-0.6, 0.6, 512)
+    n = (-0.5, 0.0, 1.0)        # normal of z - x/2 = 2 (sign does not matter)
+    lk = lookup(x, z=0.0, footprint=8.0, n=n)
+    lk.p_world = mi.Point3f(mi.Float(x), mi.Float(np.full(x.size, 0.01)),
+                            mi.Float(2.0 + 0.5 * x))
+    with_plane = pcf_vis(smap, lk)
+    paper = pcf_vis(smap, lk, receiver_plane=False)
+    print("lit fraction: receiver plane", with_plane.mean(), "single depth", paper.mean())
+    assert np.all(with_plane == 1.0)
+    assert paper.mean() < 0.8                  # Reeves' single depth shadows itself
+
+
+def test_cube_taps_continue_on_the_neighbouring_face():
+    """A point light whose +y face is fully occluded; a receiver on +x near that seam."""
+    view = LightView("point", "cube", 6, mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(),
+                     label="cube")
+    d = np.full((6, RES, RES), np.inf, np.float32)
+    d[2] = 0.5                                  # face 2 = +y
+    smap = ShadowMap(view, RES, mi.Float(d.ravel()))
+    N = 2048
+    # +x face, s = y/x = 1 - 2/RES: one texel (2/RES in s) from the seam
+    y = 1.0 - 2.0 / RES
+    p = mi.Point3f(mi.Float(np.ones(N)), mi.Float(np.full(N, y)), mi.Float(np.zeros(N)))
+    w = 8.0 * (2.0 / RES)                       # 8 texels on the face at distance 1
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(0, N)
+    lk = Lookup(p, dr.normalize(mi.Vector3f(-1, -y, 0)), mi.Vector3f(0, w, 0),
+                mi.Vector3f(0, 0, w), None, None, sampler)
+    v = pcf_vis(smap, lk)
+    print("mean visibility 2 texels from the cube seam:", v.mean())
+    # 3 of the region's 8 texel rows lie beyond the seam, on the occluded face
+    # (were they treated as off-map, they would be lit and the mean would be 1)
+    assert abs(v.mean() - 5.0 / 8.0) < 0.03
+
+
+def test_one_kernel_whatever_num_samples():
+    smap = edge_map()
+    counts = []
+    for n in (16, 1024):
+        lk = lookup(np.linspace(-0.1, 0.1, 256))
+        dr.eval(lk.p_world, lk.n_world, lk.dp_dx, lk.dp_dy)
+        dr.sync_thread()
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()                      # clear
+        v = FILTERS["pcf"](smap, lk, parse_options({"method": "pcf", "num_samples": n}),
+                           mi.Bool(True))
+        dr.eval(v)
+        dr.sync_thread()
+        hist = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        counts.append(len(hist))
+    assert counts[0] == counts[1] == 1, counts
+
+
+def test_pcf_reads_the_footprint():
+    assert "pcf" in NEEDS_FOOTPRINT
+
+
+@pytest.mark.parametrize("props", [
+    {"sampling": "uniform"},
+    {"sampling": "gaussian", "num_samples": 32, "min_samples": 3},
+    {"bias_range": "0.005, 0.01", "res_factor": 2.0, "min_size": 2.0},
+])
+def test_options_through_the_plugin(props):
+    """Every PCF option renders through the plugin and stays close to the reference."""
+    path = [p for p in SCENE_FILES if p.stem == "spot_sphere_box"][0]
+    scene = mi.load_file(str(path), width=48, height=48)
+    _, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    _, pcf = render_np(scene, {"type": "shadowmap", "method": "pcf", "resolution": 512,
+                               **props}, spp=4)
+    m = metrics.misclassified(vis_stack(ref), vis_stack(pcf))
+    print(props, f"misclassified {m['misclassified']:.3%}")
+    assert m["misclassified"] <= 0.03
+
+
+# ------------------------------------------------------------------ bad input
+@pytest.mark.parametrize("props,name", [
+    ({"num_samples": 0}, "num_samples"),
+    ({"min_samples": 0}, "min_samples"),
+    ({"res_factor": 0.0}, "res_factor"),
+    ({"res_factor": -1.0}, "res_factor"),
+    ({"min_size": -1.0}, "min_size"),
+    ({"bias_range": "0.4, 0.3"}, "bias_range"),
+    ({"bias_range": "0.3"}, "bias_range"),
+    ({"sampling": "poisson"}, "sampling"),
+    ({"receiver_plane": 1}, "receiver_plane"),
+    ({"kernel": 2}, "kernel"),                 # a bilinear property
+])
+def test_bad_input_names_the_property(props, name):
+    with pytest.raises(OptionError, match=name):
+        parse_options({"method": "pcf", **props})
+
+
+def test_bad_input_through_the_plugin():
+    with pytest.raises(RuntimeError, match="num_samples"):
+        mi.load_dict({"type": "shadowmap", "method": "pcf", "num_samples": 0})

@@ -1,0 +1,250 @@
+"""mdsm (Pagot, Comba & Oliveira 2004): the min/max layers, the n-shadow test, PCF(k, n)
+and its Table 1 level counts, a straight edge, the paper's PCF(9, n) ~ PCF(16, 1) claim,
+the scenes_xml scenes and bad input."""
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowmap.depth_maps import LAYER_BUILDERS, ShadowMap
+from mi_shadowmap.filters import FILTERS, LAYERS, Lookup
+from mi_shadowmap.filters.mdsm import neighbourhood_depth
+from mi_shadowmap.light_views import LightView
+from mi_shadowmap.metrics import distinct_levels, misclassified, rmse
+from mi_shadowmap.options import OptionError, parse_options
+
+from conftest import SCENE_FILES, render_np, vis_stack
+
+T = mi.ScalarTransform4f
+DIFFUSE = {"type": "diffuse"}
+
+
+# ------------------------------------------------------------------ helpers
+def hand_map(depth, res):
+    """ShadowMap of an orthographic light looking along +z from z = 0 over x, y in [-1, 1]
+    (texel (i, j) centre x = (i+.5)/res*2-1, y = (j+.5)/res*2-1), hand-written depths,
+    with its min/max layers built by the real layer builders."""
+    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+                     mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="hand")
+    smap = ShadowMap(view, res, depth=mi.Float(np.asarray(depth, np.float32).ravel()))
+    for name in LAYERS["mdsm"]:
+        smap.extra[name] = LAYER_BUILDERS[name](None, smap)
+        dr.eval(smap.extra[name])
+    return smap
+
+
+def hand_lookup(x, y, z, normal=(0.0, 0.0, -1.0)):
+    x = np.asarray(x, np.float32)
+    n = len(x)
+    f = lambda a: mi.Float(np.broadcast_to(np.asarray(a, np.float32), n).copy())  # noqa: E731
+    nn = mi.Vector3f(*[dr.full(mi.Float, float(c), n) for c in normal])
+    return Lookup(mi.Point3f(f(x), f(y), f(z)), nn, mi.Vector3f(0), mi.Vector3f(0),
+                  None, None, None)
+
+
+def mdsm_vis(smap, lk, **props):
+    opts = parse_options({"method": "mdsm", **props})
+    return np.asarray(FILTERS["mdsm"](smap, lk, opts, True))
+
+
+def texel_centres(res):
+    return (np.arange(res) + 0.5) / res * 2.0 - 1.0
+
+
+def np_window(depth, search, reduce):
+    """Clamped search x search min/max of a 2-D array (reference for the layers)."""
+    r = (search - 1) // 2
+    res = depth.shape[0]
+    out = np.empty_like(depth)
+    for j in range(res):
+        for i in range(res):
+            out[j, i] = reduce(depth[max(j - r, 0):j + r + 1, max(i - r, 0):i + r + 1])
+    return out
+
+
+# ------------------------------------------------------------------ the map
+def test_layers_are_3x3_min_and_max_and_built_only_for_mdsm():
+    path = [p for p in SCENE_FILES if p.stem == "spot_sphere_box"][0]
+    scene = mi.load_file(str(path), width=16, height=16)
+    integ = mi.load_dict({"type": "shadowmap", "method": "mdsm", "resolution": 64})
+    smap = integ.prepare_maps(scene)[0]
+    assert smap.second_depth is None and sorted(smap.extra) == ["mdsm_max", "mdsm_min"]
+    depth = smap.to_numpy()[0]
+    np.testing.assert_array_equal(smap.to_numpy("mdsm_min")[0], np_window(depth, 3, np.min))
+    np.testing.assert_array_equal(smap.to_numpy("mdsm_max")[0], np_window(depth, 3, np.max))
+    for method in ("hard", "second_depth"):
+        integ = mi.load_dict({"type": "shadowmap", "method": method, "resolution": 64})
+        assert integ.prepare_maps(scene)[0].extra == {}
+
+
+@pytest.mark.parametrize("search", [1, 3, 5, 7, 9])
+def test_search_neighbourhood(search):
+    """Larger searches compose the stored 3x3 windows: exactly the search x search min/max."""
+    res = 24
+    depth = np.random.default_rng(search).uniform(1, 2, (res, res)).astype(np.float32)
+    smap = hand_map(depth, res)
+    jj, ii = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
+    ij = mi.Point2i(mi.Int32(ii.ravel()), mi.Int32(jj.ravel()))
+    for layer, reduce in (("mdsm_min", np.min), ("mdsm_max", np.max)):
+        got = np.asarray(neighbourhood_depth(smap, layer, mi.UInt32(0), ij, search, True))
+        np.testing.assert_array_equal(got.reshape(res, res), np_window(depth, search, reduce))
+
+
+def test_search_1_is_a_standard_map():
+    res = 32
+    depth = np.random.default_rng(3).uniform(1, 2, (res, res))
+    smap = hand_map(depth, res)
+    rng = np.random.default_rng(4)
+    lk = hand_lookup(rng.uniform(-0.9, 0.9, 3000), rng.uniform(-0.9, 0.9, 3000),
+                     rng.uniform(0.9, 2.1, 3000))
+    base = mdsm_vis(smap, lk, depths=1)
+    for n in (2, 3):
+        np.testing.assert_array_equal(mdsm_vis(smap, lk, depths=n, search=1), base)
+
+
+# ------------------------------------------------------------------ Table 1
+@pytest.mark.parametrize("k", [4, 9, 16])
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_table1_level_count(k, n):
+    """PCF(k, n) reaches the paper's maximum n*k + 1 distinct outcomes (Table 1) on a
+    synthetic edge: a slanted occluder edge (depth ~1 against a floor at ~2) with texel
+    depth noise of +-0.3 (a rough edge), looked up at random positions and receiver
+    depths between 0.6 and 2.4. It can never produce more."""
+    res = 32
+    xc = texel_centres(res)
+    X, Y = np.meshgrid(xc, xc)
+    ang = 0.37
+    rng = np.random.default_rng(1)
+    depth = (np.where(X * np.cos(ang) + Y * np.sin(ang) < 0.013, 1.0, 2.0)
+             + rng.uniform(-0.3, 0.3, X.shape))
+    smap = hand_map(depth, res)
+    m = 40000
+    lk = hand_lookup(rng.uniform(-0.6, 0.6, m), rng.uniform(-0.6, 0.6, m),
+                     rng.uniform(0.6, 2.4, m))
+    vis = mdsm_vis(smap, lk, pcf_samples=k, depths=n)
+    levels = distinct_levels(vis)
+    print(f"PCF({k},{n}): {levels} distinct values (paper: {n * k + 1})")
+    assert levels == n * k + 1
+    # the outcomes are the multiples of 1 / (n k)
+    np.testing.assert_allclose(vis * n * k, np.round(vis * n * k), atol=1e-4)
+
+
+# ------------------------------------------------------------------ a straight edge
+@pytest.mark.parametrize("k", [4, 9, 16])
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_straight_edge(k, n):
+    """Occluder (depth 1) for x < 0, floor (depth 2) for x >= 0, receivers on the floor.
+
+    Monotone across the edge, exactly 0 and 1 away from it. On the edge: 0.5 for n = 1
+    and n = 3 (exactly for even sqrt(k), within 1/(2 sqrt(k)) for odd); the 2-SM (standard
+    depth + maximum) lightens only the shadow side -- a band one texel wide gets
+    coverage 1/2 -- so its edge value lies above 0.5 (measured 0.75, 0.83, 0.625 for
+    k = 4, 9, 16)."""
+    res = 32
+    xc = texel_centres(res)
+    depth = np.where(xc[None, :] < 0.0, 1.0, 2.0) * np.ones((res, 1))
+    smap = hand_map(depth, res)
+    xs = np.linspace(-0.6, 0.6, 481)
+    vis = mdsm_vis(smap, hand_lookup(xs, 0.013, 2.0), pcf_samples=k, depths=n)
+    assert np.all(np.diff(vis) >= 0)
+    side = math.isqrt(k)
+    far = (side / 2 + 0.5 + 1) * 2.0 / res        # kernel half-width + search radius
+    assert np.all(vis[xs < -far] == 0.0) and np.all(vis[xs > far] == 1.0)
+    edge = mdsm_vis(smap, hand_lookup([0.0], 0.013, 2.0), pcf_samples=k, depths=n)[0]
+    if n == 2:   # one column of the block half-shadowed at most: 1 - 1/(2 sqrt(k))
+        assert 0.5 < edge <= 1.0 - 0.5 / side + 1e-6, edge
+    else:
+        tol = 0.0 if side % 2 == 0 else 0.5 / side
+        assert abs(edge - 0.5) <= tol + 1e-6, edge
+
+
+def test_tilted_receiver_does_not_shadow_itself():
+    """A lit plane tilted 60 degrees from the light: every tap (and the 3x3 minimum, with
+    its search-radius allowance) lies behind the receiver plane -> exactly 1."""
+    res = 32
+    xc = texel_centres(res)
+    slope = math.tan(math.radians(60))
+    smap = hand_map(2.0 + slope * xc[None, :] * np.ones((res, 1)), res)
+    xs = np.linspace(-0.7, 0.7, 301)
+    lk = hand_lookup(xs, 0.013, 2.0 + slope * xs, (slope, 0.0, -1.0))
+    for k in (4, 9, 16):
+        for n in (1, 2, 3):
+            assert np.all(mdsm_vis(smap, lk, pcf_samples=k, depths=n) == 1.0), (k, n)
+
+
+# ------------------------------------------------------------------ the paper's claim
+def edge_scene(width=128, spp=32):
+    """A thin closed plate (turned 20 degrees) over an open floor under a near-vertical
+    sun; the camera looks down at the straight shadow edge (a 256^2 map texel is ~4
+    pixels wide)."""
+    return mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "perspective", "fov": 20,
+                "to_world": T().look_at(origin=[0.0, 2.2, 1.6], target=[0.0, 0, 0.0],
+                                        up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": width, "height": width,
+                         "rfilter": {"type": "box"}},
+                "sampler": {"type": "independent", "sample_count": spp}},
+        "ground": {"type": "rectangle", "bsdf": DIFFUSE,
+                   "to_world": T().rotate([1, 0, 0], -90) @ T().scale(2.0)},
+        "plate": {"type": "cube", "bsdf": DIFFUSE,
+                  "to_world": T().translate([-0.75, 0.5, 0.1]) @ T().rotate([0, 1, 0], 20)
+                  @ T().scale([0.75, 0.02, 0.75])},
+        "sun": {"type": "directional", "direction": [0.15, -1, 0.1], "irradiance": 3.0}})
+
+
+def test_pcf9_multiple_depths_close_to_pcf16():
+    """Pagot et al.: PCF(9, 2 or 3) looks like PCF(16, 1). As a number: visibility RMSE
+    against ray tracing on the edge scene, 256^2 map, 128^2 image, 32 spp.
+
+    Measured (this machine, this test): PCF(16,1) 0.0208, PCF(9,2) 0.0261 (+25 %),
+    PCF(9,3) 0.0223 (+7 %); at 64 spp also hard 0.0128 and PCF(9,1) 0.0165. The claim holds for n = 3 (within 10 %) but
+    not for our 2-SM (standard depth + maximum: it widens the transition on the shadow
+    side only). Against a hard-shadow reference every filter loses to ``hard``; the claim
+    is about matching PCF(16, 1), not about beating it. (At 128^2 / 512^2 maps PCF(9,3)
+    measured +4 % / +12 %, PCF(9,2) +15 % / +47 %.)
+    """
+    scene = edge_scene()
+    _, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=32)
+    ref = vis_stack(ref)
+    err = {}
+    for k, n in ((16, 1), (9, 2), (9, 3)):
+        _, v = render_np(scene, {"type": "shadowmap", "method": "mdsm", "resolution": 256,
+                                 "pcf_samples": k, "depths": n}, spp=32)
+        err[(k, n)] = rmse(ref, vis_stack(v))
+    base = err[(16, 1)]
+    print("RMSE vs raytraced: " + ", ".join(f"PCF{kn}={e:.4f} ({e / base - 1:+.1%})"
+                                           for kn, e in err.items()))
+    assert err[(9, 3)] <= 1.10 * base          # the paper's claim, n = 3
+    assert min(err[(9, 2)], err[(9, 3)]) <= 1.10 * base
+
+
+# ------------------------------------------------------------------ bad input
+def test_defaults():
+    o = parse_options({"method": "mdsm"})
+    assert o.depths == 2 and o.search == 3 and o.pcf_samples is None
+
+
+@pytest.mark.parametrize("props, needle", [
+    ({"method": "mdsm", "depths": 0}, "depths"),
+    ({"method": "mdsm", "depths": 4}, "depths"),
+    ({"method": "mdsm", "depths": 2.0}, "depths"),
+    ({"method": "mdsm", "depths": "2"}, "depths"),
+    ({"method": "mdsm", "search": 0}, "search"),
+    ({"method": "mdsm", "search": 2}, "search"),
+    ({"method": "mdsm", "search": 4}, "search"),
+    ({"method": "mdsm", "search": 11}, "search"),
+    ({"method": "mdsm", "search": True}, "search"),
+    ({"method": "mdsm", "pcf_samples": 8}, "pcf_samples"),
+    ({"method": "mdsm", "pcf_samples": 36}, "pcf_samples"),
+    ({"method": "hard", "depths": 2}, "depths"),
+    ({"method": "second_depth", "search": 3}, "search"),
+    ({"method": "mdsm", "virtual_samples": True}, "virtual_samples"),
+])
+def test_bad_values_name_the_property(props, needle):
+    with pytest.raises(OptionError, match=needle):
+        parse_options(props)
+    with pytest.raises(RuntimeError, match=needle):
+        mi.load_dict({"type": "shadowmap", **props})

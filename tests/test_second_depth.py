@@ -1,0 +1,337 @@
+"""second_depth (Wang & Molnar 1994): the second-surface layer, the Figure 10 lookup with
+virtual samples, the paper's central claim (no acne at bias 0 on solids), its thin-object
+failure case, the scenes_xml scenes and bad input."""
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowmap.depth_maps import ShadowMap, build_depth_map, shape_is_solid
+from mi_shadowmap.filters import FILTERS, LAYERS, Lookup
+from mi_shadowmap.filters.second_depth import virtual_sample_depth
+from mi_shadowmap.light_views import LightView, make_light_view
+from mi_shadowmap.metrics import misclassified
+from mi_shadowmap.options import OptionError, parse_options
+from mi_shadowmap.procedural import check_closed
+
+from conftest import SCENE_FILES, render_np, vis_stack
+
+T = mi.ScalarTransform4f
+DIFFUSE = {"type": "diffuse"}
+
+
+# ------------------------------------------------------------------ helpers
+def hand_map(second, res):
+    """A ShadowMap over an orthographic light looking along +z from z = 0, x/y in [-1, 1]
+    (texel (i, j) centre: x = (i+.5)/res*2-1, y = (j+.5)/res*2-1), with a hand-written
+    second-depth layer (the first-depth layer is unused by this method)."""
+    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+                     mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="hand")
+    second = mi.Float(np.asarray(second, np.float32).ravel())
+    return ShadowMap(view, res, depth=second, second_depth=second)
+
+
+def hand_lookup(x, y, z, normal):
+    x = np.asarray(x, np.float32)
+    n = len(x)
+    p = mi.Point3f(mi.Float(x), mi.Float(np.broadcast_to(np.float32(y), n).copy()),
+                   mi.Float(np.broadcast_to(np.asarray(z, np.float32), n).copy()))
+    nn = mi.Vector3f(*[dr.full(mi.Float, float(c), n) for c in normal])
+    return Lookup(p, nn, mi.Vector3f(0), mi.Vector3f(0), None, None, None)
+
+
+def texel_centres(res):
+    return (np.arange(res) + 0.5) / res * 2.0 - 1.0
+
+
+def second_depth_vis(smap, lk, **props):
+    opts = parse_options({"method": "second_depth", **props})
+    return np.asarray(FILTERS["second_depth"](smap, lk, opts, True))
+
+
+def closed_solids_scene(light, width=64, spp=4):
+    """Every shape a closed solid: a slab floor (a flat cube), a sphere and a box."""
+    emitters = {
+        "spot": {"type": "spot", "cutoff_angle": 35.0, "intensity": 100.0,
+                 "to_world": T().look_at(origin=[-2.4, 4.0, -3.4], target=[0.2, 0, 0.3],
+                                         up=[0, 1, 0])},
+        "sun": {"type": "directional", "direction": [-0.5, -1, -0.3], "irradiance": 3.0},
+        "point": {"type": "point", "position": [1.2, 2.5, 0.8], "intensity": 10.0}}
+    return mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "perspective", "fov": 40,
+                "to_world": T().look_at(origin=[0.2, 3.5, 4.9], target=[0.25, 0.25, 0],
+                                        up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": width, "height": width,
+                         "rfilter": {"type": "box"}},
+                "sampler": {"type": "independent", "sample_count": spp}},
+        "slab": {"type": "cube", "bsdf": DIFFUSE,
+                 "to_world": T().translate([0, -0.1, 0]) @ T().scale([4, 0.1, 4])},
+        "ball": {"type": "sphere", "center": [-0.85, 0.65, -0.6], "radius": 0.65,
+                 "bsdf": DIFFUSE},
+        "box": {"type": "cube", "bsdf": DIFFUSE,
+                "to_world": T().translate([0.85, 0.5, -0.5]) @ T().rotate([0, 1, 0], 30)
+                @ T().scale(0.5)},
+        "light": emitters[light]})
+
+
+# ------------------------------------------------------------- the map layer
+def test_second_surface_layer_is_analytic():
+    """Light straight down: slab texels store the slab's bottom, sphere texels the sphere's
+    back (lower) surface, an open rectangle (a non-solid, facing up or down) itself --
+    also where it floats above the slab (an open surface in front of a solid)."""
+    scene = mi.load_dict({
+        "type": "scene",
+        # turned so that no texel ray runs exactly along a face diagonal: Mitsuba's
+        # float ray-triangle test is not watertight there, a ray may slip through the
+        # crack of the bottom face and the builder then stores the first hit (as for a
+        # non-solid)
+        "slab": {"type": "cube", "to_world": T().translate([0, -0.1, 0])
+                 @ T().rotate([0, 1, 0], 7) @ T().scale([3, 0.1, 3])},
+        "ball": {"type": "sphere", "center": [0, 0.5, 0], "radius": 0.5},
+        "up": {"type": "rectangle", "to_world": T().translate([1.5, 1.0, 1.5])
+               @ T().rotate([1, 0, 0], -90) @ T().scale(0.3)},
+        "down": {"type": "rectangle", "to_world": T().translate([-1.5, 0.8, -1.5])
+                 @ T().rotate([1, 0, 0], 90) @ T().scale(0.3)},
+        "sun": {"type": "directional", "direction": [0, -1, 0]}})
+    res = 128
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    smap = build_depth_map(scene, view, res, ("second_depth",))
+    o, _, _ = view.texel_rays(res)
+    o = np.asarray(o)
+    o = o.T if o.shape[0] == 3 else o
+    x, z, y0 = o[:, 0], o[:, 2], o[:, 1]
+    r2 = x ** 2 + z ** 2
+    in_up = (np.abs(x - 1.5) < 0.3) & (np.abs(z - 1.5) < 0.3)
+    in_down = (np.abs(x + 1.5) < 0.3) & (np.abs(z + 1.5) < 0.3)
+    expected = np.where(in_up, y0 - 1.0, np.where(in_down, y0 - 0.8, np.where(
+        r2 < 0.25, y0 - (0.5 - np.sqrt(np.maximum(0.25 - r2, 0))), y0 + 0.2)))
+    got = smap.to_numpy("second_depth").ravel()
+    first = smap.to_numpy("depth").ravel()
+    # away from silhouettes (two texels; a texel is ~6/128 world units)
+    t = 2 * 6.0 / res
+    keep = ((np.abs(np.sqrt(r2) - 0.5) > t)
+            & ~((np.abs(np.abs(x) - 1.5) < 0.3 + t) & (np.abs(np.abs(x) - 1.5) > 0.3 - t))
+            & ~((np.abs(np.abs(z) - 1.5) < 0.3 + t) & (np.abs(np.abs(z) - 1.5) > 0.3 - t))
+            & (np.abs(x) < 2.5) & (np.abs(z) < 2.5))
+    # float32 sphere intersections from inside the sphere lose a few 1e-4
+    np.testing.assert_allclose(got[keep], expected[keep], rtol=0, atol=1e-3)
+    assert np.all(got >= first - 1e-5)
+    # non-solid: second = first (up to rounding)
+    np.testing.assert_allclose(got[in_up & keep], first[in_up & keep], rtol=1e-5)
+
+
+def test_solid_classification():
+    scene = mi.load_dict({"type": "scene", "c": {"type": "cube"}, "s": {"type": "sphere"},
+                          "r": {"type": "rectangle"}, "d": {"type": "disk"},
+                          "y": {"type": "cylinder"}})
+    got = {s.id(): shape_is_solid(s) for s in scene.shapes()}
+    assert got == {"c": True, "s": True, "r": False, "d": False, "y": False}
+
+
+def test_layer_built_only_for_second_depth():
+    path = [p for p in SCENE_FILES if p.stem == "spot_sphere_box"][0]
+    scene = mi.load_file(str(path), width=16, height=16)
+    assert LAYERS["second_depth"] == ("second_depth",)
+    for method, built in (("hard", False), ("second_depth", True)):
+        integ = mi.load_dict({"type": "shadowmap", "method": method, "resolution": 64})
+        maps = integ.prepare_maps(scene)
+        assert (maps[0].second_depth is not None) == built
+        assert maps[0].extra == {}
+
+
+# ------------------------------------------------------- hand-made depth maps
+@pytest.mark.parametrize("k", [4, 9, 16])
+def test_straight_edge(k):
+    """Occluder (second depth 1) for x < 0, an open floor (second = first = 2) for x >= 0;
+    receivers on the floor: ~0.5 on the edge, monotone, exactly 0 and 1 away from it."""
+    res = 32
+    xc = texel_centres(res)
+    second = np.where(xc[None, :] < 0.0, 1.0, 2.0) * np.ones((res, 1))
+    smap = hand_map(second, res)
+    xs = np.linspace(-0.5, 0.5, 401)
+    vis = second_depth_vis(smap, hand_lookup(xs, 0.013, 2.0, (0, 0, -1)), pcf_samples=k)
+    assert np.all(np.diff(vis) >= 0)
+    side = math.isqrt(k)
+    far = (side / 2 + 0.5) * 2.0 / res
+    assert np.all(vis[xs < -far] == 0.0) and np.all(vis[xs > far] == 1.0)
+    on_edge = second_depth_vis(smap, hand_lookup([0.0], 0.013, 2.0, (0, 0, -1)), pcf_samples=k)
+    tol = 0.0 if side % 2 == 0 else 0.5 / side
+    assert abs(on_edge[0] - 0.5) <= tol + 1e-6, on_edge
+
+
+def test_virtual_samples_light_a_tilted_planar_non_solid():
+    """Sec. 3.3: a tilted open plane is its own second surface. Plain compares of the
+    shading point against neighbouring texels of the same plane self-shadow it (the bias
+    problem of Figure 2); virtual samples on its tangent plane match the texels exactly."""
+    res = 32
+    xc = texel_centres(res)
+    slope = 0.8
+    plane = 2.0 + slope * xc[None, :] * np.ones((res, 1))          # z = 2 + slope * x
+    smap = hand_map(plane, res)
+    xs = np.linspace(-0.6, 0.6, 301)
+    n = (slope, 0.0, -1.0)                                         # faces the light (-z)
+    lk = hand_lookup(xs, 0.013, 2.0 + slope * xs, n)
+    plain = second_depth_vis(smap, lk, virtual_samples=False)
+    virt = second_depth_vis(smap, lk)
+    assert np.all(virt == 1.0)
+    assert np.mean(plain < 1.0) > 0.4        # half the taps lie in front of the point
+
+
+def test_virtual_sample_guard_when_plane_parallel_to_light():
+    """c_L -> 0: a receiver plane containing the light direction has no finite virtual
+    depth; those taps keep the ordinary comparison (no inf/NaN)."""
+    res = 16
+    xc = texel_centres(res)
+    second = np.where(xc[None, :] < 0.0, 1.0, 2.0) * np.ones((res, 1))
+    smap = hand_map(second, res)
+    xs = np.linspace(-0.2, 0.2, 81)
+    lk = hand_lookup(xs, 0.02, 1.5, (1.0, 0.0, 0.0))
+    z, ok = virtual_sample_depth(smap.view, mi.UInt32(0), mi.Point2i(3, 3), res,
+                                 lk.p_world, lk.n_world, 20.0)
+    assert not np.any(np.asarray(ok))
+    vis = second_depth_vis(smap, lk)
+    plain = second_depth_vis(smap, lk, virtual_samples=False)
+    assert np.all(np.isfinite(vis)) and np.array_equal(vis, plain)
+    assert 0.0 < vis.mean() < 1.0
+
+
+# -------------------------------------------------------------- the paper's claim
+@pytest.mark.parametrize("light", ["spot", "sun", "point"])
+def test_no_acne_on_solids_at_bias_zero(light):
+    """Wang & Molnar's central claim. On closed solids with every bias at 0:
+
+    * second_depth: no false shadow on any pixel the ray-traced reference sees fully lit
+      (the only false-shadow pixels at threshold 0.5 are shadow-boundary pixels with
+      reference visibility 0.5 at 4 spp, reported, not asserted);
+    * hard: acne on more than 5 % of the lit pixels (measured ~31-32 %).
+    """
+    scene = closed_solids_scene(light)
+    _, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    ref = vis_stack(ref)
+    lit = ref >= 0.5
+    fully_lit = ref >= 1.0
+    _, sd = render_np(scene, {"type": "shadowmap", "method": "second_depth",
+                              "resolution": 1024}, spp=4)
+    sd = vis_stack(sd)
+    _, hard = render_np(scene, {"type": "shadowmap", "method": "hard", "resolution": 1024,
+                                "bias": 0.0, "slope_bias": 0.0, "normal_bias": 0.0}, spp=4)
+    hard = vis_stack(hard)
+    acne_sd = np.count_nonzero(fully_lit & (sd < 0.5)) / np.count_nonzero(fully_lit)
+    acne_hard = np.count_nonzero(lit & (hard < 0.5)) / np.count_nonzero(lit)
+    raw_sd = misclassified(ref, sd)
+    print(f"{light}: second_depth false shadow on fully lit {acne_sd:.4%}, all pixels "
+          f"{raw_sd['false_shadow']:.4%} (false lit {raw_sd['false_lit']:.4%}); "
+          f"hard bias 0 false shadow on lit {acne_hard:.2%}")
+    assert acne_sd == 0.0
+    assert acne_hard > 0.05
+    assert raw_sd["misclassified"] <= 0.01
+
+
+def thin_ellipsoid(thickness, n=48):
+    """A closed, smooth-shaded ellipsoid mesh with radii (1, thickness, 1)."""
+    th = np.linspace(0, np.pi, n + 1)
+    ph = np.linspace(0, 2 * np.pi, 2 * n + 1)
+    TH, PH = np.meshgrid(th, ph, indexing="ij")
+    u = np.stack([np.sin(TH) * np.cos(PH), np.cos(TH), np.sin(TH) * np.sin(PH)], -1)
+    u = u.reshape(-1, 3)
+    scale = np.array([1.0, thickness, 1.0])
+    v = u * scale
+    nrm = u / scale
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    w = 2 * n + 1
+    a = (np.arange(n)[:, None] * w + np.arange(2 * n)[None, :]).ravel()
+    f = np.concatenate([np.stack([a, a + w, a + 1], 1), np.stack([a + 1, a + w, a + w + 1], 1)])
+    closed, vol = check_closed(v, f)
+    assert closed
+    if vol < 0:
+        f = f[:, ::-1]
+    return v, f, nrm
+
+
+def thin_object_scene(thickness):
+    v, f, nrm = thin_ellipsoid(thickness)
+    to_world = T().translate([0, 0.8, 0]) @ T().rotate([1, 0, 1], 55) @ T().scale(0.8)
+    m = np.array(to_world.matrix, dtype=np.float64)
+    v = v @ m[:3, :3].T + m[:3, 3]
+    nrm = nrm @ np.linalg.inv(m[:3, :3])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    mesh = mi.Mesh("thin", len(v), len(f), has_vertex_normals=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(f.astype(np.uint32).ravel())
+    params["vertex_normals"] = mi.Float(nrm.astype(np.float32).ravel())
+    params.update()
+    assert shape_is_solid(mesh)
+    return mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "perspective", "fov": 30,
+                "to_world": T().look_at(origin=[0, 3.0, 3.5], target=[0, 0.6, 0], up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": 64, "height": 64,
+                         "rfilter": {"type": "box"}},
+                "sampler": {"type": "independent", "sample_count": 4}},
+        "slab": {"type": "cube", "bsdf": DIFFUSE,
+                 "to_world": T().translate([0, -0.1, 0]) @ T().scale([4, 0.1, 4])},
+        "thin": mesh,
+        "sun": {"type": "directional", "direction": [0, -1, 0], "irradiance": 3.0}})
+
+
+def test_thin_object_failure_case():
+    """The paper's known failure (sec. 3.2, Figure 7): a very thin object. Here a closed,
+    smooth-shaded ellipsoid 0.5 % as thick as it is wide (0.004 world units), tilted 55
+    degrees, with a 256^2 map (a texel is ~0.025 units wide, so the depth changes by ~0.036
+    across one texel: far more than the thickness).
+
+    What happens (measured, fully lit pixels of the reference):
+
+    * without virtual samples the lit face compares against its own back face at texels
+      nearer the light and shadows itself: ~65 % of the fully lit pixels are darkened
+      (visibility < 1) and ~3 % come out shadowed (< 0.5) -- Figure 7;
+    * with virtual samples (the paper's remedy) no pixel is shadowed and ~1 % stay partly
+      darkened: near the rim the tangent plane of the *curved* surface departs from it by
+      more than the thickness within the tap neighbourhood (the paper, sec. 3.3: curved
+      thin surfaces "need a bias").
+    """
+    scene = thin_object_scene(0.005)
+    _, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    ref = vis_stack(ref)
+    full = ref >= 1.0
+    out = {}
+    for virtual in (False, True):
+        _, v = render_np(scene, {"type": "shadowmap", "method": "second_depth",
+                                 "resolution": 256, "virtual_samples": virtual}, spp=4)
+        v = vis_stack(v)
+        out[virtual] = (np.count_nonzero(full & (v < 0.5)) / np.count_nonzero(full),
+                        np.count_nonzero(full & (v < 1.0)) / np.count_nonzero(full))
+    print(f"thin ellipsoid: plain false shadow {out[False][0]:.2%} (darkened "
+          f"{out[False][1]:.2%}); virtual samples false shadow {out[True][0]:.2%} "
+          f"(darkened {out[True][1]:.2%})")
+    assert out[False][0] > 0.01 and out[False][1] > 0.3   # Figure 7 without the remedy
+    assert out[True][0] == 0.0                  # virtual samples: no false shadow...
+    assert 0.0 < out[True][1] < 0.05            # ...a little darkening stays (curvature)
+
+
+# ----------------------------------------------------------------- bad input
+def test_biases_default_to_zero():
+    o = parse_options({"method": "second_depth"})
+    assert o.bias_world == 0.0 and o.slope_bias_texels == 0.0 and o.normal_bias_texels == 0.0
+    assert o.virtual_samples is True
+
+
+@pytest.mark.parametrize("props, needle", [
+    ({"method": "second_depth", "pcf_samples": 8}, "pcf_samples"),
+    ({"method": "second_depth", "pcf_samples": 0}, "pcf_samples"),
+    ({"method": "second_depth", "pcf_samples": 4.0}, "pcf_samples"),
+    ({"method": "second_depth", "virtual_samples": 1}, "virtual_samples"),
+    ({"method": "second_depth", "virtual_samples": "yes"}, "virtual_samples"),
+    ({"method": "hard", "virtual_samples": False}, "virtual_samples"),
+    ({"method": "hard", "pcf_samples": 4}, "pcf_samples"),
+    ({"method": "second_depth", "depths": 2}, "depths"),
+])
+def test_bad_values_name_the_property(props, needle):
+    with pytest.raises(OptionError, match=needle):
+        parse_options(props)
+    with pytest.raises(RuntimeError, match=needle):
+        mi.load_dict({"type": "shadowmap", **props})

@@ -26,18 +26,27 @@ Conventions
 * **Point and area** (``cube``): six 90-degree faces around the light
   position in world axes. Face ``2*a + s`` looks along axis ``a`` with sign
   ``+`` (s=0) or ``-`` (s=1); its ``u``/``v`` are the axes ``(a+1)%3`` and
-  ``(a+2)%3``. Area lights are treated as their shape's centre; the shape
-  itself is never an occluder.
+  ``(a+2)%3``. Area lights (rectangle, disk, sphere, mesh) are treated as
+  their shape's bounding-box centre (``hard`` and the PCF family thus see a
+  point light there); the shape itself is never an occluder. Their
+  ``light_size`` (used by ``pcss``) is derived from the shape by
+  :func:`area_light_size`.
 * **Directional** (``orthographic``): one face, aligned with the light
   direction and fitted to the scene's bounding-box corners as seen along
   the light (the tight rectangle of the projected corners, not a bounding
   sphere).
+* **Directional, cascaded** (``cascaded``, ``cascades`` > 1, see
+  :func:`cascaded_view`): ``n_faces`` = cascades orthographic maps sharing the
+  light direction and near plane, face ``i`` fitted to the camera-visible
+  points of view-depth slice ``i`` (thesis 002, sec. 2.1.6 / 5.1); a point
+  uses the face of its camera view depth (:meth:`LightView.cascade_of`).
 * **Outside a map** (behind a spot, beyond a directional map's rectangle)
   ``inside`` is False and lookups treat the point as lit (Reeves 1987).
 """
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -115,10 +124,37 @@ class LightView:
             d_light = mi.Vector3f(s * self.tan_half, t * self.tan_half, 1.0)
             return (mi.Point3f(self.position), dr.normalize(world_from_light @ d_light),
                     mi.Float(dr.inf))
+        if self.projection == "cascaded":
+            cx, cy, hx, hy = self._cascade(face)
+            o_light = mi.Point3f(cx + s * hx, cy + t * hy, 0.0)
+            return (world_from_light @ o_light, world_from_light @ mi.Vector3f(0, 0, 1),
+                    mi.Float(dr.inf))
         # orthographic
         o_light = mi.Point3f(s * self.half_extent[0], t * self.half_extent[1], 0.0)
         return (world_from_light @ o_light, world_from_light @ mi.Vector3f(0, 0, 1),
                 mi.Float(dr.inf))
+
+    def ray_through(self, face, uv_light: mi.Point2f):
+        """World ray ``(o_world, d_world)`` (unit ``d``) through ``uv_light`` of ``face``.
+
+        The inverse of :meth:`project`: the point at distance ``t`` along it has
+        map depth ``t``. Used by the receiver-plane depth of PCSS taps.
+        """
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        if self.projection == "cube":
+            return mi.Point3f(self.position), dr.normalize(_cube_dir(mi.UInt32(face), s, t))
+        world_from_light = mi.Transform4f(self.light_from_world.inverse())
+        if self.projection == "perspective":
+            d_light = mi.Vector3f(s * self.tan_half, t * self.tan_half, 1.0)
+            return mi.Point3f(self.position), dr.normalize(world_from_light @ d_light)
+        if self.projection == "cascaded":
+            cx, cy, hx, hy = self._cascade(mi.UInt32(face))
+            o_light = mi.Point3f(cx + s * hx, cy + t * hy, 0.0)
+        else:
+            o_light = mi.Point3f(s * self.half_extent[0], t * self.half_extent[1], 0.0)
+        return (mi.Point3f(world_from_light @ o_light),
+                dr.normalize(world_from_light @ mi.Vector3f(0, 0, 1)))
 
     # ---------------------------------------------------------------- lookup
     def project(self, p_world: mi.Point3f):
@@ -134,6 +170,13 @@ class LightView:
             depth = dr.norm(d)
             return face, uv, depth, major > 0
         p_light = mi.Transform4f(self.light_from_world) @ p_world
+        if self.projection == "cascaded":
+            face = self.cascade_of(p_world)
+            cx, cy, hx, hy = self._cascade(face)
+            uv = mi.Point2f(0.5 * ((p_light.x - cx) / hx + 1.0),
+                            0.5 * ((p_light.y - cy) / hy + 1.0))
+            inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+            return face, uv, p_light.z, inside
         if self.projection == "perspective":
             z = p_light.z
             inv_z = dr.rcp(dr.maximum(z, 1e-30))
@@ -150,23 +193,55 @@ class LightView:
 
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
         """Map depth of ``p_world`` (same as :meth:`project`'s, without the uv)."""
-        if self.projection == "orthographic":
+        if self.projection in ("orthographic", "cascaded"):
             fwd = mi.Transform4f(self.light_from_world.inverse()) @ mi.Vector3f(0, 0, 1)
             return dr.dot(p_world - mi.Point3f(self.position), fwd)
         return dr.norm(p_world - mi.Point3f(self.position))
 
-    def texel_world_size(self, res: int, depth):
-        """World width of one texel at ``depth`` (perpendicular to the ray)."""
+    def texel_world_size(self, res: int, depth, p_world=None):
+        """World width of one texel at ``depth`` (perpendicular to the ray).
+
+        Cascaded maps need ``p_world`` (its cascade sets the texel size); without
+        it they return the coarsest cascade's texel (a conservative bias).
+        """
+        if self.projection == "cascaded":
+            halves = self.extra["cascade_rects"]
+            if p_world is None:
+                w = max(max(r[2], r[3]) for r in halves)
+                return dr.full(mi.Float, 2.0 * w / res, dr.width(depth))
+            _, _, hx, hy = self._cascade(self.cascade_of(p_world))
+            return 2.0 * dr.maximum(hx, hy) / res
         if self.projection == "orthographic":
             return dr.full(mi.Float, 2.0 * max(self.half_extent) / res, dr.width(depth))
         return depth * (2.0 * self.tan_half / res)
 
     def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
         """Unit vector from ``p_world`` towards the light (its centre)."""
-        if self.projection == "orthographic":
+        if self.projection in ("orthographic", "cascaded"):
             fwd = mi.Transform4f(self.light_from_world.inverse()) @ mi.Vector3f(0, 0, 1)
             return -dr.normalize(fwd)
         return dr.normalize(mi.Point3f(self.position) - p_world)
+
+    # ------------------------------------------------------------ cascades
+    def cascade_of(self, p_world) -> mi.UInt32:
+        """Cascade (face) of ``p_world``: how many split depths its camera view
+        depth exceeds (cascaded projection only)."""
+        cam_o = mi.Point3f(*self.extra["camera_origin"])
+        cam_f = mi.Vector3f(*self.extra["camera_forward"])
+        z_view = dr.dot(mi.Point3f(p_world) - cam_o, cam_f)
+        face = mi.UInt32(0)
+        for split in self.extra["split_depths"][1:-1]:
+            face += dr.select(z_view > split, 1, 0)
+        return face
+
+    def _cascade(self, face):
+        """Per-face ``(cx, cy, hx, hy)`` of the light-space rectangle, gathered."""
+        rects = self.extra["cascade_rects"]
+        out = []
+        for k in range(4):
+            table = mi.Float([r[k] for r in rects])
+            out.append(dr.gather(mi.Float, table, mi.UInt32(face)))
+        return tuple(out)
 
     def describe(self) -> str:
         return f"{self.label}: {self.kind} light, {self.projection} map, {self.n_faces} face(s)"
@@ -258,15 +333,67 @@ def _directional_view(emitter, scene, label) -> LightView:
                      half_extent=half, depth_range=hi[2] - near + pad, label=label)
 
 
-def _area_view(emitter, label) -> LightView:
+def area_light_size(shape) -> float:
+    """Width of an area light as PCSS sees it (world units).
+
+    The side of the square whose area equals the shape's area *seen from the
+    receivers' side*: ``sqrt(A_proj)``, where ``A_proj`` is
+
+    * for meshes (PLY/OBJ, and Mitsuba's rectangle, which is a mesh):
+      ``max(|sum_i a_i n_i|, A / 4)`` -- the length of the summed triangle
+      area vectors is the area projected along the mesh's mean normal (the
+      full area for a planar one-sided light); closed meshes sum to 0 and
+      fall back to ``A / 4``, their mean projected area (Cauchy's formula);
+    * for a disk: its area (a disk of radius r gives ``sqrt(pi) r``);
+    * for a sphere and any other shape: ``A / 4`` (a sphere gives the area of
+      its silhouette disk, ``pi r^2``).
+
+    A square light of side ``a`` thus has size ``a`` exactly, which is what
+    the PCSS penumbra estimate ``w = (d_r - d_b) w_light / d_b`` assumes.
+    """
+    area = float(dr.ravel(shape.surface_area())[0])
+    cls = emitter_class(shape)
+    if shape.is_mesh() and hasattr(shape, "vertex_positions_buffer"):
+        import numpy as np   # set-up time only (never in a kernel)
+        v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype("f8")
+        f = shape.faces_buffer().numpy().reshape(-1, 3)
+        area_vectors = 0.5 * np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        proj = float(np.linalg.norm(area_vectors.sum(axis=0)))
+        a_proj = max(proj, 0.25 * area)
+    elif cls in ("Disk", "Rectangle"):
+        a_proj = area
+    else:
+        a_proj = 0.25 * area
+    return math.sqrt(max(a_proj, 0.0))
+
+
+def _planar_normal(shape):
+    """The emitting normal of a planar shape (all of 64 sampled normals within
+    1e-3 of each other), else None (spheres, curved or closed meshes)."""
+    k = dr.arange(mi.UInt32, 64)
+    u = mi.Point2f((mi.Float(k % 8) + 0.5) / 8, (mi.Float(k // 8) + 0.5) / 8)
+    ps = shape.sample_position(0.0, u)
+    n = [ps.n.x.numpy(), ps.n.y.numpy(), ps.n.z.numpy()]
+    mean = [float(c.mean()) for c in n]
+    norm = math.sqrt(sum(c * c for c in mean))
+    if norm < 0.999 or any(float(abs(c - m).max()) > 1e-3 for c, m in zip(n, mean)):
+        return None
+    return tuple(c / norm for c in mean)
+
+
+def _area_view(emitter, scene, label) -> LightView:
     shape = emitter.get_shape()
     bbox = shape.bbox()
     centre = mi.ScalarPoint3f(bbox.center())
-    ext = bbox.extents()
-    # The widest extent of the shape is its size seen edge-on; issue #4 refines it.
-    size = float(max(ext[0], ext[1], ext[2]))
+    # get_shape() is typed as the Shape base; the scene's list has the Mesh interface.
+    typed = [s for s in scene.shapes() if s.emitter() is emitter] if scene is not None else []
+    size = area_light_size(typed[0] if typed else shape)
+    extra = {}
+    normal = _planar_normal(shape)
+    if normal is not None:
+        extra["light_normal"] = normal
     return LightView("area", "cube", 6, centre, mi.ScalarTransform4f(), light_size=size,
-                     ignore_shape=shape, label=label)
+                     ignore_shape=shape, label=label, extra=extra)
 
 
 def make_light_view(emitter, scene, index: int) -> LightView:
@@ -280,9 +407,89 @@ def make_light_view(emitter, scene, index: int) -> LightView:
     if kind == "directional":
         return _directional_view(emitter, scene, label)
     if kind == "area":
-        return _area_view(emitter, label)
+        return _area_view(emitter, scene, label)
     raise UnsupportedEmitterError(
         f"shadowmap: emitter '{label}' ({emitter_class(emitter)}) is not supported; "
         f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}"
         + ("; for environment/constant emitters set environment='unshadowed' to light "
            "them without shadows" if kind == "environment" else ""))
+
+
+# ------------------------------------------------------------ cascaded maps
+def split_depths(z_near: float, z_far: float, cascades: int, split_lambda: float) -> list:
+    """Split positions ``C_0 = z_near < C_1 < ... < C_m = z_far`` (thesis sec. 5.1).
+
+    ``C_i = lambda * (z_n + (z_f - z_n) i / m) + (1 - lambda) * z_n (z_f / z_n)^(i / m)``:
+    the uniform scheme weighted by ``split_lambda``, the logarithmic one by
+    ``1 - split_lambda`` (Zhang et al.'s practical split scheme).
+    """
+    m = int(cascades)
+    z_near = max(float(z_near), 1e-6 * max(abs(float(z_far)), 1e-30))
+    z_far = max(float(z_far), z_near * (1.0 + 1e-6))
+    out = []
+    for i in range(m + 1):
+        uni = z_near + (z_far - z_near) * i / m
+        log = z_near * (z_far / z_near) ** (i / m)
+        out.append(split_lambda * uni + (1.0 - split_lambda) * log)
+    out[0], out[-1] = z_near, z_far
+    return out
+
+
+def cascaded_view(view: LightView, scene, sensor, cascades: int, split_lambda: float,
+                  margin_texels: float = 4.0, res: int = 1024) -> LightView:
+    """Parallel-split (cascaded) maps for a directional ``view`` (thesis 2.1.6, 5.1).
+
+    The camera's view depth range -- the nearest and farthest camera-visible
+    surface points along the camera's forward axis, one ray per pixel centre
+    of ``sensor``'s film -- is split with :func:`split_depths`. Cascade ``i``
+    is an orthographic map (same light direction and near plane as ``view``,
+    so casters between the scene's bounds and a receiver are all in it: a
+    caster that can shadow a receiver lies on the light ray through it, at
+    the same light-space (x, y)) whose rectangle is the light-space (x, y)
+    bounding box of the visible points of slice ``i`` (slices overlap by 2 %
+    of their length), grown by ``margin_texels`` texels of ``res``. A lookup
+    uses the cascade of its point's view depth. Returns ``view`` unchanged
+    for 1 cascade, a non-directional view, or a camera that sees nothing.
+    """
+    if cascades <= 1 or view.projection != "orthographic" or sensor is None:
+        return view
+    import numpy as np   # set-up time only
+    w, h = (int(x) for x in sensor.film().crop_size())
+    idx = dr.arange(mi.UInt32, w * h)
+    yy = idx // w
+    xx = idx - yy * w
+    pos = mi.Point2f((mi.Float(xx) + 0.5) / w, (mi.Float(yy) + 0.5) / h)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    valid = si.is_valid().numpy()
+    if not valid.any():
+        return view
+    p = np.stack([si.p.x.numpy(), si.p.y.numpy(), si.p.z.numpy()], axis=1)[valid]
+    T = sensor.world_transform()
+    cam_o = np.array([float(dr.ravel(T.translation()[k])[0]) for k in range(3)])
+    fwd_v = T @ mi.Vector3f(0, 0, 1)
+    cam_f = np.array([float(dr.ravel(fwd_v[k])[0]) for k in range(3)])
+    cam_f /= np.linalg.norm(cam_f)
+    z_view = (p - cam_o) @ cam_f
+    splits = split_depths(max(float(z_view.min()), 1e-6), float(z_view.max()), cascades,
+                          split_lambda)
+    L = np.array(view.light_from_world.matrix, dtype=np.float64)
+    p_l = p @ L[:3, :3].T + L[:3, 3]
+    rects = []
+    for i in range(cascades):
+        lo_z, hi_z = splits[i], splits[i + 1]
+        pad_z = 0.02 * (hi_z - lo_z)
+        sel = (z_view >= lo_z - pad_z) & (z_view <= hi_z + pad_z)
+        if not sel.any():
+            sel = np.argsort(np.abs(z_view - 0.5 * (lo_z + hi_z)))[:1]
+        lo = p_l[sel, :2].min(axis=0)
+        hi = p_l[sel, :2].max(axis=0)
+        half = np.maximum(0.5 * (hi - lo), 1e-6 * max(view.half_extent))
+        half = half * (1.0 + 2.0 * margin_texels / res) + 2.0 * margin_texels / res * half.max()
+        c = 0.5 * (lo + hi)
+        rects.append((float(c[0]), float(c[1]), float(half[0]), float(half[1])))
+    extra = dict(view.extra)
+    extra.update(cascade_rects=tuple(rects), split_depths=tuple(splits),
+                 camera_origin=tuple(float(x) for x in cam_o),
+                 camera_forward=tuple(float(x) for x in cam_f))
+    return dataclasses.replace(view, projection="cascaded", n_faces=int(cascades), extra=extra)

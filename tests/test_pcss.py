@@ -1,0 +1,173 @@
+"""PCSS (Fernando 2005, thesis 002): contact hardening against the geometric penumbra,
+quality against the converged reference, no-blocker shortcut, point/spot light_size,
+sample patterns, bad input."""
+import re
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowmap.metrics import penumbra_rmse
+from mi_shadowmap.options import OptionError, parse_options
+from mi_shadowmap.reference import converged_visibility
+from mi_shadowmap.scenes import default_scene
+
+from conftest import SCENES, render_np
+
+CONTACT = SCENES / "contact_hardening.xml"
+# contact_hardening.xml: square light of width W at height H; plate edges at heights h.
+W_LIGHT, H_LIGHT = 1.5, 4.0
+PLATES = {0.4: (-0.75, -0.35), 1.2: (0.55, 0.78)}   # height -> rows (world z range)
+
+
+def width_10_90(vis, z_lo, z_hi):
+    """10 %-90 % width (world units along x) of the shadow edge in rows z_lo < z < z_hi.
+
+    The orthographic camera of contact_hardening.xml spans x in [-0.3, 1.3] (columns)
+    and z in [-0.8, 0.8] (rows); the rows are averaged into one profile and the
+    crossings are interpolated linearly.
+    """
+    h, w = vis.shape
+    z = -0.8 + (np.arange(h) + 0.5) * 1.6 / h
+    x = -0.3 + (np.arange(w) + 0.5) * 1.6 / w
+    prof = vis[(z > z_lo) & (z < z_hi)].mean(axis=0)
+
+    def cross(level):
+        k = np.nonzero((prof[:-1] < level) & (prof[1:] >= level))[0]
+        assert len(k) >= 1, f"profile never crosses {level}"
+        k = k[0]
+        return x[k] + (level - prof[k]) / (prof[k + 1] - prof[k]) * (x[k + 1] - x[k])
+
+    return cross(0.9) - cross(0.1)
+
+
+def geometric_10_90(h):
+    """A square light's visibility is linear across the penumbra W h / (H - h):
+    the 10-90 % part of it is 0.8 of that width."""
+    return 0.8 * W_LIGHT * h / (H_LIGHT - h)
+
+
+@pytest.fixture(scope="module")
+def contact_scene():
+    return mi.load_file(str(CONTACT), width=128, height=128)
+
+
+@pytest.mark.parametrize("pattern", ["stratified", "poisson"])
+def test_contact_hardening_widths_match_geometry(contact_scene, pattern):
+    _, aovs = render_np(contact_scene, {"type": "shadowmap", "method": "pcss",
+                                        "resolution": 256, "pattern": pattern}, spp=4)
+    vis = aovs["vis_light"]
+    widths = {}
+    for h, (z_lo, z_hi) in PLATES.items():
+        widths[h] = width_10_90(vis, z_lo, z_hi)
+        geo = geometric_10_90(h)
+        print(f"{pattern}: gap {h}: PCSS 10-90 width {widths[h]:.4f}, geometric {geo:.4f} "
+              f"({widths[h] / geo - 1:+.1%})")
+        assert abs(widths[h] / geo - 1) <= 0.25
+    assert widths[1.2] > 2.0 * widths[0.4]   # larger gap -> wider penumbra
+
+
+def test_converged_reference_matches_geometry(contact_scene):
+    ref = converged_visibility(contact_scene, n_light=1024, spp=2)["vis_light"]
+    for h, (z_lo, z_hi) in PLATES.items():
+        assert width_10_90(ref, z_lo, z_hi) == pytest.approx(geometric_10_90(h), rel=0.05)
+
+
+def test_hard_has_no_penumbra_but_pcss_does(contact_scene):
+    """Sanity of the measurement itself: hard shadows are ~one pixel wide."""
+    _, aovs = render_np(contact_scene, {"type": "shadowmap", "method": "hard",
+                                        "resolution": 256}, spp=4)
+    assert width_10_90(aovs["vis_light"], *PLATES[1.2]) < 0.25 * geometric_10_90(1.2)
+
+
+@pytest.mark.parametrize("name,overall", [("contact_hardening", 0.8), ("cbox_area", 1.0)])
+def test_pcss_beats_hard_against_converged_reference(name, overall):
+    """PCSS must beat hard shadows in the penumbra (by 10 %) and overall on both scenes
+    (by 20 % on contact_hardening; on cbox_area, 64^2 image and 256^2 maps, only just:
+    false blockers at concave floor/wall seams and single-light-sample noise where the
+    light straddles a receiver's horizon cost most of what the penumbrae gain)."""
+    scene = mi.load_file(str(SCENES / f"{name}.xml"), width=64, height=64)
+    ref = converged_visibility(scene, n_light=1024, spp=4)["vis_light"]
+    err = {}
+    for method in ("hard", "pcss"):
+        _, aovs = render_np(scene, {"type": "shadowmap", "method": method, "resolution": 256},
+                            spp=4)
+        v = aovs["vis_light"]
+        err[method] = (float(np.sqrt(np.mean((v - ref) ** 2))), penumbra_rmse(ref, v))
+        print(f"{name} {method}: RMSE {err[method][0]:.4f}, penumbra RMSE {err[method][1]:.4f}")
+    assert err["pcss"][1] < 0.9 * err["hard"][1]
+    assert err["pcss"][0] < overall * err["hard"][0]
+
+
+def test_no_blockers_is_fully_lit():
+    """A ground plane alone: the blocker search finds nothing, visibility is exactly 1."""
+    d = default_scene(light="area", width=32, height=32)
+    del d["sphere"], d["box"]
+    scene = mi.load_dict(d)
+    _, aovs = render_np(scene, {"type": "shadowmap", "method": "pcss", "resolution": 128}, spp=1)
+    v = next(iter(aovs.values()))
+    lit = v > 0   # pixels where the light contributes
+    assert lit.mean() > 0.5
+    assert np.all(v[lit] == 1.0)
+
+
+@pytest.mark.parametrize("light", ["point", "spot"])
+def test_point_and_spot_light_size_enables_pcss(light):
+    scene = mi.load_dict(default_scene(light=light, width=64, height=64))
+    _, hard = render_np(scene, {"type": "shadowmap", "method": "pcss", "resolution": 256},
+                        spp=4)
+    _, soft = render_np(scene, {"type": "shadowmap", "method": "pcss", "resolution": 256,
+                                "light_size": 1.0}, spp=4)
+    h, s = next(iter(hard.values())), next(iter(soft.values()))
+    partial = lambda v: np.mean((v > 0.05) & (v < 0.95))
+    print(f"{light}: partial-visibility pixels hard {partial(h):.3%}, soft {partial(s):.3%}")
+    # light_size 0: hard shadows (partial only where a pixel straddles the edge)
+    assert partial(s) > 2 * partial(h)
+    # and the soft shadow is a blur of the hard one: same mean darkness within 5 %
+    assert abs(s.mean() - h.mean()) < 0.05
+
+
+def test_directional_angular_diameter_enables_pcss():
+    scene = mi.load_dict(default_scene(light="directional", width=64, height=64))
+    _, hard = render_np(scene, {"type": "shadowmap", "method": "pcss", "resolution": 256},
+                        spp=4)
+    _, soft = render_np(scene, {"type": "shadowmap", "method": "pcss", "resolution": 256,
+                                "angular_diameter": 8.0}, spp=4)
+    partial = lambda v: np.mean((v > 0.05) & (v < 0.95))
+    h, s = hard["vis_sun"], soft["vis_sun"]
+    assert partial(s) > 2 * partial(h)
+
+
+@pytest.mark.parametrize("name,value,pattern", [
+    ("blocker_samples", 0, ">= 1"), ("blocker_samples", 2.5, "integer"),
+    ("filter_samples", 0, ">= 1"), ("filter_samples", "16", "integer"),
+    ("light_size", -1.0, ">= 0"), ("light_size", "big", "number"),
+    ("max_kernel", 0.5, ">= 1"), ("max_kernel", 1e9, "<= 4096"),
+    ("pattern", "halton", "stratified, poisson"), ("pattern", 3, "string"),
+    ("angular_diameter", -0.1, ">= 0"), ("angular_diameter", 45.0, "<= 30"),
+    ("angular_diameter", float("nan"), "finite"),
+])
+def test_bad_pcss_properties(name, value, pattern):
+    with pytest.raises(OptionError, match=re.escape(f"'{name}'") + ".*" + re.escape(pattern)):
+        parse_options({"method": "pcss", name: value})
+
+
+@pytest.mark.parametrize("name,value", [("blocker_samples", 4), ("filter_samples", 4),
+                                        ("light_size", 1.0), ("max_kernel", 8.0),
+                                        ("pattern", "poisson"), ("angular_diameter", 1.0)])
+def test_pcss_properties_refused_by_other_methods(name, value):
+    parse_options({"method": "pcss", name: value})
+    with pytest.raises(OptionError, match=f"'{name}' is not used by method 'hard'.*pcss"):
+        parse_options({"method": "hard", name: value})
+
+
+def test_pcss_from_xml_with_integer_properties():
+    scene = mi.load_file(str(CONTACT), method="pcss", resolution=64, width=16, height=16)
+    integ = mi.load_string("""<integrator version="3.0.0" type="shadowmap">
+        <string name="method" value="pcss"/><integer name="resolution" value="64"/>
+        <integer name="blocker_samples" value="8"/><integer name="filter_samples" value="9"/>
+        <integer name="light_size" value="1"/><integer name="max_kernel" value="16"/>
+        <string name="pattern" value="poisson"/></integrator>""")
+    img = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    assert np.isfinite(img).all()
+    assert integ.opts.light_size == 1.0 and integ.opts.filter_samples == 9

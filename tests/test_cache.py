@@ -1,0 +1,278 @@
+"""Map cache across renders (issue 6): reuse when only the camera or the
+filter parameters change, rebuild when geometry or emitters change through
+``mi.traverse`` + ``params.update()``. Builds are counted twice: by the
+integrator's ``stats`` and by wrapping ``build_depth_map`` (the real one)."""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_shadowmap.integrator as integ_mod
+from mi_shadowmap.filters import FILTERS, LAYERS
+from mi_shadowmap.integrator import MAP_CACHE, MapCache
+from mi_shadowmap.options import MAP_METHODS
+from mi_shadowmap.scenes import default_scene
+
+from conftest import SCENE_FILES
+
+RES = 64
+#: Map methods whose lookup has landed (METHODS may list a method before its filter).
+MAP_READY = [m for m in MAP_METHODS if m in FILTERS]
+
+
+@pytest.fixture
+def builds(monkeypatch):
+    calls = []
+    real = integ_mod.build_depth_map
+    monkeypatch.setattr(integ_mod, "build_depth_map",
+                        lambda *a, **k: calls.append(a[1].label) or real(*a, **k))
+    MAP_CACHE.clear()
+    yield calls
+    MAP_CACHE.clear()
+
+
+def render(scene, integ, seed=1):
+    img = mi.render(scene, integrator=integ, spp=2, seed=seed)
+    return np.asarray(img)
+
+
+def shadowmap(**props):
+    return mi.load_dict({"type": "shadowmap", "resolution": RES, **props})
+
+
+def test_camera_change_reuses_maps_and_matches_a_fresh_build(builds):
+    scene = mi.load_dict(default_scene(width=32, height=32))
+    integ = shadowmap()
+    render(scene, integ)
+    assert len(builds) == 1 and integ.stats["maps_built"] == 1
+    params = mi.traverse(scene)
+    params["sensor.to_world"] = mi.ScalarTransform4f().look_at(
+        origin=[1.5, 3.0, 4.5], target=[0.0, 0.3, 0.0], up=[0, 1, 0])
+    params.update()
+    cached = render(scene, integ)
+    assert len(builds) == 1, "a camera change rebuilt the maps"
+    assert integ.stats["maps_built"] == 0 and integ.stats["maps_reused"] == 1
+    saved = integ.stats["naive_build_seconds"] - integ.stats["build_seconds"]
+    print(f"cached render: build {integ.stats['build_seconds'] * 1e3:.2f} ms, "
+          f"naive {integ.stats['naive_build_seconds'] * 1e3:.2f} ms, saved {saved * 1e3:.2f} ms")
+    fresh = render(scene, shadowmap(cache_maps=False))
+    assert len(builds) == 2
+    np.testing.assert_array_equal(cached, fresh)
+
+
+@pytest.mark.parametrize("method", MAP_READY)
+def test_filter_parameter_change_reuses_maps(builds, method):
+    """Every map method, new integrator instances with other bias values:
+    the maps (and extra layers) of the first render are reused."""
+    scene = mi.load_dict(default_scene(width=16, height=16))
+    first = shadowmap(method=method)
+    render(scene, first)
+    assert first.stats["maps_built"] == 1
+    assert first.stats["layers_built"] == len(LAYERS.get(method, ()))
+    for change in ({"slope_bias": 2.5}, {"normal_bias": 0.0}, {"bias": 1e-3}):
+        integ = shadowmap(method=method, **change)
+        render(scene, integ)
+        assert integ.stats["maps_built"] == 0 and integ.stats["layers_built"] == 0, change
+        assert integ.stats["maps_reused"] == 1
+    assert len(builds) == 1
+
+
+def test_methods_share_the_depth_layer(builds):
+    """Integrators of different map methods share one depth build per scene state."""
+    scene = mi.load_dict(default_scene(width=16, height=16))
+    for method in MAP_READY:
+        integ = shadowmap(method=method)
+        render(scene, integ)
+        # extra depths only for the methods that use them, even when cached
+        assert integ.maps[0].layers() == ["depth"] + [
+            "second_depth" if n == "second_depth" else n for n in LAYERS.get(method, ())]
+    assert len(builds) == 1
+    hard = shadowmap(method="hard")
+    render(scene, hard)
+    assert hard.maps[0].second_depth is None and hard.maps[0].extra == {}
+
+
+@pytest.mark.parametrize("edit", ["shape_transform", "mesh_vertices", "spot_transform",
+                                  "spot_cutoff"])
+def test_geometry_or_emitter_change_rebuilds(builds, edit):
+    scene = mi.load_dict(default_scene(width=32, height=32))
+    integ = shadowmap()
+    before = render(scene, integ)
+    assert len(builds) == 1
+    params = mi.traverse(scene)
+    if edit == "shape_transform":
+        params["sphere.to_world"] = (mi.Transform4f().translate([0.6, 0.0, 0.3])
+                                     @ params["sphere.to_world"])
+    elif edit == "mesh_vertices":
+        v = dr.unravel(mi.Point3f, params["box.vertex_positions"])
+        params["box.vertex_positions"] = dr.ravel(mi.Point3f(v.x * 0.5, v.y * 1.6, v.z))
+    elif edit == "spot_transform":
+        params["spot.to_world"] = mi.ScalarTransform4f().look_at(
+            origin=[2.4, 4.0, -3.0], target=[0.0, 0.0, 0.3], up=[0, 1, 0])
+    else:
+        params["spot.cutoff_angle"] = 30.0
+    params.update()
+    after = render(scene, integ)
+    assert len(builds) == 2, f"{edit}: the maps were not rebuilt"
+    assert integ.stats["maps_built"] == 1
+    fresh = render(scene, shadowmap(cache_maps=False))
+    np.testing.assert_array_equal(after, fresh)
+    assert not np.array_equal(before, after)   # the edit is visible
+    render(scene, integ)                       # and the new state is cached again
+    assert len(builds) == 3 and integ.stats["maps_reused"] == 1
+
+
+def test_material_change_keeps_maps(builds):
+    scene = mi.load_dict(default_scene(width=16, height=16))
+    integ = shadowmap()
+    render(scene, integ)
+    params = mi.traverse(scene)
+    params["ground.bsdf.reflectance.value"] = mi.Color3f(0.1, 0.9, 0.1)
+    params.update()
+    render(scene, integ)
+    assert len(builds) == 1 and integ.stats["maps_reused"] == 1
+
+
+def test_resolution_change_rebuilds(builds):
+    scene = mi.load_dict(default_scene(width=16, height=16))
+    render(scene, shadowmap())
+    render(scene, mi.load_dict({"type": "shadowmap", "resolution": RES // 2}))
+    assert len(builds) == 2
+
+
+def test_cache_off_builds_every_render(builds):
+    scene = mi.load_dict(default_scene(width=16, height=16))
+    integ = shadowmap(cache_maps=False)
+    render(scene, integ)
+    render(scene, integ)
+    assert len(builds) == 2
+
+
+def test_cache_memory_is_bounded():
+    cache = MapCache(max_bytes=3 * 4 * 1000, max_scenes=2)
+    scenes = [mi.load_dict(default_scene(width=8, height=8)) for _ in range(3)]
+    for k, sc in enumerate(scenes):
+        st = cache.scene_state(sc)
+        for j in range(2):
+            cache.put(sc, st, ("view", j), "depth", dr.zeros(mi.Float, 1000), 0.0)
+            assert cache.nbytes <= cache.max_bytes
+    assert len(cache._scenes) <= 2
+    # a new state of a scene replaces its old maps
+    st = cache.scene_state(scenes[-1])
+    assert cache.get(scenes[-1], st, ("view", 1), "depth") is not None
+    assert cache.get(scenes[-1], "other state", ("view", 1), "depth") is None
+    cache.put(scenes[-1], "other state", ("view", 0), "depth", dr.zeros(mi.Float, 10), 0.0)
+    assert cache.get(scenes[-1], st, ("view", 1), "depth") is None
+
+
+def test_large_mesh_edits_are_seen_through_the_memo(builds):
+    """Buffers > 1024 entries are hashed once per JIT variable; every update
+    (even back to an earlier value) must still rebuild."""
+    path = [p for p in SCENE_FILES if p.stem == "directional_mesh"][0]
+    scene = mi.load_file(str(path), width=16, height=16)
+    integ = shadowmap()
+    render(scene, integ)
+    params = mi.traverse(scene)
+    original = mi.Float(params["terrain.vertex_positions"])
+    assert dr.width(original) > 1024
+    for k, factor in enumerate((1.3, 1.0, 1.3, 0.7)):
+        v = dr.unravel(mi.Point3f, original)
+        params["terrain.vertex_positions"] = dr.ravel(mi.Point3f(v.x, v.y * factor, v.z))
+        params.update()
+        render(scene, integ)
+        assert len(builds) == 2 + k, factor
+        render(scene, integ)
+        assert len(builds) == 2 + k
+
+
+# ------------------------------------------------------------ cube-face culling
+@pytest.mark.parametrize("method", MAP_READY)
+def test_cull_faces_builds_fewer_faces_with_identical_results(builds, method):
+    """Point light: only the faces camera-visible points project into are built;
+    the render is bit-identical to the full cube map's."""
+    scene = mi.load_dict(default_scene(width=32, height=32, light="point"))
+    culled = shadowmap(method=method, cull_faces=True)
+    img_culled = render(scene, culled)
+    full = shadowmap(method=method, cache_maps=False)
+    img_full = render(scene, full)
+    print(f"{method}: faces built {culled.stats['faces_built']} of 6 "
+          f"({culled.stats['texels_built']} texels vs {full.stats['texels_built']})")
+    assert 1 <= culled.stats["faces_built"] < 6
+    assert culled.stats["faces_built"] + culled.stats["faces_culled"] == 6
+    np.testing.assert_array_equal(img_culled, img_full)
+
+
+def test_cull_faces_builds_new_faces_when_the_camera_needs_them(builds):
+    d = default_scene(width=32, height=32, light="point")
+    d["high_ball"] = {"type": "sphere", "center": [-2.4, 7.0, -3.4], "radius": 1.0,
+                      "bsdf": {"type": "diffuse"}}   # above the light, out of the first view
+    scene = mi.load_dict(d)
+    integ = shadowmap(cull_faces=True)
+    render(scene, integ)
+    first = integ.stats["faces_built"]
+    render(scene, integ)                       # same camera: cached
+    assert integ.stats["maps_reused"] == 1 and integ.stats["faces_built"] == 0
+    params = mi.traverse(scene)                # now look at the ball (the light's +y face)
+    params["sensor.to_world"] = mi.ScalarTransform4f().look_at(
+        origin=[2.0, 5.0, 3.0], target=[-2.4, 6.5, -3.4], up=[0, 1, 0])
+    params.update()
+    img = render(scene, integ)
+    assert integ.stats["maps_built"] == 1 and integ.stats["faces_built"] >= 1
+    print(f"faces built: {first} for the first view, {integ.stats['faces_built']} for the new one")
+    np.testing.assert_array_equal(img, render(scene, shadowmap(cache_maps=False)))
+
+
+# ---------------------------------------------------------------- fitted frusta
+def large_world(light: str):
+    """A 80 x 80 ground with a far box; the camera sees a small box up close."""
+    T = mi.ScalarTransform4f
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "fov": 30,
+                    "to_world": T().look_at(origin=[1.5, 2.0, 3.0], target=[0, 0.2, 0],
+                                            up=[0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": 48, "height": 48,
+                             "rfilter": {"type": "box"}}},
+         "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(40)},
+         "box": {"type": "cube", "to_world": T().translate([0, 0.3, 0]).scale(0.3)},
+         "far_box": {"type": "cube", "to_world": T().translate([25, 2, -20]).scale(2)}}
+    if light == "spot":
+        d["spot"] = {"type": "spot", "cutoff_angle": 60,
+                     "to_world": T().look_at(origin=[-8, 10, -6], target=[5, 0, -5], up=[0, 1, 0]),
+                     "intensity": {"type": "rgb", "value": 400}}
+    else:
+        d["sun"] = {"type": "directional", "direction": [1, -2, 0.7],
+                    "irradiance": {"type": "rgb", "value": 3}}
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize("light", ["spot", "directional"])
+def test_fitted_frusta_gain_texel_density(light):
+    scene = large_world(light)
+    ref = render(scene, mi.load_dict({"type": "shadowmap", "method": "raytraced"}))[..., 3]
+    mis = {}
+    for fit in (False, True):
+        integ = shadowmap(resolution=128, fit_frusta=fit)
+        vis = render(scene, integ)[..., 3]
+        mis[fit] = float(np.mean((ref >= 0.5) != (vis >= 0.5)))
+        if fit:
+            gain = integ.stats["texel_density_gain"][0]
+    print(f"{light}: texel density gain x{gain:.0f} at 128^2; misclassified "
+          f"{mis[False]:.2%} -> {mis[True]:.2%}")
+    assert gain > 4
+    assert mis[True] < mis[False] and mis[True] <= 0.02
+
+
+@pytest.mark.parametrize("method", MAP_READY)
+def test_fitted_frusta_follow_the_camera(builds, method):
+    scene = large_world("directional")
+    integ = shadowmap(method=method, fit_frusta=True)
+    render(scene, integ)
+    params = mi.traverse(scene)
+    params["sensor.to_world"] = mi.ScalarTransform4f().look_at(
+        origin=[20.0, 6.0, -12.0], target=[25.0, 1.0, -20.0], up=[0, 1, 0])
+    params.update()
+    img = render(scene, integ)
+    assert integ.stats["maps_built"] == 1      # the fitted view moved with the camera
+    np.testing.assert_array_equal(img, render(scene, shadowmap(method=method, fit_frusta=True,
+                                                               cache_maps=False)))
+    assert np.isfinite(img).all()

@@ -1,21 +1,43 @@
-"""Write comparison outputs: float EXR (OpenEXR), PNG previews, CSV and JSON."""
+"""Write comparison outputs: float EXR (OpenEXR), PNG previews, plots, CSV and JSON.
+
+* :func:`write_results` -- the outputs of :func:`mi_shadowmap.harness.compare`:
+  one EXR per method (``R,G,B``, ``vis_<emitter>.Y``, the visibility error
+  ``err_<emitter>.Y`` = method - reference and the image error
+  ``img_err.R/G/B``), a tonemapped PNG per method, ``contact_sheet.png``
+  (images over visibility-error heat maps), ``pareto.png`` (frame time vs
+  visibility RMSE), ``metrics.csv`` and ``metrics.json``.
+* :func:`write_sweep` -- the outputs of :func:`mi_shadowmap.harness.sweep`:
+  ``sweep.csv``, ``sweep.json``, ``pareto.png``.
+* :func:`write_maps` -- every depth-map layer of every emitter as one EXR per
+  emitter (faces stacked vertically, one channel per layer).
+"""
 from __future__ import annotations
 
 import csv
 import json
 import math
 import os
-import re
 
 import numpy as np
 
+from .harness import jsonable, safe_name
 
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.=-]+", "_", name).strip("_")
+
+# --------------------------------------------------------------------------- files
+def check_out_dir(out_dir: str) -> str:
+    """Create ``out_dir`` if needed; raise PermissionError if it cannot be written."""
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as e:
+        raise PermissionError(f"cannot create output folder {out_dir}: "
+                              f"{e.strerror or e}") from None
+    if not os.path.isdir(out_dir) or not os.access(out_dir, os.W_OK | os.X_OK):
+        raise PermissionError(f"output folder is not writable: {out_dir}")
+    return out_dir
 
 
 def write_exr(path: str, channels: dict) -> None:
-    """Write float32 channels (``name -> (H, W)``) to one EXR via OpenEXR."""
+    """Write float32 channels (``name -> (H, W)``) to one scanline EXR via OpenEXR."""
     import OpenEXR
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
@@ -24,13 +46,14 @@ def write_exr(path: str, channels: dict) -> None:
 
 
 def read_exr(path: str) -> dict:
+    """Read an EXR back as ``{channel: (H, W) float32}``."""
     import OpenEXR
     with OpenEXR.File(path, separate_channels=True) as f:
         return {k: np.array(v.pixels) for k, v in f.channels().items()}
 
 
 def tonemap(img: np.ndarray) -> np.ndarray:
-    """Linear RGB -> 8-bit sRGB-ish preview (clip, gamma 2.2)."""
+    """Linear RGB -> 8-bit preview (clip to [0, 1], gamma 2.2)."""
     return (np.clip(img, 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
 
 
@@ -40,69 +63,189 @@ def write_png(path: str, img: np.ndarray) -> None:
     matplotlib.image.imsave(path, arr)
 
 
-def write_results(results, out_dir: str) -> dict:
-    """Write every result's image/AOVs/error maps, previews and the metrics tables.
+def _pyplot():
+    import matplotlib
+    if matplotlib.get_backend().lower() not in ("agg", "module://matplotlib_inline.backend_inline"):
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
 
-    Returns the paths written, by kind.
+
+# --------------------------------------------------------------------------- compare
+def write_results(results, out_dir: str) -> dict:
+    """Write every result's EXR/PNG, the contact sheet, the Pareto plot and tables.
+
+    Returns the paths written, by kind (``exr``, ``png``, ``table``).
     """
-    os.makedirs(out_dir, exist_ok=True)
-    if not os.access(out_dir, os.W_OK):
-        raise PermissionError(f"output folder is not writable: {out_dir}")
+    check_out_dir(out_dir)
     written = {"exr": [], "png": [], "table": []}
     ref = results[0]
     for r in results:
-        base = os.path.join(out_dir, _safe(r.name))
-        ch = {"R": r.image[..., 0], "G": r.image[..., 1], "B": r.image[..., 2]}
+        base = os.path.join(out_dir, safe_name(r.name))
+        ch = {}
+        if r.image is not None:
+            ch.update({"R": r.image[..., 0], "G": r.image[..., 1], "B": r.image[..., 2]})
+            if ref.image is not None:
+                err = r.image - ref.image
+                ch.update({"img_err.R": err[..., 0], "img_err.G": err[..., 1],
+                           "img_err.B": err[..., 2]})
         for label, v in r.visibility.items():
             ch[f"vis_{label}.Y"] = v
             ch[f"err_{label}.Y"] = v - ref.visibility[label]
         write_exr(base + ".exr", ch)
         written["exr"].append(base + ".exr")
-        write_png(base + ".png", r.image)
-        written["png"].append(base + ".png")
+        if r.image is not None:
+            write_png(base + ".png", r.image)
+            written["png"].append(base + ".png")
     sheet = os.path.join(out_dir, "contact_sheet.png")
     contact_sheet(results, sheet)
     written["png"].append(sheet)
     rows = [r.row() for r in results]
-    keys = list(dict.fromkeys(k for row in rows for k in row))
-    with open(os.path.join(out_dir, "metrics.csv"), "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
-        json.dump([{k: _jsonable(v) for k, v in row.items()} for row in rows], f, indent=2)
-    written["table"] += [os.path.join(out_dir, "metrics.csv"),
-                         os.path.join(out_dir, "metrics.json")]
+    pareto = os.path.join(out_dir, "pareto.png")
+    pareto_plot(rows, pareto, time_key="time_warm", error_key="vis_rmse",
+                title="compare: warm frame time vs visibility RMSE")
+    written["png"].append(pareto)
+    written["table"] += write_tables(rows, out_dir, "metrics")
     return written
 
 
-def _jsonable(v):
-    if isinstance(v, (np.floating, np.integer)):
-        v = v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return str(v)
-    return v
+def write_tables(rows: list[dict], out_dir: str, stem: str) -> list[str]:
+    """``<stem>.csv`` and ``<stem>.json`` from a list of flat dicts."""
+    keys = list(dict.fromkeys(k for row in rows for k in row))
+    csv_path = os.path.join(out_dir, stem + ".csv")
+    with open(csv_path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    json_path = os.path.join(out_dir, stem + ".json")
+    with open(json_path, "w") as f:
+        json.dump([{k: jsonable(v) for k, v in row.items()} for row in rows], f, indent=2)
+    return [csv_path, json_path]
 
 
-def contact_sheet(results, path: str) -> None:
-    """Images (top row) and visibility error heatmaps against the reference (bottom)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def contact_sheet(results, path: str | None = None, max_cols: int = 6):
+    """Images (top row) over visibility-error heat maps against the reference
+    (bottom row; blue = too dark, red = too bright); wraps after ``max_cols``.
+
+    Saves to ``path`` if given; returns the figure (closed when saved).
+    """
+    plt = _pyplot()
     ref = results[0]
     n = len(results)
-    fig, axes = plt.subplots(2, n, figsize=(2.6 * n, 5.4), squeeze=False)
+    ncol = min(n, max_cols)
+    nblk = math.ceil(n / ncol)
+    fig, axes = plt.subplots(2 * nblk, ncol, figsize=(2.2 * ncol + 1.2, 4.6 * nblk), squeeze=False)
+    im = None
+    for a in axes.ravel():
+        a.set_axis_off()
     for c, r in enumerate(results):
-        axes[0, c].imshow(tonemap(r.image))
-        axes[0, c].set_title(r.name, fontsize=8)
+        top, bot = axes[2 * (c // ncol), c % ncol], axes[2 * (c // ncol) + 1, c % ncol]
+        if r.image is not None:
+            top.imshow(tonemap(r.image))
+        top.set_title(_wrap(r.name), fontsize=7)
         err = (r.vis_stack() - ref.vis_stack()).mean(axis=0)
-        im = axes[1, c].imshow(err, cmap="RdBu", vmin=-1, vmax=1)
+        im = bot.imshow(err, cmap="RdBu_r", vmin=-1, vmax=1)
         rmse = r.metrics.get("vis_rmse")
-        axes[1, c].set_title("vis error" + (f" (RMSE {rmse:.3f})" if rmse is not None else ""),
-                             fontsize=8)
-        for a in axes[:, c]:
-            a.set_xticks([])
-            a.set_yticks([])
-    fig.colorbar(im, ax=axes[1, :].tolist(), shrink=0.8, label="test - reference visibility")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+        bot.set_title("vis error" + (f" (RMSE {rmse:.3f})" if rmse is not None else ""),
+                      fontsize=7)
+    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.6,
+                 label="method - reference visibility")
+    if path is not None:
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+    return fig
+
+
+def _wrap(text: str, width: int = 28) -> str:
+    words, lines, cur = text.split(" "), [], ""
+    for w in words:
+        if cur and len(cur) + 1 + len(w) > width:
+            lines.append(cur)
+            cur = w
+        else:
+            cur = f"{cur} {w}".strip()
+    return "\n".join(lines + [cur])
+
+
+# --------------------------------------------------------------------------- sweeps
+def pareto_plot(rows: list[dict], path: str | None = None, time_key: str = "time",
+                error_key: str = "error", title: str = "time vs error", ax=None,
+                label_points: bool = True, xlabel: str | None = None,
+                ylabel: str | None = None):
+    """Scatter of time (ms, log) vs error, one colour per method, the Pareto
+    front joined by a line. ``rows`` are flat dicts (a SweepTable or
+    ``[r.row() for r in results]``); reference rows are skipped.
+
+    Saves to ``path`` if given; returns the figure.
+    """
+    from . import metrics
+    plt = _pyplot()
+    pts = [r for r in rows if not r.get("reference")
+           and r.get(error_key) is not None and math.isfinite(float(r[error_key]))]
+    fig = None
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+    else:
+        fig = ax.figure
+    if pts:
+        t = np.array([float(r[time_key]) * 1e3 for r in pts])
+        e = np.array([float(r[error_key]) for r in pts])
+        front = metrics.pareto_front(t, e)
+        methods = list(dict.fromkeys(r["method"] for r in pts))
+        cmap = plt.get_cmap("tab10")
+        for k, m in enumerate(methods):
+            sel = np.array([r["method"] == m for r in pts])
+            ax.scatter(t[sel], e[sel], color=cmap(k % 10), label=m, zorder=3,
+                       marker="s" if m == "raytraced" else "o",
+                       s=34 if m == "raytraced" else 28,
+                       edgecolors="k" if m == "raytraced" else "none")
+        order = np.argsort(t[front])
+        ax.step(t[front][order], e[front][order], where="post", color="k", lw=1,
+                alpha=0.6, label="Pareto front", zorder=2)
+        if label_points:
+            for r, x, y, f in zip(pts, t, e, front):
+                if f:
+                    ax.annotate(r["name"].replace(r["method"] + " ", "", 1)
+                                if r["name"] != r["method"] else r["method"],
+                                (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        if (e > 0).all():
+            ax.set_yscale("log")
+    ax.set_xlabel(xlabel or f"{time_key} [ms]")
+    ax.set_ylabel(ylabel or error_key)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    if path is not None:
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return fig
+
+
+def write_sweep(table, out_dir: str) -> dict:
+    """``sweep.csv``, ``sweep.json`` and ``pareto.png`` for a SweepTable."""
+    check_out_dir(out_dir)
+    paths = write_tables(table.rows, out_dir, "sweep")
+    png = os.path.join(out_dir, "pareto.png")
+    pareto_plot(table.rows, png, time_key="time", error_key="error",
+                title=f"sweep: {table.time_key} vs {table.error_key}",
+                xlabel=f"{table.time_key} [ms]", ylabel=table.error_key)
+    return {"table": paths, "png": [png]}
+
+
+# --------------------------------------------------------------------------- maps
+def write_maps(maps, out_dir: str) -> list[str]:
+    """One EXR per emitter: every layer of its :class:`ShadowMap` as a channel
+    (``depth.Y``, ``second_depth.Y``, ``<extra>.Y``), faces stacked vertically."""
+    check_out_dir(out_dir)
+    paths = []
+    for smap in maps:
+        if smap is None:
+            continue
+        ch = {f"{layer}.Y": smap.to_numpy(layer).reshape(-1, smap.resolution)
+              for layer in smap.layers()}
+        path = os.path.join(out_dir, f"{safe_name(smap.view.label)}.exr")
+        write_exr(path, ch)
+        paths.append(path)
+    return paths

@@ -1,0 +1,173 @@
+"""The ``mi-shadowmap`` command line: outputs on tiny scenes, one-line errors."""
+import csv
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mi_shadowmap import cli, harness
+from mi_shadowmap.report import read_exr
+
+from conftest import SCENES
+
+TINY = ["--width", "32", "--height", "32", "--spp", "2", "--set", "resolution=128"]
+
+
+def run(argv, capsys):
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_compare_default_scene(tmp_path, capsys):
+    out_dir = tmp_path / "out"
+    code, out, err = run(["compare", *TINY, "--out", out_dir], capsys)
+    assert code == 0, err
+    methods = harness.default_methods()
+    rows = json.loads((out_dir / "metrics.json").read_text())
+    assert [r["method"] for r in rows] == ["raytraced"] + methods
+    assert rows[0]["reference"] and rows[0]["vis_rmse"] == 0
+    with open(out_dir / "metrics.csv") as f:
+        assert len(list(csv.DictReader(f))) == len(rows)
+    for name in ("contact_sheet.png", "pareto.png"):
+        assert (out_dir / name).stat().st_size > 0
+    assert "vis RMSE" in out and "hard" in out        # the printed table
+    # per-method EXR: image, visibility AOV and error maps that match the JSON metrics
+    ref = read_exr(str(out_dir / (harness.safe_name(rows[0]["name"]) + ".exr")))
+    for row in rows:
+        ch = read_exr(str(out_dir / (harness.safe_name(row["name"]) + ".exr")))
+        assert {"R", "G", "B", "vis_spot.Y", "err_spot.Y", "img_err.R"} <= set(ch)
+        assert ch["vis_spot.Y"].shape == (32, 32)
+        np.testing.assert_allclose(ch["err_spot.Y"], ch["vis_spot.Y"] - ref["vis_spot.Y"],
+                                   atol=1e-6)
+        assert np.sqrt(np.mean(ch["err_spot.Y"] ** 2)) == pytest.approx(row["vis_rmse"],
+                                                                        abs=1e-5)
+        assert (out_dir / (harness.safe_name(row["name"]) + ".png")).exists()
+
+
+def test_no_command_runs_compare_on_xml(tmp_path, capsys):
+    code, out, err = run([SCENES / "room_two_points.xml", *TINY, "--methods", "hard",
+                          "--out", tmp_path], capsys)
+    assert code == 0, err
+    rows = json.loads((tmp_path / "metrics.json").read_text())
+    assert [r["method"] for r in rows] == ["raytraced", "hard"]
+    assert {"vis_rmse[key]", "vis_rmse[fill]"} <= set(rows[1])
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["compare", "/no/such/scene.xml"], "not found"),
+    (["compare", "--methods", "nope"], "nope"),
+    (["compare", "--set", "resolutoin=64"], "resolutoin"),
+    (["compare", "--set", "resolution=-3"], "resolution"),
+    (["compare", "--set", "resolution"], "name=value"),
+    (["sweep", "--grid", "method=hard resolutoin=64"], "resolutoin"),
+    (["sweep", "--grid", "{bad json"], "JSON"),
+    (["sweep", "--grid", "missing.json"], "not found"),
+    (["maps", "--methods", "nope"], "nope"),
+    (["sweep", "--grid", "method=hard", "--set", "shadow_rays=4"], "shadow_rays"),
+    (["sweep", "--grid", "[1, 2]"], "dict"),
+    (["sweep", "--error", "img_psnr"], "img_psnr"),        # higher-is-better: not a choice
+    (["compare", "--spp", "many"], "spp"),               # argparse error, one line too
+])
+def test_bad_input_one_line_error(argv, match, tmp_path, capsys):
+    out_dir = tmp_path / "never"
+    code, out, err = run(argv + ["--out", out_dir], capsys)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0] and "Traceback" not in err
+    assert lines[0].startswith("mi-shadowmap")
+    assert not out_dir.exists()     # rejected before anything was rendered or written
+
+
+def test_unwritable_out_dir(tmp_path, capsys):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("not a folder")
+    code, out, err = run(["compare", *TINY, "--out", blocker / "sub"], capsys)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "output folder" in lines[0]
+
+
+def test_debug_shows_traceback(capsys):
+    with pytest.raises(Exception, match="nope"):
+        cli.main(["compare", "--methods", "nope", "--debug"])
+
+
+def test_sweep_set_applies_where_used(tmp_path, capsys):
+    """--set values join the sub-grids whose methods use them, and only those."""
+    code, out, err = run(["sweep", "--width", "24", "--height", "24", "--spp", "1",
+                          "--repeats", "1", "--grid", "method=hard", "--grid",
+                          "method=raytraced", "--set", "resolution=32", "--set",
+                          "shadow_rays=2", "--error", "vis_misclassified",
+                          "--out", tmp_path], capsys)
+    assert code == 0, err
+    rows = json.loads((tmp_path / "sweep.json").read_text())
+    assert [r["name"] for r in rows] == ["hard resolution=32 spp=1",
+                                         "raytraced shadow_rays=2 spp=1"]
+    assert all(r["error"] == r["vis_misclassified"] for r in rows)
+
+
+def test_sweep_inline_and_json_grids(tmp_path, capsys):
+    grid_file = tmp_path / "grid.json"
+    grid_file.write_text(json.dumps({"method": "raytraced", "spp": [1, 2]}))
+    code, out, err = run(["sweep", "--width", "32", "--height", "32", "--spp", "2",
+                          "--repeats", "1",
+                          "--grid", "method=hard resolution=64,128",
+                          "--grid", grid_file,
+                          "--grid", '{"method": "unshadowed"}',
+                          "--out", tmp_path / "sw"], capsys)
+    assert code == 0, err
+    with open(tmp_path / "sw" / "sweep.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["name"] for r in rows] == ["hard resolution=64 spp=2", "hard resolution=128 spp=2",
+                                         "raytraced spp=1", "raytraced spp=2",
+                                         "unshadowed spp=2"]
+    assert any(r["pareto"] == "True" for r in rows)
+    assert (tmp_path / "sw" / "pareto.png").stat().st_size > 0
+    assert "pareto" in out
+
+
+def test_maps_exports_every_emitter(tmp_path, capsys):
+    code, out, err = run(["maps", SCENES / "room_two_points.xml", "--set", "resolution=32",
+                          "--out", tmp_path], capsys)
+    assert code == 0, err
+    for label in ("key", "fill"):   # point lights: 6 cube faces stacked vertically
+        ch = read_exr(str(tmp_path / f"{label}.exr"))
+        depth = ch["depth.Y"]
+        assert depth.shape == (6 * 32, 32)
+        # inside the room every texel sees a surface within the room's diagonal
+        finite = depth[np.isfinite(depth)]
+        assert finite.size > 0 and finite.min() > 0 and finite.max() < 8
+
+
+def test_help_via_entry_point():
+    """The installed module runs as a program and documents every command."""
+    p = subprocess.run([sys.executable, "-m", "mi_shadowmap.cli", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0
+    for word in ("compare", "sweep", "maps", "--debug"):
+        assert word in p.stdout
+    p = subprocess.run([sys.executable, "-m", "mi_shadowmap.cli", "sweep", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "--grid" in p.stdout and "name=v1,v2" in p.stdout
+
+
+def test_maps_default_scene_every_layer(tmp_path, capsys):
+    """Without --methods every layer any map method uses is exported; the second
+    surface is never in front of the first (equal, to rounding, on open surfaces,
+    which are their own second surface)."""
+    from mi_shadowmap.filters import LAYERS
+    from mi_shadowmap.options import MAP_METHODS
+    code, out, err = run(["maps", "--set", "resolution=32", "--out", tmp_path], capsys)
+    assert code == 0, err
+    ch = read_exr(str(tmp_path / "spot.exr"))
+    layers = {"depth"} | {layer for m in harness.available_methods() if m in MAP_METHODS
+                          for layer in LAYERS.get(m, ())}
+    assert set(ch) == {f"{layer}.Y" for layer in layers}
+    assert ch["depth.Y"].shape == (32, 32)
+    if "second_depth.Y" in ch:
+        d, d2 = ch["depth.Y"], ch["second_depth.Y"]
+        ok = np.isfinite(d)
+        assert ok.any() and np.all(d2[ok] >= d[ok] * (1 - 1e-5))

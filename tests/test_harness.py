@@ -1,0 +1,208 @@
+"""The comparison harness: records, reference, validation before rendering, sweeps."""
+import math
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowmap import harness, metrics
+from mi_shadowmap.options import MAP_METHODS, OptionError
+from mi_shadowmap.scenes import default_scene
+
+from conftest import SCENES
+
+SMALL = dict(width=32, height=32)
+TIME_KEYS = {"cold", "warm", "build", "shading", "jit", "compile", "cached"}
+
+
+@pytest.fixture(scope="module")
+def spot_results():
+    scene = mi.load_dict(default_scene(**SMALL))
+    return harness.compare(scene, spp=2, resolution=128)
+
+
+def test_records_have_every_field(spot_results):
+    methods = harness.default_methods()
+    assert [r.method for r in spot_results[1:]] == methods   # every implemented method
+    assert spot_results[0].is_reference and spot_results[0].method == "raytraced"
+    for r in spot_results:
+        assert r.image.shape == (32, 32, 3) and np.isfinite(r.image).all()
+        assert list(r.visibility) == ["spot"]
+        v = r.visibility["spot"]
+        assert v.shape == (32, 32) and v.min() >= 0 and v.max() <= 1
+        assert set(r.times) == TIME_KEYS
+        assert all(math.isfinite(t) and t >= 0 for t in r.times.values())
+        assert r.times["shading"] == pytest.approx(r.times["warm"] - r.times["build"], abs=1e-9)
+        assert {"vis_rmse", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
+                "vis_penumbra_rmse", "img_psnr", "img_ssim", "img_flip"} <= set(r.metrics)
+        assert set(r.metrics["per_emitter"]) == {"spot"}
+        if r.method in MAP_METHODS:   # one perspective face of 128^2 float32 texels per layer
+            assert r.texels >= 128 * 128 and r.texels % (128 * 128) == 0
+            assert r.map_bytes == 4 * r.texels
+        else:
+            assert r.texels == 0 and r.map_bytes == 0
+        row = r.row()
+        assert row["name"] == r.name and "vis_rmse[spot]" in row
+
+
+def test_reference_scores_zero_against_itself(spot_results):
+    m = spot_results[0].metrics
+    assert m["vis_rmse"] == 0 and m["vis_misclassified"] == 0 and m["img_rmse"] == 0
+    assert m["img_psnr"] == math.inf and m["img_ssim"] == pytest.approx(1.0)
+    assert m["per_emitter"]["spot"]["rmse"] == 0
+
+
+def test_unshadowed_never_adds_shadow(spot_results):
+    """Visibility 1 everywhere the light contributes: no false shadow, and every
+    reference-shadowed pixel that the light reaches is false lit."""
+    r = next(r for r in spot_results if r.method == "unshadowed")
+    ref = spot_results[0]
+    assert r.metrics["vis_false_shadow"] == 0
+    assert r.metrics["vis_false_lit"] > 0
+    assert r.metrics["vis_false_lit"] == pytest.approx(
+        np.mean((ref.vis_stack() < 0.5) & (r.vis_stack() >= 0.5)))
+
+
+def test_pooled_and_per_emitter_metrics_two_lights():
+    path = SCENES / "room_two_points.xml"
+    res = harness.compare(str(path), methods=["hard"], spp=2, resolution=128,
+                          scene_params=SMALL)
+    ref, hard = res
+    assert set(hard.visibility) == {"key", "fill"} and hard.texels == 2 * 6 * 128 * 128
+    assert hard.map_bytes == 4 * hard.texels
+    for label in ("key", "fill"):
+        assert ref.metrics["per_emitter"][label]["rmse"] == 0
+    per = hard.metrics["per_emitter"]
+    # pooled RMSE^2 is the mean of the per-emitter RMSE^2 (same pixel count each)
+    assert hard.metrics["vis_rmse"] ** 2 == pytest.approx(
+        (per["key"]["rmse"] ** 2 + per["fill"]["rmse"] ** 2) / 2)
+
+
+def test_per_method_parameters():
+    scene = mi.load_dict(default_scene(**SMALL))
+    res = harness.compare(scene, methods=[{"method": "hard", "resolution": 64},
+                                          "hard:resolution=256"], spp=1)
+    assert [r.texels for r in res[1:]] == [64 * 64, 256 * 256]
+    assert [r.name for r in res[1:]] == ["hard resolution=64", "hard resolution=256"]
+    # a coarser map is no more accurate here than a finer one
+    assert res[1].metrics["vis_misclassified"] >= res[2].metrics["vis_misclassified"]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"methods": ["hard", "nope"]}, "nope"),
+    ({"methods": ["hard"], "resolutoin": 64}, "resolutoin"),
+    ({"methods": [{"method": "hard", "resolution": 0}]}, "resolution"),
+    ({"methods": ["hard"], "shadow_rays": 4}, "shadow_rays"),   # used by no listed method
+    ({"methods": [{"resolution": 64}]}, "method"),
+    ({"methods": ["hard"], "reference": "raytraced:shadow_rayz=4"}, "shadow_rayz"),
+])
+def test_bad_input_rejected_before_rendering(kwargs, match):
+    """Validation happens before the scene is even loaded: a missing scene file
+    would otherwise be the error."""
+    with pytest.raises(OptionError, match=match):
+        harness.compare("/nonexistent/scene.xml", spp=1, **kwargs)
+
+
+def test_missing_scene_file():
+    with pytest.raises(FileNotFoundError, match="scene file not found"):
+        harness.compare("/nonexistent/scene.xml", methods=["hard"], spp=1)
+
+
+def test_has_area_lights():
+    assert not harness.has_area_lights(mi.load_dict(default_scene(**SMALL)))
+    assert harness.has_area_lights(mi.load_dict(default_scene(light="area", **SMALL)))
+
+
+def test_area_light_reference_is_converged():
+    """With an area light the reference is not the same-spp ray tracing: ray tracing
+    at 1 spp has noise against it, which more shadow rays reduce."""
+    scene = mi.load_dict(default_scene(light="area", **SMALL))
+    res = harness.compare(scene, methods=["raytraced", "raytraced:shadow_rays=16"], spp=1,
+                          ref_spp=16, ref_shadow_rays=16)
+    ref, rt1, rt16 = res
+    assert ref.is_reference and ref.spp == 16
+    if harness._converged_visibility_fn() is not None:   # the package's converged reference
+        assert "converged_visibility" in ref.name and "converged" in ref.times
+    assert 0 < rt16.metrics["vis_rmse"] < rt1.metrics["vis_rmse"]
+    assert rt1.metrics["vis_penumbra_rmse"] is not None   # soft shadows have a penumbra
+
+
+# --------------------------------------------------------------------------- sweeps
+def test_expand_grid():
+    specs = harness.expand_grid([{"method": ["hard", "raytraced"], "resolution": [64, 128],
+                                  "shadow_rays": [1, 4]},
+                                 {"method": "hard", "resolution": 64}], default_spp=2)
+    hard = [s for s in specs if s["method"] == "hard"]
+    rt = [s for s in specs if s["method"] == "raytraced"]
+    assert len(hard) == 2 and all("shadow_rays" not in s for s in hard)   # dedup, not used
+    # resolution is a depth-map setting: not combined with raytraced
+    assert len(rt) == 2 and all("resolution" not in s for s in rt)
+    assert all(s["spp"] == 2 for s in specs)
+
+
+@pytest.mark.parametrize("grid, match", [
+    ({"method": ["hard"], "resolutoin": [64]}, "resolutoin"),
+    ({"method": ["hard"], "shadow_rays": [2]}, "shadow_rays"),
+    ({"method": ["hard"], "resolution": [64, 0]}, "resolution"),
+    ({"method": ["nope"]}, "nope"),
+    ({"resolution": [64]}, "method"),
+    ({"method": "raytraced", "spp": [0]}, "spp"),
+    ([], "empty"),
+])
+def test_bad_grid_rejected_before_rendering(grid, match):
+    with pytest.raises(OptionError, match=match):
+        harness.sweep("/nonexistent/scene.xml", grid, progress=False)
+
+
+def test_analyse_known_answers():
+    rows = [{"name": n, "method": m, "time_warm": t, "vis_rmse": e} for n, m, t, e in [
+        ("rt1", "raytraced", 1.0, 0.4), ("rt2", "raytraced", 2.0, 0.2),
+        ("rt4", "raytraced", 4.0, 0.1), ("hard", "hard", 1.5, 0.15),
+        ("slow", "hard", 5.0, 0.3), ("fast", "hard", 0.5, 0.5)]]
+    by = {r["name"]: r for r in harness.analyse(rows)}
+    assert {n for n, r in by.items() if r["pareto"]} == {"rt1", "rt4", "hard", "fast"}
+    assert by["hard"]["rt_error_equal_time"] == 0.4
+    assert by["hard"]["error_ratio_equal_time"] == pytest.approx(0.4 / 0.15)
+    assert by["hard"]["rt_time_equal_error"] == 4.0
+    assert by["hard"]["speedup_equal_error"] == pytest.approx(4.0 / 1.5)
+    assert by["slow"]["speedup_equal_error"] == pytest.approx(2.0 / 5.0)
+    assert by["fast"]["rt_error_equal_time"] is None        # no ray tracing that fast
+    assert by["rt2"]["speedup_equal_error"] is None          # no self-comparison
+
+
+def test_sweep_table(tmp_path):
+    scene = mi.load_dict(default_scene(**SMALL))
+    table = harness.sweep(scene, [{"method": "hard", "resolution": [64, 256]},
+                                  {"method": "raytraced", "spp": [1, 4]}],
+                          spp=2, repeats=1, ref_spp=16, progress=False)
+    assert len(table) == 4 and table.reference.spp == 16
+    assert [r["name"] for r in table] == ["hard resolution=64 spp=2",
+                                          "hard resolution=256 spp=2",
+                                          "raytraced spp=1", "raytraced spp=4"]
+    front = metrics.pareto_front([r["time"] for r in table], [r["error"] for r in table])
+    assert [r["pareto"] for r in table] == front.tolist() and any(front)
+    rt = [r for r in table if r["method"] == "raytraced"]
+    # ray tracing at 4 spp is closer to the 16-spp reference than at 1 spp
+    assert rt[1]["error"] < rt[0]["error"]
+    for r in table:
+        if r["method"] == "raytraced":
+            continue
+        fits = [q["error"] for q in rt if q["time"] <= r["time"]]
+        assert r["rt_error_equal_time"] == (min(fits) if fits else None)
+        good = [q["time"] for q in rt if q["error"] <= r["error"]]
+        assert r["rt_time_equal_error"] == (min(good) if good else None)
+    table.to_csv(tmp_path / "s.csv")
+    assert len((tmp_path / "s.csv").read_text().strip().splitlines()) == 5
+    assert "pareto" in table.format()
+
+
+def test_converged_reference_agrees_with_fallback():
+    """Both code paths of the area-light reference estimate the same visibility:
+    the converged one and ray tracing with many stratified shadow rays."""
+    scene = mi.load_dict(default_scene(light="area", **SMALL))
+    ref = harness.converged_reference(scene, spp=16, seed=3, shadow_rays=64)
+    fallback = harness.run_method(scene, "raytraced", spp=16, seed=3, shadow_rays=64,
+                                  measure_cached=False)
+    err = metrics.rmse(ref.vis_stack(), fallback.vis_stack())
+    print(f"converged vs 64 shadow rays: visibility RMSE {err:.4f}")
+    assert err < 0.03

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import drjit as dr
+import numpy as np
 import mitsuba as mi
 
 from .light_views import LightView
@@ -263,6 +264,28 @@ def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
         else:
             smap.extra[name] = data
     return smap
+
+
+def build_culled_depth(scene, view, res: int, faces) -> mi.Float:
+    """First-surface depth of the ``faces`` of a cube view; +inf in the others.
+
+    Only the needed faces' texel rays are traced (gathered out of
+    :meth:`LightView.texel_rays`, traced by :func:`depth_maps._first_hit`,
+    scattered back into a full-size array).
+    """
+    n = res * res
+    idx = mi.UInt32(np.concatenate([np.arange(f * n, (f + 1) * n, dtype=np.uint32)
+                                    for f in range(view.n_faces) if faces[f]]))
+    o, d, max_t = view.texel_rays(res)
+    if dr.width(o) > 1:
+        o = dr.gather(mi.Point3f, o, idx)
+    d = dr.gather(mi.Vector3f, d, idx)
+    depth_sub = _first_hit(scene, view, o, d, max_t)
+    depth = dr.full(mi.Float, dr.inf, view.n_faces * n)
+    dr.scatter(depth, depth_sub, idx)
+    dr.eval(depth)
+    dr.sync_thread()
+    return depth
 
 
 def write_exr(smap: ShadowMap, path: str, layer: str = "depth") -> None:

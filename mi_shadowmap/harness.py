@@ -38,7 +38,6 @@ methods appear here without changes. Every configuration is validated with
 from __future__ import annotations
 
 import csv
-import inspect
 import itertools
 import json
 import math
@@ -54,6 +53,7 @@ import numpy as np
 from . import metrics
 from . import options as opt_mod
 from .options import OptionError, parse_options
+from .reference import converged_visibility
 
 #: Properties (declared for every method) that only affect methods reading a depth map;
 #: shared values of these are not passed to ``raytraced``/``unshadowed``.
@@ -257,9 +257,8 @@ def _fmt_value(v):
 
 
 def available_methods() -> list[str]:
-    """Methods of :data:`~mi_shadowmap.options.METHODS` that have a registered filter."""
-    from .filters import FILTERS
-    return [m for m in opt_mod.METHODS if m in FILTERS]
+    """Every method of :data:`~mi_shadowmap.options.METHODS`."""
+    return list(opt_mod.METHODS)
 
 
 def default_methods() -> list[str]:
@@ -364,62 +363,22 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
 
 
 def converged_reference(scene: mi.Scene, spp: int = 64, seed: int = 0,
-                        shadow_rays: int = 64) -> MethodResult:
+                        shadow_rays: int = 64, n_light: int = 1024) -> MethodResult:
     """The converged soft-shadow reference for scenes with area lights.
 
-    Renders ``raytraced`` with ``shadow_rays`` stratified shadow rays per camera
-    sample (the image and the fallback visibility). If
-    :mod:`mi_shadowmap.reference` provides ``converged_visibility``, its
-    visibility replaces the fallback one.
+    The image is ``raytraced`` with ``shadow_rays`` stratified shadow rays per
+    camera sample; the visibility is
+    :func:`mi_shadowmap.reference.converged_visibility` (the average of
+    ``n_light`` hard shadows from fixed stratified light positions).
     """
     res = run_method(scene, "raytraced", spp=spp, seed=seed, shadow_rays=shadow_rays,
                      measure_cached=False)
-    res.name = f"reference (raytraced spp={spp} shadow_rays={shadow_rays})"
-    fn = _converged_visibility_fn()
-    if fn is not None:
-        t0 = time.perf_counter()
-        vis = _call_converged(fn, scene, spp=spp, seed=seed, shadow_rays=shadow_rays)
-        res.visibility = _as_vis_dict(vis, list(res.visibility))
-        res.times["converged"] = time.perf_counter() - t0
-        res.name = "reference (converged_visibility)"
+    t0 = time.perf_counter()
+    vis = converged_visibility(scene, n_light=n_light, seed=seed, spp=spp)
+    res.visibility = {k[len("vis_"):]: np.asarray(v, dtype=np.float32) for k, v in vis.items()}
+    res.times["converged"] = time.perf_counter() - t0
+    res.name = f"reference (converged, {n_light} light samples)"
     return res
-
-
-def _converged_visibility_fn():
-    try:
-        from . import reference as ref_mod
-    except ImportError:
-        return None
-    return getattr(ref_mod, "converged_visibility", None)
-
-
-def _call_converged(fn, scene, **kwargs):
-    """Call ``fn(scene, ...)`` with the keyword arguments it accepts."""
-    sig = inspect.signature(fn)
-    accepts_any = any(p.kind == p.VAR_KEYWORD for p in sig.parameters.values())
-    kw = {k: v for k, v in kwargs.items() if accepts_any or k in sig.parameters}
-    return fn(scene, **kw)
-
-
-def _as_vis_dict(vis, labels: list[str]) -> dict:
-    """Normalise a visibility return value to ``{label: (H, W) float32}``."""
-    if isinstance(vis, tuple):   # (image, visibility) or similar: take the visibility part
-        vis = next(v for v in vis if isinstance(v, dict) or np.ndim(v) >= 2)
-    if isinstance(vis, dict):
-        out = {}
-        for k, v in vis.items():
-            k = k[len("vis_"):] if str(k).startswith("vis_") else str(k)
-            out[k] = np.asarray(v, dtype=np.float32)
-        return out
-    arr = np.asarray(vis, dtype=np.float32)
-    if arr.ndim == 2:
-        arr = arr[None]
-    if arr.ndim == 3 and arr.shape[0] != len(labels) and arr.shape[-1] == len(labels):
-        arr = np.moveaxis(arr, -1, 0)
-    if arr.shape[0] != len(labels):
-        raise ValueError(f"converged_visibility returned shape {arr.shape} for "
-                         f"{len(labels)} emitter(s)")
-    return {lab: arr[k] for k, lab in enumerate(labels)}
 
 
 def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_spp: int = 64,

@@ -50,6 +50,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import drjit as dr
+import numpy as np
 import mitsuba as mi
 
 SUPPORTED_EMITTERS = ("point", "spot", "directional", "area")
@@ -453,18 +454,9 @@ def cascaded_view(view: LightView, scene, sensor, cascades: int, split_lambda: f
     """
     if cascades <= 1 or view.projection != "orthographic" or sensor is None:
         return view
-    import numpy as np   # set-up time only
-    w, h = (int(x) for x in sensor.film().crop_size())
-    idx = dr.arange(mi.UInt32, w * h)
-    yy = idx // w
-    xx = idx - yy * w
-    pos = mi.Point2f((mi.Float(xx) + 0.5) / w, (mi.Float(yy) + 0.5) / h)
-    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
-    si = scene.ray_intersect(ray)
-    valid = si.is_valid().numpy()
-    if not valid.any():
+    p = camera_visible_points(scene, sensor)
+    if len(p) == 0:
         return view
-    p = np.stack([si.p.x.numpy(), si.p.y.numpy(), si.p.z.numpy()], axis=1)[valid]
     T = sensor.world_transform()
     cam_o = np.array([float(dr.ravel(T.translation()[k])[0]) for k in range(3)])
     fwd_v = T @ mi.Vector3f(0, 0, 1)
@@ -493,3 +485,153 @@ def cascaded_view(view: LightView, scene, sensor, cascades: int, split_lambda: f
                  camera_origin=tuple(float(x) for x in cam_o),
                  camera_forward=tuple(float(x) for x in cam_f))
     return dataclasses.replace(view, projection="cascaded", n_faces=int(cascades), extra=extra)
+
+
+# ------------------------------------------------------- automatic resolution
+def footprint_ratio(scene, sensor, views) -> float:
+    """Texel width over camera pixel width at the scene's centre (max over lights).
+
+    Per unit resolution: a spot map spans ``2 tan(cutoff) d`` at distance
+    ``d`` from the light, a cube face ``2 d``, an orthographic map its width;
+    a perspective camera spans ``2 tan(x_fov / 2) d_cam`` per unit film width.
+    ``d`` and ``d_cam`` are measured to the centre of the scene's bounding
+    box. Returns 1 when it cannot be computed (no bounds, not a perspective
+    camera, a projection this does not know). Used by the automatic
+    ``resolution`` (:meth:`~mi_shadowmap.options.Options.map_resolution`).
+    """
+    bbox = scene.bbox()
+    if sensor is None or not bbox.valid():
+        return 1.0
+    centre = np.array([float(c) for c in bbox.center()])
+    params = mi.traverse(sensor)
+    key = next((k for k in params.keys() if k.endswith("x_fov")), None)
+    if key is None:
+        return 1.0
+    x_fov = float(dr.ravel(params[key])[0])
+    cam = sensor.world_transform().translation()
+    cam = np.array([float(dr.ravel(cam[k])[0]) for k in range(3)])
+    cam_width = 2.0 * math.tan(math.radians(x_fov) / 2) * np.linalg.norm(centre - cam)
+    if not cam_width > 0:
+        return 1.0
+    widths = []
+    for v in views:
+        if v is None:
+            continue
+        d = np.linalg.norm(centre - np.array([float(c) for c in v.position]))
+        if v.projection == "perspective":
+            widths.append(2.0 * v.tan_half * d)
+        elif v.projection == "cube":
+            widths.append(2.0 * d)
+        elif v.projection == "orthographic":
+            widths.append(2.0 * max(v.half_extent))
+    return max(widths) / cam_width if widths else 1.0
+
+
+# ------------------------------------------------------------ fitted frusta
+def fit_view(view, p_world: np.ndarray, margin: float):
+    """``(view fitted to the visible points, texel density gain)``.
+
+    Only the points inside the original map are kept (the others get no
+    light from a spot, or are lit by convention). Perspective (spot): a square
+    frustum re-aimed at the mean direction of those points, with the smallest
+    ``tan_half`` covering them; orthographic (directional): the light-space
+    rectangle of their xy, same direction and near plane. Both grow by
+    ``margin`` (a fraction of the window) per side for normal offsets and
+    filter taps. A caster can only shadow a visible receiver along the light
+    ray to it, which crosses the same (u, v): casters are kept (Reeves' and
+    Filament's fitting of the frustum to what matters, restricted to what
+    the camera sees). The gain is the ratio of texel areas (old / new) at the
+    same resolution. The original view is returned (gain 1) if nothing is
+    gained or the fit is not possible.
+    """
+    if len(p_world) == 0 or view.projection not in ("perspective", "orthographic"):
+        return view, 1.0
+    L = np.array(view.light_from_world.matrix, dtype=np.float64)
+    p_l = p_world @ L[:3, :3].T + L[:3, 3]
+    pos = np.array([float(c) for c in view.position])
+    if view.projection == "perspective":
+        z = p_l[:, 2]
+        keep = (z > 0) & (np.abs(p_l[:, 0]) <= view.tan_half * z) \
+            & (np.abs(p_l[:, 1]) <= view.tan_half * z)
+        if not keep.any():
+            return view, 1.0
+        dirs = p_world[keep] - pos
+        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-30)
+        axis = dirs.mean(axis=0)
+        if np.linalg.norm(axis) < 1e-6:
+            return view, 1.0
+        new_lfw = _look_along_light(pos, axis / np.linalg.norm(axis))
+        M = np.array(new_lfw.matrix, dtype=np.float64)
+        q = p_world[keep] @ M[:3, :3].T + M[:3, 3]
+        if np.any(q[:, 2] <= 1e-9 * np.abs(q).max()):
+            return view, 1.0
+        tan = float(np.max(np.abs(q[:, :2]) / q[:, 2:3]))
+        tan = max(tan * (1.0 + 2.0 * margin), 1e-6 * view.tan_half)
+        if tan >= view.tan_half:
+            return view, 1.0
+        return (dataclasses.replace(view, light_from_world=new_lfw, tan_half=tan),
+                (view.tan_half / tan) ** 2)
+    hx, hy = view.half_extent
+    keep = (np.abs(p_l[:, 0]) <= hx) & (np.abs(p_l[:, 1]) <= hy)
+    if not keep.any():
+        return view, 1.0
+    lo, hi = p_l[keep, :2].min(axis=0), p_l[keep, :2].max(axis=0)
+    centre = 0.5 * (lo + hi)
+    size = max(hx, hy)
+    half = 0.5 * (hi - lo) + 2.0 * margin * np.maximum(0.5 * (hi - lo), 1e-3 * size)
+    half = np.maximum(half, 1e-6 * size)
+    if max(half) >= max(hx, hy):
+        return view, 1.0
+    W = np.linalg.inv(L)
+    origin = W[:3, :3] @ np.array([centre[0], centre[1], 0.0]) + W[:3, 3]
+    fwd = W[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    new_lfw = _look_along_light(origin, fwd)
+    return (dataclasses.replace(view, position=mi.ScalarPoint3f(*origin),
+                                light_from_world=new_lfw,
+                                half_extent=(float(half[0]), float(half[1]))),
+            (max(hx, hy) / float(max(half))) ** 2)
+
+
+def _look_along_light(origin, forward):
+    return _look_along(mi.ScalarPoint3f(*[float(c) for c in origin]),
+                       mi.ScalarVector3f(*[float(c) for c in forward]))
+
+
+# --------------------------------------------------------- cube-face culling
+def camera_visible_points(scene, sensor) -> np.ndarray:
+    """World points the camera sees: one ray through every pixel centre, ``(N, 3)``."""
+    if sensor is None:
+        return np.zeros((0, 3))
+    w, h = (int(x) for x in sensor.film().crop_size())
+    idx = dr.arange(mi.UInt32, w * h)
+    y = idx // w
+    x = idx - y * w
+    pos = mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    p = np.stack([si.p.x.numpy(), si.p.y.numpy(), si.p.z.numpy()], axis=1)
+    return p[si.is_valid().numpy()]
+
+
+def cube_faces_needed(view, p_world: np.ndarray, margin: float) -> tuple:
+    """Which of the 6 faces (``2*axis + (sign < 0)``) the points project into.
+
+    A point within ``margin`` (in the face's [-1, 1] coordinates) of a face
+    edge also needs the neighbour across that edge (normal offsets and
+    sub-pixel camera samples may cross it).
+    """
+    need = [False] * 6
+    if len(p_world) == 0:
+        return tuple(need)
+    d = p_world - np.array([float(c) for c in view.position])
+    a = np.abs(d)
+    major = np.argmax(a, axis=1)
+    m = np.maximum(a[np.arange(len(d)), major], 1e-30)
+    for axis in range(3):
+        for sign in (0, 1):
+            face_pts = (major == axis) & ((d[:, axis] < 0) == bool(sign))
+            need[2 * axis + sign] |= bool(face_pts.any())
+            # neighbours: points of other faces within `margin` of this face's direction
+            near = (a[:, axis] >= m * (1.0 - margin)) & ((d[:, axis] < 0) == bool(sign))
+            need[2 * axis + sign] |= bool(near.any())
+    return tuple(need)

@@ -7,9 +7,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import mi_shadowmap.integrator as integ_mod
+import mi_shadowmap.map_manager as mm_mod
 from mi_shadowmap.filters import FILTERS, LAYERS
-from mi_shadowmap.integrator import MAP_CACHE, MapCache
+from mi_shadowmap.map_manager import MAP_CACHE, MapCache
 from mi_shadowmap.options import MAP_METHODS
 from mi_shadowmap.scenes import default_scene
 
@@ -23,8 +23,8 @@ MAP_READY = [m for m in MAP_METHODS if m in FILTERS]
 @pytest.fixture
 def builds(monkeypatch):
     calls = []
-    real = integ_mod.build_depth_map
-    monkeypatch.setattr(integ_mod, "build_depth_map",
+    real = mm_mod.build_depth_map
+    monkeypatch.setattr(mm_mod, "build_depth_map",
                         lambda *a, **k: calls.append(a[1].label) or real(*a, **k))
     MAP_CACHE.clear()
     yield calls

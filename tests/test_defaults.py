@@ -26,7 +26,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import mi_shadowmap.integrator as integ_mod
+import mi_shadowmap.map_manager as mm_mod
 from mi_shadowmap.filters import FILTERS
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import default_scene
@@ -66,7 +66,7 @@ def test_automatic_resolution_respects_the_memory_budget():
 # ------------------------------------------------------------ memory budget
 def test_a_resolution_over_the_budget_is_refused_before_allocating(monkeypatch):
     calls = []
-    monkeypatch.setattr(integ_mod, "build_depth_map", lambda *a, **k: calls.append(1))
+    monkeypatch.setattr(mm_mod, "build_depth_map", lambda *a, **k: calls.append(1))
     scene = mi.load_dict(default_scene(width=8, height=8, spp=1, light="point"))
     integ = mi.load_dict({"type": "shadowmap", "resolution": 4096, "memory_budget": 256})
     with pytest.raises(RuntimeError) as e:

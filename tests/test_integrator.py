@@ -6,7 +6,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import mi_shadowmap.integrator as integ_mod
+import mi_shadowmap.map_manager as mm_mod
 from mi_shadowmap.scenes import default_scene
 
 from conftest import SCENE_FILES, relative_rmse, render_np, vis_stack
@@ -94,8 +94,8 @@ def test_aov_names_and_ranges():
 
 def test_maps_built_once_per_render(monkeypatch):
     calls = []
-    real = integ_mod.build_depth_map
-    monkeypatch.setattr(integ_mod, "build_depth_map",
+    real = mm_mod.build_depth_map
+    monkeypatch.setattr(mm_mod, "build_depth_map",
                         lambda *a, **k: calls.append(1) or real(*a, **k))
     scene = mi.load_dict(default_scene(width=16, height=16))
     integ = mi.load_dict({"type": "shadowmap", "resolution": 64})

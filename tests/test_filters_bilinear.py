@@ -63,14 +63,23 @@ def test_edge_is_a_linear_ramp_of_width_kernel_minus_one(kernel, receiver_plane)
     assert far.tolist() == [0.0, 0.0, 1.0, 1.0]      # exactly shadowed / lit
 
 
-def test_kernel_1_is_hard_on_a_hand_made_map():
+def test_kernel_1_is_the_nearest_texel_compare_on_a_hand_made_map():
+    """kernel=1 against an independent numpy expectation: the texel
+    ``floor(uv * res)`` (uv = (p + 1) / 2 on the unit orthographic map) shadows
+    the receiver at depth 2 iff its depth is below 2."""
     rng = np.random.default_rng(3)
-    smap = ortho_map(np.where(rng.random((RES, RES)) < 0.5, 1.0, np.inf).astype(np.float32))
-    x, y = rng.uniform(-1, 1, (2, 5000))
-    lk = lookup(x, y)
-    a = vis("bilinear", smap, lk, kernel=1)
-    b = vis("hard", smap, lk)
-    assert np.array_equal(a, b) and set(np.unique(a)) == {0.0, 1.0}
+    depth = rng.choice(np.array([1.0, 3.0, np.inf], np.float32), (RES, RES))
+    smap = ortho_map(depth)
+    x, y = rng.uniform(-1, 1, (2, 5000)).astype(np.float32)
+    uv = (np.stack([x, y]) + np.float32(1.0)) * np.float32(0.5)
+    frac = uv * RES - np.floor(uv * RES)
+    keep = np.all((frac > 1e-3) & (frac < 1 - 1e-3), axis=0)   # away from texel borders
+    x, y = x[keep], y[keep]
+    i, j = np.clip(np.floor(uv[:, keep] * RES).astype(int), 0, RES - 1)
+    expected = np.where(depth[j, i] < 2.0, 0.0, 1.0)
+    got = vis("bilinear", smap, lookup(x, y), kernel=1)
+    assert 0.2 < expected.mean() < 0.9                      # both outcomes occur
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_off_map_texels_are_lit():

@@ -259,3 +259,29 @@ def test_bad_input_names_the_property(props, name):
 def test_bad_input_through_the_plugin():
     with pytest.raises(RuntimeError, match="num_samples"):
         mi.load_dict({"type": "shadowmap", "method": "pcf", "num_samples": 0})
+
+
+def test_footprint_stays_in_the_receivers_cascade():
+    """Review item 3: at a cascade split, ``p + dp`` projects into the next cascade's
+    rectangle; the footprint must be measured on the receiver's own cascade. Hand-made
+    2-cascade view (light along +z, camera looking along +x, split at x = 1):
+    cascade 0 spans [-1, 1]^2, cascade 1 [-2, 2]^2. A receiver at x = 0.99 with a
+    pixel footprint of 0.04 world units spans 0.04 / 2 * RES texels of cascade 0."""
+    import dataclasses
+    from mi_shadowmap.filters.common import footprint_texels, receiver
+    base = ortho_map(np.full((RES, RES), np.inf, np.float32)).view
+    view = dataclasses.replace(base, projection="cascaded", n_faces=2, extra=dict(
+        cascade_rects=((0.0, 0.0, 1.0, 1.0), (0.0, 0.0, 2.0, 2.0)),
+        split_depths=(0.0, 1.0, 10.0), camera_origin=(0.0, 0.0, 0.0),
+        camera_forward=(1.0, 0.0, 0.0)))
+    smap = ShadowMap(view, RES, dr.full(mi.Float, dr.inf, 2 * RES * RES))
+    p = mi.Point3f(mi.Float([0.99, -0.5]), mi.Float([0.0, 0.0]), mi.Float([2.0, 2.0]))
+    d = 0.04
+    lk = Lookup(p, mi.Vector3f(0, 0, -1), mi.Vector3f(d, 0, 0), mi.Vector3f(0, d, 0),
+                None, None, None)
+    r = receiver(smap, lk, parse_options({"method": "pcf"}))
+    assert np.asarray(r.face).tolist() == [0, 0]
+    w = footprint_texels(smap, lk, r)
+    expected = d / 2.0 * RES          # cascade 0: 2 world units over RES texels
+    np.testing.assert_allclose(np.asarray(w.x), [expected, expected], rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(w.y), [expected, expected], rtol=1e-4)

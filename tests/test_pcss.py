@@ -3,6 +3,7 @@ quality against the converged reference, no-blocker shortcut, point/spot light_s
 sample patterns, bad input."""
 import re
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -171,3 +172,63 @@ def test_pcss_from_xml_with_integer_properties():
     img = np.asarray(mi.render(scene, integrator=integ, spp=1))
     assert np.isfinite(img).all()
     assert integ.opts.light_size == 1.0 and integ.opts.filter_samples == 9
+
+
+def test_near_depth_is_a_cached_per_face_layer():
+    """Review item 33: PCSS's per-face near depth is the map layer ``pcss_near``
+    (requested through ``filters.layers_for``, built by ``LAYER_BUILDERS``): one value
+    per face, the nearest finite depth of that face (numpy reference), and lookups with
+    the layer equal lookups that compute it on the spot."""
+    from mi_shadowmap.depth_maps import build_depth_map
+    from mi_shadowmap.filters import FILTERS, layers_for
+    from mi_shadowmap.filters.common import Lookup
+    from mi_shadowmap.light_views import make_light_view
+    opts = parse_options({"method": "pcss", "light_size": 0.5})
+    assert layers_for(opts) == ("pcss_near",)
+    scene = mi.load_dict(default_scene(light="point", width=16, height=16))
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    with_layer = build_depth_map(scene, view, 32, layers=layers_for(opts))
+    without = build_depth_map(scene, view, 32)
+    near = np.asarray(with_layer.extra["pcss_near"])
+    assert near.shape == (view.n_faces,)
+    np.testing.assert_array_equal(near, with_layer.to_numpy().reshape(view.n_faces, -1).min(1))
+    assert np.isfinite(near).any()
+    rng = np.random.default_rng(0)
+    n = 4096
+    pts = rng.uniform(-1.0, 1.0, (3, n)) * np.array([[2.0], [0.0], [2.0]])  # on the floor y=0
+    vis = []
+    for smap in (with_layer, without):
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(1, n)
+        lk = Lookup(mi.Point3f(*[mi.Float(a) for a in pts]), mi.Vector3f(0, 1, 0),
+                    mi.Vector3f(0), mi.Vector3f(0), None, None, sampler)
+        vis.append(np.asarray(FILTERS["pcss"](smap, lk, opts, mi.Bool(True))))
+    np.testing.assert_array_equal(vis[0], vis[1])
+    assert 0.0 <= vis[0].min() < 1.0 and vis[0].max() <= 1.0   # some shadow
+
+
+def test_taps_off_the_map_are_lit_as_in_pcf():
+    """Review item 25 (one off-map rule): a hand-made orthographic map fully covered by
+    an occluder (depth 1) over receivers at depth 2. Inside, every tap is a blocker and
+    shadows (visibility exactly 0); a quarter texel inside the map's border about half
+    of the kernel lies off the map, and those taps are lit (the old clamp to the border
+    texel gave 0 there too)."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    from mi_shadowmap.filters import FILTERS
+    from mi_shadowmap.filters.common import Lookup
+    from mi_shadowmap.light_views import LightView
+    res = 64
+    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+                     mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="unit")
+    smap = ShadowMap(view, res, dr.full(mi.Float, 1.0, res * res))
+    n = 1024
+    x = np.repeat([0.0, 1.0 - 0.25 * 2.0 / res], n)
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(0, 2 * n)
+    lk = Lookup(mi.Point3f(mi.Float(x), mi.Float(np.zeros(2 * n)), mi.Float(np.full(2 * n, 2.0))),
+                mi.Vector3f(0, 0, -1), mi.Vector3f(0), mi.Vector3f(0), None, None, sampler)
+    opts = parse_options({"method": "pcss", "angular_diameter": 10.0})
+    v = np.asarray(FILTERS["pcss"](smap, lk, opts, mi.Bool(True))).reshape(2, n)
+    assert np.all(v[0] == 0.0)
+    print("mean visibility a quarter texel inside the border:", v[1].mean())
+    assert 0.3 < v[1].mean() < 0.7

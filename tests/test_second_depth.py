@@ -10,7 +10,7 @@ import pytest
 
 from mi_shadowmap.depth_maps import ShadowMap, build_depth_map, shape_is_solid
 from mi_shadowmap.filters import FILTERS, LAYERS, Lookup
-from mi_shadowmap.filters.second_depth import virtual_sample_depth
+from mi_shadowmap.filters.common import virtual_sample_depth
 from mi_shadowmap.light_views import LightView, make_light_view
 from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.options import OptionError, parse_options
@@ -201,17 +201,20 @@ def test_virtual_sample_guard_when_plane_parallel_to_light():
 # -------------------------------------------------------------- the paper's claim
 @pytest.mark.parametrize("light", ["spot", "sun", "point"])
 def test_no_acne_on_solids_at_bias_zero(light):
-    """Wang & Molnar's central claim. On closed solids with every bias at 0:
+    """Wang & Molnar's central claim. On closed solids with every bias at 0, acne
+    (self-shadowing) is a false shadow on a surface the ray-traced reference sees
+    *fully* lit (all 4 camera samples' shadow rays unoccluded): shadow-boundary
+    pixels (reference 0.25-0.75) are excluded for both methods, since there a
+    one-sample disagreement is edge placement, not acne. On that one mask:
 
-    * second_depth: no false shadow on any pixel the ray-traced reference sees fully lit
-      (the only false-shadow pixels at threshold 0.5 are shadow-boundary pixels with
-      reference visibility 0.5 at 4 spp, reported, not asserted);
-    * hard: acne on more than 5 % of the lit pixels (measured ~31-32 %).
+    * second_depth: no false shadow (visibility < 0.5) at all;
+    * hard: false shadow on more than 5 % of it.
+
+    The false shadow over all pixels at threshold 0.5 is reported (and bounded).
     """
     scene = closed_solids_scene(light)
     _, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
     ref = vis_stack(ref)
-    lit = ref >= 0.5
     fully_lit = ref >= 1.0
     _, sd = render_np(scene, {"type": "shadowmap", "method": "second_depth",
                               "resolution": 1024}, spp=4)
@@ -220,11 +223,11 @@ def test_no_acne_on_solids_at_bias_zero(light):
                                 "bias": 0.0, "slope_bias": 0.0, "normal_bias": 0.0}, spp=4)
     hard = vis_stack(hard)
     acne_sd = np.count_nonzero(fully_lit & (sd < 0.5)) / np.count_nonzero(fully_lit)
-    acne_hard = np.count_nonzero(lit & (hard < 0.5)) / np.count_nonzero(lit)
+    acne_hard = np.count_nonzero(fully_lit & (hard < 0.5)) / np.count_nonzero(fully_lit)
     raw_sd = misclassified(ref, sd)
     print(f"{light}: second_depth false shadow on fully lit {acne_sd:.4%}, all pixels "
           f"{raw_sd['false_shadow']:.4%} (false lit {raw_sd['false_lit']:.4%}); "
-          f"hard bias 0 false shadow on lit {acne_hard:.2%}")
+          f"hard bias 0 false shadow on fully lit {acne_hard:.2%}")
     assert acne_sd == 0.0
     assert acne_hard > 0.05
     assert raw_sd["misclassified"] <= 0.01

@@ -88,20 +88,21 @@ def receiver(smap, lk: Lookup, opts) -> Receiver:
     return Receiver(face, uv, z, inside, texel, tan_theta)
 
 
-def shifted_grid_point(k: int, n: int, shift: mi.Point2f) -> mi.Point2f:
-    """Point ``k`` of ``n`` on a stratified grid, toroidally shifted by ``shift``.
+def shifted_grid_point(k, n: int, shift: mi.Point2f) -> mi.Point2f:
+    """Point ``k`` (int or ``mi.UInt32``) of ``n`` on a stratified grid in
+    [0, 1)^2, toroidally shifted by ``shift``.
 
     The grid has ``cols = ceil(sqrt(n))`` columns and ``ceil(n / cols)`` rows
     of cell centres. With ``shift`` uniform in [0, 1)^2 (one per camera
     sample) every point is uniformly distributed, so averages over the
     pattern are unbiased for any ``n``, while the points stay stratified.
+    Used for the integrator's light samples and PCSS's ``'stratified'`` taps
+    (:func:`tap_offset`).
     """
     cols = math.ceil(math.sqrt(n))
     rows = math.ceil(n / cols)
-    u = mi.Point2f(((k % cols) + 0.5) / cols, ((k // cols) + 0.5) / rows) + shift
+    u = mi.Point2f((mi.Float(k % cols) + 0.5) / cols, (mi.Float(k // cols) + 0.5) / rows) + shift
     return u - dr.floor(u)
-
-
 
 
 # ------------------------------------------------------------------ tap patterns
@@ -130,6 +131,7 @@ def _poisson_disk(n: int, seed: int = 7) -> list:
     return pts
 
 
+#: ``(variant, n) -> (x, y)`` Poisson-disk tap arrays (of that variant's ``mi.Float``).
 _POISSON_CACHE: dict = {}
 
 
@@ -142,17 +144,12 @@ def tap_offset(k, n: int, pattern: str, rnd: mi.Point2f) -> mi.Point2f:
       angle ``2 pi rnd.x``.
     """
     if pattern == "stratified":
-        cols = math.ceil(math.sqrt(n))
-        rows = math.ceil(n / cols)
-        kx = k % cols
-        ky = k // cols
-        u = mi.Point2f((mi.Float(kx) + 0.5) / cols, (mi.Float(ky) + 0.5) / rows) + rnd
-        u = u - dr.floor(u)
-        return u * 2.0 - 1.0
-    if n not in _POISSON_CACHE:
+        return shifted_grid_point(k, n, rnd) * 2.0 - 1.0
+    key = (mi.variant(), n)   # the arrays belong to the variant active when built
+    if key not in _POISSON_CACHE:
         pts = _poisson_disk(n)
-        _POISSON_CACHE[n] = (mi.Float([p[0] for p in pts]), mi.Float([p[1] for p in pts]))
-    px, py = _POISSON_CACHE[n]
+        _POISSON_CACHE[key] = (mi.Float([p[0] for p in pts]), mi.Float([p[1] for p in pts]))
+    px, py = _POISSON_CACHE[key]
     x = dr.gather(mi.Float, px, k)
     y = dr.gather(mi.Float, py, k)
     s, c = dr.sincos(2.0 * math.pi * rnd.x)
@@ -208,22 +205,15 @@ def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, later
     return t - plane.offset
 
 
-def tap_texel(smap, r: Receiver, offset_texels: mi.Point2f):
-    """Integer texel (i, j) at ``offset_texels`` from the receiver, clamped to the face,
-    and the uv of its centre."""
-    res = smap.resolution
-    ij = dr.clip(mi.Point2i(dr.floor(r.uv * res + offset_texels)), 0, res - 1)
-    uv = (mi.Point2f(ij) + 0.5) / res
-    return ij, uv
-
-
 def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
                    n: int, pattern: str, rnd: mi.Point2f, active):
     """PCSS step 1 (Fernando 2005): mean depth of the blockers in a search region.
 
     ``n`` taps (``tap_offset`` pattern) over the region of half-width
     ``half_texels`` around the receiver; a texel is a blocker when its depth
-    is below the receiver plane's depth there (:func:`plane_depth_at`).
+    is below the receiver plane's depth there (:func:`tap_depths`: taps off
+    a perspective/orthographic map are not blockers; cube taps are clamped to
+    the receiver's face, see :mod:`.pcss`).
 
     Returns ``(sum of blocker depths, number of blockers)``; one
     ``dr.while_loop``.
@@ -236,12 +226,13 @@ def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_tex
     def cond(k, z_sum, count):
         return active & (k < n)
 
+    centre = r.uv * smap.resolution
+
     def body(k, z_sum, count):
         off = tap_offset(k, n, pattern, rnd) * half_texels
-        ij, uv = tap_texel(smap, r, off)
-        z_map = smap.fetch(smap.depth, r.face, ij.x, ij.y, active)
-        lateral = dr.norm(off) * r.texel_world
-        blocked = z_map < plane_depth_at(smap, plane, r.face, uv, lateral)
+        z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
+                                      cross_seams=False, lateral_texels=dr.norm(off))
+        blocked = inside & (z_map < z)
         z_sum = dr.select(blocked, z_sum + z_map, z_sum)
         count = dr.select(blocked, count + 1.0, count)
         return k + 1, z_sum, count
@@ -255,8 +246,9 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
     """Percentage-closer filtering with receiver-plane depths (PCSS step 3).
 
     Fraction of ``n`` taps (``tap_offset`` pattern, half-width
-    ``half_texels``) whose texel depth is not below the receiver plane's
-    depth there; one ``dr.while_loop``.
+    ``half_texels``) that are lit (:func:`tap_depths` against the receiver
+    plane's depth; off-map taps lit, cube taps clamped to the receiver's
+    face as in :func:`blocker_search`); one ``dr.while_loop``.
     """
     k = mi.UInt32(0)
     lit = mi.Float(0.0)
@@ -265,13 +257,13 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
     def cond(k, lit):
         return active & (k < n)
 
+    centre = r.uv * smap.resolution
+
     def body(k, lit):
         off = tap_offset(k, n, pattern, rnd) * half_texels
-        ij, uv = tap_texel(smap, r, off)
-        z_map = smap.fetch(smap.depth, r.face, ij.x, ij.y, active)
-        lateral = dr.norm(off) * r.texel_world
-        ok = z_map >= plane_depth_at(smap, plane, r.face, uv, lateral)
-        return k + 1, dr.select(ok, lit + 1.0, lit)
+        z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
+                                      cross_seams=False, lateral_texels=dr.norm(off))
+        return k + 1, dr.select(~inside | (z <= z_map), lit + 1.0, lit)
 
     k, lit = dr.while_loop((k, lit), cond, body)
     return lit / n
@@ -288,8 +280,15 @@ def uv_on_face(view, face, p_world: mi.Point3f) -> mi.Point2f:
 
     :meth:`LightView.project` picks the face itself; footprints need the
     projection onto the receiver's face, so that ``p + dp`` across a cube
-    seam does not jump to another face. (Non-cube views have one face.)
+    seam does not jump to another face, nor ``p + dp`` across a cascade
+    split to another cascade's rectangle (cascaded views: the uv is taken in
+    ``face``'s own rectangle). Perspective and orthographic views have one face.
     """
+    if view.projection == "cascaded":
+        p_light = mi.Transform4f(view.light_from_world) @ mi.Point3f(p_world)
+        cx, cy, hx, hy = view._cascade(mi.UInt32(face))
+        return mi.Point2f(0.5 * ((p_light.x - cx) / hx + 1.0),
+                          0.5 * ((p_light.y - cy) / hy + 1.0))
     if view.projection != "cube":
         return view.project(p_world)[1]
     d = mi.Point3f(p_world) - mi.Point3f(view.position)
@@ -323,13 +322,15 @@ def footprint_texels(smap, lk: Lookup, r: Receiver) -> mi.Point2f:
     return dr.minimum(w, float(res))
 
 
-def tap_face_texel(smap, face, xy_texel: mi.Point2f):
+def tap_face_texel(smap, face, xy_texel: mi.Point2f, cross_seams: bool = True):
     """Texel hit by a tap at continuous texel coordinates ``xy_texel`` of ``face``.
 
     Returns ``(face, i, j, inside)``. Perspective and orthographic maps: a tap
     off the map has ``inside`` False (lit, Reeves 1987). Cube maps: a tap off
     its face continues on the neighbouring face (its direction is
-    re-projected), so cube seams do not leak light.
+    re-projected), so cube seams do not leak light; with ``cross_seams``
+    False it is clamped to the face's border texel instead (PCSS, see
+    :mod:`.pcss`).
     """
     res = smap.resolution
     ij = mi.Point2i(dr.floor(xy_texel))
@@ -337,6 +338,9 @@ def tap_face_texel(smap, face, xy_texel: mi.Point2f):
     face = mi.UInt32(face)
     if smap.view.projection != "cube":
         return face, ij.x, ij.y, in_face
+    if not cross_seams:
+        ij = dr.clip(ij, 0, res - 1)
+        return face, ij.x, ij.y, mi.Bool(True)
     from ..light_views import _cube_dir, _cube_face
     st = xy_texel * (2.0 / res) - 1.0
     f2, s2, t2, _ = _cube_face(_cube_dir(face, st.x, st.y))
@@ -345,26 +349,41 @@ def tap_face_texel(smap, face, xy_texel: mi.Point2f):
             dr.select(in_face, ij.y, ij2.y), mi.Bool(True))
 
 
-def tap_lit(smap, r: Receiver, face, xy_texel: mi.Point2f, plane: ReceiverPlane | None = None,
-            extra_bias=0.0, active=True) -> mi.Bool:
-    """One percentage-closer comparison: is the receiver lit by this tap?
+def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
+               plane: ReceiverPlane | None = None, active=True, cross_seams: bool = True,
+               lateral_texels=None):
+    """The one tap helper of every percentage-closer filter (pcf, bilinear, pcss).
 
-    The tap's texel (:func:`tap_face_texel`: off-map taps are lit, cube taps
-    continue on the neighbouring face) holds ``z_map``. The receiver depth is
-    ``r.depth`` (biases applied) or, with ``plane``, the receiver plane's
-    depth along that texel's ray through its centre (:func:`plane_depth_at`,
-    same biases); ``extra_bias`` (e.g. Reeves' stochastic bias) is
-    subtracted. Lit when ``z <= z_map``.
+    Returns ``(z_map, z_receiver, inside)`` for a tap at continuous texel
+    coordinates ``xy_texel`` of ``face``: ``z_map`` is the depth of the texel
+    it hits (:func:`tap_face_texel`: off a perspective/orthographic map
+    ``inside`` is False -- such a tap is lit and blocks nothing; cube taps
+    continue on the neighbouring face, or with ``cross_seams`` False are
+    clamped to the face); ``z_receiver`` is ``r.depth`` (biases applied) or,
+    with ``plane``, the receiver plane's depth along that texel's ray through
+    its centre (:func:`plane_depth_at`, same biases, clamped by the tap's
+    lateral distance from the receiver: ``lateral_texels``, default the
+    texel centre's distance).
     """
-    f2, i, j, inside = tap_face_texel(smap, face, xy_texel)
+    f2, i, j, inside = tap_face_texel(smap, face, xy_texel, cross_seams)
     z_map = smap.fetch(smap.depth, f2, i, j, active & inside)
     if plane is not None:
         res = smap.resolution
         uv_c = (mi.Point2f(i, j) + 0.5) * (1.0 / res)
-        lateral = dr.norm(dr.floor(xy_texel) + 0.5 - r.uv * res) * r.texel_world
-        z = plane_depth_at(smap, plane, f2, uv_c, lateral)
+        if lateral_texels is None:
+            lateral_texels = dr.norm(dr.floor(xy_texel) + 0.5 - r.uv * res)
+        z = plane_depth_at(smap, plane, f2, uv_c, lateral_texels * r.texel_world)
     else:
         z = r.depth
+    return z_map, z, inside
+
+
+def tap_lit(smap, r: Receiver, face, xy_texel: mi.Point2f, plane: ReceiverPlane | None = None,
+            extra_bias=0.0, active=True) -> mi.Bool:
+    """One percentage-closer comparison (:func:`tap_depths`): lit when the tap is
+    off the map or ``z_receiver - extra_bias <= z_map`` (``extra_bias``: e.g.
+    Reeves' stochastic bias)."""
+    z_map, z, inside = tap_depths(smap, r, face, xy_texel, plane, active)
     return ~inside | (z - extra_bias <= z_map)
 
 
@@ -409,7 +428,6 @@ def lane_rng(u_seed: mi.Point2f) -> mi.PCG32:
 
 #: erf(sqrt(2)): the truncation of the ``gaussian`` sampling at +-2 sigma.
 _ERF_SQRT2 = math.erf(math.sqrt(2.0))
-PCF_SAMPLINGS = ("jitter", "uniform", "gaussian")
 
 
 def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2f,
@@ -435,8 +453,6 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
     sampler draw per lookup). All taps run in one ``dr.while_loop``: one
     kernel whatever the sample count.
     """
-    if sampling not in PCF_SAMPLINGS:
-        raise ValueError(f"pcf_taps: sampling must be one of {PCF_SAMPLINGS}, got {sampling!r}")
     res = smap.resolution
     center = r.uv * res if center_texel is None else mi.Point2f(center_texel)
     half = mi.Point2f(half_size)
@@ -474,3 +490,45 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
 
     k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body)
     return mi.Float(n_lit) / mi.Float(dr.maximum(n_taps, 1))
+
+
+# ------------------------------------------------ fixed texel blocks (W&M, MDSM)
+def block_origin(uv_light: mi.Point2f, res: int, side: int) -> mi.Point2i:
+    """First texel ``(i0, j0)`` of the ``side x side`` texels whose centres are
+    nearest ``uv_light`` (texel centres at ``(i + 0.5) / res``)."""
+    return mi.Point2i(dr.floor(uv_light * res - 0.5 * side + 0.5))
+
+
+def virtual_sample_depth(view, face, ij: mi.Point2i, res: int, p_world: mi.Point3f,
+                         n_world: mi.Vector3f, max_tan: float):
+    """Depth of the virtual sample at texel ``ij`` (Wang & Molnar 1994): where the
+    ray through that texel's centre meets the plane through ``p_world`` with
+    normal ``n_world``.
+
+    Returns ``(depth, ok)``; ``ok`` is False where the plane is within
+    ``atan(max_tan)`` of parallel to the ray (the paper's ``c_L -> 0``) or meets
+    it behind the light. Used by ``second_depth`` and ``mdsm``.
+    """
+    uv = (mi.Point2f(ij) + 0.5) * (1.0 / res)
+    o, d = view.ray_through(face, uv)
+    c = dr.dot(n_world, d)
+    cos_min = 1.0 / math.sqrt(1.0 + max_tan * max_tan)
+    ok = dr.abs(c) >= cos_min
+    t = dr.dot(n_world, p_world - o) / dr.select(ok, c, 1.0)
+    ok &= dr.isfinite(t) & (t > 0)
+    return t, ok
+
+
+def taps_loop(k: int, body_fn, init, active):
+    """Run ``body_fn(tap, *state) -> state`` for taps 0..k-1 in one ``dr.while_loop``."""
+    tap = mi.UInt32(0)
+    active = mi.Bool(active)
+
+    def cond(tap, *state):
+        return active & (tap < k)
+
+    def body(tap, *state):
+        return (tap + 1, *body_fn(tap, *state))
+
+    out = dr.while_loop((tap, *init), cond, body)
+    return out[1:]

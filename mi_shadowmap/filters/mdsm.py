@@ -33,7 +33,7 @@ Deviations from the paper, and why:
 * **Biases** (not discussed by the paper). Each tap's texel is compared with
   the receiver's tangent plane at that texel's centre (receiver-plane depth,
   the same construction as Wang & Molnar's virtual samples, see
-  :func:`.second_depth.virtual_sample_depth`; where the plane is within
+  :func:`.common.virtual_sample_depth`; where the plane is within
   ``atan(max_tan_slope)`` of the light ray the shading point's depth is
   used), minus the usual ``bias``/``slope_bias``/``normal_bias`` of
   :func:`~.common.receiver`. The **minimum** is compared with the plane's
@@ -48,9 +48,14 @@ Deviations from the paper, and why:
   n-SM then equals a standard map).
 * Taps are clamped to the receiver's face (cube-map seams are not
   crossed); lookups outside the map are lit.
-* The ``mdsm_min``/``mdsm_max`` layers are built whenever the method is
-  ``mdsm``, also for ``depths = 1`` (which does not read them): the layers
-  a method needs are declared per method (:data:`LAYERS`), not per option.
+* Only the layers the options read are built (:data:`LAYERS_FOR`, via
+  :func:`mi_shadowmap.filters.layers_for`): none for ``depths = 1`` or
+  ``search = 1``, ``mdsm_max`` for ``depths = 2``, both for ``depths = 3``.
+* **Stored window.** The layer builders
+  (:data:`mi_shadowmap.depth_maps.LAYER_BUILDERS`, ``mdsm_min`` /
+  ``mdsm_max``) always store the 3 x 3 (q = 9, the paper's default)
+  minimum / maximum, clamped at the face border, whatever ``search`` is;
+  other sizes are composed from it at lookup (above).
 """
 from __future__ import annotations
 
@@ -59,8 +64,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from .common import Lookup, receiver
-from .second_depth import _taps_loop, block_origin, virtual_sample_depth
+from .common import Lookup, block_origin, receiver, taps_loop, virtual_sample_depth
 
 
 def _window_offsets(search: int) -> list:
@@ -133,10 +137,21 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
             s += dr.select(z_min < z_rec - min_drop, one, zero)
         return (n_shadow + s,)
 
-    (n_shadow,) = _taps_loop(k, body, (mi.UInt32(0),), active)
+    (n_shadow,) = taps_loop(k, body, (mi.UInt32(0),), active)
     vis = 1.0 - mi.Float(n_shadow) / float(n_depths * k)
     return dr.select(r.inside, vis, 1.0)
 
 
 FILTERS = {"mdsm": mdsm}
 LAYERS = {"mdsm": ("mdsm_min", "mdsm_max")}
+
+
+def _layers_used(opts) -> tuple:
+    """The layers :func:`mdsm` reads with ``opts``: none for ``depths = 1`` or
+    ``search = 1`` (base depth only), ``mdsm_max`` for ``depths = 2``, both for 3."""
+    if opts.depths == 1 or opts.search == 1:
+        return ()
+    return ("mdsm_max",) if opts.depths == 2 else ("mdsm_min", "mdsm_max")
+
+
+LAYERS_FOR = {"mdsm": _layers_used}

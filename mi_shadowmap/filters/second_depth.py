@@ -64,7 +64,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from .common import Lookup, receiver
+from .common import Lookup, block_origin, receiver, taps_loop, virtual_sample_depth
 
 #: Relative rounding tolerance of the ``<=`` test at virtual samples.
 _EQ_REL = 1e-5
@@ -76,46 +76,6 @@ def shading_normal(lk: Lookup) -> mi.Vector3f:
     if si is not None and hasattr(si, "sh_frame"):
         return mi.Vector3f(si.sh_frame.n)
     return mi.Vector3f(lk.n_world)
-
-
-def block_origin(uv_light: mi.Point2f, res: int, side: int) -> mi.Point2i:
-    """First texel ``(i0, j0)`` of the ``side x side`` texels whose centres are
-    nearest ``uv_light`` (texel centres at ``(i + 0.5) / res``)."""
-    return mi.Point2i(dr.floor(uv_light * res - 0.5 * side + 0.5))
-
-
-def virtual_sample_depth(view, face, ij: mi.Point2i, res: int, p_world: mi.Point3f,
-                         n_world: mi.Vector3f, max_tan: float):
-    """Depth of the virtual sample at texel ``ij``: where the ray through that
-    texel's centre meets the plane through ``p_world`` with normal ``n_world``.
-
-    Returns ``(depth, ok)``; ``ok`` is False where the plane is within
-    ``atan(max_tan)`` of parallel to the ray (the paper's ``c_L -> 0``) or meets
-    it behind the light.
-    """
-    uv = (mi.Point2f(ij) + 0.5) * (1.0 / res)
-    o, d = view.ray_through(face, uv)
-    c = dr.dot(n_world, d)
-    cos_min = 1.0 / math.sqrt(1.0 + max_tan * max_tan)
-    ok = dr.abs(c) >= cos_min
-    t = dr.dot(n_world, p_world - o) / dr.select(ok, c, 1.0)
-    ok &= dr.isfinite(t) & (t > 0)
-    return t, ok
-
-
-def _taps_loop(k: int, body_fn, init, active):
-    """Run ``body_fn(tap, *state) -> state`` for taps 0..k-1 in one ``dr.while_loop``."""
-    tap = mi.UInt32(0)
-    active = mi.Bool(active)
-
-    def cond(tap, *state):
-        return active & (tap < k)
-
-    def body(tap, *state):
-        return (tap + 1, *body_fn(tap, *state))
-
-    out = dr.while_loop((tap, *init), cond, body)
-    return out[1:]
 
 
 def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
@@ -141,7 +101,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
         _, z_second = fetch(tap_texel(tap), active)
         return (dr.select(r.depth <= z_second, n_lit + 1, n_lit),)
 
-    (n_lit,) = _taps_loop(k, count_body, (mi.UInt32(0),), active)
+    (n_lit,) = taps_loop(k, count_body, (mi.UInt32(0),), active)
     # 2. trivial shadow / illumination
     vis = dr.select(n_lit == k, 1.0, 0.0)
     if not opts.virtual_samples:
@@ -160,7 +120,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
         lit = dr.select(ok, lit_v, r.depth <= z_second)
         return (dr.select(lit, n_virt + 1, n_virt),)
 
-    (n_virt,) = _taps_loop(k, virt_body, (mi.UInt32(0),), mixed)
+    (n_virt,) = taps_loop(k, virt_body, (mi.UInt32(0),), mixed)
     vis = dr.select(mixed, mi.Float(n_virt) / k, vis)
     return dr.select(r.inside, vis, 1.0)
 

@@ -23,8 +23,7 @@ import numpy as np
 import mitsuba as mi
 
 from .light_views import LightView
-
-_BYTES_PER_TEXEL = 4  # float32
+from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
 
 
 @dataclass
@@ -72,8 +71,12 @@ class ShadowMap:
                 + list(self.extra))
 
 
-def _first_hit(scene: mi.Scene, view: LightView, o, d, max_t):
+def _first_hit(scene: mi.Scene, view: LightView, o, d):
     """Distance to the first surface along (o, d), skipping the light's own shape.
+
+    At most 32 skipped hits (own shape, hits at the light) per ray; a ray
+    still skipping after that stores +inf (lit) -- only a light inside more
+    than 32 layers of its own shape could get there.
 
     Hits closer to the origin than ``1e-6 * max|o|`` (about 8 float ulps of
     the light position) are skipped too: they are numerically *at* the light,
@@ -113,7 +116,7 @@ def _first_hit(scene: mi.Scene, view: LightView, o, d, max_t):
 
 
 #: Extra layers: ``name -> fn(scene, smap) -> mi.Float`` (``n_texels`` entries).
-#: Filters name the layers they need (``filters.LAYERS``); the integrator asks
+#: Filters name the layers they need (``filters.layers_for(opts)``); the map manager asks
 #: :func:`build_depth_map` for exactly those, so nothing unused is built.
 LAYER_BUILDERS: dict = {}
 
@@ -177,7 +180,10 @@ def _second_surface(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     own shape (area lights) and hits numerically at the light (as in
     :func:`_first_hit`) are skipped. Continuation rays start a relative step
     (``1e-6 max|p| + 1e-5 z``) past the hit (Mitsuba's ``spawn_ray`` offset has an
-    absolute floor that broke scale invariance); at most 64 hits per texel.
+    absolute floor that broke scale invariance); at most 64 hits per texel:
+    a ray that has not stored a second surface after 64 hits keeps ``+inf``
+    (lit), which only a texel ray crossing more than 64 surfaces (e.g. 32
+    nested closed shells or 64 stacked open sheets) can reach.
     """
     view = smap.view
     o, d, _ = view.texel_rays(smap.resolution)
@@ -197,14 +203,10 @@ def _second_surface(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     def body(ray, z_first, z_second, it, active):
         si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True, active)
         hit = active & si.is_valid()
-        if own is not None:
-            hit_own = hit & (si.shape == own)
-        else:
-            hit_own = mi.Bool(False)
-        # Hits within ~8 ulps of the light position are AT the light (see _first_hit).
-        hit_own |= hit & (dr.dot(si.p - o, d) <= 1e-6 * dr.max(dr.abs(mi.Vector3f(o))))
+        hit_own = (hit & (si.shape == own)) if own is not None else mi.Bool(False)
         z = dr.dot(si.p - o, d)
-        counted = hit & ~hit_own & (z > eps_o)   # hits at the light: see _first_hit
+        # Hits within ~8 ulps of the light position are AT the light (see _first_hit).
+        counted = hit & ~hit_own & (z > eps_o)
         shape_id = dr.reinterpret_array(mi.UInt32, si.shape)
         is_solid = dr.gather(mi.Bool, solid, shape_id, counted)
         back = dr.dot(si.n, d) > 0
@@ -247,18 +249,25 @@ LAYER_BUILDERS["mdsm_min"] = lambda scene, smap: _neighbourhood_extreme(smap, dr
 LAYER_BUILDERS["mdsm_max"] = lambda scene, smap: _neighbourhood_extreme(smap, dr.maximum)
 
 
+def build_layer(scene: mi.Scene, smap: ShadowMap, name: str) -> mi.Float:
+    """Build (and evaluate) the extra layer ``name`` of ``smap`` with
+    :data:`LAYER_BUILDERS`; the one place that refuses an unknown layer name."""
+    if name not in LAYER_BUILDERS:
+        raise KeyError(f"unknown depth-map layer '{name}'; known: {sorted(LAYER_BUILDERS)}")
+    data = LAYER_BUILDERS[name](scene, smap)
+    dr.eval(data)
+    return data
+
+
 def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
                     layers=()) -> ShadowMap:
     """Ray-cast the first-surface depth of every texel of ``view``, plus ``layers``."""
-    o, d, max_t = view.texel_rays(resolution)
-    depth = _first_hit(scene, view, o, d, max_t)
+    o, d, _ = view.texel_rays(resolution)
+    depth = _first_hit(scene, view, o, d)
     dr.eval(depth)
     smap = ShadowMap(view=view, resolution=resolution, depth=depth)
     for name in layers:
-        if name not in LAYER_BUILDERS:
-            raise KeyError(f"unknown depth-map layer '{name}'; known: {sorted(LAYER_BUILDERS)}")
-        data = LAYER_BUILDERS[name](scene, smap)
-        dr.eval(data)
+        data = build_layer(scene, smap, name)
         if name == "second_depth":
             smap.second_depth = data
         else:
@@ -271,16 +280,19 @@ def build_culled_depth(scene, view, res: int, faces) -> mi.Float:
 
     Only the needed faces' texel rays are traced (gathered out of
     :meth:`LightView.texel_rays`, traced by :func:`depth_maps._first_hit`,
-    scattered back into a full-size array).
+    scattered back into a full-size array). No face needed: all +inf, no
+    ray traced.
     """
     n = res * res
+    if not any(faces):
+        return dr.full(mi.Float, dr.inf, view.n_faces * n)
     idx = mi.UInt32(np.concatenate([np.arange(f * n, (f + 1) * n, dtype=np.uint32)
                                     for f in range(view.n_faces) if faces[f]]))
-    o, d, max_t = view.texel_rays(res)
+    o, d, _ = view.texel_rays(res)
     if dr.width(o) > 1:
         o = dr.gather(mi.Point3f, o, idx)
     d = dr.gather(mi.Vector3f, d, idx)
-    depth_sub = _first_hit(scene, view, o, d, max_t)
+    depth_sub = _first_hit(scene, view, o, d)
     depth = dr.full(mi.Float, dr.inf, view.n_faces * n)
     dr.scatter(depth, depth_sub, idx)
     dr.eval(depth)
@@ -293,3 +305,13 @@ def write_exr(smap: ShadowMap, path: str, layer: str = "depth") -> None:
     arr = smap.to_numpy(layer)
     bmp = mi.Bitmap(arr.reshape(-1, smap.resolution))
     bmp.write(str(path))
+
+
+def _face_near(scene, smap: ShadowMap) -> mi.Float:
+    """Layer ``pcss_near``: the nearest depth of each face (``n_faces`` entries, one
+    per face, not per texel; ``+inf`` for an empty face): PCSS's per-face near
+    depth for the blocker-search region (:mod:`mi_shadowmap.filters.pcss`)."""
+    return dr.block_reduce(dr.ReduceOp.Min, smap.depth, smap.resolution * smap.resolution)
+
+
+LAYER_BUILDERS["pcss_near"] = _face_near

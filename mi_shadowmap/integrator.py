@@ -57,7 +57,10 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         self.stats: dict = {}       # see prepare_maps()
         self._in_render = False
         self._emitter_labels: list[str] = []
-        self._diff_scale = 1.0
+        self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
+        self._base_views: list = []          # per emitter: LightView or None (check_scene)
+        # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
+        self._diff_scale = dr.opaque(mi.Float, 1.0)
 
     # ---------------------------------------------------------------- passes
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -72,7 +75,7 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
             self.prepare_maps(scene, sensor_obj)
             n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
             # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
-            self._diff_scale = math.sqrt(n_spp)
+            self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
             return super().render(scene, sensor, seed, spp, develop, evaluate)
         finally:
             self._in_render = False
@@ -84,9 +87,9 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         memory budget, cascades, fitting, culling, cache); sets ``views``,
         ``maps``, ``resolution``, ``stats`` and ``build_seconds``.
         """
-        self.check_scene(scene)
+        views = self.check_scene(scene)   # the light views, built once per render
         self.maps = [None] * len(scene.emitters())   # no stale maps if preparing fails
-        prepared = prepare_maps(scene, sensor, self.opts)
+        prepared = prepare_maps(scene, sensor, self.opts, views)
         self.views, self.maps = prepared.views, prepared.maps
         self.resolution, self.stats = prepared.resolution, prepared.stats
         self.build_seconds = prepared.stats["build_seconds"]
@@ -98,20 +101,29 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         Called by ``render()``; call it yourself before ``mi.render`` to get the
         error unwrapped (``mi.render`` re-raises errors of a Python
         integrator as a RuntimeError whose ``__cause__`` holds the message).
+
+        Returns the emitters' :class:`~mi_shadowmap.light_views.LightView`
+        (None for environment emitters), which ``prepare_maps`` reuses, so
+        views are built once per render.
         """
-        labels = []
+        labels, views, unshadowed = [], [], []
         for i, e in enumerate(scene.emitters()):
-            if emitter_kind(e) == "environment" and self.opts.environment == "error":
+            is_env = emitter_kind(e) == "environment"
+            if is_env and self.opts.environment == "error":
                 raise ValueError(
                     f"shadowmap: emitter '{emitter_label(e, i)}' is an environment/constant "
                     "emitter, which has no finite frustum for a depth map; set the property "
                     "environment='unshadowed' to light it without shadows, or remove it")
-            if emitter_kind(e) != "environment":
-                make_light_view(e, scene, i)   # raises for unsupported emitters
+            # raises for unsupported emitters
+            views.append(None if is_env else make_light_view(e, scene, i))
+            unshadowed.append(is_env)   # environment='unshadowed': visibility 1, every method
             labels.append(emitter_label(e, i))
         # AOV names must be unique: fall back to indices for duplicate ids.
         self._emitter_labels = [
             lab if labels.count(lab) == 1 else str(i) for i, lab in enumerate(labels)]
+        self._unshadowed = unshadowed
+        self._base_views = views
+        return views
 
     def aov_names(self):
         return [f"vis_{lab}" for lab in self._emitter_labels]
@@ -136,7 +148,10 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         aovs = []
         n_light = opts.shadow_rays if opts.method == "raytraced" else 1
         for k, emitter in enumerate(scene.emitters()):
-            smap = self.maps[k] if opts.uses_map else RayTracedLight(scene)
+            if k < len(self._unshadowed) and self._unshadowed[k]:
+                smap = None   # environment='unshadowed': no shadows for any method
+            else:
+                smap = self.maps[k] if opts.uses_map else RayTracedLight(scene)
             vis_sum = mi.Float(0.0)
             contributes = mi.Bool(False)
             shift = None

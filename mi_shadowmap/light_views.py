@@ -22,7 +22,9 @@ Conventions
   index ``f*r*r + j*r + i``; its centre is ``uv = ((i+0.5)/r, (j+0.5)/r)``.
   A point looks up the texel ``floor(uv * r)`` (nearest texel).
 * **Spot** (``perspective``): one face, a square frustum circumscribing the
-  cutoff cone (half-angle = ``cutoff_angle``), +z along the spot axis.
+  cutoff cone (half-angle = ``cutoff_angle``) in the emitter's own frame: the
+  rotation of its ``to_world`` (columns normalised, Gram-Schmidt), so +z is
+  the spot axis and the map's ``u``/``v`` are the emitter's local x/y.
 * **Point and area** (``cube``): six 90-degree faces around the light
   position in world axes. Face ``2*a + s`` looks along axis ``a`` with sign
   ``+`` (s=0) or ``-`` (s=1); its ``u``/``v`` are the axes ``(a+1)%3`` and
@@ -34,7 +36,8 @@ Conventions
 * **Directional** (``orthographic``): one face, aligned with the light
   direction and fitted to the scene's bounding-box corners as seen along
   the light (the tight rectangle of the projected corners, not a bounding
-  sphere).
+  sphere). A scene without valid bounds (no shapes) gets the box
+  ``[-1, 1]^3`` instead -- nothing can cast a shadow there anyway.
 * **Directional, cascaded** (``cascaded``, ``cascades`` > 1, see
   :func:`cascaded_view`): ``n_faces`` = cascades orthographic maps sharing the
   light direction and near plane, face ``i`` fitted to the camera-visible
@@ -95,7 +98,6 @@ class LightView:
     light_from_world: mi.ScalarTransform4f  # rigid; +z is the view direction (not used by cube)
     tan_half: float = 1.0          # perspective: tan(half field of view)
     half_extent: tuple = (1.0, 1.0)  # orthographic: half width/height of the map rectangle
-    depth_range: float = 1.0       # orthographic: far - near
     light_size: float = 0.0        # world-space light width (0: a point)
     ignore_shape: object = None    # the emitter's own shape (area lights)
     label: str = ""
@@ -106,7 +108,9 @@ class LightView:
         """World-space rays through every texel centre of every face.
 
         Returns ``(o_world, d_world, max_t)`` with ``n_faces*res*res`` entries
-        in flat texel order.
+        in flat texel order. ``max_t`` is always ``+inf`` (the maps have no far
+        plane) and is not used by the package; it is kept only so that callers
+        unpacking three values keep working.
         """
         idx = dr.arange(mi.UInt32, self.n_faces * res * res)
         face = idx // (res * res)
@@ -285,22 +289,49 @@ def _look_along(origin, forward) -> mi.ScalarTransform4f:
     """Rigid light_from_world with +z along ``forward`` and origin at ``origin``."""
     f = dr.normalize(mi.ScalarVector3f(forward))
     up = mi.ScalarVector3f(0, 1, 0) if abs(f.y) < 0.9 else mi.ScalarVector3f(1, 0, 0)
-    world_from_light = mi.ScalarTransform4f().look_at(
-        origin=mi.ScalarPoint3f(origin), target=mi.ScalarPoint3f(origin) + f, up=up)
+    # The rotation is built at the world origin and translated afterwards: look_at(o, o + f)
+    # would recover f as (o + f) - o in float32, which loses ~eps * |o| (1e-3 at 1e4 units)
+    # and so breaks scale invariance for far-from-origin lights.
+    world_from_light = mi.ScalarTransform4f().translate(mi.ScalarVector3f(origin)) @ \
+        mi.ScalarTransform4f().look_at(origin=mi.ScalarPoint3f(0), target=mi.ScalarPoint3f(f),
+                                       up=up)
     return world_from_light.inverse()
+
+
+def _emitter_frame(T, origin) -> mi.ScalarTransform4f:
+    """Rigid light_from_world of an emitter's own frame: the rotation of its
+    ``to_world`` ``T`` (local z normalised, then local x and y made orthogonal
+    to it and to each other, Gram-Schmidt; scale and shear dropped, handedness
+    kept), centred at ``origin``."""
+    z = np.array([float(c) for c in _scalar3(T @ mi.Vector3f(0, 0, 1))])
+    x = np.array([float(c) for c in _scalar3(T @ mi.Vector3f(1, 0, 0))])
+    y = np.array([float(c) for c in _scalar3(T @ mi.Vector3f(0, 1, 0))])
+    z /= np.linalg.norm(z)
+    x -= (x @ z) * z
+    if np.linalg.norm(x) < 1e-9:   # degenerate to_world: any x orthogonal to z
+        x = np.cross(z, [0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    y -= (y @ z) * z + (y @ x) * x
+    if np.linalg.norm(y) < 1e-9:
+        y = np.cross(z, x)
+    y /= np.linalg.norm(y)
+    o = np.array([float(c) for c in origin])
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = x, y, z   # rows: world -> light rotation
+    m[:3, 3] = -m[:3, :3] @ o
+    return mi.ScalarTransform4f(m.tolist())
 
 
 def _spot_view(emitter, label) -> LightView:
     T = emitter.world_transform()
     pos = mi.ScalarPoint3f(_scalar3(T.translation()))
-    axis = _scalar3(T @ mi.Vector3f(0, 0, 1))
     cutoff = float(dr.ravel(mi.traverse(emitter)["cutoff_angle"])[0])
     if not (0.0 < cutoff < 90.0):
         # A square perspective frustum cannot cover a cone of >= 90 degrees.
         raise UnsupportedEmitterError(
             f"shadowmap: spot emitter '{label}' has cutoff_angle={cutoff}; a perspective "
             "depth map needs 0 < cutoff_angle < 90 degrees")
-    return LightView("spot", "perspective", 1, pos, _look_along(pos, axis),
+    return LightView("spot", "perspective", 1, pos, _emitter_frame(T, pos),
                      tan_half=math.tan(math.radians(cutoff)), label=label)
 
 
@@ -331,7 +362,7 @@ def _directional_view(emitter, scene, label) -> LightView:
     centre_light = mi.ScalarPoint3f(0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), near)
     origin = rot.inverse() @ centre_light
     return LightView("directional", "orthographic", 1, origin, _look_along(origin, d),
-                     half_extent=half, depth_range=hi[2] - near + pad, label=label)
+                     half_extent=half, label=label)
 
 
 def area_light_size(shape) -> float:
@@ -340,12 +371,13 @@ def area_light_size(shape) -> float:
     The side of the square whose area equals the shape's area *seen from the
     receivers' side*: ``sqrt(A_proj)``, where ``A_proj`` is
 
-    * for meshes (PLY/OBJ, and Mitsuba's rectangle, which is a mesh):
+    * for meshes (PLY/OBJ, and the built-in ``cube``):
       ``max(|sum_i a_i n_i|, A / 4)`` -- the length of the summed triangle
       area vectors is the area projected along the mesh's mean normal (the
       full area for a planar one-sided light); closed meshes sum to 0 and
       fall back to ``A / 4``, their mean projected area (Cauchy's formula);
-    * for a disk: its area (a disk of radius r gives ``sqrt(pi) r``);
+    * for a disk or a rectangle (Mitsuba's ``rectangle`` is an analytic
+      shape, not a mesh): its area (a disk of radius r gives ``sqrt(pi) r``);
     * for a sphere and any other shape: ``A / 4`` (a sphere gives the area of
       its silhouette disk, ``pi r^2``).
 
@@ -437,7 +469,8 @@ def split_depths(z_near: float, z_far: float, cascades: int, split_lambda: float
 
 
 def cascaded_view(view: LightView, scene, sensor, cascades: int, split_lambda: float,
-                  margin_texels: float = 4.0, res: int = 1024) -> LightView:
+                  margin_texels: float = 4.0, res: int | None = 1024,
+                  points: np.ndarray | None = None) -> LightView:
     """Parallel-split (cascaded) maps for a directional ``view`` (thesis 2.1.6, 5.1).
 
     The camera's view depth range -- the nearest and farthest camera-visible
@@ -448,13 +481,17 @@ def cascaded_view(view: LightView, scene, sensor, cascades: int, split_lambda: f
     caster that can shadow a receiver lies on the light ray through it, at
     the same light-space (x, y)) whose rectangle is the light-space (x, y)
     bounding box of the visible points of slice ``i`` (slices overlap by 2 %
-    of their length), grown by ``margin_texels`` texels of ``res``. A lookup
-    uses the cascade of its point's view depth. Returns ``view`` unchanged
-    for 1 cascade, a non-directional view, or a camera that sees nothing.
+    of their length), grown by ``margin_texels`` texels of ``res`` (the real
+    per-face resolution; ``res=None``: no margin, e.g. to measure the
+    cascades' footprint before the resolution is chosen). ``points``: the
+    camera-visible points if already computed (:func:`camera_visible_points`).
+    A lookup uses the cascade of its point's view depth. Returns ``view``
+    unchanged for 1 cascade, a non-directional view, or a camera that sees
+    nothing.
     """
     if cascades <= 1 or view.projection != "orthographic" or sensor is None:
         return view
-    p = camera_visible_points(scene, sensor)
+    p = camera_visible_points(scene, sensor) if points is None else points
     if len(p) == 0:
         return view
     T = sensor.world_transform()
@@ -477,7 +514,9 @@ def cascaded_view(view: LightView, scene, sensor, cascades: int, split_lambda: f
         lo = p_l[sel, :2].min(axis=0)
         hi = p_l[sel, :2].max(axis=0)
         half = np.maximum(0.5 * (hi - lo), 1e-6 * max(view.half_extent))
-        half = half * (1.0 + 2.0 * margin_texels / res) + 2.0 * margin_texels / res * half.max()
+        if res is not None:
+            grow = 2.0 * margin_texels / res
+            half = half * (1.0 + grow) + grow * half.max()
         c = 0.5 * (lo + hi)
         rects.append((float(c[0]), float(c[1]), float(half[0]), float(half[1])))
     extra = dict(view.extra)
@@ -493,7 +532,8 @@ def footprint_ratio(scene, sensor, views) -> float:
 
     Per unit resolution: a spot map spans ``2 tan(cutoff) d`` at distance
     ``d`` from the light, a cube face ``2 d``, an orthographic map its width;
-    a perspective camera spans ``2 tan(x_fov / 2) d_cam`` per unit film width.
+    a cascaded directional map its largest cascade's width (the coarsest
+    texels); a perspective camera spans ``2 tan(x_fov / 2) d_cam`` per unit film width.
     ``d`` and ``d_cam`` are measured to the centre of the scene's bounding
     box. Returns 1 when it cannot be computed (no bounds, not a perspective
     camera, a projection this does not know). Used by the automatic
@@ -524,6 +564,8 @@ def footprint_ratio(scene, sensor, views) -> float:
             widths.append(2.0 * d)
         elif v.projection == "orthographic":
             widths.append(2.0 * max(v.half_extent))
+        elif v.projection == "cascaded":
+            widths.append(2.0 * max(max(r[2], r[3]) for r in v.extra["cascade_rects"]))
     return max(widths) / cam_width if widths else 1.0
 
 

@@ -20,10 +20,11 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from .depth_maps import LAYER_BUILDERS, ShadowMap, build_culled_depth, build_depth_map
-from .filters import LAYERS
+from .depth_maps import ShadowMap, build_culled_depth, build_depth_map, build_layer
+from .filters import layers_for
 from .light_views import (camera_visible_points, cascaded_view, cube_faces_needed,
                           emitter_kind, fit_view, footprint_ratio, make_light_view)
+from .options import _BYTES_PER_TEXEL
 
 
 @dataclasses.dataclass
@@ -35,19 +36,32 @@ class PreparedMaps:
     stats: dict
 
 
-def prepare_maps(scene: mi.Scene, sensor, opts) -> PreparedMaps:
+def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     """First pass: one depth map per emitter (None for ``raytraced``).
+
+    ``views``: the emitters' light views if the caller already built them
+    (the integrator's ``check_scene`` does; None for environment emitters),
+    else they are built here.
 
     The resolution is ``resolution`` or the automatic one (see
     :meth:`~mi_shadowmap.options.Options.map_resolution`, from the film of
-    ``sensor``, default the scene's first sensor); the memory the maps
+    ``sensor``, default the scene's first sensor; a scene without any sensor
+    takes a 512 x 512 film, and a camera-dependent step -- cascades, culling,
+    fitting, the footprint factor -- is then skipped); the memory the maps
     need is checked against ``memory_budget`` before anything is built.
-    Only the layers the method uses are built (``filters.LAYERS``), and
+    Only the layers the method uses are built (``filters.layers_for(opts)``), and
     with ``cache_maps`` every layer is taken from :data:`MAP_CACHE` when
     it holds one for the same scene state, light view and resolution.
 
+    With ``cascades`` > 1 directional views become cascaded ones
+    (:func:`cascaded_view`): the face count (``cascades``) is known before
+    the resolution, which is chosen first from the cascades fitted without
+    margin, then the cascades are fitted again with their margin in texels
+    of that resolution.
+
     With ``cull_faces`` cube maps build only the faces camera-visible points
-    project into (:func:`cube_faces_needed`); with ``fit_frusta`` spot and
+    project into (:func:`cube_faces_needed`; a camera that sees no surface
+    needs none, and the map is all +inf without any ray traced); with ``fit_frusta`` spot and
     directional views are fitted to the camera-visible receivers
     (:func:`fit_view`) after the resolution is chosen, so the fit raises
     the texel density.
@@ -60,10 +74,14 @@ def prepare_maps(scene: mi.Scene, sensor, opts) -> PreparedMaps:
     the time the cache saved.
     """
     t0 = time.perf_counter()
-    layers = tuple(LAYERS.get(opts.method, ()))
-    views = [None if emitter_kind(e) == "environment" or not opts.uses_map
-             else make_light_view(e, scene, i)
-             for i, e in enumerate(scene.emitters())]
+    layers = layers_for(opts)
+    if not opts.uses_map:
+        views = [None] * len(scene.emitters())
+    elif views is None:
+        views = [None if emitter_kind(e) == "environment" else make_light_view(e, scene, i)
+                 for i, e in enumerate(scene.emitters())]
+    else:
+        views = list(views)
     maps = [None] * len(views)
     stats = dict(maps_built=0, maps_reused=0, faces_built=0, faces_culled=0,
                  texels_built=0, layers_built=0, naive_build_seconds=0.0)
@@ -71,22 +89,39 @@ def prepare_maps(scene: mi.Scene, sensor, opts) -> PreparedMaps:
     if any(v is not None for v in views):
         if sensor is None and len(scene.sensors()) > 0:
             sensor = scene.sensors()[0]
-        if opts.cascades > 1:   # parallel-split maps for directional lights (issue 4)
-            views = [None if v is None else
-                     cascaded_view(v, scene, sensor, opts.cascades, opts.split_lambda)
-                     for v in views]
-        film_size = sensor.film().crop_size() if sensor is not None else (512, 512)
-        face_layers = sum(v.n_faces for v in views if v is not None) * (1 + len(layers))
-        footprint = footprint_ratio(scene, sensor, views) if opts.resolution is None else 1.0
-        # Raises (naming the memory needed) before any map is allocated.
-        res = opts.map_resolution(film_size, face_layers, footprint)
-        state = MAP_CACHE.scene_state(scene) if opts.cache_maps else None
+        cascaded = opts.cascades > 1 and sensor is not None and any(
+            v is not None and v.projection == "orthographic" for v in views)
         visible = None
-        if ((opts.cull_faces and any(v is not None and v.projection == "cube"
-                                     for v in views))
+        if (cascaded
+                or (opts.cull_faces and any(v is not None and v.projection == "cube"
+                                            for v in views))
                 or (opts.fit_frusta and any(v is not None and v.n_faces == 1
                                             for v in views))):
             visible = camera_visible_points(scene, sensor)
+        film_size = sensor.film().crop_size() if sensor is not None else (512, 512)
+        # The face count is known before the cascades are fitted: `cascades` faces per
+        # directional view (cascaded_view keeps one face when the camera sees nothing).
+        n_faces = [0 if v is None else (opts.cascades if cascaded and len(visible) > 0
+                                        and v.projection == "orthographic" else v.n_faces)
+                   for v in views]
+        face_layers = sum(n_faces) * (1 + len(layers))
+        if cascaded:   # parallel-split maps for directional lights (issue 4)
+            def cascade_all(res_for_margin):
+                return [v if v is None else
+                        cascaded_view(v, scene, sensor, opts.cascades, opts.split_lambda,
+                                      res=res_for_margin, points=visible)
+                        for v in views]
+            if opts.resolution is None:   # the footprint of cascades without margin
+                footprint = footprint_ratio(scene, sensor, cascade_all(None))
+            else:
+                footprint = 1.0
+        else:
+            footprint = footprint_ratio(scene, sensor, views) if opts.resolution is None else 1.0
+        # Raises (naming the memory needed) before any map is allocated.
+        res = opts.map_resolution(film_size, face_layers, footprint)
+        if cascaded:
+            views = cascade_all(res)
+        state = MAP_CACHE.scene_state(scene) if opts.cache_maps else None
         if opts.fit_frusta:
             margin = 8.0 + opts.normal_bias_texels
             stats["texel_density_gain"] = []
@@ -97,7 +132,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts) -> PreparedMaps:
         for k, view in enumerate(views):
             if view is not None:
                 faces = None
-                if visible is not None and view.projection == "cube":
+                if opts.cull_faces and visible is not None and view.projection == "cube":
                     margin = 2.0 * (4.0 + opts.normal_bias_texels) / res
                     faces = cube_faces_needed(view, visible, margin)
                 maps[k] = _map_for(scene, view, res, layers, state, stats, faces)
@@ -108,19 +143,29 @@ def prepare_maps(scene: mi.Scene, sensor, opts) -> PreparedMaps:
 def _map_for(scene, view, res, layers, state, stats, faces=None) -> ShadowMap:
     """One emitter's map: cached layers where possible, the rest built.
 
-    ``faces``: the cube faces needed (``cull_faces``), None for all.
+    ``faces``: the cube faces needed (``cull_faces``), None for all. A culled
+    depth is cached under ``("depth", faces)`` and its extra layers under
+    ``(name, faces)`` -- the face set of the depth they were built from -- so a
+    layer is never taken from a depth of another face set (review item 2).
+    No face needed (the camera sees no surface): a map of +inf, nothing traced.
     """
     key = (view_fingerprint(view), res)
     cached = MAP_CACHE.get(scene, state, key, "depth") if state is not None else None
     if faces is not None:
-        if all(faces):
+        faces = tuple(bool(f) for f in faces)
+        if all(faces) or cached is not None:   # a full depth serves any face set
             faces = None
         elif cached is None and state is not None:   # a culled map with enough faces
             for layer, entry in MAP_CACHE.entries(scene, state, key):
                 if (isinstance(layer, tuple) and layer[0] == "depth"
                         and all(h or not f for h, f in zip(layer[1], faces))):
-                    cached = entry
+                    cached, faces = entry, layer[1]
                     break
+    depth_key = "depth" if faces is None else ("depth", faces)
+
+    def layer_key(name):
+        return name if faces is None else (name, faces)
+
     if cached is None and faces is not None:
         t0 = time.perf_counter()
         smap = ShadowMap(view=view, resolution=res,
@@ -133,7 +178,7 @@ def _map_for(scene, view, res, layers, state, stats, faces=None) -> ShadowMap:
         stats["texels_built"] += n_built * res * res
         stats["naive_build_seconds"] += dt
         if state is not None:
-            MAP_CACHE.put(scene, state, key, ("depth", tuple(faces)), smap.depth, dt)
+            MAP_CACHE.put(scene, state, key, depth_key, smap.depth, dt)
     elif cached is None:
         t0 = time.perf_counter()
         smap = build_depth_map(scene, view, res, () if state is not None else layers)
@@ -146,24 +191,21 @@ def _map_for(scene, view, res, layers, state, stats, faces=None) -> ShadowMap:
         stats["naive_build_seconds"] += dt
         if state is None:
             return smap
-        MAP_CACHE.put(scene, state, key, "depth", smap.depth, dt)
+        MAP_CACHE.put(scene, state, key, depth_key, smap.depth, dt)
     else:
         smap = ShadowMap(view=view, resolution=res, depth=cached[0])
         stats["maps_reused"] += 1
         stats["naive_build_seconds"] += cached[1]
     for name in layers:
-        entry = MAP_CACHE.get(scene, state, key, name) if state is not None else None
+        entry = (MAP_CACHE.get(scene, state, key, layer_key(name))
+                 if state is not None else None)
         if entry is None:
-            if name not in LAYER_BUILDERS:
-                raise KeyError(f"unknown depth-map layer '{name}'; "
-                               f"known: {sorted(LAYER_BUILDERS)}")
             t0 = time.perf_counter()
-            data = LAYER_BUILDERS[name](scene, smap)
-            dr.eval(data)
+            data = build_layer(scene, smap, name)   # raises for an unknown layer
             dr.sync_thread()
             entry = (data, time.perf_counter() - t0)
             if state is not None:
-                MAP_CACHE.put(scene, state, key, name, *entry)
+                MAP_CACHE.put(scene, state, key, layer_key(name), *entry)
             stats["layers_built"] += 1
             stats["texels_built"] += smap.n_texels
         stats["naive_build_seconds"] += entry[1]
@@ -324,7 +366,8 @@ class MapCache:
 
     @property
     def nbytes(self) -> int:
-        return sum(4 * dr.width(e[0]) for s in self._scenes.values() for e in s[2].values())
+        return sum(_BYTES_PER_TEXEL * dr.width(e[0])
+                   for s in self._scenes.values() for e in s[2].values())
 
     def clear(self) -> None:
         self._scenes.clear()

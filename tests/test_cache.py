@@ -8,16 +8,15 @@ import numpy as np
 import pytest
 
 import mi_shadowmap.map_manager as mm_mod
-from mi_shadowmap.filters import FILTERS, LAYERS
+from mi_shadowmap.filters import layers_for
 from mi_shadowmap.map_manager import MAP_CACHE, MapCache
-from mi_shadowmap.options import MAP_METHODS
+from mi_shadowmap.options import MAP_METHODS, parse_options
 from mi_shadowmap.scenes import default_scene
 
 from conftest import SCENE_FILES
 
 RES = 64
-#: Map methods whose lookup has landed (METHODS may list a method before its filter).
-MAP_READY = [m for m in MAP_METHODS if m in FILTERS]
+MAP_READY = list(MAP_METHODS)
 
 
 @pytest.fixture
@@ -68,7 +67,7 @@ def test_filter_parameter_change_reuses_maps(builds, method):
     first = shadowmap(method=method)
     render(scene, first)
     assert first.stats["maps_built"] == 1
-    assert first.stats["layers_built"] == len(LAYERS.get(method, ()))
+    assert first.stats["layers_built"] == len(layers_for(parse_options({"method": method})))
     for change in ({"slope_bias": 2.5}, {"normal_bias": 0.0}, {"bias": 1e-3}):
         integ = shadowmap(method=method, **change)
         render(scene, integ)
@@ -85,7 +84,7 @@ def test_methods_share_the_depth_layer(builds):
         render(scene, integ)
         # extra depths only for the methods that use them, even when cached
         assert integ.maps[0].layers() == ["depth"] + [
-            "second_depth" if n == "second_depth" else n for n in LAYERS.get(method, ())]
+            "second_depth" if n == "second_depth" else n for n in layers_for(parse_options({"method": method}))]
     assert len(builds) == 1
     hard = shadowmap(method="hard")
     render(scene, hard)
@@ -202,24 +201,53 @@ def test_cull_faces_builds_fewer_faces_with_identical_results(builds, method):
     np.testing.assert_array_equal(img_culled, img_full)
 
 
-def test_cull_faces_builds_new_faces_when_the_camera_needs_them(builds):
+@pytest.mark.parametrize("method", [m for m in ("hard", "mdsm", "second_depth")
+                                    if m in MAP_READY])
+def test_cull_faces_builds_new_faces_when_the_camera_needs_them(builds, method):
+    """Extra layers (mdsm_min/max, second_depth) follow the depth's face set: after
+    a camera change needing a new face, no layer comes from the old faces' cache
+    (review item 2): the render equals an uncached one."""
     d = default_scene(width=32, height=32, light="point")
     d["high_ball"] = {"type": "sphere", "center": [-2.4, 7.0, -3.4], "radius": 1.0,
                       "bsdf": {"type": "diffuse"}}   # above the light, out of the first view
+    # a ceiling above the light with a blocker's shadow on it: the light's +y face
+    d["ceiling"] = {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                    "to_world": mi.ScalarTransform4f().translate([-2.4, 7.0, -3.4])
+                    .rotate([1, 0, 0], 90).scale(3.0)}
+    d["blocker"] = {"type": "sphere", "center": [-1.6, 5.5, -3.0], "radius": 0.4,
+                    "bsdf": {"type": "diffuse"}}
     scene = mi.load_dict(d)
-    integ = shadowmap(cull_faces=True)
+    integ = shadowmap(method=method, cull_faces=True)
     render(scene, integ)
     first = integ.stats["faces_built"]
     render(scene, integ)                       # same camera: cached
     assert integ.stats["maps_reused"] == 1 and integ.stats["faces_built"] == 0
-    params = mi.traverse(scene)                # now look at the ball (the light's +y face)
+    params = mi.traverse(scene)                # now look at the ceiling (the light's +y face)
     params["sensor.to_world"] = mi.ScalarTransform4f().look_at(
-        origin=[2.0, 5.0, 3.0], target=[-2.4, 6.5, -3.4], up=[0, 1, 0])
+        origin=[1.0, 3.0, 0.0], target=[-2.4, 7.0, -3.4], up=[0, 1, 0])
     params.update()
     img = render(scene, integ)
     assert integ.stats["maps_built"] == 1 and integ.stats["faces_built"] >= 1
     print(f"faces built: {first} for the first view, {integ.stats['faces_built']} for the new one")
-    np.testing.assert_array_equal(img, render(scene, shadowmap(cache_maps=False)))
+    assert integ.stats["layers_built"] == len(layers_for(parse_options({"method": method})))
+    np.testing.assert_array_equal(img, render(scene, shadowmap(method=method,
+                                                               cache_maps=False)))
+
+
+@pytest.mark.parametrize("method", MAP_READY)
+def test_cull_faces_with_a_camera_that_sees_nothing(builds, method):
+    """No camera-visible surface: no face is needed, the map is +inf (lit) without a
+    ray traced, and the render (of the empty sky) works (review item 1)."""
+    scene = mi.load_dict(default_scene(width=16, height=16, light="point"))
+    params = mi.traverse(scene)
+    params["sensor.to_world"] = mi.ScalarTransform4f().look_at(
+        origin=[0.0, 5.0, 0.0], target=[0.0, 10.0, 0.0], up=[0, 0, 1])   # at the sky
+    params.update()
+    integ = shadowmap(method=method, cull_faces=True)
+    img = render(scene, integ)
+    assert integ.stats["faces_built"] == 0 and integ.stats["faces_culled"] == 6
+    assert np.all(np.isinf(integ.maps[0].to_numpy()))
+    assert np.all(img == 0)
 
 
 # ---------------------------------------------------------------- fitted frusta
@@ -276,3 +304,14 @@ def test_fitted_frusta_follow_the_camera(builds, method):
     np.testing.assert_array_equal(img, render(scene, shadowmap(method=method, fit_frusta=True,
                                                                cache_maps=False)))
     assert np.isfinite(img).all()
+
+
+def test_mdsm_builds_only_the_layers_its_depths_need(builds):
+    """Pagot et al.: n = 1 is the standard map (no extra layer), n = 2 adds the
+    neighbourhood maximum, n = 3 the maximum and the minimum."""
+    scene = mi.load_dict(default_scene(width=16, height=16, spp=1))
+    for depths, expected in ((1, set()), (2, {"mdsm_max"}), (3, {"mdsm_min", "mdsm_max"})):
+        integ = mi.load_dict({"type": "shadowmap", "method": "mdsm", "depths": depths,
+                              "resolution": RES, "cache_maps": False})
+        mi.render(scene, integrator=integ, spp=1)
+        assert set(integ.maps[0].extra) == expected, depths

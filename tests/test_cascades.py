@@ -129,3 +129,46 @@ def test_cascades_leave_other_lights_alone():
     _, b = render_np(scene, {"type": "shadowmap", "method": "hard", "resolution": 128,
                              "cascades": 4}, spp=1)
     assert np.array_equal(a["vis_spot"], b["vis_spot"])
+
+
+def test_cascade_margin_uses_the_real_resolution(ground):
+    """The cascades grow by 4 texels of the resolution actually used (review item 4):
+    half = raw * (1 + g) + g * max(raw), g = 2 * 4 / res, with raw the unpadded fit."""
+    from mi_shadowmap.light_views import cascaded_view, make_light_view
+    sensor = ground.sensors()[0]
+    base = make_light_view(ground.emitters()[0], ground, 0)
+    raw = cascaded_view(base, ground, sensor, 4, 0.5, res=None).extra["cascade_rects"]
+    for res in (32, 256):
+        integ = mi.load_dict({"type": "shadowmap", "method": "hard", "resolution": res,
+                              "cascades": 4, "split_lambda": 0.5})
+        mi.render(ground, integrator=integ, spp=1)
+        rects = integ.views[0].extra["cascade_rects"]
+        g = 2.0 * 4.0 / res
+        for r, q in zip(rects, raw):
+            assert r[:2] == pytest.approx(q[:2], rel=1e-6, abs=1e-9)
+            big = max(q[2], q[3])
+            assert r[2] == pytest.approx(q[2] * (1 + g) + g * big, rel=1e-6)
+            assert r[3] == pytest.approx(q[3] * (1 + g) + g * big, rel=1e-6)
+
+
+def test_automatic_resolution_sees_cascaded_lights():
+    """footprint_ratio has a cascaded branch (review item 5): the largest cascade's
+    width over the camera pixel width, the same as an orthographic map of that width;
+    the automatic resolution of a cascaded sun is the one this footprint gives."""
+    import dataclasses
+    from mi_shadowmap.light_views import cascaded_view, footprint_ratio, make_light_view
+    from mi_shadowmap.options import parse_options
+    scene = large_ground_scene(width=32, height=32)
+    sensor = scene.sensors()[0]
+    base = make_light_view(scene.emitters()[0], scene, 0)
+    cas = cascaded_view(base, scene, sensor, 4, 0.5, res=None)
+    w = max(max(r[2], r[3]) for r in cas.extra["cascade_rects"])
+    ortho = dataclasses.replace(base, half_extent=(w, w))
+    f = footprint_ratio(scene, sensor, [cas])
+    assert f == pytest.approx(footprint_ratio(scene, sensor, [ortho]), rel=1e-9)
+    assert f != 1.0 and f < footprint_ratio(scene, sensor, [base])
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard", "cascades": 4,
+                          "split_lambda": 0.5})
+    mi.render(scene, integrator=integ, spp=1)
+    opts = parse_options({"method": "hard", "cascades": 4, "split_lambda": 0.5})
+    assert integ.resolution == opts.map_resolution((32, 32), 4, f)

@@ -24,9 +24,38 @@ def build(scene_dict, res=RES):
     return scene, view, build_depth_map(scene, view, res)
 
 
-def rays_np(view, res):
-    o, d, _ = view.texel_rays(res)
-    return np.asarray(o).T if np.asarray(o).shape[0] == 3 else np.asarray(o), np.asarray(d).T
+def texel_st(res, n_faces=1):
+    """``(face, s, t)`` of every texel in the documented flat order
+    ``face*res*res + j*res + i``, centre ``(i+.5)/res`` mapped to [-1, 1]."""
+    face, j, i = np.meshgrid(np.arange(n_faces), np.arange(res), np.arange(res), indexing="ij")
+    s = 2.0 * (i.reshape(-1) + 0.5) / res - 1.0
+    t = 2.0 * (j.reshape(-1) + 0.5) / res - 1.0
+    return face.reshape(-1), s, t
+
+
+def cube_dirs_np(res):
+    """Documented cube convention: face 2a+s looks along axis a with sign +/- (s=0/1);
+    its u axis is (a+1)%3, its v axis (a+2)%3. Unit directions, numpy only."""
+    face, s, t = texel_st(res, 6)
+    d = np.zeros((len(face), 3))
+    axis = face // 2
+    rows = np.arange(len(face))
+    d[rows, axis] = np.where(face % 2 == 0, 1.0, -1.0)
+    d[rows, (axis + 1) % 3] = s
+    d[rows, (axis + 2) % 3] = t
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def spot_dirs_np(to_world, cutoff_deg, res):
+    """The spot's own frame: map u/v along the emitter's local x/y (the normalised
+    columns of its to_world), +z the axis, half-width tan(cutoff)."""
+    M = np.array(to_world.matrix, dtype=float)[:3, :3]
+    M = M / np.linalg.norm(M, axis=0, keepdims=True)
+    _, s, t = texel_st(res)
+    tan = np.tan(np.radians(cutoff_deg))
+    d_local = np.stack([s * tan, t * tan, np.ones_like(s)], axis=1)
+    d = d_local @ M.T
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def plane_t(o, d, q, n):
@@ -35,26 +64,45 @@ def plane_t(o, d, q, n):
 
 
 def test_spot_depth_is_distance_to_plane():
+    """Texel rays built in numpy from the spot's to_world and cutoff (not from
+    texel_rays); an asymmetric up vector pins the map's orientation to the
+    emitter's local x/y."""
     q, n = [0.0, -1.0, 0.0], [0.1, 1.0, 0.05]
     n = list(np.asarray(n) / np.linalg.norm(n))
+    to_world = T().look_at(origin=[0.2, 3.0, 0.1], target=[0, 0, 0], up=[0.3, 0.1, 1])
+    # A tilted floor seen obliquely: the depths are not symmetric in u/v, so a
+    # mirrored or rotated map orientation fails.
     _, view, smap = build({
         "floor": plane(q, n),
-        "spot": {"type": "spot", "cutoff_angle": 40.0,
-                 "to_world": T().look_at(origin=[0.2, 3.0, 0.1], target=[0, 0, 0], up=[0, 0, 1])}})
-    o, d = rays_np(view, RES)
+        "spot": {"type": "spot", "cutoff_angle": 40.0, "to_world": to_world}})
+    o = np.array([0.2, 3.0, 0.1])
+    d = spot_dirs_np(to_world, 40.0, RES)
     expected = plane_t(np.broadcast_to(o, d.shape), d, q, n)
     got = smap.to_numpy().reshape(-1)
     np.testing.assert_allclose(got, expected, rtol=1e-5)
     assert smap.to_numpy().shape == (1, RES, RES)
+    # the map depends on its orientation: a transposed map would not match
+    assert not np.allclose(smap.to_numpy()[0].T.reshape(-1), expected, rtol=1e-3)
 
 
 def test_directional_depth_is_distance_from_light_plane():
+    """Texel rays in numpy: all along the emitter's direction, starting on the map's
+    near plane (through ``view.position``, orthogonal to the direction) at the
+    documented texel centres of the ``half_extent`` rectangle."""
     q, n = [0.0, 0.0, 0.0], [0.0, 1.0, 0.0]
+    direction = np.array([0.3, -1.0, 0.2]) / np.linalg.norm([0.3, -1.0, 0.2])
     _, view, smap = build({
         "floor": plane(q, n, size=3.0),
         "ball": {"type": "sphere", "center": [0, 1, 0], "radius": 0.5},
-        "sun": {"type": "directional", "direction": [0.3, -1.0, 0.2]}})
-    o, d = rays_np(view, RES)
+        "sun": {"type": "directional", "direction": direction.tolist()}})
+    L = np.array(view.light_from_world.matrix, dtype=float)[:3, :3]
+    np.testing.assert_allclose(L[2], direction, atol=1e-6)     # light +z = the direction
+    np.testing.assert_allclose(L @ L.T, np.eye(3), atol=1e-6)  # a rigid frame
+    _, s, t = texel_st(RES)
+    hx, hy = view.half_extent
+    o = (np.array([float(c) for c in view.position])
+         + (s * hx)[:, None] * L[0] + (t * hy)[:, None] * L[1])
+    d = np.broadcast_to(direction, o.shape)
     got = smap.to_numpy().reshape(-1)
     expected = plane_t(o, d, q, n)
     # texels whose ray hits the floor before/without hitting the ball
@@ -81,7 +129,7 @@ def test_cube_faces_depth_is_distance_to_room_walls():
             walls[f"wall{a}{int(s)}"] = plane(q, nrm, size=h)
     _, view, smap = build({**walls, "lamp": {"type": "point", "position": c.tolist()}})
     assert smap.to_numpy().shape == (6, RES, RES)
-    o, d = rays_np(view, RES)
+    o, d = c, cube_dirs_np(RES)
     with np.errstate(divide="ignore"):
         t_axes = (np.sign(d) * h - c) / d
     expected = np.min(np.where(t_axes > 0, t_axes, np.inf), axis=1)

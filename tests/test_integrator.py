@@ -142,3 +142,123 @@ def test_xml_scene_renders_with_any_method():
                                  height=16, spp=1)
             img = np.asarray(mi.render(scene))
             assert np.isfinite(img).all() and img[..., :3].max() > 0
+
+
+# ------------------------------------------------- review items 6, 19, 22, 31, 34
+def test_environment_unshadowed_gives_visibility_one_in_every_method():
+    """environment='unshadowed' (the property's doc: "lights with visibility 1, no
+    shadows") holds for raytraced too: no shadow ray is traced for the sky, so its
+    AOV is 1 wherever it contributes, equal to the map methods' AOV (same samples);
+    the spot keeps its ray-traced shadows."""
+    d = default_scene(width=32, height=32)
+    d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": 0.1}}
+    scene = mi.load_dict(d)
+    aovs = {}
+    for method in ("raytraced", "hard", "unshadowed"):
+        props = {"type": "shadowmap", "method": method, "environment": "unshadowed"}
+        if method != "raytraced":
+            props["resolution"] = 64
+        _, aovs[method] = render_np(scene, props, spp=2, seed=4)
+    sky = aovs["raytraced"]["vis_sky"]
+    assert sky.max() == 1.0
+    # the sky's light samples that a shadow ray would find blocked (on the ground next
+    # to the box and the sphere) are lit here: identical to method='unshadowed'
+    np.testing.assert_array_equal(sky, aovs["unshadowed"]["vis_sky"])
+    np.testing.assert_array_equal(sky, aovs["hard"]["vis_sky"])
+    assert 0 < np.mean(aovs["raytraced"]["vis_spot"] == 0) < 1   # spot still shadowed
+
+
+UNNAMED_XML = """<scene version="3.0.0">
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="0, 4, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
+      <rfilter type="box"/></film>
+  </sensor>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/>
+    <scale value="4"/></transform></shape>
+  <shape type="sphere"><point name="center" x="0" y="0.8" z="0"/><float name="radius" value="0.6"/></shape>
+  <emitter type="point"><point name="position" x="-1.5" y="3" z="0"/>
+    <rgb name="intensity" value="10"/></emitter>
+  <emitter type="point" id="key"><point name="position" x="1.5" y="3" z="0.5"/>
+    <rgb name="intensity" value="10"/></emitter>
+</scene>"""
+
+
+def test_aov_names_fall_back_to_the_emitter_index():
+    """An emitter without id (XML) is vis_<index>; emitters sharing an id are
+    vis_<index> each, and each AOV carries its own emitter's visibility."""
+    scene = mi.load_string(UNNAMED_XML)
+    integ = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
+    _, aovs = render_np(scene, integ, spp=1)
+    assert integ.aov_names() == ["vis_0", "vis_key"]
+    assert not np.array_equal(aovs["vis_0"], aovs["vis_key"])   # two different shadows
+
+    two = mi.load_dict({"type": "scene",
+                        "sensor": default_scene(width=16, height=16)["sensor"],
+                        "ground": default_scene()["ground"], "sphere": default_scene()["sphere"],
+                        "a": {"type": "point", "position": [-2.0, 3.0, -1.0]},
+                        "b": {"type": "point", "position": [2.0, 3.0, 1.0]}})
+    _, named = render_np(two, {"type": "shadowmap", "method": "hard", "resolution": 64}, spp=1)
+    two.emitters()[1].set_id(two.emitters()[0].id())   # both are now 'a'
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard", "resolution": 64})
+    _, dup = render_np(two, integ, spp=1)
+    assert integ.aov_names() == ["vis_0", "vis_1"]
+    np.testing.assert_array_equal(dup["vis_0"], named["vis_a"])
+    np.testing.assert_array_equal(dup["vis_1"], named["vis_b"])
+    assert not np.array_equal(dup["vis_0"], dup["vis_1"])
+
+
+def test_hide_emitters_changes_only_pixels_that_see_the_emitter():
+    """cbox_area: shown - hidden is the directly visible emission (Mitsuba's path
+    tracer with max_depth=1 on the same camera samples); every other pixel is equal."""
+    cbox = [p for p in SCENE_FILES if p.stem == "cbox_area"][0]
+    scene = mi.load_file(str(cbox), width=32, height=32)
+    imgs = {}
+    for hide in (False, True):
+        imgs[hide], _ = render_np(scene, {"type": "shadowmap", "method": "hard",
+                                          "resolution": 64, "hide_emitters": hide},
+                                  spp=4, seed=2)
+    emission = np.asarray(mi.render(scene, integrator=mi.load_dict(
+        {"type": "path", "max_depth": 1}), spp=4, seed=2))[..., :3]
+    sees = emission.max(axis=-1) > 0
+    print(f"pixels seeing the emitter: {sees.mean():.2%}")
+    assert 0.005 < sees.mean() < 0.5
+    np.testing.assert_array_equal(imgs[False][~sees], imgs[True][~sees])
+    np.testing.assert_allclose(imgs[False] - imgs[True], emission, rtol=1e-4,
+                               atol=1e-5 * emission.max())
+    assert np.all(imgs[False][sees].max(axis=-1) > imgs[True][sees].max(axis=-1))
+
+
+def test_light_views_built_once_per_render(monkeypatch):
+    import mi_shadowmap.integrator as integ_mod
+    import mi_shadowmap.light_views as lv
+    calls = []
+    real = lv.make_light_view
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+    monkeypatch.setattr(integ_mod, "make_light_view", counting)
+    monkeypatch.setattr(mm_mod, "make_light_view", counting)
+    path = [p for p in SCENE_FILES if p.stem == "room_two_points"][0]
+    scene = mi.load_file(str(path), width=16, height=16)
+    mi.render(scene, integrator=mi.load_dict({"type": "shadowmap", "resolution": 32}), spp=1)
+    assert len(calls) == len(scene.emitters()) == 2
+
+
+def test_new_spp_does_not_change_the_footprint_scale_kernel_literal():
+    """The ray-differential scale sqrt(spp) is an opaque JIT value (review item 31):
+    a footprint method renders at two spp values with the same scale variable type,
+    and both renders equal a fresh integrator's (no stale scale)."""
+    import drjit as dr
+    scene = mi.load_dict(default_scene(width=16, height=16))
+    integ = mi.load_dict({"type": "shadowmap", "method": "pcf", "resolution": 64})
+    a = np.asarray(mi.render(scene, integrator=integ, spp=2, seed=1))
+    assert isinstance(integ._diff_scale, mi.Float)
+    assert dr.width(integ._diff_scale) == 1 and integ._diff_scale[0] == pytest.approx(2 ** 0.5)
+    b = np.asarray(mi.render(scene, integrator=integ, spp=8, seed=1))
+    assert integ._diff_scale[0] == pytest.approx(8 ** 0.5)
+    fresh = mi.load_dict({"type": "shadowmap", "method": "pcf", "resolution": 64})
+    np.testing.assert_array_equal(b, np.asarray(mi.render(scene, integrator=fresh, spp=8,
+                                                          seed=1)))
+    assert a.shape == b.shape

@@ -212,13 +212,7 @@ def validate_spec(spec: dict) -> opt_mod.Options:
         spp = spec["spp"]
         if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
             raise OptionError(f"shadowmap: 'spp' must be an integer >= 1, got {spp!r}")
-    opts = parse_options({"type": "shadowmap", **props})
-    from .filters import FILTERS
-    if opts.method not in FILTERS:
-        raise OptionError(f"shadowmap: method '{opts.method}' is declared but has no "
-                          "implementation yet; available methods: "
-                          + ", ".join(available_methods()))
-    return opts
+    return parse_options({"type": "shadowmap", **props})
 
 
 def validate_property(name: str, value) -> None:
@@ -293,10 +287,6 @@ def _compile_stats(history) -> tuple[float, int]:
     return secs, n
 
 
-def _has_property(name: str) -> bool:
-    return any(p.name == name for p in opt_mod.PROPERTIES)
-
-
 def _to_mitsuba(props: dict) -> dict:
     """Property values Mitsuba's dict loader accepts ('pair' values as "a, b" strings)."""
     return {k: (", ".join(repr(float(x)) for x in v) if isinstance(v, (tuple, list)) else v)
@@ -319,7 +309,7 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
     spec = {"method": method, **params}
     validate_spec(spec)
     props = {"type": "shadowmap", **spec}
-    cache_prop = _has_property("cache_maps") and method in opt_mod.MAP_METHODS
+    cache_prop = method in opt_mod.MAP_METHODS
     if cache_prop and "cache_maps" not in params:
         props["cache_maps"] = False
     integrator = mi.load_dict(_to_mitsuba(props))
@@ -341,10 +331,7 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
     build_t = float(np.median(build))
     image, vis = _split(img, integrator.aov_names())
     maps = [m for m in integrator.maps if m is not None]
-    stats = getattr(integrator, "stats", {}) or {}
-    texels = stats.get("texels_built")
-    if texels is None:
-        texels = sum(m.n_texels * len(m.layers()) for m in maps)
+    texels = integrator.stats["texels_built"]
     times = {"cold": cold, "warm": warm_t, "build": build_t,
              "shading": max(warm_t - build_t, 0.0), "jit": max(cold - warm_t, 0.0),
              "compile": compile_s}

@@ -66,14 +66,17 @@ PROPERTIES: tuple[Prop, ...] = (
          "Visibility lookup: 'raytraced' (shadow rays, the ground truth), 'hard' (Williams "
          "1978), 'unshadowed' (visibility 1: the cost baseline of benchmarks), 'pcf' "
          "(Reeves et al. 1987 percentage-closer filtering of the pixel footprint), "
-         "'bilinear' (Brabec & Seidel fixed-footprint / bilinear PCF, see 'kernel').",
+         "'bilinear' (Brabec & Seidel fixed-footprint / bilinear PCF, see 'kernel'), "
+         "'second_depth' (Wang & Molnar 1994), 'mdsm' (Pagot et al. 2004 multiple-depth "
+         "maps), 'pcss' (Fernando 2005 percentage-closer soft shadows).",
          choices=METHODS),
     Prop("resolution", "int", None,
          "Depth-map resolution per map face (texels per side). Default: automatic -- twice "
          "the film's larger side (Reeves et al. 1987 used maps the size of the image up to "
          "twice it) times a camera-footprint factor in [0.5, 4] (texel width over pixel "
          "width at the scene's centre), lowered if needed so that all maps of the scene fit "
-         "in memory_budget (see Options.map_resolution).",
+         "in memory_budget (see Options.map_resolution). Accepted and ignored by "
+         "'raytraced' and 'unshadowed', so that one scene file renders with any method.",
          lo=1, hi=65536),
     Prop("memory_budget", "float", 1024.0,
          "Memory allowed for the depth maps of one render, in MiB (all emitters, faces and "
@@ -96,13 +99,15 @@ PROPERTIES: tuple[Prop, ...] = (
          "the camera (a camera change rebuilds them).", methods=MAP_METHODS),
     Prop("bias", "float", None,
          "Constant depth bias in world units. Default: automatic (0 plus the texel-scaled "
-         "slope and normal biases, which are scale-invariant).", lo=0.0),
+         "slope and normal biases, which are scale-invariant).", lo=0.0,
+         methods=MAP_METHODS),
     Prop("slope_bias", "float", None,
          "Slope-scaled depth bias in texels (multiplied by the texel's world size and "
-         "tan(angle to the light)). Default: 1.0 (0 for second_depth).", lo=0.0),
+         "tan(angle to the light)). Default: 1.0 (0 for second_depth).", lo=0.0,
+         methods=MAP_METHODS),
     Prop("normal_bias", "float", None,
          "Offset of the lookup point along the surface normal, in texels. Default: 0.5 "
-         "(0 for second_depth).", lo=0.0),
+         "(0 for second_depth).", lo=0.0, methods=MAP_METHODS),
     Prop("shadow_rays", "int", 1, "Shadow rays per camera sample per emitter (raytraced).",
          lo=1, hi=65536, methods=("raytraced",)),
     Prop("hide_emitters", "bool", False, "Hide directly visible emitters."),
@@ -112,11 +117,12 @@ PROPERTIES: tuple[Prop, ...] = (
          choices=("error", "unshadowed")),
     Prop("max_tan_slope", "float", 20.0,
          "Clamp of tan(angle between normal and light) in the slope bias.", lo=0.0,
-         lo_open=True),
+         lo_open=True, methods=MAP_METHODS),
     # Reeves et al. 1987 percentage-closer filtering.
     Prop("num_samples", "int", 16, "Samples of the PCF region (Reeves' NumSamples).",
          lo=1, hi=4096, methods=_PCF),
-    Prop("min_samples", "int", 2, "Minimum samples per axis (Reeves' MinSamples).",
+    Prop("min_samples", "int", 2, "Minimum samples per axis (Reeves' MinSamples); at most "
+         "num_samples (the default is min(2, num_samples)).",
          lo=1, hi=64, methods=_PCF),
     Prop("res_factor", "float", 1.0, "Scale of the pixel footprint (Reeves' ResFactor).",
          lo=0.0, lo_open=True, methods=_PCF),
@@ -381,8 +387,12 @@ def parse_options(props: Any) -> Options:
             + "; valid properties: " + ", ".join(sorted(_BY_NAME)))
     values = {}
     for name, value in raw.items():
-        if value is None:   # dict callers may pass None for "default"
-            continue
+        if value is None:
+            # Python callers may pass None for an automatic default, and only there.
+            if _BY_NAME[name].default is None:
+                continue
+            raise OptionError(f"shadowmap: property '{name}' has no automatic value; give "
+                              f"{_BY_NAME[name].describe_range()} or leave it out")
         values[name] = _convert(_BY_NAME[name], value)
     method = values.get("method", _BY_NAME["method"].default)
     for name in values:
@@ -391,6 +401,14 @@ def parse_options(props: Any) -> Options:
             raise OptionError(
                 f"shadowmap: property '{name}' is not used by method '{method}' "
                 f"(it is used by: {', '.join(methods)})")
+    given = frozenset(values)
+    n_max = values.get("num_samples", _BY_NAME["num_samples"].default)
+    if "min_samples" in values:
+        if values["min_samples"] > n_max:   # Reeves' CLAMP(n, MinSamples, NumSamples)
+            raise OptionError(f"shadowmap: property 'min_samples' = {values['min_samples']} "
+                              f"must be <= 'num_samples' = {n_max}")
+    elif method == "pcf":   # the default MinSamples (2) never exceeds NumSamples
+        values["min_samples"] = min(_BY_NAME["min_samples"].default, n_max)
     res = values.get("resolution")
     budget = values.get("memory_budget", _BY_NAME["memory_budget"].default)
     if res is not None and res * res * _BYTES_PER_TEXEL > budget * 2**20:
@@ -398,7 +416,7 @@ def parse_options(props: Any) -> Options:
             f"shadowmap: property 'resolution' = {res} would need at least "
             f"{_fmt_bytes(res * res * _BYTES_PER_TEXEL)} per map face, more than "
             f"memory_budget = {budget:g} MiB; lower 'resolution' or raise 'memory_budget'")
-    return Options(**values, given=frozenset(values))
+    return Options(**values, given=given)
 
 
 def properties_for(method: str) -> Iterable[Prop]:

@@ -2,21 +2,13 @@
 automatic bias, and the accuracy targets with defaults only.
 
 Targets (issue 6), ``hard`` and ``pcf`` with defaults only on every scene of
-``scenes_xml/`` at its own film size (128^2), against ``raytraced``:
-misclassified <= 1 % and false shadow (acne) <= 0.2 %.
-
-* *Misclassified*: visibility on the other side of 0.5 than the reference.
-* *False shadow*: reference >= 0.5, method < 0.5. *Acne* is the part of it
-  where the reference is fully lit (>= 0.95) and not adjacent
-  (8-neighbourhood) to any pixel that is not: false shadows on an edge or in
-  a penumbra are the edge's position/softness, not acne.
-* Delta-light scenes: hard meets both targets with the strict false-shadow
-  count; pcf widens edges by its footprint kernel (Reeves), so its strict
-  false-shadow count can exceed 0.2 % while its acne stays under it.
-* Area-light scenes: the reference is soft, the hard-edged methods see the
-  light from its centre; their misclassification is the penumbra they cannot
-  model (it does not drop with resolution), so it is asserted to lie within
-  the reference's penumbra and the acne target still holds.
+``scenes_xml/`` at its own film size: misclassified <= 1 % and false shadow
+(acne, over-darkening: reference lit, method shadowed) <= 0.2 %, both at
+threshold 0.5, against ``raytraced`` (delta lights) or the converged
+soft-shadow reference (area lights). The issue's numbers are asserted as they
+are; the cases measured to miss them are strict expected failures
+(:data:`KNOWN_MISSES`, with the measured numbers and the reason), so a fix
+that makes them pass is reported too.
 """
 from __future__ import annotations
 
@@ -27,8 +19,10 @@ import numpy as np
 import pytest
 
 import mi_shadowmap.map_manager as mm_mod
-from mi_shadowmap.filters import FILTERS
+from mi_shadowmap.light_views import emitter_kind
+from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.options import OptionError, parse_options
+from mi_shadowmap.reference import converged_visibility
 from mi_shadowmap.scenes import default_scene
 
 from conftest import SCENE_FILES
@@ -94,51 +88,54 @@ def test_tiny_resolutions_are_finite(res):
 
 
 # ------------------------------------------------- accuracy with defaults
-def _adjacent(mask: np.ndarray) -> np.ndarray:
-    """``mask`` dilated by one pixel (8-neighbourhood), per AOV plane."""
-    out = mask.copy()
-    p = np.pad(mask, [(0, 0)] * (mask.ndim - 2) + [(1, 1), (1, 1)])
-    h, w = mask.shape[-2:]
-    for dy in (0, 1, 2):
-        for dx in (0, 1, 2):
-            out |= p[..., dy:dy + h, dx:dx + w]
-    return out
-
-
-def _vis(scene, method):
-    integ = mi.load_dict({"type": "shadowmap", "method": method})
-    img = np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))
-    return np.moveaxis(img[..., 3:], -1, 0), integ
-
-
 _REFS: dict = {}
 
+#: (scene, method) -> why the target is missed (numbers measured 2026-11-23,
+#: the scene's own film, spp 4, automatic resolution).
+KNOWN_MISSES = {
+    ("directional_mesh", "pcf"): "false shadow 0.51 % > 0.2 %: the pixel footprint widens "
+                                 "every shadow edge by about a pixel (Reeves' filter region); "
+                                 "acne away from edges is 0.02 %",
+    ("cbox_area", "hard"): "misclassified 1.22 %, false shadow 1.05 %: hard shadows from the "
+                           "light's centre cannot reproduce the soft reference's penumbra",
+    ("cbox_area", "pcf"): "misclassified 1.42 %, false shadow 1.34 %: as for hard (the light "
+                          "is treated as its centre)",
+    ("contact_hardening", "hard"): "misclassified 2.59 %, false shadow 1.71 %: 22 % of the "
+                                   "pixels are penumbra, which a point-light model misses",
+    ("contact_hardening", "pcf"): "misclassified 2.66 %, false shadow 1.66 %: as for hard",
+}
 
-@pytest.mark.parametrize("method", ["hard", "pcf"])
-@pytest.mark.parametrize("path", SCENE_FILES, ids=lambda p: p.stem)
-def test_defaults_meet_the_targets(path, method):
-    if method not in FILTERS:
-        pytest.skip(f"{method} has not landed")
-    scene = mi.load_file(str(path))   # the scene's own film (128^2)
+
+def _reference(path, scene):
     if path.stem not in _REFS:
-        _REFS[path.stem] = _vis(scene, "raytraced")[0]
-    ref = _REFS[path.stem]
-    vis, integ = _vis(scene, method)
+        if any(emitter_kind(e) == "area" for e in scene.emitters()):
+            vis = converged_visibility(scene, n_light=1024, spp=4, seed=1)
+            names = sorted(vis)
+            _REFS[path.stem] = np.stack([vis[k] for k in names]), names
+        else:
+            integ = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
+            img = np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))
+            _REFS[path.stem] = np.moveaxis(img[..., 3:], -1, 0), integ.aov_names()
+    return _REFS[path.stem]
+
+
+CASES = [pytest.param(p, m, id=f"{p.stem}-{m}",
+                      marks=[pytest.mark.xfail(strict=True, reason=KNOWN_MISSES[(p.stem, m)])]
+                      if (p.stem, m) in KNOWN_MISSES else [])
+         for p in SCENE_FILES for m in ("hard", "pcf")]
+
+
+@pytest.mark.parametrize("path, method", CASES)
+def test_defaults_meet_the_targets(path, method):
+    scene = mi.load_file(str(path))   # the scene's own film
+    ref, names = _reference(path, scene)
+    integ = mi.load_dict({"type": "shadowmap", "method": method})
+    img = np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))
+    order = [integ.aov_names().index(n) for n in names]
+    vis = np.moveaxis(img[..., 3:], -1, 0)[order]
     assert np.isfinite(vis).all()
-    lit_ref = ref >= 0.5
-    mis = float(np.mean(lit_ref != (vis >= 0.5)))
-    false_shadow = lit_ref & (vis < 0.5)
-    acne = float(np.mean(false_shadow & ~_adjacent(ref < 0.95)))
-    penumbra = float(np.mean((ref > 0.05) & (ref < 0.95)))
-    soft = any(e.is_environment() is False and "AreaLight" in str(e).split("[")[0]
-               for e in scene.emitters())
-    print(f"{path.stem} {method} (resolution {integ.resolution}): misclassified {mis:.3%}, "
-          f"false shadow {false_shadow.mean():.3%}, acne {acne:.3%}, "
-          f"reference penumbra {penumbra:.2%}")
-    assert acne <= 0.002
-    if soft:
-        assert mis <= penumbra   # the hard edge lies inside the soft reference's penumbra
-        return
-    assert mis <= 0.01
-    if method == "hard":
-        assert false_shadow.mean() <= 0.002
+    m = misclassified(ref, vis)
+    print(f"{path.stem} {method} (resolution {integ.resolution}): misclassified "
+          f"{m['misclassified']:.3%}, false shadow {m['false_shadow']:.3%}")
+    assert m["misclassified"] <= 0.01
+    assert m["false_shadow"] <= 0.002

@@ -34,6 +34,10 @@ def test_integer_accepted_for_float():
     ({"shadow_rays": 0}, "shadow_rays"),
     ({"method": "hard", "shadow_rays": 4}, "shadow_rays"),
     ({"environment": "ignore"}, "environment"),
+    ({"method": "raytraced", "bias": 0.1}, "bias"),
+    ({"method": "raytraced", "slope_bias": 2.0}, "slope_bias"),
+    ({"method": "unshadowed", "normal_bias": 1.0}, "normal_bias"),
+    ({"method": "pcf", "num_samples": 4, "min_samples": 8}, "min_samples.*num_samples"),
 ])
 def test_bad_values_name_the_property(props, needle):
     with pytest.raises(OptionError, match=needle):
@@ -61,3 +65,35 @@ def test_xml_types_arrive_checked():
              <string name="resolution" value="256"/></integrator></scene>"""
     with pytest.raises(RuntimeError, match="resolution.*integer"):
         mi.load_string(xml)
+
+
+def test_none_only_where_a_default_is_automatic():
+    assert parse_options({"resolution": None, "bias": None}).resolution is None
+    for name in ("method", "shadow_rays", "hide_emitters", "environment"):
+        with pytest.raises(OptionError, match=f"'{name}' has no automatic value"):
+            parse_options({name: None})
+
+
+def test_resolution_is_accepted_by_every_method():
+    """Scene files pass $resolution whatever the method; non-map methods ignore it."""
+    for method in METHODS:
+        assert parse_options({"method": method, "resolution": 64}).resolution == 64
+
+
+def test_every_method_has_a_lookup():
+    from mi_shadowmap.filters import FILTERS
+    assert set(METHODS) == set(FILTERS)
+
+
+def test_readme_documents_every_property():
+    """The README's property table lists every property the plugin accepts."""
+    import pathlib
+    from mi_shadowmap.options import PROPERTIES
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    missing = [p.name for p in PROPERTIES if f"| `{p.name}` |" not in readme]
+    assert not missing, f"README property table lacks: {missing}"
+
+
+def test_min_samples_default_follows_num_samples():
+    assert parse_options({"method": "pcf", "num_samples": 1}).min_samples == 1
+    assert parse_options({"method": "pcf"}).min_samples == 2

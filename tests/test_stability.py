@@ -1,8 +1,7 @@
 """Numerical stability at the extremes (issue 6), for EVERY method.
 
-The methods are taken from ``options.METHODS`` at run time (those whose
-lookup has landed in ``filters.FILTERS``), so a new method is covered
-without editing this file. Sizes are tiny: 32^2 images and the automatic
+The methods are taken from ``options.METHODS`` at run time, so a new
+method is covered without editing this file. Sizes are tiny: 32^2 images and the automatic
 map resolution (2 x 32 = 64^2) unless a case is about the resolution.
 
 Every render must have zero NaN/Inf pixels and AOVs and visibility in
@@ -10,11 +9,12 @@ Every render must have zero NaN/Inf pixels and AOVs and visibility in
 (the ground truth) and print the measured rates. Documented behaviour:
 
 * **Scale.** Uniform scale s in {1e-4 .. 1e4}: <= 0.5 % of visibility
-  pixels change by more than 0.5 against s = 1. ``raytraced`` itself is
-  only asserted for s >= 1e-2: Mitsuba offsets shadow rays by an epsilon
-  with an absolute floor (``(1 + max|p|) * 1e-4``-ish), which at s = 1e-4
-  is as large as the geometry (13.7 % of pixels change there); the shadow
-  maps use only relative quantities.
+  pixels change by more than 0.05 against s = 1; measured: 0.00 % for
+  every map method, light type and scale. ``raytraced`` itself is only
+  asserted for s >= 1: Mitsuba offsets shadow rays by an epsilon with an
+  absolute floor (``(1 + max|p|) * 1e-4``-ish), which at s = 1e-4 is as
+  large as the geometry (12-18 % of pixels change) and still moves 0.3-0.9 %
+  at s = 1e-2; the shadow maps use only relative quantities.
 * **Far light (1e6 units).** With a fixed cube map the whole scene falls in
   a few texels, so the map cannot resolve its shadows; the biases, which
   scale with the texel, then light everything. Visibility stays finite and
@@ -31,14 +31,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowmap.filters import FILTERS
-from mi_shadowmap.options import METHODS
+from mi_shadowmap.options import MAP_METHODS, METHODS
 from mi_shadowmap.scenes import default_scene
 
-#: Methods whose lookup has landed (METHODS may list a method before its filter).
-READY = [m for m in METHODS if m in FILTERS]
-MAP_READY = [m for m in READY if m not in ("raytraced", "unshadowed")]
-SHADOWING = [m for m in READY if m != "unshadowed"]
+READY = list(METHODS)
+MAP_READY = list(MAP_METHODS)
+SHADOWING = [m for m in METHODS if m != "unshadowed"]
 T = mi.ScalarTransform4f
 W = 32
 
@@ -131,9 +129,11 @@ def test_uniform_scale(method, light):
     vis = {s: render(default_scene(scale=s, light=light, width=W, height=W, spp=4),
                      method, seed=3)[1] for s in SCALES}
     for s in SCALES:
-        changed = float(np.mean(np.abs(vis[s] - vis[1.0]) > 0.5))
+        # Any visible change counts (not only flips across 0.5): filtered methods
+        # produce fractions, and a 0.3 -> 0.7 change must count too.
+        changed = float(np.mean(np.abs(vis[s] - vis[1.0]) > 0.05))
         print(f"{method}/{light} scale {s:g}: {changed:.2%} of visibility pixels changed")
-        if method == "raytraced" and s < 1e-2:
+        if method == "raytraced" and s < 1.0:
             continue   # Mitsuba's absolute ray epsilon (see the module doc)
         assert changed <= 0.005, (method, light, s, changed)
 

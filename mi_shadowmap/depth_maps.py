@@ -41,8 +41,9 @@ class ShadowMap:
 
     @property
     def nbytes(self) -> int:
-        layers = 1 + (self.second_depth is not None) + len(self.extra)
-        return layers * self.n_texels * _BYTES_PER_TEXEL
+        """Bytes of every layer held (small layers, e.g. one value per face, as they are)."""
+        layers = [self.depth, self.second_depth, *self.extra.values()]
+        return sum(dr.width(x) for x in layers if x is not None) * _BYTES_PER_TEXEL
 
     def texel_index(self, face, uv):
         """Flat index of the nearest texel (``floor(uv * res)``, clamped)."""

@@ -186,8 +186,7 @@ def _map_for(scene, view, res, layers, state, stats, faces=None) -> ShadowMap:
         dt = time.perf_counter() - t0
         stats["maps_built"] += 1
         stats["faces_built"] += view.n_faces
-        stats["texels_built"] += smap.n_texels * (1 + (0 if state is not None else
-                                                       len(layers)))
+        stats["texels_built"] += smap.nbytes // _BYTES_PER_TEXEL   # depth (+ layers if uncached)
         stats["naive_build_seconds"] += dt
         if state is None:
             return smap
@@ -207,7 +206,7 @@ def _map_for(scene, view, res, layers, state, stats, faces=None) -> ShadowMap:
             if state is not None:
                 MAP_CACHE.put(scene, state, key, layer_key(name), *entry)
             stats["layers_built"] += 1
-            stats["texels_built"] += smap.n_texels
+            stats["texels_built"] += dr.width(data)
         stats["naive_build_seconds"] += entry[1]
         if name == "second_depth":
             smap.second_depth = entry[0]

@@ -7,6 +7,7 @@ Prints:
   (b) hard frame / unshadowed frame  (Reeves 1987 reports +37..51 %), with the maps
       rebuilt every frame and with the maps cached across renders
   (c) hard frame / raytraced frame
+  (d) every map method's frame / hard frame, at --map and --map/2 (issue 3)
 warm (kernels cached: median of --repeats), with the cold (first, compiling) times too.
 """
 from __future__ import annotations
@@ -75,6 +76,28 @@ def main(argv=None):
           "   (maps rebuilt every frame)")
     print(f"    with maps cached           = "
           f"{frames['hard (maps cached)'][1] / frames['raytraced'][1]:.3f}")
+    method_table(scene, (res // 2, res), args.spp, args.repeats)
+
+
+def method_table(scene, maps, spp, repeats):
+    """Frame of each map method / hard frame, maps rebuilt and cached, per map size."""
+    from mi_shadowmap.options import MAP_METHODS
+    print(f"\n(d) frame / hard frame{'':<20}" + "".join(
+        f"{f'{r}^2 rebuilt':>15}{f'{r}^2 cached':>15}" for r in maps))
+    times = {}
+    for res in maps:
+        for method in MAP_METHODS:
+            for cache in (False, True):
+                integ = mi.load_dict({"type": "shadowmap", "method": method,
+                                      "resolution": res, "cache_maps": cache})
+
+                def render(integ=integ):
+                    dr.eval(mi.render(scene, integrator=integ, spp=spp))
+                times[(method, res, cache)] = timed(render, repeats)[1]
+    for method in MAP_METHODS:
+        print(f"    {method:<38}" + "".join(
+            f"{times[(method, r, c)] / times[('hard', r, c)]:>15.2f}"
+            for r in maps for c in (False, True)))
 
 
 if __name__ == "__main__":

@@ -108,7 +108,9 @@ def methods_to_time() -> list[str]:
 
 
 # --------------------------------------------------------------------------- parts
-def part_a(scene, res, repeats, label):
+def build_vs_bare(scene, res, repeats):
+    """``((cold, warm) bare ray cast, (cold, warm) depth-map build)`` over the same
+    texel rays of the first emitter's view."""
     view = make_light_view(scene.emitters()[0], scene, 0)
 
     def bare():
@@ -119,8 +121,11 @@ def part_a(scene, res, repeats, label):
     def build():
         build_depth_map(scene, view, res)
 
-    cb, wb = timed(bare, repeats)
-    cm, wm = timed(build, repeats)
+    return timed(bare, repeats), timed(build, repeats)
+
+
+def part_a(scene, res, repeats, label):
+    (cb, wb), (cm, wm) = build_vs_bare(scene, res, repeats)
     out(f"| A | {label}: depth-map build / bare ray cast ({res}^2 rays) | {wm / wb:.2f} | "
         f"build {wm * 1e3:.1f} ms, rays {wb * 1e3:.1f} ms (cold {cm * 1e3:.0f} / "
         f"{cb * 1e3:.0f} ms) |")

@@ -19,11 +19,9 @@ import mi_shadowmap  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mi_shadowmap.depth_maps import build_depth_map
-from mi_shadowmap.light_views import make_light_view
 from mi_shadowmap.scenes import default_scene
 
-from bench_all import timed  # same folder: the one timing helper of the benchmarks
+from bench_all import build_vs_bare, timed  # same folder: shared benchmark helpers
 
 
 def main(argv=None):
@@ -36,16 +34,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     scene = mi.load_dict(default_scene(width=args.image, height=args.image, light=args.light))
-    view = make_light_view(scene.emitters()[0], scene, 0)
     res = args.map
-
-    def bare():
-        o, d, _ = view.texel_rays(res)
-        pi = scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=True)
-        dr.eval(pi.t)
-
-    def build():
-        build_depth_map(scene, view, res)
 
     frames = {}
     for method, cache in (("unshadowed", False), ("hard", False), ("hard", True),
@@ -57,8 +46,7 @@ def main(argv=None):
             dr.eval(mi.render(scene, integrator=integ, spp=args.spp))
         frames[method + (" (maps cached)" if cache else "")] = timed(render, args.repeats)
 
-    cb, wb = timed(bare, args.repeats)
-    cm, wm = timed(build, args.repeats)
+    (cb, wb), (cm, wm) = build_vs_bare(scene, res, args.repeats)
     print(f"# {args.light} light, image {args.image}^2 @ {args.spp} spp, map {res}^2, "
           f"{dr.thread_count()} threads, mitsuba {mi.__version__}")
     print(f"{'measurement':<42}{'warm ms':>10}{'cold ms':>10}")

@@ -493,6 +493,20 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
 
 
 # ------------------------------------------------ fixed texel blocks (W&M, MDSM)
+def nearest_block(smap, lk: Lookup, opts, default_samples: int, active=True):
+    """The receiver and the block of the ``k = pcf_samples`` (default
+    ``default_samples``) nearest texels that second_depth and mdsm filter.
+
+    Returns ``(r, active, k, side, i0)``: the :class:`Receiver`, ``active``
+    restricted to points inside the map, the tap count, the block side
+    ``sqrt(k)`` and the block's first texel (:func:`block_origin`).
+    """
+    k = opts.pcf_samples or default_samples
+    side = math.isqrt(k)
+    r = receiver(smap, lk, opts)
+    return r, mi.Bool(active) & r.inside, k, side, block_origin(r.uv, smap.resolution, side)
+
+
 def block_origin(uv_light: mi.Point2f, res: int, side: int) -> mi.Point2i:
     """First texel ``(i0, j0)`` of the ``side x side`` texels whose centres are
     nearest ``uv_light`` (texel centres at ``(i + 0.5) / res``)."""

@@ -64,7 +64,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from .common import Lookup, block_origin, receiver, taps_loop, virtual_sample_depth
+from .common import Lookup, nearest_block, taps_loop, virtual_sample_depth
 
 
 def _window_offsets(search: int) -> list:
@@ -93,15 +93,11 @@ def neighbourhood_depth(smap, layer: str, face, ij: mi.Point2i, search: int, act
 
 def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """PCF(k, n) over an n-depth shadow map (Pagot et al. 2004)."""
-    k = opts.pcf_samples or 9
-    side = math.isqrt(k)
+    r, active, k, side, i0 = nearest_block(smap, lk, opts, 9, active)
     n_depths = opts.depths
     search = opts.search
     res = smap.resolution
     view = smap.view
-    r = receiver(smap, lk, opts)
-    active = mi.Bool(active) & r.inside
-    i0 = block_origin(r.uv, res, side)
     p = mi.Point3f(lk.p_world)
     n = dr.normalize(mi.Vector3f(lk.n_world))
     offset = view.depth_of(p) - r.depth          # bias, slope bias (texels), normal offset

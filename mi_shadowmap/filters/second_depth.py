@@ -59,12 +59,10 @@ Deviations from the paper, and why:
 """
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
 
-from .common import Lookup, block_origin, receiver, taps_loop, virtual_sample_depth
+from .common import Lookup, nearest_block, taps_loop, virtual_sample_depth
 
 #: Relative rounding tolerance of the ``<=`` test at virtual samples.
 _EQ_REL = 1e-5
@@ -80,14 +78,10 @@ def shading_normal(lk: Lookup) -> mi.Vector3f:
 
 def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """Wang & Molnar (1994), Figure 10: percent illumination of a shading point."""
-    k = opts.pcf_samples or 4
-    side = math.isqrt(k)
+    r, active, k, side, i0 = nearest_block(smap, lk, opts, 4, active)
     res = smap.resolution
     view = smap.view
     layer = smap.second_depth
-    r = receiver(smap, lk, opts)
-    active = mi.Bool(active) & r.inside
-    i0 = block_origin(r.uv, res, side)
 
     def tap_texel(tap):
         return mi.Point2i(i0.x + mi.Int32(tap % side), i0.y + mi.Int32(tap // side))

@@ -14,7 +14,9 @@ import mitsuba as mi
 T = mi.ScalarTransform4f
 
 
-def _camera(scale, origin, target, width, height, spp, fov=40.0):
+def camera(origin, target, width, height, spp, fov=40.0, scale=1.0) -> dict:
+    """A perspective camera dict (box filter, independent sampler) looking from
+    ``origin`` at ``target``, both multiplied by ``scale`` (clip planes too)."""
     return {
         "type": "perspective",
         "fov": fov,
@@ -42,7 +44,7 @@ def default_scene(scale: float = 1.0, width: int = 128, height: int = 128, spp: 
     S = T().scale(scale)
     scene = {
         "type": "scene",
-        "sensor": _camera(scale, [0.2, 3.5, 4.9], [0.25, 0.25, 0.0], width, height, spp),
+        "sensor": camera([0.2, 3.5, 4.9], [0.25, 0.25, 0.0], width, height, spp, scale=scale),
         "ground": {"type": "rectangle", "to_world": S @ T().rotate([1, 0, 0], -90).scale(4),
                    "bsdf": _diffuse(0.7, 0.7, 0.7)},
         "sphere": {"type": "sphere",

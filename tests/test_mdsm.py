@@ -14,6 +14,7 @@ from mi_shadowmap.filters.mdsm import neighbourhood_depth
 from mi_shadowmap.light_views import LightView
 from mi_shadowmap.metrics import distinct_levels, misclassified, rmse
 from mi_shadowmap.options import OptionError, parse_options
+from mi_shadowmap.scenes import camera
 
 from conftest import SCENE_FILES, render_np, vis_stack
 
@@ -193,12 +194,7 @@ def edge_scene(width=128, spp=32):
     pixels wide)."""
     return mi.load_dict({
         "type": "scene",
-        "cam": {"type": "perspective", "fov": 20,
-                "to_world": T().look_at(origin=[0.0, 2.2, 1.6], target=[0.0, 0, 0.0],
-                                        up=[0, 1, 0]),
-                "film": {"type": "hdrfilm", "width": width, "height": width,
-                         "rfilter": {"type": "box"}},
-                "sampler": {"type": "independent", "sample_count": spp}},
+        "cam": camera([0.0, 2.2, 1.6], [0.0, 0.0, 0.0], width, width, spp, fov=20),
         "ground": {"type": "rectangle", "bsdf": DIFFUSE,
                    "to_world": T().rotate([1, 0, 0], -90) @ T().scale(2.0)},
         "plate": {"type": "cube", "bsdf": DIFFUSE,

@@ -15,6 +15,7 @@ from mi_shadowmap.light_views import LightView, make_light_view
 from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.procedural import check_closed
+from mi_shadowmap.scenes import camera
 
 from conftest import SCENE_FILES, render_np, vis_stack
 
@@ -61,12 +62,7 @@ def closed_solids_scene(light, width=64, spp=4):
         "point": {"type": "point", "position": [1.2, 2.5, 0.8], "intensity": 10.0}}
     return mi.load_dict({
         "type": "scene",
-        "cam": {"type": "perspective", "fov": 40,
-                "to_world": T().look_at(origin=[0.2, 3.5, 4.9], target=[0.25, 0.25, 0],
-                                        up=[0, 1, 0]),
-                "film": {"type": "hdrfilm", "width": width, "height": width,
-                         "rfilter": {"type": "box"}},
-                "sampler": {"type": "independent", "sample_count": spp}},
+        "cam": camera([0.2, 3.5, 4.9], [0.25, 0.25, 0.0], width, width, spp),
         "slab": {"type": "cube", "bsdf": DIFFUSE,
                  "to_world": T().translate([0, -0.1, 0]) @ T().scale([4, 0.1, 4])},
         "ball": {"type": "sphere", "center": [-0.85, 0.65, -0.6], "radius": 0.65,

@@ -37,7 +37,15 @@ def _on_variant_change(old, new):
 _integrator.register()
 mi.detail.add_variant_callback(_on_variant_change)
 
-from .integrator import ShadowMapIntegrator  # noqa: E402,F401
+from .integrator import integrator_class  # noqa: E402,F401
+from .variants import SUPPORTED_VARIANTS, UnsupportedVariantError  # noqa: E402,F401
 from .options import METHODS, OptionError  # noqa: E402,F401
 from . import harness, metrics  # noqa: E402,F401
 from .harness import compare  # noqa: E402,F401
+
+
+def __getattr__(name):
+    # ``mi_shadowmap.ShadowMapIntegrator``: the current variant's class (one per variant).
+    if name == "ShadowMapIntegrator":
+        return integrator_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -27,6 +27,7 @@ examples:
   mi-shadowmap --out out
   mi-shadowmap compare scenes_xml/room_two_points.xml --methods hard pcf:num_samples=16
   mi-shadowmap compare --set resolution=512 --spp 4 --width 256 --height 256
+  mi-shadowmap --variant llvm_ad_spectral --out out/spectral
   mi-shadowmap sweep --grid 'method=hard resolution=256,512,1024' \\
                      --grid 'method=raytraced spp=1,4,16' --out out/sweep
   mi-shadowmap maps scenes_xml/spot_sphere_box.xml --out out/maps
@@ -67,6 +68,9 @@ def _add_scene_args(p, sizes=True, out="out"):
                    help="integrator property for every method that uses it (repeatable), "
                         "e.g. --set resolution=512 --set bias=0.01")
     p.add_argument("--out", default=out, help=f"output folder (default: {out})")
+    p.add_argument("--variant", default=None, metavar="NAME",
+                   help="Mitsuba variant to render in: llvm_ad_rgb (default), llvm_ad_mono, "
+                        "llvm_ad_spectral, or cuda_ad_* where a CUDA GPU exists")
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
 
 
@@ -303,6 +307,8 @@ def main(argv=None) -> int:
     debug = debug or getattr(args, "debug", False)
     try:
         import mi_shadowmap  # noqa: F401  (LLVM set-up and registration)
+        if getattr(args, "variant", None) is not None:
+            set_variant(args.variant)
         return _COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("mi-shadowmap: interrupted", file=sys.stderr)
@@ -312,6 +318,19 @@ def main(argv=None) -> int:
             raise
         print(f"mi-shadowmap: error: {one_line(e)}", file=sys.stderr)
         return 2
+
+
+def set_variant(name: str) -> None:
+    """Switch Mitsuba to the variant ``name``, or raise naming it and the supported ones."""
+    import mitsuba as mi
+    from .variants import UnsupportedVariantError, check_variant
+    check_variant(name)
+    try:
+        mi.set_variant(name)
+    except Exception as e:   # e.g. cuda_ad_* on a machine without a CUDA GPU
+        raise UnsupportedVariantError(
+            f"shadowmap: the Mitsuba variant '{name}' cannot be set on this machine "
+            f"({one_line(e)})") from None
 
 
 def one_line(exc: BaseException) -> str:

@@ -262,9 +262,17 @@ def default_methods() -> list[str]:
 
 # --------------------------------------------------------------------------- rendering
 def _split(result, aov_names):
+    """``(image (H, W, 3), {label: visibility (H, W)})`` of a render.
+
+    The film has 3 colour channels in rgb and spectral variants (spectral films
+    develop to RGB) and 1 in mono; a mono image is repeated into 3 grey channels so
+    that every metric and output treats all variants alike.
+    """
     arr = np.asarray(result, dtype=np.float32)
-    image = arr[..., :3].copy()
-    vis = {name[len("vis_"):]: arr[..., 3 + k].copy() for k, name in enumerate(aov_names)}
+    n_colour = arr.shape[-1] - len(aov_names)
+    image = arr[..., :n_colour]
+    image = np.repeat(image, 3, axis=-1) if n_colour == 1 else image.copy()
+    vis = {name[len("vis_"):]: arr[..., n_colour + k].copy() for k, name in enumerate(aov_names)}
     return image, vis
 
 

@@ -21,10 +21,14 @@ from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import FILTERS, NEEDS_FOOTPRINT, Lookup, RayTracedLight, shifted_grid_point
 from .light_views import emitter_kind, emitter_label, make_light_view
+from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
 from .map_manager import MAP_CACHE, MapCache, prepare_maps  # noqa: F401  (re-exported)
 
 
-class ShadowMapIntegrator(mi.SamplingIntegrator):
+class ShadowMapIntegratorMixin:
+    """The variant-independent implementation of ``shadowmap``; see
+    :func:`integrator_class` for the per-variant ``mi.SamplingIntegrator`` subclass."""
+
     __doc__ = r"""
 Shadow-map direct illumination (``shadowmap``)
 ----------------------------------------------
@@ -47,8 +51,9 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
 
 """ + opt_mod.docs_table()
 
-    def __init__(self, props=mi.Properties()):
-        super().__init__(props)
+    def __init__(self, props=None):
+        props = mi.Properties() if props is None else props
+        self._mi_base.__init__(self, props)
         self.opts = opt_mod.parse_options(props)
         self.maps: list[ShadowMap] = []
         self.views = []
@@ -65,7 +70,7 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
     # ---------------------------------------------------------------- passes
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if self._in_render:   # Mitsuba re-enters a Python render() override
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+            return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         self._in_render = True
         try:
             if isinstance(sensor, int):
@@ -76,7 +81,7 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
             n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
             # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
             self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+            return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         finally:
             self._in_render = False
 
@@ -203,25 +208,38 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         return f"ShadowMapIntegrator[method={self.opts.method}, resolution={res}]"
 
 
-class _ScalarRefusal:
-    """Registered for scalar variants: constructing it raises a clear error."""
+def integrator_class():
+    """The ``shadowmap`` integrator class of the current variant (see
+    :func:`mi_shadowmap.variants.variant_class`); raises
+    :class:`~mi_shadowmap.variants.UnsupportedVariantError` for scalar and
+    polarized variants."""
+    return variant_class(ShadowMapIntegratorMixin, name="ShadowMapIntegrator")
+
+
+class _Refusal:
+    """Registered for unsupported variants: constructing it raises a clear error."""
 
     def __init__(self, variant):
         self.variant = variant
 
     def __call__(self, props):
-        raise RuntimeError(
-            f"shadowmap: the Mitsuba variant '{self.variant}' is not supported; the shadowmap "
-            "integrator needs a JIT variant (llvm_ad_rgb, or cuda_ad_rgb where a GPU exists), "
-            "because a Python integrator in a scalar variant runs once per ray")
+        check_variant(self.variant)   # raises, naming the variant and the supported ones
 
 
 def register(variant: str | None = None) -> None:
-    """Register ``shadowmap`` for the current Mitsuba variant."""
+    """Register ``shadowmap`` for the current Mitsuba variant (a refusal for unsupported ones)."""
     variant = variant or mi.variant()
     if variant is None:
         return
-    if variant.startswith("scalar"):
-        mi.register_integrator("shadowmap", _ScalarRefusal(variant))
+    if variant in SUPPORTED_VARIANTS:
+        cls = integrator_class()
+        mi.register_integrator("shadowmap", lambda props: cls(props))
     else:
-        mi.register_integrator("shadowmap", lambda props: ShadowMapIntegrator(props))
+        mi.register_integrator("shadowmap", _Refusal(variant))
+
+
+def __getattr__(name):
+    # ``integrator.ShadowMapIntegrator``: the current variant's class.
+    if name == "ShadowMapIntegrator":
+        return integrator_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

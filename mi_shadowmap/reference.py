@@ -31,6 +31,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .variants import variant_class
+
 
 def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
     """``(n_light, 2)`` stratified (jittered-grid) points in ``[0, 1)^2``.
@@ -49,11 +51,11 @@ def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
                      ((k // cols) + jitter[:, 1]) / rows], axis=1).astype(np.float32)
 
 
-class _ConvergedVisibilityIntegrator(mi.SamplingIntegrator):
+class _ConvergedVisibilityMixin:
     """Visibility AOVs only (RGB = mean visibility over emitters, for convenience)."""
 
     def __init__(self, labels, pattern: np.ndarray, occlusion: bool = True):
-        super().__init__(mi.Properties())
+        self._mi_base.__init__(self, mi.Properties())
         self.occlusion = bool(occlusion)
         self.labels = list(labels)
         self.n_light = len(pattern)
@@ -114,13 +116,15 @@ def converged_visibility(scene: mi.Scene, n_light: int = 1024, seed: int = 0, sp
     the pixels where a light straddles the horizon -- there a one-light-sample
     method's AOV is binary noise around the right mean whatever its shadows.
     """
-    from .integrator import ShadowMapIntegrator
+    from .integrator import integrator_class
     if not isinstance(spp, int) or spp < 1:
         raise ValueError(f"converged_visibility: spp must be an integer >= 1, got {spp!r}")
-    labeller = ShadowMapIntegrator(mi.Properties())   # same AOV labels as the integrator
+    labeller = integrator_class()(mi.Properties())   # same AOV labels as the integrator
     labeller.check_scene(scene)
     labels = [name[len("vis_"):] for name in labeller.aov_names()]
-    integ = _ConvergedVisibilityIntegrator(labels, light_sample_pattern(n_light, seed),
-                                           occlusion)
+    cls = variant_class(_ConvergedVisibilityMixin, name="ConvergedVisibilityIntegrator")
+    integ = cls(labels, light_sample_pattern(n_light, seed), occlusion)
     img = np.asarray(mi.render(scene, integrator=integ, sensor=sensor, spp=spp, seed=seed))
-    return {name: img[..., 3 + i].astype(np.float32) for i, name in enumerate(integ.aov_names())}
+    n_colour = img.shape[-1] - len(labels)   # 3 (rgb, spectral) or 1 (mono)
+    return {name: img[..., n_colour + i].astype(np.float32)
+            for i, name in enumerate(integ.aov_names())}

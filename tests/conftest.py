@@ -33,7 +33,8 @@ def render_np(scene, integrator, spp=16, seed=0):
         integrator = mi.load_dict(integrator)
     img = np.asarray(mi.render(scene, integrator=integrator, spp=spp, seed=seed))
     names = integrator.aov_names() if hasattr(integrator, "aov_names") else []
-    return img[..., :3], {n: img[..., 3 + k] for k, n in enumerate(names)}
+    n_colour = img.shape[-1] - len(names)   # 3 (rgb, spectral) or 1 (mono)
+    return img[..., :n_colour], {n: img[..., n_colour + k] for k, n in enumerate(names)}
 
 
 def vis_stack(aovs: dict) -> np.ndarray:

@@ -1,0 +1,72 @@
+"""Mitsuba variants: which ones the package supports, and classes defined per variant.
+
+``mi.SamplingIntegrator`` (like every ``mi.*`` type) is the *current*
+variant's class. A Python integrator derived from it while ``llvm_ad_rgb`` is
+set stays an rgb integrator: registered again after ``mi.set_variant(
+'llvm_ad_spectral')`` it makes ``mi.render`` fail with a bare
+``AssertionError``. So, like Mitsuba's own Python integrators, every
+integrator class of this package is created per variant
+(:func:`variant_class`), from a variant-independent implementation (a mixin
+whose code looks up ``mi.Float``, ``mi.Spectrum``, ... when it runs).
+"""
+from __future__ import annotations
+
+import mitsuba as mi
+
+#: Variants the package supports (JIT, unpolarized): every colour mode, LLVM and CUDA.
+SUPPORTED_VARIANTS = tuple(f"{backend}_ad_{colour}" for backend in ("llvm", "cuda")
+                           for colour in ("rgb", "mono", "spectral"))
+
+
+class UnsupportedVariantError(RuntimeError):
+    """The Mitsuba variant cannot run the ``shadowmap`` integrator."""
+
+
+def check_variant(variant: str | None = None) -> str:
+    """Return ``variant`` (default: the current one), or raise naming it and the supported ones.
+
+    Scalar variants run a Python integrator once per ray; polarized variants
+    carry Mueller matrices, which the shading (a scalar visibility times an
+    unpolarized ``weight * bsdf``) does not model.
+    """
+    variant = variant or mi.variant()
+    if variant in SUPPORTED_VARIANTS:
+        return variant
+    if variant is None:
+        why = "no Mitsuba variant is set"
+    elif variant.startswith("scalar"):
+        why = ("a Python integrator in a scalar variant runs once per ray, so it needs a JIT "
+               "(llvm_ad_* or cuda_ad_*) variant")
+    elif "polarized" in variant:
+        why = ("polarized variants carry Mueller matrices, which its unpolarized shading "
+               "does not model")
+    else:
+        why = "it is not one of the supported JIT variants"
+    raise UnsupportedVariantError(
+        f"shadowmap: the Mitsuba variant '{variant}' is not supported ({why}); supported "
+        f"variants: {', '.join(SUPPORTED_VARIANTS)} (cuda_ad_* where a CUDA GPU exists)")
+
+
+_CLASSES: dict = {}
+
+
+def variant_class(mixin: type, base: str = "SamplingIntegrator", name: str | None = None):
+    """``class name(mi.<base>)`` of the current variant with ``mixin``'s body, created
+    once per variant and cached.
+
+    Nanobind types take a single base, so the mixin's attributes are copied into
+    the new class; its methods reach the Mitsuba base through ``self._mi_base``
+    (not ``super()``, whose class cell is the mixin). Raises
+    :class:`UnsupportedVariantError` for a variant the package does not support.
+    """
+    variant = check_variant()
+    key = (mixin, base, variant)
+    cls = _CLASSES.get(key)
+    if cls is None:
+        name = name or mixin.__name__.removesuffix("Mixin")
+        mi_base = getattr(mi, base)
+        body = {k: v for k, v in vars(mixin).items() if k not in ("__dict__", "__weakref__")}
+        body.update(__qualname__=name, _mi_base=mi_base, variant=variant)
+        cls = type(name, (mi_base,), body)
+        _CLASSES[key] = cls
+    return cls

@@ -2,8 +2,12 @@
 
 Importing the package
 
-1. finds a libLLVM >= 16 for Dr.Jit's LLVM backend and sets
-   ``DRJIT_LIBLLVM_PATH`` (unless already set; see :mod:`mi_shadowmap._llvm`),
+1. makes sure Dr.Jit's LLVM backend uses a libLLVM >= 16. When the package
+   is pip-installed, ``mi_shadowmap_llvm.pth`` already set
+   ``DRJIT_LIBLLVM_PATH`` at interpreter start, so ``mitsuba``/``drjit`` may
+   be imported before ``mi_shadowmap``; otherwise it is searched and set now
+   (unless already set), then the LLVM Dr.Jit loaded is checked (see
+   :mod:`mi_shadowmap._llvm`),
 2. selects the ``llvm_ad_rgb`` variant if no variant is set yet,
 3. registers the ``shadowmap`` integrator for the current variant, and again
    whenever the variant changes.

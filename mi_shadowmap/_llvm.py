@@ -1,70 +1,64 @@
-"""Find a libLLVM that Dr.Jit 1.5 can use, before any LLVM variant is set.
+"""Find a libLLVM that Dr.Jit 1.5 can use, and check the one it loaded.
 
 Dr.Jit's LLVM backend loads a shared ``libLLVM`` at run time. Version 16 or
 newer is required: Debian bookworm's preinstalled libLLVM 14/15 crash at the
 first kernel (``LLVM ERROR: Cannot select: ... fminimum``), and without
 guidance Dr.Jit picks whichever ``libLLVM*.so`` it finds first.
 
-Search order (the first hit wins):
+Dr.Jit reads ``DRJIT_LIBLLVM_PATH`` once, when ``drjit`` (or ``mitsuba``) is
+first imported. When the package is pip-installed (``pip install .`` or
+``pip install -e .``), the file ``mi_shadowmap_llvm.pth`` in site-packages
+runs :func:`_mi_shadowmap_llvm.set_default_libllvm` at interpreter start: if
+the variable is unset, it is set to the environment's own libLLVM >= 16
+(``<sys.prefix>/lib``, where the dependency ``karellen-llvm-core`` installs
+``libLLVM.so.N``; then ``<sys.base_prefix>/lib``). So ``mitsuba``/``drjit``
+may be imported before ``mi_shadowmap``.
 
-1. ``DRJIT_LIBLLVM_PATH`` if the user already set it. It is respected as it
-   is (only checked to exist); we never override a user's choice.
+On ``import mi_shadowmap``, :func:`configure_llvm` fills the variable if it
+is still unset (no .pth ran: ``python -S``, or the source tree is used
+without installing), searching in order (the first hit wins):
+
+1. ``DRJIT_LIBLLVM_PATH`` if already set (by the user or the start-up hook).
+   It is respected as it is (only checked to exist); a user's choice is never
+   overridden.
 2. The Python environment's own ``lib/`` folder (``sys.prefix`` and
-   ``sys.base_prefix``): this is where the PyPI wheel ``karellen-llvm-core``
-   (a dependency of this package, no root needed) installs ``libLLVM.so.N``.
+   ``sys.base_prefix``).
 3. System libraries of version >= 16: ``/usr/lib/llvm-N/lib``,
    ``/usr/lib/<triplet>/libLLVM-N.so`` (Debian's ``libllvm19`` etc.),
    ``/usr/local/lib`` and ``/opt/homebrew/opt/llvm/lib``.
 
 Candidates whose version (read from the file name) is below 16 are skipped
-and reported.
+and reported. That late setting only helps if ``drjit`` was not imported yet.
 
-Dr.Jit reads ``DRJIT_LIBLLVM_PATH`` once, when ``drjit`` (or ``mitsuba``) is
-first imported. So ``import mi_shadowmap`` must come before ``import
-mitsuba``/``import drjit``, unless the variable is set in the environment.
 After importing Dr.Jit, :func:`check_loaded_llvm` asks it which LLVM it
-actually loaded and refuses one older than 16 with an explanation. When nothing usable is found, :class:`LLVMNotFoundError`
-lists every path that was tried and how to fix it.
+actually loaded and refuses one older than 16 with an explanation: the cases
+the package cannot fix are a ``DRJIT_LIBLLVM_PATH`` forced to an old library,
+and ``drjit`` imported first without the start-up hook (``python -S``, not
+installed). When nothing usable is found, :class:`LLVMNotFoundError` lists
+every path that was tried and how to fix it.
 """
 from __future__ import annotations
 
 import glob
 import os
-import re
 import sys
 
-MIN_LLVM_VERSION = 16
-ENV_VAR = "DRJIT_LIBLLVM_PATH"
+# The start-up hook's module (top level, installed with this package) holds the
+# shared parts: it must not import this package, which imports mitsuba.
+import _mi_shadowmap_llvm as _startup
+from _mi_shadowmap_llvm import ENV_VAR, MIN_LLVM_VERSION, llvm_version_from_name  # noqa: F401
 
 
 class LLVMNotFoundError(RuntimeError):
     """No libLLVM >= 16 could be found for Dr.Jit's LLVM backend."""
 
 
-def llvm_version_from_name(path: str) -> int | None:
-    """Major LLVM version encoded in a library file name, or None.
-
-    ``libLLVM.so.23.1`` -> 23, ``libLLVM-19.so`` -> 19,
-    ``libLLVM-14.0.6.so.1`` -> 14, ``/usr/lib/llvm-17/lib/libLLVM.so`` -> 17.
-    """
-    name = os.path.basename(path)
-    for pattern in (r"libLLVM-(\d+)", r"libLLVM\.so\.(\d+)", r"libLLVM\.(\d+)\.dylib"):
-        m = re.search(pattern, name)
-        if m:
-            return int(m.group(1))
-    m = re.search(r"llvm-(\d+)", path)
-    return int(m.group(1)) if m else None
-
-
 def _candidates() -> list[str]:
-    prefixes = []
-    for p in (sys.prefix, sys.base_prefix, os.environ.get("VIRTUAL_ENV")):
-        if p and p not in prefixes:
-            prefixes.append(p)
-    found: list[str] = []
-    for p in prefixes:
-        found += sorted(glob.glob(os.path.join(p, "lib", "libLLVM*.so*")))
-        found += sorted(glob.glob(os.path.join(p, "lib", "libLLVM*.dylib")))
+    found = _startup.prefix_libraries()
+    venv = os.environ.get("VIRTUAL_ENV")
+    if venv and venv not in (sys.prefix, sys.base_prefix):
+        found += sorted(glob.glob(os.path.join(venv, "lib", "libLLVM*.so*")))
+        found += sorted(glob.glob(os.path.join(venv, "lib", "libLLVM*.dylib")))
     system = (
         glob.glob("/usr/lib/llvm-*/lib/libLLVM*.so*")
         + glob.glob("/usr/lib/*-linux-gnu/libLLVM*.so*")
@@ -103,8 +97,13 @@ def find_libllvm() -> tuple[str, list[str]]:
     )
 
 
+#: The path :func:`configure_llvm` put into ``DRJIT_LIBLLVM_PATH``, or None.
+_SET_BY_CONFIGURE: str | None = None
+
+
 def configure_llvm() -> str:
-    """Set ``DRJIT_LIBLLVM_PATH`` unless the user did; return the path in use."""
+    """Set ``DRJIT_LIBLLVM_PATH`` unless already set; return the path in use."""
+    global _SET_BY_CONFIGURE
     user = os.environ.get(ENV_VAR)
     if user:
         if not os.path.isfile(user):
@@ -113,7 +112,7 @@ def configure_llvm() -> str:
                 "mi_shadowmap search, or point it at a libLLVM >= %d." % MIN_LLVM_VERSION)
         return user
     path, _ = find_libllvm()
-    os.environ[ENV_VAR] = path
+    os.environ[ENV_VAR] = _SET_BY_CONFIGURE = path
     return path
 
 
@@ -121,6 +120,9 @@ def check_loaded_llvm(drjit_imported_before: bool, variant: str | None) -> tuple
     """Verify the LLVM version Dr.Jit actually loaded; raise if it is too old.
 
     Only LLVM variants need it: for a CUDA variant an old LLVM is ignored.
+    The error says why, for the cases the package cannot fix: a
+    ``DRJIT_LIBLLVM_PATH`` set (outside mi_shadowmap) to an old library, or
+    ``drjit`` imported first while the start-up hook did not run.
     """
     import drjit as dr
     try:
@@ -134,10 +136,18 @@ def check_loaded_llvm(drjit_imported_before: bool, variant: str | None) -> tuple
     else:
         problem = "Dr.Jit loaded LLVM %s, which crashes it (>= %d is needed)" % (
             ".".join(map(str, version)), MIN_LLVM_VERSION)
-    why = ("drjit/mitsuba was imported before mi_shadowmap, so Dr.Jit chose its libLLVM "
-           "before mi_shadowmap could point it at %s. Import mi_shadowmap first, or set "
-           "%s=%s before starting Python." % (os.environ.get(ENV_VAR), ENV_VAR,
-                                              os.environ.get(ENV_VAR))
-           if drjit_imported_before else
-           "%s=%s was set, but Dr.Jit did not use it." % (ENV_VAR, os.environ.get(ENV_VAR)))
+    value = os.environ.get(ENV_VAR)
+    if drjit_imported_before and (not value or value == _SET_BY_CONFIGURE):
+        why = ("drjit/mitsuba was imported before mi_shadowmap while %s was unset, so Dr.Jit "
+               "chose its own libLLVM. mi_shadowmap's start-up hook (mi_shadowmap_llvm.pth in "
+               "site-packages), which sets the variable at interpreter start, did not run: "
+               "Python was started with -S, or mi_shadowmap is not pip-installed in this "
+               "environment (pip install -e .). Import mi_shadowmap first, or set %s=%s "
+               "before starting Python." % (ENV_VAR, ENV_VAR, value or "/path/to/libLLVM.so"))
+    elif value and value in (_SET_BY_CONFIGURE, _startup.STARTUP_PATH):
+        why = "mi_shadowmap set %s=%s, but Dr.Jit did not use it." % (ENV_VAR, value)
+    else:
+        why = ("%s=%s was set outside mi_shadowmap (Dr.Jit uses the value it had when drjit "
+               "was first imported). Unset it to let mi_shadowmap choose, or point it at a "
+               "libLLVM >= %d." % (ENV_VAR, value, MIN_LLVM_VERSION))
     raise LLVMNotFoundError("mi_shadowmap: %s. %s" % (problem, why))

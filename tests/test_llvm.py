@@ -1,11 +1,15 @@
-"""LLVM discovery: version parsing, search order and the error when nothing works."""
+"""LLVM discovery: version parsing, search order, the start-up hook and the errors."""
 import os
 import subprocess
 import sys
+import sysconfig
 
 import pytest
 
+import _mi_shadowmap_llvm as startup
 from mi_shadowmap import _llvm
+
+OLD_SYSTEM_LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1"
 
 
 @pytest.mark.parametrize("path, version", [
@@ -13,6 +17,8 @@ from mi_shadowmap import _llvm
     ("/usr/lib/x86_64-linux-gnu/libLLVM-19.so", 19),
     ("/usr/lib/x86_64-linux-gnu/libLLVM-14.0.6.so.1", 14),
     ("/usr/lib/llvm-17/lib/libLLVM.so", 17),
+    ("/opt/homebrew/lib/libLLVM.18.dylib", 18),
+    ("/venv/lib/libLLVM.so", None),
     ("/usr/lib/libfoo.so", None),
 ])
 def test_version_from_name(path, version):
@@ -64,11 +70,99 @@ def test_fresh_process_uses_a_recent_llvm():
     assert int(r.stdout.split()[-1]) >= _llvm.MIN_LLVM_VERSION
 
 
-def test_importing_drjit_first_is_explained_not_crashed():
-    """Dr.Jit reads DRJIT_LIBLLVM_PATH at import; importing it first cannot be fixed later."""
-    r = _run("import drjit, mi_shadowmap")
-    loaded_old = r.returncode != 0
-    if not loaded_old:
-        pytest.skip("this machine's default libLLVM is recent enough; nothing to explain")
-    assert "imported before mi_shadowmap" in r.stderr
+def _fake_prefix(tmp_path, monkeypatch, names):
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    for name in names:
+        (lib / name).write_bytes(b"")
+    monkeypatch.setattr(sys, "prefix", str(tmp_path))
+    monkeypatch.setattr(sys, "base_prefix", str(tmp_path))
+    monkeypatch.delenv(_llvm.ENV_VAR, raising=False)
+    return lib
+
+
+def test_startup_hook_sets_newest_environment_llvm(tmp_path, monkeypatch):
+    lib = _fake_prefix(tmp_path, monkeypatch,
+                       ["libLLVM-15.so.1", "libLLVM.so.17.0", "libLLVM.so.23.1", "libLTO.so.23.1"])
+    assert startup.set_default_libllvm() == str(lib / "libLLVM.so.23.1")
+    assert os.environ[_llvm.ENV_VAR] == str(lib / "libLLVM.so.23.1")
+
+
+def test_startup_hook_skips_old_and_unversioned_libraries(tmp_path, monkeypatch):
+    _fake_prefix(tmp_path, monkeypatch, ["libLLVM-14.so", "libLLVM-15.so.1", "libLLVM.so"])
+    assert startup.set_default_libllvm() is None
+    assert _llvm.ENV_VAR not in os.environ
+
+
+def test_startup_hook_leaves_user_setting_untouched(tmp_path, monkeypatch):
+    _fake_prefix(tmp_path, monkeypatch, ["libLLVM.so.23.1"])
+    monkeypatch.setenv(_llvm.ENV_VAR, "/my/own/libLLVM-15.so")   # even old or missing
+    assert startup.set_default_libllvm() is None
+    assert os.environ[_llvm.ENV_VAR] == "/my/own/libLLVM-15.so"
+
+
+def test_startup_hook_never_raises(monkeypatch):
+    monkeypatch.delenv(_llvm.ENV_VAR, raising=False)
+
+    def boom():
+        raise OSError("unreadable")
+    monkeypatch.setattr(startup, "prefix_libraries", boom)
+    assert startup.set_default_libllvm() is None
+    assert _llvm.ENV_VAR not in os.environ
+
+
+def test_pth_is_installed_in_site_packages():
+    pth = os.path.join(sysconfig.get_paths()["purelib"], "mi_shadowmap_llvm.pth")
+    assert os.path.isfile(pth), "reinstall the package: pip install -e ."
+    line = open(pth, encoding="utf-8").read()
+    assert line.startswith("import ") and line.count("\n") == 1
+    assert "mi_shadowmap." not in line and "mitsuba" not in line and "drjit" not in line
+
+
+RENDER_TINY_CBOX = """
+import drjit as dr
+scene = mi.cornell_box()
+scene["sensor"]["film"]["width"] = scene["sensor"]["film"]["height"] = 16
+img = mi.render(mi.load_dict(scene), integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
+assert img.shape[:2] == (16, 16) and dr.all(dr.isfinite(img), axis=None), img
+print(dr.detail.llvm_version()[0])
+"""
+
+
+def test_mitsuba_imported_first_renders_with_a_recent_llvm():
+    r = _run("import mitsuba as mi; mi.set_variant('llvm_ad_rgb'); import mi_shadowmap"
+             + RENDER_TINY_CBOX)
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout.split()[-1]) >= _llvm.MIN_LLVM_VERSION
+
+
+def test_drjit_imported_first_works():
+    r = _run("import drjit, mi_shadowmap; import mitsuba as mi" + RENDER_TINY_CBOX)
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout.split()[-1]) >= _llvm.MIN_LLVM_VERSION
+
+
+def test_user_forced_old_llvm_is_explained_not_crashed():
+    """A DRJIT_LIBLLVM_PATH set by the user is respected; an old one is refused clearly."""
+    if not os.path.isfile(OLD_SYSTEM_LLVM):
+        pytest.skip(f"needs an old system libLLVM at {OLD_SYSTEM_LLVM}")
+    r = _run("import drjit, mi_shadowmap", {_llvm.ENV_VAR: OLD_SYSTEM_LLVM})
+    assert r.returncode != 0
+    assert "LLVMNotFoundError" in r.stderr and "LLVM 15" in r.stderr
+    assert f"{_llvm.ENV_VAR}={OLD_SYSTEM_LLVM} was set outside mi_shadowmap" in r.stderr
+
+
+def test_drjit_first_without_startup_hook_is_explained():
+    """Under ``python -S`` no .pth runs: importing drjit first cannot be fixed later."""
+    paths = [sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"],
+             os.path.dirname(os.path.dirname(_llvm.__file__)),
+             os.path.dirname(startup.__file__)]
+    env = {k: v for k, v in os.environ.items() if k != _llvm.ENV_VAR}
+    env["VIRTUAL_ENV"] = sys.prefix   # -S also skips the venv's sys.prefix; let the search see it
+    code = f"import sys; sys.path[:0] = {paths!r}; import drjit, mi_shadowmap"
+    r = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True,
+                       env=env, timeout=300)
+    if r.returncode == 0:
+        pytest.skip("Dr.Jit's own choice of libLLVM is recent enough here; nothing to explain")
+    assert "imported before mi_shadowmap" in r.stderr and "did not run" in r.stderr
     assert _llvm.ENV_VAR in r.stderr

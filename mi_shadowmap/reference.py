@@ -31,6 +31,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .rays import spawn_shadow_ray
 from .variants import variant_class
 
 
@@ -87,7 +88,7 @@ class _ConvergedVisibilityMixin:
                 f = bsdf.eval(ctx, si, si.to_local(ds.d), lit)
                 lit &= dr.max(w * f) > 0
                 if self.occlusion:
-                    occluded = scene.ray_test(si.spawn_ray_to(ds.p), lit)
+                    occluded = scene.ray_test(spawn_shadow_ray(si, ds.p, scene), lit)
                 else:
                     occluded = mi.Bool(False)
                 n_vis = dr.select(lit & ~occluded, n_vis + 1.0, n_vis)

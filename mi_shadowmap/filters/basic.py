@@ -4,12 +4,19 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..rays import spawn_shadow_ray
 from .common import Lookup, RayTracedLight, receiver
 
 
 def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
-    """Ground truth: one shadow ray from the shading point to the light sample."""
-    ray = lk.si.spawn_ray_to(lk.ds.p)
+    """Ground truth: one shadow ray from the shading point to the light sample.
+
+    The ray is spawned by :func:`mi_shadowmap.rays.spawn_shadow_ray` (an origin
+    offset and an end shortening relative to the coordinates involved), not by
+    Mitsuba's ``si.spawn_ray_to``, whose offset has an absolute floor and makes
+    the reference drift with the scene's scale.
+    """
+    ray = spawn_shadow_ray(lk.si, lk.ds.p, smap.scene)
     occluded = smap.scene.ray_test(ray, active)
     return dr.select(occluded, 0.0, 1.0)
 

@@ -1,0 +1,140 @@
+"""mi_shadowmap.rays.spawn_shadow_ray: no self-intersection and no lost contact
+occluders at any scale, for mesh and non-mesh receivers and every light kind."""
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowmap.rays import spawn_shadow_ray
+
+N = 32     # N x N receiver points
+
+
+def T():
+    return mi.ScalarTransform4f()   # the current variant's (looked up per call)
+
+
+def tilt():
+    """A tilted frame: the receiver's points are not exact in float32."""
+    return T().rotate([math.sqrt(0.5), 0.0, math.sqrt(0.5)], 23.0)
+
+
+def place(s):
+    """Receiver frame: scaled by s, off the origin, tilted; its surface is local y = 0."""
+    return T().scale(s) @ T().translate([0.3, 0.2, -0.1]) @ tilt()
+
+
+def plate(s):
+    """A plate 0.03 s above the receiver (3 % of the scene), over local x in [0, 1]."""
+    return {"type": "rectangle", "to_world": place(s) @ T().translate([0.5, 0.03, 0.0])
+            @ T().rotate([1, 0, 0], -90) @ T().scale([0.5, 1.0, 1.0])}
+
+
+def receiver_scene(s, occluder, receiver="rectangle"):
+    """A tilted 2 s square (a mesh), or the top of a unit sphere (not a mesh:
+    its hit points are computed along the camera ray), plus the plate."""
+    if receiver == "rectangle":
+        shape = {"type": "rectangle", "to_world": place(s) @ T().rotate([1, 0, 0], -90)}
+    else:
+        shape = {"type": "sphere", "center": list(place(s) @ mi.ScalarPoint3f(0, -1, 0)),
+                 "radius": s}
+    d = {"type": "scene", "receiver": shape}
+    if occluder:
+        d["plate"] = plate(s)
+    return mi.load_dict(d)
+
+
+def receiver_points(scene, s, extent):
+    """Hits of rays cast down from just below the plate (local y = 0.01), on an N x N
+    grid of local x, z in [-extent, extent]; x > 0 is under the plate."""
+    g = (np.arange(N) + 0.5) / N * 2 * extent - extent
+    x, z = [a.ravel() for a in np.meshgrid(g, g)]
+    to_world = place(s)
+    org = np.array([list(to_world @ mi.ScalarPoint3f(a, 0.01, b)) for a, b in zip(x, z)])
+    down = list(to_world @ mi.ScalarVector3f(0, -1, 0))
+    down = np.array(down) / np.linalg.norm(down)
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(c.astype(np.float32)) for c in org.T]),
+                   mi.Vector3f(*[float(c) for c in down]))
+    si = scene.ray_intersect(ray)
+    assert bool(dr.all(si.is_valid())), "every ray must hit the receiver"
+    return si, x, z
+
+
+def light_targets(si, s):
+    """Point-light targets 1.5 s above each point, leaning 40 degrees towards local -z."""
+    to_world = place(s)
+    offset = np.array(list(to_world @ mi.ScalarVector3f(0, 1.5, -1.5 * math.tan(math.radians(40)))))
+    return si.p + mi.Vector3f(*[float(c) for c in offset])
+
+
+@pytest.mark.parametrize("receiver", ["rectangle", "sphere"])
+@pytest.mark.parametrize("s", [1e-6, 1.0, 1e6])
+def test_no_self_hit_and_contact_occluder_found(s, receiver):
+    extent = 0.9 if receiver == "rectangle" else 0.5   # the sphere's top cap
+    bare = receiver_scene(s, occluder=False, receiver=receiver)
+    si, _, _ = receiver_points(bare, s, extent)
+    hit = np.asarray(bare.ray_test(spawn_shadow_ray(si, light_targets(si, s), bare)))
+    assert not hit.any(), f"{hit.mean():.1%} of the shadow rays re-hit the receiver"
+
+    scene = receiver_scene(s, occluder=True, receiver=receiver)
+    si, x, _ = receiver_points(scene, s, extent)
+    target = light_targets(si, s)
+    hit = np.asarray(scene.ray_test(spawn_shadow_ray(si, target, scene)))
+    under, free = x > 0.1, x < -0.1
+    mitsuba = np.asarray(scene.ray_test(si.spawn_ray_to(target)))
+    print(f"s={s:g} {receiver}: occluded under the plate {hit[under].mean():.0%} "
+          f"(Mitsuba's spawn_ray_to: {mitsuba[under].mean():.0%}), elsewhere "
+          f"{hit[free].mean():.0%}")
+    assert hit[under].all() and not hit[free].any()
+
+
+@pytest.mark.parametrize("s", [1e-6, 1.0, 1e6])
+def test_directional_and_area_light_targets(s):
+    """``ds.p`` of a directional light (Mitsuba puts it beyond the scene's bounding
+    sphere) and of an area light (on the light's own surface, which the ray must
+    not reach)."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "receiver": {"type": "rectangle", "to_world": place(s) @ T().rotate([1, 0, 0], -90)},
+        "plate": plate(s),
+        "sun": {"type": "directional",
+                "direction": list(place(1.0) @ mi.ScalarVector3f(0.0, -1.0, -0.3))},
+        "panel": {"type": "rectangle",
+                  "to_world": place(s) @ T().translate([0, 2, 0]) @ T().rotate([1, 0, 0], 90)
+                  @ T().scale(0.2),
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}})
+    si, x, z = receiver_points(scene, s, 0.9)
+    under, free = (x > 0.1) & (np.abs(z) < 0.5), x < -0.3   # (the panel spans |x| < 0.2)
+    assert len(scene.emitters()) == 2
+    for emitter in scene.emitters():
+        ds, _ = emitter.sample_direction(si, mi.Point2f(0.5, 0.5))
+        hit = np.asarray(scene.ray_test(spawn_shadow_ray(si, ds.p, scene)))
+        assert hit[under].all(), (str(emitter), s, hit[under].mean())
+        # neither the receiver nor, for the area light, the light's own surface
+        assert not hit[free].any(), (str(emitter), s, hit[free].mean())
+
+
+@pytest.mark.parametrize("variant", ["llvm_ad_mono", "llvm_ad_spectral"])
+def test_other_variants(variant):
+    mi.set_variant(variant)
+    scene = receiver_scene(1e-3, occluder=True)
+    si, x, _ = receiver_points(scene, 1e-3, 0.9)
+    ray = spawn_shadow_ray(si, light_targets(si, 1e-3), scene)
+    assert isinstance(ray, mi.Ray3f)
+    hit = np.asarray(scene.ray_test(ray))
+    assert hit[x > 0.1].all() and not hit[x < -0.1].any()
+
+
+def test_gradients_flow_through_the_origin():
+    """The offset is detached, the point is not: d(ray.o)/d(p) = 1."""
+    scene = receiver_scene(1.0, occluder=False)
+    si, _, _ = receiver_points(scene, 1.0, 0.9)
+    target = mi.Point3f(dr.detach(light_targets(si, 1.0)))
+    p = mi.Point3f(si.p)
+    dr.enable_grad(p)
+    si.p = p
+    ray = spawn_shadow_ray(si, target, scene)
+    dr.forward_from(p, dr.ADFlag.ClearNone)
+    assert np.allclose(np.asarray(dr.grad(ray.o)), 1.0)

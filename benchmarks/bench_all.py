@@ -114,7 +114,7 @@ def build_vs_bare(scene, res, repeats):
     view = make_light_view(scene.emitters()[0], scene, 0)
 
     def bare():
-        o, d, _ = view.texel_rays(res)
+        o, d = view.texel_rays(res)
         pi = scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=True)
         dr.eval(pi.t)
 

@@ -44,6 +44,7 @@ mi.detail.add_variant_callback(_on_variant_change)
 from .integrator import integrator_class  # noqa: E402,F401
 from .variants import SUPPORTED_VARIANTS, UnsupportedVariantError  # noqa: E402,F401
 from .options import METHODS, OptionError  # noqa: E402,F401
+from .methods import Method, Prop, register_method, unregister_method  # noqa: E402,F401
 from . import harness, metrics  # noqa: E402,F401
 from .harness import compare  # noqa: E402,F401
 

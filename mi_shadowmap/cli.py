@@ -1,13 +1,21 @@
-"""The ``mi-shadowmap`` command line.
+"""The ``mi-shadowmap`` command line: it parses arguments and calls the harness.
 
 ``mi-shadowmap`` with no command runs ``compare`` (on the built-in default
-scene unless a scene file is given): the README's main command.
+scene unless a scene file is given): the README's main command. Everything
+is validated by the harness (:mod:`mi_shadowmap.specs`) and the options
+module; errors are one line on stderr with exit status 2.
+
+``--plugin FILE.py`` (any command, repeatable) runs a Python file first, by
+path; it registers methods with :func:`mi_shadowmap.register_method`, which
+``--methods`` and ``--grid`` then accept like the built-ins.
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
+import re
 import sys
 
 EPILOG_MAIN = """\
@@ -31,6 +39,10 @@ examples:
   mi-shadowmap sweep --grid 'method=hard resolution=256,512,1024' \\
                      --grid 'method=raytraced spp=1,4,16' --out out/sweep
   mi-shadowmap maps scenes_xml/spot_sphere_box.xml --out out/maps
+  mi-shadowmap compare --plugin my_filter.py --methods hard my_filter pcf
+
+A plugin file (--plugin, repeatable, any command) is run first; it registers its methods
+with mi_shadowmap.register_method(name, lookup, properties=...).
 """
 
 GRID_HELP = """\
@@ -45,6 +57,11 @@ it. Default: every map method at resolution 256,512,1024 and raytraced at spp 1.
 ERROR_COLUMNS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow",
                  "vis_false_lit", "vis_penumbra_rmse", "img_rmse", "img_mae",
                  "img_relative_mse", "img_flip")
+
+
+PLUGIN_HELP = ("a Python file run before the command (repeatable) that registers shadow "
+               "methods with mi_shadowmap.register_method(...); they are then valid in "
+               "--methods and --grid")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -71,7 +88,18 @@ def _add_scene_args(p, sizes=True, out="out"):
     p.add_argument("--variant", default=None, metavar="NAME",
                    help="Mitsuba variant to render in: llvm_ad_rgb (default), llvm_ad_mono, "
                         "llvm_ad_spectral, or cuda_ad_* where a CUDA GPU exists")
+    _add_common_args(p)
+
+
+def _add_common_args(p):
+    p.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                   help=PLUGIN_HELP)
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+
+
+def _methods_help(what: str) -> str:
+    from .specs import available_methods
+    return f"{what}; registered: {', '.join(available_methods())} (and --plugin ones)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Compare depth-map shadow methods with ray-traced ground truth in "
                     "Mitsuba 3: images, visibility error metrics, timings, sweeps.",
         epilog=EPILOG_MAIN, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    _add_common_args(p)
     sub = p.add_subparsers(dest="command", parser_class=_Parser)
 
     c = sub.add_parser(
@@ -92,8 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "metrics.csv and metrics.json.")
     _add_scene_args(c)
     c.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
-                   help="methods to compare, each 'name' or 'name:prop=value,prop=value' "
-                        "(default: every implemented method except raytraced)")
+                   help=_methods_help("methods to compare, each 'name' or "
+                                      "'name:prop=value,prop=value' (default: every "
+                                      "registered method except raytraced)"))
     c.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
     c.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
     c.add_argument("--repeats", type=int, default=3,
@@ -130,26 +159,21 @@ def build_parser() -> argparse.ArgumentParser:
                                    "stacked vertically.")
     _add_scene_args(m, sizes=False, out="out/maps")
     m.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
-                   help="build the layers these methods use (default: every map method)")
+                   help=_methods_help("build the layers these methods use (default: every "
+                                      "method that reads a depth map)"))
     return p
 
 
 # --------------------------------------------------------------------------- helpers
 def parse_sets(items) -> dict:
-    """``["a=1", "b=x"]`` -> ``{"a": 1, "b": "x"}``."""
-    from .harness import parse_value
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise ValueError(f"--set expects name=value, got {item!r}")
-        k, v = item.split("=", 1)
-        out[k.strip()] = parse_value(v.strip())
-    return out
+    """``["a=1", "b=x"]`` -> ``{"a": 1, "b": "x"}`` (the ``--set`` values)."""
+    from .specs import parse_assignments
+    return parse_assignments(items, "--set")
 
 
 def parse_grid(text: str):
     """One ``--grid`` value: a JSON file, inline JSON, or ``name=v1,v2 ...`` items."""
-    from .harness import parse_value
+    from .specs import parse_value
     t = text.strip()
     if os.path.isfile(t):
         with open(t) as f:
@@ -177,7 +201,7 @@ def parse_grid(text: str):
 
 def load_scene_arg(args, sizes=True):
     """The scene of ``args``: the XML file, or the built-in scene."""
-    from . import harness, scenes
+    from . import scenes
     size = {}
     if sizes:
         for k in ("width", "height"):
@@ -187,8 +211,8 @@ def load_scene_arg(args, sizes=True):
                     raise ValueError(f"--{k} must be >= 1, got {v}")
                 size[k] = v
     if args.scene is None:
-        return harness.load_scene(scenes.default_scene(light=args.light, **size))
-    return harness.load_scene(args.scene, **size)
+        return scenes.load_scene(scenes.default_scene(light=args.light, **size))
+    return scenes.load_scene(args.scene, **size)
 
 
 # --------------------------------------------------------------------------- commands
@@ -216,7 +240,7 @@ def cmd_compare(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from . import harness, options, report
+    from . import harness, report
     out = args.out
     params = parse_sets(args.set)
     grid = None
@@ -227,17 +251,7 @@ def cmd_sweep(args) -> int:
             grid += sub if isinstance(sub, list) else [sub]
     grid = grid if grid is not None else harness.default_grid()
     if params:   # --set values are fixed axes of every sub-grid with a method using them
-        grid = [{**{k: v for k, v in params.items() if k not in g and _uses(g, k)}, **g}
-                if isinstance(g, dict) else g for g in grid]
-        harness.check_shared_params(
-            [{"method": m, **{k: v for k, v in params.items()
-                              if k in {p.name for p in options.properties_for(m)}}}
-             for m in options.METHODS], params)
-        unused = [k for k in params if not any(isinstance(g, dict) and k in g for g in grid)]
-        if unused:
-            raise options.OptionError(
-                f"shadowmap: property '{unused[0]}' (--set) is not used by any method of "
-                "the grid")
+        grid = harness.with_shared(grid, params)
     harness.expand_grid(grid, default_spp=args.spp)   # reject bad entries before rendering
     scene = load_scene_arg(args)
     report.check_out_dir(out)
@@ -249,43 +263,17 @@ def cmd_sweep(args) -> int:
     return 0 if written else 1
 
 
-def _uses(subgrid: dict, name: str) -> bool:
-    """Does a method of ``subgrid`` use property ``name``?"""
-    from . import harness, options
-    methods = subgrid.get("method", [])
-    methods = [methods] if isinstance(methods, str) else list(methods)
-    return any(harness.uses_property(m, name) for m in methods if m in options.METHODS)
-
-
 def cmd_maps(args) -> int:
     from . import harness, report
-    from .depth_maps import build_depth_map
-    from .filters import LAYERS
-    from .light_views import emitter_kind, make_light_view
-    from .options import MAP_METHODS
     out = args.out
     params = parse_sets(args.set)
-    methods = args.methods or [m for m in harness.available_methods() if m in MAP_METHODS]
-    layers = []
-    for m in methods:
-        opts = harness.validate_spec(harness.method_spec(m, params))
-        for layer in LAYERS.get(opts.method, ()):
-            if layer not in layers:
-                layers.append(layer)
-    opts = harness.validate_spec({"method": "hard", **{k: v for k, v in params.items()
-                                                       if k in ("resolution", "memory_budget")}})
+    specs = harness.map_specs(args.methods, params)   # validated before anything loads
     scene = load_scene_arg(args, sizes=False)
     report.check_out_dir(out)
-    views = [make_light_view(e, scene, i) for i, e in enumerate(scene.emitters())
-             if emitter_kind(e) != "environment"]
-    res = opts.resolution
-    if res is None and hasattr(opts, "map_resolution"):   # automatic, within memory_budget
-        film = scene.sensors()[0].film().crop_size() if scene.sensors() else (512, 512)
-        res = opts.map_resolution(film, sum(v.n_faces for v in views) * (1 + len(layers)))
-    maps = [build_depth_map(scene, v, res or 1024, tuple(layers)) for v in views]
+    maps = [m for m in harness.prepare_maps(scene, specs) if m is not None]
     paths = report.write_maps(maps, out)
     for smap, path in zip(maps, paths):
-        print(f"{path}: {smap.view.label} ({smap.view.projection}, {smap.view.n_faces} "
+        print(f"{path}: {smap.view.label} ({type(smap.view).__name__}, {smap.view.n_faces} "
               f"face(s) of {smap.resolution}^2), layers {', '.join(smap.layers())}")
     return 0
 
@@ -293,22 +281,61 @@ def cmd_maps(args) -> int:
 _COMMANDS = {"compare": cmd_compare, "sweep": cmd_sweep, "maps": cmd_maps}
 
 
+def _pre_parse(argv):
+    """``(plugin files, debug, the other arguments)``: ``--plugin`` and ``--debug`` are
+    taken out wherever they stand (before or after the command)."""
+    pre = _Parser(prog="mi-shadowmap", add_help=False, allow_abbrev=False)
+    pre.add_argument("--plugin", action="append", default=[])
+    pre.add_argument("--debug", action="store_true")
+    known, rest = pre.parse_known_args(argv)
+    return known.plugin, known.debug, rest
+
+
+class PluginError(RuntimeError):
+    """A ``--plugin`` file is missing or failed to run."""
+
+
+def load_plugin(path: str):
+    """Run the Python file ``path`` as a module (it registers its methods with
+    :func:`mi_shadowmap.register_method`); return the module. A missing file or an
+    error while running it raises :class:`PluginError` naming the file."""
+    if not os.path.isfile(path):
+        raise PluginError(f"shadowmap: plugin file not found: {path}")
+    stem = re.sub(r"\W", "_", os.path.splitext(os.path.basename(path))[0])
+    name = f"mi_shadowmap_plugin_{stem}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise PluginError(f"shadowmap: plugin {path} is not a Python file")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as e:   # one line naming the file; --debug shows the traceback
+        del sys.modules[name]
+        raise PluginError(f"shadowmap: plugin {path} failed: {type(e).__name__}: "
+                          f"{' '.join(str(e).split())}")
+    return module
+
+
 def main(argv=None) -> int:
-    parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
-    rest = [a for a in argv if a != "--debug"]
-    debug = len(rest) != len(argv)
+    try:
+        plugins, debug, rest = _pre_parse(argv)
+    except SystemExit as e:          # e.g. --plugin without a file name
+        return e.code if isinstance(e.code, int) else 2
+    parser = build_parser()
     if not rest or rest[0] not in tuple(_COMMANDS) + ("-h", "--help"):
         rest = ["compare"] + rest      # no command: compare (default scene unless given)
     try:
         args = parser.parse_args(rest)
     except SystemExit as e:          # --help (0) or a usage error (2, one line printed)
         return e.code if isinstance(e.code, int) else 2
-    debug = debug or getattr(args, "debug", False)
     try:
         import mi_shadowmap  # noqa: F401  (LLVM set-up and registration)
         if getattr(args, "variant", None) is not None:
             set_variant(args.variant)
+        for path in plugins:
+            load_plugin(path)
         return _COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("mi-shadowmap: interrupted", file=sys.stderr)

@@ -6,13 +6,16 @@ built from and flat ``mi.Float`` arrays of ``n_faces * res * res`` texels
 
 * ``depth`` -- distance to the first surface along each texel's ray
   (``+inf`` where the ray escapes);
-* ``second_depth`` -- distance to the second surface (Wang & Molnar), built
-  only when a method asks for it;
-* ``extra`` -- further per-texel layers (e.g. MDSM min/max depths), built
-  only when asked for.
+* ``extra`` -- further layers a method declares in its record
+  (:class:`~mi_shadowmap.methods.Method` ``layers``), built only when that
+  method runs: e.g. ``second_depth``, the distance to the second surface
+  (Wang & Molnar; built here, :func:`second_depth_layer`), or MDSM's min/max
+  depths (built in :mod:`mi_shadowmap.filters.mdsm` from the first depth).
 
-Each map is one ray-query kernel (``scene.ray_intersect_preliminary``,
-coherent rays), evaluated once when built.
+The first depth is one ray-query kernel (``scene.ray_intersect_preliminary``,
+coherent rays), evaluated once when built; the map manager
+(:mod:`mi_shadowmap.map_manager`) decides which maps and layers a render
+needs and caches them.
 """
 from __future__ import annotations
 
@@ -26,14 +29,23 @@ from .light_views import LightView
 from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
 
 
+def array_nbytes(x) -> int:
+    """Bytes of one layer array: 4 a value, 8 for float64 (summed-area tables)."""
+    return dr.width(x) * (8 if dr.type_v(x) == dr.VarType.Float64 else _BYTES_PER_TEXEL)
+
+
 @dataclass
 class ShadowMap:
     """Depth layers of one emitter's map faces."""
     view: LightView
     resolution: int
     depth: mi.Float
-    second_depth: mi.Float | None = None
     extra: dict = field(default_factory=dict)
+
+    @property
+    def second_depth(self) -> mi.Float | None:
+        """The ``second_depth`` layer, or None when it was not built."""
+        return self.extra.get("second_depth")
 
     @property
     def n_texels(self) -> int:
@@ -41,9 +53,9 @@ class ShadowMap:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of every layer held (small layers, e.g. one value per face, as they are)."""
-        layers = [self.depth, self.second_depth, *self.extra.values()]
-        return sum(dr.width(x) for x in layers if x is not None) * _BYTES_PER_TEXEL
+        """Bytes of every layer held (small layers, e.g. one value per face, as they are;
+    float64 layers, e.g. summed-area tables, at 8 bytes a value)."""
+        return sum(array_nbytes(x) for x in (self.depth, *self.extra.values()))
 
     def texel_index(self, face, uv):
         """Flat index of the nearest texel (``floor(uv * res)``, clamped)."""
@@ -61,15 +73,14 @@ class ShadowMap:
 
     def to_numpy(self, layer: str = "depth"):
         """The layer as a ``(n_faces, res, res)`` float32 numpy array (row j, column i)."""
-        data = self.depth if layer == "depth" else (
-            self.second_depth if layer == "second_depth" else self.extra[layer])
+        data = self.depth if layer == "depth" else self.extra.get(layer)
         if data is None:
-            raise KeyError(f"layer '{layer}' was not built for emitter '{self.view.label}'")
+            raise KeyError(f"layer '{layer}' was not built for emitter '{self.view.label}'; "
+                           f"built: {', '.join(self.layers())}")
         return data.numpy().reshape(self.view.n_faces, self.resolution, self.resolution)
 
     def layers(self) -> list[str]:
-        return (["depth"] + (["second_depth"] if self.second_depth is not None else [])
-                + list(self.extra))
+        return ["depth"] + list(self.extra)
 
 
 def _first_hit(scene: mi.Scene, view: LightView, o, d):
@@ -116,12 +127,6 @@ def _first_hit(scene: mi.Scene, view: LightView, o, d):
     return dr.select(pi.is_valid() & ~skip(pi, t_acc), t_acc + pi.t, dr.inf)
 
 
-#: Extra layers: ``name -> fn(scene, smap) -> mi.Float`` (``n_texels`` entries).
-#: Filters name the layers they need (``filters.layers_for(opts)``); the map manager asks
-#: :func:`build_depth_map` for exactly those, so nothing unused is built.
-LAYER_BUILDERS: dict = {}
-
-
 def shape_is_solid(shape) -> bool:
     """Whether ``shape`` bounds a solid with outward normals (set-up time, numpy).
 
@@ -129,7 +134,7 @@ def shape_is_solid(shape) -> bool:
     are welded, with a positive signed volume
     (:func:`mi_shadowmap.procedural.check_closed`); Mitsuba's ``sphere``:
     yes; every other shape (rectangle, disk, open cylinder, instances, ...):
-    no -- it is a two-sided non-solid for :func:`_second_surface`.
+    no -- it is a two-sided non-solid for :func:`second_depth_layer`.
     """
     if shape.is_mesh():
         from .procedural import check_closed
@@ -154,7 +159,7 @@ def _solid_table(scene: mi.Scene) -> mi.Bool:
     return mi.Bool(table)
 
 
-def _second_surface(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
+def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     """Wang & Molnar (1994) second-depth layer: the second surface from the light.
 
     The paper's "front-face culling" construction (sec. 3.4, Pass 1), done
@@ -187,7 +192,7 @@ def _second_surface(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     nested closed shells or 64 stacked open sheets) can reach.
     """
     view = smap.view
-    o, d, _ = view.texel_rays(smap.resolution)
+    o, d = view.texel_rays(smap.resolution)
     own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
     solid = _solid_table(scene)
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
@@ -227,52 +232,24 @@ def _second_surface(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     return state[2]
 
 
-def _neighbourhood_extreme(smap: "ShadowMap", reduce) -> mi.Float:
-    """``reduce`` (dr.minimum / dr.maximum) of the base depths over the 3 x 3 texels
-    around every texel (clamped at the face border): Pagot et al. (2004)'s
-    extra depths of a multiple-depth map, with q = 9."""
-    res = smap.resolution
-    idx = dr.arange(mi.UInt32, smap.n_texels)
-    face = idx // (res * res)
-    rem = idx - face * (res * res)
-    j = mi.Int32(rem // res)
-    i = mi.Int32(rem - (rem // res) * res)
-    out = smap.fetch(smap.depth, face, i, j)
-    for dj in (-1, 0, 1):
-        for di in (-1, 0, 1):
-            if di or dj:
-                out = reduce(out, smap.fetch(smap.depth, face, i + di, j + dj))
-    return out
-
-
-LAYER_BUILDERS["second_depth"] = _second_surface
-LAYER_BUILDERS["mdsm_min"] = lambda scene, smap: _neighbourhood_extreme(smap, dr.minimum)
-LAYER_BUILDERS["mdsm_max"] = lambda scene, smap: _neighbourhood_extreme(smap, dr.maximum)
-
-
-def build_layer(scene: mi.Scene, smap: ShadowMap, name: str) -> mi.Float:
-    """Build (and evaluate) the extra layer ``name`` of ``smap`` with
-    :data:`LAYER_BUILDERS`; the one place that refuses an unknown layer name."""
-    if name not in LAYER_BUILDERS:
-        raise KeyError(f"unknown depth-map layer '{name}'; known: {sorted(LAYER_BUILDERS)}")
-    data = LAYER_BUILDERS[name](scene, smap)
+def build_layer(scene: mi.Scene, smap: ShadowMap, name: str, builder) -> mi.Float:
+    """Build (and evaluate) the extra layer ``name`` of ``smap`` with ``builder``
+    (``fn(scene, smap) -> mi.Float``, from the method's record)."""
+    data = builder(scene, smap)
     dr.eval(data)
     return data
 
 
 def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
-                    layers=()) -> ShadowMap:
-    """Ray-cast the first-surface depth of every texel of ``view``, plus ``layers``."""
-    o, d, _ = view.texel_rays(resolution)
+                    layers: dict | None = None) -> ShadowMap:
+    """Ray-cast the first-surface depth of every texel of ``view``, plus ``layers``
+    (``{name: builder}``, e.g. a method record's ``layers``)."""
+    o, d = view.texel_rays(resolution)
     depth = _first_hit(scene, view, o, d)
     dr.eval(depth)
     smap = ShadowMap(view=view, resolution=resolution, depth=depth)
-    for name in layers:
-        data = build_layer(scene, smap, name)
-        if name == "second_depth":
-            smap.second_depth = data
-        else:
-            smap.extra[name] = data
+    for name, builder in (layers or {}).items():
+        smap.extra[name] = build_layer(scene, smap, name, builder)
     return smap
 
 
@@ -280,7 +257,7 @@ def build_culled_depth(scene, view, res: int, faces) -> mi.Float:
     """First-surface depth of the ``faces`` of a cube view; +inf in the others.
 
     Only the needed faces' texel rays are traced (gathered out of
-    :meth:`LightView.texel_rays`, traced by :func:`depth_maps._first_hit`,
+    :meth:`LightView.texel_rays`, traced by :func:`_first_hit`,
     scattered back into a full-size array). No face needed: all +inf, no
     ray traced.
     """
@@ -289,7 +266,7 @@ def build_culled_depth(scene, view, res: int, faces) -> mi.Float:
         return dr.full(mi.Float, dr.inf, view.n_faces * n)
     idx = mi.UInt32(np.concatenate([np.arange(f * n, (f + 1) * n, dtype=np.uint32)
                                     for f in range(view.n_faces) if faces[f]]))
-    o, d, _ = view.texel_rays(res)
+    o, d = view.texel_rays(res)
     if dr.width(o) > 1:
         o = dr.gather(mi.Point3f, o, idx)
     d = dr.gather(mi.Vector3f, d, idx)
@@ -308,11 +285,60 @@ def write_exr(smap: ShadowMap, path: str, layer: str = "depth") -> None:
     bmp.write(str(path))
 
 
-def _face_near(scene, smap: ShadowMap) -> mi.Float:
-    """Layer ``pcss_near``: the nearest depth of each face (``n_faces`` entries, one
-    per face, not per texel; ``+inf`` for an empty face): PCSS's per-face near
-    depth for the blocker-search region (:mod:`mi_shadowmap.filters.pcss`)."""
-    return dr.block_reduce(dr.ReduceOp.Min, smap.depth, smap.resolution * smap.resolution)
+# ------------------------------------------------------------- prefiltered layers
+def summed_area_table(layer, n_faces: int, res: int) -> mi.Float64:
+    """Inclusive summed-area table of a per-texel ``layer`` (float64, per face).
+
+    Entry ``(f, j, i)`` (flat ``f*res*res + j*res + i``) holds the sum of the
+    layer over texels ``(i', j')`` of face ``f`` with ``i' <= i`` and
+    ``j' <= j``. Two Dr.Jit prefix sums (rows, then columns) in float64: the
+    box sums of :func:`box_mean` are differences of large sums, which float32
+    would cancel away on large maps. Differentiable (the prefix sums are in
+    the AD graph), so prefiltered moments can carry gradients.
+    """
+    t = mi.TensorXf64(mi.Float64(layer), (n_faces, res, res))
+    t = dr.prefix_reduce(dr.ReduceOp.Add, t, axis=2, exclusive=False)
+    t = dr.prefix_reduce(dr.ReduceOp.Add, t, axis=1, exclusive=False)
+    return t.array
 
 
-LAYER_BUILDERS["pcss_near"] = _face_near
+def _sat_corner(sat, res: int, face, a, b, active):
+    """Integral of the layer over ``[0, a] x [0, b]`` texels of ``face`` for integer
+    corners ``a, b`` in ``[0, res]`` (0 on the lower edges)."""
+    ok = active & (a > 0) & (b > 0)
+    idx = mi.UInt32(face) * (res * res) + mi.UInt32(dr.maximum(b - 1, 0)) * res \
+        + mi.UInt32(dr.maximum(a - 1, 0))
+    return dr.select(ok, dr.gather(mi.Float64, sat, idx, ok), 0.0)
+
+
+def _sat_integral(sat, res: int, face, x, y, active):
+    """Integral over ``[0, x] x [0, y]`` for continuous ``x, y`` in ``[0, res]``: the
+    bilinear interpolation of the corner integrals, exact for a piecewise-constant
+    layer."""
+    a = dr.clip(mi.Int32(dr.floor(x)), 0, res - 1)
+    b = dr.clip(mi.Int32(dr.floor(y)), 0, res - 1)
+    fx = mi.Float64(x - mi.Float(a))
+    fy = mi.Float64(y - mi.Float(b))
+    c00 = _sat_corner(sat, res, face, a, b, active)
+    c10 = _sat_corner(sat, res, face, a + 1, b, active)
+    c01 = _sat_corner(sat, res, face, a, b + 1, active)
+    c11 = _sat_corner(sat, res, face, a + 1, b + 1, active)
+    return dr.lerp(dr.lerp(c00, c10, fx), dr.lerp(c01, c11, fx), fy)
+
+
+def box_mean(sat, res: int, face, lo: mi.Point2f, hi: mi.Point2f, active=True) -> mi.Float64:
+    """Mean of a layer over the box ``[lo, hi]`` of continuous texel coordinates
+    (``uv_light * res``) of ``face``, from its :func:`summed_area_table`: O(1)
+    whatever the box size (16 gathers). The box is clipped to the face and made
+    at least ``1e-3`` texels wide; texels count by their covered fraction."""
+    lo = dr.clip(mi.Point2f(lo), 0.0, float(res))
+    hi = dr.clip(mi.Point2f(hi), 0.0, float(res))
+    hi = dr.maximum(hi, dr.minimum(lo + 1e-3, float(res)))
+    lo = dr.minimum(lo, hi - 1e-3)
+    active = mi.Bool(active)
+    s = (_sat_integral(sat, res, face, hi.x, hi.y, active)
+         - _sat_integral(sat, res, face, lo.x, hi.y, active)
+         - _sat_integral(sat, res, face, hi.x, lo.y, active)
+         + _sat_integral(sat, res, face, lo.x, lo.y, active))
+    area = mi.Float64(hi.x - lo.x) * mi.Float64(hi.y - lo.y)
+    return s / area

@@ -19,10 +19,10 @@ import mitsuba as mi
 
 from . import options as opt_mod
 from .depth_maps import ShadowMap
-from .filters import FILTERS, NEEDS_FOOTPRINT, Lookup, RayTracedLight, shifted_grid_point
+from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import emitter_kind, emitter_label, make_light_view
 from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
-from .map_manager import MAP_CACHE, MapCache, prepare_maps  # noqa: F401  (re-exported)
+from .map_manager import MAP_CACHE, MapCache, MapStats, prepare_maps  # noqa: F401  (re-exported)
 
 
 class ShadowMapIntegratorMixin:
@@ -59,11 +59,10 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         self.views = []
         self.build_seconds = 0.0
         self.resolution = None      # the resolution of the last render's maps
-        self.stats: dict = {}       # see prepare_maps()
+        self.stats = MapStats()     # see map_manager.prepare_maps()
         self._in_render = False
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
-        self._base_views: list = []          # per emitter: LightView or None (check_scene)
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale = dr.opaque(mi.Float, 1.0)
 
@@ -97,7 +96,7 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         prepared = prepare_maps(scene, sensor, self.opts, views)
         self.views, self.maps = prepared.views, prepared.maps
         self.resolution, self.stats = prepared.resolution, prepared.stats
-        self.build_seconds = prepared.stats["build_seconds"]
+        self.build_seconds = prepared.stats.build_seconds
         return self.maps
 
     def check_scene(self, scene):
@@ -127,7 +126,6 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         self._emitter_labels = [
             lab if labels.count(lab) == 1 else str(i) for i, lab in enumerate(labels)]
         self._unshadowed = unshadowed
-        self._base_views = views
         return views
 
     def aov_names(self):
@@ -145,13 +143,14 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         bsdf = si.bsdf(ray)
         ctx = mi.BSDFContext()
         shade = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        if opts.method in NEEDS_FOOTPRINT:
+        record = opts.record
+        if record.needs_footprint:
             dp_dx, dp_dy = self._footprint(ray, si)
         else:
             dp_dx = dp_dy = mi.Vector3f(0.0)
-        vis_fn = FILTERS[opts.method]
+        vis_fn = record.lookup
         aovs = []
-        n_light = opts.shadow_rays if opts.method == "raytraced" else 1
+        n_light = getattr(opts, record.shadow_rays) if record.shadow_rays else 1
         for k, emitter in enumerate(scene.emitters()):
             if k < len(self._unshadowed) and self._unshadowed[k]:
                 smap = None   # environment='unshadowed': no shadows for any method

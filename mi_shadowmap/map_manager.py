@@ -1,18 +1,23 @@
 """The map manager: which depth maps a render needs, built or taken from the cache.
 
 Like Filament's ``ShadowMapManager`` beside its ``ShadowMap``: the
-:mod:`~mi_shadowmap.depth_maps` module builds one map; this module decides,
-for one render, which maps and layers to build -- the resolution (explicit
-or automatic, checked against ``memory_budget`` before anything is
-allocated), cascades, fitted frusta, culled cube faces -- and keeps built
-layers across renders in :data:`MAP_CACHE` (shared by every integrator
-instance) until the scene's geometry or emitters change.
+:mod:`~mi_shadowmap.depth_maps` module builds one map; this module first
+*plans* one render's maps (:func:`plan_maps`: the light views refined for the
+camera, the resolution -- explicit or automatic, checked against
+``memory_budget`` before anything is allocated -- the faces and layers each
+map needs, and what :data:`MAP_CACHE` already holds), then *builds* what is
+missing (:func:`build_maps`), keeping built layers across renders in
+:data:`MAP_CACHE` (shared by every integrator instance) until the scene's
+geometry or emitters change. It never asks what kind of view it holds: the
+views refine themselves (:meth:`~mi_shadowmap.light_views.LightView.refine`,
+``faces_needed``) and the method's record names the layers.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
 import hashlib
+import math
 import time
 
 import numpy as np
@@ -20,11 +25,70 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from .depth_maps import ShadowMap, build_culled_depth, build_depth_map, build_layer
-from .filters import layers_for
-from .light_views import (camera_visible_points, cascaded_view, cube_faces_needed,
-                          emitter_kind, fit_view, footprint_ratio, make_light_view)
-from .options import _BYTES_PER_TEXEL
+from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_depth_map,
+                         build_layer)
+from .light_views import camera_visible_points, emitter_kind, footprint_ratio, make_light_view
+
+
+@dataclasses.dataclass
+class MapStats:
+    """What preparing one render's maps did (``integrator.stats``).
+
+    ``texel_density_gain`` lists, per fitted view (``fit_frusta``), the texel
+    area before / after the fit (None without fitting); ``texels_built``
+    counts every texel ray-cast or computed this render (depth and layers);
+    ``naive_build_seconds`` is what building every layer from scratch took
+    when it was built, so ``naive_build_seconds - build_seconds`` is the
+    time the cache saved. Reads like a dict too (``stats["maps_built"]``).
+    """
+    maps_built: int = 0
+    maps_reused: int = 0
+    faces_built: int = 0
+    faces_culled: int = 0
+    texels_built: int = 0
+    layers_built: int = 0
+    build_seconds: float = 0.0
+    naive_build_seconds: float = 0.0
+    texel_density_gain: list | None = None
+
+    def __getitem__(self, key):
+        if key == "texel_density_gain" and self.texel_density_gain is None:
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __contains__(self, key):
+        return key in self.as_dict()
+
+    def get(self, key, default=None):
+        return self.as_dict().get(key, default)
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        if d["texel_density_gain"] is None:
+            del d["texel_density_gain"]
+        return d
+
+
+@dataclasses.dataclass
+class MapPlan:
+    """The plan of one emitter's map: its view, the faces it needs (None: all), the
+    layers (``{name: builder}``), the cache key and what the cache holds."""
+    view: object
+    faces: tuple | None
+    layers: dict
+    key: tuple
+    cached_depth: tuple | None           # (array, seconds) or None
+    depth_key: object                    # "depth", or ("depth", faces) when culled
+
+
+@dataclasses.dataclass
+class RenderPlan:
+    """:func:`plan_maps`'s answer for one render."""
+    views: list                          # LightView or None, per emitter
+    maps: list                           # MapPlan or None, per emitter
+    resolution: int | None               # per-face resolution (None: no map needed)
+    state: str | None                    # the scene state the cache is keyed by
+    texel_density_gain: list | None
 
 
 @dataclasses.dataclass
@@ -33,48 +97,33 @@ class PreparedMaps:
     views: list            # LightView or None, per emitter
     maps: list             # ShadowMap or None, per emitter
     resolution: int | None  # per-face resolution (None: no map was needed)
-    stats: dict
+    stats: MapStats
 
 
-def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
-    """First pass: one depth map per emitter (None for ``raytraced``).
+def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
+    """Decide one render's maps; nothing is built (the camera-visible points may be
+    traced, one ray per pixel, when a view's refinement needs them).
 
     ``views``: the emitters' light views if the caller already built them
     (the integrator's ``check_scene`` does; None for environment emitters),
-    else they are built here.
+    else they are built here. ``sensor``: default the scene's first; a scene
+    without any sensor takes a 512 x 512 film and skips every
+    camera-dependent step (cascades, culling, fitting, the footprint factor).
 
-    The resolution is ``resolution`` or the automatic one (see
-    :meth:`~mi_shadowmap.options.Options.map_resolution`, from the film of
-    ``sensor``, default the scene's first sensor; a scene without any sensor
-    takes a 512 x 512 film, and a camera-dependent step -- cascades, culling,
-    fitting, the footprint factor -- is then skipped); the memory the maps
-    need is checked against ``memory_budget`` before anything is built.
-    Only the layers the method uses are built (``filters.layers_for(opts)``), and
-    with ``cache_maps`` every layer is taken from :data:`MAP_CACHE` when
-    it holds one for the same scene state, light view and resolution.
-
-    With ``cascades`` > 1 directional views become cascaded ones
-    (:func:`cascaded_view`): the face count (``cascades``) is known before
-    the resolution, which is chosen first from the cascades fitted without
-    margin, then the cascades are fitted again with their margin in texels
-    of that resolution.
-
-    With ``cull_faces`` cube maps build only the faces camera-visible points
-    project into (:func:`cube_faces_needed`; a camera that sees no surface
-    needs none, and the map is all +inf without any ray traced); with ``fit_frusta`` spot and
-    directional views are fitted to the camera-visible receivers
-    (:func:`fit_view`) after the resolution is chosen, so the fit raises
-    the texel density.
-
-    ``stats`` records ``maps_built``, ``maps_reused``, ``faces_built``,
-    ``faces_culled``, ``texel_density_gain`` (per fitted view, texel area
-    before / after), ``texels_built`` (depth and extra layers), ``layers_built``,
-    ``build_seconds`` (spent here) and ``naive_build_seconds`` (what building
-    every layer from scratch took when it was built), whose difference is
-    the time the cache saved.
+    1. The views say whether they read camera-visible points
+       (``cascades``/``fit_frusta``/``cull_faces``) and how many faces they
+       will have.
+    2. The resolution is ``resolution`` or the automatic one
+       (:meth:`~mi_shadowmap.options.Options.map_resolution`, with the
+       footprint of the views as refined without margin); the memory of all
+       faces and layers is checked against ``memory_budget`` here, before
+       anything is allocated.
+    3. The views are refined for that resolution (cascades with their margin in
+       texels, frusta fitted to the visible receivers) and say which faces
+       the camera reads (``cull_faces``).
+    4. The method's record names the layers; the cache is asked for each map.
     """
-    t0 = time.perf_counter()
-    layers = layers_for(opts)
+    record = opts.record
     if not opts.uses_map:
         views = [None] * len(scene.emitters())
     elif views is None:
@@ -82,137 +131,123 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
                  for i, e in enumerate(scene.emitters())]
     else:
         views = list(views)
-    maps = [None] * len(views)
-    stats = dict(maps_built=0, maps_reused=0, faces_built=0, faces_culled=0,
-                 texels_built=0, layers_built=0, naive_build_seconds=0.0)
-    res = None
-    if any(v is not None for v in views):
-        if sensor is None and len(scene.sensors()) > 0:
-            sensor = scene.sensors()[0]
-        cascaded = opts.cascades > 1 and sensor is not None and any(
-            v is not None and v.projection == "orthographic" for v in views)
-        visible = None
-        if (cascaded
-                or (opts.cull_faces and any(v is not None and v.projection == "cube"
-                                            for v in views))
-                or (opts.fit_frusta and any(v is not None and v.n_faces == 1
-                                            for v in views))):
-            visible = camera_visible_points(scene, sensor)
-        film_size = sensor.film().crop_size() if sensor is not None else (512, 512)
-        # The face count is known before the cascades are fitted: `cascades` faces per
-        # directional view (cascaded_view keeps one face when the camera sees nothing).
-        n_faces = [0 if v is None else (opts.cascades if cascaded and len(visible) > 0
-                                        and v.projection == "orthographic" else v.n_faces)
-                   for v in views]
-        face_layers = sum(n_faces) * (1 + len(layers))
-        if cascaded:   # parallel-split maps for directional lights (issue 4)
-            def cascade_all(res_for_margin):
-                return [v if v is None else
-                        cascaded_view(v, scene, sensor, opts.cascades, opts.split_lambda,
-                                      res=res_for_margin, points=visible)
-                        for v in views]
-            if opts.resolution is None:   # the footprint of cascades without margin
-                footprint = footprint_ratio(scene, sensor, cascade_all(None))
-            else:
-                footprint = 1.0
-        else:
-            footprint = footprint_ratio(scene, sensor, views) if opts.resolution is None else 1.0
-        # Raises (naming the memory needed) before any map is allocated.
-        res = opts.map_resolution(film_size, face_layers, footprint)
-        if cascaded:
-            views = cascade_all(res)
-        state = MAP_CACHE.scene_state(scene) if opts.cache_maps else None
-        if opts.fit_frusta:
-            margin = 8.0 + opts.normal_bias_texels
-            stats["texel_density_gain"] = []
-            for k, view in enumerate(views):
-                if view is not None and view.n_faces == 1:
-                    views[k], gain = fit_view(view, visible, margin / res)
-                    stats["texel_density_gain"].append(gain)
-        for k, view in enumerate(views):
-            if view is not None:
-                faces = None
-                if opts.cull_faces and visible is not None and view.projection == "cube":
-                    margin = 2.0 * (4.0 + opts.normal_bias_texels) / res
-                    faces = cube_faces_needed(view, visible, margin)
-                maps[k] = _map_for(scene, view, res, layers, state, stats, faces)
-    dr.sync_thread()
-    stats["build_seconds"] = time.perf_counter() - t0
-    return PreparedMaps(views, maps, res, stats)
+    live = [v for v in views if v is not None]
+    if not live:
+        return RenderPlan(views, [None] * len(views), None, None, None)
+    if sensor is None and len(scene.sensors()) > 0:
+        sensor = scene.sensors()[0]
+    visible = None
+    if sensor is not None and any(v.needs_camera_points(opts) for v in live):
+        visible = camera_visible_points(scene, sensor)
+    film_size = sensor.film().crop_size() if sensor is not None else (512, 512)
+    layer_names = record.layer_names(opts)
+    n_faces = sum(v.planned_faces(opts, visible) for v in live)
+    footprint = 1.0
+    if opts.resolution is None:
+        footprint = footprint_ratio(scene, sensor, [
+            v if v is None else v.refine_for_footprint(opts, scene, sensor, visible)
+            for v in views])
+    # Raises (naming the memory needed) before any map is allocated.
+    cost = 1.0 + sum(record.layer_cost.get(name, 1.0) for name in layer_names)
+    res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint)
+    gains = [] if opts.fit_frusta else None
+    for k, view in enumerate(views):
+        if view is not None:
+            views[k], gain = view.refine(opts, scene, sensor, visible, res)
+            if gain is not None:
+                gains.append(gain)
+    state = MAP_CACHE.scene_state(scene) if opts.cache_maps else None
+    layers = {name: record.layers[name] for name in layer_names}
+    maps = [None if v is None else _plan_one(scene, state, v, res, layers,
+                                             v.faces_needed(opts, visible, res))
+            for v in views]
+    return RenderPlan(views, maps, res, state, gains)
 
-def _map_for(scene, view, res, layers, state, stats, faces=None) -> ShadowMap:
-    """One emitter's map: cached layers where possible, the rest built.
 
-    ``faces``: the cube faces needed (``cull_faces``), None for all. A culled
-    depth is cached under ``("depth", faces)`` and its extra layers under
-    ``(name, faces)`` -- the face set of the depth they were built from -- so a
-    layer is never taken from a depth of another face set (review item 2).
-    No face needed (the camera sees no surface): a map of +inf, nothing traced.
-    """
+def _plan_one(scene, state, view, res, layers, faces) -> MapPlan:
+    """One emitter's plan. A culled depth (``faces``) is cached under
+    ``("depth", faces)`` and its layers under ``(name, faces)`` -- the face set of the
+    depth they were built from -- so a layer is never taken from a depth of another
+    face set; a full cached depth, or a culled one with a superset of the faces,
+    serves any face set."""
     key = (view_fingerprint(view), res)
     cached = MAP_CACHE.get(scene, state, key, "depth") if state is not None else None
     if faces is not None:
         faces = tuple(bool(f) for f in faces)
-        if all(faces) or cached is not None:   # a full depth serves any face set
+        if all(faces) or cached is not None:
             faces = None
-        elif cached is None and state is not None:   # a culled map with enough faces
+        elif state is not None:
             for layer, entry in MAP_CACHE.entries(scene, state, key):
                 if (isinstance(layer, tuple) and layer[0] == "depth"
                         and all(h or not f for h, f in zip(layer[1], faces))):
                     cached, faces = entry, layer[1]
                     break
     depth_key = "depth" if faces is None else ("depth", faces)
+    return MapPlan(view, faces, layers, key, cached, depth_key)
 
-    def layer_key(name):
-        return name if faces is None else (name, faces)
 
-    if cached is None and faces is not None:
+def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
+    """Build what :func:`plan_maps` found missing; returns the maps and their stats."""
+    stats = MapStats(texel_density_gain=plan.texel_density_gain)
+    maps = [None if p is None else _build_one(scene, plan.state, plan.resolution, p, stats)
+            for p in plan.maps]
+    return maps, stats
+
+
+def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
+    view = p.view
+    if p.cached_depth is not None:
+        smap = ShadowMap(view=view, resolution=res, depth=p.cached_depth[0])
+        stats.maps_reused += 1
+        stats.naive_build_seconds += p.cached_depth[1]
+    else:
         t0 = time.perf_counter()
-        smap = ShadowMap(view=view, resolution=res,
-                         depth=build_culled_depth(scene, view, res, faces))
-        dt = time.perf_counter() - t0
-        n_built = sum(faces)
-        stats["maps_built"] += 1
-        stats["faces_built"] += n_built
-        stats["faces_culled"] += view.n_faces - n_built
-        stats["texels_built"] += n_built * res * res
-        stats["naive_build_seconds"] += dt
-        if state is not None:
-            MAP_CACHE.put(scene, state, key, depth_key, smap.depth, dt)
-    elif cached is None:
-        t0 = time.perf_counter()
-        smap = build_depth_map(scene, view, res, () if state is not None else layers)
+        if p.faces is not None:   # no face needed: a map of +inf, nothing traced
+            smap = ShadowMap(view=view, resolution=res,
+                             depth=build_culled_depth(scene, view, res, p.faces))
+            n_built = sum(p.faces)
+        else:
+            smap = build_depth_map(scene, view, res)
+            n_built = view.n_faces
         dr.sync_thread()
         dt = time.perf_counter() - t0
-        stats["maps_built"] += 1
-        stats["faces_built"] += view.n_faces
-        stats["texels_built"] += smap.nbytes // _BYTES_PER_TEXEL   # depth (+ layers if uncached)
-        stats["naive_build_seconds"] += dt
-        if state is None:
-            return smap
-        MAP_CACHE.put(scene, state, key, depth_key, smap.depth, dt)
-    else:
-        smap = ShadowMap(view=view, resolution=res, depth=cached[0])
-        stats["maps_reused"] += 1
-        stats["naive_build_seconds"] += cached[1]
-    for name in layers:
-        entry = (MAP_CACHE.get(scene, state, key, layer_key(name))
-                 if state is not None else None)
+        stats.maps_built += 1
+        stats.faces_built += n_built
+        stats.faces_culled += view.n_faces - n_built
+        stats.texels_built += n_built * res * res
+        stats.naive_build_seconds += dt
+        if state is not None:
+            MAP_CACHE.put(scene, state, p.key, p.depth_key, smap.depth, dt)
+    for name, builder in p.layers.items():
+        layer_key = name if p.faces is None else (name, p.faces)
+        entry = MAP_CACHE.get(scene, state, p.key, layer_key) if state is not None else None
         if entry is None:
             t0 = time.perf_counter()
-            data = build_layer(scene, smap, name)   # raises for an unknown layer
+            data = build_layer(scene, smap, name, builder)
             dr.sync_thread()
             entry = (data, time.perf_counter() - t0)
             if state is not None:
-                MAP_CACHE.put(scene, state, key, layer_key(name), *entry)
-            stats["layers_built"] += 1
-            stats["texels_built"] += dr.width(data)
-        stats["naive_build_seconds"] += entry[1]
-        if name == "second_depth":
-            smap.second_depth = entry[0]
-        else:
-            smap.extra[name] = entry[0]
+                MAP_CACHE.put(scene, state, p.key, layer_key, *entry)
+            stats.layers_built += 1
+            stats.texels_built += dr.width(data)
+        stats.naive_build_seconds += entry[1]
+        smap.extra[name] = entry[0]
     return smap
+
+
+def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
+    """First pass: one depth map per emitter (None for methods without a map and for
+    environment emitters): :func:`plan_maps`, then :func:`build_maps`.
+
+    ``stats`` (a :class:`MapStats`) records what was built and reused, and
+    ``build_seconds``, the time spent here (planning included).
+    """
+    t0 = time.perf_counter()
+    plan = plan_maps(scene, sensor, opts, views)
+    maps, stats = build_maps(scene, plan)
+    dr.sync_thread()
+    stats.build_seconds = time.perf_counter() - t0
+    return PreparedMaps(plan.views, maps, plan.resolution, stats)
 
 
 # ------------------------------------------------------------------ map cache
@@ -243,7 +278,8 @@ def view_fingerprint(view) -> tuple:
             except Exception:
                 pass
         return ("id", id(v))   # e.g. the area light's own shape
-    return tuple((f.name, fp(getattr(view, f.name))) for f in dataclasses.fields(view))
+    return (type(view).__name__,) + tuple((f.name, fp(getattr(view, f.name)))
+                                          for f in dataclasses.fields(view))
 
 
 class MapCache:
@@ -263,7 +299,7 @@ class MapCache:
       :meth:`scene_state`), so an unchanged 63k-triangle mesh costs
       well under a millisecond per render.
     * the *light view* is :func:`view_fingerprint` of the emitter's
-      :class:`~mi_shadowmap.light_views.LightView` (projection, transform,
+      :class:`~mi_shadowmap.light_views.LightView` (its class, transform,
       extents, ...), so anything that moves a frustum (a light, a directional
       light's fit to the scene bounds) also misses the cache.
 
@@ -335,7 +371,7 @@ class MapCache:
         return slot
 
     def entries(self, scene, state, key):
-        """``(layer, entry)`` pairs cached for ``key`` (e.g. culled cube maps)."""
+        """``(layer, entry)`` pairs cached for ``key`` (e.g. culled maps)."""
         slot = self._scenes.get(id(scene))
         if slot is None or slot[0] is not scene or slot[1] != state:
             return []
@@ -365,8 +401,7 @@ class MapCache:
 
     @property
     def nbytes(self) -> int:
-        return sum(_BYTES_PER_TEXEL * dr.width(e[0])
-                   for s in self._scenes.values() for e in s[2].values())
+        return sum(array_nbytes(e[0]) for s in self._scenes.values() for e in s[2].values())
 
     def clear(self) -> None:
         self._scenes.clear()

@@ -1,11 +1,14 @@
 """Parsing and validation of the ``shadowmap`` integrator's properties.
 
-This module is the only place that reads plugin properties. Every property
-is declared once in :data:`PROPERTIES` with its type, default, allowed range
-and the methods that use it; :func:`parse_options` turns a
-``mitsuba.Properties`` (or a plain ``dict``, for Python callers) into a frozen
-:class:`Options` and raises :class:`OptionError` (a ``ValueError``) naming the
-property and the allowed values for anything it does not accept:
+This module is the only place that reads plugin properties. The shared
+properties (``resolution``, the biases, ``cascades``, ...) are declared once
+in :data:`GENERAL_PROPERTIES`; each method's own properties are declared in
+its :class:`~mi_shadowmap.methods.Method` record (:mod:`mi_shadowmap.filters`,
+or a user's :func:`~mi_shadowmap.methods.register_method`).
+:func:`parse_options` turns a ``mitsuba.Properties`` (or a plain ``dict``, for
+Python callers) into a frozen :class:`Options` and raises :class:`OptionError`
+(a ``ValueError``) naming the property and the allowed values for anything it
+does not accept:
 
 * an unknown property name (with the list of valid names),
 * a wrong type (``<string name="resolution" .../>``),
@@ -18,58 +21,27 @@ never the other way round, and booleans are never numbers.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass
 from typing import Any, Iterable
 
-#: Every lookup method, in the order they are documented.
-METHODS = ("raytraced", "hard", "unshadowed", "pcss", "pcf", "bilinear",
-           "second_depth", "mdsm")
-#: Methods that read a depth map.
-MAP_METHODS = tuple(m for m in METHODS if m not in ("raytraced", "unshadowed"))
+from . import methods as _methods
+from .methods import METHODS, MAP_METHODS, Prop  # noqa: F401  (re-exported)
 
 
 class OptionError(ValueError):
     """A property of the ``shadowmap`` integrator was rejected."""
 
 
-@dataclass(frozen=True)
-class Prop:
-    name: str
-    kind: str                     # 'int' | 'float' | 'bool' | 'str' | 'pair'
-    default: Any
-    doc: str
-    lo: float | None = None       # inclusive lower bound
-    hi: float | None = None       # inclusive upper bound
-    lo_open: bool = False         # lower bound is exclusive
-    choices: tuple | None = None
-    methods: tuple | None = None  # None: used by every method
+#: Scopes of the shared properties: used by every method; accepted by every method but
+#: used only by map methods (so one scene file renders with any method); map methods only.
+EVERY, ACCEPTED, MAP = "every", "accepted", "map"
 
-    def describe_range(self) -> str:
-        if self.choices is not None:
-            return "one of " + ", ".join(repr(c) for c in self.choices)
-        parts = []
-        if self.lo is not None:
-            parts.append(("> " if self.lo_open else ">= ") + repr(self.lo))
-        if self.hi is not None:
-            parts.append("<= " + repr(self.hi))
-        return " and ".join(parts) if parts else "any value"
-
-
-_ALL = None
 _BYTES_PER_TEXEL = 4   # float32 depth texels (see depth_maps.ShadowMap.nbytes)
-_PCF = ("pcf",)
-_PCSS = ("pcss",)
-PROPERTIES: tuple[Prop, ...] = (
+#: The properties every method shares (each method's own are in its record).
+GENERAL_PROPERTIES: tuple[Prop, ...] = (
     Prop("method", "str", "hard",
-         "Visibility lookup: 'raytraced' (shadow rays, the ground truth), 'hard' (Williams "
-         "1978), 'unshadowed' (visibility 1: the cost baseline of benchmarks), 'pcf' "
-         "(Reeves et al. 1987 percentage-closer filtering of the pixel footprint), "
-         "'bilinear' (Brabec & Seidel fixed-footprint / bilinear PCF, see 'kernel'), "
-         "'second_depth' (Wang & Molnar 1994), 'mdsm' (Pagot et al. 2004 multiple-depth "
-         "maps), 'pcss' (Fernando 2005 percentage-closer soft shadows).",
-         choices=METHODS),
+         "Visibility lookup: one of the registered methods (see the method table; "
+         "'raytraced' traces shadow rays and is the ground truth)."),
     Prop("resolution", "int", None,
          "Depth-map resolution per map face (texels per side). Default: automatic -- twice "
          "the film's larger side (Reeves et al. 1987 used maps the size of the image up to "
@@ -93,27 +65,22 @@ PROPERTIES: tuple[Prop, ...] = (
          "that needs a new face builds only that face. Renders are identical to full cubes. "
          "Off by default: deciding the faces costs one camera ray per pixel in every render "
          "(measured: a cached-map 512^2 frame of an area light went from ~6 to ~18 ms), which "
-         "only pays off when maps are rebuilt.",
-         methods=MAP_METHODS),
+         "only pays off when maps are rebuilt."),
     Prop("fit_frusta", "bool", False,
          "Spot and directional maps: fit the frustum to the camera-visible receivers inside "
          "it (one camera ray per pixel, plus a margin of texels); every caster of a visible "
          "shadow projects into the same window, so casters are kept. Raises the texel "
          "density where the camera sees a small part of the scene; the maps then depend on "
-         "the camera (a camera change rebuilds them).", methods=MAP_METHODS),
+         "the camera (a camera change rebuilds them)."),
     Prop("bias", "float", None,
          "Constant depth bias in world units. Default: automatic (0 plus the texel-scaled "
-         "slope and normal biases, which are scale-invariant).", lo=0.0,
-         methods=MAP_METHODS),
+         "slope and normal biases, which are scale-invariant).", lo=0.0),
     Prop("slope_bias", "float", None,
          "Slope-scaled depth bias in texels (multiplied by the texel's world size and "
-         "tan(angle to the light)). Default: 1.0 (0 for second_depth).", lo=0.0,
-         methods=MAP_METHODS),
+         "tan(angle to the light)). Default: 1.0 (0 for second_depth).", lo=0.0),
     Prop("normal_bias", "float", None,
          "Offset of the lookup point along the surface normal, in texels. Default: 0.5 "
-         "(0 for second_depth).", lo=0.0, methods=MAP_METHODS),
-    Prop("shadow_rays", "int", 1, "Shadow rays per camera sample per emitter (raytraced).",
-         lo=1, hi=65536, methods=("raytraced",)),
+         "(0 for second_depth).", lo=0.0),
     Prop("hide_emitters", "bool", False, "Hide directly visible emitters."),
     Prop("environment", "str", "error",
          "What to do with environment/constant emitters, which have no finite frustum: "
@@ -121,106 +88,90 @@ PROPERTIES: tuple[Prop, ...] = (
          choices=("error", "unshadowed")),
     Prop("max_tan_slope", "float", 20.0,
          "Clamp of tan(angle between normal and light) in the slope bias.", lo=0.0,
-         lo_open=True, methods=MAP_METHODS),
-    # Reeves et al. 1987 percentage-closer filtering.
-    Prop("num_samples", "int", 16, "Samples of the PCF region (Reeves' NumSamples).",
-         lo=1, hi=4096, methods=_PCF),
-    Prop("min_samples", "int", 2, "Minimum samples per axis (Reeves' MinSamples); at most "
-         "num_samples (the default is min(2, num_samples)).",
-         lo=1, hi=64, methods=_PCF),
-    Prop("res_factor", "float", 1.0, "Scale of the pixel footprint (Reeves' ResFactor).",
-         lo=0.0, lo_open=True, methods=_PCF),
-    Prop("min_size", "float", 1.0, "Minimum region size in texels per axis (Reeves' MinSize).",
-         lo=0.0, methods=_PCF),
-    Prop("sampling", "str", "jitter", "Sample placement in the region (Reeves Fig. 3).",
-         choices=("jitter", "uniform", "gaussian"), methods=_PCF),
-    Prop("bias_range", "pair", None,
-         "Stochastic bias [bias0, bias1] in world units, drawn per sample (Reeves).",
-         lo=0.0, methods=_PCF),
-    Prop("receiver_plane", "bool", True,
-         "Compare each PCF tap against the receiver's tangent plane at that texel instead of "
-         "the shading point's single depth (receiver-plane depth bias; not in Reeves 1987 or "
-         "Brabec & Seidel; false gives their single-depth comparison).",
-         methods=("pcf", "bilinear")),
-    # Brabec & Seidel: fixed-footprint (bilinear / "fast") PCF.
-    Prop("kernel", "int", 2,
-         "Footprint of the fixed-footprint PCF in texels per axis: 1 = one nearest-texel "
-         "compare (exactly 'hard'), 2 = the 2x2 bilinear hardware PCF, k = k x k texels "
-         "(a (k-1) x (k-1) grid of bilinear lookups one texel apart).",
-         lo=1, hi=8, methods=("bilinear",)),
-    # Wang & Molnar 1994 second-depth maps; Pagot, Comba & Oliveira 2004 multiple-depth maps.
-    Prop("pcf_samples", "int", None,
-         "Percentage-closer taps k (PCF(k, n) of Pagot et al.): one compare per texel of the "
-         "sqrt(k) x sqrt(k) texels nearest the lookup point. Default: 9 for mdsm (the paper's "
-         "PCF(9, n)), 4 (2 x 2) for second_depth.",
-         choices=(1, 4, 9, 16, 25), methods=("second_depth", "mdsm")),
-    Prop("virtual_samples", "bool", True,
-         "second_depth: where the neighbourhood compares disagree, compare depths of virtual "
-         "samples on the receiver's tangent plane (Wang & Molnar 1994, sec. 3.2); false keeps "
-         "the plain compares.", methods=("second_depth",)),
-    Prop("depths", "int", 2,
-         "Depths n per cell of the multiple-depth map: 1 = standard map, 2 = plus the maximum, "
-         "3 = plus maximum and minimum over the 'search' neighbourhood (Pagot et al. 2004).",
-         choices=(1, 2, 3), methods=("mdsm",)),
-    Prop("search", "int", 3,
-         "Side (texels) of the square neighbourhood of the base map searched for the extra "
-         "depths of mdsm (q = search^2 samples; the paper's 3 x 3).",
-         choices=(1, 3, 5, 7, 9), methods=("mdsm",)),
-    # Percentage-closer soft shadows (Fernando 2005; thesis 002, sec. 2.1.5 / 4).
-    Prop("blocker_samples", "int", 16, "PCSS blocker-search taps (Fernando's BLOCKER_SEARCH_"
-         "NUM_SAMPLES).", lo=1, hi=4096, methods=_PCSS),
-    Prop("filter_samples", "int", 16, "PCSS filtering (PCF) taps (Fernando's PCF_NUM_SAMPLES).",
-         lo=1, hi=4096, methods=_PCSS),
-    Prop("light_size", "float", None,
-         "Light width in world units for PCSS. Default: derived from an area emitter's shape "
-         "(side of the square of equal projected area, see light_views), 0 for point and "
-         "spot lights (hard shadows); > 0 gives point/spot lights a PCSS penumbra.",
-         lo=0.0, methods=_PCSS),
-    Prop("max_kernel", "float", 64.0,
-         "Largest PCSS blocker-search and filter kernel width, in texels of the map.",
-         lo=1.0, hi=4096.0, methods=_PCSS),
-    Prop("pattern", "str", "stratified",
-         "PCSS tap pattern: 'stratified' (square grid, shifted per camera sample) or 'poisson' "
-         "(a Poisson disk, rotated per camera sample).",
-         choices=("stratified", "poisson"), methods=_PCSS),
-    Prop("angular_diameter", "float", 0.0,
-         "Apparent diameter of a directional light (sun: about 0.53), in degrees; > 0 gives "
-         "directional lights a PCSS penumbra.", lo=0.0, hi=30.0, methods=_PCSS),
-    # Parallel-split / cascaded shadow maps (thesis 002, sec. 2.1.6-2.1.7, 5.1).
+         lo_open=True),
     Prop("cascades", "int", 1,
          "Directional lights: number of parallel-split maps over the camera's view depth "
-         "(each 'resolution' squared, fitted to its slice).", lo=1, hi=4, methods=MAP_METHODS),
+         "(each 'resolution' squared, fitted to its slice).", lo=1, hi=4),
     Prop("split_lambda", "float", 0.5,
          "Weight of the uniform split scheme against the logarithmic one (thesis eq. in "
-         "sec. 5.1: C_i = lambda*C_uni + (1-lambda)*C_log).", lo=0.0, hi=1.0,
-         methods=MAP_METHODS),
+         "sec. 5.1: C_i = lambda*C_uni + (1-lambda)*C_log).", lo=0.0, hi=1.0),
 )
-_BY_NAME = {p.name: p for p in PROPERTIES}
+#: Scope of each shared property (see EVERY, ACCEPTED, MAP).
+SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY,
+          "resolution": ACCEPTED, "memory_budget": ACCEPTED, "cache_maps": ACCEPTED,
+          "cull_faces": MAP, "fit_frusta": MAP, "bias": MAP, "slope_bias": MAP,
+          "normal_bias": MAP, "max_tan_slope": MAP, "cascades": MAP, "split_lambda": MAP}
+_GENERAL = {p.name: p for p in GENERAL_PROPERTIES}
+assert set(SCOPES) == set(_GENERAL)
+_DEFAULT_BIAS = {"slope_bias": 1.0, "normal_bias": 0.5}
 
 
-class _OptionsBase:
-    """Resolved values and helpers shared by every :class:`Options`."""
+class Options:
+    """Validated integrator options: one attribute per property that applies to the
+    method (the shared ones, then the method's own), plus
 
-    # Resolved biases (the automatic defaults are documented in PROPERTIES).
+    * ``given`` -- the names the user set explicitly,
+    * ``record`` -- the method's :class:`~mi_shadowmap.methods.Method`,
+
+    and the resolved values below. Reading a property of another method raises
+    ``AttributeError`` naming it. Frozen; :meth:`replace` returns a new one.
+    """
+    __slots__ = ("_values", "given", "record")
+
+    def __init__(self, values: dict, given: frozenset, record):
+        object.__setattr__(self, "_values", dict(values))
+        object.__setattr__(self, "given", frozenset(given))
+        object.__setattr__(self, "record", record)
+
+    def __getattr__(self, name):
+        values = object.__getattribute__(self, "_values")
+        try:
+            return values[name]
+        except KeyError:
+            raise AttributeError(f"shadowmap: property '{name}' does not apply to method "
+                                 f"'{values.get('method')}'") from None
+
+    def __setattr__(self, name, value):
+        raise AttributeError("Options are frozen; use Options.replace(...)")
+
+    def __eq__(self, other):
+        return (isinstance(other, Options) and self._values == other._values
+                and self.given == other.given)
+
+    def __hash__(self):
+        return hash((tuple(sorted((k, repr(v)) for k, v in self._values.items())),
+                     self.given))
+
+    def __repr__(self):
+        return "Options(" + ", ".join(f"{k}={v!r}" for k, v in self._values.items()) + ")"
+
+    def as_dict(self) -> dict:
+        """Every property value (defaults filled in)."""
+        return dict(self._values)
+
+    # Resolved biases (the automatic defaults are documented in GENERAL_PROPERTIES and
+    # in the method's record).
     @property
     def bias_world(self) -> float:
         return 0.0 if self.bias is None else self.bias
 
+    def _texel_bias(self, name: str) -> float:
+        value = self._values.get(name)
+        if value is not None:
+            return value
+        return self.record.bias_defaults.get(name, _DEFAULT_BIAS[name])
+
     @property
     def slope_bias_texels(self) -> float:
-        if self.slope_bias is not None:
-            return self.slope_bias
-        return 0.0 if self.method == "second_depth" else 1.0
+        return self._texel_bias("slope_bias")
 
     @property
     def normal_bias_texels(self) -> float:
-        if self.normal_bias is not None:
-            return self.normal_bias
-        return 0.0 if self.method == "second_depth" else 0.5
+        return self._texel_bias("normal_bias")
 
     @property
     def uses_map(self) -> bool:
-        return self.method in MAP_METHODS
+        return self.record.uses_map
 
     @property
     def budget_bytes(self) -> int:
@@ -268,15 +219,6 @@ class _OptionsBase:
 
     def replace(self, **changes) -> "Options":
         return parse_options({**{k: getattr(self, k) for k in self.given}, **changes})
-
-
-#: Validated integrator options: one attribute per entry of PROPERTIES, plus
-#: ``given`` (the names the user set explicitly).
-Options = dataclasses.make_dataclass(
-    "Options",
-    [(p.name, Any, dataclasses.field(default=p.default)) for p in PROPERTIES]
-    + [("given", frozenset, dataclasses.field(default=frozenset()))],
-    bases=(_OptionsBase,), frozen=True)
 
 
 def _fmt_bytes(n: int) -> str:
@@ -358,6 +300,11 @@ def _check_range(prop: Prop, value: float) -> None:
                           f"it must be {prop.describe_range()}")
 
 
+def known_names() -> set:
+    """Every property name any registered method accepts (shared and own)."""
+    return set(_GENERAL) | {p.name for m in _methods.records() for p in m.properties}
+
+
 def _read_raw(props: Any) -> dict:
     """Read the raw values from a mitsuba.Properties or a dict.
 
@@ -367,71 +314,112 @@ def _read_raw(props: Any) -> dict:
     """
     if isinstance(props, dict):
         return dict(props)
-    keys = list(props.keys())
-    raw = {}
-    for k in keys:
-        if k in _BY_NAME:
-            raw[k] = props[k]
-        else:
-            raw[k] = _UNKNOWN
-    return raw
+    known = known_names()
+    return {k: (props[k] if k in known else _UNKNOWN) for k in props.keys()}
 
 
 _UNKNOWN = object()
+
+
+def applies(record, name: str) -> bool:
+    """Whether property ``name`` is accepted by the method of ``record``."""
+    if name in _GENERAL:
+        return SCOPES[name] != MAP or record.uses_map
+    return record.property(name) is not None
+
+
+def properties_for(method: str) -> list:
+    """The properties that apply to ``method``: the shared ones it accepts, then its own."""
+    record = _methods.get(method)
+    return [p for p in GENERAL_PROPERTIES if applies(record, p.name)] + list(record.properties)
+
+
+def methods_using(name: str) -> tuple:
+    """The names of the methods that accept property ``name``."""
+    return tuple(m.name for m in _methods.records() if applies(m, name))
+
+
+def all_properties() -> list:
+    """Every property, once per name: the shared ones, then each method's own (a name
+    declared by two methods appears with the first one's record)."""
+    out = {p.name: p for p in GENERAL_PROPERTIES}
+    for m in _methods.records():
+        for p in m.properties:
+            out.setdefault(p.name, p)
+    return list(out.values())
+
+
+def _method_of(raw: dict):
+    """The record of the requested method (validated first: the other checks need it)."""
+    value = raw.get("method", _GENERAL["method"].default)
+    if value is None:
+        raise OptionError("shadowmap: property 'method' has no automatic value; give one of "
+                          + ", ".join(METHODS) + " or leave it out")
+    if not isinstance(value, str):
+        raise OptionError(f"shadowmap: property 'method' must be a string (one of "
+                          f"{', '.join(repr(m) for m in METHODS)}), got "
+                          f"{_type_name(value)} {value!r}")
+    return _methods.get(value)   # raises, listing the valid methods
 
 
 def parse_options(props: Any) -> Options:
     """Validate integrator properties (``mi.Properties`` or ``dict``)."""
     raw = _read_raw(props)
     raw.pop("type", None)
-    unknown = sorted(k for k in raw if k not in _BY_NAME)
+    known = known_names()
+    unknown = sorted(k for k in raw if k not in known)
     if unknown:
         raise OptionError(
             "shadowmap: unknown property " + ", ".join(repr(u) for u in unknown)
-            + "; valid properties: " + ", ".join(sorted(_BY_NAME)))
+            + "; valid properties: " + ", ".join(sorted(known)))
+    record = _method_of(raw)
+    own = {p.name: p for p in properties_for(record.name)}
     values = {}
     for name, value in raw.items():
+        if name not in own:
+            raise OptionError(
+                f"shadowmap: property '{name}' is not used by method '{record.name}' "
+                f"(it is used by: {', '.join(methods_using(name))})")
+        prop = own[name]
         if value is None:
             # Python callers may pass None for an automatic default, and only there.
-            if _BY_NAME[name].default is None:
+            if prop.default is None:
                 continue
             raise OptionError(f"shadowmap: property '{name}' has no automatic value; give "
-                              f"{_BY_NAME[name].describe_range()} or leave it out")
-        values[name] = _convert(_BY_NAME[name], value)
-    method = values.get("method", _BY_NAME["method"].default)
-    for name in values:
-        methods = _BY_NAME[name].methods
-        if methods is not None and method not in methods:
-            raise OptionError(
-                f"shadowmap: property '{name}' is not used by method '{method}' "
-                f"(it is used by: {', '.join(methods)})")
+                              f"{prop.describe_range()} or leave it out")
+        values[name] = _convert(prop, value)
     given = frozenset(values)
-    n_max = values.get("num_samples", _BY_NAME["num_samples"].default)
-    if "min_samples" in values:
-        if values["min_samples"] > n_max:   # Reeves' CLAMP(n, MinSamples, NumSamples)
-            raise OptionError(f"shadowmap: property 'min_samples' = {values['min_samples']} "
-                              f"must be <= 'num_samples' = {n_max}")
-    elif method == "pcf":   # the default MinSamples (2) never exceeds NumSamples
-        values["min_samples"] = min(_BY_NAME["min_samples"].default, n_max)
+    values = {**{name: p.default for name, p in own.items()}, **values}
+    if record.finalize is not None:
+        record.finalize(values, given)
     res = values.get("resolution")
-    budget = values.get("memory_budget", _BY_NAME["memory_budget"].default)
+    budget = values["memory_budget"]
     if res is not None and res * res * _BYTES_PER_TEXEL > budget * 2**20:
         raise OptionError(   # one face already exceeds the budget: refuse at load time
             f"shadowmap: property 'resolution' = {res} would need at least "
             f"{_fmt_bytes(res * res * _BYTES_PER_TEXEL)} per map face, more than "
             f"memory_budget = {budget:g} MiB; lower 'resolution' or raise 'memory_budget'")
-    return Options(**values, given=given)
+    return Options(values, given, record)
 
 
-def properties_for(method: str) -> Iterable[Prop]:
-    """The properties that apply to `method`."""
-    return [p for p in PROPERTIES if p.methods is None or method in p.methods]
+def _row(p: Prop, where: str) -> str:
+    return ("   * - " + p.name + "\n     - |" + p.kind + "|\n     - " + p.doc
+            + f" (default: {p.default!r}; {p.describe_range()}{where})")
 
 
 def docs_table() -> str:
-    """A Mitsuba-style parameter table for the integrator docstring."""
-    rows = ["   * - " + p.name + "\n     - |" + p.kind + "|\n     - " + p.doc
-            + f" (default: {p.default!r}; {p.describe_range()}"
-            + (f"; methods: {', '.join(p.methods)}" if p.methods else "") + ")"
-            for p in PROPERTIES]
+    """A Mitsuba-style parameter table (the shared properties, then each method's own),
+    generated from :data:`GENERAL_PROPERTIES` and the method records."""
+    rows = [_row(p, "" if SCOPES[p.name] == EVERY else "; map methods")
+            for p in GENERAL_PROPERTIES]
+    rows += [_row(p, f"; method: {m.name}") for m in _methods.records() for p in m.properties]
     return ".. list-table::\n   :widths: 20 15 65\n\n" + "\n".join(rows)
+
+
+def methods_table() -> str:
+    """A Markdown table of the registered methods (name, summary, own properties)."""
+    lines = ["| method | what | its properties |", "|---|---|---|"]
+    for m in _methods.records():
+        own = ", ".join(f"`{p.name}`" for p in m.properties) or "-"
+        lines.append(f"| `{m.name}` | {m.summary} | {own} |")
+    return "\n".join(lines)

@@ -1,7 +1,7 @@
 """Shadow rays whose self-intersection offset is relative to the scene (any scale).
 
 :func:`spawn_shadow_ray` replaces Mitsuba's ``si.spawn_ray_to(p)`` in the
-ground truth (:func:`mi_shadowmap.filters.basic.raytraced`) and in the
+ground truth (:func:`mi_shadowmap.filters.raytraced.raytraced`) and in the
 converged soft-shadow reference (:mod:`mi_shadowmap.reference`).
 
 Why not Mitsuba's ray

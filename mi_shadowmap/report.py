@@ -9,18 +9,20 @@
 * :func:`write_sweep` -- the outputs of :func:`mi_shadowmap.harness.sweep`:
   ``sweep.csv``, ``sweep.json``, ``pareto.png``.
 * :func:`write_maps` -- every depth-map layer of every emitter as one EXR per
-  emitter (faces stacked vertically, one channel per layer).
+  emitter (faces stacked vertically, one channel per layer; layers of a few
+  values per map as header attributes).
+
+The CSV/JSON tables are written by :mod:`mi_shadowmap.tables`, the module the
+harness formats its text tables with.
 """
 from __future__ import annotations
 
-import csv
-import json
 import math
 import os
 
 import numpy as np
 
-from .harness import jsonable, safe_name
+from .tables import safe_name, write_tables
 
 
 # --------------------------------------------------------------------------- files
@@ -36,11 +38,14 @@ def check_out_dir(out_dir: str) -> str:
     return out_dir
 
 
-def write_exr(path: str, channels: dict) -> None:
-    """Write float32 channels (``name -> (H, W)``) to one scanline EXR via OpenEXR."""
+def write_exr(path: str, channels: dict, attributes: dict | None = None) -> None:
+    """Write float32 channels (``name -> (H, W)``) to one scanline EXR via OpenEXR;
+    ``attributes`` (``name -> float32 array``) go into its header as float vectors."""
     import OpenEXR
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update({k: np.ascontiguousarray(v, dtype=np.float32).ravel()
+                   for k, v in (attributes or {}).items()})
     with OpenEXR.File(header, data) as f:
         f.write(path)
 
@@ -50,6 +55,13 @@ def read_exr(path: str) -> dict:
     import OpenEXR
     with OpenEXR.File(path, separate_channels=True) as f:
         return {k: np.array(v.pixels) for k, v in f.channels().items()}
+
+
+def read_exr_header(path: str) -> dict:
+    """The header attributes of an EXR (e.g. the small map layers of :func:`write_maps`)."""
+    import OpenEXR
+    with OpenEXR.File(path) as f:
+        return dict(f.header())
 
 
 def tonemap(img: np.ndarray) -> np.ndarray:
@@ -107,20 +119,6 @@ def write_results(results, out_dir: str) -> dict:
     written["png"].append(pareto)
     written["table"] += write_tables(rows, out_dir, "metrics")
     return written
-
-
-def write_tables(rows: list[dict], out_dir: str, stem: str) -> list[str]:
-    """``<stem>.csv`` and ``<stem>.json`` from a list of flat dicts."""
-    keys = list(dict.fromkeys(k for row in rows for k in row))
-    csv_path = os.path.join(out_dir, stem + ".csv")
-    with open(csv_path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    json_path = os.path.join(out_dir, stem + ".json")
-    with open(json_path, "w") as f:
-        json.dump([{k: jsonable(v) for k, v in row.items()} for row in rows], f, indent=2)
-    return [csv_path, json_path]
 
 
 def contact_sheet(results, path: str | None = None, max_cols: int = 6):
@@ -235,17 +233,39 @@ def write_sweep(table, out_dir: str) -> dict:
 
 
 # --------------------------------------------------------------------------- maps
+def map_layer_image(smap, layer: str) -> np.ndarray | None:
+    """Layer ``layer`` of ``smap`` as an ``(n_faces * res, res)`` image, faces stacked
+    vertically: a layer of one value per texel as it is, a layer of one value per
+    face (e.g. ``pcss_near``) filling its face. None for a layer of any other size
+    (e.g. a few constants per map), which is no image."""
+    data = np.asarray((smap.depth if layer == "depth" else smap.extra[layer]).numpy(),
+                      dtype=np.float32).ravel()
+    n_faces, res = smap.view.n_faces, smap.resolution
+    if data.size == n_faces and data.size != n_faces * res * res:
+        data = np.repeat(data, res * res)
+    if data.size != n_faces * res * res:
+        return None
+    return data.reshape(-1, res)
+
+
 def write_maps(maps, out_dir: str) -> list[str]:
     """One EXR per emitter: every layer of its :class:`ShadowMap` as a channel
-    (``depth.Y``, ``second_depth.Y``, ``<extra>.Y``), faces stacked vertically."""
+    (``depth.Y``, ``second_depth.Y``, ``<extra>.Y``), faces stacked vertically
+    (see :func:`map_layer_image`); a layer that is no image (a few values per map)
+    as a float-vector attribute of the header named after it (:func:`read_exr_header`)."""
     check_out_dir(out_dir)
     paths = []
     for smap in maps:
         if smap is None:
             continue
-        ch = {f"{layer}.Y": smap.to_numpy(layer).reshape(-1, smap.resolution)
-              for layer in smap.layers()}
+        ch, attributes = {}, {}
+        for layer in smap.layers():
+            image = map_layer_image(smap, layer)
+            if image is not None:
+                ch[f"{layer}.Y"] = image
+            else:
+                attributes[layer] = np.asarray(smap.extra[layer].numpy(), np.float32)
         path = os.path.join(out_dir, f"{safe_name(smap.view.label)}.exr")
-        write_exr(path, ch)
+        write_exr(path, ch, attributes)
         paths.append(path)
     return paths

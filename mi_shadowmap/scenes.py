@@ -5,9 +5,13 @@ and a box on a ground plane under a spot light (the same layout as
 ``scenes_xml/spot_sphere_box.xml``). Every builder takes a uniform ``scale``
 applied to geometry, lights and camera together (light intensities are
 scaled by ``scale**2`` so the image stays the same), which the scale
-invariance tests use.
+invariance tests use. :func:`load_scene` turns any scene argument of the
+harness (a loaded scene, a dict, an XML path with ``$`` parameters) into an
+``mi.Scene``.
 """
 from __future__ import annotations
+
+import os
 
 import mitsuba as mi
 
@@ -28,6 +32,32 @@ def camera(origin, target, width, height, spp, fov=40.0, scale=1.0) -> dict:
         "film": {"type": "hdrfilm", "width": width, "height": height,
                  "rfilter": {"type": "box"}},
     }
+
+
+def load_scene(scene, **xml_params) -> mi.Scene:
+    """An ``mi.Scene`` from a loaded scene, a scene dict, or an XML path.
+
+    ``xml_params`` fill the file's ``$name`` parameters (e.g. ``width=64``);
+    a parameter the file does not declare is an error naming it.
+    """
+    if isinstance(scene, mi.Scene):
+        if xml_params:
+            raise ValueError("scene parameters (" + ", ".join(xml_params)
+                             + ") apply to XML files only, not to a loaded scene")
+        return scene
+    if isinstance(scene, dict):
+        return mi.load_dict(scene)
+    path = os.fspath(scene)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"scene file not found: {path}")
+    with open(path, encoding="utf-8", errors="replace") as f:
+        text = f.read()
+    missing = [k for k in xml_params if f"${k}" not in text]
+    if missing:
+        raise ValueError(f"scene file {path} has no parameter "
+                         + ", ".join(f"${k}" for k in missing)
+                         + " (declare <default name=... value=.../> to make it settable)")
+    return mi.load_file(path, **{k: str(v) for k, v in xml_params.items()})
 
 
 def _diffuse(r, g, b):

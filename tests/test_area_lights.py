@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowmap.light_views import area_light_size, make_light_view
+from mi_shadowmap.light_views import CubeView, area_light_size, make_light_view
 from mi_shadowmap.reference import converged_visibility, light_sample_pattern
 
 from conftest import SCENES, relative_rmse, render_np
@@ -32,10 +32,10 @@ def _emitter_scene(shape: dict) -> mi.Scene:
 def test_light_size_derived_from_shape(shape, expected):
     scene = _emitter_scene(shape)
     view = make_light_view(scene.emitters()[0], scene, 0)
-    assert view.projection == "cube" and view.n_faces == 6
+    assert isinstance(view, CubeView) and view.n_faces == 6
     assert view.light_size == pytest.approx(expected, rel=1e-4)
     planar = shape["type"] in ("rectangle", "disk")
-    assert ("light_normal" in view.extra) == planar   # one-sided planar lights only
+    assert (view.light_normal is not None) == planar   # one-sided planar lights only
 
 
 def test_mesh_light_size_and_centre():
@@ -45,7 +45,7 @@ def test_mesh_light_size_and_centre():
     assert view.light_size == pytest.approx(0.5, rel=1e-5)
     assert np.allclose(list(view.position), [0.0, 1.98, 0.0], atol=1e-6)
     assert view.ignore_shape is not None
-    assert view.extra["light_normal"] == pytest.approx((0.0, -1.0, 0.0), abs=1e-6)
+    assert view.light_normal == pytest.approx((0.0, -1.0, 0.0), abs=1e-6)
 
 
 def test_light_size_property_overrides_derived_size():

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 import mi_shadowmap.map_manager as mm_mod
-from mi_shadowmap.filters import layers_for
 from mi_shadowmap.map_manager import MAP_CACHE, MapCache
 from mi_shadowmap.options import MAP_METHODS, parse_options
 from mi_shadowmap.scenes import default_scene
@@ -17,6 +16,12 @@ from conftest import SCENE_FILES
 
 RES = 64
 MAP_READY = list(MAP_METHODS)
+
+
+def layer_names(method):
+    """The layers a render of ``method`` at its defaults builds (from its record)."""
+    opts = parse_options({"method": method})
+    return opts.record.layer_names(opts)
 
 
 @pytest.fixture
@@ -67,7 +72,7 @@ def test_filter_parameter_change_reuses_maps(builds, method):
     first = shadowmap(method=method)
     render(scene, first)
     assert first.stats["maps_built"] == 1
-    assert first.stats["layers_built"] == len(layers_for(parse_options({"method": method})))
+    assert first.stats["layers_built"] == len(layer_names(method))
     for change in ({"slope_bias": 2.5}, {"normal_bias": 0.0}, {"bias": 1e-3}):
         integ = shadowmap(method=method, **change)
         render(scene, integ)
@@ -83,8 +88,7 @@ def test_methods_share_the_depth_layer(builds):
         integ = shadowmap(method=method)
         render(scene, integ)
         # extra depths only for the methods that use them, even when cached
-        assert integ.maps[0].layers() == ["depth"] + [
-            "second_depth" if n == "second_depth" else n for n in layers_for(parse_options({"method": method}))]
+        assert integ.maps[0].layers() == ["depth"] + list(layer_names(method))
     assert len(builds) == 1
     hard = shadowmap(method="hard")
     render(scene, hard)
@@ -229,7 +233,7 @@ def test_cull_faces_builds_new_faces_when_the_camera_needs_them(builds, method):
     img = render(scene, integ)
     assert integ.stats["maps_built"] == 1 and integ.stats["faces_built"] >= 1
     print(f"faces built: {first} for the first view, {integ.stats['faces_built']} for the new one")
-    assert integ.stats["layers_built"] == len(layers_for(parse_options({"method": method})))
+    assert integ.stats["layers_built"] == len(layer_names(method))
     np.testing.assert_array_equal(img, render(scene, shadowmap(method=method,
                                                                cache_maps=False)))
 

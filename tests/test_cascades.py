@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowmap.light_views import split_depths
+from mi_shadowmap.light_views import CascadedView, split_depths
 from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.options import OptionError, parse_options
 
@@ -62,16 +62,16 @@ def test_cascades_are_fitted_and_selected_by_view_depth(ground):
                           "cascades": 4, "split_lambda": 0.5})
     mi.render(ground, integrator=integ, spp=1)
     view = integ.views[0]
-    assert view.projection == "cascaded" and view.n_faces == 4
+    assert isinstance(view, CascadedView) and view.n_faces == 4
     assert integ.maps[0].to_numpy().shape == (4, 64, 64)
-    splits = view.extra["split_depths"]
+    splits = view.split_depths
     assert len(splits) == 5 and all(a < b for a, b in zip(splits, splits[1:]))
     # nearer slices are smaller: finer texels where the camera is close
-    sizes = [max(r[2], r[3]) for r in view.extra["cascade_rects"]]
+    sizes = [max(r[2], r[3]) for r in view.rects]
     assert all(a < b for a, b in zip(sizes, sizes[1:]))
     # points at view depths inside slice i use cascade i
-    o = np.array(view.extra["camera_origin"])
-    f = np.array(view.extra["camera_forward"])
+    o = np.array(view.camera_origin)
+    f = np.array(view.camera_forward)
     mids = [0.5 * (a + b) for a, b in zip(splits, splits[1:])]
     pts = np.array([o + f * z for z in mids])
     face = view.cascade_of(mi.Point3f(pts[:, 0], pts[:, 1], pts[:, 2])).numpy()
@@ -137,12 +137,12 @@ def test_cascade_margin_uses_the_real_resolution(ground):
     from mi_shadowmap.light_views import cascaded_view, make_light_view
     sensor = ground.sensors()[0]
     base = make_light_view(ground.emitters()[0], ground, 0)
-    raw = cascaded_view(base, ground, sensor, 4, 0.5, res=None).extra["cascade_rects"]
+    raw = cascaded_view(base, ground, sensor, 4, 0.5, res=None).rects
     for res in (32, 256):
         integ = mi.load_dict({"type": "shadowmap", "method": "hard", "resolution": res,
                               "cascades": 4, "split_lambda": 0.5})
         mi.render(ground, integrator=integ, spp=1)
-        rects = integ.views[0].extra["cascade_rects"]
+        rects = integ.views[0].rects
         g = 2.0 * 4.0 / res
         for r, q in zip(rects, raw):
             assert r[:2] == pytest.approx(q[:2], rel=1e-6, abs=1e-9)
@@ -162,7 +162,7 @@ def test_automatic_resolution_sees_cascaded_lights():
     sensor = scene.sensors()[0]
     base = make_light_view(scene.emitters()[0], scene, 0)
     cas = cascaded_view(base, scene, sensor, 4, 0.5, res=None)
-    w = max(max(r[2], r[3]) for r in cas.extra["cascade_rects"])
+    w = max(max(r[2], r[3]) for r in cas.rects)
     ortho = dataclasses.replace(base, half_extent=(w, w))
     f = footprint_ratio(scene, sensor, [cas])
     assert f == pytest.approx(footprint_ratio(scene, sensor, [ortho]), rel=1e-9)

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from mi_shadowmap import cli, harness
-from mi_shadowmap.report import read_exr
+from mi_shadowmap import cli, harness, methods, options
+from mi_shadowmap.report import read_exr, read_exr_header
 
 from conftest import SCENES
 
@@ -66,6 +66,10 @@ def test_no_command_runs_compare_on_xml(tmp_path, capsys):
     (["sweep", "--grid", "{bad json"], "JSON"),
     (["sweep", "--grid", "missing.json"], "not found"),
     (["maps", "--methods", "nope"], "nope"),
+    (["maps", "--methods", "raytraced"], "no depth map"),
+    (["compare", "--plugin", "/no/such/plugin.py"], "plugin file not found"),
+    (["--plugin", "/no/such/plugin.py", "sweep"], "/no/such/plugin.py"),
+    (["maps", "--plugin"], "--plugin"),
     (["sweep", "--grid", "method=hard", "--set", "shadow_rays=4"], "shadow_rays"),
     (["sweep", "--grid", "[1, 2]"], "dict"),
     (["sweep", "--error", "img_psnr"], "img_psnr"),        # higher-is-better: not a choice
@@ -155,19 +159,49 @@ def test_help_via_entry_point():
 
 
 def test_maps_default_scene_every_layer(tmp_path, capsys):
-    """Without --methods every layer any map method uses is exported; the second
-    surface is never in front of the first (equal, to rounding, on open surfaces,
-    which are their own second surface)."""
-    from mi_shadowmap.filters import LAYERS
-    from mi_shadowmap.options import MAP_METHODS
+    """Without --methods every layer any map method uses (with default properties) is
+    exported; the second surface is never in front of the first (equal, to rounding,
+    on open surfaces, which are their own second surface)."""
     code, out, err = run(["maps", "--set", "resolution=32", "--out", tmp_path], capsys)
     assert code == 0, err
     ch = read_exr(str(tmp_path / "spot.exr"))
-    layers = {"depth"} | {layer for m in harness.available_methods() if m in MAP_METHODS
-                          for layer in LAYERS.get(m, ())}
-    assert set(ch) == {f"{layer}.Y" for layer in layers}
+    header = read_exr_header(str(tmp_path / "spot.exr"))
+    layers = {"depth"} | {layer for m in methods.records() if m.uses_map for layer in
+                          m.layer_names(options.parse_options({"method": m.name}))}
+    # images as channels, the few-values-per-map layers as header attributes
+    assert {c[:-len(".Y")] for c in ch} | (layers & set(header)) == layers
+    assert "depth.Y" in ch and all(c.shape == (32, 32) for c in ch.values())
     assert ch["depth.Y"].shape == (32, 32)
     if "second_depth.Y" in ch:
         d, d2 = ch["depth.Y"], ch["second_depth.Y"]
         ok = np.isfinite(d)
         assert ok.any() and np.all(d2[ok] >= d[ok] * (1 - 1e-5))
+
+
+def test_maps_only_the_chosen_methods_layers(tmp_path, capsys):
+    code, out, err = run(["maps", "--methods", "hard", "--set", "resolution=16",
+                          "--out", tmp_path], capsys)
+    assert code == 0, err
+    assert set(read_exr(str(tmp_path / "spot.exr"))) == {"depth.Y"}
+    assert "spot" in out and "16^2" in out
+
+
+def test_broken_plugin_is_one_line(tmp_path, capsys):
+    plugin = tmp_path / "broken.py"
+    plugin.write_text("import mi_shadowmap\nmi_shadowmap.register_method('Bad Name', len)\n")
+    code, out, err = run(["compare", "--plugin", plugin, "--out", tmp_path / "never"], capsys)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and str(plugin) in lines[0] and "Bad Name" in lines[0]
+    assert "Traceback" not in err and not (tmp_path / "never").exists()
+    plugin.write_text("def broken(:\n")
+    code, out, err = run(["maps", "--plugin", plugin], capsys)
+    assert code == 2 and "SyntaxError" in err and len(err.strip().splitlines()) == 1
+
+
+def test_plugin_in_help():
+    p = subprocess.run([sys.executable, "-m", "mi_shadowmap.cli", "compare", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "--plugin" in p.stdout
+    for name in harness.available_methods():   # the choices come from the registry
+        assert name in p.stdout

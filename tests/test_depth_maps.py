@@ -145,7 +145,7 @@ def test_projection_inverts_texel_rays():
                           "lamp": {"type": "point", "position": [0.5, 0.2, -0.3]}})
     view = make_light_view(scene.emitters()[0], scene, 0)
     smap = build_depth_map(scene, view, 32)
-    o, d, _ = view.texel_rays(32)
+    o, d = view.texel_rays(32)
     face, uv, depth, inside = view.project(o + d * smap.depth)
     assert dr.all(inside)
     assert dr.all(smap.texel_index(face, uv) == dr.arange(mi.UInt32, 6 * 32 * 32))

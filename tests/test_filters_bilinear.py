@@ -11,9 +11,9 @@ import pytest
 from conftest import SCENE_FILES, render_np, vis_stack
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
-from mi_shadowmap.filters import FILTERS
+from mi_shadowmap import methods
 from mi_shadowmap.filters.common import Lookup
-from mi_shadowmap.light_views import LightView
+from mi_shadowmap.light_views import OrthoView
 from mi_shadowmap.options import OptionError, parse_options
 
 RES = 64
@@ -23,7 +23,7 @@ KERNELS = (2, 3, 4, 5, 8)
 
 def ortho_map(depth: np.ndarray) -> ShadowMap:
     """Orthographic map over [-1, 1]^2 looking along +z; depth[j, i] (row j = v)."""
-    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0),
                      mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="unit")
     return ShadowMap(view, depth.shape[0], mi.Float(np.asarray(depth, np.float32).ravel()))
 
@@ -45,7 +45,7 @@ def lookup(x, y=None, z=2.0):
 
 def vis(method, smap, lk, **props):
     opts = parse_options({"method": method, **props})
-    return np.asarray(FILTERS[method](smap, lk, opts, mi.Bool(True)).numpy(), np.float64)
+    return np.asarray(methods.get(method).lookup(smap, lk, opts, mi.Bool(True)).numpy(), np.float64)
 
 
 # --------------------------------------------------------------- hand-made edge
@@ -181,7 +181,7 @@ def test_one_kernel_for_the_largest_footprint():
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
         dr.kernel_history()                          # clear
-        v = FILTERS["bilinear"](smap, lk, parse_options({"method": "bilinear", "kernel": 8}),
+        v = methods.get("bilinear").lookup(smap, lk, parse_options({"method": "bilinear", "kernel": 8}),
                                 mi.Bool(True))
         dr.eval(v)
         dr.sync_thread()

@@ -14,9 +14,10 @@ import pytest
 from conftest import SCENE_FILES, render_np, vis_stack
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
-from mi_shadowmap.filters import FILTERS, NEEDS_FOOTPRINT
-from mi_shadowmap.filters.common import Lookup, reeves_sample_counts
-from mi_shadowmap.light_views import LightView
+from mi_shadowmap import methods
+from mi_shadowmap.filters.common import Lookup
+from mi_shadowmap.filters.pcf import reeves_sample_counts
+from mi_shadowmap.light_views import CascadedView, CubeView, OrthoView
 from mi_shadowmap.options import OptionError, parse_options
 
 RES = 64
@@ -27,7 +28,7 @@ SAMPLINGS = ("jitter", "uniform", "gaussian")
 def ortho_map(depth: np.ndarray) -> ShadowMap:
     """Orthographic map over [-1, 1]^2 looking along +z; depth[j, i] (row j = v)."""
     res = depth.shape[0]
-    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0),
                      mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="unit")
     return ShadowMap(view, res, mi.Float(np.asarray(depth, np.float32).ravel()))
 
@@ -53,7 +54,7 @@ def lookup(x, y=0.01, z=2.0, footprint=4.0, seed=0, n=(0.0, 0.0, -1.0)):
 
 def pcf_vis(smap, lk, **props):
     opts = parse_options({"method": "pcf", **props})
-    v = FILTERS["pcf"](smap, lk, opts, mi.Bool(True))
+    v = methods.get("pcf").lookup(smap, lk, opts, mi.Bool(True))
     return np.asarray(v.numpy(), np.float64)
 
 
@@ -177,8 +178,7 @@ def test_receiver_plane_removes_self_shadowing_of_a_slope():
 
 def test_cube_taps_continue_on_the_neighbouring_face():
     """A point light whose +y face is fully occluded; a receiver on +x near that seam."""
-    view = LightView("point", "cube", 6, mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(),
-                     label="cube")
+    view = CubeView("point", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(), label="cube")
     d = np.full((6, RES, RES), np.inf, np.float32)
     d[2] = 0.5                                  # face 2 = +y
     smap = ShadowMap(view, RES, mi.Float(d.ravel()))
@@ -207,7 +207,7 @@ def test_one_kernel_whatever_num_samples():
         dr.sync_thread()
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()                      # clear
-        v = FILTERS["pcf"](smap, lk, parse_options({"method": "pcf", "num_samples": n}),
+        v = methods.get("pcf").lookup(smap, lk, parse_options({"method": "pcf", "num_samples": n}),
                            mi.Bool(True))
         dr.eval(v)
         dr.sync_thread()
@@ -218,7 +218,7 @@ def test_one_kernel_whatever_num_samples():
 
 
 def test_pcf_reads_the_footprint():
-    assert "pcf" in NEEDS_FOOTPRINT
+    assert methods.get("pcf").needs_footprint
 
 
 @pytest.mark.parametrize("props", [
@@ -267,13 +267,13 @@ def test_footprint_stays_in_the_receivers_cascade():
     2-cascade view (light along +z, camera looking along +x, split at x = 1):
     cascade 0 spans [-1, 1]^2, cascade 1 [-2, 2]^2. A receiver at x = 0.99 with a
     pixel footprint of 0.04 world units spans 0.04 / 2 * RES texels of cascade 0."""
-    import dataclasses
     from mi_shadowmap.filters.common import footprint_texels, receiver
     base = ortho_map(np.full((RES, RES), np.inf, np.float32)).view
-    view = dataclasses.replace(base, projection="cascaded", n_faces=2, extra=dict(
-        cascade_rects=((0.0, 0.0, 1.0, 1.0), (0.0, 0.0, 2.0, 2.0)),
-        split_depths=(0.0, 1.0, 10.0), camera_origin=(0.0, 0.0, 0.0),
-        camera_forward=(1.0, 0.0, 0.0)))
+    view = CascadedView(base.kind, base.position, base.light_from_world, label=base.label,
+                        half_extent=base.half_extent,
+                        rects=((0.0, 0.0, 1.0, 1.0), (0.0, 0.0, 2.0, 2.0)),
+                        split_depths=(0.0, 1.0, 10.0), camera_origin=(0.0, 0.0, 0.0),
+                        camera_forward=(1.0, 0.0, 0.0))
     smap = ShadowMap(view, RES, dr.full(mi.Float, dr.inf, 2 * RES * RES))
     p = mi.Point3f(mi.Float([0.99, -0.5]), mi.Float([0.0, 0.0]), mi.Float([2.0, 2.0]))
     d = 0.04

@@ -1,12 +1,14 @@
-"""The comparison harness: records, reference, validation before rendering, sweeps."""
+"""The comparison harness: records, reference, validation before rendering, sweeps,
+tables, and the specs derived from the method registry (public functions only)."""
+import json
 import math
 
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowmap import harness, metrics
-from mi_shadowmap.options import MAP_METHODS, OptionError
+from mi_shadowmap import harness, methods, metrics, options, tables
+from mi_shadowmap.options import OptionError
 from mi_shadowmap.scenes import default_scene
 
 from conftest import SCENES
@@ -22,8 +24,8 @@ def spot_results():
 
 
 def test_records_have_every_field(spot_results):
-    methods = harness.default_methods()
-    assert [r.method for r in spot_results[1:]] == methods   # every implemented method
+    names = harness.default_methods()
+    assert [r.method for r in spot_results[1:]] == names   # every registered method
     assert spot_results[0].is_reference and spot_results[0].method == "raytraced"
     for r in spot_results:
         assert r.image.shape == (32, 32, 3) and np.isfinite(r.image).all()
@@ -36,11 +38,13 @@ def test_records_have_every_field(spot_results):
         assert {"vis_rmse", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
                 "vis_penumbra_rmse", "img_psnr", "img_ssim", "img_flip"} <= set(r.metrics)
         assert set(r.metrics["per_emitter"]) == {"spot"}
-        if r.method in MAP_METHODS:   # one perspective face of 128^2 float32 texels per layer
-            n_layers, rest = divmod(r.texels, 128 * 128)
-            assert n_layers >= 1
-            assert rest == (1 if r.method == "pcss" else 0)   # pcss_near: one value per face
-            assert r.map_bytes == 4 * r.texels
+        record = methods.get(r.method)
+        if record.uses_map:   # one perspective face of 128^2 float32 texels, plus layers
+            opts = options.parse_options({"method": r.method, "resolution": 128})
+            if record.layer_names(opts):   # extra layers: more values (and bytes)
+                assert r.texels > 128 * 128 and r.map_bytes > 4 * 128 * 128
+            else:
+                assert r.texels == 128 * 128 and r.map_bytes == 4 * r.texels
         else:
             assert r.texels == 0 and r.map_bytes == 0
         row = r.row()
@@ -207,3 +211,113 @@ def test_converged_reference_agrees_with_many_shadow_rays():
     err = metrics.rmse(ref.vis_stack(), fallback.vis_stack())
     print(f"converged vs 64 shadow rays: visibility RMSE {err:.4f}")
     assert err < 0.03
+
+
+# --------------------------------------------------------------------------- specs
+def test_methods_derive_from_the_registry():
+    names = [m.name for m in methods.records()]
+    assert harness.available_methods() == names
+    assert harness.default_methods() == [n for n in names if n != harness.REFERENCE_METHOD]
+    assert harness.map_methods() == [m.name for m in methods.records() if m.uses_map]
+    grid = harness.default_grid()
+    assert grid[0]["method"] == harness.map_methods()
+
+
+def test_uses_property_follows_scopes_and_records():
+    """A shared value goes to a method when the property applies to it, and a method
+    without a map does not get the map settings it merely accepts."""
+    for record in methods.records():
+        for prop in options.all_properties():
+            used = harness.uses_property(record.name, prop.name)
+            if prop.name == "method" or not options.applies(record, prop.name):
+                assert not used
+            elif record.property(prop.name) is not None or record.uses_map:
+                assert used
+            else:
+                assert used == (options.SCOPES[prop.name] != options.ACCEPTED)
+    assert not harness.uses_property("no_such_method", "resolution")
+    assert not harness.uses_property("hard", "no_such_property")
+    assert harness.users_of("shadow_rays") == [m.name for m in methods.records()
+                                               if m.property("shadow_rays") is not None]
+
+
+def test_method_spec_grammar():
+    assert harness.parse_method_string("pcf: num_samples=4, sampling=uniform ,"
+                                       "receiver_plane=false") == {
+        "method": "pcf", "num_samples": 4, "sampling": "uniform", "receiver_plane": False}
+    spec = harness.method_spec("raytraced", {"resolution": 64, "shadow_rays": 2, "spp": 3})
+    assert spec == {"method": "raytraced", "shadow_rays": 2, "spp": 3}
+    assert harness.method_spec({"method": "hard", "resolution": 32}, {"resolution": 64}) == {
+        "method": "hard", "resolution": 32}    # the item's own value wins
+    assert harness.spec_name({"method": "pcf", "spp": 2, "bias_range": (0.0, 0.1)}) == \
+        "pcf bias_range=0.0,0.1 spp=2"
+    with pytest.raises(OptionError, match="name=value"):
+        harness.parse_method_string("pcf:num_samples")
+    with pytest.raises(OptionError, match="spp"):
+        harness.validate_spec({"method": "hard", "spp": 0})
+
+
+@pytest.mark.parametrize("name, value, match", [
+    ("resolutoin", 64, "resolutoin"),
+    ("num_samples", 0, "num_samples"),
+    ("method", "nope", "nope"),
+])
+def test_validate_property(name, value, match):
+    with pytest.raises(OptionError, match=match):
+        harness.validate_property(name, value)
+
+
+def test_validate_property_any_user_accepts():
+    for prop in options.all_properties():
+        if prop.default is not None and prop.name != "method":
+            harness.validate_property(prop.name, prop.default)
+
+
+def test_with_shared_adds_fixed_axes_where_used():
+    grid = harness.with_shared([{"method": "hard"}, {"method": "raytraced"},
+                                {"method": "hard", "resolution": [16]}],
+                               {"resolution": 32, "shadow_rays": 2})
+    assert grid == [{"method": "hard", "resolution": 32},
+                    {"method": "raytraced", "shadow_rays": 2},
+                    {"method": "hard", "resolution": [16]}]
+    with pytest.raises(OptionError, match="shadow_rays"):
+        harness.with_shared([{"method": "hard"}], {"shadow_rays": 2})
+
+
+# --------------------------------------------------------------------------- tables
+def test_tables(tmp_path):
+    rows = [{"name": "a", "x": 1.0, "t": (1, 2)}, {"name": "b", "y": math.inf,
+                                                   "z": np.float32(0.5)}]
+    assert tables.columns(rows) == ["name", "x", "t", "y", "z"]
+    text = tables.text_table(rows, [("name", "N", "{}"), ("x", "X", "{:.2f}")])
+    lines = text.splitlines()
+    assert lines[0].split() == ["N", "X"] and lines[2].split() == ["a", "1.00"]
+    assert lines[3].split() == ["b", "-"]      # missing values print as '-'
+    paths = tables.write_tables(rows, str(tmp_path), "t")
+    assert [p.rsplit(".", 1)[1] for p in paths] == ["csv", "json"]
+    back = json.loads((tmp_path / "t.json").read_text())
+    assert back[0]["t"] == [1, 2] and back[1]["y"] == "inf" and back[1]["z"] == 0.5
+    assert len((tmp_path / "t.csv").read_text().strip().splitlines()) == 3
+    assert tables.safe_name("pcf bias_range=0.0,0.1 / x") == "pcf_bias_range=0.0,0.1_x"
+
+
+def test_format_table(spot_results):
+    text = harness.format_table(spot_results)
+    assert text.splitlines()[0].split()[:3] == ["method", "vis", "RMSE"]
+    assert len(text.splitlines()) == 2 + len(spot_results)
+    assert harness.format_table is tables.format_table
+
+
+# --------------------------------------------------------------------------- maps
+def test_prepare_maps_every_layer():
+    """The map manager's maps for several methods, with every layer they use."""
+    scene = mi.load_dict(default_scene(**SMALL))
+    maps = harness.prepare_maps(scene, ["hard", *harness.map_methods()], resolution=32)
+    assert len(maps) == 1 and maps[0].resolution == 32
+    expected = {"depth"}
+    for m in harness.map_methods():
+        opts = options.parse_options({"method": m})
+        expected |= set(methods.get(m).layer_names(opts))
+    assert set(maps[0].layers()) == expected
+    with pytest.raises(OptionError, match="raytraced"):
+        harness.prepare_maps(scene, ["hard", "raytraced"])

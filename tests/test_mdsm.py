@@ -8,10 +8,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowmap.depth_maps import LAYER_BUILDERS, ShadowMap
-from mi_shadowmap.filters import FILTERS, LAYERS, Lookup, layers_for
+from mi_shadowmap.depth_maps import ShadowMap
+from mi_shadowmap import methods
+from mi_shadowmap.filters import Lookup
 from mi_shadowmap.filters.mdsm import neighbourhood_depth
-from mi_shadowmap.light_views import LightView
+from mi_shadowmap.light_views import OrthoView
 from mi_shadowmap.metrics import distinct_levels, misclassified, rmse
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import camera
@@ -27,11 +28,11 @@ def hand_map(depth, res):
     """ShadowMap of an orthographic light looking along +z from z = 0 over x, y in [-1, 1]
     (texel (i, j) centre x = (i+.5)/res*2-1, y = (j+.5)/res*2-1), hand-written depths,
     with its min/max layers built by the real layer builders."""
-    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0),
                      mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="hand")
     smap = ShadowMap(view, res, depth=mi.Float(np.asarray(depth, np.float32).ravel()))
-    for name in LAYERS["mdsm"]:
-        smap.extra[name] = LAYER_BUILDERS[name](None, smap)
+    for name, builder in methods.get("mdsm").layers.items():
+        smap.extra[name] = builder(None, smap)
         dr.eval(smap.extra[name])
     return smap
 
@@ -47,7 +48,7 @@ def hand_lookup(x, y, z, normal=(0.0, 0.0, -1.0)):
 
 def mdsm_vis(smap, lk, **props):
     opts = parse_options({"method": "mdsm", **props})
-    return np.asarray(FILTERS["mdsm"](smap, lk, opts, True))
+    return np.asarray(methods.get("mdsm").lookup(smap, lk, opts, True))
 
 
 def texel_centres(res):
@@ -76,9 +77,9 @@ def test_layers_are_3x3_min_and_max_and_built_only_for_mdsm():
     depth = smap.to_numpy()[0]
     np.testing.assert_array_equal(smap.to_numpy("mdsm_min")[0], np_window(depth, 3, np.min))
     np.testing.assert_array_equal(smap.to_numpy("mdsm_max")[0], np_window(depth, 3, np.max))
-    for method in ("hard", "second_depth"):
+    for method, layers in (("hard", []), ("second_depth", ["second_depth"])):
         integ = mi.load_dict({"type": "shadowmap", "method": method, "resolution": 64})
-        assert integ.prepare_maps(scene)[0].extra == {}
+        assert list(integ.prepare_maps(scene)[0].extra) == layers
 
 
 @pytest.mark.parametrize("depths, search, layers", [
@@ -88,8 +89,8 @@ def test_layers_requested_only_where_read(depths, search, layers):
     """The layers a render builds depend on the options (review item 36): ``depths=1``
     and ``search=1`` read only the base depth; a 2-SM reads only the maximum."""
     opts = parse_options({"method": "mdsm", "depths": depths, "search": search})
-    assert layers_for(opts) == layers
-    assert set(layers) <= set(LAYERS["mdsm"])     # every one is an exportable layer
+    assert opts.record.layer_names(opts) == layers
+    assert set(layers) <= set(methods.get("mdsm").layers)     # every one is an exportable layer
 
 
 @pytest.mark.parametrize("search", [1, 3, 5, 7, 9])
@@ -231,7 +232,7 @@ def test_pcf9_multiple_depths_close_to_pcf16():
 # ------------------------------------------------------------------ bad input
 def test_defaults():
     o = parse_options({"method": "mdsm"})
-    assert o.depths == 2 and o.search == 3 and o.pcf_samples is None
+    assert o.depths == 2 and o.search == 3 and o.pcf_samples == 9
 
 
 @pytest.mark.parametrize("props, needle", [

@@ -1,7 +1,11 @@
 """Every shadow-map method on every scene of scenes_xml/, against the right reference.
 
 Issue 3's acceptance: at 1024^2 maps, each method misclassifies (threshold
-0.5) at most 3 % of the visibility pixels. The reference is the ray-traced
+0.5) at most 3 % of the visibility pixels. Each (scene, method) case asserts
+its own bound, :data:`MEASURED` (the value measured on 2026-11-29) plus a
+margin of 50 % or 0.1 percentage points, whichever is larger, so that a
+regression shows long before 3 %; a method or scene without a measured value
+(a new one) is held to the issue's 3 %. The reference is the ray-traced
 visibility for scenes of delta lights (same camera samples: same seed and
 spp) and the converged soft-shadow reference (1024 stratified light
 positions, :func:`mi_shadowmap.reference.converged_visibility`) for scenes
@@ -25,6 +29,39 @@ VARIANTS = {  # method -> extra settings checked besides the defaults
     "mdsm": [{"depths": 2}, {"depths": 3}],
 }
 CASES = [(m, p) for m in MAP_METHODS for p in VARIANTS.get(m, [{}])]
+#: Misclassified fractions measured on 2026-11-29 (64^2 images, 4 spp, seed 0),
+#: scene -> {case id: value}; the case id is the method plus its settings.
+MEASURED = {
+    "cbox_area": {"hard": .0112, "pcss": .0100, "pcf": .0156, "bilinear-kernel2": .0107,
+                  "bilinear-kernel4": .0166, "second_depth": .0144, "mdsm-depths2": .0110,
+                  "mdsm-depths3": .0115},
+    "contact_hardening": {"hard": .0212, "pcss": .0220, "pcf": .0220,
+                          "bilinear-kernel2": .0208, "bilinear-kernel4": .0215,
+                          "second_depth": .0215, "mdsm-depths2": .0220,
+                          "mdsm-depths3": .0210},
+    "directional_mesh": {"hard": .0022, "pcss": .0022, "pcf": .0168,
+                         "bilinear-kernel2": .0042, "bilinear-kernel4": .0125,
+                         "second_depth": .0044, "mdsm-depths2": .0059, "mdsm-depths3": .0085},
+    "room_two_points": {"hard": .0009, "pcss": .0009, "pcf": .0051,
+                        "bilinear-kernel2": .0013, "bilinear-kernel4": .0028,
+                        "second_depth": .0010, "mdsm-depths2": .0016, "mdsm-depths3": .0027},
+    "spectral_point": {"hard": .0002, "pcss": .0002, "pcf": .0032,
+                       "bilinear-kernel2": .0002, "bilinear-kernel4": .0012,
+                       "second_depth": .0007, "mdsm-depths2": .0005, "mdsm-depths3": .0010},
+    "spot_sphere_box": {"hard": .0010, "pcss": .0010, "pcf": .0027,
+                        "bilinear-kernel2": .0015, "bilinear-kernel4": .0037,
+                        "second_depth": .0015, "mdsm-depths2": .0012, "mdsm-depths3": .0024},
+}
+
+
+def case_id(method, params):
+    return method + "".join(f"-{k}{v}" for k, v in params.items())
+
+
+def bound(scene, method, params) -> float:
+    """The misclassified bound of a case: measured + max(50 %, 0.1 points), <= 3 %."""
+    m = MEASURED.get(scene, {}).get(case_id(method, params))
+    return 0.03 if m is None else min(max(1.5 * m, m + 0.001), 0.03)
 _REFS = {}
 
 
@@ -40,10 +77,9 @@ def reference(path):
     return _REFS[path]
 
 
-@pytest.mark.parametrize("method, params", CASES,
-                         ids=[m + "".join(f"-{k}{v}" for k, v in p.items()) for m, p in CASES])
+@pytest.mark.parametrize("method, params", CASES, ids=[case_id(m, p) for m, p in CASES])
 @pytest.mark.parametrize("path", SCENE_FILES, ids=lambda p: p.stem)
-def test_misclassified_at_most_3_percent(path, method, params):
+def test_misclassified_within_the_measured_bound(path, method, params):
     scene, ref = reference(path)
     _, vis = render_np(scene, {"type": "shadowmap", "method": method, "resolution": 1024,
                                **params}, spp=SPP, seed=0)
@@ -52,6 +88,8 @@ def test_misclassified_at_most_3_percent(path, method, params):
     v = np.stack([vis[k] for k in sorted(vis)])
     assert np.isfinite(v).all() and v.min() >= 0 and v.max() <= 1
     m = metrics.misclassified(r, v)
+    limit = bound(path.stem, method, params)
     print(f"{path.stem} {method} {params}: misclassified {m['misclassified']:.2%} "
-          f"(false shadow {m['false_shadow']:.2%}, false lit {m['false_lit']:.2%})")
-    assert m["misclassified"] <= 0.03
+          f"(false shadow {m['false_shadow']:.2%}, false lit {m['false_lit']:.2%}; "
+          f"bound {limit:.2%})")
+    assert m["misclassified"] <= limit

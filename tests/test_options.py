@@ -11,7 +11,8 @@ def load(**props):
 
 def test_defaults():
     o = parse_options({})
-    assert o.method == "hard" and o.resolution is None and o.shadow_rays == 1  # None: automatic
+    assert o.method == "hard" and o.resolution is None   # None: automatic
+    assert parse_options({"method": "raytraced"}).shadow_rays == 1
     assert o.bias_world == 0.0 and o.slope_bias_texels == 1.0 and o.normal_bias_texels == 0.5
 
 
@@ -71,7 +72,8 @@ def test_none_only_where_a_default_is_automatic():
     assert parse_options({"resolution": None, "bias": None}).resolution is None
     for name in ("method", "shadow_rays", "hide_emitters", "environment"):
         with pytest.raises(OptionError, match=f"'{name}' has no automatic value"):
-            parse_options({name: None})
+            parse_options({"method": "raytraced", name: None} if name != "method"
+                          else {name: None})
 
 
 def test_resolution_is_accepted_by_every_method():
@@ -81,17 +83,41 @@ def test_resolution_is_accepted_by_every_method():
 
 
 def test_every_method_has_a_lookup():
-    from mi_shadowmap.filters import FILTERS
-    assert set(METHODS) == set(FILTERS)
+    from mi_shadowmap import methods
+    assert all(callable(methods.get(m).lookup) for m in METHODS)
+    assert {"raytraced", "hard", "pcf", "pcss", "second_depth", "mdsm"} <= set(METHODS)
+
+
+def test_reading_another_methods_property_names_it():
+    with pytest.raises(AttributeError, match="'num_samples'.*'hard'"):
+        parse_options({"method": "hard"}).num_samples
+
+
+def test_per_method_defaults_of_a_shared_name():
+    """pcf_samples is declared by second_depth (default 4) and mdsm (default 9)."""
+    assert parse_options({"method": "second_depth"}).pcf_samples == 4
+    assert parse_options({"method": "mdsm"}).pcf_samples == 9
+    assert parse_options({"method": "second_depth"}).slope_bias_texels == 0.0
+    assert parse_options({"method": "hard"}).slope_bias_texels == 1.0
 
 
 def test_readme_documents_every_property():
     """The README's property table lists every property the plugin accepts."""
     import pathlib
-    from mi_shadowmap.options import PROPERTIES
+    from mi_shadowmap.options import all_properties
     readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
-    missing = [p.name for p in PROPERTIES if f"| `{p.name}` |" not in readme]
+    missing = [p.name for p in all_properties() if f"| `{p.name}` |" not in readme]
     assert not missing, f"README property table lacks: {missing}"
+
+
+def test_readme_has_a_row_for_every_builtin_method():
+    """The README's method table has one row per built-in method record."""
+    import pathlib
+    from mi_shadowmap import methods
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    missing = [m.name for m in methods.records() if m.builtin
+               and f"| `{m.name}` |" not in readme]
+    assert not missing, f"README method table lacks: {missing}"
 
 
 def test_min_samples_default_follows_num_samples():

@@ -8,6 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from mi_shadowmap import methods
 from mi_shadowmap.metrics import penumbra_rmse
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.reference import converged_visibility
@@ -81,12 +82,18 @@ def test_hard_has_no_penumbra_but_pcss_does(contact_scene):
     assert width_10_90(aovs["vis_light"], *PLATES[1.2]) < 0.25 * geometric_10_90(1.2)
 
 
-@pytest.mark.parametrize("name,overall", [("contact_hardening", 0.8), ("cbox_area", 1.0)])
-def test_pcss_beats_hard_against_converged_reference(name, overall):
-    """PCSS must beat hard shadows in the penumbra (by 10 %) and overall on both scenes
-    (by 20 % on contact_hardening; on cbox_area, 64^2 image and 256^2 maps, only just:
-    false blockers at concave floor/wall seams and single-light-sample noise where the
-    light straddles a receiver's horizon cost most of what the penumbrae gain)."""
+#: PCSS visibility RMSE (overall, penumbra) against the converged reference, measured
+#: 2026-11-29 (64^2 image, 256^2 maps, 4 spp, seed 0); hard shadows in the comment.
+PCSS_MEASURED = {"contact_hardening": (0.0458, 0.0716),   # hard: 0.1821, 0.2881
+                 "cbox_area": (0.0760, 0.1553)}           # hard: 0.0887, 0.1870
+
+
+@pytest.mark.parametrize("name", sorted(PCSS_MEASURED))
+def test_pcss_error_against_converged_reference(name):
+    """PCSS's error on both soft scenes is its measured value (+10 %), and it beats hard
+    shadows in the penumbra by 10 % and overall (on cbox_area only by 14 %: false
+    blockers at concave floor/wall seams and single-light-sample noise where the light
+    straddles a receiver's horizon cost most of what the penumbrae gain)."""
     scene = mi.load_file(str(SCENES / f"{name}.xml"), width=64, height=64)
     ref = converged_visibility(scene, n_light=1024, spp=4)["vis_light"]
     err = {}
@@ -96,8 +103,10 @@ def test_pcss_beats_hard_against_converged_reference(name, overall):
         v = aovs["vis_light"]
         err[method] = (float(np.sqrt(np.mean((v - ref) ** 2))), penumbra_rmse(ref, v))
         print(f"{name} {method}: RMSE {err[method][0]:.4f}, penumbra RMSE {err[method][1]:.4f}")
+    overall, penumbra = PCSS_MEASURED[name]
+    assert err["pcss"][0] <= 1.1 * overall and err["pcss"][1] <= 1.1 * penumbra
     assert err["pcss"][1] < 0.9 * err["hard"][1]
-    assert err["pcss"][0] < overall * err["hard"][0]
+    assert err["pcss"][0] < 0.9 * err["hard"][0]
 
 
 def test_no_blockers_is_fully_lit():
@@ -176,18 +185,17 @@ def test_pcss_from_xml_with_integer_properties():
 
 def test_near_depth_is_a_cached_per_face_layer():
     """Review item 33: PCSS's per-face near depth is the map layer ``pcss_near``
-    (requested through ``filters.layers_for``, built by ``LAYER_BUILDERS``): one value
+    (named by the pcss record's ``layers``, built by the map manager): one value
     per face, the nearest finite depth of that face (numpy reference), and lookups with
     the layer equal lookups that compute it on the spot."""
     from mi_shadowmap.depth_maps import build_depth_map
-    from mi_shadowmap.filters import FILTERS, layers_for
     from mi_shadowmap.filters.common import Lookup
     from mi_shadowmap.light_views import make_light_view
     opts = parse_options({"method": "pcss", "light_size": 0.5})
-    assert layers_for(opts) == ("pcss_near",)
+    assert opts.record.layer_names(opts) == ("pcss_near",)
     scene = mi.load_dict(default_scene(light="point", width=16, height=16))
     view = make_light_view(scene.emitters()[0], scene, 0)
-    with_layer = build_depth_map(scene, view, 32, layers=layers_for(opts))
+    with_layer = build_depth_map(scene, view, 32, layers=opts.record.layers)
     without = build_depth_map(scene, view, 32)
     near = np.asarray(with_layer.extra["pcss_near"])
     assert near.shape == (view.n_faces,)
@@ -202,7 +210,7 @@ def test_near_depth_is_a_cached_per_face_layer():
         sampler.seed(1, n)
         lk = Lookup(mi.Point3f(*[mi.Float(a) for a in pts]), mi.Vector3f(0, 1, 0),
                     mi.Vector3f(0), mi.Vector3f(0), None, None, sampler)
-        vis.append(np.asarray(FILTERS["pcss"](smap, lk, opts, mi.Bool(True))))
+        vis.append(np.asarray(methods.get("pcss").lookup(smap, lk, opts, mi.Bool(True))))
     np.testing.assert_array_equal(vis[0], vis[1])
     assert 0.0 <= vis[0].min() < 1.0 and vis[0].max() <= 1.0   # some shadow
 
@@ -214,11 +222,11 @@ def test_taps_off_the_map_are_lit_as_in_pcf():
     of the kernel lies off the map, and those taps are lit (the old clamp to the border
     texel gave 0 there too)."""
     from mi_shadowmap.depth_maps import ShadowMap
-    from mi_shadowmap.filters import FILTERS
+    from mi_shadowmap import methods
     from mi_shadowmap.filters.common import Lookup
-    from mi_shadowmap.light_views import LightView
+    from mi_shadowmap.light_views import OrthoView
     res = 64
-    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0),
                      mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="unit")
     smap = ShadowMap(view, res, dr.full(mi.Float, 1.0, res * res))
     n = 1024
@@ -228,7 +236,7 @@ def test_taps_off_the_map_are_lit_as_in_pcf():
     lk = Lookup(mi.Point3f(mi.Float(x), mi.Float(np.zeros(2 * n)), mi.Float(np.full(2 * n, 2.0))),
                 mi.Vector3f(0, 0, -1), mi.Vector3f(0), mi.Vector3f(0), None, None, sampler)
     opts = parse_options({"method": "pcss", "angular_diameter": 10.0})
-    v = np.asarray(FILTERS["pcss"](smap, lk, opts, mi.Bool(True))).reshape(2, n)
+    v = np.asarray(methods.get("pcss").lookup(smap, lk, opts, mi.Bool(True))).reshape(2, n)
     assert np.all(v[0] == 0.0)
     print("mean visibility a quarter texel inside the border:", v[1].mean())
     assert 0.3 < v[1].mean() < 0.7

@@ -1,7 +1,8 @@
 """Property-based tests (hypothesis) of the integrator's parameters (issue 6).
 
-Parameter sets are generated from ``options.PROPERTIES`` (kind, range,
-choices, methods), for every method in ``options.METHODS``, so new
+Parameter sets are generated from the properties each method accepts
+(``options.properties_for``: kind, range, choices), for every method in
+``options.METHODS``, so new
 properties and methods are covered without editing this file.
 
 * **Valid inputs** render a tiny scene (8 x 8 image, maps of at most 16^2)
@@ -28,7 +29,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mi_shadowmap.options import METHODS, PROPERTIES, OptionError, parse_options, properties_for
+from mi_shadowmap.options import (METHODS, OptionError, all_properties, parse_options,
+                                  properties_for)
 from mi_shadowmap.scenes import default_scene
 
 settings.register_profile("default", max_examples=60, deadline=None,
@@ -41,7 +43,7 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 READY = list(METHODS)
 MAX_RES = 16
-#: Upper limits that keep a tiny render tiny (ranges stay those of PROPERTIES).
+#: Upper limits that keep a tiny render tiny (ranges stay those of the properties).
 CAPS = {"resolution": MAX_RES, "shadow_rays": 16}
 INT_CAP = 64        # other unbounded/huge integer ranges are sampled up to this
 FLOAT_SPAN = 1e3    # floats without an upper bound: [lo, lo + FLOAT_SPAN]
@@ -57,6 +59,8 @@ def tiny_scene(light: str):
 # ------------------------------------------------------------ valid values
 def valid_values(p):
     """A strategy of values ``parse_options`` must accept for property ``p``."""
+    if p.name == "method":
+        return st.sampled_from(list(METHODS))
     if p.choices is not None:
         return st.sampled_from(p.choices)
     if p.kind == "bool":
@@ -162,11 +166,12 @@ def invalid_sets(draw):
     own = [p for p in properties_for(method) if p.name != "method"]
     if kind == "unknown":
         name = draw(st.from_regex(r"[a-z][a-z_]{2,15}", fullmatch=True).filter(
-            lambda n: n not in {q.name for q in PROPERTIES} and n != "type"
+            lambda n: n not in {q.name for q in all_properties()} and n != "type"
             and not keyword.iskeyword(n)))
         return {"method": method, name: 1}, name
     if kind == "other_method":
-        foreign = [p for p in PROPERTIES if p.methods is not None and method not in p.methods]
+        mine = {q.name for q in properties_for(method)}
+        foreign = [p for p in all_properties() if p.name not in mine]
         if not foreign:
             kind = "type"
         else:
@@ -176,7 +181,7 @@ def invalid_sets(draw):
         ranged = [p for p in own if out_of_range(p) is not None]
         p = draw(st.sampled_from(ranged))
         return {"method": method, p.name: draw(out_of_range(p))}, p.name
-    p = draw(st.sampled_from(own + [next(q for q in PROPERTIES if q.name == "method")]))
+    p = draw(st.sampled_from(own + [next(q for q in all_properties() if q.name == "method")]))
     props = {"method": method}
     props[p.name] = draw(wrong_types(p))
     return props, p.name
@@ -197,7 +202,7 @@ def test_invalid_inputs_name_the_property(case):
 
 def test_every_property_has_a_strategy():
     """The generators cover every declared property (new ones included)."""
-    for p in PROPERTIES:
+    for p in all_properties():
         valid_values(p)
         wrong_types(p)
     assert set(READY) <= set(METHODS) and "raytraced" in READY

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from mi_shadowmap.depth_maps import ShadowMap, build_depth_map, shape_is_solid
-from mi_shadowmap.filters import FILTERS, LAYERS, Lookup
+from mi_shadowmap import methods
+from mi_shadowmap.filters import Lookup
 from mi_shadowmap.filters.common import virtual_sample_depth
-from mi_shadowmap.light_views import LightView, make_light_view
+from mi_shadowmap.light_views import OrthoView, make_light_view
 from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.procedural import check_closed
@@ -28,10 +29,10 @@ def hand_map(second, res):
     """A ShadowMap over an orthographic light looking along +z from z = 0, x/y in [-1, 1]
     (texel (i, j) centre: x = (i+.5)/res*2-1, y = (j+.5)/res*2-1), with a hand-written
     second-depth layer (the first-depth layer is unused by this method)."""
-    view = LightView("directional", "orthographic", 1, mi.ScalarPoint3f(0, 0, 0),
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0),
                      mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="hand")
     second = mi.Float(np.asarray(second, np.float32).ravel())
-    return ShadowMap(view, res, depth=second, second_depth=second)
+    return ShadowMap(view, res, depth=second, extra={"second_depth": second})
 
 
 def hand_lookup(x, y, z, normal):
@@ -49,7 +50,7 @@ def texel_centres(res):
 
 def second_depth_vis(smap, lk, **props):
     opts = parse_options({"method": "second_depth", **props})
-    return np.asarray(FILTERS["second_depth"](smap, lk, opts, True))
+    return np.asarray(methods.get("second_depth").lookup(smap, lk, opts, True))
 
 
 def closed_solids_scene(light, width=64, spp=4):
@@ -94,8 +95,8 @@ def test_second_surface_layer_is_analytic():
         "sun": {"type": "directional", "direction": [0, -1, 0]}})
     res = 128
     view = make_light_view(scene.emitters()[0], scene, 0)
-    smap = build_depth_map(scene, view, res, ("second_depth",))
-    o, _, _ = view.texel_rays(res)
+    smap = build_depth_map(scene, view, res, methods.get("second_depth").layers)
+    o, _ = view.texel_rays(res)
     o = np.asarray(o)
     o = o.T if o.shape[0] == 3 else o
     x, z, y0 = o[:, 0], o[:, 2], o[:, 1]
@@ -130,12 +131,12 @@ def test_solid_classification():
 def test_layer_built_only_for_second_depth():
     path = [p for p in SCENE_FILES if p.stem == "spot_sphere_box"][0]
     scene = mi.load_file(str(path), width=16, height=16)
-    assert LAYERS["second_depth"] == ("second_depth",)
+    assert tuple(methods.get("second_depth").layers) == ("second_depth",)
     for method, built in (("hard", False), ("second_depth", True)):
         integ = mi.load_dict({"type": "shadowmap", "method": method, "resolution": 64})
         maps = integ.prepare_maps(scene)
         assert (maps[0].second_depth is not None) == built
-        assert maps[0].extra == {}
+        assert list(maps[0].extra) == (["second_depth"] if built else [])
 
 
 # ------------------------------------------------------- hand-made depth maps

@@ -1,30 +1,16 @@
-"""Visibility lookups: (map, world point, normal, footprint) -> visibility in [0, 1].
+"""The built-in shadow methods: one module per method, each exporting one record.
 
-Every method is a function ``fn(smap, lk, opts, active) -> mi.Float`` where
-
-* ``smap`` is the emitter's :class:`~mi_shadowmap.depth_maps.ShadowMap`
-  (or, for ``raytraced``, a :class:`~.common.RayTracedLight`);
-* ``lk`` is a :class:`~.common.Lookup`: the shading point ``p_world``, its
-  geometric normal ``n_world``, the camera pixel footprint ``dp_dx``/``dp_dy``
-  on the surface, the light sample ``ds`` and the ``sampler``;
-* ``opts`` are the validated :class:`~mi_shadowmap.options.Options`.
-
-Shared helpers (receiver depth with biases, tap patterns, ...) live once in
-:mod:`.common`; each paper's method lives in its own module, which exports
-
-* ``FILTERS`` -- ``{method name: function}``,
-* optionally ``NEEDS_FOOTPRINT`` -- methods that read ``dp_dx``/``dp_dy``
-  (the integrator computes the footprint only for those),
-* optionally ``LAYERS`` -- ``{method: (layer, ...)}`` every extra per-texel
-  depth-map layer the method may read (see
-  :data:`mi_shadowmap.depth_maps.LAYER_BUILDERS`; what ``mi-shadowmap maps``
-  exports),
-* optionally ``LAYERS_FOR`` -- ``{method: fn(opts) -> (layer, ...)}`` the
-  layers a render with those options builds, when that is not simply
-  ``LAYERS[method]``: a subset (``mdsm`` with ``depths=1`` reads none) or
-  small non-texel layers (``pcss_near``: one value per face).
-
-:func:`layers_for` gives the layers to build for a render's options.
+Every method module defines its lookup ``fn(smap, lk, opts, active) -> mi.Float``
+(visibility in [0, 1]; see :mod:`mi_shadowmap.methods` for the call shape),
+the helpers only it uses, and ``METHOD``: its
+:class:`~mi_shadowmap.methods.Method` record (properties with types,
+defaults, ranges and docs; the map layers it needs with their builders;
+whether it reads the pixel footprint; its bias defaults). Importing this
+package imports every module of it that defines ``METHOD`` and registers the
+records (the first ones in the order of :data:`_FIRST`, then the others by
+name), so a new method is one new module and nothing else; helpers two or
+more methods share live in :mod:`.common`. Users add their own methods the same
+way with :func:`mi_shadowmap.register_method`.
 
 Depth comparisons happen in the map's depth space (world distance from the
 light, see :mod:`mi_shadowmap.light_views`): a receiver at biased depth
@@ -32,27 +18,25 @@ light, see :mod:`mi_shadowmap.light_views`): a receiver at biased depth
 """
 from __future__ import annotations
 
-from . import basic, bilinear, pcf, pcss
-from . import mdsm, second_depth
+import importlib
+import pkgutil
+
+from .. import methods as _methods
 from .common import Lookup, RayTracedLight, Receiver, receiver, shifted_grid_point  # noqa: F401
 
-_MODULES = (basic, pcss, pcf, bilinear)
-_MODULES += (second_depth, mdsm)
-
-FILTERS: dict = {}
-NEEDS_FOOTPRINT: set = set()
-LAYERS: dict = {}
-LAYERS_FOR: dict = {}
-for _m in _MODULES:
-    FILTERS.update(_m.FILTERS)
-    NEEDS_FOOTPRINT |= set(getattr(_m, "NEEDS_FOOTPRINT", ()))
-    LAYERS.update(getattr(_m, "LAYERS", {}))
-    LAYERS_FOR.update(getattr(_m, "LAYERS_FOR", {}))
+#: The documented order of the first built-ins; later modules follow by name.
+_FIRST = ("raytraced", "hard", "unshadowed", "pcss", "pcf", "bilinear", "second_depth",
+          "mdsm")
 
 
-def layers_for(opts) -> tuple:
-    """The extra depth-map layers a render with the validated ``opts`` builds
-    (names of :data:`mi_shadowmap.depth_maps.LAYER_BUILDERS`): the method's
-    ``LAYERS_FOR`` rule applied to ``opts``, else its ``LAYERS``, else none."""
-    rule = LAYERS_FOR.get(opts.method)
-    return tuple(rule(opts)) if rule is not None else tuple(LAYERS.get(opts.method, ()))
+def _method_modules() -> list:
+    names = [m.name for m in pkgutil.iter_modules(__path__) if m.name != "common"]
+    names.sort(key=lambda n: (_FIRST.index(n) if n in _FIRST else len(_FIRST), n))
+    modules = [importlib.import_module(f"{__name__}.{n}") for n in names]
+    return [m for m in modules if hasattr(m, "METHOD")]
+
+
+BUILTIN = tuple(_method_modules())
+for _module in BUILTIN:
+    if _module.METHOD.name not in _methods.METHODS:
+        _methods.add(_module.METHOD)

@@ -11,8 +11,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .basic import hard
+from ..methods import Method, Prop
 from .common import Lookup, receiver, receiver_plane, tap_lit
+from .hard import hard
+from .pcf import RECEIVER_PLANE
 
 
 def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
@@ -95,4 +97,16 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
     return dr.select(r.inside, vis, 1.0)
 
 
-FILTERS = {"bilinear": bilinear}
+METHOD = Method(
+    name="bilinear",
+    lookup=bilinear,
+    summary="Brabec & Seidel fixed-footprint / bilinear PCF (see 'kernel')",
+    properties=(
+        Prop("kernel", "int", 2,
+             "Footprint of the fixed-footprint PCF in texels per axis: 1 = one nearest-texel "
+             "compare (exactly 'hard'), 2 = the 2x2 bilinear hardware PCF, k = k x k texels "
+             "(a (k-1) x (k-1) grid of bilinear lookups one texel apart).", lo=1, hi=8),
+        RECEIVER_PLANE,
+    ),
+    builtin=True,
+)

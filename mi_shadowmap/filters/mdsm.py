@@ -64,6 +64,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from ..methods import Method, Prop
 from .common import Lookup, nearest_block, taps_loop, virtual_sample_depth
 
 
@@ -93,7 +94,7 @@ def neighbourhood_depth(smap, layer: str, face, ij: mi.Point2i, search: int, act
 
 def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """PCF(k, n) over an n-depth shadow map (Pagot et al. 2004)."""
-    r, active, k, side, i0 = nearest_block(smap, lk, opts, 9, active)
+    r, active, k, side, i0 = nearest_block(smap, lk, opts, active)
     n_depths = opts.depths
     search = opts.search
     res = smap.resolution
@@ -138,8 +139,22 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     return dr.select(r.inside, vis, 1.0)
 
 
-FILTERS = {"mdsm": mdsm}
-LAYERS = {"mdsm": ("mdsm_min", "mdsm_max")}
+def neighbourhood_extreme(smap, reduce) -> mi.Float:
+    """``reduce`` (dr.minimum / dr.maximum) of the base depths over the 3 x 3 texels
+    around every texel (clamped at the face border): Pagot et al. (2004)'s
+    extra depths of a multiple-depth map, with q = 9."""
+    res = smap.resolution
+    idx = dr.arange(mi.UInt32, smap.n_texels)
+    face = idx // (res * res)
+    rem = idx - face * (res * res)
+    j = mi.Int32(rem // res)
+    i = mi.Int32(rem - (rem // res) * res)
+    out = smap.fetch(smap.depth, face, i, j)
+    for dj in (-1, 0, 1):
+        for di in (-1, 0, 1):
+            if di or dj:
+                out = reduce(out, smap.fetch(smap.depth, face, i + di, j + dj))
+    return out
 
 
 def _layers_used(opts) -> tuple:
@@ -150,4 +165,26 @@ def _layers_used(opts) -> tuple:
     return ("mdsm_max",) if opts.depths == 2 else ("mdsm_min", "mdsm_max")
 
 
-LAYERS_FOR = {"mdsm": _layers_used}
+METHOD = Method(
+    name="mdsm",
+    lookup=mdsm,
+    summary="Pagot et al. 2004 multiple-depth shadow maps",
+    properties=(
+        Prop("pcf_samples", "int", 9,
+             "Percentage-closer taps k (PCF(k, n) of Pagot et al.): one compare per texel of "
+             "the sqrt(k) x sqrt(k) texels nearest the lookup point (9: the paper's "
+             "PCF(9, n)).", choices=(1, 4, 9, 16, 25)),
+        Prop("depths", "int", 2,
+             "Depths n per cell of the multiple-depth map: 1 = standard map, 2 = plus the "
+             "maximum, 3 = plus maximum and minimum over the 'search' neighbourhood.",
+             choices=(1, 2, 3)),
+        Prop("search", "int", 3,
+             "Side (texels) of the square neighbourhood of the base map searched for the "
+             "extra depths of mdsm (q = search^2 samples; the paper's 3 x 3).",
+             choices=(1, 3, 5, 7, 9)),
+    ),
+    layers={"mdsm_min": lambda scene, smap: neighbourhood_extreme(smap, dr.minimum),
+            "mdsm_max": lambda scene, smap: neighbourhood_extreme(smap, dr.maximum)},
+    layers_for=_layers_used,
+    builtin=True,
+)

@@ -7,11 +7,119 @@ receiver's depth, and the fraction that passes is the visibility.
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
-from .common import (Lookup, footprint_texels, pcf_taps, receiver, receiver_plane,
-                     reeves_sample_counts)
+from ..methods import Method, Prop
+from .common import Lookup, ReceiverPlane, Receiver, footprint_texels, receiver, \
+    receiver_plane, tap_lit
+
+
+def reeves_sample_counts(width_s, width_t, num_samples: int, min_samples: int):
+    """Samples per axis ``(ns, nt)`` for a region of ``width_s x width_t`` texels.
+
+    Reeves, Salesin & Cook 1987, Figure 4 (with ``sres = width_s / 2``): a
+    region of fewer than ``num_samples`` texels gets about one sample per
+    texel and axis; a larger one gets ``ns * nt ~ num_samples`` with
+    ``nt / ns ~ width_t / width_s``. Each count is rounded (``+.5``, truncated)
+    and clamped to ``[min_samples, num_samples]`` (``min_samples`` wins, as in
+    the paper's CLAMP).
+    """
+    width_s, width_t = mi.Float(width_s), mi.Float(width_t)
+
+    def clamp(x):
+        return dr.select(x < min_samples, min_samples, dr.select(x > num_samples, num_samples, x))
+
+    small = width_s * width_t < num_samples
+    ns_small = clamp(dr.floor(width_s + 0.5))
+    nt_small = clamp(dr.floor(width_t + 0.5))
+    ratio = width_t * num_samples / dr.maximum(width_s, 1e-30)
+    nt_big = clamp(dr.floor(dr.sqrt(ratio) + 0.5))
+    ns_big = clamp(dr.floor(num_samples / nt_big + 0.5))
+    return (mi.UInt32(dr.select(small, ns_small, ns_big)),
+            mi.UInt32(dr.select(small, nt_small, nt_big)))
+
+
+def lane_rng(u_seed: mi.Point2f) -> mi.PCG32:
+    """A PCG32 stream per lane, seeded from one sampler draw ``u_seed``.
+
+    The float bits of ``u_seed.x`` pick the state and those of ``u_seed.y``
+    the stream, so the per-tap numbers are a deterministic function of the
+    camera sample's own random numbers (reproducible for a given sampler
+    seed), and independent between lanes.
+    """
+    bx = dr.reinterpret_array(mi.UInt32, mi.Float(u_seed.x))
+    by = dr.reinterpret_array(mi.UInt32, mi.Float(u_seed.y))
+    return mi.PCG32(size=dr.width(bx), initstate=mi.UInt64(bx),
+                    initseq=mi.UInt64(by) + mi.UInt64(0x9E3779B9))
+
+
+#: erf(sqrt(2)): the truncation of the ``gaussian`` sampling at +-2 sigma.
+_ERF_SQRT2 = math.erf(math.sqrt(2.0))
+
+
+def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2f,
+             sampling: str = "jitter", bias_range=None, plane: ReceiverPlane | None = None,
+             center_texel: mi.Point2f | None = None, active=True) -> mi.Float:
+    """Fraction of lit taps in a rectangle of the map (percentage-closer filtering).
+
+    The rectangle is ``center_texel +- half_size`` (texels; default centre:
+    the receiver, ``r.uv * resolution``) on the receiver's face, sampled by
+    ``ns x nt`` taps (per-lane ``UInt32`` or ints) placed as in Reeves et al.
+    1987, Figure 3:
+
+    * ``'jitter'`` (c): one uniformly jittered tap per cell of an ``ns x nt``
+      grid (stratified);
+    * ``'uniform'`` (a): taps uniform over the whole rectangle;
+    * ``'gaussian'`` (b): a normal distribution centred on the rectangle with
+      ``sigma = half_size / 2``, truncated at the rectangle (+-2 sigma).
+
+    ``bias_range = (bias0, bias1)``: each tap subtracts its own bias, uniform
+    in that range (world units), from the receiver depth (Reeves' stochastic
+    bias). Each tap is a :func:`tap_lit` comparison (off-map taps lit). The
+    random numbers come from :func:`lane_rng` seeded by ``u_seed`` (one
+    sampler draw per lookup). All taps run in one ``dr.while_loop``: one
+    kernel whatever the sample count.
+    """
+    res = smap.resolution
+    center = r.uv * res if center_texel is None else mi.Point2f(center_texel)
+    half = mi.Point2f(half_size)
+    ns, nt = mi.UInt32(ns), mi.UInt32(nt)
+    n_taps = ns * nt
+    cell = mi.Point2f(2.0 * half.x / mi.Float(ns), 2.0 * half.y / mi.Float(nt))
+    lo = center - half
+    face = mi.UInt32(r.face)
+    rng = lane_rng(u_seed)
+    k = mi.UInt32(0)
+    n_lit = mi.UInt32(0)
+    active = mi.Bool(active)
+    b0, b1 = (0.0, 0.0) if bias_range is None else (float(bias_range[0]), float(bias_range[1]))
+
+    def cond(k, rng, n_lit):
+        return active & (k < n_taps)
+
+    def body(k, rng, n_lit):
+        xi = mi.Point2f(rng.next_float32(), rng.next_float32())
+        if sampling == "jitter":
+            col = k % ns
+            row = k // ns
+            xy = lo + mi.Point2f(mi.Float(col) + xi.x, mi.Float(row) + xi.y) * cell
+        elif sampling == "uniform":
+            xy = lo + xi * (2.0 * half)
+        else:
+            z = dr.erfinv((2.0 * xi - 1.0) * _ERF_SQRT2) * math.sqrt(2.0)   # in [-2, 2]
+            xy = center + z * (0.5 * half)
+        bias = 0.0
+        if bias_range is not None:
+            bias = b0 + rng.next_float32() * (b1 - b0) if b1 > b0 else b0
+        lit = tap_lit(smap, r, face, xy, plane, bias, active)
+        n_lit = dr.select(lit, n_lit + 1, n_lit)
+        return k + 1, rng, n_lit
+
+    k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body)
+    return mi.Float(n_lit) / mi.Float(dr.maximum(n_taps, 1))
 
 
 def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
@@ -105,5 +213,45 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
     return dr.select(r.inside, lit, 1.0)
 
 
-FILTERS = {"pcf": pcf}
-NEEDS_FOOTPRINT = {"pcf"}
+def _finalize(values: dict, given) -> None:
+    """Reeves' CLAMP(n, MinSamples, NumSamples): ``min_samples <= num_samples``; the
+    default MinSamples (2) never exceeds NumSamples."""
+    from ..options import OptionError
+    if "min_samples" in given:
+        if values["min_samples"] > values["num_samples"]:
+            raise OptionError(f"shadowmap: property 'min_samples' = {values['min_samples']} "
+                              f"must be <= 'num_samples' = {values['num_samples']}")
+    else:
+        values["min_samples"] = min(values["min_samples"], values["num_samples"])
+
+
+RECEIVER_PLANE = Prop(
+    "receiver_plane", "bool", True,
+    "Compare each PCF tap against the receiver's tangent plane at that texel instead of "
+    "the shading point's single depth (receiver-plane depth bias; not in Reeves 1987 or "
+    "Brabec & Seidel; false gives their single-depth comparison).")
+
+METHOD = Method(
+    name="pcf",
+    lookup=pcf,
+    summary="Reeves et al. 1987 percentage-closer filtering of the pixel footprint",
+    properties=(
+        Prop("num_samples", "int", 16, "Samples of the PCF region (Reeves' NumSamples).",
+             lo=1, hi=4096),
+        Prop("min_samples", "int", 2, "Minimum samples per axis (Reeves' MinSamples); at "
+             "most num_samples (the default is min(2, num_samples)).", lo=1, hi=64),
+        Prop("res_factor", "float", 1.0, "Scale of the pixel footprint (Reeves' ResFactor).",
+             lo=0.0, lo_open=True),
+        Prop("min_size", "float", 1.0,
+             "Minimum region size in texels per axis (Reeves' MinSize).", lo=0.0),
+        Prop("sampling", "str", "jitter", "Sample placement in the region (Reeves Fig. 3).",
+             choices=("jitter", "uniform", "gaussian")),
+        Prop("bias_range", "pair", None,
+             "Stochastic bias [bias0, bias1] in world units, drawn per sample (Reeves).",
+             lo=0.0),
+        RECEIVER_PLANE,
+    ),
+    needs_footprint=True,
+    finalize=_finalize,
+    builtin=True,
+)

@@ -81,32 +81,142 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from .basic import hard
-from .common import Lookup, blocker_search, pcf_plane, receiver, receiver_plane
+from ..methods import Method, Prop
+from .common import (Lookup, Receiver, ReceiverPlane, receiver, receiver_plane,
+                     shifted_grid_point, tap_depths)
+from .hard import hard
 
 
-def light_width(view, opts) -> tuple[float, bool]:
-    """``(width, angular)``: world width of the light, or ``2 tan(diameter / 2)``
-    for directional lights (``angular`` True)."""
-    if view.projection in ("orthographic", "cascaded"):
-        return 2.0 * math.tan(math.radians(opts.angular_diameter) * 0.5), True
-    if opts.light_size is not None:
-        return float(opts.light_size), False
-    return float(view.light_size), False
+def face_near_layer(scene, smap) -> mi.Float:
+    """Layer ``pcss_near``: the nearest depth of each face (``n_faces`` entries, one
+    per face, not per texel; ``+inf`` for an empty face): the per-face near depth
+    of the blocker-search region."""
+    return dr.block_reduce(dr.ReduceOp.Min, smap.depth, smap.resolution * smap.resolution)
 
 
 def face_near_depth(smap) -> mi.Float:
     """Nearest finite depth of each face of ``smap`` (``n_faces`` entries).
 
-    The map layer ``pcss_near`` (:data:`LAYERS`, built and cached by the map
-    manager like every layer); computed on the spot for a map built without
-    it (e.g. by :func:`~mi_shadowmap.depth_maps.build_depth_map` alone).
+    The map layer ``pcss_near`` (built and cached by the map manager like every
+    layer of the record); computed on the spot for a map built without it
+    (e.g. by :func:`~mi_shadowmap.depth_maps.build_depth_map` alone).
     """
     near = smap.extra.get("pcss_near")
-    if near is None:
-        from ..depth_maps import LAYER_BUILDERS
-        near = LAYER_BUILDERS["pcss_near"](None, smap)
-    return near
+    return face_near_layer(None, smap) if near is None else near
+
+
+def _poisson_disk(n: int, seed: int = 7) -> list:
+    """``n`` points of a Poisson disk in the unit disk (deterministic dart throwing).
+
+    Pure Python, run once per ``n`` at set-up; the minimum distance starts at
+    ``1.5 / sqrt(n)`` and shrinks whenever 1000 darts in a row fail.
+    """
+    import random
+    rng = random.Random(seed)
+    r_min = 1.5 / math.sqrt(n)
+    pts, fails = [], 0
+    while len(pts) < n:
+        x, y = rng.uniform(-1, 1), rng.uniform(-1, 1)
+        if x * x + y * y > 1.0:
+            continue
+        if all((x - a) ** 2 + (y - b) ** 2 >= r_min * r_min for a, b in pts):
+            pts.append((x, y))
+            fails = 0
+        else:
+            fails += 1
+            if fails > 1000:
+                r_min *= 0.9
+                fails = 0
+    return pts
+
+
+#: ``(variant, n) -> (x, y)`` Poisson-disk tap arrays (of that variant's ``mi.Float``).
+_POISSON_CACHE: dict = {}
+
+
+def tap_offset(k, n: int, pattern: str, rnd: mi.Point2f) -> mi.Point2f:
+    """Offset of tap ``k`` (``mi.UInt32``) of ``n``, in units of the kernel half-width.
+
+    * ``'stratified'``: the ``shifted_grid_point`` grid over the square
+      ``[-1, 1]^2``, toroidally shifted by ``rnd`` (uniform per camera sample);
+    * ``'poisson'``: a fixed Poisson disk in the unit disk, rotated by the
+      angle ``2 pi rnd.x``.
+    """
+    if pattern == "stratified":
+        return shifted_grid_point(k, n, rnd) * 2.0 - 1.0
+    key = (mi.variant(), n)   # the arrays belong to the variant active when built
+    if key not in _POISSON_CACHE:
+        pts = _poisson_disk(n)
+        _POISSON_CACHE[key] = (mi.Float([p[0] for p in pts]), mi.Float([p[1] for p in pts]))
+    px, py = _POISSON_CACHE[key]
+    x = dr.gather(mi.Float, px, k)
+    y = dr.gather(mi.Float, py, k)
+    s, c = dr.sincos(2.0 * math.pi * rnd.x)
+    return mi.Point2f(c * x - s * y, s * x + c * y)
+
+
+def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
+                   n: int, pattern: str, rnd: mi.Point2f, active):
+    """PCSS step 1 (Fernando 2005): mean depth of the blockers in a search region.
+
+    ``n`` taps (``tap_offset`` pattern) over the region of half-width
+    ``half_texels`` around the receiver; a texel is a blocker when its depth
+    is below the receiver plane's depth there (:func:`tap_depths`: taps off
+    a perspective/orthographic map are not blockers; cube taps are clamped to
+    the receiver's face, see :mod:`.pcss`).
+
+    Returns ``(sum of blocker depths, number of blockers)``; one
+    ``dr.while_loop``.
+    """
+    k = mi.UInt32(0)
+    z_sum = mi.Float(0.0)
+    count = mi.Float(0.0)
+    active = mi.Bool(active)
+
+    def cond(k, z_sum, count):
+        return active & (k < n)
+
+    centre = r.uv * smap.resolution
+
+    def body(k, z_sum, count):
+        off = tap_offset(k, n, pattern, rnd) * half_texels
+        z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
+                                      cross_seams=False, lateral_texels=dr.norm(off))
+        blocked = inside & (z_map < z)
+        z_sum = dr.select(blocked, z_sum + z_map, z_sum)
+        count = dr.select(blocked, count + 1.0, count)
+        return k + 1, z_sum, count
+
+    k, z_sum, count = dr.while_loop((k, z_sum, count), cond, body)
+    return z_sum, count
+
+
+def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
+              n: int, pattern: str, rnd: mi.Point2f, active) -> mi.Float:
+    """Percentage-closer filtering with receiver-plane depths (PCSS step 3).
+
+    Fraction of ``n`` taps (``tap_offset`` pattern, half-width
+    ``half_texels``) that are lit (:func:`tap_depths` against the receiver
+    plane's depth; off-map taps lit, cube taps clamped to the receiver's
+    face as in :func:`blocker_search`); one ``dr.while_loop``.
+    """
+    k = mi.UInt32(0)
+    lit = mi.Float(0.0)
+    active = mi.Bool(active)
+
+    def cond(k, lit):
+        return active & (k < n)
+
+    centre = r.uv * smap.resolution
+
+    def body(k, lit):
+        off = tap_offset(k, n, pattern, rnd) * half_texels
+        z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
+                                      cross_seams=False, lateral_texels=dr.norm(off))
+        return k + 1, dr.select(~inside | (z <= z_map), lit + 1.0, lit)
+
+    k, lit = dr.while_loop((k, lit), cond, body)
+    return lit / n
 
 
 def _spread(d_r, d, w_light, angular):
@@ -124,17 +234,12 @@ def _texel_parallel(smap, r, p_world) -> mi.Float:
     ``z`` being the receiver's *axial* depth along the face's view axis (not
     its Euclidean distance, which would shrink off-axis kernels by cos theta).
     """
-    view = smap.view
-    if view.projection in ("orthographic", "cascaded"):
-        return r.texel_world
-    o, axis = view.ray_through(r.face, mi.Point2f(0.5, 0.5))
-    z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
-    return z_axial * (2.0 * view.tan_half / smap.resolution)
+    return smap.view.texel_parallel_size(smap.resolution, r.face, p_world, r.texel_world)
 
 
 def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """Percentage-closer soft shadows; see the module docstring."""
-    w_light, angular = light_width(smap.view, opts)
+    w_light, angular = smap.view.light_width(opts.light_size, opts.angular_diameter)
     if w_light <= 0.0:   # a light of size 0: hard shadows (one nearest-texel compare)
         return hard(smap, lk, opts, active)
     r = receiver(smap, lk, opts)
@@ -166,6 +271,34 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     return dr.select(active & has_blocker, vis, 1.0)
 
 
-FILTERS = {"pcss": pcss}
-#: ``pcss_near``: one value per face (not a per-texel layer), see :func:`face_near_depth`.
-LAYERS_FOR = {"pcss": lambda opts: ("pcss_near",)}
+METHOD = Method(
+    name="pcss",
+    lookup=pcss,
+    summary="Fernando 2005 percentage-closer soft shadows: blocker search, penumbra "
+            "estimate, variable PCF kernel",
+    properties=(
+        Prop("blocker_samples", "int", 16, "PCSS blocker-search taps (Fernando's "
+             "BLOCKER_SEARCH_NUM_SAMPLES).", lo=1, hi=4096),
+        Prop("filter_samples", "int", 16, "PCSS filtering (PCF) taps (Fernando's "
+             "PCF_NUM_SAMPLES).", lo=1, hi=4096),
+        Prop("light_size", "float", None,
+             "Light width in world units for PCSS. Default: derived from an area emitter's "
+             "shape (side of the square of equal projected area, see light_views), 0 for "
+             "point and spot lights (hard shadows); > 0 gives point/spot lights a PCSS "
+             "penumbra.", lo=0.0),
+        Prop("max_kernel", "float", 64.0,
+             "Largest PCSS blocker-search and filter kernel width, in texels of the map.",
+             lo=1.0, hi=4096.0),
+        Prop("pattern", "str", "stratified",
+             "PCSS tap pattern: 'stratified' (square grid, shifted per camera sample) or "
+             "'poisson' (a Poisson disk, rotated per camera sample).",
+             choices=("stratified", "poisson")),
+        Prop("angular_diameter", "float", 0.0,
+             "Apparent diameter of a directional light (sun: about 0.53), in degrees; > 0 "
+             "gives directional lights a PCSS penumbra.", lo=0.0, hi=30.0),
+    ),
+    #: ``pcss_near``: one value per face (not a per-texel layer), see face_near_depth.
+    layers={"pcss_near": face_near_layer},
+    layer_cost={"pcss_near": 0.0},
+    builtin=True,
+)

@@ -62,6 +62,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..depth_maps import second_depth_layer
+from ..methods import Method, Prop
 from .common import Lookup, nearest_block, taps_loop, virtual_sample_depth
 
 #: Relative rounding tolerance of the ``<=`` test at virtual samples.
@@ -78,7 +80,7 @@ def shading_normal(lk: Lookup) -> mi.Vector3f:
 
 def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """Wang & Molnar (1994), Figure 10: percent illumination of a shading point."""
-    r, active, k, side, i0 = nearest_block(smap, lk, opts, 4, active)
+    r, active, k, side, i0 = nearest_block(smap, lk, opts, active)
     res = smap.resolution
     view = smap.view
     layer = smap.second_depth
@@ -119,5 +121,20 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
     return dr.select(r.inside, vis, 1.0)
 
 
-FILTERS = {"second_depth": second_depth}
-LAYERS = {"second_depth": ("second_depth",)}
+METHOD = Method(
+    name="second_depth",
+    lookup=second_depth,
+    summary="Wang & Molnar 1994 second-depth shadow maps with virtual samples",
+    properties=(
+        Prop("pcf_samples", "int", 4,
+             "Percentage-closer taps k: one compare per texel of the sqrt(k) x sqrt(k) "
+             "texels nearest the lookup point (4: 2 x 2).", choices=(1, 4, 9, 16, 25)),
+        Prop("virtual_samples", "bool", True,
+             "Where the neighbourhood compares disagree, compare depths of virtual samples "
+             "on the receiver's tangent plane (Wang & Molnar 1994, sec. 3.2); false keeps "
+             "the plain compares."),
+    ),
+    layers={"second_depth": second_depth_layer},
+    bias_defaults={"slope_bias": 0.0, "normal_bias": 0.0},
+    builtin=True,
+)

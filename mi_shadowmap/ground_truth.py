@@ -1,0 +1,100 @@
+"""The reference policy of comparisons and sweeps, and scoring against it.
+
+:func:`make_reference` renders what every method is measured against:
+
+* ``"auto"``: the ``raytraced`` method at the same spp and seed when every
+  emitter is a delta light (so its visibility is the exact per-sample ground
+  truth and its own metrics are 0); when the scene has an area light
+  (:func:`has_area_lights`), the converged soft-shadow reference
+  (:func:`converged_reference`);
+* ``"converged"``: :func:`converged_reference` in any scene;
+* a method name or spec (rendered at the given spp), or an existing
+  :class:`~mi_shadowmap.timing.MethodResult`.
+
+:func:`converged_reference` renders the image with ``raytraced`` and many
+stratified shadow rays and takes the visibility from
+:func:`mi_shadowmap.reference.converged_visibility` (the average of many hard
+shadows from fixed positions on the light). :func:`score` computes the
+metrics of a result against the reference (:mod:`mi_shadowmap.metrics`).
+"""
+from __future__ import annotations
+
+import time
+
+import mitsuba as mi
+import numpy as np
+
+from . import metrics
+from .reference import converged_visibility
+from .specs import REFERENCE_METHOD, method_spec
+from .timing import MethodResult, run_method
+
+
+def has_area_lights(scene: mi.Scene) -> bool:
+    """True if an emitter is neither a delta light nor an environment (soft shadows)."""
+    for e in scene.emitters():
+        if e.is_environment():
+            continue
+        if not (mi.has_flag(e.flags(), mi.EmitterFlags.DeltaPosition)
+                or mi.has_flag(e.flags(), mi.EmitterFlags.DeltaDirection)):
+            return True
+    return False
+
+
+def converged_reference(scene: mi.Scene, spp: int = 64, seed: int = 0,
+                        shadow_rays: int = 64, n_light: int = 1024) -> MethodResult:
+    """The converged soft-shadow reference for scenes with area lights.
+
+    The image is ``raytraced`` with ``shadow_rays`` stratified shadow rays per
+    camera sample; the visibility is
+    :func:`mi_shadowmap.reference.converged_visibility` (the average of
+    ``n_light`` hard shadows from fixed stratified light positions).
+    """
+    res = run_method(scene, REFERENCE_METHOD, spp=spp, seed=seed, shadow_rays=shadow_rays,
+                     measure_cached=False)
+    t0 = time.perf_counter()
+    vis = converged_visibility(scene, n_light=n_light, seed=seed, spp=spp)
+    res.visibility = {k[len("vis_"):]: np.asarray(v, dtype=np.float32) for k, v in vis.items()}
+    res.times["converged"] = time.perf_counter() - t0
+    res.name = f"reference (converged, {n_light} light samples)"
+    return res
+
+
+def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_spp: int = 64,
+                   ref_shadow_rays: int = 64) -> MethodResult:
+    """Render the reference (see the module docstring).
+
+    ``reference`` is ``"auto"``, ``"converged"`` (rendered at ``max(spp,
+    ref_spp)`` spp with ``ref_shadow_rays``), a method name / spec dict
+    (rendered at ``spp`` unless it has its own), or an existing
+    :class:`~mi_shadowmap.timing.MethodResult`.
+    """
+    if isinstance(reference, MethodResult):
+        ref = reference
+    elif reference == "converged" or (reference == "auto" and has_area_lights(scene)):
+        ref = converged_reference(scene, spp=max(spp, ref_spp), seed=seed,
+                                  shadow_rays=ref_shadow_rays)
+    else:
+        spec = dict(method_spec(REFERENCE_METHOD if reference == "auto" else reference))
+        r_spp = spec.pop("spp", spp)
+        ref = run_method(scene, spec.pop("method"), spp=r_spp, seed=seed, **spec)
+        ref.name = "reference (" + ref.name + ")"
+    ref.is_reference = True
+    return ref
+
+
+def score(result: MethodResult, reference: MethodResult) -> dict:
+    """Metrics of ``result`` against ``reference``: pooled over emitters (flat
+    ``vis_*`` and ``img_*`` keys) and per emitter (``per_emitter[label]``)."""
+    if sorted(result.visibility) != sorted(reference.visibility):
+        raise ValueError(f"emitters differ: {sorted(result.visibility)} vs reference "
+                         f"{sorted(reference.visibility)}")
+    pooled = metrics.visibility_metrics(reference.vis_stack(), result.vis_stack())
+    m = {f"vis_{k}": v for k, v in pooled.items()}
+    m["per_emitter"] = {label: metrics.visibility_metrics(reference.visibility[label],
+                                                          result.visibility[label])
+                        for label in sorted(reference.visibility)}
+    if reference.image is not None and result.image is not None:
+        img = metrics.image_metrics(reference.image, result.image)
+        m.update({f"img_{k}": v for k, v in img.items()})
+    return m

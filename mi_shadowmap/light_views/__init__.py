@@ -1,0 +1,133 @@
+"""Emitter -> light camera(s): one class per projection behind one interface.
+
+Nothing else in the package knows how a light projects. :func:`make_light_view`
+is the one factory; each view class (see :class:`~.base.LightView` for the
+interface and the conventions) lives in its own module:
+
+=====================  ===============  ====================================
+emitter                view             module
+=====================  ===============  ====================================
+spot                   PerspectiveView  :mod:`.perspective`
+directional            OrthoView        :mod:`.ortho`
+directional, cascades  CascadedView     :mod:`.cascaded`
+point, area            CubeView         :mod:`.cube`
+=====================  ===============  ====================================
+
+Adding a light type means one class (and one line in :func:`make_light_view`).
+The helpers below are the camera-side inputs of the map manager: the points
+the camera sees (:func:`camera_visible_points`) and the texel-to-pixel
+footprint of the automatic resolution (:func:`footprint_ratio`).
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .base import LightView
+from .cascaded import CascadedView, cascaded_view, split_depths
+from .cube import CubeView, area_light_size, area_view, point_view
+from .ortho import OrthoView, directional_view
+from .perspective import PerspectiveView, spot_view
+
+__all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeView",
+           "make_light_view", "emitter_kind", "emitter_label", "emitter_class",
+           "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
+           "footprint_ratio", "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
+
+SUPPORTED_EMITTERS = ("point", "spot", "directional", "area")
+_CLASS_TO_KIND = {
+    "PointLight": "point",
+    "SpotLight": "spot",
+    "DirectionalEmitter": "directional",
+    "AreaLight": "area",
+}
+
+
+class UnsupportedEmitterError(ValueError):
+    """An emitter for which no light view can be built."""
+
+
+def emitter_class(emitter) -> str:
+    """The C++ class name of an emitter (e.g. 'PointLight')."""
+    return str(emitter).split("[", 1)[0].strip()
+
+
+def emitter_kind(emitter) -> str:
+    """'point' | 'spot' | 'directional' | 'area' | 'environment' | class name."""
+    if emitter.is_environment():
+        return "environment"
+    cls = emitter_class(emitter)
+    return _CLASS_TO_KIND.get(cls, cls)
+
+
+def emitter_label(emitter, index: int) -> str:
+    """A readable name: the emitter's id if it has one, else its index."""
+    eid = emitter.id()
+    return eid if eid else str(index)
+
+
+def make_light_view(emitter, scene, index: int) -> LightView:
+    """Build the :class:`LightView` of one emitter, or raise naming it."""
+    label = emitter_label(emitter, index)
+    kind = emitter_kind(emitter)
+    if kind == "spot":
+        return spot_view(emitter, label)
+    if kind == "point":
+        return point_view(emitter, label)
+    if kind == "directional":
+        return directional_view(emitter, scene, label)
+    if kind == "area":
+        return area_view(emitter, scene, label)
+    raise UnsupportedEmitterError(
+        f"shadowmap: emitter '{label}' ({emitter_class(emitter)}) is not supported; "
+        f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}"
+        + ("; for environment/constant emitters set environment='unshadowed' to light "
+           "them without shadows" if kind == "environment" else ""))
+
+
+def camera_visible_points(scene, sensor) -> np.ndarray:
+    """World points the camera sees: one ray through every pixel centre, ``(N, 3)``."""
+    if sensor is None:
+        return np.zeros((0, 3))
+    w, h = (int(x) for x in sensor.film().crop_size())
+    idx = dr.arange(mi.UInt32, w * h)
+    y = idx // w
+    x = idx - y * w
+    pos = mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    p = np.stack([si.p.x.numpy(), si.p.y.numpy(), si.p.z.numpy()], axis=1)
+    return p[si.is_valid().numpy()]
+
+
+def footprint_ratio(scene, sensor, views) -> float:
+    """Texel width over camera pixel width at the scene's centre (max over lights).
+
+    Per unit resolution a view spans :meth:`LightView.map_width` (a spot map
+    ``2 tan(cutoff) d`` at distance ``d`` from the light, a cube face ``2 d``,
+    an orthographic map its width, cascades their largest one); a perspective
+    camera spans ``2 tan(x_fov / 2) d_cam`` per unit film width. ``d`` and
+    ``d_cam`` are measured to the centre of the scene's bounding box. Returns
+    1 when it cannot be computed (no bounds, not a perspective camera). Used
+    by the automatic ``resolution``
+    (:meth:`~mi_shadowmap.options.Options.map_resolution`).
+    """
+    bbox = scene.bbox()
+    if sensor is None or not bbox.valid():
+        return 1.0
+    centre = np.array([float(c) for c in bbox.center()])
+    params = mi.traverse(sensor)
+    key = next((k for k in params.keys() if k.endswith("x_fov")), None)
+    if key is None:
+        return 1.0
+    x_fov = float(dr.ravel(params[key])[0])
+    cam = sensor.world_transform().translation()
+    cam = np.array([float(dr.ravel(cam[k])[0]) for k in range(3)])
+    cam_width = 2.0 * math.tan(math.radians(x_fov) / 2) * np.linalg.norm(centre - cam)
+    if not cam_width > 0:
+        return 1.0
+    widths = [v.map_width(centre) for v in views if v is not None]
+    return max(widths) / cam_width if widths else 1.0

@@ -1,0 +1,226 @@
+"""The :class:`LightView` interface every map builder and filter uses, and frame helpers.
+
+A light view is the camera (or cameras: its *faces*) through which one
+emitter's depth map is rendered. Every operation that depends on how a light
+projects is a method here, implemented once per projection in its own
+module; the map manager and the filters call these methods and never ask
+which kind of view they hold.
+
+Conventions shared by every view
+--------------------------------
+* **Depth** is the ``t`` of the texel's ray, in world units: the distance
+  from the light position (spot, point, area), or from the light's near
+  plane along the light direction (directional). Map values and receiver
+  depths are compared in this one space.
+* **Texels.** Face ``f`` of resolution ``r`` stores texel ``(i, j)`` at flat
+  index ``f*r*r + j*r + i``; its centre is ``uv = ((i+0.5)/r, (j+0.5)/r)``.
+  A point looks up the texel ``floor(uv * r)`` (nearest texel).
+* **Outside a map** (behind a spot, beyond a directional map's rectangle)
+  ``inside`` is False and lookups treat the point as lit (Reeves 1987).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LightView:
+    """The map faces of one emitter and how world points project into them.
+
+    Fields shared by every view: ``kind`` (the emitter kind: 'spot', 'point',
+    'directional', 'area'), ``position`` (the light position; the near-plane
+    centre of a directional light), ``light_from_world`` (rigid, +z along the
+    view direction; the identity for cube views), ``light_size`` (world width
+    of the light, 0 for a point), ``ignore_shape`` (the emitter's own shape,
+    which never occludes it), ``light_normal`` (the emitting normal of a
+    planar one-sided area light, else None) and ``label``.
+    """
+    kind: str
+    position: mi.ScalarPoint3f
+    light_from_world: mi.ScalarTransform4f
+    light_size: float = 0.0
+    ignore_shape: object = None
+    light_normal: tuple | None = None
+    label: str = ""
+
+    #: A short name of the projection, for messages and file names only.
+    projection = "abstract"
+
+    # ----------------------------------------------------------- the interface
+    @property
+    def n_faces(self) -> int:
+        raise NotImplementedError
+
+    def ray_through(self, face, uv_light: mi.Point2f):
+        """World ray ``(o_world, d_world)`` (unit ``d``) through ``uv_light`` of ``face``.
+
+        The inverse of :meth:`project`: the point at distance ``t`` along it has
+        map depth ``t``.
+        """
+        raise NotImplementedError
+
+    def texel_rays(self, res: int):
+        """World rays ``(o_world, d_world)`` through every texel centre of every face,
+        ``n_faces * res * res`` entries in flat texel order (the map builders' input)."""
+        raise NotImplementedError
+
+    def project(self, p_world: mi.Point3f):
+        """``p_world`` -> ``(face, uv_light, depth, inside)``; ``uv_light`` in [0, 1]^2
+        on the face when ``inside``."""
+        raise NotImplementedError
+
+    def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
+        """``uv_light`` of ``p_world`` on a *given* face, even off that face.
+
+        Footprints need the projection onto the receiver's face, so that
+        ``p + dp`` across a cube seam or a cascade split does not jump to
+        another face. Views with one face return :meth:`project`'s uv.
+        """
+        return self.project(p_world)[1]
+
+    def depth_of(self, p_world: mi.Point3f) -> mi.Float:
+        """Map depth of ``p_world`` (:meth:`project`'s, without the uv)."""
+        return dr.norm(p_world - mi.Point3f(self.position))
+
+    def texel_world_size(self, res: int, depth, p_world=None):
+        """World width of one texel at ``depth`` (perpendicular to the ray);
+        ``p_world`` selects the face where faces differ in size (cascades)."""
+        raise NotImplementedError
+
+    def texel_parallel_size(self, res: int, face, p_world: mi.Point3f, texel_world):
+        """World width of a texel at ``p_world`` measured parallel to ``face``'s image
+        plane (``texel_world``: :meth:`texel_world_size` there). Similar triangles
+        between planes parallel to the light (PCSS) hold in this width."""
+        raise NotImplementedError
+
+    def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
+        """Unit vector from ``p_world`` towards the light (its centre)."""
+        return dr.normalize(mi.Point3f(self.position) - p_world)
+
+    def tap_texel(self, face, xy_texel: mi.Point2f, res: int, cross_seams: bool = True):
+        """Texel hit by a filter tap at continuous texel coordinates ``xy_texel``
+        (``uv_light * res``) of ``face``: ``(face, i, j, inside)``.
+
+        A tap off a face with no neighbour is ``inside`` False (lit, blocks
+        nothing: Reeves 1987). Views whose faces have neighbours (cube maps)
+        continue on the neighbouring face, or with ``cross_seams`` False clamp
+        to the face's border texel.
+        """
+        ij = mi.Point2i(dr.floor(xy_texel))
+        in_face = (ij.x >= 0) & (ij.x < res) & (ij.y >= 0) & (ij.y < res)
+        return mi.UInt32(face), ij.x, ij.y, in_face
+
+    def light_width(self, light_size=None, angular_diameter: float = 0.0):
+        """``(width, angular)`` of the light for soft shadows: its world width
+        (``light_size`` when given, else the emitter's own), or for directional
+        lights ``2 tan(angular_diameter / 2)`` with ``angular`` True."""
+        if light_size is not None:
+            return float(light_size), False
+        return float(self.light_size), False
+
+    def map_width(self, p_world: np.ndarray) -> float:
+        """World width one face spans per unit of resolution near ``p_world`` (numpy):
+        the texel width at resolution 1 (the automatic resolution's footprint)."""
+        raise NotImplementedError
+
+    # ------------------------------------------- camera-dependent refinements
+    def needs_camera_points(self, opts) -> bool:
+        """Whether :meth:`refine` or :meth:`faces_needed` read camera-visible points."""
+        return False
+
+    def planned_faces(self, opts, visible) -> int:
+        """Faces of the view :meth:`refine` will return (known before the resolution)."""
+        return self.n_faces
+
+    def refine(self, opts, scene, sensor, visible, res):
+        """The view for this render once the resolution is known: cascades or a
+        frustum fitted to the camera-visible points (``opts``), and the texel
+        density gain (texel area before / after; None when not fitted)."""
+        return self, None
+
+    def refine_for_footprint(self, opts, scene, sensor, visible):
+        """The view whose :meth:`map_width` sets the automatic resolution."""
+        return self
+
+    def faces_needed(self, opts, visible, res):
+        """The faces a render reads (a tuple of bools), or None for all of them."""
+        return None
+
+    def describe(self) -> str:
+        return f"{self.label}: {self.kind} light, {self.projection} map, {self.n_faces} face(s)"
+
+
+# ------------------------------------------------------------- frame helpers
+def scalar3(v) -> mi.ScalarVector3f:
+    """First entry of a (possibly JIT) 3-vector, as a ScalarVector3f."""
+    return mi.ScalarVector3f(*(float(dr.ravel(v[k])[0]) for k in range(3)))
+
+
+def look_along(origin, forward) -> mi.ScalarTransform4f:
+    """Rigid light_from_world with +z along ``forward`` and origin at ``origin``."""
+    f = dr.normalize(mi.ScalarVector3f(forward))
+    up = mi.ScalarVector3f(0, 1, 0) if abs(f.y) < 0.9 else mi.ScalarVector3f(1, 0, 0)
+    # The rotation is built at the world origin and translated afterwards: look_at(o, o + f)
+    # would recover f as (o + f) - o in float32, which loses ~eps * |o| (1e-3 at 1e4 units)
+    # and so breaks scale invariance for far-from-origin lights.
+    world_from_light = mi.ScalarTransform4f().translate(mi.ScalarVector3f(origin)) @ \
+        mi.ScalarTransform4f().look_at(origin=mi.ScalarPoint3f(0), target=mi.ScalarPoint3f(f),
+                                       up=up)
+    return world_from_light.inverse()
+
+
+def look_along_np(origin, forward) -> mi.ScalarTransform4f:
+    """:func:`look_along` from numpy/sequence arguments."""
+    return look_along(mi.ScalarPoint3f(*[float(c) for c in origin]),
+                      mi.ScalarVector3f(*[float(c) for c in forward]))
+
+
+def emitter_frame(T, origin) -> mi.ScalarTransform4f:
+    """Rigid light_from_world of an emitter's own frame: the rotation of its
+    ``to_world`` ``T`` (local z normalised, then local x and y made orthogonal
+    to it and to each other, Gram-Schmidt; scale and shear dropped, handedness
+    kept), centred at ``origin``."""
+    z = np.array([float(c) for c in scalar3(T @ mi.Vector3f(0, 0, 1))])
+    x = np.array([float(c) for c in scalar3(T @ mi.Vector3f(1, 0, 0))])
+    y = np.array([float(c) for c in scalar3(T @ mi.Vector3f(0, 1, 0))])
+    z /= np.linalg.norm(z)
+    x -= (x @ z) * z
+    if np.linalg.norm(x) < 1e-9:   # degenerate to_world: any x orthogonal to z
+        x = np.cross(z, [0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    y -= (y @ z) * z + (y @ x) * x
+    if np.linalg.norm(y) < 1e-9:
+        y = np.cross(z, x)
+    y /= np.linalg.norm(y)
+    o = np.array([float(c) for c in origin])
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = x, y, z   # rows: world -> light rotation
+    m[:3, 3] = -m[:3, :3] @ o
+    return mi.ScalarTransform4f(m.tolist())
+
+
+def light_matrix(view) -> np.ndarray:
+    """``light_from_world`` as a float64 numpy 4x4 matrix."""
+    return np.array(view.light_from_world.matrix, dtype=np.float64)
+
+
+def position_np(view) -> np.ndarray:
+    return np.array([float(c) for c in view.position])
+
+
+def unit_grid(face_count: int, res: int):
+    """``(face, s, t)`` of every texel centre, ``s, t`` in [-1, 1] across the face."""
+    idx = dr.arange(mi.UInt32, face_count * res * res)
+    face = idx // (res * res)
+    rem = idx - face * (res * res)
+    j = rem // res
+    i = rem - j * res
+    inv = 1.0 / res
+    s = (mi.Float(i) + 0.5) * (2.0 * inv) - 1.0   # [-1, 1] across the face
+    t = (mi.Float(j) + 0.5) * (2.0 * inv) - 1.0
+    return face, s, t
+

@@ -1,0 +1,183 @@
+"""Directional lights, cascaded: parallel-split orthographic maps (:class:`CascadedView`).
+
+``n_faces`` = cascades orthographic maps sharing the light direction and near
+plane, face ``i`` fitted to the camera-visible points of view-depth slice
+``i`` (thesis 002, sec. 2.1.6 / 5.1); a point uses the face of its camera view
+depth (:meth:`CascadedView.cascade_of`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .base import light_matrix, unit_grid
+from .ortho import OrthoView
+
+
+@dataclass(frozen=True)
+class CascadedView(OrthoView):
+    """Cascades of an :class:`OrthoView`: per face, the light-space rectangle
+    ``(cx, cy, hx, hy)`` in ``rects``; ``split_depths`` are the camera view depths
+    ``C_0 < ... < C_m`` separating them, measured from ``camera_origin`` along
+    ``camera_forward``."""
+    rects: tuple = ()
+    split_depths: tuple = ()
+    camera_origin: tuple = (0.0, 0.0, 0.0)
+    camera_forward: tuple = (0.0, 0.0, 1.0)
+
+    projection = "cascaded"
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.rects)
+
+    def cascade_of(self, p_world) -> mi.UInt32:
+        """Cascade (face) of ``p_world``: how many split depths its camera view depth
+        exceeds."""
+        cam_o = mi.Point3f(*self.camera_origin)
+        cam_f = mi.Vector3f(*self.camera_forward)
+        z_view = dr.dot(mi.Point3f(p_world) - cam_o, cam_f)
+        face = mi.UInt32(0)
+        for split in self.split_depths[1:-1]:
+            face += dr.select(z_view > split, 1, 0)
+        return face
+
+    def _rect(self, face):
+        """Per-face ``(cx, cy, hx, hy)`` of the light-space rectangle, gathered."""
+        out = []
+        for k in range(4):
+            table = mi.Float([r[k] for r in self.rects])
+            out.append(dr.gather(mi.Float, table, mi.UInt32(face)))
+        return tuple(out)
+
+    def texel_rays(self, res: int):
+        face, s, t = unit_grid(self.n_faces, res)
+        cx, cy, hx, hy = self._rect(face)
+        o_light = mi.Point3f(cx + s * hx, cy + t * hy, 0.0)
+        w = self._world_from_light()
+        return w @ o_light, w @ mi.Vector3f(0, 0, 1)
+
+    def ray_through(self, face, uv_light: mi.Point2f):
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        cx, cy, hx, hy = self._rect(mi.UInt32(face))
+        o_light = mi.Point3f(cx + s * hx, cy + t * hy, 0.0)
+        w = self._world_from_light()
+        return mi.Point3f(w @ o_light), dr.normalize(w @ mi.Vector3f(0, 0, 1))
+
+    def _uv_in(self, face, p_light):
+        cx, cy, hx, hy = self._rect(face)
+        return mi.Point2f(0.5 * ((p_light.x - cx) / hx + 1.0),
+                          0.5 * ((p_light.y - cy) / hy + 1.0))
+
+    def project(self, p_world: mi.Point3f):
+        p_world = mi.Point3f(p_world)
+        p_light = mi.Transform4f(self.light_from_world) @ p_world
+        face = self.cascade_of(p_world)
+        uv = self._uv_in(face, p_light)
+        inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        return face, uv, p_light.z, inside
+
+    def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
+        p_light = mi.Transform4f(self.light_from_world) @ mi.Point3f(p_world)
+        return self._uv_in(mi.UInt32(face), p_light)
+
+    def texel_world_size(self, res: int, depth, p_world=None):
+        """Needs ``p_world`` (its cascade sets the texel size); without it, the
+        coarsest cascade's texel (a conservative bias)."""
+        if p_world is None:
+            w = max(max(r[2], r[3]) for r in self.rects)
+            return dr.full(mi.Float, 2.0 * w / res, dr.width(depth))
+        _, _, hx, hy = self._rect(self.cascade_of(p_world))
+        return 2.0 * dr.maximum(hx, hy) / res
+
+    def map_width(self, p_world: np.ndarray) -> float:
+        return 2.0 * max(max(r[2], r[3]) for r in self.rects)
+
+    def planned_faces(self, opts, visible) -> int:
+        return self.n_faces
+
+    def refine(self, opts, scene, sensor, visible, res):
+        return self, None
+
+
+def split_depths(z_near: float, z_far: float, cascades: int, split_lambda: float) -> list:
+    """Split positions ``C_0 = z_near < C_1 < ... < C_m = z_far`` (thesis sec. 5.1).
+
+    ``C_i = lambda * (z_n + (z_f - z_n) i / m) + (1 - lambda) * z_n (z_f / z_n)^(i / m)``:
+    the uniform scheme weighted by ``split_lambda``, the logarithmic one by
+    ``1 - split_lambda`` (Zhang et al.'s practical split scheme).
+    """
+    m = int(cascades)
+    z_near = max(float(z_near), 1e-6 * max(abs(float(z_far)), 1e-30))
+    z_far = max(float(z_far), z_near * (1.0 + 1e-6))
+    out = []
+    for i in range(m + 1):
+        uni = z_near + (z_far - z_near) * i / m
+        log = z_near * (z_far / z_near) ** (i / m)
+        out.append(split_lambda * uni + (1.0 - split_lambda) * log)
+    out[0], out[-1] = z_near, z_far
+    return out
+
+
+def cascaded_view(view: OrthoView, scene, sensor, cascades: int, split_lambda: float,
+                  margin_texels: float = 4.0, res: int | None = 1024,
+                  points: np.ndarray | None = None) -> OrthoView:
+    """Parallel-split (cascaded) maps for a directional ``view`` (thesis 2.1.6, 5.1).
+
+    The camera's view depth range -- the nearest and farthest camera-visible
+    surface points along the camera's forward axis, one ray per pixel centre
+    of ``sensor``'s film -- is split with :func:`split_depths`. Cascade ``i``
+    is an orthographic map (same light direction and near plane as ``view``,
+    so casters between the scene's bounds and a receiver are all in it: a
+    caster that can shadow a receiver lies on the light ray through it, at
+    the same light-space (x, y)) whose rectangle is the light-space (x, y)
+    bounding box of the visible points of slice ``i`` (slices overlap by 2 %
+    of their length), grown by ``margin_texels`` texels of ``res`` (the real
+    per-face resolution; ``res=None``: no margin, e.g. to measure the
+    cascades' footprint before the resolution is chosen). ``points``: the
+    camera-visible points if already computed (:func:`camera_visible_points`).
+    A lookup uses the cascade of its point's view depth. Returns ``view``
+    unchanged for 1 cascade, no sensor, or a camera that sees nothing.
+    """
+    from . import camera_visible_points
+    if cascades <= 1 or sensor is None:
+        return view
+    p = camera_visible_points(scene, sensor) if points is None else points
+    if len(p) == 0:
+        return view
+    T = sensor.world_transform()
+    cam_o = np.array([float(dr.ravel(T.translation()[k])[0]) for k in range(3)])
+    fwd_v = T @ mi.Vector3f(0, 0, 1)
+    cam_f = np.array([float(dr.ravel(fwd_v[k])[0]) for k in range(3)])
+    cam_f /= np.linalg.norm(cam_f)
+    z_view = (p - cam_o) @ cam_f
+    splits = split_depths(max(float(z_view.min()), 1e-6), float(z_view.max()), cascades,
+                          split_lambda)
+    L = light_matrix(view)
+    p_l = p @ L[:3, :3].T + L[:3, 3]
+    rects = []
+    for i in range(cascades):
+        lo_z, hi_z = splits[i], splits[i + 1]
+        pad_z = 0.02 * (hi_z - lo_z)
+        sel = (z_view >= lo_z - pad_z) & (z_view <= hi_z + pad_z)
+        if not sel.any():
+            sel = np.argsort(np.abs(z_view - 0.5 * (lo_z + hi_z)))[:1]
+        lo = p_l[sel, :2].min(axis=0)
+        hi = p_l[sel, :2].max(axis=0)
+        half = np.maximum(0.5 * (hi - lo), 1e-6 * max(view.half_extent))
+        if res is not None:
+            grow = 2.0 * margin_texels / res
+            half = half * (1.0 + grow) + grow * half.max()
+        c = 0.5 * (lo + hi)
+        rects.append((float(c[0]), float(c[1]), float(half[0]), float(half[1])))
+    return CascadedView(view.kind, view.position, view.light_from_world,
+                        light_size=view.light_size, ignore_shape=view.ignore_shape,
+                        light_normal=view.light_normal, label=view.label,
+                        half_extent=view.half_extent, rects=tuple(rects),
+                        split_depths=tuple(splits),
+                        camera_origin=tuple(float(x) for x in cam_o),
+                        camera_forward=tuple(float(x) for x in cam_f))

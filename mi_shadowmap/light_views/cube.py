@@ -1,0 +1,202 @@
+"""Point and area lights: six 90-degree faces around the light (:class:`CubeView`).
+
+Face ``2*a + s`` looks along world axis ``a`` with sign ``+`` (s=0) or ``-``
+(s=1); its ``u``/``v`` are the axes ``(a+1)%3`` and ``(a+2)%3``. A filter tap
+off a face continues on the neighbouring face. Area lights (rectangle, disk,
+sphere, mesh) are seen from their shape's bounding-box centre (``hard`` and
+the PCF family thus see a point light there); the shape itself never
+occludes, and ``light_size`` (for PCSS) comes from :func:`area_light_size`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .base import LightView, position_np, scalar3, unit_grid
+
+
+def cube_dir(face, s, t) -> mi.Vector3f:
+    """Light-space direction through (s, t) in [-1, 1]^2 on cube face ``face``."""
+    axis = face // 2
+    sign = dr.select((face & 1) == 0, 1.0, -1.0)
+    # component along axis a is `sign`, along (a+1)%3 is s, along (a+2)%3 is t
+    x = dr.select(axis == 0, sign, dr.select(axis == 1, t, s))
+    y = dr.select(axis == 1, sign, dr.select(axis == 2, t, s))
+    z = dr.select(axis == 2, sign, dr.select(axis == 0, t, s))
+    return mi.Vector3f(x, y, z)
+
+
+def cube_face(d: mi.Vector3f):
+    """Inverse of :func:`cube_dir`: face, s, t and |major component|."""
+    ax, ay, az = dr.abs(d.x), dr.abs(d.y), dr.abs(d.z)
+    is_x = (ax >= ay) & (ax >= az)
+    is_y = ~is_x & (ay >= az)
+    axis = dr.select(is_x, mi.UInt32(0), dr.select(is_y, mi.UInt32(1), mi.UInt32(2)))
+    major_signed = dr.select(is_x, d.x, dr.select(is_y, d.y, d.z))
+    major = dr.abs(major_signed)
+    face = 2 * axis + dr.select(major_signed < 0, mi.UInt32(1), mi.UInt32(0))
+    u_comp = dr.select(is_x, d.y, dr.select(is_y, d.z, d.x))
+    v_comp = dr.select(is_x, d.z, dr.select(is_y, d.x, d.y))
+    inv = dr.rcp(dr.maximum(major, 1e-30))
+    return face, u_comp * inv, v_comp * inv, major
+
+
+@dataclass(frozen=True)
+class CubeView(LightView):
+    """Six 90-degree faces around ``position`` in world axes."""
+
+    projection = "cube"
+    tan_half = 1.0
+
+    @property
+    def n_faces(self) -> int:
+        return 6
+
+    def texel_rays(self, res: int):
+        face, s, t = unit_grid(6, res)
+        return mi.Point3f(self.position), dr.normalize(cube_dir(face, s, t))
+
+    def ray_through(self, face, uv_light: mi.Point2f):
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        return mi.Point3f(self.position), dr.normalize(cube_dir(mi.UInt32(face), s, t))
+
+    def project(self, p_world: mi.Point3f):
+        d = mi.Point3f(p_world) - mi.Point3f(self.position)
+        face, s, t, major = cube_face(d)
+        uv = mi.Point2f(0.5 * (s + 1.0), 0.5 * (t + 1.0))
+        depth = dr.norm(d)
+        return face, uv, depth, major > 0
+
+    def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
+        d = mi.Point3f(p_world) - mi.Point3f(self.position)
+        face = mi.UInt32(face)
+        axis = face // 2
+        sign = dr.select((face & 1) == 0, 1.0, -1.0)
+        major = sign * dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
+        u_comp = dr.select(axis == 0, d.y, dr.select(axis == 1, d.z, d.x))
+        v_comp = dr.select(axis == 0, d.z, dr.select(axis == 1, d.x, d.y))
+        inv = dr.rcp(dr.maximum(major, 1e-30))
+        return mi.Point2f(0.5 * (u_comp * inv + 1.0), 0.5 * (v_comp * inv + 1.0))
+
+    def texel_world_size(self, res: int, depth, p_world=None):
+        return depth * (2.0 * self.tan_half / res)
+
+    def texel_parallel_size(self, res: int, face, p_world, texel_world):
+        o, axis = self.ray_through(face, mi.Point2f(0.5, 0.5))
+        z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
+        return z_axial * (2.0 * self.tan_half / res)
+
+    def tap_texel(self, face, xy_texel: mi.Point2f, res: int, cross_seams: bool = True):
+        ij = mi.Point2i(dr.floor(xy_texel))
+        in_face = (ij.x >= 0) & (ij.x < res) & (ij.y >= 0) & (ij.y < res)
+        face = mi.UInt32(face)
+        if not cross_seams:
+            ij = dr.clip(ij, 0, res - 1)
+            return face, ij.x, ij.y, mi.Bool(True)
+        st = xy_texel * (2.0 / res) - 1.0
+        f2, s2, t2, _ = cube_face(cube_dir(face, st.x, st.y))
+        ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2f(s2 + 1.0, t2 + 1.0) * (0.5 * res))),
+                      0, res - 1)
+        return (dr.select(in_face, face, f2), dr.select(in_face, ij.x, ij2.x),
+                dr.select(in_face, ij.y, ij2.y), mi.Bool(True))
+
+    def map_width(self, p_world: np.ndarray) -> float:
+        return 2.0 * float(np.linalg.norm(p_world - position_np(self)))
+
+    # --------------------------------------------------------------- culling
+    def needs_camera_points(self, opts) -> bool:
+        return bool(opts.cull_faces)
+
+    def faces_needed(self, opts, visible, res):
+        """With ``cull_faces``: the faces (``2*axis + (sign < 0)``) the camera-visible
+        points project into, plus the neighbour across an edge for points within
+        ``2 (4 + normal_bias) / res`` of it (normal offsets and sub-pixel camera
+        samples may cross it); None (all faces) otherwise."""
+        if not opts.cull_faces or visible is None:
+            return None
+        margin = 2.0 * (4.0 + opts.normal_bias_texels) / res
+        need = [False] * 6
+        if len(visible) == 0:
+            return tuple(need)
+        d = visible - position_np(self)
+        a = np.abs(d)
+        major = np.argmax(a, axis=1)
+        m = np.maximum(a[np.arange(len(d)), major], 1e-30)
+        for axis in range(3):
+            for sign in (0, 1):
+                face_pts = (major == axis) & ((d[:, axis] < 0) == bool(sign))
+                need[2 * axis + sign] |= bool(face_pts.any())
+                # neighbours: points of other faces within `margin` of this face's direction
+                near = (a[:, axis] >= m * (1.0 - margin)) & ((d[:, axis] < 0) == bool(sign))
+                need[2 * axis + sign] |= bool(near.any())
+        return tuple(need)
+
+
+def point_view(emitter, label: str) -> CubeView:
+    pos = mi.ScalarPoint3f(scalar3(mi.traverse(emitter)["position"]))
+    return CubeView("point", pos, mi.ScalarTransform4f(), label=label)
+
+
+def area_light_size(shape) -> float:
+    """Width of an area light as PCSS sees it (world units).
+
+    The side of the square whose area equals the shape's area *seen from the
+    receivers' side*: ``sqrt(A_proj)``, where ``A_proj`` is
+
+    * for meshes (PLY/OBJ, and the built-in ``cube``):
+      ``max(|sum_i a_i n_i|, A / 4)`` -- the length of the summed triangle
+      area vectors is the area projected along the mesh's mean normal (the
+      full area for a planar one-sided light); closed meshes sum to 0 and
+      fall back to ``A / 4``, their mean projected area (Cauchy's formula);
+    * for a disk or a rectangle (Mitsuba's ``rectangle`` is an analytic
+      shape, not a mesh): its area (a disk of radius r gives ``sqrt(pi) r``);
+    * for a sphere and any other shape: ``A / 4`` (a sphere gives the area of
+      its silhouette disk, ``pi r^2``).
+
+    A square light of side ``a`` thus has size ``a`` exactly, which is what
+    the PCSS penumbra estimate ``w = (d_r - d_b) w_light / d_b`` assumes.
+    """
+    from . import emitter_class
+    area = float(dr.ravel(shape.surface_area())[0])
+    cls = emitter_class(shape)
+    if shape.is_mesh() and hasattr(shape, "vertex_positions_buffer"):
+        v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype("f8")
+        f = shape.faces_buffer().numpy().reshape(-1, 3)
+        area_vectors = 0.5 * np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        proj = float(np.linalg.norm(area_vectors.sum(axis=0)))
+        a_proj = max(proj, 0.25 * area)
+    elif cls in ("Disk", "Rectangle"):
+        a_proj = area
+    else:
+        a_proj = 0.25 * area
+    return math.sqrt(max(a_proj, 0.0))
+
+
+def planar_normal(shape):
+    """The emitting normal of a planar shape (all of 64 sampled normals within
+    1e-3 of each other), else None (spheres, curved or closed meshes)."""
+    k = dr.arange(mi.UInt32, 64)
+    u = mi.Point2f((mi.Float(k % 8) + 0.5) / 8, (mi.Float(k // 8) + 0.5) / 8)
+    ps = shape.sample_position(0.0, u)
+    n = [ps.n.x.numpy(), ps.n.y.numpy(), ps.n.z.numpy()]
+    mean = [float(c.mean()) for c in n]
+    norm = math.sqrt(sum(c * c for c in mean))
+    if norm < 0.999 or any(float(abs(c - m).max()) > 1e-3 for c, m in zip(n, mean)):
+        return None
+    return tuple(c / norm for c in mean)
+
+
+def area_view(emitter, scene, label: str) -> CubeView:
+    shape = emitter.get_shape()
+    bbox = shape.bbox()
+    centre = mi.ScalarPoint3f(bbox.center())
+    # get_shape() is typed as the Shape base; the scene's list has the Mesh interface.
+    typed = [s for s in scene.shapes() if s.emitter() is emitter] if scene is not None else []
+    size = area_light_size(typed[0] if typed else shape)
+    return CubeView("area", centre, mi.ScalarTransform4f(), light_size=size,
+                    ignore_shape=shape, light_normal=planar_normal(shape), label=label)

@@ -1,0 +1,132 @@
+"""Spot lights: one perspective face covering the cutoff cone (:class:`PerspectiveView`).
+
+The face is a square frustum circumscribing the cone (half-angle
+``cutoff_angle``) in the emitter's own frame: the rotation of its
+``to_world`` (columns normalised, Gram-Schmidt), so +z is the spot axis and
+the map's ``u``/``v`` are the emitter's local x/y.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .base import LightView, emitter_frame, light_matrix, look_along_np, position_np, \
+    scalar3, unit_grid
+
+
+@dataclass(frozen=True)
+class PerspectiveView(LightView):
+    """One perspective face; ``tan_half`` is tan(half its field of view)."""
+    tan_half: float = 1.0
+
+    projection = "perspective"
+
+    @property
+    def n_faces(self) -> int:
+        return 1
+
+    def _world_from_light(self):
+        return mi.Transform4f(self.light_from_world.inverse())
+
+    def texel_rays(self, res: int):
+        _, s, t = unit_grid(1, res)
+        d_light = mi.Vector3f(s * self.tan_half, t * self.tan_half, 1.0)
+        return mi.Point3f(self.position), dr.normalize(self._world_from_light() @ d_light)
+
+    def ray_through(self, face, uv_light: mi.Point2f):
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        d_light = mi.Vector3f(s * self.tan_half, t * self.tan_half, 1.0)
+        return mi.Point3f(self.position), dr.normalize(self._world_from_light() @ d_light)
+
+    def project(self, p_world: mi.Point3f):
+        p_world = mi.Point3f(p_world)   # Point + Vector arithmetic may yield a Vector3f
+        p_light = mi.Transform4f(self.light_from_world) @ p_world
+        z = p_light.z
+        inv_z = dr.rcp(dr.maximum(z, 1e-30))
+        uv = mi.Point2f(0.5 * (p_light.x * inv_z / self.tan_half + 1.0),
+                        0.5 * (p_light.y * inv_z / self.tan_half + 1.0))
+        depth = dr.norm(p_world - mi.Point3f(self.position))
+        inside = (z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        return mi.UInt32(0), uv, depth, inside
+
+    def texel_world_size(self, res: int, depth, p_world=None):
+        return depth * (2.0 * self.tan_half / res)
+
+    def texel_parallel_size(self, res: int, face, p_world, texel_world):
+        o, axis = self.ray_through(face, mi.Point2f(0.5, 0.5))
+        z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
+        return z_axial * (2.0 * self.tan_half / res)
+
+    def map_width(self, p_world: np.ndarray) -> float:
+        return 2.0 * self.tan_half * float(np.linalg.norm(p_world - position_np(self)))
+
+    # ------------------------------------------------------------- fitting
+    def needs_camera_points(self, opts) -> bool:
+        return bool(opts.fit_frusta)
+
+    def refine(self, opts, scene, sensor, visible, res):
+        if not opts.fit_frusta:
+            return self, None
+        return self.fit(visible, (8.0 + opts.normal_bias_texels) / res)
+
+    def fit(self, p_world: np.ndarray, margin: float):
+        """``(view fitted to the visible points, texel density gain)``.
+
+        Only the points inside the cone's frustum are kept (the others get no
+        light from the spot). A square frustum re-aimed at the mean direction
+        of those points, with the smallest ``tan_half`` covering them, grown by
+        ``margin`` (a fraction of the window) per side for normal offsets and
+        filter taps. A caster can only shadow a visible receiver along the
+        light ray to it, which crosses the same (u, v): casters are kept
+        (Reeves' and Filament's fitting of the frustum to what matters,
+        restricted to what the camera sees). The gain is the ratio of texel
+        areas (old / new) at the same resolution; the view itself (gain 1) is
+        returned if nothing is gained or the fit is not possible.
+        """
+        if p_world is None or len(p_world) == 0:
+            return self, 1.0
+        L = light_matrix(self)
+        p_l = p_world @ L[:3, :3].T + L[:3, 3]
+        pos = position_np(self)
+        z = p_l[:, 2]
+        keep = (z > 0) & (np.abs(p_l[:, 0]) <= self.tan_half * z) \
+            & (np.abs(p_l[:, 1]) <= self.tan_half * z)
+        if not keep.any():
+            return self, 1.0
+        dirs = p_world[keep] - pos
+        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-30)
+        axis = dirs.mean(axis=0)
+        if np.linalg.norm(axis) < 1e-6:
+            return self, 1.0
+        new_lfw = look_along_np(pos, axis / np.linalg.norm(axis))
+        M = np.array(new_lfw.matrix, dtype=np.float64)
+        q = p_world[keep] @ M[:3, :3].T + M[:3, 3]
+        if np.any(q[:, 2] <= 1e-9 * np.abs(q).max()):
+            return self, 1.0
+        tan = float(np.max(np.abs(q[:, :2]) / q[:, 2:3]))
+        tan = max(tan * (1.0 + 2.0 * margin), 1e-6 * self.tan_half)
+        if tan >= self.tan_half:
+            return self, 1.0
+        return (dataclasses.replace(self, light_from_world=new_lfw, tan_half=tan),
+                (self.tan_half / tan) ** 2)
+
+
+def spot_view(emitter, label: str) -> PerspectiveView:
+    """The :class:`PerspectiveView` of a spot emitter (0 < cutoff_angle < 90 degrees)."""
+    from . import UnsupportedEmitterError
+    T = emitter.world_transform()
+    pos = mi.ScalarPoint3f(scalar3(T.translation()))
+    cutoff = float(dr.ravel(mi.traverse(emitter)["cutoff_angle"])[0])
+    if not (0.0 < cutoff < 90.0):
+        # A square perspective frustum cannot cover a cone of >= 90 degrees.
+        raise UnsupportedEmitterError(
+            f"shadowmap: spot emitter '{label}' has cutoff_angle={cutoff}; a perspective "
+            "depth map needs 0 < cutoff_angle < 90 degrees")
+    return PerspectiveView("spot", pos, emitter_frame(T, pos), label=label,
+                           tan_half=math.tan(math.radians(cutoff)))

@@ -1,0 +1,270 @@
+"""The method registry: one :class:`Method` record per shadow method.
+
+Every shadow method -- the built-ins in :mod:`mi_shadowmap.filters` and the
+ones users add with :func:`register_method` -- is one record. Everything that
+needs to know the methods reads it from here: the property validation of
+:mod:`~mi_shadowmap.options` (each method's own properties and bias
+defaults), the map manager (the map layers a method needs and how to build
+them), the integrator (the lookup, whether it needs the pixel footprint),
+the generated documentation table, the harness, the CLI's choices and the
+README check.
+
+A record is plain data; nothing here imports Mitsuba, so the registry sits
+at the bottom of the package's one-way flow::
+
+    methods -> options -> light views -> depth maps -> filters -> map manager
+            -> integrator -> harness -> report / cli
+
+A lookup has the signature of every built-in::
+
+    lookup(smap, lk, opts, active) -> mi.Float   # visibility in [0, 1]
+
+``smap`` is the emitter's :class:`~mi_shadowmap.depth_maps.ShadowMap` (for a
+method with ``uses_map=False``, a :class:`~mi_shadowmap.filters.common.
+RayTracedLight`), ``lk`` the :class:`~mi_shadowmap.filters.common.Lookup` of
+the shading points, ``opts`` the validated
+:class:`~mi_shadowmap.options.Options` (its own properties are attributes of
+it) and ``active`` the lanes to evaluate.
+"""
+from __future__ import annotations
+
+import collections.abc
+import re
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+
+class MethodError(ValueError):
+    """A method record or a registration was rejected."""
+
+
+@dataclass(frozen=True)
+class Prop:
+    """One integrator property: its type, default, allowed values and documentation.
+
+    ``kind`` is ``'int'``, ``'float'``, ``'bool'``, ``'str'`` or ``'pair'`` (two numbers
+    ``"a, b"`` with ``a <= b``). A default of None means "automatic" (documented
+    in ``doc``). ``lo``/``hi`` are inclusive bounds (``lo_open``: exclusive lower
+    bound); ``choices`` lists the only allowed values.
+    """
+    name: str
+    kind: str
+    default: Any
+    doc: str
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    choices: tuple | None = None
+
+    def __post_init__(self):
+        if self.kind not in ("int", "float", "bool", "str", "pair"):
+            raise MethodError(f"property '{self.name}': kind must be one of int, float, bool, "
+                              f"str, pair; got {self.kind!r}")
+        if not re.fullmatch(r"[a-z][a-z0-9_]*", self.name):
+            raise MethodError(f"property name {self.name!r} must be snake_case "
+                              "(lower-case letters, digits and '_')")
+
+    def describe_range(self) -> str:
+        if self.choices is not None:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        parts = []
+        if self.lo is not None:
+            parts.append(("> " if self.lo_open else ">= ") + repr(self.lo))
+        if self.hi is not None:
+            parts.append("<= " + repr(self.hi))
+        return " and ".join(parts) if parts else "any value"
+
+
+@dataclass(frozen=True)
+class Method:
+    """Everything the package needs to know about one shadow method.
+
+    * ``name`` -- the value of the integrator's ``method`` property;
+    * ``lookup`` -- ``fn(smap, lk, opts, active) -> mi.Float`` (see the module doc);
+    * ``summary`` -- one line for the documentation tables (paper, idea);
+    * ``properties`` -- the method's own :class:`Prop` records (shared
+      properties such as ``resolution`` or ``bias`` are declared by
+      :mod:`~mi_shadowmap.options`); two methods may declare a property of the
+      same name and kind, each with its own default;
+    * ``layers`` -- ``{name: builder}``: extra per-map data the method reads,
+      ``builder(scene, smap) -> mi.Float`` (per texel, or smaller), built by
+      the map manager only when the method runs and cached with the map;
+    * ``layers_for`` -- ``fn(opts) -> names``: the layers a render with these
+      options needs, when not all of ``layers`` (e.g. ``mdsm`` with ``depths=1``);
+    * ``layer_cost`` -- ``{name: cost}``: the memory of a layer in float32 arrays of
+      a face's size (default 1; a float64 summed-area table costs 2, one value
+      per face 0), used to check ``memory_budget`` before anything is built;
+    * ``needs_footprint`` -- the lookup reads the camera pixel's footprint
+      (``lk.dp_dx``/``dp_dy``), which the integrator then computes;
+    * ``uses_map`` -- False for methods that read no depth map (``raytraced``,
+      ``unshadowed``): no map is built and map-only properties are refused;
+    * ``bias_defaults`` -- defaults of the shared texel biases for this method,
+      e.g. ``{"slope_bias": 0.0, "normal_bias": 0.0}`` (otherwise 1.0 and 0.5);
+    * ``finalize`` -- ``fn(values, given) -> None``: cross-property checks and
+      derived defaults, run after every property is validated (raise
+      :class:`~mi_shadowmap.options.OptionError` naming the property);
+    * ``shadow_rays`` -- the name of a property giving the number of light samples per
+      camera sample (``raytraced``), or None for one;
+    * ``builtin`` -- shipped with the package.
+    """
+    name: str
+    lookup: Callable
+    summary: str = ""
+    properties: tuple = ()
+    layers: dict = field(default_factory=dict)
+    layers_for: Callable | None = None
+    layer_cost: dict = field(default_factory=dict)
+    needs_footprint: bool = False
+    uses_map: bool = True
+    bias_defaults: dict = field(default_factory=dict)
+    finalize: Callable | None = None
+    shadow_rays: str | None = None
+    builtin: bool = False
+
+    def layer_names(self, opts) -> tuple:
+        """The layers a render with the validated ``opts`` builds."""
+        if self.layers_for is not None:
+            return tuple(self.layers_for(opts))
+        return tuple(self.layers)
+
+    def property(self, name: str) -> Prop | None:
+        return next((p for p in self.properties if p.name == name), None)
+
+
+#: name -> Method, in registration order (built-ins first).
+_REGISTRY: dict = {}
+_BIAS_KEYS = ("slope_bias", "normal_bias")
+
+
+def _check_record(m: Method) -> None:
+    if not isinstance(m.name, str) or not re.fullmatch(r"[a-z][a-z0-9_]*", m.name):
+        raise MethodError(f"register_method: name must be a snake_case string, got {m.name!r}")
+    if not callable(m.lookup):
+        raise MethodError(f"register_method('{m.name}'): lookup must be callable "
+                          "fn(smap, lk, opts, active) -> mi.Float, got "
+                          f"{type(m.lookup).__name__}")
+    props = list(m.properties)
+    if not all(isinstance(p, Prop) for p in props):
+        raise MethodError(f"register_method('{m.name}'): properties must be "
+                          "mi_shadowmap.methods.Prop records")
+    names = [p.name for p in props]
+    if len(set(names)) != len(names):
+        raise MethodError(f"register_method('{m.name}'): duplicate property names {names}")
+    from .options import GENERAL_PROPERTIES   # shared properties cannot be redeclared
+    shared = sorted(set(names) & {p.name for p in GENERAL_PROPERTIES})
+    if shared:
+        raise MethodError(f"register_method('{m.name}'): {', '.join(shared)} "
+                          "is a shared property of the integrator; choose another name")
+    for p in props:   # same name as another method's property: same kind
+        for other in _REGISTRY.values():
+            q = other.property(p.name)
+            if q is not None and q.kind != p.kind and other.name != m.name:
+                raise MethodError(f"register_method('{m.name}'): property '{p.name}' is a "
+                                  f"{q.kind} in method '{other.name}', not a {p.kind}")
+    if not isinstance(m.layers, dict) or not all(
+            isinstance(k, str) and callable(v) for k, v in m.layers.items()):
+        raise MethodError(f"register_method('{m.name}'): layers must be a dict "
+                          "{name: builder(scene, smap) -> mi.Float}")
+    if not isinstance(m.layer_cost, dict) or set(m.layer_cost) - set(m.layers) or not all(
+            isinstance(c, (int, float)) and c >= 0 for c in m.layer_cost.values()):
+        raise MethodError(f"register_method('{m.name}'): layer_cost must map names of its "
+                          "layers to numbers >= 0 (float32 arrays of a face's size)")
+    bad = sorted(set(m.bias_defaults) - set(_BIAS_KEYS))
+    if bad:
+        raise MethodError(f"register_method('{m.name}'): bias_defaults keys must be among "
+                          f"{', '.join(_BIAS_KEYS)}, got {', '.join(bad)}")
+
+
+def add(method: Method, replace: bool = False) -> Method:
+    """Register a :class:`Method` record (see :func:`register_method`)."""
+    _check_record(method)
+    old = _REGISTRY.get(method.name)
+    if old is not None and not replace:
+        raise MethodError(f"register_method: a method named '{method.name}' already exists"
+                          + (" (a built-in)" if old.builtin else "")
+                          + "; pass replace=True to replace it")
+    if old is not None and old.builtin and not method.builtin:
+        raise MethodError(f"register_method: '{method.name}' is a built-in method and "
+                          "cannot be replaced; choose another name")
+    _REGISTRY[method.name] = method
+    return method
+
+
+def register_method(name: str, lookup: Callable, properties=None, layers=None,
+                    needs_footprint: bool = False, bias_defaults=None, summary: str = "",
+                    layers_for: Callable | None = None, finalize: Callable | None = None,
+                    uses_map: bool = True, layer_cost=None, replace: bool = False) -> Method:
+    """Register a user-defined shadow method; it is then usable everywhere a built-in is.
+
+    ``lookup(smap, lk, opts, active) -> mi.Float`` has the built-ins' signature
+    (see :mod:`mi_shadowmap.methods`); ``properties`` is a list of :class:`Prop`
+    (its values arrive as attributes of ``opts``); ``layers`` a dict of extra
+    per-map data ``{name: builder(scene, smap) -> mi.Float}`` (read in the
+    lookup as ``smap.extra[name]``). Afterwards ``{'type': 'shadowmap',
+    'method': name}`` (and XML), :func:`~mi_shadowmap.harness.compare`,
+    :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
+    in every variant, with the same property validation as the built-ins.
+    Returns the :class:`Method` record. Raises :class:`MethodError` for a bad
+    record or a name already taken (``replace=True`` replaces a user method).
+    """
+    record = Method(name=name, lookup=lookup, summary=summary,
+                    properties=tuple(properties or ()), layers=dict(layers or {}),
+                    layers_for=layers_for, layer_cost=dict(layer_cost or {}),
+                    needs_footprint=bool(needs_footprint),
+                    uses_map=bool(uses_map), bias_defaults=dict(bias_defaults or {}),
+                    finalize=finalize)
+    return add(record, replace=replace)
+
+
+def unregister_method(name: str) -> None:
+    """Remove a user-registered method (built-ins cannot be removed)."""
+    m = _REGISTRY.get(name)
+    if m is None:
+        raise MethodError(f"unregister_method: no method named '{name}'")
+    if m.builtin:
+        raise MethodError(f"unregister_method: '{name}' is a built-in method")
+    del _REGISTRY[name]
+
+
+def get(name: str) -> Method:
+    """The record of method ``name``; raises ``OptionError`` naming the valid ones."""
+    m = _REGISTRY.get(name)
+    if m is None:
+        from .options import OptionError
+        raise OptionError(f"shadowmap: property 'method' = {name!r} is not valid; valid "
+                          f"values: {', '.join(_REGISTRY)}")
+    return m
+
+
+def records() -> list:
+    """Every registered :class:`Method`, built-ins first."""
+    return list(_REGISTRY.values())
+
+
+class _Names(collections.abc.Sequence):
+    """A live, read-only view of the registered method names (optionally filtered)."""
+
+    def __init__(self, keep=lambda m: True):
+        self._keep = keep
+
+    def _names(self):
+        return tuple(n for n, m in _REGISTRY.items() if self._keep(m))
+
+    def __getitem__(self, i):
+        return self._names()[i]
+
+    def __len__(self):
+        return len(self._names())
+
+    def __contains__(self, name):
+        m = _REGISTRY.get(name)
+        return m is not None and self._keep(m)
+
+    def __repr__(self):
+        return repr(self._names())
+
+
+#: Every method name (live: includes methods registered later).
+METHODS = _Names()
+#: The names of the methods that read a depth map (live).
+MAP_METHODS = _Names(lambda m: m.uses_map)

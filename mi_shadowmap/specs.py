@@ -1,0 +1,201 @@
+"""Method specs: the grammar of "which method, with which properties", and its validation.
+
+A *method spec* is a dict ``{"method": name, <integrator properties>..., "spp": n}``.
+:func:`method_spec` accepts the three ways of writing one: a name
+(``"hard"``), a dict, or the string form ``"pcf:num_samples=4,res_factor=2"``
+(the CLI's ``--methods`` and ``--set``). Every spec is validated with
+:func:`~mi_shadowmap.options.parse_options` -- the only place that checks
+properties -- before anything renders, so a typo'd comparison or sweep never
+silently runs with defaults.
+
+Which properties a method takes, and which methods exist, is read from the
+method registry (:mod:`mi_shadowmap.methods`) and the scopes of
+:mod:`mi_shadowmap.options`, so user methods registered with
+:func:`mi_shadowmap.register_method` are specs like any built-in. Nothing
+here renders.
+"""
+from __future__ import annotations
+
+from . import methods as methods_mod
+from . import options
+from .options import OptionError
+
+#: Keys of a method spec / sweep grid that are render settings, not integrator properties.
+RENDER_KEYS = ("spp",)
+#: The ground-truth method: the reference of delta lights and the baseline of sweeps.
+REFERENCE_METHOD = "raytraced"
+
+
+# --------------------------------------------------------------------------- registry
+def available_methods() -> list[str]:
+    """Every registered method (built-ins first, then user methods)."""
+    return list(methods_mod.METHODS)
+
+
+def default_methods() -> list[str]:
+    """The methods a comparison runs by default: every registered one except the
+    reference (:data:`REFERENCE_METHOD`)."""
+    return [m for m in available_methods() if m != REFERENCE_METHOD]
+
+
+def map_methods() -> list[str]:
+    """Every registered method that reads a depth map."""
+    return list(methods_mod.MAP_METHODS)
+
+
+def uses_property(method: str, name: str) -> bool:
+    """Whether a shared value of property ``name`` (``--set``, ``compare(**params)``,
+    a sweep axis) is given to ``method``.
+
+    The property must apply to the method (:func:`~mi_shadowmap.options.applies`),
+    and a method that reads no map does not get the depth-map settings that it
+    merely accepts (``resolution``, ``memory_budget``, ``cache_maps``: scope
+    ``ACCEPTED``), so that e.g. ``resolution=[256, 512]`` in a sweep is not
+    crossed with ``raytraced``. Unknown methods use nothing.
+    """
+    if name == "method" or name not in options.known_names():
+        return False
+    record = _record(method)
+    if record is None or not options.applies(record, name):
+        return False
+    return record.uses_map or options.SCOPES.get(name) != options.ACCEPTED
+
+
+def users_of(name: str) -> list[str]:
+    """The methods that a shared value of ``name`` is given to (see :func:`uses_property`)."""
+    return [m for m in available_methods() if uses_property(m, name)]
+
+
+def _record(method: str):
+    return next((m for m in methods_mod.records() if m.name == method), None)
+
+
+def property_record(name: str):
+    """The :class:`~mi_shadowmap.methods.Prop` of property ``name`` (shared, or a
+    registered method's own), or None."""
+    return next((p for p in options.all_properties() if p.name == name), None)
+
+
+# --------------------------------------------------------------------------- grammar
+def parse_value(text: str):
+    """A command-line value: true/false, int, float, or the string itself."""
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for conv in (int, float):
+        try:
+            return conv(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_method_string(text: str) -> dict:
+    """``"pcf:num_samples=4,res_factor=2"`` -> ``{"method": "pcf", ...}``."""
+    name, _, rest = text.partition(":")
+    spec = {"method": name.strip()}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        if "=" not in item:
+            raise OptionError(f"shadowmap: expected name=value in method spec {text!r}, "
+                              f"got {item!r}")
+        k, v = item.split("=", 1)
+        spec[k.strip()] = parse_value(v.strip())
+    return spec
+
+
+def parse_assignments(items, what: str = "--set") -> dict:
+    """``["a=1", "b=x"]`` -> ``{"a": 1, "b": "x"}`` (values by :func:`parse_value`)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"{what} expects name=value, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip()] = parse_value(v.strip())
+    return out
+
+
+def spec_name(spec: dict) -> str:
+    """Display name: the method plus its given parameters (sorted)."""
+    rest = {k: v for k, v in spec.items() if k != "method"}
+    return spec["method"] + "".join(f" {k}={_fmt_value(v)}" for k, v in sorted(rest.items()))
+
+
+def _fmt_value(v):
+    if isinstance(v, (tuple, list)):
+        return ",".join(str(x) for x in v)
+    return str(v)
+
+
+# --------------------------------------------------------------------------- validation
+def method_spec(item, params: dict | None = None) -> dict:
+    """Normalise a method item: ``"hard"``, ``{"method": "pcf", "num_samples": 4}`` or
+    the string form ``"pcf:num_samples=4,res_factor=2"``.
+
+    ``params`` (shared by every method) are added for the properties the method
+    uses (:func:`uses_property`); the item's own values win. The result is
+    validated.
+    """
+    if isinstance(item, str):
+        spec = parse_method_string(item)
+    elif isinstance(item, dict):
+        spec = dict(item)
+    else:
+        raise OptionError(f"shadowmap: a method must be a name or a dict, got {item!r}")
+    if "method" not in spec:
+        raise OptionError(f"shadowmap: method spec {item!r} has no 'method'; valid methods: "
+                          + ", ".join(available_methods()))
+    for k, v in (params or {}).items():
+        if (k in RENDER_KEYS or uses_property(spec["method"], k)) and k not in spec:
+            spec[k] = v
+    validate_spec(spec)
+    return spec
+
+
+def validate_spec(spec: dict) -> options.Options:
+    """Validate one spec (integrator properties plus ``spp``); return its Options."""
+    props = {k: v for k, v in spec.items() if k not in RENDER_KEYS}
+    if "spp" in spec:
+        spp = spec["spp"]
+        if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
+            raise OptionError(f"shadowmap: 'spp' must be an integer >= 1, got {spp!r}")
+    return options.parse_options({"type": "shadowmap", **props})
+
+
+def validate_property(name: str, value) -> None:
+    """Validate one property name and value, whichever method uses it.
+
+    An unknown name is an error naming it (and the valid ones); a value is
+    valid if one of the methods that accept the property takes it (its
+    first error is raised otherwise).
+    """
+    users = [] if name == "method" else list(options.methods_using(name))
+    if not users:
+        options.parse_options({name: value})   # "method", or an unknown name: raises
+        return
+    first = None
+    for m in users:
+        try:
+            options.parse_options({"method": m, name: value})
+            return
+        except OptionError as e:
+            first = first or e
+    raise first
+
+
+def check_shared_params(specs: list[dict], params: dict) -> None:
+    """A shared parameter that no chosen method uses is an error (typo guard)."""
+    for k in params:
+        if k in RENDER_KEYS:
+            continue
+        validate_property(k, params[k])
+        if not any(k in s for s in specs):
+            raise OptionError(
+                f"shadowmap: property '{k}' is not used by any of the methods "
+                f"{', '.join(s['method'] for s in specs)} (it is used by: "
+                f"{', '.join(users_of(k)) or 'no method'})")
+
+
+def to_mitsuba(props: dict) -> dict:
+    """Property values Mitsuba's dict loader accepts ('pair' values as "a, b" strings)."""
+    return {k: (", ".join(repr(float(x)) for x in v) if isinstance(v, (tuple, list)) else v)
+            for k, v in props.items()}

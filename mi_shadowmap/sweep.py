@@ -1,0 +1,251 @@
+"""Parameter sweeps: grids of method specs, the Pareto front of time vs error, and the
+equal-time / equal-error comparisons against ray tracing.
+
+* :func:`expand_grid` turns a grid (``{"method": [...], "resolution": [...]}``,
+  or a list of such sub-grids) into validated method specs; a property is
+  crossed only with the methods that use it
+  (:func:`~mi_shadowmap.specs.uses_property`).
+* :func:`sweep` renders every spec against one reference and returns a
+  :class:`SweepTable`; :func:`analyse` adds the trade-off columns to rows
+  (and re-ranks rows on another time axis).
+
+Method names come from the registry, so user methods
+(:func:`mi_shadowmap.register_method`) sweep like built-ins.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import math
+
+import numpy as np
+
+from . import metrics
+from .ground_truth import has_area_lights, make_reference, score
+from .options import OptionError, parse_options
+from .scenes import load_scene
+from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, map_methods,
+                    property_record, spec_name, users_of, uses_property, validate_property,
+                    validate_spec)
+from .tables import columns, format_sweep, write_csv, write_json
+from .timing import MethodResult, run_method
+
+
+# --------------------------------------------------------------------------- grids
+def expand_grid(grid, default_spp: int = 16) -> list[dict]:
+    """Expand a parameter grid into validated, de-duplicated method specs.
+
+    ``grid`` is a dict ``{"method": [...], "resolution": [...], ...}`` (values
+    may be scalars or lists; the Cartesian product is taken) or a list of such
+    dicts (their union). ``spp`` is a render setting and may be swept too. A
+    property is combined only with the methods that use it; a property that no
+    method of its sub-grid uses, an unknown property or an invalid value is an
+    :class:`~mi_shadowmap.options.OptionError` raised before anything renders.
+    """
+    subgrids = [grid] if isinstance(grid, dict) else list(grid)
+    if not subgrids:
+        raise OptionError("shadowmap: the sweep grid is empty")
+    specs, seen = [], set()
+    for sub in subgrids:
+        if not isinstance(sub, dict):
+            raise OptionError(f"shadowmap: a sweep grid entry must be a dict, got {sub!r}")
+        if "method" not in sub:
+            raise OptionError(f"shadowmap: sweep grid entry {sub} has no 'method'; valid "
+                              "methods: " + ", ".join(available_methods()))
+        axes = {k: grid_values(k, v) for k, v in sub.items()}
+        methods = axes.pop("method")
+        for m in methods:
+            parse_options({"method": m})   # unknown method: error naming the valid ones
+        for k in axes:
+            if k in RENDER_KEYS:
+                continue
+            for v in axes[k]:
+                validate_property(k, v)   # unknown name or bad value
+            if not any(uses_property(m, k) for m in methods):
+                raise OptionError(
+                    f"shadowmap: property '{k}' in the sweep grid is not used by any of the "
+                    f"methods {', '.join(methods)} (it is used by: "
+                    f"{', '.join(users_of(k)) or 'no method'})")
+        for m in methods:
+            keys = [k for k in axes if k in RENDER_KEYS or uses_property(m, k)]
+            for values in itertools.product(*(axes[k] for k in keys)):
+                spec = {"method": m, **dict(zip(keys, values))}
+                spec.setdefault("spp", default_spp)
+                validate_spec(spec)
+                key = json.dumps(spec, sort_keys=True, default=str)
+                if key not in seen:
+                    seen.add(key)
+                    specs.append(spec)
+    return specs
+
+
+def grid_values(key, v) -> list:
+    """The values of one grid axis: a list, or a scalar (one value). A 'pair'
+    property's two numbers (``[0.0, 0.1]``) are one value, not two."""
+    prop = property_record(key)
+    if prop is not None and prop.kind == "pair" and isinstance(v, (list, tuple)) and \
+            len(v) == 2 and all(isinstance(x, (int, float)) for x in v):
+        return [tuple(v)]
+    if isinstance(v, (list, tuple)):
+        if not v:
+            raise OptionError(f"shadowmap: sweep grid values of '{key}' are empty")
+        return [tuple(x) if isinstance(x, list) else x for x in v]
+    return [v]
+
+
+def default_grid() -> list[dict]:
+    """Every map method at three resolutions, and ``raytraced`` at 1..16 spp."""
+    return [{"method": map_methods(), "resolution": [256, 512, 1024]},
+            {"method": REFERENCE_METHOD, "spp": [1, 2, 4, 8, 16]}]
+
+
+def with_shared(grid, params: dict) -> list[dict]:
+    """``grid`` (a dict or a list of sub-grids) with the shared ``params`` added as
+    fixed axes of every sub-grid that has a method using them (a sub-grid's own
+    axis wins). A shared property that no method of the grid uses is an error."""
+    subgrids = [grid] if isinstance(grid, dict) else list(grid)
+    out = []
+    for g in subgrids:
+        if isinstance(g, dict):
+            ms = g.get("method", [])
+            ms = [ms] if isinstance(ms, str) else list(ms)
+            g = {**{k: v for k, v in params.items()
+                    if k not in g and (k in RENDER_KEYS
+                                       or any(uses_property(m, k) for m in ms))}, **g}
+        out.append(g)
+    for k, v in params.items():
+        if k in RENDER_KEYS:
+            continue
+        validate_property(k, v)
+        if not any(isinstance(g, dict) and k in g for g in out):
+            raise OptionError(f"shadowmap: property '{k}' is not used by any method of the "
+                              f"grid (it is used by: {', '.join(users_of(k)) or 'no method'})")
+    return out
+
+
+# --------------------------------------------------------------------------- Pareto
+def analyse(rows: list[dict], time_key="time_warm", error_key="vis_rmse") -> list[dict]:
+    """Add ``time``, ``error``, ``pareto`` and the equal-time/equal-error columns
+    (see :class:`SweepTable`) to ``rows``, in place; returns them."""
+    for r in rows:
+        r["time"] = float(r[time_key])
+        e = r.get(error_key)
+        r["error"] = float(e) if e is not None else math.nan
+    ok = [i for i, r in enumerate(rows) if math.isfinite(r["error"])]
+    mask = np.zeros(len(rows), dtype=bool)
+    if ok:
+        front = metrics.pareto_front([rows[i]["time"] for i in ok], [rows[i]["error"] for i in ok])
+        mask[np.asarray(ok)[front]] = True
+    rt = [r for r in rows if r["method"] == REFERENCE_METHOD and math.isfinite(r["error"])]
+    for r, p in zip(rows, mask):
+        r["pareto"] = bool(p)
+        if r["method"] == REFERENCE_METHOD:   # the comparisons are against ray tracing
+            r.update(rt_error_equal_time=None, error_ratio_equal_time=None,
+                     rt_time_equal_error=None, speedup_equal_error=None)
+            continue
+        within = [q["error"] for q in rt if q["time"] <= r["time"]]
+        r["rt_error_equal_time"] = min(within) if within else None
+        r["error_ratio_equal_time"] = (
+            r["rt_error_equal_time"] / r["error"]
+            if within and r["error"] > 0 else (math.inf if within else None))
+        better = [q["time"] for q in rt if q["error"] <= r["error"]]
+        r["rt_time_equal_error"] = min(better) if better else None
+        r["speedup_equal_error"] = (r["rt_time_equal_error"] / r["time"]
+                                    if better and r["time"] > 0 else None)
+    return rows
+
+
+class SweepTable:
+    """Rows of a sweep (one dict per configuration) with the analysis columns.
+
+    Columns besides :meth:`MethodResult.row`'s: ``time`` and ``error`` (the
+    axes of the trade), ``pareto`` (not dominated in time and error),
+    ``rt_error_equal_time`` (lowest error of a ``raytraced`` row that is not
+    slower), ``error_ratio_equal_time`` (that / this row's error: > 1 means
+    this row is more accurate than ray tracing in the same time),
+    ``rt_time_equal_error`` (fastest ``raytraced`` row at least as accurate),
+    ``speedup_equal_error`` (that / this row's time: > 1 means faster than ray
+    tracing at the same error). ``None`` where no ray-traced row qualifies.
+    """
+
+    def __init__(self, rows: list[dict], results: list[MethodResult] | None = None,
+                 time_key: str = "time_warm", error_key: str = "vis_rmse",
+                 reference: MethodResult | None = None):
+        self.rows = rows
+        self.results = results or []
+        self.time_key, self.error_key = time_key, error_key
+        self.reference = reference
+
+    def __len__(self):
+        return len(self.rows)
+
+    def __iter__(self):
+        return iter(self.rows)
+
+    def __getitem__(self, i):
+        return self.rows[i]
+
+    @property
+    def columns(self) -> list[str]:
+        return columns(self.rows)
+
+    def front(self) -> list[dict]:
+        """The Pareto-optimal rows, fastest first."""
+        return sorted((r for r in self.rows if r["pareto"]), key=lambda r: r["time"])
+
+    def to_csv(self, path) -> None:
+        write_csv(self.rows, path)
+
+    def to_json(self, path) -> None:
+        write_json(self.rows, path)
+
+    def format(self) -> str:
+        return format_sweep(self.rows, self.error_key)
+
+    def __repr__(self):
+        return f"SweepTable({len(self.rows)} rows)\n" + self.format()
+
+
+# --------------------------------------------------------------------------- sweep
+def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
+          reference="auto", progress: bool = True, scene_params: dict | None = None,
+          ref_spp: int = 64, ref_shadow_rays: int = 64, time_key: str = "time_warm",
+          error_key: str = "vis_rmse", keep_images: bool = True,
+          measure_cached: bool = False) -> SweepTable:
+    """Render every configuration of ``grid`` (see :func:`expand_grid`; default
+    :func:`default_grid`) and analyse the time/error trade (see :class:`SweepTable`).
+
+    The reference is rendered once: ``"auto"`` is ``raytraced`` at
+    ``max(ref_spp, every spp of the grid)`` spp for delta lights (so that no
+    configuration is compared with a noisier version of itself), and the
+    converged reference for area lights (see
+    :func:`~mi_shadowmap.ground_truth.make_reference`).
+
+    ``time_key`` is the time axis: ``"time_warm"`` (a frame with the depth maps
+    rebuilt: geometry or lights changed) or ``"time_cached"`` (maps reused: only
+    the camera or materials changed; implies ``measure_cached``). Rows keep
+    every ``time_*`` column, so :func:`analyse` can re-rank a copy of the rows
+    on another one.
+    """
+    measure_cached = measure_cached or time_key == "time_cached"
+    specs = expand_grid(default_grid() if grid is None else grid, default_spp=spp)
+    scene = load_scene(scene, **(scene_params or {}))
+    max_spp = max(s["spp"] for s in specs)
+    if reference == "auto" and not has_area_lights(scene):
+        reference = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}
+    ref = make_reference(scene, reference, spp=max(ref_spp, max_spp), seed=seed + 1,
+                         ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
+    from tqdm import tqdm
+    rows, results = [], []
+    for spec in tqdm(specs, desc="sweep", unit="config", disable=not progress):
+        spec = dict(spec)
+        s_spp = spec.pop("spp")
+        r = run_method(scene, spec.pop("method"), spp=s_spp, seed=seed, repeats=repeats,
+                       measure_cached=measure_cached, **spec)
+        r.name = spec_name({"method": r.method, **r.params, "spp": s_spp})
+        r.metrics = score(r, ref)
+        rows.append(r.row())
+        if not keep_images:
+            r.image, r.visibility = None, {}
+        results.append(r)
+    return SweepTable(analyse(rows, time_key, error_key), results, time_key, error_key, ref)

@@ -1,0 +1,155 @@
+"""Render one method and time it: :func:`run_method` and its record, :class:`MethodResult`.
+
+:func:`run_method` renders a scene with one method -- one cold render, then
+``repeats`` warm ones -- and returns a :class:`MethodResult` with
+
+* the image and the per-emitter visibility AOVs (``vis_<emitter>``),
+* timings in seconds: ``cold`` (first render: kernels traced, compiled or
+  loaded from Dr.Jit's cache), ``warm`` (median re-render with every kernel
+  cached, depth maps rebuilt), ``build`` (depth-map pass of the warm render),
+  ``shading`` (warm - build), ``jit`` (cold - warm: the one-off cost, mostly
+  compilation), ``compile`` (code generation + LLVM compile time that
+  Dr.Jit's kernel history reports for the cold render; 0 when every kernel
+  came from the on-disk cache) and ``cached`` (re-render with the depth maps
+  and the kernels cached, i.e. only the camera or materials changed),
+* the depth-map memory in bytes and the number of texels built per frame
+  (every layer).
+
+Metrics against a reference are added by :mod:`mi_shadowmap.ground_truth`.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .specs import spec_name, to_mitsuba, validate_spec
+
+
+@dataclass
+class MethodResult:
+    """Everything measured for one method on one scene."""
+    name: str                       # display name (method plus given params)
+    method: str
+    params: dict                    # integrator properties given (besides method)
+    image: np.ndarray | None        # (H, W, 3) linear RGB (None: reference without image)
+    visibility: dict                # emitter label -> (H, W) visibility
+    times: dict                     # seconds: cold, warm, build, shading, jit, compile
+    spp: int = 0
+    map_bytes: int = 0
+    texels: int = 0
+    kernels_compiled: int = 0       # kernels compiled (not cache hits) in the cold render
+    metrics: dict = field(default_factory=dict)
+    is_reference: bool = False
+
+    def vis_stack(self) -> np.ndarray:
+        """Visibility AOVs as an (n_emitters, H, W) array, emitters sorted by label."""
+        return np.stack([self.visibility[k] for k in sorted(self.visibility)], axis=0)
+
+    def row(self) -> dict:
+        """A flat dict for tables and CSV (pooled metrics, per-emitter RMSE)."""
+        r = {"name": self.name, "method": self.method, "spp": self.spp,
+             "reference": self.is_reference}
+        r.update({k: list(v) if isinstance(v, tuple) else v for k, v in self.params.items()})
+        r.update({f"time_{k}": v for k, v in self.times.items()})
+        r.update({"map_bytes": self.map_bytes, "texels": self.texels,
+                  "kernels_compiled": self.kernels_compiled})
+        r.update({k: v for k, v in self.metrics.items() if not isinstance(v, dict)})
+        for label, m in self.metrics.get("per_emitter", {}).items():
+            for key in ("rmse", "misclassified", "penumbra_rmse"):
+                r[f"vis_{key}[{label}]"] = m.get(key)
+        return r
+
+
+def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
+    """``(image (H, W, 3), {label: visibility (H, W)})`` of a render.
+
+    The film has 3 colour channels in rgb and spectral variants (spectral films
+    develop to RGB) and 1 in mono; a mono image is repeated into 3 grey channels so
+    that every metric and output treats all variants alike.
+    """
+    arr = np.asarray(result, dtype=np.float32)
+    n_colour = arr.shape[-1] - len(aov_names)
+    image = arr[..., :n_colour]
+    image = np.repeat(image, 3, axis=-1) if n_colour == 1 else image.copy()
+    vis = {name[len("vis_"):]: arr[..., n_colour + k].copy() for k, name in enumerate(aov_names)}
+    return image, vis
+
+
+def render_timed(scene, integrator, spp, seed):
+    """``(image, seconds)`` of one synchronised ``mi.render``."""
+    t0 = time.perf_counter()
+    img = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+    dr.eval(img)
+    dr.sync_thread()
+    return img, time.perf_counter() - t0
+
+
+def compile_stats(history) -> tuple[float, int]:
+    """(seconds of codegen + backend compile, kernels compiled) from dr.kernel_history()."""
+    secs, n = 0.0, 0
+    for k in history:
+        if k.get("type") != dr.KernelType.JIT:
+            continue
+        secs += (k.get("codegen_time", 0.0) + k.get("backend_time", 0.0)) * 1e-3  # ms -> s
+        n += not k.get("cache_hit", 0)
+    return secs, n
+
+
+def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
+               repeats: int = 1, measure_cached: bool = True, **params) -> MethodResult:
+    """Render ``scene`` with one method: one cold and ``repeats`` warm renders.
+
+    Frames are timed with the depth maps rebuilt in every render
+    (``cache_maps=False`` unless given), so ``warm`` = ``build`` + ``shading``
+    is the cost of a frame whose geometry or lights changed. With
+    ``measure_cached`` a second integrator re-renders with the map cache on
+    (one priming render, then the median of ``repeats``): ``times["cached"]``
+    is a re-render with maps and kernels both cached.
+
+    The integrator is validated (properties and scene) before anything renders.
+    """
+    spec = {"method": method, **params}
+    opts = validate_spec(spec)
+    props = {"type": "shadowmap", **spec}
+    uses_map = opts.record.uses_map
+    if uses_map and "cache_maps" not in params:
+        props["cache_maps"] = False
+    integrator = mi.load_dict(to_mitsuba(props))
+    integrator.check_scene(scene)   # clear error before rendering
+    had_history = dr.flag(dr.JitFlag.KernelHistory)
+    dr.kernel_history()             # drop older entries
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        img, cold = render_timed(scene, integrator, spp, seed)
+        compile_s, n_compiled = compile_stats(dr.kernel_history())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, had_history)
+    warm, build = [], []
+    for _ in range(max(1, repeats)):
+        img, t = render_timed(scene, integrator, spp, seed)
+        warm.append(t)
+        build.append(integrator.build_seconds)
+    warm_t = float(np.median(warm))
+    build_t = float(np.median(build))
+    image, vis = split_channels(img, integrator.aov_names())
+    maps = [m for m in integrator.maps if m is not None]
+    times = {"cold": cold, "warm": warm_t, "build": build_t,
+             "shading": max(warm_t - build_t, 0.0), "jit": max(cold - warm_t, 0.0),
+             "compile": compile_s}
+    if measure_cached:
+        if uses_map and "cache_maps" not in params:
+            cached_int = mi.load_dict(to_mitsuba({**props, "cache_maps": True}))
+            render_timed(scene, cached_int, spp, seed)   # primes the map cache
+        else:
+            cached_int = integrator
+        times["cached"] = float(np.median([render_timed(scene, cached_int, spp, seed)[1]
+                                           for _ in range(max(1, repeats))]))
+    return MethodResult(
+        name=spec_name(spec), method=method, params=dict(params), image=image, visibility=vis,
+        times=times, spp=spp, map_bytes=sum(m.nbytes for m in maps),
+        texels=int(integrator.stats["texels_built"]), kernels_compiled=n_compiled)
+

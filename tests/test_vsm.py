@@ -1,0 +1,354 @@
+"""Variance shadow maps (``method="vsm"``, Donnelly & Lauritzen 2006).
+
+Unit tests on hand-made orthographic depth maps (no scene) against numpy
+(Chebyshev bound, light-bleeding reduction, minimum variance, O(1) box
+filtering with fractional coverage), the repository scenes against the same
+reference as ``test_methods_on_scenes``, bad input, and the mono/spectral
+variants.
+"""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from conftest import SCENE_FILES, SCENES, render_np
+from mi_shadowmap import methods, metrics
+from mi_shadowmap.depth_maps import ShadowMap, build_layer, summed_area_table as shared_sat
+from mi_shadowmap.filters import vsm as vsm_module
+from mi_shadowmap.filters.common import Lookup
+from mi_shadowmap.light_views import OrthoView
+from mi_shadowmap.options import OptionError, parse_options
+
+RES = 64
+TEXEL = 2.0 / RES           # world width of a texel of the [-1, 1]^2 maps
+EXACT = {"slope_bias": 0.0, "normal_bias": 0.0, "bias": 0.0}   # receiver depth = its z
+
+
+# ----------------------------------------------------------------- helpers
+def vsm_map(depth: np.ndarray) -> ShadowMap:
+    """Orthographic map over [-1, 1]^2 looking along +z (depth[j, i], row j = v),
+    with the vsm layers built by the method record's builders."""
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(),
+                     half_extent=(1.0, 1.0), label="unit")
+    smap = ShadowMap(view, depth.shape[0], mi.Float(np.asarray(depth, np.float32).ravel()))
+    for name, builder in methods.get("vsm").layers.items():
+        smap.extra[name] = build_layer(None, smap, name, builder)
+    return smap
+
+
+def lookup(x, y=None, z=2.0):
+    """Shading points at world (x, y, z), normal facing the light, no pixel footprint."""
+    x = np.atleast_1d(np.asarray(x, np.float64))
+    y = np.full(x.size, 0.01) if y is None else np.broadcast_to(np.asarray(y, np.float64), x.shape)
+    z = np.broadcast_to(np.asarray(z, np.float64), x.shape)
+    p = mi.Point3f(mi.Float(x), mi.Float(y), mi.Float(z))
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(0, x.size)
+    return Lookup(p, mi.Vector3f(0, 0, -1), mi.Vector3f(0), mi.Vector3f(0), None, None, sampler)
+
+
+def vis(smap, lk, **props):
+    opts = parse_options({"method": "vsm", **props})
+    v = methods.get("vsm").lookup(smap, lk, opts, mi.Bool(True))
+    return np.asarray(v.numpy(), np.float64)
+
+
+def texel_centre(i):
+    """World coordinate of the centre of texel column/row ``i``."""
+    return (np.asarray(i, np.float64) + 0.5) * TEXEL - 1.0
+
+
+def np_bound(z, t, min_variance=0.0, light_bleeding=0.0):
+    """Chebyshev's one-sided bound in numpy from the samples ``z`` (or weighted moments)."""
+    m1, m2 = z
+    var = max(m2 - m1 * m1, min_variance, vsm_module.VARIANCE_FLOOR)
+    p = 1.0 if t <= m1 else var / (var + (t - m1) ** 2)
+    if light_bleeding:
+        p = min(max((p - light_bleeding) / (1.0 - light_bleeding), 0.0), 1.0)
+    return p
+
+
+def box_weights(lo, hi, res):
+    """Per-texel covered length of [lo, hi] clipped to [0, res] (continuous texels)."""
+    k = np.arange(res)
+    return np.clip(np.minimum(k + 1, min(hi, res)) - np.maximum(k, max(lo, 0.0)), 0.0, None)
+
+
+def np_moments(znorm, cx, cy, width):
+    """Box-weighted moments of the normalised depth over a box of ``width`` texels
+    centred on continuous texel coordinates (cx, cy), clipped to the map."""
+    res = znorm.shape[0]
+    wx = box_weights(cx - width / 2, cx + width / 2, res)
+    wy = box_weights(cy - width / 2, cy + width / 2, res)
+    w = wy[:, None] * wx[None, :]
+    z = znorm.astype(np.float64)
+    return (w * z).sum() / w.sum(), (w * z * z).sum() / w.sum()
+
+
+def normalised(depth):
+    """numpy version of normalized_depth: (z, far)."""
+    finite = np.isfinite(depth)
+    far = 2.0 * float(depth[finite].max()) if finite.any() else 1.0
+    return np.where(finite, depth / np.float32(far), 1.0), far
+
+
+# ------------------------------------------------------------- 1. hand-made maps
+def edge_depth():
+    """Flat occluder at depth 1 over texel columns i < 32, a flat receiver at depth 2."""
+    d = np.full((RES, RES), 2.0, np.float32)
+    d[:, : RES // 2] = 1.0
+    return d
+
+
+def test_behind_flat_occluder_is_shadowed_and_in_front_is_lit():
+    smap = vsm_map(edge_depth())
+    x = [-0.6, -0.3, 0.3, 0.6]
+    behind = vis(smap, lookup(x, z=2.0))
+    assert np.all(behind[:2] < 1e-5), behind            # under the occluder (depth 1)
+    assert np.all(behind[2:] == 1.0), behind            # on the open receiver
+    front = vis(smap, lookup(x, z=0.5))                 # in front of everything
+    assert np.all(front == 1.0), front
+    plain = vis(smap, lookup(x[:2], z=2.0), light_bleeding=0.0)
+    assert np.all(plain < 1e-5), plain                  # min_variance floor only
+    outside = vis(smap, lookup([1.5, -3.0], z=2.0))     # off the map: lit
+    assert np.all(outside == 1.0)
+
+
+@pytest.mark.parametrize("props", [{}, {"light_bleeding": 0.0}, {"filter_size": 6.0},
+                                   {"min_variance": 1e-3}, EXACT])
+def test_visibility_rises_monotonically_across_an_edge(props):
+    smap = vsm_map(edge_depth())
+    offs = np.linspace(-6.0, 6.0, 481)                  # texels from the edge (x = 0)
+    v = vis(smap, lookup(offs * TEXEL), **props)
+    assert np.all(np.diff(v) >= -1e-7), props
+    assert v[0] < 0.01 and v[-1] == 1.0
+
+
+def test_edge_is_the_box_filtered_compare():
+    """One occluder depth and the receiver's own depth in the box: the bound is exact,
+    1 - occluded fraction (box PCF over filter_size texels)."""
+    smap = vsm_map(edge_depth())
+    offs = np.linspace(-3.0, 3.0, 121)
+    w = 4.0
+    v = vis(smap, lookup(offs * TEXEL), filter_size=w, light_bleeding=0.0, min_variance=0.0,
+            **EXACT)
+    np.testing.assert_allclose(v, np.clip(0.5 + offs / w, 0.0, 1.0), atol=2e-5)
+
+
+# ---------------------------------------------------------- 2. Chebyshev bound
+def random_depth(seed=1):
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(1.0, 3.0, (RES, RES)).astype(np.float32)
+    d[rng.random((RES, RES)) < 0.1] = np.inf            # some empty texels
+    return d
+
+
+@pytest.mark.parametrize("width", [1.0, 3.0, 5.0])
+def test_chebyshev_bound_equals_numpy_on_aligned_boxes(width):
+    """Boxes of width texels covering whole texels: the visibility is exactly
+    var / (var + (t - mean)^2) of their normalised depths (t > mean), else 1."""
+    depth = random_depth()
+    smap = vsm_map(depth)
+    z, far = normalised(depth)
+    rng = np.random.default_rng(2)
+    h = int(width) // 2
+    i, j = rng.integers(h, RES - h, (2, 300))
+    t_world = rng.uniform(1.0, 3.2, 300)
+    got = vis(smap, lookup(texel_centre(i), texel_centre(j), t_world), filter_size=width,
+              light_bleeding=0.0, min_variance=0.0, **EXACT)
+    want = []
+    for a, b, t in zip(i, j, t_world):
+        box = z[b - h: b + h + 1, a - h: a + h + 1].astype(np.float64)
+        want.append(np_bound((box.mean(), (box * box).mean()), np.float32(t) / far))
+    want = np.array(want)
+    if width > 1:                                       # (1 texel: a plain compare)
+        assert 0.05 < np.mean((want > 0.01) & (want < 0.99))   # the bound is exercised
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+# ---------------------------------------- 3. light-bleeding reduction, min_variance
+def test_light_bleeding_reduction_is_the_linstep_of_the_plain_bound():
+    depth = random_depth(4)
+    smap = vsm_map(depth)
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-0.9, 0.9, (2, 400))
+    t = rng.uniform(1.0, 3.2, 400)
+    plain = vis(smap, lookup(x, y, t), light_bleeding=0.0)
+    for a in (0.1, 0.3, 0.6, 0.99):
+        reduced = vis(smap, lookup(x, y, t), light_bleeding=a)
+        # (plain is float32: its rounding is scaled by 1 / (1 - a))
+        np.testing.assert_allclose(reduced, np.clip((plain - a) / (1 - a), 0, 1),
+                                   atol=2e-7 / (1 - a))
+        assert np.all(reduced <= plain + 1e-7)
+        assert np.all(reduced[plain <= a] == 0.0) and np.all(reduced[plain == 1.0] == 1.0)
+
+
+def test_min_variance_clamps_the_variance():
+    """Under a flat occluder the variance is 0: the result is min_variance / (min_variance
+    + d^2) with d the normalised depth gap, growing with min_variance."""
+    smap = vsm_map(edge_depth())                        # far = 4: occluder 0.25, floor 0.5
+    x = texel_centre(np.array([5, 10, 20]))
+    t_world = np.array([1.1, 1.5, 2.0])                 # gaps 0.1, 0.5, 1 world units
+    d = (np.float32(t_world) / 4.0) - 0.25
+    last = np.zeros(3)
+    for mv in (1e-6, 1e-4, 1e-3, 1e-2, 0.1):
+        got = vis(smap, lookup(x, 0.01, t_world), min_variance=mv, light_bleeding=0.0, **EXACT)
+        np.testing.assert_allclose(got, mv / (mv + d * d), rtol=1e-5)
+        assert np.all(got > last)
+        last = got
+    # The variance of a box is only raised, never lowered: a box with more variance
+    # than min_variance is unchanged.
+    lk = lookup([0.0], 0.0, 2.0)
+    a = vis(smap, lk, min_variance=0.0, light_bleeding=0.0, filter_size=8.0, **EXACT)
+    b = vis(smap, lk, min_variance=1e-4, light_bleeding=0.0, filter_size=8.0, **EXACT)
+    assert a == b and 0.4 < a[0] < 0.6
+
+
+# ---------------------------------------------------------- 4. O(1) filtering
+@pytest.mark.parametrize("width", [7.3, 25.0, 150.0])
+def test_big_filter_equals_numpy_box_moments(width):
+    """Any filter_size, fractional coverage and clipping at the map border included:
+    the visibility is the numpy Chebyshev bound of the box-weighted moments."""
+    depth = random_depth(6)
+    smap = vsm_map(depth)
+    z, far = normalised(depth)
+    rng = np.random.default_rng(7)
+    x, y = rng.uniform(-0.98, 0.98, (2, 200)).astype(np.float32)
+    t = rng.uniform(1.0, 3.2, 200).astype(np.float32)
+    got = vis(smap, lookup(x, y, t), filter_size=width, light_bleeding=0.0, min_variance=0.0,
+              **EXACT)
+    cx = (np.float64(x) + 1.0) * 0.5 * RES
+    cy = (np.float64(y) + 1.0) * 0.5 * RES
+    want = np.array([np_bound(np_moments(z, a, b, width), tt / far)
+                     for a, b, tt in zip(cx, cy, t)])
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_lookup_is_one_kernel_of_the_same_size_for_any_filter_width():
+    """O(1): the lookup's kernel has the same operation count for a 3-texel and a
+    200-texel box (16 gathers per moment table, no loop)."""
+    smap = vsm_map(random_depth(8))
+    lk = lookup(np.linspace(-0.5, 0.5, 256), 0.1, 2.0)
+    dr.eval(lk.p_world)
+    dr.sync_thread()
+    counts = []
+    for w in (3.0, 200.0):
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            dr.kernel_history()                          # clear
+            v = methods.get("vsm").lookup(smap, lk, parse_options(
+                {"method": "vsm", "filter_size": w}), mi.Bool(True))
+            dr.eval(v)
+            dr.sync_thread()
+            hist = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+        assert len(hist) == 1
+        counts.append(hist[0]["operation_count"])
+    assert counts[0] == counts[1]
+
+
+def test_moment_tables_are_summed_area_tables_of_the_normalised_depth():
+    """The layers: the shared summed-area tables of z and z^2 (z = depth / far)."""
+    from mi_shadowmap.filters.common import normalized_depth
+    rng = np.random.default_rng(9)
+    res = 16
+    depth = rng.choice(np.array([1.0, 2.5, np.inf], np.float32), (res, res))
+    smap = ShadowMap(OrthoView("directional", mi.ScalarPoint3f(0, 0, 0),
+                               mi.ScalarTransform4f(), half_extent=(1.0, 1.0)),
+                     res, mi.Float(depth.ravel()))
+    z = np.asarray(normalized_depth(smap)[0], np.float64).reshape(res, res)
+    for power, name in ((1, "vsm_m1"), (2, "vsm_m2")):
+        table = vsm_module.METHOD.layers[name](None, smap).numpy().reshape(res, res)
+        np.testing.assert_allclose(table, np.cumsum(np.cumsum(z ** power, 1), 0), rtol=1e-12)
+    np.testing.assert_array_equal(shared_sat(mi.Float64(z.ravel()), 1, res).numpy(),
+                                  vsm_module.METHOD.layers["vsm_m1"](None, smap).numpy())
+
+
+def test_gradients_reach_the_map_depths():
+    """Differentiable in principle: d(visibility)/d(depth texels) through the moment
+    tables is finite and non-zero near a shadow edge."""
+    depth = mi.Float(edge_depth().ravel())
+    dr.enable_grad(depth)
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(),
+                     half_extent=(1.0, 1.0), label="unit")
+    smap = ShadowMap(view, RES, depth)
+    for name, builder in methods.get("vsm").layers.items():
+        smap.extra[name] = builder(None, smap)
+    lk = lookup(np.linspace(-2, 2, 9) * TEXEL)
+    v = methods.get("vsm").lookup(smap, lk, parse_options({"method": "vsm", "filter_size": 4.0}),
+                                  mi.Bool(True))
+    dr.backward(dr.sum(v))
+    g = dr.grad(depth).numpy()
+    assert np.isfinite(g).all() and np.abs(g).max() > 0
+
+
+# ----------------------------------------------------- 5. the repository scenes
+@pytest.mark.parametrize("path", SCENE_FILES, ids=lambda p: p.stem)
+def test_repository_scenes_misclassified_and_light_bleeding(path):
+    """Against the reference of test_methods_on_scenes (1024^2 maps, 64^2, 4 spp):
+    misclassified <= 3 % and false lit (light bleeding) <= 1 %."""
+    from test_methods_on_scenes import SPP, reference
+    scene, ref = reference(path)
+    _, v = render_np(scene, {"type": "shadowmap", "method": "vsm", "resolution": 1024},
+                     spp=SPP, seed=0)
+    assert sorted(v) == sorted(ref)
+    r = np.stack([ref[k] for k in sorted(ref)])
+    v = np.stack([v[k] for k in sorted(v)])
+    assert np.isfinite(v).all() and v.min() >= 0 and v.max() <= 1
+    m = metrics.misclassified(r, v)
+    rmse = float(np.sqrt(np.mean((r - v) ** 2)))
+    print(f"{path.stem} vsm: misclassified {m['misclassified']:.2%} (false shadow "
+          f"{m['false_shadow']:.2%}, false lit {m['false_lit']:.2%}), vis RMSE {rmse:.4f}")
+    assert m["misclassified"] <= 0.03
+    assert m["false_lit"] <= 0.01
+
+
+# ---------------------------------------------------------------- 6. bad input
+@pytest.mark.parametrize("props,name", [
+    ({"filter_size": -1.0}, "filter_size"),
+    ({"filter_size": "2"}, "filter_size"),
+    ({"filter_size": True}, "filter_size"),
+    ({"filter_size": float("inf")}, "filter_size"),
+    ({"min_variance": -1e-9}, "min_variance"),
+    ({"min_variance": 1.5}, "min_variance"),
+    ({"min_variance": "small"}, "min_variance"),
+    ({"light_bleeding": -0.1}, "light_bleeding"),
+    ({"light_bleeding": 1.0}, "light_bleeding"),
+    ({"light_bleeding": [0.2]}, "light_bleeding"),
+    ({"kernel": 2}, "kernel"),                     # another method's property
+])
+def test_bad_input_names_the_property(props, name):
+    with pytest.raises(OptionError, match=name):
+        parse_options({"method": "vsm", **props})
+    with pytest.raises(Exception, match=name):     # through Mitsuba's loader too
+        mi.load_dict({"type": "shadowmap", "method": "vsm", **props})
+
+
+def test_vsm_properties_rejected_for_compare_methods():
+    for name in ("filter_size", "min_variance", "light_bleeding"):
+        with pytest.raises(OptionError, match=name):
+            parse_options({"method": "hard", name: 0.5})
+
+
+def test_record_defaults():
+    opts = parse_options({"method": "vsm"})
+    assert (opts.filter_size, opts.min_variance, opts.light_bleeding) == (2.0, 1e-7, 0.2)
+    assert (opts.slope_bias_texels, opts.normal_bias_texels) == (0.5, 0.25)
+    rec = methods.get("vsm")
+    assert rec.needs_footprint and rec.builtin and set(rec.layers) == {
+        "vsm_m1", "vsm_m2", "vsm_far"}
+
+
+# ---------------------------------------------------------------- 7. variants
+@pytest.mark.parametrize("variant", ["llvm_ad_mono", "llvm_ad_spectral"])
+def test_renders_in_other_variants(variant):
+    mi.set_variant(variant)
+    scene = mi.load_file(str(SCENES / "spot_sphere_box.xml"), width=32, height=32)
+    _, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    _, v = render_np(scene, {"type": "shadowmap", "method": "vsm", "resolution": 256}, spp=4)
+    r, v = ref["vis_spot"], v["vis_spot"]
+    assert np.isfinite(v).all() and v.min() >= 0 and v.max() <= 1
+    m = metrics.misclassified(r, v)
+    print(f"{variant}: vsm misclassified {m['misclassified']:.2%}, false lit {m['false_lit']:.2%}")
+    assert m["misclassified"] <= 0.03 and m["false_lit"] <= 0.01

@@ -17,6 +17,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from . import environment as env_mod
 from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
@@ -43,7 +44,8 @@ is the ground truth; it matches Mitsuba's ``direct`` integrator with
 
 One visibility AOV per emitter, ``vis_<id>`` (``vis_<index>`` when the
 emitter has no id), carries the visibility used for it (0 where it
-contributes nothing).
+contributes nothing; a method whose record has ``whole_light``, e.g.
+``multiview``, reports its visibility of the whole light, horizon included).
 
 Maps: spot -- perspective covering the cutoff cone; point and area -- cube
 maps (area lights as their centre); directional -- orthographic, fitted to
@@ -116,11 +118,15 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
             if is_env and self.opts.environment == "error":
                 raise ValueError(
                     f"shadowmap: emitter '{emitter_label(e, i)}' is an environment/constant "
-                    "emitter, which has no finite frustum for a depth map; set the property "
-                    "environment='unshadowed' to light it without shadows, or remove it")
-            # raises for unsupported emitters
-            views.append(None if is_env else make_light_view(e, scene, i))
-            unshadowed.append(is_env)   # environment='unshadowed': visibility 1, every method
+                    "emitter and environment='error'; set the property "
+                    "environment='shadowed' (median-cut maps) or 'unshadowed' (no shadows), "
+                    "or remove it")
+            # raises for unsupported emitters; environment='shadowed' with a map method:
+            # K median-cut regions in one map (mi_shadowmap.environment)
+            views.append(env_mod.light_view(e, scene, i, self.opts) if is_env
+                         else make_light_view(e, scene, i))
+            # environment='unshadowed': visibility 1, every method
+            unshadowed.append(is_env and self.opts.environment == "unshadowed")
             labels.append(emitter_label(e, i))
         # AOV names must be unique: fall back to indices for duplicate ids.
         self._emitter_labels = [
@@ -152,6 +158,14 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         aovs = []
         n_light = getattr(opts, record.shadow_rays) if record.shadow_rays else 1
         for k, emitter in enumerate(scene.emitters()):
+            if (opts.uses_map and k < len(self.maps)
+                    and isinstance(getattr(self.maps[k], "view", None), env_mod.EnvironmentView)):
+                # environment='shadowed': K median-cut regions, one while loop
+                c, vis = env_mod.shade(self.maps[k], emitter, si, bsdf, shade, sampler,
+                                       dp_dx, dp_dy, opts)
+                result += c
+                aovs.append(dr.select(shade, vis, 0.0))
+                continue
             if k < len(self._unshadowed) and self._unshadowed[k]:
                 smap = None   # environment='unshadowed': no shadows for any method
             else:
@@ -159,6 +173,7 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
             vis_sum = mi.Float(0.0)
             contributes = mi.Bool(False)
             shift = None
+            whole = None   # record.whole_light: the lookup's visibility of the whole light
             for s in range(n_light):
                 if n_light == 1:
                     u = sampler.next_2d(shade)
@@ -174,13 +189,18 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
                 lit &= dr.max(unshadowed) > 0
                 if smap is None:     # environment emitter lit without shadows
                     vis = mi.Float(1.0)
+                elif record.whole_light:   # averaged over the light, horizon included
+                    lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
+                    whole, above = vis_fn(smap, lk, opts, shade)
+                    vis = dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
                 else:
                     lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
                     vis = dr.select(lit, vis_fn(smap, lk, opts, lit), 0.0)
                 result += dr.select(lit, unshadowed * vis, 0.0) / n_light
                 vis_sum += vis
                 contributes |= lit
-            aovs.append(dr.select(contributes, vis_sum / n_light, 0.0))
+            aovs.append(dr.select(contributes, vis_sum / n_light, 0.0) if whole is None
+                        else dr.select(shade, whole, 0.0))
         return result, valid, aovs
 
     def _footprint(self, ray: mi.RayDifferential3f, si):

@@ -106,9 +106,12 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
 
     ``views``: the emitters' light views if the caller already built them
     (the integrator's ``check_scene`` does; None for environment emitters),
-    else they are built here. ``sensor``: default the scene's first; a scene
-    without any sensor takes a 512 x 512 film and skips every
-    camera-dependent step (cascades, culling, fitting, the footprint factor).
+    else they are built here. A method whose record has ``view_for`` replaces
+    them with its own (``multiview``: K views of each light in one map), so
+    everything below -- faces, memory, cache key -- sees the view it builds.
+    ``sensor``: default the scene's first; a scene without any sensor takes a
+    512 x 512 film and skips every camera-dependent step (cascades, culling,
+    fitting, the footprint factor).
 
     1. The views say whether they read camera-visible points
        (``cascades``/``fit_frusta``/``cull_faces``) and how many faces they
@@ -127,10 +130,14 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
     if not opts.uses_map:
         views = [None] * len(scene.emitters())
     elif views is None:
-        views = [None if emitter_kind(e) == "environment" else make_light_view(e, scene, i)
-                 for i, e in enumerate(scene.emitters())]
+        from .environment import light_view as environment_view
+        views = [environment_view(e, scene, i, opts) if emitter_kind(e) == "environment"
+                 else make_light_view(e, scene, i) for i, e in enumerate(scene.emitters())]
     else:
         views = list(views)
+    if record.view_for is not None and opts.uses_map:   # e.g. multiview: K views in one map
+        views = [v if v is None else (record.view_for(v, e, scene, opts) or v)
+                 for v, e in zip(views, scene.emitters())]
     live = [v for v in views if v is not None]
     if not live:
         return RenderPlan(views, [None] * len(views), None, None, None)
@@ -268,6 +275,8 @@ def view_fingerprint(view) -> tuple:
     def fp(v):
         if v is None or isinstance(v, (bool, int, float, str)):
             return v
+        if dataclasses.is_dataclass(v) and not isinstance(v, type):
+            return view_fingerprint(v)   # a view inside a view (multiview's template)
         if isinstance(v, (tuple, list)):
             return tuple(fp(x) for x in v)
         if isinstance(v, dict):

@@ -19,6 +19,8 @@ A lookup has the signature of every built-in::
 
     lookup(smap, lk, opts, active) -> mi.Float   # visibility in [0, 1]
 
+(a record with ``whole_light`` returns ``(visible, above)``, see :class:`Method`).
+
 ``smap`` is the emitter's :class:`~mi_shadowmap.depth_maps.ShadowMap` (for a
 method with ``uses_map=False``, a :class:`~mi_shadowmap.filters.common.
 RayTracedLight`), ``lk`` the :class:`~mi_shadowmap.filters.common.Lookup` of
@@ -36,6 +38,16 @@ from typing import Any, Callable
 
 class MethodError(ValueError):
     """A method record or a registration was rejected."""
+
+
+class OptionError(ValueError):
+    """A property of the ``shadowmap`` integrator was rejected (re-exported by
+    :mod:`~mi_shadowmap.options`, which raises it for every bad property)."""
+
+
+#: Names of the integrator's shared properties, which a method cannot redeclare
+#: (filled by :mod:`~mi_shadowmap.options`, the module that declares them).
+SHARED_PROPERTY_NAMES: set = set()
 
 
 @dataclass(frozen=True)
@@ -105,6 +117,17 @@ class Method:
       :class:`~mi_shadowmap.options.OptionError` naming the property);
     * ``shadow_rays`` -- the name of a property giving the number of light samples per
       camera sample (``raytraced``), or None for one;
+    * ``view_for`` -- ``fn(view, emitter, scene, opts) -> LightView | None``: the view
+      the method's maps are built from instead of the emitter's ordinary ``view``
+      (None: the ordinary one), asked by the map manager before it plans the maps
+      (``multiview``: K views of the light in one map);
+    * ``whole_light`` -- the lookup averages over the whole light itself and returns
+      ``(visible, above)`` instead of one visibility: the fractions of its light points
+      that contribute to the shading point (above its horizon, emitting towards it:
+      the converged reference's definition) and are unoccluded, and that contribute.
+      The integrator then calls it at every shaded point (not only where its one
+      light sample contributes), reports ``visible`` as the visibility AOV and
+      weights the light sample by ``visible / above`` (``multiview``);
     * ``builtin`` -- shipped with the package.
     """
     name: str
@@ -119,6 +142,8 @@ class Method:
     bias_defaults: dict = field(default_factory=dict)
     finalize: Callable | None = None
     shadow_rays: str | None = None
+    view_for: Callable | None = None
+    whole_light: bool = False
     builtin: bool = False
 
     def layer_names(self, opts) -> tuple:
@@ -150,8 +175,7 @@ def _check_record(m: Method) -> None:
     names = [p.name for p in props]
     if len(set(names)) != len(names):
         raise MethodError(f"register_method('{m.name}'): duplicate property names {names}")
-    from .options import GENERAL_PROPERTIES   # shared properties cannot be redeclared
-    shared = sorted(set(names) & {p.name for p in GENERAL_PROPERTIES})
+    shared = sorted(set(names) & SHARED_PROPERTY_NAMES)   # cannot be redeclared
     if shared:
         raise MethodError(f"register_method('{m.name}'): {', '.join(shared)} "
                           "is a shared property of the integrator; choose another name")
@@ -169,6 +193,9 @@ def _check_record(m: Method) -> None:
             isinstance(c, (int, float)) and c >= 0 for c in m.layer_cost.values()):
         raise MethodError(f"register_method('{m.name}'): layer_cost must map names of its "
                           "layers to numbers >= 0 (float32 arrays of a face's size)")
+    if m.view_for is not None and not callable(m.view_for):
+        raise MethodError(f"register_method('{m.name}'): view_for must be callable "
+                          "fn(view, emitter, scene, opts) -> LightView | None")
     bad = sorted(set(m.bias_defaults) - set(_BIAS_KEYS))
     if bad:
         raise MethodError(f"register_method('{m.name}'): bias_defaults keys must be among "
@@ -193,7 +220,8 @@ def add(method: Method, replace: bool = False) -> Method:
 def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     needs_footprint: bool = False, bias_defaults=None, summary: str = "",
                     layers_for: Callable | None = None, finalize: Callable | None = None,
-                    uses_map: bool = True, layer_cost=None, replace: bool = False) -> Method:
+                    uses_map: bool = True, layer_cost=None, view_for: Callable | None = None,
+                    whole_light: bool = False, replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
     ``lookup(smap, lk, opts, active) -> mi.Float`` has the built-ins' signature
@@ -212,7 +240,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     layers_for=layers_for, layer_cost=dict(layer_cost or {}),
                     needs_footprint=bool(needs_footprint),
                     uses_map=bool(uses_map), bias_defaults=dict(bias_defaults or {}),
-                    finalize=finalize)
+                    finalize=finalize, view_for=view_for, whole_light=bool(whole_light))
     return add(record, replace=replace)
 
 
@@ -230,7 +258,6 @@ def get(name: str) -> Method:
     """The record of method ``name``; raises ``OptionError`` naming the valid ones."""
     m = _REGISTRY.get(name)
     if m is None:
-        from .options import OptionError
         raise OptionError(f"shadowmap: property 'method' = {name!r} is not valid; valid "
                           f"values: {', '.join(_REGISTRY)}")
     return m

@@ -25,11 +25,7 @@ import math
 from typing import Any, Iterable
 
 from . import methods as _methods
-from .methods import METHODS, MAP_METHODS, Prop  # noqa: F401  (re-exported)
-
-
-class OptionError(ValueError):
-    """A property of the ``shadowmap`` integrator was rejected."""
+from .methods import METHODS, MAP_METHODS, OptionError, Prop  # noqa: F401  (re-exported)
 
 
 #: Scopes of the shared properties: used by every method; accepted by every method but
@@ -82,10 +78,17 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Offset of the lookup point along the surface normal, in texels. Default: 0.5 "
          "(0 for second_depth).", lo=0.0),
     Prop("hide_emitters", "bool", False, "Hide directly visible emitters."),
-    Prop("environment", "str", "error",
-         "What to do with environment/constant emitters, which have no finite frustum: "
-         "'error' refuses the scene, 'unshadowed' lights with visibility 1 (no shadows).",
-         choices=("error", "unshadowed")),
+    Prop("environment", "str", "shadowed",
+         "What to do with environment/constant emitters: 'shadowed' splits them into "
+         "env_lights median-cut regions (Debevec 2005), each shadowed by an orthographic "
+         "map along its centroid (raytraced: real shadow rays, = direct; see "
+         "mi_shadowmap.environment), 'unshadowed' lights them with visibility 1 (no "
+         "shadows), 'error' refuses the scene.",
+         choices=("shadowed", "unshadowed", "error")),
+    Prop("env_lights", "int", 16,
+         "environment='shadowed', map methods: number K of median-cut regions of an "
+         "environment/constant emitter, each with its own orthographic map (all in one "
+         "tensor: K x resolution^2 texels).", lo=1, hi=1024),
     Prop("max_tan_slope", "float", 20.0,
          "Clamp of tan(angle between normal and light) in the slope bias.", lo=0.0,
          lo_open=True),
@@ -97,12 +100,13 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "sec. 5.1: C_i = lambda*C_uni + (1-lambda)*C_log).", lo=0.0, hi=1.0),
 )
 #: Scope of each shared property (see EVERY, ACCEPTED, MAP).
-SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY,
+SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY, "env_lights": MAP,
           "resolution": ACCEPTED, "memory_budget": ACCEPTED, "cache_maps": ACCEPTED,
           "cull_faces": MAP, "fit_frusta": MAP, "bias": MAP, "slope_bias": MAP,
           "normal_bias": MAP, "max_tan_slope": MAP, "cascades": MAP, "split_lambda": MAP}
 _GENERAL = {p.name: p for p in GENERAL_PROPERTIES}
 assert set(SCOPES) == set(_GENERAL)
+_methods.SHARED_PROPERTY_NAMES.update(_GENERAL)
 _DEFAULT_BIAS = {"slope_bias": 1.0, "normal_bias": 0.5}
 
 

@@ -104,16 +104,18 @@ def test_maps_built_once_per_render(monkeypatch):
     assert integ.maps[0].to_numpy().shape == (1, 64, 64)
 
 
-def test_environment_emitter_is_an_error_or_explicitly_unshadowed():
+def test_environment_emitter_is_shadowed_unshadowed_or_an_error():
     d = default_scene(width=16, height=16)
     d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": 0.1}}
     scene = mi.load_dict(d)
     with pytest.raises(RuntimeError) as e:
-        mi.render(scene, integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
-    assert re.search("'sky'.*environment='unshadowed'", root_message(e.value))
-    _, aovs = render_np(scene, {"type": "shadowmap", "environment": "unshadowed",
-                                "resolution": 64}, spp=1)
-    assert set(aovs) == {"vis_spot", "vis_sky"}
+        mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
+                                                  "environment": "error"}), spp=1)
+    assert re.search("'sky'.*environment='error'.*'unshadowed'", root_message(e.value))
+    for environment in ("shadowed", "unshadowed"):   # shadowed: the default
+        _, aovs = render_np(scene, {"type": "shadowmap", "environment": environment,
+                                    "resolution": 64}, spp=1)
+        assert set(aovs) == {"vis_spot", "vis_sky"}
 
 
 def test_unsupported_emitter_is_named():

@@ -240,7 +240,7 @@ def _texel_parallel(smap, r, p_world) -> mi.Float:
 def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """Percentage-closer soft shadows; see the module docstring."""
     w_light, angular = smap.view.light_width(opts.light_size, opts.angular_diameter)
-    if w_light <= 0.0:   # a light of size 0: hard shadows (one nearest-texel compare)
+    if isinstance(w_light, (int, float)) and w_light <= 0.0:   # size 0: hard (one compare)
         return hard(smap, lk, opts, active)
     r = receiver(smap, lk, opts)
     active = mi.Bool(active) & r.inside

@@ -11,6 +11,7 @@ spot                   PerspectiveView  :mod:`.perspective`
 directional            OrthoView        :mod:`.ortho`
 directional, cascades  CascadedView     :mod:`.cascaded`
 point, area            CubeView         :mod:`.cube`
+any (``multiview``)    MultiView        :mod:`.multi` (K views in one map)
 =====================  ===============  ====================================
 
 Adding a light type means one class (and one line in :func:`make_light_view`).
@@ -31,9 +32,11 @@ from .cascaded import CascadedView, cascaded_view, split_depths
 from .cube import CubeView, area_light_size, area_view, point_view
 from .ortho import OrthoView, directional_view
 from .perspective import PerspectiveView, spot_view
+from .multi import MultiView, multi_view
 
 __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeView",
-           "make_light_view", "emitter_kind", "emitter_label", "emitter_class",
+           "MultiView", "multi_view", "make_light_view", "emitter_kind", "emitter_label",
+           "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
            "footprint_ratio", "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
 

@@ -1,0 +1,452 @@
+"""K views of one light in one map (:class:`MultiView`): accumulated multi-view maps.
+
+Heckbert & Herf (1997) render a soft shadow as the average of hard shadows
+cast from many points of the light. A :class:`MultiView` holds the depth maps
+of ``K`` such *light points* in one tensor: sub-view ``k`` is the emitter's
+ordinary view (its *template*, :attr:`MultiView.sub`) moved to light point
+``k``, and owns the faces ``k * F .. k * F + F - 1`` of the map (``F`` the
+template's faces, texel order as in :mod:`.base`). The points are fixed per
+map -- stratified samples of a fixed seed -- so maps are cached like all
+others:
+
+===============  =====================================================  ================
+emitter          light points (``K`` stratified samples ``u_k``)         sub-views
+===============  =====================================================  ================
+area             the shape's own ``sample_position(u_k)`` (the points    cube maps
+                 the converged reference samples), with their normals
+point            ``light_size`` > 0: uniform on the sphere of diameter   cube maps
+                 ``light_size`` (a sphere light), with their normals
+spot             ``light_size`` > 0: a square of side ``light_size``     perspective maps
+                 across the spot's axis (same axis and cone)
+directional      ``angular_diameter`` > 0: ``K`` directions in the       orthographic maps
+                 disk of that angular diameter, each fitted to the
+                 scene's bounds like the ordinary map
+===============  =====================================================  ================
+
+A light point with a normal (area lights, sized point lights) emits only
+into its front half-space (:meth:`MultiView.emits_towards`). Per-view
+positions, rotations and normals live in small JIT tables gathered by the view
+index, so one kernel serves every ``k`` (:meth:`MultiView.sub_view`). The
+samples ``u_k`` (:func:`stratified_points`) are equal-area jittered strata
+of ``[0, 1)^2`` for any ``K``, ordered along a Hilbert curve, so any run of
+consecutive views covers a compact part of the light (the lookups' subsets).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .base import LightView, look_along_np, position_np, unit_grid
+
+#: Seed of the light points' jitter: fixed, so the views (and maps) are cacheable.
+SEED = 0
+
+
+# ------------------------------------------------------------------ light points
+def _hilbert_index(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
+    """Index along the Hilbert curve of the ``2^order`` grid cell ``(x, y)`` (numpy)."""
+    n = 1 << order
+    x, y = x.astype(np.int64).copy(), y.astype(np.int64).copy()
+    d = np.zeros_like(x)
+    s = n >> 1
+    while s > 0:
+        rx = (x & s) > 0
+        ry = (y & s) > 0
+        d += s * s * ((3 * rx) ^ ry)
+        # rotate the quadrant (Wikipedia's xy2d)
+        flip = ~ry
+        mx = np.where(flip & rx, n - 1 - x, x)
+        my = np.where(flip & rx, n - 1 - y, y)
+        x, y = np.where(flip, my, mx), np.where(flip, mx, my)
+        s >>= 1
+    return d
+
+
+def stratified_points(n: int, seed: int = SEED) -> np.ndarray:
+    """``(n, 2)`` jittered points of ``[0, 1)^2``, one per equal-area stratum, for any ``n``.
+
+    ``rows = round(sqrt(n))`` rows; row ``r`` holds ``n_r`` (``n // rows`` or one more)
+    cells of width ``1 / n_r`` and has height ``n_r / n``, so every cell has area
+    ``1 / n`` (a plain ``ceil(sqrt(n))``-column grid leaves part of its last row empty
+    for non-square ``n``). One uniform point per cell (``numpy`` generator seeded
+    with ``seed``); the points are ordered along a Hilbert curve.
+    """
+    rows = max(1, int(round(math.sqrt(n))))
+    counts = [n // rows + (1 if r < n % rows else 0) for r in range(rows)]
+    rng = np.random.default_rng(seed)
+    pts, y0 = [], 0.0
+    for n_r in counts:
+        h = n_r / n
+        j = rng.random((n_r, 2))
+        x = (np.arange(n_r) + j[:, 0]) / n_r
+        pts.append(np.stack([x, y0 + j[:, 1] * h], axis=1))
+        y0 += h
+    p = np.clip(np.concatenate(pts), 0.0, np.nextafter(1.0, 0.0))
+    order = 10
+    cells = np.minimum((p * (1 << order)).astype(np.int64), (1 << order) - 1)
+    return p[np.argsort(_hilbert_index(cells[:, 0], cells[:, 1], order), kind="stable")]
+
+
+# --------------------------------------------------------------------- the view
+@dataclass(frozen=True)
+class MultiView(LightView):
+    """``K`` copies of the template view ``sub`` at the light points, in one map.
+
+    * ``positions`` -- ``K`` world positions (a directional sub-view's near-plane centre);
+    * ``rotations`` -- ``K`` world-to-light rotations (9 numbers, row-major), or ``()``:
+      every sub-view keeps ``sub``'s. Sub-view ``k``'s ``light_from_world`` is that
+      rotation about its position (cube maps ignore it: world axes);
+    * ``normals`` -- ``K`` emitting normals (one, shared, for a planar light), or ``()``
+      (light points emit everywhere);
+    * ``samples`` -- the ``K`` samples ``u_k`` the points were made from.
+    """
+    sub: LightView | None = None
+    positions: tuple = ()
+    rotations: tuple = ()
+    normals: tuple = ()
+    samples: tuple = ()
+
+    projection = "multi-view"
+
+    @property
+    def n_views(self) -> int:
+        return len(self.positions)
+
+    @property
+    def faces_per_view(self) -> int:
+        return self.sub.n_faces
+
+    @property
+    def n_faces(self) -> int:
+        return self.n_views * self.sub.n_faces
+
+    # ---------------------------------------------------------- per-view tables
+    @functools.cached_property
+    def _tables(self) -> dict:
+        """The per-view data as JIT arrays (built once per view object)."""
+        def cols(rows, n):
+            a = np.asarray(rows, dtype=np.float64).reshape(len(rows), n)
+            return [mi.Float(a[:, c]) for c in range(n)]
+        t = {"pos": mi.Point3f(*cols(self.positions, 3))}
+        if self.rotations:
+            t["rot"] = cols(self.rotations, 9)
+        else:
+            R = np.array(self.sub.light_from_world.matrix, dtype=np.float64)[:3, :3]
+            t["rot"] = [float(x) for x in R.ravel()]
+        if len(self.normals) == 1:
+            t["normal"] = mi.Vector3f(*self.normals[0])
+        elif self.normals:
+            t["normal"] = mi.Vector3f(*cols(self.normals, 3))
+        return t
+
+    def lane(self, k) -> LightView:
+        """The template view moved to light point ``k`` (``mi.UInt32`` per lane): its
+        ``position`` (and ``light_from_world``) are JIT values gathered by ``k``."""
+        t = self._tables
+        k = mi.UInt32(k)
+        p = dr.gather(mi.Point3f, t["pos"], k)
+        R = [c if isinstance(c, float) else dr.gather(mi.Float, c, k) for c in t["rot"]]
+        # light_from_world = [R | -R p]; Transform4f also stores its inverse transpose,
+        # [[R, 0], [p^T, 1]] (the inverse of a rigid [R | -R p] is [R^T | p]).
+        tr = [-(R[3 * i] * p.x + R[3 * i + 1] * p.y + R[3 * i + 2] * p.z) for i in range(3)]
+        m = mi.Matrix4f(R[0], R[1], R[2], tr[0], R[3], R[4], R[5], tr[1],
+                        R[6], R[7], R[8], tr[2], 0.0, 0.0, 0.0, 1.0)
+        inv_t = mi.Matrix4f(R[0], R[1], R[2], 0.0, R[3], R[4], R[5], 0.0,
+                            R[6], R[7], R[8], 0.0, p.x, p.y, p.z, 1.0)
+        return dataclasses.replace(self.sub, position=p,
+                                   light_from_world=mi.Transform4f(m, inv_t))
+
+    def sub_view(self, k) -> "SubView":
+        """Sub-view ``k`` addressing the faces of the shared map (:class:`SubView`)."""
+        k = mi.UInt32(k)
+        return SubView(self.kind, self.position, self.light_from_world, self.light_size,
+                       self.ignore_shape, self.light_normal, self.label,
+                       inner=self.lane(k), offset=k * self.sub.n_faces)
+
+    def emits_towards(self, k, p_world: mi.Point3f) -> mi.Bool:
+        """Whether light point ``k`` emits towards ``p_world``: in front of its normal
+        (always True for points without one)."""
+        t = self._tables
+        if "normal" not in t:
+            return mi.Bool(True)
+        k = mi.UInt32(k)
+        n = t["normal"] if len(self.normals) == 1 else dr.gather(mi.Vector3f, t["normal"], k)
+        return dr.dot(n, mi.Point3f(p_world) - dr.gather(mi.Point3f, t["pos"], k)) > 0
+
+    def _split(self, face):
+        face = mi.UInt32(face)
+        k = face // self.sub.n_faces
+        return k, face - k * self.sub.n_faces
+
+    # ------------------------------------------------------------ the interface
+    def texel_rays(self, res: int):
+        face, s, t = unit_grid(self.n_faces, res)
+        k, f = self._split(face)
+        return self.lane(k).ray_through(f, mi.Point2f(0.5 * (s + 1.0), 0.5 * (t + 1.0)))
+
+    def ray_through(self, face, uv_light: mi.Point2f):
+        k, f = self._split(face)
+        return self.lane(k).ray_through(f, uv_light)
+
+    def project(self, p_world: mi.Point3f):
+        """The projection into sub-view 0 (lookups project into each
+        :meth:`sub_view` themselves)."""
+        return self.sub_view(0).project(p_world)
+
+    def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
+        k, f = self._split(face)
+        return self.lane(k).uv_on_face(f, p_world)
+
+    def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
+        """Towards the template's light (the centre; a directional light's axis)."""
+        return self.sub.direction_to_light(p_world)
+
+    def texel_world_size(self, res: int, depth, p_world=None):
+        return self.sub.texel_world_size(res, depth, p_world)
+
+    def texel_parallel_size(self, res: int, face, p_world, texel_world):
+        k, f = self._split(face)
+        return self.lane(k).texel_parallel_size(res, f, p_world, texel_world)
+
+    def tap_texel(self, face, xy_texel: mi.Point2f, res: int, cross_seams: bool = True):
+        k, f = self._split(face)
+        f2, i, j, inside = self.lane(k).tap_texel(f, xy_texel, res, cross_seams)
+        return mi.UInt32(f2) + k * self.sub.n_faces, i, j, inside
+
+    def light_width(self, light_size=None, angular_diameter: float = 0.0):
+        return self.sub.light_width(light_size, angular_diameter)
+
+    def map_width(self, p_world: np.ndarray) -> float:
+        return self.sub.map_width(p_world)
+
+    # Camera-independent: no fitting, no cascades, no face culling. ``cull_faces`` would
+    # decide the faces of K views per render (K passes over the camera's points, which
+    # costs more than a cached frame) and the culled build gathers the texel rays of
+    # every face (24 bytes per texel, 6x the map); the K views are built whole.
+    def needs_camera_points(self, opts) -> bool:
+        return False
+
+    def planned_faces(self, opts, visible) -> int:
+        return self.n_faces
+
+    def describe(self) -> str:
+        return (f"{self.label}: {self.kind} light, {self.n_views} x {self.sub.projection} "
+                f"map ({self.n_faces} face(s))")
+
+
+@dataclass(frozen=True)
+class SubView(LightView):
+    """View ``k`` of a :class:`MultiView`: ``inner`` (the template moved to light point
+    ``k``) reading and returning the faces of the shared map (``offset = k * F``), so
+    that every filter helper works on it unchanged."""
+    inner: LightView | None = None
+    offset: object = 0
+
+    projection = "sub-view"
+
+    @property
+    def n_faces(self) -> int:
+        return self.inner.n_faces
+
+    def ray_through(self, face, uv_light: mi.Point2f):
+        return self.inner.ray_through(mi.UInt32(face) - self.offset, uv_light)
+
+    def texel_rays(self, res: int):
+        return self.inner.texel_rays(res)
+
+    def project(self, p_world: mi.Point3f):
+        face, uv, depth, inside = self.inner.project(p_world)
+        return mi.UInt32(face) + self.offset, uv, depth, inside
+
+    def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
+        return self.inner.uv_on_face(mi.UInt32(face) - self.offset, p_world)
+
+    def depth_of(self, p_world: mi.Point3f) -> mi.Float:
+        return self.inner.depth_of(p_world)
+
+    def texel_world_size(self, res: int, depth, p_world=None):
+        return self.inner.texel_world_size(res, depth, p_world)
+
+    def texel_parallel_size(self, res: int, face, p_world, texel_world):
+        return self.inner.texel_parallel_size(res, mi.UInt32(face) - self.offset, p_world,
+                                              texel_world)
+
+    def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
+        return self.inner.direction_to_light(p_world)
+
+    def tap_texel(self, face, xy_texel: mi.Point2f, res: int, cross_seams: bool = True):
+        f2, i, j, inside = self.inner.tap_texel(mi.UInt32(face) - self.offset, xy_texel, res,
+                                                cross_seams)
+        return mi.UInt32(f2) + self.offset, i, j, inside
+
+    def light_width(self, light_size=None, angular_diameter: float = 0.0):
+        return self.inner.light_width(light_size, angular_diameter)
+
+
+def as_multi_view(view: LightView) -> MultiView:
+    """``view`` itself if it is a :class:`MultiView`, else a one-view MultiView of it
+    (its one light point is the light's own position), so that a lookup can treat
+    every map as ``K`` views."""
+    if isinstance(view, MultiView):
+        return view
+    return MultiView(view.kind, view.position, view.light_from_world, view.light_size,
+                     view.ignore_shape, view.light_normal, view.label, sub=view,
+                     positions=(tuple(float(c) for c in view.position),),
+                     samples=((0.5, 0.5),))
+
+
+# ------------------------------------------------------------------ the factory
+class _Direction:
+    """A stand-in emitter for :func:`~.ortho.directional_view`, which reads only
+    ``world_transform()``: light travelling along ``d``."""
+
+    def __init__(self, d):
+        self._T = look_along_np((0.0, 0.0, 0.0), d).inverse()
+
+    def world_transform(self):
+        return mi.Transform4f(self._T.matrix)
+
+
+def _normals(n: np.ndarray) -> tuple:
+    """The normals field: one shared normal when all agree (a planar light)."""
+    if np.all(np.abs(n - n[0]) <= 1e-6):
+        return (tuple(float(c) for c in n[0]),)
+    return tuple(map(tuple, n.tolist()))
+
+
+#: Largest tan(half field of view) of a planar area light's perspective sub-views; wider
+#: scenes get cube maps. One face of tan t holds the centre's texel density of a cube
+#: face at t x the resolution, i.e. t^2 faces' texels: cheaper than 6 faces up to ~2.4.
+MAX_TAN = 2.0
+
+
+def _shape_points(shape):
+    """Points whose convex hull holds ``shape``: a mesh's vertices (exact; Mitsuba's
+    merged meshes even report an invalid bbox), else its bbox corners; None if
+    neither is known."""
+    if shape.is_mesh() and hasattr(shape, "vertex_positions_buffer"):
+        return shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
+    b = shape.bbox()
+    if not b.valid():
+        return None
+    lo, hi = [float(c) for c in b.min], [float(c) for c in b.max]
+    return np.array([[(hi if (c >> a) & 1 else lo)[a] for a in range(3)] for c in range(8)])
+
+
+#: The last :func:`_frustum_tan` answer: (key, buffers kept alive, tan).
+_TAN_MEMO: list = [None, None, None]
+
+
+def _frustum_tan(scene, own_shape, light_from_world, points: np.ndarray):
+    """tan of the half field of view of a square frustum along ``light_from_world``'s
+    +z that, from every one of the light ``points`` (all in the light's plane), covers
+    every shape but the light's own (their vertices or bbox corners: ``|x - x_k| / z``
+    is largest at a vertex), grown by 2 %; None when a shape reaches the light's plane
+    or needs more than :data:`MAX_TAN` (then cube maps). O(vertices), remembered for
+    unchanged vertex buffers (JIT indices) and light points."""
+    own = own_shape.emitter()
+    shapes = [sh for sh in scene.shapes() if own is None or sh.emitter() is not own]
+    buffers = [sh.vertex_positions_buffer() if sh.is_mesh()
+               and hasattr(sh, "vertex_positions_buffer") else None for sh in shapes]
+    M = np.array(light_from_world.matrix, dtype=np.float64)
+    key = (tuple(M.ravel()), points.tobytes(),
+           tuple((id(sh), b.index if b is not None else repr(sh.bbox()))
+                 for sh, b in zip(shapes, buffers)))
+    if _TAN_MEMO[0] == key:
+        return _TAN_MEMO[2]
+    R, t = M[:3, :3], M[:3, 3]
+    pl = points @ R.T + t                       # light points in the light frame
+    lo, hi, z_top = pl[:, :2].min(axis=0), pl[:, :2].max(axis=0), pl[:, 2].max()
+    tan, scale = 0.0, float(np.max(np.abs(pl))) + 1e-30
+    for sh in shapes:
+        v = _shape_points(sh)
+        if v is None:
+            tan = math.inf
+            break
+        if len(v) == 0:
+            continue
+        q = v @ R.T + t
+        z = q[:, 2] - z_top
+        scale = max(scale, float(np.max(np.abs(q))))
+        if np.any(z <= 1e-3 * scale):
+            tan = math.inf
+            break
+        lateral = np.maximum(np.abs(q[:, :2] - lo), np.abs(q[:, :2] - hi)).max(axis=1)
+        tan = max(tan, float(np.max(lateral / z)))
+    tan = 1.02 * tan if 0.0 < tan <= MAX_TAN / 1.02 else None
+    _TAN_MEMO[:] = [key, buffers, tan]
+    return tan
+
+
+def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
+               angular_diameter: float = 0.0) -> MultiView | None:
+    """The :class:`MultiView` of ``views`` light points of an emitter whose ordinary
+    view is ``view`` (see the module doc), or None for a light without extent
+    (point/spot with ``light_size`` 0 or None, directional with ``angular_diameter``
+    0): its ordinary map is then the one view."""
+    from .ortho import directional_view
+    K = int(views)
+    u = stratified_points(K)
+    base = dict(kind=view.kind, position=view.position,
+                light_from_world=view.light_from_world, light_size=view.light_size,
+                ignore_shape=view.ignore_shape, light_normal=view.light_normal,
+                label=view.label)
+    samples = tuple(tuple(float(c) for c in s) for s in u)
+    if view.kind == "area":
+        ps = emitter.get_shape().sample_position(0.0, mi.Point2f(mi.Float(u[:, 0]),
+                                                                 mi.Float(u[:, 1])))
+        p = np.stack([c.numpy() for c in ps.p], axis=1).astype(np.float64)
+        n = np.stack([c.numpy() for c in ps.n], axis=1).astype(np.float64)
+        sub = view
+        if view.light_normal is not None:   # planar: one perspective face if it covers all
+            lfw = look_along_np(position_np(view), view.light_normal)
+            tan = _frustum_tan(scene, emitter.get_shape(), lfw, p)
+            if tan is not None:
+                from .perspective import PerspectiveView
+                sub = dataclasses.replace(PerspectiveView(**base, tan_half=tan),
+                                          light_from_world=lfw)
+        return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
+                         normals=_normals(n), samples=samples)
+    if view.kind in ("point", "spot"):
+        size = float(light_size or 0.0)
+        if size <= 0.0:
+            return None
+        centre = position_np(view)
+        if view.kind == "point":   # uniform on the sphere of diameter `size`
+            w = mi.warp.square_to_uniform_sphere(mi.Point2f(mi.Float(u[:, 0]),
+                                                             mi.Float(u[:, 1])))
+            n = np.stack([c.numpy() for c in w], axis=1).astype(np.float64)
+            p = centre + 0.5 * size * n
+            return MultiView(**base, sub=view, positions=tuple(map(tuple, p.tolist())),
+                             normals=tuple(map(tuple, n.tolist())), samples=samples)
+        # spot: a square of side `size` across the axis, same frame otherwise
+        R = np.array(view.light_from_world.matrix, dtype=np.float64)[:3, :3]
+        offsets = np.stack([u[:, 0] - 0.5, u[:, 1] - 0.5, np.zeros(K)], axis=1) * size
+        p = centre + offsets @ R   # rows of R are the light axes in world space
+        return MultiView(**base, sub=view, positions=tuple(map(tuple, p.tolist())),
+                         samples=samples)
+    if view.kind == "directional":
+        if angular_diameter <= 0.0:
+            return None
+        L = np.array(view.light_from_world.matrix, dtype=np.float64)[:3, :3]
+        t = math.tan(math.radians(angular_diameter) * 0.5)
+        disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(mi.Float(u[:, 0]),
+                                                                    mi.Float(u[:, 1])))
+        dirs = np.stack([disk.x.numpy() * t, disk.y.numpy() * t, np.ones(K)], axis=1) @ L
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        subs = [directional_view(_Direction(d), scene, view.label) for d in dirs]
+        half = tuple(max(v.half_extent[a] for v in subs) for a in range(2))
+        template = dataclasses.replace(subs[0], half_extent=half)
+        return MultiView(**base, sub=template,
+                         positions=tuple(tuple(position_np(v).tolist()) for v in subs),
+                         rotations=tuple(tuple(np.array(v.light_from_world.matrix,
+                                                        dtype=np.float64)[:3, :3].ravel())
+                                         for v in subs),
+                         samples=samples)
+    return None

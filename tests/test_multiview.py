@@ -1,0 +1,270 @@
+"""multiview (Heckbert & Herf 1997 accumulated multi-view maps): convergence to the
+converged reference, K = 1 and size-0 lights are hard shadows, the K views in one tensor,
+caching, the lookup subsets, point/spot/directional lights with extent, bad input, mono
+and spectral variants. Small sizes: 64^2 images, maps of at most 256^2."""
+import re
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowmap.light_views import make_light_view
+from mi_shadowmap.light_views.multi import MultiView, multi_view, stratified_points
+from mi_shadowmap.map_manager import MAP_CACHE
+from mi_shadowmap.options import OptionError, parse_options
+from mi_shadowmap.reference import converged_visibility
+from mi_shadowmap.scenes import default_scene
+
+from conftest import SCENES, render_np
+
+SPP = 4
+_REF = {}
+#: hard's default biases (multiview's own defaults are normal_bias 0, slope_bias 2)
+HARD_BIASES = {"normal_bias": 0.5, "slope_bias": 1.0}
+
+
+def soft_scene(name, size=64):
+    return mi.load_file(str(SCENES / f"{name}.xml"), width=size, height=size)
+
+
+def reference(name):
+    if name not in _REF:
+        scene = soft_scene(name)
+        _REF[name] = (scene, converged_visibility(scene, n_light=1024, spp=SPP)["vis_light"])
+    return _REF[name]
+
+
+def rmse(a, b) -> float:
+    return float(np.sqrt(np.mean((a - b) ** 2)))
+
+
+def vis(scene, spp=SPP, **props):
+    _, aovs = render_np(scene, {"type": "shadowmap", **props}, spp=spp)
+    assert len(aovs) == 1
+    return next(iter(aovs.values()))
+
+
+#: RMSE against the converged reference measured 2026-11-30 (64^2, 4 spp, seed 0):
+#: multiview K = 4 / 16 / 64 at 256^2 maps, and pcss at 256^2.
+MEASURED = {"cbox_area": {4: 0.0719, 16: 0.0462, 64: 0.0115, "pcss": 0.0760},
+            "contact_hardening": {4: 0.1100, 16: 0.0338, 64: 0.0153, "pcss": 0.0458}}
+
+
+@pytest.mark.parametrize("name", sorted(MEASURED))
+def test_converges_to_the_reference(name):
+    """RMSE falls with K, stays within 10 % of its measured value, and at K = 64 is
+    below half of PCSS's on the same maps."""
+    scene, ref = reference(name)
+    err = {K: rmse(vis(scene, method="multiview", views=K, resolution=256), ref)
+           for K in (4, 16, 64)}
+    err["pcss"] = rmse(vis(scene, method="pcss", resolution=256), ref)
+    print(f"{name}: RMSE " + ", ".join(f"{k}: {v:.4f}" for k, v in err.items()))
+    assert err[4] > err[16] > err[64]
+    assert err[64] < 0.5 * err["pcss"]
+    for k, measured in MEASURED[name].items():
+        assert err[k] <= 1.1 * measured, k
+
+
+def test_one_view_is_hard_from_that_light_point():
+    """K = 1: the hard shadow of a point light at the view's light point (cbox_area's
+    mesh light is seen through cube maps, like a point light's). They differ only where
+    the point light shines but the one-sided area light does not: behind its plane
+    (the ceiling above the light, and the pixels whose camera samples partly hit it)."""
+    scene = soft_scene("cbox_area")
+    emitter = scene.emitters()[0]
+    view = multi_view(make_light_view(emitter, scene, 0), emitter, scene, 1)
+    assert view.n_views == 1 and view.n_faces == 6
+    p0 = view.positions[0]
+    xml = (SCENES / "cbox_area.xml").read_text()
+    xml = re.sub(r'<shape type="ply" id="light_quad">.*?</shape>',
+                 f'<emitter type="point" id="light"><point name="position" x="{p0[0]!r}" '
+                 f'y="{p0[1]!r}" z="{p0[2]!r}"/><rgb name="intensity" value="5"/></emitter>',
+                 xml, flags=re.S)
+    point_scene = mi.load_string(xml.replace('"meshes/', f'"{SCENES}/meshes/'),
+                                 width="64", height="64")
+    hard = vis(point_scene, method="hard", resolution=128)
+    one = vis(scene, method="multiview", views=1, resolution=128, **HARD_BIASES)
+    differ = one != hard
+    print(f"K = 1 vs hard from its point: {differ.mean():.2%} of pixels differ")
+    assert np.all(one[differ] < hard[differ])           # only light the area light lacks
+    assert np.nonzero(differ)[0].max() < 16             # in the top rows (the ceiling)
+    assert differ.mean() < 0.25
+    assert np.array_equal(one[~differ], hard[~differ])
+
+
+@pytest.mark.parametrize("light", ["point", "spot", "directional"])
+def test_lights_without_extent_are_hard(light):
+    """light_size 0 (point, spot) / angular_diameter 0 (directional): the ordinary map
+    and one view -- bit-identical to hard (with hard's biases), image and AOV."""
+    scene = mi.load_dict(default_scene(light=light, width=32, height=32))
+    rgb_h, h = render_np(scene, {"type": "shadowmap", "method": "hard", "resolution": 128},
+                         spp=2)
+    integ = mi.load_dict({"type": "shadowmap", "method": "multiview", "resolution": 128,
+                          **HARD_BIASES})
+    rgb_m, m = render_np(scene, integ, spp=2)
+    assert not isinstance(integ.maps[0].view, MultiView)
+    np.testing.assert_array_equal(rgb_h, rgb_m)
+    for k in h:
+        np.testing.assert_array_equal(h[k], m[k])
+
+
+@pytest.mark.parametrize("light, props, faces", [
+    ("area", {}, 6), ("point", {"light_size": 0.4}, 6), ("spot", {"light_size": 0.4}, 1),
+    ("directional", {"angular_diameter": 4.0}, 1)])
+def test_the_views_share_one_tensor(light, props, faces):
+    """K views x the faces of one view, in one map (one build), each view its own."""
+    K, res = 8, 32
+    scene = mi.load_dict(default_scene(light=light, width=16, height=16))
+    integ = mi.load_dict({"type": "shadowmap", "method": "multiview", "views": K,
+                          "resolution": res, "cache_maps": False, **props})
+    render_np(scene, integ, spp=1)
+    smap = integ.maps[0]
+    assert isinstance(smap.view, MultiView) and smap.view.n_views == K
+    assert smap.view.n_faces == K * faces
+    assert integ.stats["maps_built"] == 1 and integ.stats["faces_built"] == K * faces
+    depth = smap.to_numpy()
+    assert depth.shape == (K * faces, res, res)
+    per_view = depth.reshape(K, -1)
+    assert all(not np.array_equal(per_view[0], per_view[k]) for k in range(1, K))
+
+
+def test_planar_area_lights_get_one_perspective_face_when_it_covers_the_scene():
+    """contact_hardening: the scene in front of the light fits one frustum (tan < 2):
+    one face per view; cbox_area's walls reach the light's plane: cube maps."""
+    for name, faces in (("contact_hardening", 1), ("cbox_area", 6)):
+        scene = soft_scene(name, 16)
+        e = scene.emitters()[0]
+        view = multi_view(make_light_view(e, scene, 0), e, scene, 4)
+        assert view.faces_per_view == faces, name
+
+
+def test_maps_are_cached_across_camera_moves():
+    scene = soft_scene("contact_hardening", 32)
+    MAP_CACHE.clear()
+    integ = mi.load_dict({"type": "shadowmap", "method": "multiview", "views": 16,
+                          "resolution": 128})
+    render_np(scene, integ, spp=1)
+    assert integ.stats["maps_built"] == 1
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world") and "camera" in k)
+    params[key] = mi.ScalarTransform4f().look_at(origin=[0.6, 3, 0.1], target=[0.6, 0, 0.1],
+                                                 up=[0, 0, -1]).scale([0.8, 0.8, 1])
+    params.update()
+    cached = vis(scene, spp=1, method="multiview", views=16, resolution=128)
+    again = mi.load_dict({"type": "shadowmap", "method": "multiview", "views": 16,
+                          "resolution": 128})
+    render_np(scene, again, spp=1)
+    assert again.stats["maps_built"] == 0 and again.stats["maps_reused"] == 1
+    fresh = vis(scene, spp=1, method="multiview", views=16, resolution=128, cache_maps=False)
+    np.testing.assert_array_equal(cached, fresh)
+    MAP_CACHE.clear()
+
+
+def test_lookups_of_all_views_or_more_are_all_views():
+    scene = soft_scene("contact_hardening", 16)
+    ref = vis(scene, spp=1, method="multiview", views=8, resolution=64)
+    for lookups in (8, 9, 1024):
+        np.testing.assert_array_equal(
+            ref, vis(scene, spp=1, method="multiview", views=8, lookups=lookups,
+                     resolution=64))
+
+
+def test_lookup_subsets_are_unbiased_noise():
+    """lookups < K: per camera sample a shifted stratified subset; the mean equals the
+    all-views visibility and the difference shrinks with spp (noise, not banding)."""
+    scene, _ = reference("cbox_area")
+    diff = {}
+    for spp in (4, 16):
+        full = vis(scene, spp=spp, method="multiview", views=64, resolution=128)
+        sub = vis(scene, spp=spp, method="multiview", views=64, lookups=8, resolution=128)
+        assert abs(sub.mean() - full.mean()) < 0.003
+        diff[spp] = rmse(sub, full)
+    print(f"lookups 8 of 64 vs all: RMSE {diff}")
+    assert diff[16] < 0.65 * diff[4]
+
+
+def test_bilinear_filter():
+    scene, ref = reference("contact_hardening")
+    e = {f: rmse(vis(scene, method="multiview", views=16, filter=f, resolution=128), ref)
+         for f in ("hard", "bilinear")}
+    print(f"K = 16, 128^2: RMSE {e}")
+    assert e["bilinear"] < 1.2 * e["hard"]
+
+
+@pytest.mark.parametrize("light, props", [("point", {"light_size": 1.0}),
+                                          ("spot", {"light_size": 1.0}),
+                                          ("directional", {"angular_diameter": 10.0})])
+def test_point_spot_and_directional_extent_soften(light, props):
+    """Lights given an extent: a penumbra (partial visibility) where hard has an edge,
+    with the same mean darkness (within 0.03); more views, less error to many views."""
+    scene = mi.load_dict(default_scene(light=light, width=48, height=48))
+    hard = vis(scene, method="hard", resolution=128)
+    soft = vis(scene, method="multiview", views=16, resolution=128, **props)
+    many = vis(scene, method="multiview", views=256, resolution=128, **props)
+    partial = lambda v: np.mean((v > 0.05) & (v < 0.95))
+    print(f"{light}: partial pixels hard {partial(hard):.2%}, multiview {partial(soft):.2%}")
+    assert partial(soft) > 1.8 * partial(hard)
+    assert abs(soft.mean() - hard.mean()) < 0.03
+    assert rmse(vis(scene, method="multiview", views=4, resolution=128, **props), many) \
+        > rmse(soft, many)
+
+
+@pytest.mark.parametrize("props, pattern", [
+    ({"views": 0}, "'views'.*>= 1"), ({"views": 2000}, "'views'.*<= 1024"),
+    ({"views": 2.5}, "'views'.*integer"), ({"lookups": -1}, "'lookups'.*>= 0"),
+    ({"lookups": 1025}, "'lookups'.*<= 1024"),
+    ({"filter": "gaussian"}, "'filter'.*hard, bilinear"), ({"filter": 2}, "'filter'.*string"),
+    ({"light_size": -0.1}, "'light_size'.*>= 0"),
+    ({"angular_diameter": 45.0}, "'angular_diameter'.*<= 30"),
+])
+def test_bad_input_names_the_property(props, pattern):
+    with pytest.raises(OptionError, match=pattern):
+        parse_options({"method": "multiview", **props})
+    with pytest.raises(RuntimeError, match=pattern):   # through Mitsuba's loader
+        mi.load_dict({"type": "shadowmap", "method": "multiview", **props})
+
+
+def test_own_properties_are_refused_by_other_methods():
+    for name, value in (("views", 4), ("lookups", 2), ("filter", "bilinear")):
+        with pytest.raises(OptionError, match=f"'{name}' is not used by method 'hard'"):
+            parse_options({"method": "hard", name: value})
+
+
+def test_memory_budget_sees_every_view():
+    """The planner counts K x faces: an explicit resolution that does not fit is refused
+    naming the memory; the automatic one is lowered until all K views fit."""
+    scene = soft_scene("cbox_area", 64)
+    integ = mi.load_dict({"type": "shadowmap", "method": "multiview", "views": 64,
+                          "resolution": 512, "memory_budget": 100})
+    with pytest.raises(OptionError, match=r"'resolution' = 512 would need 384\.0 MiB"):
+        integ.prepare_maps(scene, scene.sensors()[0])
+    integ = mi.load_dict({"type": "shadowmap", "method": "multiview", "views": 64,
+                          "memory_budget": 8, "cache_maps": False})
+    render_np(scene, integ, spp=1)
+    assert 64 * 6 * integ.resolution ** 2 * 4 <= 8 * 2**20
+    assert integ.resolution >= 64
+
+
+def test_stratified_points_cover_the_square_for_any_count():
+    for n in (1, 2, 3, 5, 7, 64, 100):
+        p = stratified_points(n)
+        assert p.shape == (n, 2) and p.min() >= 0 and p.max() < 1
+        # equal-area strata: the mean is near the centre even for non-square n
+        assert np.all(np.abs(p.mean(axis=0) - 0.5) < 0.5 / np.sqrt(n) + 0.05)
+    np.testing.assert_array_equal(stratified_points(16), stratified_points(16))
+
+
+@pytest.mark.parametrize("variant", ["llvm_ad_mono", "llvm_ad_spectral"])
+def test_other_variants(variant):
+    """The same visibility in mono and spectral (lookups of all views are deterministic
+    per camera sample)."""
+    rgb = vis(soft_scene("contact_hardening", 32), method="multiview", views=16,
+              resolution=128)
+    mi.set_variant(variant)   # (the package registers shadowmap for every variant)
+    img, aovs = render_np(soft_scene("contact_hardening", 32),
+                          {"type": "shadowmap", "method": "multiview", "views": 16,
+                           "resolution": 128}, spp=SPP)
+    v = aovs["vis_light"]
+    assert np.isfinite(img).all() and 0 <= v.min() and v.max() <= 1
+    print(f"{variant}: max |vis - rgb vis| {np.abs(v - rgb).max():.2e}")
+    assert rmse(v, rgb) < 0.01

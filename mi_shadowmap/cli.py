@@ -25,6 +25,8 @@ commands:
   sweep     render a parameter grid; mark the Pareto front of time vs error and the
             equal-time / equal-error comparisons against raytraced
   maps      export every depth map (and second/extra layers) as float EXR
+  tune      the fastest method and settings that meet an error budget (--max-error);
+            writes tune_pareto.png, tune.json and a ready-to-paste integrator.xml
 
 With no command, 'compare' runs. With no scene, the built-in scene (sphere and box under
 a spot light; --light picks another light) is used. 'mi-shadowmap COMMAND --help' for
@@ -39,6 +41,7 @@ examples:
   mi-shadowmap sweep --grid 'method=hard resolution=256,512,1024' \\
                      --grid 'method=raytraced spp=1,4,16' --out out/sweep
   mi-shadowmap maps scenes_xml/spot_sphere_box.xml --out out/maps
+  mi-shadowmap tune scenes_xml/spot_sphere_box.xml --max-error 0.02 --out out/tune
   mi-shadowmap compare --plugin my_filter.py --methods hard my_filter pcf
 
 A plugin file (--plugin, repeatable, any command) is run first; it registers its methods
@@ -161,6 +164,38 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                    help=_methods_help("build the layers these methods use (default: every "
                                       "method that reads a depth map)"))
+
+    t = sub.add_parser(
+        "tune", help="the fastest method and settings that meet an error budget",
+        description="Search the methods and their main parameters on a reduced-size render "
+                    "of the scene, verify the fastest configuration that meets --max-error "
+                    "at full size against the reference (stepping up if it misses), and "
+                    "find the raytraced configuration that meets the same budget. Prints "
+                    "the choice and writes tune_pareto.png (the search's Pareto plot, pick "
+                    "marked), tune.json and integrator.xml (a ready-to-paste <integrator>).")
+    _add_scene_args(t, out="out/tune")
+    t.add_argument("--max-error", type=float, required=True, metavar="E",
+                   help="the error budget (> 0) on --metric at the full size")
+    t.add_argument("--metric", default="vis_rmse",
+                   help="error metric, lower is better: " + ", ".join(ERROR_COLUMNS)
+                        + " (default vis_rmse)")
+    t.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
+                   help=_methods_help("methods searched, 'name' or 'name:prop=value' (given "
+                                      "properties stay fixed; default: every registered "
+                                      "method)"))
+    t.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                   help="stop searching after 60%% of it and verifying at 100%% (default: none)")
+    t.add_argument("--search-size", type=int, default=128, metavar="PIXELS",
+                   help="long side of the reduced film searched on (default 128)")
+    t.add_argument("--margin", type=float, default=0.05,
+                   help="the pick must meet max_error x (1 - margin) at full size "
+                        "(default 0.05)")
+    t.add_argument("--spp", type=int, default=None,
+                   help="fix the spp (default: searched, up to --max-spp)")
+    t.add_argument("--max-spp", type=int, default=1024, help="largest spp searched (1024)")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--repeats", type=int, default=3,
+                   help="warm re-renders per configuration, median reported (default 3)")
     return p
 
 
@@ -278,7 +313,33 @@ def cmd_maps(args) -> int:
     return 0
 
 
-_COMMANDS = {"compare": cmd_compare, "sweep": cmd_sweep, "maps": cmd_maps}
+def cmd_tune(args) -> int:
+    from . import report
+    from .tune import (check_inputs, format_result, integrator_xml, plot, result_json,
+                       tune)
+    out = args.out
+    params = parse_sets(args.set)
+    kwargs = dict(metric=args.metric, methods=args.methods, time_limit=args.time_limit,
+                  search_size=args.search_size, margin=args.margin, spp=args.spp,
+                  max_spp=args.max_spp)
+    check_inputs(args.max_error, params=params, **kwargs)   # before anything renders
+    scene = load_scene_arg(args)
+    report.check_out_dir(out)
+    res = tune(scene, args.max_error, seed=args.seed, repeats=args.repeats, progress=True,
+               **kwargs, **params)
+    print(format_result(res))
+    plot(res, os.path.join(out, "tune_pareto.png"))
+    with open(os.path.join(out, "tune.json"), "w") as f:
+        json.dump(result_json(res), f, indent=2)
+    xml = integrator_xml(res)
+    with open(os.path.join(out, "integrator.xml"), "w") as f:
+        f.write(xml)
+    print("\n" + xml)
+    print(f"wrote tune_pareto.png, tune.json and integrator.xml to {os.path.abspath(out)}")
+    return 0
+
+
+_COMMANDS = {"compare": cmd_compare, "sweep": cmd_sweep, "maps": cmd_maps, "tune": cmd_tune}
 
 
 def _pre_parse(argv):

@@ -169,10 +169,12 @@ def _wrap(text: str, width: int = 28) -> str:
 def pareto_plot(rows: list[dict], path: str | None = None, time_key: str = "time",
                 error_key: str = "error", title: str = "time vs error", ax=None,
                 label_points: bool = True, xlabel: str | None = None,
-                ylabel: str | None = None):
+                ylabel: str | None = None, highlight=None, budget: float | None = None):
     """Scatter of time (ms, log) vs error, one colour per method, the Pareto
     front joined by a line. ``rows`` are flat dicts (a SweepTable or
     ``[r.row() for r in results]``); reference rows are skipped.
+    ``highlight``: ``{row name: label}`` (or a list of names) of points to mark
+    with a star (e.g. the tuner's pick); ``budget``: an error drawn as a dashed line.
 
     Saves to ``path`` if given; returns the figure.
     """
@@ -206,9 +208,19 @@ def pareto_plot(rows: list[dict], path: str | None = None, time_key: str = "time
                     ax.annotate(r["name"].replace(r["method"] + " ", "", 1)
                                 if r["name"] != r["method"] else r["method"],
                                 (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        marks = dict.fromkeys(highlight) if isinstance(highlight, (list, tuple)) else \
+            dict(highlight or {})
+        for r, x, y in zip(pts, t, e):
+            if r["name"] in marks:
+                ax.scatter([x], [y], marker="*", s=260, facecolors="none", edgecolors="r",
+                           linewidths=1.5, zorder=4)
+                ax.annotate(marks[r["name"]] or r["name"], (x, y), fontsize=7, color="r",
+                            xytext=(6, -10), textcoords="offset points")
         ax.set_xscale("log")
         if (e > 0).all():
             ax.set_yscale("log")
+    if budget is not None:
+        ax.axhline(budget, color="r", ls="--", lw=1, alpha=0.7, label=f"limit {budget:.4g}")
     ax.set_xlabel(xlabel or f"{time_key} [ms]")
     ax.set_ylabel(ylabel or error_key)
     ax.set_title(title)

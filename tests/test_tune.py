@@ -1,0 +1,214 @@
+"""The error-budget tuner (mi_shadowmap.tune): fields, the promise (an independent
+re-measurement meets the budget), the Pareto front, bad input, the time limit, the CLI.
+
+Tiny films (48^2 full size, searched at 32^2) and small method lists keep it fast.
+"""
+import json
+import re
+import time
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_shadowmap
+from mi_shadowmap import cli, harness, metrics
+from mi_shadowmap.scenes import default_scene
+from mi_shadowmap.tune import (METRICS, TuneError, integrator_xml, result_json,
+                               search_grid, tune)
+
+from conftest import SCENES
+
+SPOT = str(SCENES / "spot_sphere_box.xml")
+FULL = {"width": 48, "height": 48}
+FAST = dict(search_size=32, repeats=1, progress=False)
+
+
+def remeasure(scene, res, seed=1000):
+    """The pick's metric measured again through the harness alone: a fresh reference
+    of the same kind and spp and a fresh render, both with seeds the tuner never used."""
+    ref_info = res["reference"]
+    if harness.has_area_lights(scene):
+        ref = harness.converged_reference(scene, spp=ref_info["spp"], seed=seed + 1,
+                                          shadow_rays=1, n_light=ref_info["light_samples"])
+    else:
+        ref = harness.run_method(scene, "raytraced", spp=ref_info["spp"], seed=seed + 1,
+                                 measure_cached=False)
+    spec = {"method": res["method"], **res["params"], "spp": res["spp"]}
+    out = harness.compare(scene, methods=[spec], reference=ref, seed=seed,
+                          measure_cached=False)
+    return out[1].metrics[res["metric"]]
+
+
+@pytest.fixture(scope="module")
+def spot():
+    return tune(SPOT, 0.05, methods=["hard", "pcf:num_samples=8", "raytraced"],
+                scene_params=FULL, max_spp=64, **FAST)
+
+
+def test_result_fields(spot):
+    r = spot
+    assert r["method"] in ("hard", "pcf", "raytraced") and r["metric"] == "vis_rmse"
+    harness.validate_spec({"method": r["method"], **r["params"]})
+    if r["method"] == "pcf":
+        assert r["params"]["num_samples"] == 8          # a given property stays fixed
+    if r["method"] != "raytraced":
+        assert r["params"]["resolution"] in (32, 64, 128, 256)   # full-size values
+    assert isinstance(r["spp"], int) and 1 <= r["spp"] <= 64
+    assert 0 <= r["error"] <= 0.05 * 0.95 and r["error_bound"] <= 0.05
+    assert r["seconds"] > 0 and r["size"] == [48, 48] and r["search"]["size"] == [32, 32]
+    ref = r["reference"]
+    assert ref["method"] == "raytraced" and ref["spp"] >= 64 and ref["size"] == [48, 48]
+    assert ref["seed"] not in (0, r["search"]["reference"]["seed"])   # its own seed
+    rt = r["raytraced"]
+    assert rt["method"] == "raytraced" and rt["error"] <= 0.05 * 0.95 and rt["seconds"] > 0
+    assert r["speed_ratio"] == pytest.approx(rt["seconds"] / r["seconds"])
+    assert r["integrator"] == {"type": "shadowmap", "method": r["method"], **r["params"]}
+    mi.load_dict(r["integrator"])
+    assert r["steps"] and r["steps"][-1]["ok"] and not r["time_limited"]
+    json.dumps(result_json(r))                                  # JSON-safe
+
+
+def test_pick_meets_budget_when_measured_again(spot):
+    """The promise: another seed, another reference, through the harness alone."""
+    scene = harness.load_scene(SPOT, **FULL)
+    assert remeasure(scene, spot) <= 0.05
+    rt = spot["raytraced"]
+    assert remeasure(scene, {**spot, **rt}, seed=2000) <= 0.05
+
+
+def test_pick_is_on_the_pareto_front(spot):
+    rows = spot["sweep"].rows
+    front = metrics.pareto_front([r["time"] for r in rows], [r["error"] for r in rows])
+    names = [r["name"] for r in rows]
+    assert spot["name"] in names
+    i = names.index(spot["name"])
+    assert front[i] and rows[i]["pareto"] and spot["pareto"]
+    assert rows[i]["error"] <= spot["search"]["threshold"]
+    # verified at full size: the last verification of the pick met the budget
+    assert [st["ok"] for st in spot["steps"] if st["name"] == spot["name"]] == [True]
+
+
+def test_area_light_pick_meets_budget():
+    """Soft shadows: the converged reference, pcss against raytraced."""
+    path = str(SCENES / "contact_hardening.xml")
+    res = tune(path, 0.05, methods=["pcss:filter_samples=16", "raytraced:shadow_rays=4"],
+               scene_params=FULL, max_spp=64, **FAST)
+    assert res["reference"]["method"] == "converged"
+    assert res["error"] <= 0.05 and res["pareto"]
+    assert remeasure(harness.load_scene(path, **FULL), res) <= 0.05
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(max_error=0), "max_error"),
+    (dict(max_error=-0.1), "max_error"),
+    (dict(max_error=float("nan")), "max_error"),
+    (dict(max_error="0.1"), "max_error"),
+    (dict(max_error=0.1, metric="psnr"), "vis_rmse, vis_mae"),
+    (dict(max_error=0.1, metric="img_psnr"), "unknown metric 'img_psnr'"),
+    (dict(max_error=0.1, methods=["nope"]), "nope"),
+    (dict(max_error=0.1, time_limit=0), "time_limit"),
+    (dict(max_error=0.1, margin=1.0), "margin"),
+    (dict(max_error=0.1, resolutoin=64), "resolutoin"),
+])
+def test_bad_input_before_anything_loads(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        tune("/no/such/scene.xml", **kwargs)
+
+
+def test_unreachable_budget_names_the_best_error():
+    with pytest.raises(TuneError, match=r"best reachable: vis_rmse \d\.\d+ with hard") as e:
+        tune(SPOT, 1e-4, methods=["hard"], scene_params=FULL, max_spp=4, **FAST)
+    assert "max_error=0.0001" in str(e.value)
+
+
+def test_time_limit_and_loaded_scene_restored():
+    """A loaded scene works (its film is shrunk for the search and restored); the time
+    limit ends the run soon after it, with a pick or an error naming the best error."""
+    scene = mi.load_dict(default_scene(**FULL))
+    t0 = time.perf_counter()
+    try:
+        res = tune(scene, 0.002, time_limit=1.0, **FAST)
+        assert res["time_limited"] and res["error"] <= 0.002
+    except TuneError as e:
+        assert "time_limit=1" in str(e) and ("best reachable" in str(e)
+                                             or "no configuration was measured" in str(e))
+    assert time.perf_counter() - t0 < 1.0 + 20.0   # one render (and the references) late
+    assert list(scene.sensors()[0].film().size()) == [48, 48]
+
+
+def test_search_grid_main_parameters_and_fallback():
+    def lookup(smap, lk, opts, active):
+        return mi.Float(1.0)
+    mi_shadowmap.register_method("tune_test_filter", lookup, properties=[
+        mi_shadowmap.Prop("taps", "int", 4, "taps", lo=1)])
+    try:
+        specs = [harness.method_spec(m) for m in ("pcf", "raytraced", "tune_test_filter")]
+        grid = search_grid(specs, 256, 128, area_lights=False)
+        user = [g for g in grid if g["method"] == "tune_test_filter"]
+        assert user == [{"method": "tune_test_filter", "resolution": r}
+                        for r in (256, 512, 1024, 2048)]      # fallback: resolution x spp
+        assert len([g for g in grid if g["method"] == "pcf"]) == 4 * 3   # x num_samples
+        assert [g for g in grid if g["method"] == "raytraced"] == [{"method": "raytraced"}]
+        grid = search_grid(specs[1:2], 256, 128, area_lights=True)
+        assert sorted(g["shadow_rays"] for g in grid) == [1, 4, 16]
+    finally:
+        mi_shadowmap.unregister_method("tune_test_filter")
+    assert METRICS == cli.ERROR_COLUMNS
+
+
+def test_integrator_xml_is_typed():
+    res = {"method": "pcf", "params": {"resolution": 512, "res_factor": 2.0,
+                                       "receiver_plane": False, "sampling": "uniform",
+                                       "bias_range": (0.0, 0.01)},
+           "spp": 4, "metric": "vis_rmse", "error": 0.01, "max_error": 0.02,
+           "seconds": 0.01, "size": [64, 64], "raytraced": None, "speed_ratio": None}
+    xml = integrator_xml(res)
+    for tag in ('<integer name="resolution" value="512"/>',
+                '<float name="res_factor" value="2.0"/>',
+                '<boolean name="receiver_plane" value="false"/>',
+                '<string name="sampling" value="uniform"/>',
+                '<string name="bias_range" value="0.0, 0.01"/>', "spp=4"):
+        assert tag in xml
+    body = xml[xml.index("<integrator"):].replace("<integrator ", '<integrator version="3.0.0" ', 1)
+    integrator = mi.load_string(body)
+    assert "pcf" in str(integrator)
+
+
+def test_cli_tune_writes_outputs_and_a_snippet_that_renders(tmp_path, capsys):
+    out = tmp_path / "tune"
+    code = cli.main(["tune", SPOT, "--width", "32", "--height", "32", "--max-error", "0.1",
+                     "--methods", "hard", "raytraced", "--search-size", "32",
+                     "--repeats", "1", "--max-spp", "16", "--out", str(out)])
+    stdout, err = capsys.readouterr()
+    assert code == 0, err
+    assert "pick:" in stdout and "raytraced" in stdout and '<integrator type="shadowmap">' in stdout
+    assert (out / "tune_pareto.png").stat().st_size > 0
+    data = json.loads((out / "tune.json").read_text())
+    assert data["error"] <= 0.1 and data["method"] in ("hard", "raytraced")
+    assert any(r["name"] == data["name"] and r["pareto"] for r in data["sweep"])
+    snippet = (out / "integrator.xml").read_text()
+    assert f'value="{data["spp"]}"' in snippet
+    # paste it into the scene file in place of its integrator, load and render
+    text = open(SPOT).read()
+    scene_xml = re.sub(r"<integrator.*?</integrator>", lambda m: snippet, text, flags=re.S)
+    scene = mi.load_string(scene_xml, width="32", height="32")
+    assert f"method={data['method']}" in str(scene.integrator())
+    img = np.asarray(mi.render(scene, spp=data["spp"]))
+    assert img.shape == (32, 32, 4) and np.isfinite(img).all()   # RGB + vis_spot
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["tune", "--max-error", "0"], "max_error"),
+    (["tune", "--max-error", "0.1", "--metric", "psnr"], "vis_rmse"),
+    (["tune", "--max-error", "0.1", "--methods", "nope"], "nope"),
+    (["tune", "--max-error", "0.1", "--time-limit", "-1"], "time_limit"),
+    (["tune"], "--max-error"),
+])
+def test_cli_bad_input_one_line(argv, match, tmp_path, capsys):
+    out = tmp_path / "never"
+    code = cli.main(argv + ["--out", str(out)])
+    _, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and match in lines[0], err
+    assert not out.exists()

@@ -315,7 +315,8 @@ def cmd_maps(args) -> int:
 
 def cmd_tune(args) -> int:
     from . import report
-    from .tune import (check_inputs, format_result, integrator_xml, plot, result_json,
+    from .report import tune_plot as plot
+    from .tune import (check_inputs, format_result, integrator_xml, result_json,
                        tune)
     out = args.out
     params = parse_sets(args.set)

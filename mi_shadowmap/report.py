@@ -281,3 +281,20 @@ def write_maps(maps, out_dir: str) -> list[str]:
         write_exr(path, ch, attributes)
         paths.append(path)
     return paths
+
+
+def tune_plot(result: dict, path: str | None = None, ax=None):
+    """The search's time/error plot of a :func:`mi_shadowmap.tune.tune` result
+    (:func:`pareto_plot`) with the pick and the raytraced configuration starred and
+    the search threshold dashed."""
+    marks = {result["name"]: "pick"}
+    rt = result.get("raytraced")
+    if rt is not None and rt["name"] != result["name"]:
+        marks[rt["name"]] = "raytraced"
+    se = result["search"]
+    return pareto_plot(result["sweep"].rows, path, time_key="time", error_key="error",
+                       title=f"tune: {result['metric']} <= {result['max_error']:g} "
+                             f"(search at {se['size'][0]}x{se['size'][1]})",
+                       ax=ax, highlight=marks, budget=se["threshold"],
+                       xlabel=f"warm frame time at {se['size'][0]}x{se['size'][1]} [ms]",
+                       ylabel=result["metric"])

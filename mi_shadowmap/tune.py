@@ -156,8 +156,10 @@ def search_grid(specs: list[dict], width: int, height: int, area_lights: bool) -
 
 
 def spp_ladder(max_spp: int) -> list[int]:
-    """Powers of two from 1 to ``max_spp``."""
-    return [2 ** j for j in range(0, 31) if 2 ** j <= max_spp]
+    """The spp the search proposes: 1, 2, 3, 4, 6, 8, 12, 16, ... (steps of 1.5x and 4/3x)
+    up to ``max_spp`` (and ``max_spp`` itself)."""
+    out = {2 ** j for j in range(0, 31)} | {3 * 2 ** j for j in range(0, 30)}
+    return sorted(s for s in out if s <= max_spp) + ([max_spp] if max_spp not in out else [])
 
 
 # --------------------------------------------------------------------------- input
@@ -967,23 +969,6 @@ def format_result(result: dict) -> str:
                      f"({st['search_error']:.4g} searched) -> "
                      f"{'meets the budget' if st['ok'] else 'misses it'}")
     return "\n".join(lines)
-
-
-def plot(result: dict, path: str | None = None, ax=None):
-    """The search's time/error plot (:func:`mi_shadowmap.report.pareto_plot`) with the
-    pick and the raytraced configuration starred and the search threshold dashed."""
-    from .report import pareto_plot
-    marks = {result["name"]: "pick"}
-    rt = result.get("raytraced")
-    if rt is not None and rt["name"] != result["name"]:
-        marks[rt["name"]] = "raytraced"
-    se = result["search"]
-    return pareto_plot(result["sweep"].rows, path, time_key="time", error_key="error",
-                       title=f"tune: {result['metric']} <= {result['max_error']:g} "
-                             f"(search at {se['size'][0]}x{se['size'][1]})",
-                       ax=ax, highlight=marks, budget=se["threshold"],
-                       xlabel=f"warm frame time at {se['size'][0]}x{se['size'][1]} [ms]",
-                       ylabel=result["metric"])
 
 
 def result_json(result: dict) -> dict:

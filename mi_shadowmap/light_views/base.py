@@ -203,6 +203,15 @@ def emitter_frame(T, origin) -> mi.ScalarTransform4f:
     return mi.ScalarTransform4f(m.tolist())
 
 
+def axial_texel_size(view, res: int, face, p_world):
+    """:meth:`LightView.texel_parallel_size` of a view projecting through a centre
+    (perspective, cube): the texel width at the point's *axial* depth along the
+    face's view axis, ``z_axial * 2 tan_half / res``."""
+    o, axis = view.ray_through(face, mi.Point2f(0.5, 0.5))
+    z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
+    return z_axial * (2.0 * view.tan_half / res)
+
+
 def light_matrix(view) -> np.ndarray:
     """``light_from_world`` as a float64 numpy 4x4 matrix."""
     return np.array(view.light_from_world.matrix, dtype=np.float64)

@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import LightView, position_np, scalar3, unit_grid
+from .base import LightView, axial_texel_size, position_np, scalar3, unit_grid
 
 
 def cube_dir(face, s, t) -> mi.Vector3f:
@@ -87,9 +87,7 @@ class CubeView(LightView):
         return depth * (2.0 * self.tan_half / res)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
-        o, axis = self.ray_through(face, mi.Point2f(0.5, 0.5))
-        z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
-        return z_axial * (2.0 * self.tan_half / res)
+        return axial_texel_size(self, res, face, p_world)
 
     def tap_texel(self, face, xy_texel: mi.Point2f, res: int, cross_seams: bool = True):
         ij = mi.Point2i(dr.floor(xy_texel))

@@ -15,8 +15,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import LightView, emitter_frame, light_matrix, look_along_np, position_np, \
-    scalar3, unit_grid
+from .base import (LightView, axial_texel_size, emitter_frame, light_matrix, look_along_np,
+                   position_np, scalar3, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -59,9 +59,7 @@ class PerspectiveView(LightView):
         return depth * (2.0 * self.tan_half / res)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
-        o, axis = self.ray_through(face, mi.Point2f(0.5, 0.5))
-        z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
-        return z_axial * (2.0 * self.tan_half / res)
+        return axial_texel_size(self, res, face, p_world)
 
     def map_width(self, p_world: np.ndarray) -> float:
         return 2.0 * self.tan_half * float(np.linalg.norm(p_world - position_np(self)))

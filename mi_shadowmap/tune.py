@@ -676,7 +676,7 @@ class _Tuner:
             found = again
             (t, e, c, s), res, tau = found
         seconds = {(c.key, s): float(res.times["warm"])}
-        if rt_found is not None and rt_found[0][2] is not c:
+        if rt_found is not None and (rt_found[0][2].key, rt_found[0][3]) != (c.key, s):
             (rt_t, rt_e, rt_c, rt_s), rt_res, _ = rt_found
             seconds[(rt_c.key, rt_s)] = float(rt_res.times["warm"])
             seconds.update(self.retime([(c, s), (rt_c, rt_s)]))
@@ -685,6 +685,8 @@ class _Tuner:
                     self.on_front(rt_c, rt_s):
                 found = rt_found
                 (t, e, c, s), res, tau = found
+        if c.method == REFERENCE_METHOD:    # the fastest raytraced one is the pick itself
+            rt_found = found
         table = SweepTable(analyse(self.rows, "time_warm", self.metric), None, "time_warm",
                            self.metric, self.refs["small"]["result"])
         name = spec_name({**c.spec, "spp": s})

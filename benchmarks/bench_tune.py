@@ -55,9 +55,17 @@ def remeasure(scene, res: dict, config: dict, seed: int) -> float:
 
 
 def on_front(res: dict) -> bool:
-    rows = res["sweep"].rows
+    """The pick on the Pareto front of the sweep's rows of the searched methods (all rows
+    when every method is searched; without the raytraced comparison rows otherwise)."""
+    rows = [r for r in res["sweep"].rows if r["method"] in res["methods"]]
     front = metrics.pareto_front([r["time"] for r in rows], [r["error"] for r in rows])
     return bool(front[[r["name"] for r in rows].index(res["name"])])
+
+
+def write(rows, path):
+    if path:
+        with open(path, "w") as f:
+            json.dump(rows, f, indent=2)
 
 
 def main():
@@ -83,6 +91,7 @@ def main():
                 print(f"{name} {b:g}: {e}", flush=True)
                 rows.append({"scene": name, "budget": b, "pick": "none: " + str(e).split(
                     "best reachable: ")[-1], "met": None, "pareto": None, "seconds": None})
+                write(rows, args.json)
                 continue
             scene = harness.load_scene(path, **size)
             again = remeasure(scene, res, res, seed=7000)
@@ -104,9 +113,7 @@ def main():
                   f"{(row['rt_seconds'] or 0) * 1e3:.1f} ms; ratio "
                   f"{row['speed_ratio'] or 0:.2f}; front {row['pareto']}; "
                   f"{row['tune_seconds']:.0f} s", flush=True)
-            if args.json:
-                with open(args.json, "w") as f:
-                    json.dump(rows, f, indent=2)
+            write(rows, args.json)
     cols = [("scene", "scene", "{}"), ("budget", "budget", "{:g}"), ("pick", "pick", "{}"),
             ("error", "error", "{:.4f}"), ("remeasured", "again", "{:.4f}"),
             ("ms", "ms", "{:.1f}"), ("raytraced", "raytraced", "{}"),

@@ -690,7 +690,6 @@ class _Tuner:
         table = SweepTable(analyse(self.rows, "time_warm", self.metric), None, "time_warm",
                            self.metric, self.refs["small"]["result"])
         name = spec_name({**c.spec, "spp": s})
-        row = next(r for r in table.rows if r["name"] == name)
         params = {k: v for k, v in c.spec.items() if k != "method"}
         out = {
             "method": c.method, "params": params, "spp": s,
@@ -704,7 +703,8 @@ class _Tuner:
                        "initial_threshold": tau0, "noise_scale": scale,
                        "reference": self.refs["small"]["info"],
                        "configurations": len(self.configs), "renders": len(self.rows)},
-            "pareto": bool(row["pareto"]),
+            "pareto": self.on_front(c, s),
+            "methods": sorted({x.method for x in self.configs.values() if x.searched}),
             "steps": self.steps, "raytraced": None, "speed_ratio": None,
             "sweep": table, "result": res,
         }
@@ -886,8 +886,11 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
         ``max_spp``/time), ``speed_ratio`` (its seconds / the pick's), ``integrator``
         (a dict for ``mi.load_dict``), ``search`` (reduced size, threshold, the
         pick's error and seconds there), ``sweep`` (the search's
-        :class:`~mi_shadowmap.sweep.SweepTable`), ``pareto`` (the pick is on its
-        front), ``steps`` (verifications), ``time_limited``, ``elapsed``.
+        :class:`~mi_shadowmap.sweep.SweepTable`), ``pareto`` (the pick is on the Pareto
+        front of the searched methods' rows -- with ``methods=None``, of the whole sweep;
+        with a list without ``raytraced``, the raytraced rows measured for the comparison
+        may dominate it), ``methods`` (the methods searched), ``steps`` (verifications),
+        ``time_limited``, ``elapsed``.
     """
     specs, rt_spec = check_inputs(max_error, metric, methods, time_limit, search_size, margin,
                                   max_spp, spp, params)

@@ -35,7 +35,7 @@ from mi_shadowmap.tune import TuneError, tune
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCENES = ("spot_sphere_box", "directional_mesh", "room_two_points", "cbox_area",
-          "contact_hardening")
+          "contact_hardening", "sky_sun")
 
 
 def remeasure(scene, res: dict, config: dict, seed: int) -> float:

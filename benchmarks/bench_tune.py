@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tune.py [--size 256] [--budgets 0.05 0.02 0.01]
                                     [--scenes spot_sphere_box ...] [--methods M ...]
-                                    [--search-size 128] [--json out.json]
+                                    [--search-size 128] [--max-spp 1024] [--json out.json]
 
 For every scene of scenes_xml/ (default: all but the spectral one, whose
 visibility equals the RGB one's) and every budget on ``vis_rmse``:
@@ -75,9 +75,12 @@ def main():
     ap.add_argument("--budgets", type=float, nargs="+", default=[0.05, 0.02, 0.01])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     ap.add_argument("--methods", nargs="+", default=None)
+    ap.add_argument("--max-spp", type=int, default=1024,
+                    help="largest spp the tuner searches (tune's max_spp; default 1024)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     print("methods:", ", ".join(args.methods or harness.available_methods()))
+    print("max_spp:", args.max_spp)
     rows = []
     for name in args.scenes:
         path = str(ROOT / "scenes_xml" / f"{name}.xml")
@@ -86,7 +89,7 @@ def main():
             t0 = time.perf_counter()
             try:
                 res = tune(path, b, methods=args.methods, scene_params=size,
-                           search_size=args.search_size)
+                           search_size=args.search_size, max_spp=args.max_spp)
             except TuneError as e:     # e.g. --methods without raytraced: a bias floor
                 print(f"{name} {b:g}: {e}", flush=True)
                 rows.append({"scene": name, "budget": b, "pick": "none: " + str(e).split(

@@ -662,6 +662,8 @@ class _Tuner:
         tau0 = target * scale
         self.screen()
         found = self.pick(tau0)
+        if found is None and self._probe_largest_spp(tau0):
+            found = self.pick(tau0)         # the error model was too pessimistic
         if found is None:
             self._fail()
         (t, e, c, s), res, tau = found
@@ -742,16 +744,27 @@ class _Tuner:
             return {}
         return {k: float(np.median(v)) for k, v in runs.items()}
 
-    def _fail(self):
-        """Raise :class:`TuneError` naming the best error reached (after measuring the
-        configuration predicted to be the most accurate at the largest spp, if time
-        permits)."""
+    def _probe_largest_spp(self, tau: float) -> bool:
+        """Measure the configuration predicted to be the most accurate at the largest
+        spp of the ladder (if not measured yet and time permits); True if it meets
+        ``tau``. The error model is fitted on few points (the screening spp) and can
+        predict a floor above the truth: then nothing is searched although the largest
+        spp would do, which this measurement catches."""
         cands = [c for c in self.configs.values() if c.searched and not c.failed and c.points]
-        if cands and self._search_time_left():
-            s = self.ladder[-1]
-            c = min(cands, key=lambda c: c.predict_error(s))
-            if s not in c.points:
-                self.measure(c, s)
+        if not cands or not self._search_time_left():
+            return False
+        s = self.ladder[-1]
+        c = min(cands, key=lambda c: c.predict_error(s))
+        if s in c.points:
+            return False
+        self.measure(c, s)
+        return s in c.points and c.points[s][0] <= tau
+
+    def _fail(self):
+        """Raise :class:`TuneError` naming the best error reached (the largest spp of
+        the most accurate configuration is measured first, see
+        :meth:`_probe_largest_spp`)."""
+        self._probe_largest_spp(-math.inf)
         best = None
         for (key, _), r in self.verified.items():
             e = self.error_of(r)

@@ -71,6 +71,10 @@ class ShadowMap:
         idx = mi.UInt32(face) * (res * res) + mi.UInt32(j) * res + mi.UInt32(i)
         return dr.gather(mi.Float, layer, idx, active)
 
+    def clamp_texel(self, ij):
+        """Integer texel coordinates clamped to the face (``fetch`` clamps the same way)."""
+        return dr.clip(ij, 0, self.resolution - 1)
+
     def to_numpy(self, layer: str = "depth"):
         """The layer as a ``(n_faces, res, res)`` float32 numpy array (row j, column i)."""
         data = self.depth if layer == "depth" else self.extra.get(layer)
@@ -83,7 +87,7 @@ class ShadowMap:
         return ["depth"] + list(self.extra)
 
 
-def _first_hit(scene: mi.Scene, view: LightView, o, d):
+def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = False):
     """Distance to the first surface along (o, d), skipping the light's own shape.
 
     At most 32 skipped hits (own shape, hits at the light) per ray; a ray
@@ -95,6 +99,18 @@ def _first_hit(scene: mi.Scene, view: LightView, o, d):
     e.g. the floor under a light placed exactly on it, whose rounding puts
     the origin a hair below the plane so that every upward ray "hits" it at
     t ~ 1e-8 and the whole face reads depth 0 (issue 6). Scale-invariant.
+
+    ``differentiable`` (issue 13): the returned depths carry gradients with
+    respect to the shapes' parameters (mesh vertex positions, ``to_world``
+    transforms). The skip loop stays detached (``ray_intersect_preliminary``
+    has no derivatives); the final hit is then re-intersected differentiably
+    (``pi.compute_surface_interaction``, checked in Mitsuba 3.9 to give
+    ``dt/d(vertex positions)`` and ``dt/d(to_world)`` for meshes and
+    spheres, as ``scene.ray_intersect`` does) and only its *gradient* is
+    used (``dr.replace_grad``), so the depth values are bit-identical to the
+    detached build's. The skipped distance (the light's own shape, hits at
+    the light) carries no gradient. False (the default): one detached
+    kernel, exactly as before.
     """
     ray = mi.Ray3f(o, d)
     pi = scene.ray_intersect_preliminary(ray, coherent=True)
@@ -124,7 +140,11 @@ def _first_hit(scene: mi.Scene, view: LightView, o, d):
         return ray, pi, t_acc, it + 1
 
     ray, pi, t_acc, it = dr.while_loop((ray, pi, t_acc, it), cond, body)
-    return dr.select(pi.is_valid() & ~skip(pi, t_acc), t_acc + pi.t, dr.inf)
+    t_hit = pi.t
+    if differentiable:   # value of pi.t, derivatives of the re-intersected hit
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal)
+        t_hit = dr.replace_grad(t_hit, si.t)
+    return dr.select(pi.is_valid() & ~skip(pi, t_acc), t_acc + t_hit, dr.inf)
 
 
 def shape_is_solid(shape) -> bool:
@@ -144,7 +164,7 @@ def shape_is_solid(shape) -> bool:
             return False
         closed, volume = check_closed(v, f)
         return bool(closed and volume > 0)
-    return str(shape).split("[", 1)[0].strip() == "Sphere"
+    return shape.class_name() == "Sphere"
 
 
 def _solid_table(scene: mi.Scene) -> mi.Bool:
@@ -184,15 +204,20 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     in front of a solid both work; interpenetrating solids are fine (the
     ray leaves the first solid it entered at its back face). The emitter's
     own shape (area lights) and hits numerically at the light (as in
-    :func:`_first_hit`) are skipped. Continuation rays start a relative step
+    :func:`first_hit`) are skipped. Continuation rays start a relative step
     (``1e-6 max|p| + 1e-5 z``) past the hit (Mitsuba's ``spawn_ray`` offset has an
     absolute floor that broke scale invariance); at most 64 hits per texel:
     a ray that has not stored a second surface after 64 hits keeps ``+inf``
     (lit), which only a texel ray crossing more than 64 surfaces (e.g. 32
     nested closed shells or 64 stacked open sheets) can reach.
     """
-    view = smap.view
-    o, d = view.texel_rays(smap.resolution)
+    o, d = smap.view.texel_rays(smap.resolution)
+    return second_depth_along(scene, smap.view, o, d)
+
+
+def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
+    """:func:`second_depth_layer` for given texel rays ``(o, d)`` (unit ``d``): the
+    distance along each ray to its second surface (the virtual maps' pages use it)."""
     own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
     solid = _solid_table(scene)
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
@@ -211,7 +236,7 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
         hit = active & si.is_valid()
         hit_own = (hit & (si.shape == own)) if own is not None else mi.Bool(False)
         z = dr.dot(si.p - o, d)
-        # Hits within ~8 ulps of the light position are AT the light (see _first_hit).
+        # Hits within ~8 ulps of the light position are AT the light (see first_hit).
         counted = hit & ~hit_own & (z > eps_o)
         shape_id = dr.reinterpret_array(mi.UInt32, si.shape)
         is_solid = dr.gather(mi.Bool, solid, shape_id, counted)
@@ -241,11 +266,12 @@ def build_layer(scene: mi.Scene, smap: ShadowMap, name: str, builder) -> mi.Floa
 
 
 def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
-                    layers: dict | None = None) -> ShadowMap:
+                    layers: dict | None = None, differentiable: bool = False) -> ShadowMap:
     """Ray-cast the first-surface depth of every texel of ``view``, plus ``layers``
-    (``{name: builder}``, e.g. a method record's ``layers``)."""
+    (``{name: builder}``, e.g. a method record's ``layers``); ``differentiable``:
+    depths attached to the AD graph (:func:`first_hit`)."""
     o, d = view.texel_rays(resolution)
-    depth = _first_hit(scene, view, o, d)
+    depth = first_hit(scene, view, o, d, differentiable)
     dr.eval(depth)
     smap = ShadowMap(view=view, resolution=resolution, depth=depth)
     for name, builder in (layers or {}).items():
@@ -253,13 +279,13 @@ def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
     return smap
 
 
-def build_culled_depth(scene, view, res: int, faces) -> mi.Float:
+def build_culled_depth(scene, view, res: int, faces, differentiable: bool = False) -> mi.Float:
     """First-surface depth of the ``faces`` of a cube view; +inf in the others.
 
     Only the needed faces' texel rays are traced (gathered out of
-    :meth:`LightView.texel_rays`, traced by :func:`_first_hit`,
+    :meth:`LightView.texel_rays`, traced by :func:`first_hit`,
     scattered back into a full-size array). No face needed: all +inf, no
-    ray traced.
+    ray traced. ``differentiable``: as in :func:`first_hit`.
     """
     n = res * res
     if not any(faces):
@@ -270,7 +296,7 @@ def build_culled_depth(scene, view, res: int, faces) -> mi.Float:
     if dr.width(o) > 1:
         o = dr.gather(mi.Point3f, o, idx)
     d = dr.gather(mi.Vector3f, d, idx)
-    depth_sub = _first_hit(scene, view, o, d)
+    depth_sub = first_hit(scene, view, o, d, differentiable)
     depth = dr.full(mi.Float, dr.inf, view.n_faces * n)
     dr.scatter(depth, depth_sub, idx)
     dr.eval(depth)

@@ -28,6 +28,9 @@ and swept like the built-ins. Every configuration is validated with
 """
 from __future__ import annotations
 
+import mitsuba as mi
+import numpy as np
+
 from .ground_truth import (converged_reference, has_area_lights,  # noqa: F401
                            make_reference, score)
 from . import map_manager
@@ -36,7 +39,7 @@ from .scenes import load_scene
 from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F401
                     check_shared_params, default_methods, map_methods, method_spec,
                     parse_method_string, parse_value, spec_name, users_of, uses_property,
-                    validate_property, validate_spec)
+                    to_mitsuba, validate_property, validate_spec)
 from .sweep import (SweepTable, analyse, default_grid, expand_grid,  # noqa: F401
                     grid_values, sweep, with_shared)
 from .tables import format_table, jsonable, safe_name  # noqa: F401
@@ -89,6 +92,24 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
     for r in results:
         r.metrics = score(r, ref)
     return results
+
+
+def render(scene, method="hard", spp: int = 16, seed: int = 0, **params):
+    """Render ``scene`` once with one ``shadowmap`` configuration: ``method`` as in
+    :func:`compare` (a name, a dict or ``"pcf:num_samples=4"``) plus ``params``.
+
+    Returns ``(integrator, image)``: the integrator after the render (its ``maps``,
+    ``views``, ``stats``) and the image as a numpy array (colour channels, then one
+    visibility AOV per emitter). Validated before anything loads.
+    """
+    spec = method_spec(method, params)
+    validate_spec(spec)
+    spec = dict(spec)
+    spp = spec.pop("spp", spp)
+    scene = load_scene(scene)
+    integ = mi.load_dict({"type": "shadowmap", **to_mitsuba(spec)})
+    img = mi.render(scene, integrator=integ, spp=spp, seed=seed)
+    return integ, np.asarray(img)
 
 
 # --------------------------------------------------------------------------- maps

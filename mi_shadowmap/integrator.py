@@ -23,6 +23,7 @@ from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import emitter_kind, emitter_label, make_light_view
 from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
+from .pages import VirtualShadowMap
 from .map_manager import MAP_CACHE, MapCache, MapStats, prepare_maps  # noqa: F401  (re-exported)
 
 
@@ -150,7 +151,7 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         ctx = mi.BSDFContext()
         shade = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         record = opts.record
-        if record.needs_footprint:
+        if record.needs_footprint or (opts.uses_map and opts.virtual):   # virtual: levels
             dp_dx, dp_dy = self._footprint(ray, si)
         else:
             dp_dx = dp_dy = mi.Vector3f(0.0)
@@ -195,7 +196,8 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
                     vis = dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
                 else:
                     lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
-                    vis = dr.select(lit, vis_fn(smap, lk, opts, lit), 0.0)
+                    m = smap.bind(lk, lit) if isinstance(smap, VirtualShadowMap) else smap
+                    vis = dr.select(lit, vis_fn(m, lk, opts, lit), 0.0)
                 result += dr.select(lit, unshadowed * vis, 0.0) / n_light
                 vis_sum += vis
                 contributes |= lit

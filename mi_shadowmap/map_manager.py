@@ -50,9 +50,15 @@ class MapStats:
     build_seconds: float = 0.0
     naive_build_seconds: float = 0.0
     texel_density_gain: list | None = None
+    # virtual maps (mi_shadowmap.pages): pages the camera reads, ray-cast, from the cache;
+    # level_histogram[l]: marked pages of level l (0 finest)
+    pages_marked: int = 0
+    pages_built: int = 0
+    pages_reused: int = 0
+    level_histogram: list | None = None
 
     def __getitem__(self, key):
-        if key == "texel_density_gain" and self.texel_density_gain is None:
+        if key in ("texel_density_gain", "level_histogram") and getattr(self, key) is None:
             raise KeyError(key)
         return getattr(self, key)
 
@@ -64,8 +70,9 @@ class MapStats:
 
     def as_dict(self) -> dict:
         d = dataclasses.asdict(self)
-        if d["texel_density_gain"] is None:
-            del d["texel_density_gain"]
+        for key in ("texel_density_gain", "level_histogram"):
+            if d[key] is None:
+                del d[key]
         return d
 
 
@@ -79,6 +86,7 @@ class MapPlan:
     key: tuple
     cached_depth: tuple | None           # (array, seconds) or None
     depth_key: object                    # "depth", or ("depth", faces) when culled
+    differentiable: bool = False         # build in the AD graph (maps_need_gradients)
 
 
 @dataclasses.dataclass
@@ -124,7 +132,10 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
     3. The views are refined for that resolution (cascades with their margin in
        texels, frusta fitted to the visible receivers) and say which faces
        the camera reads (``cull_faces``).
-    4. The method's record names the layers; the cache is asked for each map.
+    4. The method's record names the layers; the cache is asked for each map --
+       unless a shape or emitter parameter has gradients enabled
+       (:func:`maps_need_gradients`): then the maps are built in the AD graph
+       and the cache is neither read nor written (it only holds detached maps).
     """
     record = opts.record
     if not opts.uses_map:
@@ -163,20 +174,21 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
             views[k], gain = view.refine(opts, scene, sensor, visible, res)
             if gain is not None:
                 gains.append(gain)
-    state = MAP_CACHE.scene_state(scene) if opts.cache_maps else None
+    diff = maps_need_gradients(scene)
+    state = MAP_CACHE.scene_state(scene) if opts.cache_maps and not diff else None
     layers = {name: record.layers[name] for name in layer_names}
     maps = [None if v is None else _plan_one(scene, state, v, res, layers,
-                                             v.faces_needed(opts, visible, res))
+                                             v.faces_needed(opts, visible, res), diff)
             for v in views]
     return RenderPlan(views, maps, res, state, gains)
 
 
-def _plan_one(scene, state, view, res, layers, faces) -> MapPlan:
+def _plan_one(scene, state, view, res, layers, faces, differentiable=False) -> MapPlan:
     """One emitter's plan. A culled depth (``faces``) is cached under
     ``("depth", faces)`` and its layers under ``(name, faces)`` -- the face set of the
     depth they were built from -- so a layer is never taken from a depth of another
     face set; a full cached depth, or a culled one with a superset of the faces,
-    serves any face set."""
+    serves any face set. ``differentiable`` plans come with ``state`` None: no cache."""
     key = (view_fingerprint(view), res)
     cached = MAP_CACHE.get(scene, state, key, "depth") if state is not None else None
     if faces is not None:
@@ -190,7 +202,7 @@ def _plan_one(scene, state, view, res, layers, faces) -> MapPlan:
                     cached, faces = entry, layer[1]
                     break
     depth_key = "depth" if faces is None else ("depth", faces)
-    return MapPlan(view, faces, layers, key, cached, depth_key)
+    return MapPlan(view, faces, layers, key, cached, depth_key, differentiable)
 
 
 def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
@@ -209,12 +221,13 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
         stats.naive_build_seconds += p.cached_depth[1]
     else:
         t0 = time.perf_counter()
+        diff = {"differentiable": True} if p.differentiable else {}
         if p.faces is not None:   # no face needed: a map of +inf, nothing traced
             smap = ShadowMap(view=view, resolution=res,
-                             depth=build_culled_depth(scene, view, res, p.faces))
+                             depth=build_culled_depth(scene, view, res, p.faces, **diff))
             n_built = sum(p.faces)
         else:
-            smap = build_depth_map(scene, view, res)
+            smap = build_depth_map(scene, view, res, **diff)
             n_built = view.n_faces
         dr.sync_thread()
         dt = time.perf_counter() - t0
@@ -250,11 +263,72 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     ``build_seconds``, the time spent here (planning included).
     """
     t0 = time.perf_counter()
+    if opts.uses_map and opts.virtual:
+        return _prepare_virtual(scene, sensor, opts, views, t0)
     plan = plan_maps(scene, sensor, opts, views)
     maps, stats = build_maps(scene, plan)
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
     return PreparedMaps(plan.views, maps, plan.resolution, stats)
+
+
+#: Shape/emitter parameters that never move a depth map: a gradient on them alone does
+#: not put the maps in the AD graph.
+_NOT_DEPTH_PARAMS = ("silhouette_sampling_weight", "sampling_weight")
+
+
+def maps_need_gradients(scene: mi.Scene) -> bool:
+    """Whether this render's maps must be built in the AD graph (issue 13).
+
+    True when Dr.Jit tracks gradients here (an AD variant, outside
+    ``dr.suspend_grad()``) and any ``mi.traverse(scene)`` parameter owned by
+    a shape or an emitter (vertex positions, ``to_world``, a light's position
+    or angles, ...) has gradients enabled (``dr.grad_enabled``); sampling
+    weights do not count. Parameters of BSDFs, textures and emitters'
+    radiance belong to other objects, so a reflectance gradient keeps the
+    cached, detached maps. Cost: one ``mi.traverse`` and a flag read per
+    parameter, about 0.15 ms on the default scene; the answer is False in
+    non-AD variants without traversing. ``mi.render(scene, params)`` renders
+    its primal image under ``dr.suspend_grad()`` (detached, cached maps as
+    usual) and rebuilds the maps in the AD graph when it re-renders for
+    ``dr.forward``/``dr.backward``.
+    """
+    if not dr.is_diff_v(mi.Float):
+        return False
+    params = mi.traverse(scene)
+    for name in params.keys():
+        if name.rsplit(".", 1)[-1] in _NOT_DEPTH_PARAMS:
+            continue
+        if (isinstance(params.properties[name][2], (mi.Shape, mi.Emitter))
+                and dr.grad_enabled(params[name])):
+            return True
+    return False
+
+
+def _prepare_virtual(scene, sensor, opts, views, t0) -> PreparedMaps:
+    """``virtual=true``: virtual maps (:mod:`mi_shadowmap.pages`) for the emitters whose
+    view supports them; the others (environment regions) get full maps as usual."""
+    from .pages import prepare_virtual
+    if views is None:
+        from .environment import light_view as environment_view
+        views = [environment_view(e, scene, i, opts) if emitter_kind(e) == "environment"
+                 else make_light_view(e, scene, i) for i, e in enumerate(scene.emitters())]
+    if sensor is None and len(scene.sensors()) > 0:
+        sensor = scene.sensors()[0]
+    full_views = [None if v is None or getattr(v, "supports_virtual", False) else v
+                  for v in views]
+    stats = MapStats()
+    maps = [None] * len(views)
+    res = None
+    if any(v is not None for v in full_views):
+        plan = plan_maps(scene, sensor, opts, full_views)
+        maps, stats = build_maps(scene, plan)
+        res = plan.resolution
+    virtual = prepare_virtual(scene, sensor, opts, views, stats)
+    maps = [vm if vm is not None else m for vm, m in zip(virtual, maps)]
+    dr.sync_thread()
+    stats.build_seconds = time.perf_counter() - t0
+    return PreparedMaps(list(views), maps, res, stats)
 
 
 # ------------------------------------------------------------------ map cache

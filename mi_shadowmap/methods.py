@@ -128,6 +128,15 @@ class Method:
       The integrator then calls it at every shaded point (not only where its one
       light sample contributes), reports ``visible`` as the visibility AOV and
       weights the light sample by ``visible / above`` (``multiview``);
+    * ``virtual`` -- the lookup reads the map only through ``smap.fetch``,
+      ``smap.texel_index``, ``smap.depth``/``smap.extra`` gathers at those indices and
+      ``smap.view``, with ``smap.resolution`` possibly a per-lane ``mi.Int32``, and its
+      layers are among :data:`VIRTUAL_LAYERS`: it can read virtual
+      maps (``virtual=true``, :mod:`mi_shadowmap.pages`);
+    * ``virtual_margin`` -- ``fn(opts) -> texels``: how far from the receiver's texel
+      the lookup's taps reach (its kernel's half-width), so that the mark pass of
+      virtual maps builds the pages they read (default 2: a nearest-texel lookup,
+      its normal offset and the camera samples' spread within a pixel);
     * ``builtin`` -- shipped with the package.
     """
     name: str
@@ -144,6 +153,8 @@ class Method:
     shadow_rays: str | None = None
     view_for: Callable | None = None
     whole_light: bool = False
+    virtual: bool = False
+    virtual_margin: Callable | None = None
     builtin: bool = False
 
     def layer_names(self, opts) -> tuple:
@@ -155,6 +166,10 @@ class Method:
     def property(self, name: str) -> Prop | None:
         return next((p for p in self.properties if p.name == name), None)
 
+
+#: The layers virtual maps (:mod:`mi_shadowmap.pages`) can build: per page, ray-cast
+#: (``second_depth``), or per face, from the built pages (``pcss_near``).
+VIRTUAL_LAYERS = ("second_depth", "pcss_near")
 
 #: name -> Method, in registration order (built-ins first).
 _REGISTRY: dict = {}
@@ -193,6 +208,14 @@ def _check_record(m: Method) -> None:
             isinstance(c, (int, float)) and c >= 0 for c in m.layer_cost.values()):
         raise MethodError(f"register_method('{m.name}'): layer_cost must map names of its "
                           "layers to numbers >= 0 (float32 arrays of a face's size)")
+    if m.virtual and set(m.layers) - set(VIRTUAL_LAYERS):
+        raise MethodError(f"register_method('{m.name}'): virtual=True needs layers that "
+                          f"virtual maps build ({', '.join(VIRTUAL_LAYERS)}); its layers "
+                          f"{', '.join(sorted(set(m.layers) - set(VIRTUAL_LAYERS)))} are "
+                          "built on full maps only (set virtual=False)")
+    if m.virtual_margin is not None and not callable(m.virtual_margin):
+        raise MethodError(f"register_method('{m.name}'): virtual_margin must be callable "
+                          "fn(opts) -> texels")
     if m.view_for is not None and not callable(m.view_for):
         raise MethodError(f"register_method('{m.name}'): view_for must be callable "
                           "fn(view, emitter, scene, opts) -> LightView | None")
@@ -221,7 +244,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     needs_footprint: bool = False, bias_defaults=None, summary: str = "",
                     layers_for: Callable | None = None, finalize: Callable | None = None,
                     uses_map: bool = True, layer_cost=None, view_for: Callable | None = None,
-                    whole_light: bool = False, replace: bool = False) -> Method:
+                    whole_light: bool = False, virtual: bool = False,
+                    virtual_margin: Callable | None = None, replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
     ``lookup(smap, lk, opts, active) -> mi.Float`` has the built-ins' signature
@@ -232,6 +256,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     'method': name}`` (and XML), :func:`~mi_shadowmap.harness.compare`,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
+    ``virtual`` and ``virtual_margin``: see :class:`Method` (a lookup that reads the
+    map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
     Returns the :class:`Method` record. Raises :class:`MethodError` for a bad
     record or a name already taken (``replace=True`` replaces a user method).
     """
@@ -240,7 +266,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     layers_for=layers_for, layer_cost=dict(layer_cost or {}),
                     needs_footprint=bool(needs_footprint),
                     uses_map=bool(uses_map), bias_defaults=dict(bias_defaults or {}),
-                    finalize=finalize, view_for=view_for, whole_light=bool(whole_light))
+                    finalize=finalize, view_for=view_for, whole_light=bool(whole_light),
+                    virtual=bool(virtual), virtual_margin=virtual_margin)
     return add(record, replace=replace)
 
 

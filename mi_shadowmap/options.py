@@ -44,8 +44,13 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "twice it) times a camera-footprint factor in [0.5, 4] (texel width over pixel "
          "width at the scene's centre), lowered if needed so that all maps of the scene fit "
          "in memory_budget (see Options.map_resolution). Accepted and ignored by "
-         "'raytraced' and 'unshadowed', so that one scene file renders with any method.",
-         lo=1, hi=65536),
+         "'raytraced' and 'unshadowed', so that one scene file renders with any method. "
+         "With virtual=true: the virtual resolution of the finest level per face, a power "
+         "of two from page_size to 2^30 (default: automatic, 2^20 texels across the "
+         "scene's extent as the light sees it, see mi_shadowmap.pages); full maps take at "
+         "most 65536. 0 means automatic too (for scene files whose $resolution default "
+         "should leave the choice to the integrator).",
+         lo=0, hi=2**30),
     Prop("memory_budget", "float", 1024.0,
          "Memory allowed for the depth maps of one render, in MiB (all emitters, faces and "
          "layers, 4 bytes per texel). An explicit resolution that needs more is refused "
@@ -68,6 +73,21 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "shadow projects into the same window, so casters are kept. Raises the texel "
          "density where the camera sees a small part of the scene; the maps then depend on "
          "the camera (a camera change rebuilds them)."),
+    Prop("virtual", "bool", False,
+         "Virtual shadow maps (after UE5; mi_shadowmap.pages): each face is a huge map "
+         "split into pages; a mark pass (one camera ray per pixel) builds only the pages "
+         "visible points read, at the mip level matching their pixel footprint, and keeps "
+         "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth. "
+         "Environment regions keep full maps. false: one full map per face."),
+    Prop("page_size", "int", 32,
+         "virtual=true: texels per side of a page, a power of two. Filter kernels up to "
+         "page_size / 2 texels wide read the lookup's own pages; wider taps read the "
+         "coarsest level.", lo=8, hi=1024),
+    Prop("lod_bias", "float", -0.5,
+         "virtual=true: each lookup reads level floor(log2(w) + lod_bias), w its pixel "
+         "footprint in finest-level texels: 0 puts texels of 0.5-1 footprint, -0.5 "
+         "(default) 0.35-0.7, -1 0.25-0.5 (about 4/3 the texels and pages of the level "
+         "above for each step of -0.5).", lo=-8.0, hi=8.0),
     Prop("bias", "float", None,
          "Constant depth bias in world units. Default: automatic (0 plus the texel-scaled "
          "slope and normal biases, which are scale-invariant).", lo=0.0),
@@ -102,7 +122,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
 #: Scope of each shared property (see EVERY, ACCEPTED, MAP).
 SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY, "env_lights": MAP,
           "resolution": ACCEPTED, "memory_budget": ACCEPTED, "cache_maps": ACCEPTED,
-          "cull_faces": MAP, "fit_frusta": MAP, "bias": MAP, "slope_bias": MAP,
+          "cull_faces": MAP, "fit_frusta": MAP, "virtual": MAP, "page_size": MAP, "lod_bias": MAP, "bias": MAP, "slope_bias": MAP,
           "normal_bias": MAP, "max_tan_slope": MAP, "cascades": MAP, "split_lambda": MAP}
 _GENERAL = {p.name: p for p in GENERAL_PROPERTIES}
 assert set(SCOPES) == set(_GENERAL)
@@ -396,14 +416,52 @@ def parse_options(props: Any) -> Options:
     values = {**{name: p.default for name, p in own.items()}, **values}
     if record.finalize is not None:
         record.finalize(values, given)
+    if values.get("resolution") == 0:      # 0: automatic, as if not given
+        values["resolution"] = None
     res = values.get("resolution")
     budget = values["memory_budget"]
+    if values.get("virtual"):
+        _check_virtual(record, values, given)
+        return Options(values, given, record)
+    if res is not None and res > 65536:
+        raise OptionError(f"shadowmap: property 'resolution' = {res} is above 65536, the "
+                          "largest full map; virtual=true takes virtual resolutions up to "
+                          "2^30")
     if res is not None and res * res * _BYTES_PER_TEXEL > budget * 2**20:
         raise OptionError(   # one face already exceeds the budget: refuse at load time
             f"shadowmap: property 'resolution' = {res} would need at least "
             f"{_fmt_bytes(res * res * _BYTES_PER_TEXEL)} per map face, more than "
             f"memory_budget = {budget:g} MiB; lower 'resolution' or raise 'memory_budget'")
     return Options(values, given, record)
+
+
+def _check_virtual(record, values: dict, given) -> None:
+    """``virtual=true``: the method must read virtual maps, the resolution and the page
+    size must be powers of two, and the full-map-only properties must stay off."""
+    if not record.virtual:
+        ok = ", ".join(m.name for m in _methods.records() if m.virtual)
+        raise OptionError(f"shadowmap: property 'virtual' = true is not supported by method "
+                          f"'{record.name}' (it reads full maps); methods with virtual maps: "
+                          f"{ok}; or set virtual=false")
+    page = values["page_size"]
+    if page & (page - 1):
+        raise OptionError(f"shadowmap: property 'page_size' = {page} must be a power of two "
+                          "(8 to 1024)")
+    res = values.get("resolution")
+    if res is not None and (res & (res - 1) or res < page):
+        raise OptionError(f"shadowmap: property 'resolution' = {res} must be a power of two "
+                          f"from page_size = {page} to 2^30 with virtual=true (the virtual "
+                          "resolution of the finest level)")
+    for name, off in (("cascades", 1), ("fit_frusta", False), ("cull_faces", False)):
+        if values.get(name, off) != off:
+            raise OptionError(f"shadowmap: property '{name}' applies to full maps only; "
+                              "virtual=true chooses each lookup's level from its pixel "
+                              "footprint (remove it or set virtual=false)")
+    if values["memory_budget"] * 2**20 < 6 * page * page * 8:
+        raise OptionError(f"shadowmap: property 'memory_budget' = "
+                          f"{values['memory_budget']:g} MiB cannot hold the coarsest level of "
+                          f"a virtual cube map (6 pages of {page}^2 texels); raise it or lower "
+                          "'page_size'")
 
 
 def _row(p: Prop, where: str) -> str:

@@ -264,11 +264,24 @@ def write_maps(maps, out_dir: str) -> list[str]:
     """One EXR per emitter: every layer of its :class:`ShadowMap` as a channel
     (``depth.Y``, ``second_depth.Y``, ``<extra>.Y``), faces stacked vertically
     (see :func:`map_layer_image`); a layer that is no image (a few values per map)
-    as a float-vector attribute of the header named after it (:func:`read_exr_header`)."""
+    as a float-vector attribute of the header named after it (:func:`read_exr_header`).
+    A virtual map (:mod:`mi_shadowmap.pages`) writes its built pages stacked vertically
+    (``page_size`` wide) and their face, level and page coordinates as the attributes
+    ``page_face``, ``page_level``, ``page_px``, ``page_py``."""
     check_out_dir(out_dir)
     paths = []
     for smap in maps:
         if smap is None:
+            continue
+        if hasattr(smap, "page_records"):   # a virtual map: its pages, stacked
+            rec = smap.page_records()
+            ch = {f"{layer}.Y": smap.pages_numpy(layer).reshape(-1, smap.layout.page_size)
+                  for layer in smap.layers()}
+            attributes = {f"page_{k}": np.asarray(rec[k], np.float32)
+                          for k in ("face", "level", "px", "py")}
+            path = os.path.join(out_dir, f"{safe_name(smap.view.label)}.exr")
+            write_exr(path, ch, attributes)
+            paths.append(path)
             continue
         ch, attributes = {}, {}
         for layer in smap.layers():
@@ -298,3 +311,59 @@ def tune_plot(result: dict, path: str | None = None, ax=None):
                        ax=ax, highlight=marks, budget=se["threshold"],
                        xlabel=f"warm frame time at {se['size'][0]}x{se['size'][1]} [ms]",
                        ylabel=result["metric"])
+
+
+def page_map_plot(vmap, path: str | None = None, faces=None, zoom_levels: int | None = 3):
+    """Which pages of a virtual map (:class:`mi_shadowmap.pages.VirtualShadowMap`) exist
+    at which level: per face that has pages finer than the coarsest level, a panel of
+    its pages -- each a rectangle of the face's ``uv``, coloured by its level (0:
+    finest) -- and, with ``zoom_levels``, a second panel zoomed onto the pages of the
+    ``zoom_levels`` finest levels present. Returns the figure."""
+    plt = _pyplot()
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Rectangle
+    rec = vmap.page_records()
+    fine = rec["level"] < vmap.layout.coarsest
+    if not fine.any():
+        fine = np.ones_like(fine)
+    if faces is None:
+        faces = sorted(set(rec["face"][fine].tolist()))
+    levels = rec["level"][fine]
+    lo, hi = int(levels.min()), int(levels.max())
+    panels = []
+    for f in faces:
+        sel = (rec["face"] == f) & fine
+        panels.append((f, sel, "all pages"))
+        if zoom_levels:
+            near = sel & (rec["level"] < rec["level"][sel].min() + zoom_levels)
+            panels.append((f, near, f"zoom: levels {rec['level'][sel].min()}-"
+                                    f"{rec['level'][sel].min() + zoom_levels - 1}"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4.6), squeeze=False)
+    cmap = plt.get_cmap("viridis")
+    for ax, (f, sel, what) in zip(axes[0], panels):
+        face_sel = (rec["face"] == f) & fine
+        order = np.argsort(-rec["level"][face_sel])          # coarse first, fine on top
+        patches, colours = [], []
+        for k in np.flatnonzero(face_sel)[order]:
+            patches.append(Rectangle((rec["u0"][k], rec["v0"][k]), rec["u1"][k] - rec["u0"][k],
+                                     rec["v1"][k] - rec["v0"][k]))
+            colours.append(rec["level"][k])
+        pc = PatchCollection(patches, cmap=cmap, edgecolor="k", linewidth=0.2)
+        pc.set_array(np.asarray(colours, float))
+        pc.set_clim(lo, max(hi, lo + 1))
+        ax.add_collection(pc)
+        u0, v0 = rec["u0"][sel].min(), rec["v0"][sel].min()
+        u1, v1 = rec["u1"][sel].max(), rec["v1"][sel].max()
+        pad = 0.05 * max(u1 - u0, v1 - v0)
+        ax.set_xlim(u0 - pad, u1 + pad)
+        ax.set_ylim(v0 - pad, v1 + pad)
+        ax.set_aspect("equal")
+        ax.set_title(f"{vmap.view.label}, face {f}: {int(face_sel.sum())} pages ({what})",
+                     fontsize=9)
+        ax.set_xlabel("u (light)")
+        ax.set_ylabel("v (light)")
+        fig.colorbar(pc, ax=ax, label="level (0 = finest)")
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig

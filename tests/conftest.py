@@ -15,6 +15,19 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenes_xml"
 SHARED = ROOT.parent / "shared"
 SCENE_FILES = sorted(SCENES.glob("*.xml"))
+#: Scenes built to defeat full maps (issue 11): a 4 km world seen from eye height and a
+#: point light 1e5 units away. With one full map per face their shadows fall into a few
+#: texels (measured at the tests' sizes: 3.1-3.9 % misclassified, nearly all of it false
+#: lit), so tests written for full maps hold them to their measured values or expect
+#: the miss; tests/test_pages.py checks them with virtual maps (<= 1 % / 0.3 %).
+VIRTUAL_SCENES = {"large_world", "far_point"}
+
+
+def full_map_scenes(reason: str):
+    """``SCENE_FILES`` as pytest params, the :data:`VIRTUAL_SCENES` marked as strict
+    expected failures with ``reason`` (a test of full maps that cannot hold there)."""
+    return [pytest.param(p, id=p.stem, marks=[pytest.mark.xfail(strict=True, reason=reason)]
+                         if p.stem in VIRTUAL_SCENES else []) for p in SCENE_FILES]
 
 
 @pytest.fixture(autouse=True)

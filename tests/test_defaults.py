@@ -103,6 +103,15 @@ KNOWN_MISSES = {
     ("contact_hardening", "hard"): "misclassified 2.59 %, false shadow 1.71 %: 22 % of the "
                                    "pixels are penumbra, which a point-light model misses",
     ("contact_hardening", "pcf"): "misclassified 2.66 %, false shadow 1.66 %: as for hard",
+    # issue 11's scenes (measured 2026-11-30): virtual=false is still the default, and one
+    # full map per face cannot hold their shadows; virtual=true meets the targets
+    # (tests/test_pages.py: large_world 0.3-0.6 %, far_point 0.1-0.2 %)
+    ("large_world", "hard"): "misclassified 3.23 %, nearly all false lit: a 2048^2 map of "
+                             "a 4 km world is 2 m per texel, the near shadows vanish",
+    ("large_world", "pcf"): "misclassified 3.26 %: as for hard",
+    ("far_point", "hard"): "misclassified 3.07 %, all false lit: the scene falls into a few "
+                           "texels of the cube face of a light 1e5 units away",
+    ("far_point", "pcf"): "misclassified 3.07 %: as for hard",
 }
 
 

@@ -97,7 +97,7 @@ def test_per_method_parameters():
 @pytest.mark.parametrize("kwargs, match", [
     ({"methods": ["hard", "nope"]}, "nope"),
     ({"methods": ["hard"], "resolutoin": 64}, "resolutoin"),
-    ({"methods": [{"method": "hard", "resolution": 0}]}, "resolution"),
+    ({"methods": [{"method": "hard", "resolution": -1}]}, "resolution"),
     ({"methods": ["hard"], "shadow_rays": 4}, "shadow_rays"),   # used by no listed method
     ({"methods": [{"resolution": 64}]}, "method"),
     ({"methods": ["hard"], "reference": "raytraced:shadow_rayz=4"}, "shadow_rayz"),
@@ -148,7 +148,7 @@ def test_expand_grid():
 @pytest.mark.parametrize("grid, match", [
     ({"method": ["hard"], "resolutoin": [64]}, "resolutoin"),
     ({"method": ["hard"], "shadow_rays": [2]}, "shadow_rays"),
-    ({"method": ["hard"], "resolution": [64, 0]}, "resolution"),
+    ({"method": ["hard"], "resolution": [64, -1]}, "resolution"),
     ({"method": ["nope"]}, "nope"),
     ({"resolution": [64]}, "method"),
     ({"method": "raytraced", "spp": [0]}, "spp"),

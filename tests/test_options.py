@@ -23,7 +23,7 @@ def test_integer_accepted_for_float():
 @pytest.mark.parametrize("props, needle", [
     ({"resolutoin": 512}, "resolutoin"),
     ({"method": "shadowvolume"}, "shadowvolume"),
-    ({"resolution": 0}, "resolution"),
+    ({"resolution": -1}, "resolution"),
     ({"resolution": -5}, "resolution"),
     ({"resolution": 512.0}, "resolution"),
     ({"resolution": "512"}, "resolution"),
@@ -123,3 +123,9 @@ def test_readme_has_a_row_for_every_builtin_method():
 def test_min_samples_default_follows_num_samples():
     assert parse_options({"method": "pcf", "num_samples": 1}).min_samples == 1
     assert parse_options({"method": "pcf"}).min_samples == 2
+
+
+def test_resolution_zero_means_automatic():
+    """Scene files pass ``$resolution``; a default of 0 leaves it to the integrator."""
+    assert parse_options({"resolution": 0}).resolution is None
+    assert parse_options({"resolution": 0, "virtual": True}).resolution is None

@@ -29,6 +29,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from mi_shadowmap import methods as _methods
 from mi_shadowmap.options import (METHODS, OptionError, all_properties, parse_options,
                                   properties_for)
 from mi_shadowmap.scenes import default_scene
@@ -89,10 +90,21 @@ def valid_sets(draw):
         if p.name in ("method", "environment") or not draw(st.booleans()):
             continue   # (environment only matters for environment emitters)
         props[p.name] = draw(valid_values(p))
-    if method == "pcf":   # the one cross-property rule: min_samples <= num_samples
+    if method == "pcf":   # cross-property rule: min_samples <= num_samples
         n_min, n_max = props.get("min_samples", 2), props.get("num_samples", 16)
         if n_min > n_max:
             props["min_samples"], props["num_samples"] = n_max, n_min
+    if props.get("virtual"):   # virtual maps: powers of two, no full-map-only properties
+        if not _methods.get(method).virtual:
+            del props["virtual"]
+        else:
+            for name in ("cascades", "fit_frusta", "cull_faces"):
+                props.pop(name, None)
+            page = 1 << (int(props.get("page_size", 64)).bit_length() - 1)
+            props["page_size"] = max(page, 8)
+            if "resolution" in props:
+                props["resolution"] = max(1 << (int(props["resolution"]).bit_length() - 1),
+                                          props["page_size"])
     return props
 
 

@@ -108,5 +108,6 @@ METHOD = Method(
              "(a (k-1) x (k-1) grid of bilinear lookups one texel apart).", lo=1, hi=8),
         RECEIVER_PLANE,
     ),
-    builtin=True,
+    virtual_margin=lambda o: 2.0 + 0.5 * o.kernel,
+    virtual=True, builtin=True,
 )

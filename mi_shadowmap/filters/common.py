@@ -136,12 +136,11 @@ def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, later
     distance from the receiver, in world units at the receiver), so that
     grazing planes stay finite; minus ``plane.offset``.
     """
-    o, d = smap.view.ray_through(face, uv_light)
-    denom = dr.dot(plane.n_world, d)
-    t = dr.dot(plane.n_world, plane.p_world - o) / dr.select(dr.abs(denom) > 1e-12, denom, 1e-12)
+    t, _ = smap.view.ray_plane(face, uv_light, plane.p_world, plane.n_world, 1e-12)
     lim = lateral_world * plane.max_tan
     t = dr.clip(t, plane.depth0 - lim, plane.depth0 + lim)
     if plane.light_front is not None:   # behind a one-sided light: cannot occlude it
+        d = smap.view.ray_through(face, uv_light)[1]
         t = dr.select(dr.dot(d, mi.Vector3f(*plane.light_front)) > 0, t, -dr.inf)
     return t - plane.offset
 
@@ -170,7 +169,7 @@ def footprint_texels(smap, lk: Lookup, r: Receiver) -> mi.Point2f:
     du_y = view.uv_on_face(r.face, lk.p_world + lk.dp_dy) - uv0
     w = (dr.abs(du_x) + dr.abs(du_y)) * res
     w = mi.Point2f(dr.select(dr.isfinite(w.x), w.x, 0.0), dr.select(dr.isfinite(w.y), w.y, 0.0))
-    return dr.minimum(w, float(res))
+    return dr.minimum(w, mi.Float(res))   # res: per lane on virtual maps
 
 
 def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
@@ -212,6 +211,34 @@ def tap_lit(smap, r: Receiver, face, xy_texel: mi.Point2f, plane: ReceiverPlane 
     return ~inside | (z - extra_bias <= z_map)
 
 
+def soft_compare_width(r: Receiver, soft_compare: float):
+    """World depth width of the smooth compare (:func:`soft_tap_lit`):
+    ``soft_compare * r.texel_world``, the world width of one map texel at the
+    receiver (the unit of ``slope_bias`` and ``normal_bias``), so it scales with
+    the map and the scene. Detached: the width is a filter setting, not a
+    quantity to differentiate. None for ``soft_compare <= 0`` (the step)."""
+    if soft_compare <= 0.0:
+        return None
+    return dr.detach(dr.maximum(soft_compare * r.texel_world, 1e-30))
+
+
+def soft_tap_lit(z_map, z, inside, width) -> mi.Float:
+    """Smooth percentage-closer comparison (issue 13, ``soft_compare``): lit
+    fraction ``smoothstep(1 + (z_map - z) / width)`` (``smoothstep(x) = 3x^2 -
+    2x^3`` on ``[0, 1]``, clamped), i.e. 1 where ``z <= z_map`` as in
+    :func:`tap_lit`, 0 where the map is nearer than the receiver by ``width`` or
+    more, a C1 ramp in between. One-sided on purpose: every tap today's step
+    calls lit stays fully lit (no new acne), only occluders within ``width`` of
+    the receiver are softened, and its derivative reaches both ``z_map`` and
+    the receiver depth ``z``. Off-map taps, empty texels (``+inf``) and
+    receivers at ``-inf`` keep the step's answer (no derivative)."""
+    d = z_map - z
+    ok = inside & dr.isfinite(d)
+    x = dr.clip(1.0 + dr.select(ok, d, 0.0) / width, 0.0, 1.0)
+    step = dr.select(~inside | (z <= z_map), 1.0, 0.0)
+    return dr.select(ok, x * x * (3.0 - 2.0 * x), step)
+
+
 # ------------------------------------------------ fixed texel blocks (W&M, MDSM)
 def nearest_block(smap, lk: Lookup, opts, active=True):
     """The receiver and the block of the ``k = pcf_samples`` nearest texels that
@@ -244,11 +271,9 @@ def virtual_sample_depth(view, face, ij: mi.Point2i, res: int, p_world: mi.Point
     it behind the light. Used by ``second_depth`` and ``mdsm``.
     """
     uv = (mi.Point2f(ij) + 0.5) * (1.0 / res)
-    o, d = view.ray_through(face, uv)
-    c = dr.dot(n_world, d)
     cos_min = 1.0 / math.sqrt(1.0 + max_tan * max_tan)
+    t, c = view.ray_plane(face, uv, p_world, n_world, cos_min)
     ok = dr.abs(c) >= cos_min
-    t = dr.dot(n_world, p_world - o) / dr.select(ok, c, 1.0)
     ok &= dr.isfinite(t) & (t > 0)
     return t, ok
 

@@ -14,7 +14,7 @@ import mitsuba as mi
 
 from ..methods import Method, Prop
 from .common import Lookup, ReceiverPlane, Receiver, footprint_texels, receiver, \
-    receiver_plane, tap_lit
+    receiver_plane, soft_compare_width, soft_tap_lit, tap_depths, tap_lit
 
 
 def reeves_sample_counts(width_s, width_t, num_samples: int, min_samples: int):
@@ -62,7 +62,8 @@ _ERF_SQRT2 = math.erf(math.sqrt(2.0))
 
 def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2f,
              sampling: str = "jitter", bias_range=None, plane: ReceiverPlane | None = None,
-             center_texel: mi.Point2f | None = None, active=True) -> mi.Float:
+             center_texel: mi.Point2f | None = None, active=True,
+             soft_width=None) -> mi.Float:
     """Fraction of lit taps in a rectangle of the map (percentage-closer filtering).
 
     The rectangle is ``center_texel +- half_size`` (texels; default centre:
@@ -82,6 +83,11 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
     random numbers come from :func:`lane_rng` seeded by ``u_seed`` (one
     sampler draw per lookup). All taps run in one ``dr.while_loop``: one
     kernel whatever the sample count.
+
+    ``soft_width`` (world depth, per lane; :func:`~.common.soft_compare_width`):
+    each tap is the smooth :func:`~.common.soft_tap_lit` instead of the step,
+    so the result is differentiable in the map and receiver depths; None:
+    the step (:func:`~.common.tap_lit`), exactly as without it.
     """
     res = smap.resolution
     center = r.uv * res if center_texel is None else mi.Point2f(center_texel)
@@ -114,10 +120,16 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
         bias = 0.0
         if bias_range is not None:
             bias = b0 + rng.next_float32() * (b1 - b0) if b1 > b0 else b0
-        lit = tap_lit(smap, r, face, xy, plane, bias, active)
-        n_lit = dr.select(lit, n_lit + 1, n_lit)
+        if soft_width is None:
+            lit = tap_lit(smap, r, face, xy, plane, bias, active)
+            n_lit = dr.select(lit, n_lit + 1, n_lit)
+        else:
+            z_map, z, inside = tap_depths(smap, r, face, xy, plane, active)
+            n_lit = n_lit + soft_tap_lit(z_map, z - bias, inside, soft_width)
         return k + 1, rng, n_lit
 
+    if soft_width is not None:
+        n_lit = mi.Float(0.0)
     k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body)
     return mi.Float(n_lit) / mi.Float(dr.maximum(n_taps, 1))
 
@@ -200,6 +212,19 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
       needed: texels with no surface hold ``+inf`` and are lit.
     * *Cube maps* (point/area lights) are not in the paper: samples that leave
       a cube face continue on the neighbouring face.
+    * *Smooth compare* (``soft_compare``, default 0 = the paper's step,
+      bit-identical). With ``soft_compare = s > 0`` each sample is lit by
+      ``smoothstep(1 + (z_map - z_receiver) / w)`` with
+      ``w = s * texel_world`` (the world width of one map texel at the
+      receiver, the unit of ``slope_bias``/``normal_bias``): fully lit where
+      the step says lit, fully shadowed where the map is nearer than the
+      receiver by ``w`` or more, a C1 ramp in between
+      (:func:`~.common.soft_tap_lit`). It makes the visibility
+      differentiable in the map's and the receiver's depths (issue 13,
+      differentiable shadows), at the price of light leaking under
+      occluders closer than ``w`` to the receiver (contact shadows lighten).
+      Gradients of a *silhouette's* motion across texels are not captured:
+      the map is not antialiased.
     """
     res = smap.resolution
     r = receiver(smap, lk, opts)
@@ -209,7 +234,8 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
     u_seed = lk.sampler.next_2d(active)
     plane = receiver_plane(smap, lk, r, opts) if opts.receiver_plane else None
     lit = pcf_taps(smap, r, 0.5 * width, ns, nt, u_seed, opts.sampling, opts.bias_range,
-                   plane, r.uv * res, active & r.inside)
+                   plane, r.uv * res, active & r.inside,
+                   soft_compare_width(r, opts.soft_compare))
     return dr.select(r.inside, lit, 1.0)
 
 
@@ -224,6 +250,14 @@ def _finalize(values: dict, given) -> None:
     else:
         values["min_samples"] = min(values["min_samples"], values["num_samples"])
 
+
+SOFT_COMPARE = Prop(
+    "soft_compare", "float", 0.0,
+    "Smooth depth compare for gradients (issue 13): 0 = the step (exactly as without it); "
+    "s > 0: a tap whose map depth is nearer than the receiver by d is lit by "
+    "smoothstep(1 - d / w), w = s x the world width of one map texel at the receiver "
+    "(the unit of slope_bias), so visibility is differentiable in map and receiver "
+    "depths; occluders within w of the receiver leak light.", lo=0.0, hi=1e6)
 
 RECEIVER_PLANE = Prop(
     "receiver_plane", "bool", True,
@@ -250,8 +284,10 @@ METHOD = Method(
              "Stochastic bias [bias0, bias1] in world units, drawn per sample (Reeves).",
              lo=0.0),
         RECEIVER_PLANE,
+        SOFT_COMPARE,
     ),
     needs_footprint=True,
     finalize=_finalize,
-    builtin=True,
+    virtual_margin=lambda o: 2.0 + 4.0 * o.res_factor + 0.5 * o.min_size,
+    virtual=True, builtin=True,
 )

@@ -73,6 +73,18 @@ Deviations from the paper and why:
 * **Light geometry.** The depth map is rendered from the light's centre, so
   penumbrae are estimated from one view (the usual PCSS assumption): the
   blocker average takes occluders' front faces, which shrinks umbrae.
+* **Smooth compare** (``soft_compare``, default 0 = the step, bit-identical;
+  issue 13). With ``soft_compare = s > 0`` each *filtering* tap (step 3) is
+  lit by ``smoothstep(1 + (z_map - z_plane) / w)``, ``w = s * texel_world``
+  (the world width of one map texel at the receiver, the unit of
+  ``slope_bias``), as in ``pcf`` (:func:`~.common.soft_tap_lit`): the
+  visibility becomes differentiable in the map's and the receiver's depths
+  (the blocker average also carries the map depths' gradients into the
+  kernel width, but tap positions are discrete, so none flows through it).
+  The blocker search keeps the step, and a light of size 0 stays ``hard``
+  (no smooth compare). Occluders within ``w`` of the receiver leak light;
+  a silhouette's motion across texels gives no gradient (the map is not
+  antialiased).
 """
 from __future__ import annotations
 
@@ -83,8 +95,9 @@ import mitsuba as mi
 
 from ..methods import Method, Prop
 from .common import (Lookup, Receiver, ReceiverPlane, receiver, receiver_plane,
-                     shifted_grid_point, tap_depths)
+                     shifted_grid_point, soft_compare_width, soft_tap_lit, tap_depths)
 from .hard import hard
+from .pcf import SOFT_COMPARE
 
 
 def face_near_layer(scene, smap) -> mi.Float:
@@ -192,13 +205,14 @@ def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_tex
 
 
 def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
-              n: int, pattern: str, rnd: mi.Point2f, active) -> mi.Float:
+              n: int, pattern: str, rnd: mi.Point2f, active, soft_width=None) -> mi.Float:
     """Percentage-closer filtering with receiver-plane depths (PCSS step 3).
 
     Fraction of ``n`` taps (``tap_offset`` pattern, half-width
     ``half_texels``) that are lit (:func:`tap_depths` against the receiver
     plane's depth; off-map taps lit, cube taps clamped to the receiver's
-    face as in :func:`blocker_search`); one ``dr.while_loop``.
+    face as in :func:`blocker_search`); one ``dr.while_loop``. ``soft_width``:
+    smooth taps (:func:`~.common.soft_tap_lit`), None: the step.
     """
     k = mi.UInt32(0)
     lit = mi.Float(0.0)
@@ -213,6 +227,8 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
         off = tap_offset(k, n, pattern, rnd) * half_texels
         z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
                                       cross_seams=False, lateral_texels=dr.norm(off))
+        if soft_width is not None:
+            return k + 1, lit + soft_tap_lit(z_map, z, inside, soft_width)
         return k + 1, dr.select(~inside | (z <= z_map), lit + 1.0, lit)
 
     k, lit = dr.while_loop((k, lit), cond, body)
@@ -267,7 +283,7 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     # 3. PCF with a kernel proportional to w, only where blockers were found
     rnd_f = lk.sampler.next_2d(active)
     vis = pcf_plane(smap, lk, r, plane, filter_half, opts.filter_samples, opts.pattern, rnd_f,
-                    active & has_blocker)
+                    active & has_blocker, soft_compare_width(r, opts.soft_compare))
     return dr.select(active & has_blocker, vis, 1.0)
 
 
@@ -296,9 +312,11 @@ METHOD = Method(
         Prop("angular_diameter", "float", 0.0,
              "Apparent diameter of a directional light (sun: about 0.53), in degrees; > 0 "
              "gives directional lights a PCSS penumbra.", lo=0.0, hi=30.0),
+        SOFT_COMPARE,
     ),
     #: ``pcss_near``: one value per face (not a per-texel layer), see face_near_depth.
     layers={"pcss_near": face_near_layer},
     layer_cost={"pcss_near": 0.0},
-    builtin=True,
+    virtual_margin=lambda o: 2.0 + 0.5 * o.max_kernel,
+    virtual=True, builtin=True,
 )

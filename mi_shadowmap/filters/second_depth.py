@@ -59,6 +59,8 @@ Deviations from the paper, and why:
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
@@ -89,7 +91,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
         return mi.Point2i(i0.x + mi.Int32(tap % side), i0.y + mi.Int32(tap // side))
 
     def fetch(ij, act):
-        ij = dr.clip(ij, 0, res - 1)
+        ij = smap.clamp_texel(ij)
         return ij, smap.fetch(layer, r.face, ij.x, ij.y, act)
 
     # 1. ordinary comparisons z_camera <= z_second
@@ -136,5 +138,6 @@ METHOD = Method(
     ),
     layers={"second_depth": second_depth_layer},
     bias_defaults={"slope_bias": 0.0, "normal_bias": 0.0},
-    builtin=True,
+    virtual_margin=lambda o: 2.0 + 0.5 * math.isqrt(o.pcf_samples),
+    virtual=True, builtin=True,
 )

@@ -55,7 +55,8 @@ class UnsupportedEmitterError(ValueError):
 
 def emitter_class(emitter) -> str:
     """The C++ class name of an emitter (e.g. 'PointLight')."""
-    return str(emitter).split("[", 1)[0].strip()
+    # class_name(), not str(emitter): printing an emitter evaluates its JIT fields
+    return emitter.class_name()
 
 
 def emitter_kind(emitter) -> str:

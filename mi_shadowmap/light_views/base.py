@@ -63,6 +63,17 @@ class LightView:
         """
         raise NotImplementedError
 
+    def ray_plane(self, face, uv_light: mi.Point2f, p_world, n_world, cos_min: float):
+        """``(t, cos)``: the map depth ``t`` at which the ray through ``uv_light`` of
+        ``face`` meets the plane through ``p_world`` with normal ``n_world``, and
+        ``cos = dot(n_world, d)``; where ``|cos| < cos_min`` the division uses
+        ``cos_min`` (the caller decides what a near-parallel plane means)."""
+        o, d = self.ray_through(face, uv_light)
+        c = dr.dot(n_world, d)
+        t = dr.dot(n_world, mi.Point3f(p_world) - o) / dr.select(dr.abs(c) >= cos_min, c,
+                                                                  cos_min)
+        return t, c
+
     def texel_rays(self, res: int):
         """World rays ``(o_world, d_world)`` through every texel centre of every face,
         ``n_faces * res * res`` entries in flat texel order (the map builders' input)."""
@@ -126,6 +137,43 @@ class LightView:
         """World width one face spans per unit of resolution near ``p_world`` (numpy):
         the texel width at resolution 1 (the automatic resolution's footprint)."""
         raise NotImplementedError
+
+    # ------------------------------------------------- float64 (virtual maps)
+    # Virtual maps (:mod:`mi_shadowmap.pages`) address up to 2^31 texels per face side,
+    # beyond float32's 24 bits: they project and build their texel rays through these
+    # float64 forms of project / uv_on_face / ray_through. Views that do not provide
+    # them cannot be virtual (``supports_virtual`` False).
+    supports_virtual = False
+
+    def project_f64(self, p_world):
+        """:meth:`project` in float64: ``(face, uv_light: Point2d, depth: Float64, inside)``."""
+        raise NotImplementedError
+
+    def uv_on_face_f64(self, face, p_world):
+        """:meth:`uv_on_face` in float64 (a ``mi.Point2d``)."""
+        raise NotImplementedError
+
+    def ray_through_f64(self, face, uv_light):
+        """:meth:`ray_through` in float64: ``(o_world: Point3d, d_world: Vector3d)``."""
+        raise NotImplementedError
+
+    def uv_differential(self, face, p_world, dp_world) -> mi.Point2f:
+        """``d uv_light`` on ``face`` for a small step ``dp_world`` at ``p_world`` (the
+        first-order change, in float32: no difference of two nearby float64 ``uv``
+        is needed, so it stays accurate however large the virtual resolution). The
+        default differentiates :meth:`uv_on_face_f64` numerically."""
+        p64 = mi.Point3d(p_world)
+        return mi.Point2f(self.uv_on_face_f64(face, p64 + mi.Vector3d(dp_world))
+                          - self.uv_on_face_f64(face, p64))
+
+    def face_texel_f64(self, face, xy_texel, res):
+        """A texel at float64 continuous coordinates ``xy_texel`` of ``face`` (resolution
+        ``res``, possibly per lane), continued on the neighbouring face where faces have
+        neighbours: ``(face, i, j, inside)`` with ``mi.Int32`` texel coordinates (the
+        float64 form of :meth:`tap_texel`)."""
+        ij = mi.Point2i(dr.floor(xy_texel))
+        in_face = (ij.x >= 0) & (ij.x < res) & (ij.y >= 0) & (ij.y < res)
+        return mi.UInt32(face), ij.x, ij.y, in_face
 
     # ------------------------------------------- camera-dependent refinements
     def needs_camera_points(self, opts) -> bool:
@@ -210,6 +258,16 @@ def axial_texel_size(view, res: int, face, p_world):
     o, axis = view.ray_through(face, mi.Point2f(0.5, 0.5))
     z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
     return z_axial * (2.0 * view.tan_half / res)
+
+
+def transform_f64(m: np.ndarray, p, point: bool = True):
+    """``m @ p`` for a float64 numpy 4x4 ``m`` and a ``mi.Point3d``/``mi.Vector3d`` ``p``
+    (the affine part only; rigid and affine light transforms need no division)."""
+    out = []
+    for r in range(3):
+        v = p[0] * float(m[r, 0]) + p[1] * float(m[r, 1]) + p[2] * float(m[r, 2])
+        out.append(v + float(m[r, 3]) if point else v)
+    return (mi.Point3d if point else mi.Vector3d)(*out)
 
 
 def light_matrix(view) -> np.ndarray:

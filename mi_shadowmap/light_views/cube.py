@@ -27,7 +27,8 @@ def cube_dir(face, s, t) -> mi.Vector3f:
     x = dr.select(axis == 0, sign, dr.select(axis == 1, t, s))
     y = dr.select(axis == 1, sign, dr.select(axis == 2, t, s))
     z = dr.select(axis == 2, sign, dr.select(axis == 0, t, s))
-    return mi.Vector3f(x, y, z)
+    # float64 in, float64 out (virtual maps); float32 otherwise
+    return (mi.Vector3d if isinstance(s, mi.Float64) else mi.Vector3f)(x, y, z)
 
 
 def cube_face(d: mi.Vector3f):
@@ -41,7 +42,7 @@ def cube_face(d: mi.Vector3f):
     face = 2 * axis + dr.select(major_signed < 0, mi.UInt32(1), mi.UInt32(0))
     u_comp = dr.select(is_x, d.y, dr.select(is_y, d.z, d.x))
     v_comp = dr.select(is_x, d.z, dr.select(is_y, d.x, d.y))
-    inv = dr.rcp(dr.maximum(major, 1e-30))
+    inv = dr.rcp(dr.maximum(major, 1e-30 if not isinstance(major, mi.Float64) else 1e-300))
     return face, u_comp * inv, v_comp * inv, major
 
 
@@ -100,6 +101,60 @@ class CubeView(LightView):
         f2, s2, t2, _ = cube_face(cube_dir(face, st.x, st.y))
         ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2f(s2 + 1.0, t2 + 1.0) * (0.5 * res))),
                       0, res - 1)
+        return (dr.select(in_face, face, f2), dr.select(in_face, ij.x, ij2.x),
+                dr.select(in_face, ij.y, ij2.y), mi.Bool(True))
+
+    # ------------------------------------------------------------- float64
+    supports_virtual = True
+
+    def uv_on_face_f64(self, face, p_world):
+        d = mi.Point3d(p_world) - mi.Point3d(*(float(c) for c in position_np(self)))
+        face = mi.UInt32(face)
+        axis = face // 2
+        sign = dr.select((face & 1) == 0, 1.0, -1.0)
+        major = sign * dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
+        u_comp = dr.select(axis == 0, d.y, dr.select(axis == 1, d.z, d.x))
+        v_comp = dr.select(axis == 0, d.z, dr.select(axis == 1, d.x, d.y))
+        inv = dr.rcp(dr.maximum(major, 1e-300))
+        return mi.Point2d(0.5 * (u_comp * inv + 1.0), 0.5 * (v_comp * inv + 1.0))
+
+    def uv_differential(self, face, p_world, dp_world):
+        d = mi.Point3f(p_world) - mi.Point3f(self.position)
+        dd = mi.Vector3f(dp_world)
+        face = mi.UInt32(face)
+        axis = face // 2
+        sign = dr.select((face & 1) == 0, 1.0, -1.0)
+
+        def split(v):
+            major = sign * dr.select(axis == 0, v.x, dr.select(axis == 1, v.y, v.z))
+            u = dr.select(axis == 0, v.y, dr.select(axis == 1, v.z, v.x))
+            w = dr.select(axis == 0, v.z, dr.select(axis == 1, v.x, v.y))
+            return major, u, w
+
+        m, u, w = split(d)
+        dm, du, dw = split(dd)
+        inv = dr.rcp(dr.maximum(m, 1e-30))
+        return mi.Point2f(0.5 * (du - u * dm * inv) * inv, 0.5 * (dw - w * dm * inv) * inv)
+
+    def project_f64(self, p_world):
+        d = mi.Point3d(p_world) - mi.Point3d(*(float(c) for c in position_np(self)))
+        face, s, t, major = cube_face(mi.Vector3d(d))
+        return face, mi.Point2d(0.5 * (s + 1.0), 0.5 * (t + 1.0)), dr.norm(d), major > 0
+
+    def ray_through_f64(self, face, uv_light):
+        s = mi.Float64(uv_light.x * 2.0 - 1.0)
+        t = mi.Float64(uv_light.y * 2.0 - 1.0)
+        return mi.Point3d(*(float(c) for c in position_np(self))), dr.normalize(cube_dir(mi.UInt32(face), s, t))
+
+    def face_texel_f64(self, face, xy_texel, res):
+        """Off the face: the texel of the neighbouring face the direction falls on."""
+        ij = mi.Point2i(dr.floor(xy_texel))
+        in_face = (ij.x >= 0) & (ij.x < res) & (ij.y >= 0) & (ij.y < res)
+        face = mi.UInt32(face)
+        st = mi.Point2d(xy_texel) * (2.0 / mi.Float64(res)) - 1.0
+        f2, s2, t2, _ = cube_face(cube_dir(face, st.x, st.y))
+        ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2d(s2 + 1.0, t2 + 1.0) * (0.5 * mi.Float64(res)))),
+                      0, mi.Int32(res) - 1)
         return (dr.select(in_face, face, f2), dr.select(in_face, ij.x, ij2.x),
                 dr.select(in_face, ij.y, ij2.y), mi.Bool(True))
 

@@ -16,7 +16,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import LightView, light_matrix, look_along, look_along_np, scalar3, unit_grid
+from .base import (LightView, light_matrix, look_along, look_along_np, position_np, scalar3,
+                   transform_f64, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -60,11 +61,41 @@ class OrthoView(LightView):
         inside = (z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
         return mi.UInt32(0), uv, depth, inside
 
+    # ------------------------------------------------------------- float64
+    @property
+    def supports_virtual(self):
+        return type(self) is OrthoView   # cascades are full maps only
+
+    def uv_on_face_f64(self, face, p_world):
+        p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
+        return mi.Point2d(0.5 * (p_light.x / self.half_extent[0] + 1.0),
+                          0.5 * (p_light.y / self.half_extent[1] + 1.0))
+
+    def uv_differential(self, face, p_world, dp_world):
+        dp = mi.Transform4f(self.light_from_world) @ mi.Vector3f(dp_world)
+        return mi.Point2f(0.5 * dp.x / self.half_extent[0], 0.5 * dp.y / self.half_extent[1])
+
+    def project_f64(self, p_world):
+        p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
+        uv = mi.Point2d(0.5 * (p_light.x / self.half_extent[0] + 1.0),
+                        0.5 * (p_light.y / self.half_extent[1] + 1.0))
+        inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        return mi.UInt32(0), uv, p_light.z, inside
+
+    def ray_through_f64(self, face, uv_light):
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        W = np.linalg.inv(light_matrix(self))
+        o = transform_f64(W, mi.Point3d(s * self.half_extent[0], t * self.half_extent[1], 0.0))
+        d = transform_f64(W, mi.Vector3d(0.0, 0.0, 1.0), point=False)
+        return o, dr.normalize(d)
+
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
         return dr.dot(p_world - mi.Point3f(self.position), self._forward())
 
     def texel_world_size(self, res: int, depth, p_world=None):
-        return dr.full(mi.Float, 2.0 * max(self.half_extent) / res, dr.width(depth))
+        # ``res`` may be per lane (virtual maps' levels)
+        return dr.zeros(mi.Float, dr.width(depth)) + 2.0 * max(self.half_extent) / res
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
         return texel_world

@@ -16,7 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, axial_texel_size, emitter_frame, light_matrix, look_along_np,
-                   position_np, scalar3, unit_grid)
+                   position_np, scalar3, transform_f64, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,39 @@ class PerspectiveView(LightView):
         depth = dr.norm(p_world - mi.Point3f(self.position))
         inside = (z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
         return mi.UInt32(0), uv, depth, inside
+
+    # ------------------------------------------------------------- float64
+    supports_virtual = True
+
+    def uv_on_face_f64(self, face, p_world):
+        p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
+        inv_z = dr.rcp(dr.maximum(p_light.z, 1e-300))
+        return mi.Point2d(0.5 * (p_light.x * inv_z / self.tan_half + 1.0),
+                          0.5 * (p_light.y * inv_z / self.tan_half + 1.0))
+
+    def uv_differential(self, face, p_world, dp_world):
+        L = mi.Transform4f(self.light_from_world)
+        p = L @ mi.Point3f(p_world)
+        dp = L @ mi.Vector3f(dp_world)
+        inv_z = dr.rcp(dr.maximum(p.z, 1e-30))
+        k = 0.5 / self.tan_half
+        return mi.Point2f(k * (dp.x - p.x * dp.z * inv_z) * inv_z,
+                          k * (dp.y - p.y * dp.z * inv_z) * inv_z)
+
+    def project_f64(self, p_world):
+        p_world = mi.Point3d(p_world)
+        p_light = transform_f64(light_matrix(self), p_world)
+        uv = self.uv_on_face_f64(0, p_world)
+        depth = dr.norm(p_world - mi.Point3d(*(float(c) for c in position_np(self))))
+        inside = (p_light.z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        return mi.UInt32(0), uv, depth, inside
+
+    def ray_through_f64(self, face, uv_light):
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        d_light = mi.Vector3d(s * self.tan_half, t * self.tan_half, 1.0)
+        d = transform_f64(np.linalg.inv(light_matrix(self)), d_light, point=False)
+        return mi.Point3d(*(float(c) for c in position_np(self))), dr.normalize(d)
 
     def texel_world_size(self, res: int, depth, p_world=None):
         return depth * (2.0 * self.tan_half / res)

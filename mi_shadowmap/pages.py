@@ -1,0 +1,801 @@
+"""Virtual shadow maps: build only the texels the image reads, at the density it needs.
+
+After Unreal Engine 5's virtual shadow maps (and Olsson et al. 2014's virtual
+cube maps, Lauritzen et al. 2010's sample distribution): every face of an
+emitter's :class:`~mi_shadowmap.light_views.LightView` is a very large
+*virtual* map (``res0`` texels per side, up to ``2^30``) with a mip chain of
+levels (level ``l`` has ``res0 >> l`` texels per side; the last level is one
+page). Levels are split into pages of ``page_size^2`` texels anchored in
+light space. Only the pages that camera-visible points read are ray-cast,
+into one physical page pool (one ``mi.Float`` per layer) with a page table.
+
+**Mark pass** (:func:`mark_pages`): one camera ray through every pixel centre
+(with its ray differentials, one pixel wide). Each hit that can receive the
+light picks the level whose texel matches its pixel footprint projected into
+the light (:meth:`VirtualShadowMap.level_for`: ``floor(log2(w) + lod_bias)``
+for a footprint ``w`` level-0 texels wide; at the default ``lod_bias = -0.5``
+a texel is 0.35-0.7 footprint wide) and marks the pages its lookup reads: those
+within the method's ``virtual_margin`` (its kernel's half-width) plus one texel
+(camera samples off the pixel centre) of it. Kernels up to ``page_size / 2``
+texels stay inside the 2 x 2 pages a lookup binds (below). A render whose camera
+state (:func:`camera_state`) equals the previous one's reuses its marks.
+
+**Lookups** (:meth:`VirtualShadowMap.bind`): the integrator binds the map to
+each batch of lookups. The level is chosen per lane the same way; if the
+page under the receiver is missing at that level (a camera sample off the
+pixel centre) it takes the next finer level, else the next coarser one, else
+the coarsest level (one page per face), which is always built, so no point is
+lit for want of a page. The 2 x 2 pages around the receiver are looked up in
+the page table (per face and level, a grid of slots over the bounding
+rectangle of its built pages: two gathers, no loop) once per lookup; the
+filter's taps then read through :meth:`BoundVirtualMap.fetch`,
+which picks one of those four slots, or for a tap outside them (a wide
+kernel, a cube seam) the coarsest level. Filters see a
+:class:`~mi_shadowmap.light_views.local.LocalView`: coordinates local to
+the lookup, so float32 stays exact at any level.
+
+**Caching** (:data:`PAGE_CACHE`): pages live in light space, so a camera move
+builds only the pages that were never built; the cache is dropped when the
+scene's shapes or emitters change (the map cache's scene state). Every
+camera-dependent value is data (page tables, levels, slots), never a kernel
+literal, so moving the camera compiles no new kernel.
+
+**Memory** (``memory_budget``): the pool holds at most the budget's pages
+(all layers). Cached pages the frame does not read are evicted first; if the
+frame's own pages do not fit, the finest marked pages are replaced by their
+parents (coarser, never missing) with a warning.
+
+Deviations from UE5, and why:
+
+* One mechanism for every light: a mip chain over the whole (scene-fitted)
+  face, addressed sparsely through per-level page grids, instead of UE5's clipmaps
+  around the camera for directional lights. Levels chosen from the pixel
+  footprint give the same density falloff as clipmaps, and pages anchored to
+  the scene-fitted face never move with the camera.
+* The mark pass traces its own camera ray per pixel centre instead of reading
+  the render's primary hits (Mitsuba's ``render()`` traces those inside one
+  kernel with the shading); it is one ray per pixel against the frame's spp.
+* Taps that leave the receiver's 2 x 2 pages read the coarsest level rather
+  than the finest built one (one extra gather instead of a walk per tap).
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import hashlib
+import math
+import time
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .depth_maps import first_hit, second_depth_along
+from .methods import VIRTUAL_LAYERS  # noqa: F401  (the layers built here)
+from .light_views.local import LocalView
+
+#: Largest virtual resolution per face side (texel coordinates stay in an Int32).
+MAX_VIRTUAL_RES = 2 ** 30
+#: Default virtual resolution: 2^20 texels across the scene's extent as the light sees it.
+SCENE_TEXELS = 2 ** 20
+#: Footprint anisotropy kept: a level's texel is at least 1/ANISO of the footprint's
+#: longer side (grazing views would otherwise ask for the finest level everywhere).
+ANISO = 2.0
+
+_INVALID = 0xFFFFFFFF
+#: Largest page grid of one (face, level) in the page table (entries).
+MAX_TABLE = 1 << 24
+
+
+def _array(cls, values):
+    """A Dr.Jit array of ``values`` that is never a kernel literal: a one-entry array
+    would be one (a new kernel whenever its value changes), so it is padded."""
+    values = np.asarray(values)
+    if len(values) < 2:
+        values = np.concatenate([values, np.zeros(2 - len(values), values.dtype)])
+    return cls(values)
+
+
+def page_key(face, level, px, py):
+    """64-bit key of a page: face (3 bits), level (5 bits), px and py (27 bits each);
+    numpy or Dr.Jit integers."""
+    if isinstance(px, np.ndarray) or isinstance(face, (int, np.integer)):
+        return ((np.uint64(face) << np.uint64(59)) | (np.uint64(level) << np.uint64(54))
+                | (np.asarray(px, np.uint64) << np.uint64(27)) | np.asarray(py, np.uint64))
+    U = mi.UInt64
+    return ((U(face) << 59) | (U(level) << 54) | (U(mi.UInt32(px)) << 27)
+            | U(mi.UInt32(py)))
+
+
+@dataclasses.dataclass
+class VirtualLayout:
+    """The fixed (camera-independent) shape of one emitter's virtual map."""
+    view: object
+    page_size: int
+    res0: int
+    t0: float          # texel rays start this far along (near the scene), in float64
+
+    @property
+    def n_levels(self) -> int:
+        return int(math.log2(self.res0 // self.page_size)) + 1
+
+    @property
+    def coarsest(self) -> int:
+        return self.n_levels - 1
+
+    def pages_per_side(self, level: int) -> int:
+        return max((self.res0 >> level) // self.page_size, 1)
+
+
+def layout_for(view, scene, opts) -> VirtualLayout:
+    """The virtual layout of ``view``: ``res0`` is ``resolution`` if given, else the
+    power of two that puts :data:`SCENE_TEXELS` texels across the scene's bounding
+    box as the light sees it (at least 2^20, at most :data:`MAX_VIRTUAL_RES`);
+    ``t0`` is 0.999 x the distance from the light to the scene's bounding box (0
+    from inside it, and for directional maps, which start at their near plane)."""
+    P = opts.page_size
+    bbox = scene.bbox()
+    lo = np.array([float(c) for c in bbox.min]) if bbox.valid() else -np.ones(3)
+    hi = np.array([float(c) for c in bbox.max]) if bbox.valid() else np.ones(3)
+    diam = float(np.linalg.norm(hi - lo)) or 1.0
+    pos = np.array([float(c) for c in view.position])
+    dist = float(np.linalg.norm(np.maximum(np.maximum(lo - pos, 0.0), pos - hi)))
+    centre = 0.5 * (lo + hi)
+    if view.kind == "directional":
+        t0 = 0.0
+        face_width = 2.0 * max(view.half_extent)
+    else:
+        t0 = 0.999 * dist
+        face_width = 2.0 * float(getattr(view, "tan_half", 1.0)) * max(
+            float(np.linalg.norm(centre - pos)), 1e-30)
+    if opts.resolution is not None:
+        res0 = int(opts.resolution)
+    else:
+        want = max(SCENE_TEXELS * face_width / diam, SCENE_TEXELS)
+        res0 = 1 << max(int(math.ceil(math.log2(want))), 0)
+        res0 = min(max(res0, P), MAX_VIRTUAL_RES)
+    return VirtualLayout(view, P, res0, t0)
+
+
+# ---------------------------------------------------------------- the page store
+class PageStore:
+    """The physical pages of one emitter's virtual map, kept across renders.
+
+    ``slots``: page key -> slot; the pool of each layer holds ``capacity``
+    pages of ``page_size^2`` float32 texels; ``slot_frame``: the frame each slot was
+    last read in (least recently used pages are evicted first).
+    """
+
+    def __init__(self, layout: VirtualLayout, layers: tuple):
+        self.layout = layout
+        self.layers = tuple(layers)
+        self.slots: dict = {}
+        self.free: list = []
+        self.capacity = 0
+        self.pools = {name: mi.Float() for name in ("depth",) + self.layers}
+        self.page_min = np.zeros(0, np.float64)     # nearest finite depth per slot
+        self.page_face = np.zeros(0, np.int64)
+        self.slot_frame = np.zeros(0, np.int64)      # frame each slot was last read
+        self.frame = 0
+        self.version = 0                             # changes whenever pages do
+        self._sorted = None
+        self._table = None
+        self.lit_faces = None                        # faces a one-sided light shines through
+        # slot 0 is never allocated: an empty page (+inf, lit) for the coarsest level of
+        # a face a one-sided light does not shine through
+        self.next_slot = 1
+        self.last_mark = None     # (camera state, margin, lod_bias), marked page keys
+        self.max_pages = 1 << 62      # the memory budget's pages (set per render)
+
+    @property
+    def n_pages(self) -> int:
+        return len(self.slots)
+
+    @property
+    def texels_per_page(self) -> int:
+        return self.layout.page_size ** 2
+
+    @property
+    def nbytes(self) -> int:
+        return self.capacity * self.texels_per_page * 4 * len(self.pools)
+
+    @property
+    def n_slots(self) -> int:
+        """Slots in use or reserved (the pages, the freed slots and the empty page)."""
+        return self.next_slot
+
+    def _grow(self, need: int) -> None:
+        if need <= self.capacity:
+            return
+        cap = max(2 * need, 2 * self.capacity, 16)   # growth is rare (and compiles once)
+        cap = max(min(cap, self.max_pages), need)
+        n_old = self.capacity * self.texels_per_page
+        for name, pool in self.pools.items():
+            new = dr.full(mi.Float, dr.inf, cap * self.texels_per_page)
+            if n_old:
+                dr.scatter(new, pool, dr.arange(mi.UInt32, n_old))
+            self.pools[name] = new
+        self.page_min = np.concatenate([self.page_min, np.full(cap - self.capacity, np.inf)])
+        self.page_face = np.concatenate([self.page_face, np.zeros(cap - self.capacity, np.int64)])
+        self.slot_frame = np.concatenate([self.slot_frame, np.zeros(cap - self.capacity, np.int64)])
+        self.capacity = cap
+        dr.eval(*self.pools.values())
+
+    def _index(self):
+        """``(keys, slots)`` sorted by key, rebuilt when the pages change."""
+        if self._sorted is None or self._sorted[0] != self.version:
+            keys = np.fromiter(self.slots.keys(), np.uint64, len(self.slots))
+            slots = np.fromiter(self.slots.values(), np.int64, len(self.slots))
+            order = np.argsort(keys)
+            self._sorted = (self.version, keys[order], slots[order])
+        return self._sorted[1], self._sorted[2]
+
+    def lookup(self, keys: np.ndarray):
+        """``(present, slot)`` of each of ``keys`` (slot -1 where absent)."""
+        k, sl = self._index()
+        if len(k) == 0:
+            return np.zeros(len(keys), bool), np.full(len(keys), -1, np.int64)
+        pos = np.clip(np.searchsorted(k, keys), 0, len(k) - 1)
+        present = k[pos] == keys
+        return present, np.where(present, sl[pos], -1)
+
+    def touch(self, keys: np.ndarray) -> None:
+        """Mark ``keys`` (present ones) used in this frame (for eviction)."""
+        present, slot = self.lookup(keys)
+        self.slot_frame[slot[present]] = self.frame
+
+    def evict(self, keep: np.ndarray, n: int) -> int:
+        """Free up to ``n`` slots of pages not in ``keep`` and not of the coarsest level
+        (least recently used first)."""
+        k, sl = self._index()
+        coarse = ((k >> np.uint64(54)) & np.uint64(31)) == np.uint64(self.layout.coarsest)
+        cand = ~np.isin(k, keep) & ~coarse
+        order = np.argsort(self.slot_frame[sl[cand]], kind="stable")[:n]
+        victims = k[cand][order]
+        for key in victims.tolist():
+            self.free.append(self.slots.pop(np.uint64(key)))
+        self.version += 1
+        return len(victims)
+
+    def build(self, scene, keys: np.ndarray) -> int:
+        """Ray-cast the pages ``keys`` (new ones) into free slots; returns texels built."""
+        if len(keys) == 0:
+            return 0
+        lay = self.layout
+        P = lay.page_size
+        n_new = len(keys)
+        reuse = [self.free.pop() for _ in range(min(n_new, len(self.free)))]
+        first = self.next_slot
+        fresh = list(range(first, first + n_new - len(reuse)))
+        self.next_slot += len(fresh)
+        self._grow(self.next_slot)
+        slot_ids = np.array(reuse + fresh, dtype=np.uint32)
+        for k, s in zip(keys.tolist(), slot_ids.tolist()):
+            self.slots[np.uint64(k)] = s
+        self.version += 1
+        face = (keys >> np.uint64(59)).astype(np.uint32)
+        level = ((keys >> np.uint64(54)) & np.uint64(31)).astype(np.uint32)
+        px = ((keys >> np.uint64(27)) & np.uint64((1 << 27) - 1)).astype(np.uint32)
+        py = (keys & np.uint64((1 << 27) - 1)).astype(np.uint32)
+        tpp = P * P
+        idx = dr.arange(mi.UInt32, n_new * tpp)
+        page = idx // tpp
+        local = idx - page * tpp
+        ti = local % P
+        tj = local // P
+        g = lambda a: dr.gather(mi.UInt32, _array(mi.UInt32, a), page)   # noqa: E731
+        f_l, lev, gx, gy = g(face), g(level), g(px) * P + ti, g(py) * P + tj
+        res = mi.Float64(mi.UInt32(lay.res0) >> lev)
+        uv = mi.Point2d((mi.Float64(gx) + 0.5) / res, (mi.Float64(gy) + 0.5) / res)
+        o64, d64 = lay.view.ray_through_f64(f_l, uv)
+        o = mi.Point3f(o64 + d64 * lay.t0)     # start near the scene: float32 stays exact
+        d = dr.normalize(mi.Vector3f(d64))
+        dst = g(slot_ids) * tpp + local
+        depth = mi.Float(mi.Float64(first_hit(scene, lay.view, o, d)) + lay.t0)
+        dr.scatter(self.pools["depth"], depth, dst)
+        if "second_depth" in self.pools:
+            sd = mi.Float(mi.Float64(second_depth_along(scene, lay.view, o, d)) + lay.t0)
+            dr.scatter(self.pools["second_depth"], sd, dst)
+        dr.eval(*self.pools.values())
+        finite = dr.select(dr.isfinite(depth), depth, dr.inf)
+        mins = dr.block_reduce(dr.ReduceOp.Min, finite, tpp).numpy()
+        self.page_min[slot_ids] = mins
+        self.page_face[slot_ids] = face
+        return n_new * tpp * (1 + ("second_depth" in self.pools))
+
+    def table(self):
+        """The page table as Dr.Jit arrays ``(header, dense, coarse_slot, face_near)``,
+        rebuilt when pages change (``coarse_slot``: the coarsest page's slot per face;
+        ``face_near``: the nearest depth per face, PCSS's blocker-search bound).
+
+        Per (face, level) -- entry ``face * n_levels + level`` -- ``header`` holds
+        ``(x0, y0, w, h, base)``: the bounding rectangle of that level's built pages
+        (in pages) and where its ``w x h`` slot grid starts in ``dense`` (slots,
+        ``_INVALID`` where no page is built). Two gathers resolve a page, with no
+        loop; a level whose rectangle would hold more than :data:`MAX_TABLE` entries
+        keeps its pages out of the table (lookups there walk to another level).
+        """
+        if self._table is not None and self._table[0] == self.version:
+            return self._table[1]
+        lay = self.layout
+        L = lay.n_levels
+        keys, slots = self._index()
+        face = (keys >> np.uint64(59)).astype(np.int64)
+        level = ((keys >> np.uint64(54)) & np.uint64(31)).astype(np.int64)
+        px = ((keys >> np.uint64(27)) & np.uint64((1 << 27) - 1)).astype(np.int64)
+        py = (keys & np.uint64((1 << 27) - 1)).astype(np.int64)
+        group = face * L + level
+        header = np.zeros((lay.view.n_faces * L, 5), np.int64)
+        parts, base = [], 0
+        for g in np.unique(group):
+            sel = group == g
+            x0, y0 = px[sel].min(), py[sel].min()
+            w, h = px[sel].max() - x0 + 1, py[sel].max() - y0 + 1
+            if w * h > MAX_TABLE:
+                warnings.warn(f"shadowmap: virtual map '{lay.view.label}': level "
+                              f"{g % L} spans {w} x {h} pages, more than the page table "
+                              "holds; its lookups use other levels", RuntimeWarning)
+                continue
+            grid = np.full(w * h, _INVALID, np.int64)
+            grid[(py[sel] - y0) * w + (px[sel] - x0)] = slots[sel]
+            header[g] = (x0, y0, w, h, base)
+            parts.append(grid)
+            base += w * h
+        dense = np.concatenate(parts + [np.full(2, _INVALID, np.int64)])
+        n_faces = lay.view.n_faces
+        coarse = np.zeros(n_faces, np.uint32)          # slot 0: the empty page
+        for f in range(n_faces):
+            s = self.slots.get(np.uint64(page_key(f, lay.coarsest, 0, 0)))
+            if s is not None:
+                coarse[f] = s
+        table = (_array(mi.Int32, header.reshape(-1).astype(np.int32)),
+                 _array(mi.UInt32, dense.astype(np.uint32)),
+                 _array(mi.UInt32, coarse), _array(mi.Float, self.face_near(n_faces)))
+        self._table = (self.version, table)
+        return table
+
+    def face_near(self, n_faces: int) -> np.ndarray:
+        """Nearest finite depth per face over the built pages (+inf for none)."""
+        out = np.full(n_faces, np.inf)
+        used = self._index()[1]
+        if len(used):
+            np.minimum.at(out, self.page_face[used], self.page_min[used])
+        return out.astype(np.float32)
+
+
+# ------------------------------------------------------------ the map filters read
+class VirtualShadowMap:
+    """One emitter's virtual map for one render: the page pool and its table.
+
+    What a filter reads is :meth:`bind`'s :class:`BoundVirtualMap`; this object is
+    what ``integrator.maps`` holds (``view``, ``layout``, ``store``, ``stats``).
+    """
+
+    def __init__(self, store: PageStore, stats: dict, lod_bias: float = -0.5):
+        self.lod_bias = float(lod_bias)
+        self.store = store
+        self.layout = store.layout
+        self.view = store.layout.view
+        self.header, self.dense, self.coarse_slot, self.face_near = store.table()
+        self.stats = stats
+
+    # The texel-counting interface of ShadowMap, for the harness and reports.
+    @property
+    def resolution(self) -> int:
+        return self.layout.res0
+
+    @property
+    def depth(self):
+        return self.store.pools["depth"]
+
+    @property
+    def extra(self) -> dict:
+        return {k: v for k, v in self.store.pools.items() if k != "depth"}
+
+    @property
+    def n_texels(self) -> int:
+        return self.store.n_pages * self.store.texels_per_page
+
+    @property
+    def nbytes(self) -> int:
+        return self.store.nbytes
+
+    def layers(self) -> list:
+        return list(self.store.pools)
+
+    def page_records(self) -> dict:
+        """The built pages as numpy arrays: ``face``, ``level``, ``px``, ``py`` (page
+        coordinates in the level), ``slot`` (in the pool), ``res`` (the level's
+        resolution) and the page's ``uv`` rectangle on its face (``u0, v0, u1, v1``)."""
+        keys, slots = self.store._index()
+        P = self.layout.page_size
+        rec = {"face": (keys >> np.uint64(59)).astype(np.int64),
+               "level": ((keys >> np.uint64(54)) & np.uint64(31)).astype(np.int64),
+               "px": ((keys >> np.uint64(27)) & np.uint64((1 << 27) - 1)).astype(np.int64),
+               "py": (keys & np.uint64((1 << 27) - 1)).astype(np.int64),
+               "slot": slots}
+        rec["res"] = self.layout.res0 >> rec["level"]
+        for name, c, off in (("u0", "px", 0), ("v0", "py", 0), ("u1", "px", 1), ("v1", "py", 1)):
+            rec[name] = (rec[c] + off) * P / rec["res"].astype(np.float64)
+        return rec
+
+    def pages_numpy(self, layer: str = "depth") -> np.ndarray:
+        """Layer ``layer`` of every built page, ``(n_pages, page_size, page_size)``, in
+        the order of :meth:`page_records` (row j, column i of each page)."""
+        P = self.layout.page_size
+        data = self.store.pools[layer].numpy().reshape(-1, P, P)
+        return data[self.store._index()[1]]
+
+    # ----------------------------------------------------------- levels
+    def level_for(self, face, p64, dp_dx, dp_dy) -> mi.UInt32:
+        """Level whose texel matches the pixel footprint ``dp_dx``, ``dp_dy`` at
+        ``p64`` on ``face``: ``floor(log2(w) + lod_bias)`` clamped to the levels,
+        ``w`` the footprint in level-0 texels (its shorter side, or 1/ANISO of its
+        longer one if larger); at ``lod_bias = -0.5`` a texel is 0.35-0.7 of the
+        footprint. No footprint (no ray differentials): level 0, and the
+        lookup walks to the finest level built."""
+        view, lay = self.view, self.layout
+        p = mi.Point3f(p64)
+        du_x = view.uv_differential(face, p, dp_dx)
+        du_y = view.uv_differential(face, p, dp_dy)
+        w = (dr.abs(du_x) + dr.abs(du_y)) * float(lay.res0)
+        w_eff = dr.maximum(dr.minimum(w.x, w.y), dr.maximum(w.x, w.y) * (1.0 / ANISO))
+        w_eff = dr.select(dr.isfinite(w_eff) & (w_eff > 1.0), w_eff, 1.0)
+        level = mi.Int32(dr.floor(dr.log2(w_eff) + self.lod_bias))
+        return mi.UInt32(dr.clip(level, 0, lay.coarsest))
+
+    def _level_table(self, face, level, active):
+        """``(x0, y0, w, h, base)`` of the page grid of ``(face, level)`` (see
+        :meth:`PageStore.table`)."""
+        h = (mi.UInt32(face) * self.layout.n_levels + mi.UInt32(level)) * 5
+        return tuple(dr.gather(mi.Int32, self.header, h + k, active) for k in range(5))
+
+    def _page_slot(self, table, px, py, active) -> mi.UInt32:
+        """Slot of page ``(px, py)`` in the level whose grid is ``table`` (``_INVALID``
+        where none is built)."""
+        x0, y0, w, h, base = table
+        lx, ly = px - x0, py - y0
+        ok = mi.Bool(active) & (lx >= 0) & (ly >= 0) & (lx < w) & (ly < h)
+        idx = mi.UInt32(base + ly * w + lx)
+        return dr.select(ok, dr.gather(mi.UInt32, self.dense, idx, ok), _INVALID)
+
+    def bind(self, lk, active=True) -> "BoundVirtualMap":
+        """The map as one batch of lookups reads it (see the module doc)."""
+        lay, P = self.layout, self.layout.page_size
+        p64 = mi.Point3d(lk.p_world)
+        face, uv64, depth64, inside = self.view.project_f64(p64)
+        active = mi.Bool(active) & inside
+        want = self.level_for(face, p64, lk.dp_dx, lk.dp_dy)
+
+        def block(level, act):
+            """The 2 x 2 pages around the point at ``level``, and whether the page under
+            it is built."""
+            res = mi.Int32(mi.UInt32(lay.res0) >> level)
+            xy = uv64 * mi.Float64(res)
+            bx = mi.Int32(dr.floor((xy.x - 0.5 * P) / P))
+            by = mi.Int32(dr.floor((xy.y - 0.5 * P) / P))
+            table = self._level_table(face, level, act)
+            slots = [self._page_slot(table, bx + dx, by + dy, act)
+                     for dy in (0, 1) for dx in (0, 1)]
+            cx = mi.Int32(dr.floor(xy.x / P)) > bx        # which of the 2 x 2 holds it
+            cy = mi.Int32(dr.floor(xy.y / P)) > by
+            own = dr.select(cy, dr.select(cx, slots[3], slots[2]),
+                            dr.select(cx, slots[1], slots[0]))
+            return res, bx, by, slots, own != _INVALID
+
+        # the wanted level (nearly every lookup); else the next finer, else the next
+        # coarser, else the coarsest (always built): no loop, the fallbacks masked
+        res, bx, by, slots, ok = block(want, active)
+        level = mi.UInt32(want)
+        for lev in (dr.maximum(mi.Int32(want) - 1, 0), dr.minimum(mi.Int32(want) + 1,
+                                                                lay.coarsest),
+                    mi.Int32(lay.coarsest)):
+            redo = active & ~ok
+            r2, bx2, by2, s2, ok2 = block(mi.UInt32(lev), redo)
+            take = redo & (ok2 | (lev == lay.coarsest))
+            level = dr.select(take, mi.UInt32(lev), level)
+            res, bx, by = dr.select(take, r2, res), dr.select(take, bx2, bx), \
+                dr.select(take, by2, by)
+            slots = [dr.select(take, b, a) for a, b in zip(slots, s2)]
+            ok |= take
+        origin = mi.Point2i(bx * P, by * P)
+        local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside))
+        return BoundVirtualMap(self, local, res, level, slots)
+
+
+class BoundVirtualMap:
+    """A :class:`VirtualShadowMap` bound to one batch of lookups: what filters read.
+
+    ``resolution`` is the per-lane level resolution (``mi.Int32``), ``view`` a
+    :class:`~mi_shadowmap.light_views.local.LocalView`, ``depth`` and ``extra``
+    the physical pools; :meth:`fetch` and :meth:`texel_index` translate local
+    texels into pool indices.
+    """
+
+    def __init__(self, vmap: VirtualShadowMap, view: LocalView, res, level, slots):
+        self.vmap = vmap
+        self.view = view
+        self.resolution = res
+        self.level = level
+        self.slots = slots
+        pools = vmap.store.pools
+        self.depth = pools["depth"]
+        self.extra = {k: v for k, v in pools.items() if k != "depth"}
+        self.extra["pcss_near"] = vmap.face_near
+
+    @property
+    def second_depth(self):
+        return self.extra.get("second_depth")
+
+    def _index(self, face, i, j):
+        """Pool index of local texel ``(i, j)`` of ``face`` (clamped to the face)."""
+        lay, P = self.vmap.layout, self.vmap.layout.page_size
+        v = self.view
+        res = self.resolution
+        gx = dr.clip(mi.Int32(i) + v.origin.x, 0, res - 1)
+        gy = dr.clip(mi.Int32(j) + v.origin.y, 0, res - 1)
+        li, lj = gx - v.origin.x, gy - v.origin.y
+        in_block = (mi.UInt32(face) == v.face) & (li >= 0) & (lj >= 0) & (li < 2 * P) \
+            & (lj < 2 * P)
+        q = dr.select(li >= P, 1, 0) + dr.select(lj >= P, 2, 0)
+        s = dr.select(q == 0, self.slots[0], dr.select(q == 1, self.slots[1],
+                      dr.select(q == 2, self.slots[2], self.slots[3])))
+        fine = in_block & (s != _INVALID)
+        fine_idx = s * (P * P) + mi.UInt32(lj & (P - 1)) * P + mi.UInt32(li & (P - 1))
+        # elsewhere: the coarsest level (one page per face, always built)
+        shift = mi.Int32(lay.coarsest) - mi.Int32(self.level)
+        cx, cy = gx >> shift, gy >> shift
+        cs = dr.gather(mi.UInt32, self.vmap.coarse_slot, mi.UInt32(face))
+        coarse_idx = cs * (P * P) + mi.UInt32(cy) * P + mi.UInt32(cx)
+        return dr.select(fine, fine_idx, coarse_idx)
+
+    def fetch(self, layer, face, i, j, active=True):
+        return dr.gather(mi.Float, layer, self._index(face, i, j), active)
+
+    def texel_index(self, face, uv):
+        ij = mi.Point2i(dr.floor(uv * self.resolution))
+        return self._index(face, ij.x, ij.y)
+
+    def clamp_texel(self, ij):
+        v = self.view
+        g = dr.clip(mi.Point2i(ij) + v.origin, 0, self.resolution - 1)
+        return g - v.origin
+
+
+# ------------------------------------------------------------------- mark pass
+def camera_hits(scene, sensor):
+    """Camera hits at every pixel centre with one-pixel ray differentials:
+    ``(si, dp_dx, dp_dy, valid)``."""
+    w, h = (int(x) for x in sensor.film().crop_size())
+    idx = dr.arange(mi.UInt32, w * h)
+    y = idx // w
+    x = idx - y * w
+    pos = mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, pos, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    n = si.n
+
+    def hit(o, d):
+        t = dr.dot(n, si.p - o) / dr.select(dr.abs(dr.dot(n, d)) > 1e-12, dr.dot(n, d), 1e-12)
+        return o + d * t
+
+    ok = ray.has_differentials
+    dp_dx = dr.select(ok, hit(ray.o_x, ray.d_x) - si.p, 0.0)
+    dp_dy = dr.select(ok, hit(ray.o_y, ray.d_y) - si.p, 0.0)
+    return si, mi.Vector3f(dp_dx), mi.Vector3f(dp_dy), si.is_valid()
+
+
+def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.ndarray:
+    """Keys of the pages the lookups at ``si`` read (see the module doc): at each
+    point's level, the pages overlapping ``margin + 1`` texels around it (the
+    method's kernel, plus one texel for camera samples off the pixel centre),
+    capped at ``page_size / 2`` texels (what :meth:`VirtualShadowMap.bind`'s 2 x 2
+    pages serve): at most 2 x 2 pages per point."""
+    lay, view, P = vmap_like.layout, vmap_like.view, vmap_like.layout.page_size
+    m = min(float(margin) + 1.0, 0.5 * P)
+    p64 = mi.Point3d(si.p)
+    face, uv64, _, inside = view.project_f64(p64)
+    act = valid & inside
+    if view.light_normal is not None:   # behind a one-sided planar light: no light
+        act &= dr.dot(si.p - mi.Point3f(view.position), mi.Vector3f(*view.light_normal)) > 0
+    level = vmap_like.level_for(face, p64, dp_dx, dp_dy)
+    res = mi.Float64(mi.UInt32(lay.res0) >> level)
+    xy = uv64 * res
+    n_pages = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1)
+    lo = mi.Point2i(dr.floor((xy - m) / P))
+    hi = mi.Point2i(dr.floor((xy + m) / P))
+    dr.eval(lo, hi, level, face, act, n_pages)
+    # 4 candidates per point (2 m <= P: at most 2 pages per axis), in one kernel; only
+    # the valid ones leave Dr.Jit (most points read one page)
+    n = dr.width(lo.x)
+    idx = dr.arange(mi.UInt32, 4 * n)
+    k4 = idx // n
+    lane = idx - k4 * n
+    ox, oy = mi.Int32(k4 & 1), mi.Int32(k4 >> 1)
+    g = lambda a: dr.gather(type(a), a, lane)   # noqa: E731
+    lox, loy, hix, hiy, npg = g(lo.x), g(lo.y), g(hi.x), g(hi.y), g(n_pages)
+    px, py = lox + ox, loy + oy
+    ok = g(act) & (px <= hix) & (py <= hiy) & (px >= 0) & (py >= 0) & (px < npg) & (py < npg)
+    keys = page_key(g(face), g(level), dr.maximum(px, 0), dr.maximum(py, 0))
+    keys = dr.gather(mi.UInt64, keys, dr.compress(ok))
+    return np.unique(keys.numpy())
+
+
+def camera_state(sensor) -> bytes:
+    """A digest of everything about ``sensor`` that moves what the camera sees (its
+    ``mi.traverse`` parameters: ``to_world``, field of view, ...; the film's crop): a
+    render with the same camera state marks the same pages, so the mark pass is
+    skipped (a still camera re-rendering, e.g. more spp or another seed)."""
+    from .map_manager import _param_bytes
+    h = hashlib.blake2b(digest_size=16)
+    params = mi.traverse(sensor)
+    for k in sorted(params.keys()):
+        h.update(k.encode())
+        h.update(_param_bytes(params[k]))
+    film = sensor.film()
+    h.update(repr((tuple(film.crop_size()), tuple(film.crop_offset()))).encode())
+    return h.digest()
+
+
+# ----------------------------------------------------------------------- cache
+class PageCache:
+    """Page stores kept across renders: per scene (latest state only) and emitter view."""
+
+    def __init__(self, max_scenes: int = 4):
+        self.max_scenes = max_scenes
+        self._scenes = collections.OrderedDict()   # id(scene) -> [scene, state, {key: store}]
+
+    def store(self, scene, state, key, make):
+        slot = self._scenes.get(id(scene))
+        if slot is None or slot[0] is not scene or slot[1] != state:
+            slot = [scene, state, {}]
+            self._scenes[id(scene)] = slot
+        self._scenes.move_to_end(id(scene))
+        while len(self._scenes) > self.max_scenes:
+            self._scenes.popitem(last=False)
+        if key not in slot[2]:
+            slot[2][key] = make()
+        return slot[2][key]
+
+    def clear(self):
+        self._scenes.clear()
+
+
+#: The page cache of every ``shadowmap`` integrator (``PAGE_CACHE.clear()`` empties it).
+PAGE_CACHE = PageCache()
+
+
+def prepare_virtual(scene, sensor, opts, views, stats) -> list:
+    """First pass with ``virtual=true``: mark, build missing pages, return one
+    :class:`VirtualShadowMap` per emitter whose view supports it (None elsewhere).
+
+    Updates ``stats`` (a :class:`~mi_shadowmap.map_manager.MapStats`): pages marked,
+    built, reused, the level histogram of the marked pages and ``texels_built``.
+    """
+    from .map_manager import MAP_CACHE, view_fingerprint
+    layer_names = tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
+    state = MAP_CACHE.scene_state(scene) if opts.cache_maps else None
+    cam = camera_state(sensor) if sensor is not None else None
+    hits = None
+    out = []
+    budget_pages = None
+    for view in views:
+        if view is None or not getattr(view, "supports_virtual", False):
+            out.append(None)
+            continue
+        layout = layout_for(view, scene, opts)
+        key = (view_fingerprint(view), layout.res0, layout.page_size, layer_names)
+
+        def make():
+            return PageStore(layout, layer_names)
+
+        store = (PAGE_CACHE.store(scene, state, key, make) if state is not None else make())
+        store.frame += 1
+        probe = _Marker(layout, opts.lod_bias)
+        margin = (opts.record.virtual_margin(opts) if opts.record.virtual_margin is not None
+                  else 2.0)
+        mark_key = (cam, margin, opts.lod_bias)
+        if cam is None:
+            marked = np.zeros(0, np.uint64)
+        elif store.last_mark is not None and store.last_mark[0] == mark_key:
+            marked = store.last_mark[1]          # same camera: the same pages
+        else:
+            if hits is None:
+                hits = camera_hits(scene, sensor)
+            marked = mark_pages(probe, *hits, margin=margin)
+            store.last_mark = (mark_key, marked)
+        if store.lit_faces is None:
+            store.lit_faces = _lit_faces(view)
+        coarse = np.array([page_key(f, layout.coarsest, 0, 0) for f in store.lit_faces],
+                          np.uint64).reshape(-1)
+        needed = np.unique(np.concatenate([marked, coarse]))
+        # memory: the whole budget split evenly over the virtual maps
+        per_page = store.texels_per_page * 4 * (1 + len(layer_names))
+        n_virtual = sum(1 for v in views if v is not None and getattr(v, "supports_virtual",
+                                                                       False))
+        budget_pages = max(int(opts.budget_bytes // max(n_virtual, 1) // per_page) - 1,
+                           view.n_faces)       # - 1: the empty page (slot 0)
+        store.max_pages = budget_pages + 1
+        needed, degraded = _fit_budget(needed, budget_pages, layout)
+        if degraded:
+            warnings.warn(f"shadowmap: emitter '{view.label}': memory_budget = "
+                          f"{opts.memory_budget:g} MiB holds {budget_pages} pages of "
+                          f"{layout.page_size}^2; {degraded} marked pages were replaced by "
+                          "coarser ones", RuntimeWarning, stacklevel=3)
+        have, _ = store.lookup(needed)
+        new = needed[~have]
+        over = store.n_pages + len(new) - budget_pages
+        if over > 0:
+            store.evict(needed, over)
+        t0 = time.perf_counter()
+        stats.texels_built += store.build(scene, new)
+        dr.sync_thread()
+        dt = time.perf_counter() - t0
+        store.touch(needed)
+        levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
+        hist = np.bincount(levels, minlength=layout.n_levels)
+        stats.pages_marked += int(len(needed))
+        stats.pages_built += int(len(new))
+        stats.pages_reused += int(len(needed) - len(new))
+        stats.level_histogram = _add_hist(stats.level_histogram, hist)
+        stats.maps_built += int(len(new) > 0)
+        stats.maps_reused += int(len(new) == 0)
+        stats.naive_build_seconds += dt
+        out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(len(new))},
+                                    opts.lod_bias))
+    return out
+
+
+def _lit_faces(view) -> list:
+    """The faces a light can shine through: all, but for a one-sided planar area light
+    only those with a corner ray in front of its emitting plane (a face's directions
+    form a convex cone, so its corners bound ``dot(d, n)``)."""
+    if view.light_normal is None:
+        return list(range(view.n_faces))
+    n = np.array(view.light_normal, np.float64)
+    out = []
+    for f in range(view.n_faces):
+        uv = mi.Point2d([0.0, 1.0, 0.0, 1.0], [0.0, 0.0, 1.0, 1.0])
+        _, d = view.ray_through_f64(mi.UInt32(f), uv)
+        dots = d.x.numpy() * n[0] + d.y.numpy() * n[1] + d.z.numpy() * n[2]
+        if np.any(dots > 1e-9):
+            out.append(f)
+    return out
+
+
+def _add_hist(old, hist):
+    old = list(old or [])
+    n = max(len(old), len(hist))
+    old += [0] * (n - len(old))
+    return [int(a + (hist[i] if i < len(hist) else 0)) for i, a in enumerate(old)]
+
+
+def _fit_budget(needed: np.ndarray, budget_pages: int, layout) -> tuple:
+    """Replace the finest pages by their parents until ``needed`` fits the budget."""
+    degraded = 0
+    while len(needed) > budget_pages:
+        levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
+        finest = levels.min()
+        if finest >= layout.coarsest:
+            break
+        sel = levels == finest
+        k = needed[sel]
+        face = k >> np.uint64(59)
+        px = ((k >> np.uint64(27)) & np.uint64((1 << 27) - 1)) >> np.uint64(1)
+        py = (k & np.uint64((1 << 27) - 1)) >> np.uint64(1)
+        parents = page_key(face, finest + 1, px, py) if len(k) else k
+        degraded += int(sel.sum())
+        needed = np.unique(np.concatenate([needed[~sel], parents.astype(np.uint64)]))
+    return needed, degraded
+
+
+class _Marker:
+    """The level choice of a :class:`VirtualShadowMap` without a store (mark pass)."""
+
+    def __init__(self, layout, lod_bias: float):
+        self.layout = layout
+        self.view = layout.view
+        self.lod_bias = float(lod_bias)
+
+    level_for = VirtualShadowMap.level_for

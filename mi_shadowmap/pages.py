@@ -25,7 +25,7 @@ each batch of lookups. The level is chosen per lane the same way; if the
 page under the receiver is missing at that level (a camera sample off the
 pixel centre) it takes the next finer level, else the next coarser one, else
 the coarsest level (one page per face), which is always built, so no point is
-lit for want of a page. The 2 x 2 pages around the receiver are looked up in
+lit for want of a page (a loop that only lanes with a missing page enter). The 2 x 2 pages around the receiver are looked up in
 the page table (per face and level, a grid of slots over the bounding
 rectangle of its built pages: two gathers, no loop) once per lookup; the
 filter's taps then read through :meth:`BoundVirtualMap.fetch`,
@@ -293,6 +293,7 @@ class PageStore:
         d = dr.normalize(mi.Vector3f(d64))
         dst = g(slot_ids) * tpp + local
         depth = mi.Float(mi.Float64(first_hit(scene, lay.view, o, d)) + lay.t0)
+        dr.eval(depth)      # traced once: the scatter and the page minima both read it
         dr.scatter(self.pools["depth"], depth, dst)
         if "second_depth" in self.pools:
             sd = mi.Float(mi.Float64(second_depth_along(scene, lay.view, o, d)) + lay.t0)
@@ -485,20 +486,32 @@ class VirtualShadowMap:
             return res, bx, by, slots, own != _INVALID
 
         # the wanted level (nearly every lookup); else the next finer, else the next
-        # coarser, else the coarsest (always built): no loop, the fallbacks masked
+        # coarser, else the coarsest (always built). The fallbacks run in a loop that
+        # only lanes whose page is missing enter: most vector packets skip it.
         res, bx, by, slots, ok = block(want, active)
         level = mi.UInt32(want)
-        for lev in (dr.maximum(mi.Int32(want) - 1, 0), dr.minimum(mi.Int32(want) + 1,
-                                                                lay.coarsest),
-                    mi.Int32(lay.coarsest)):
-            redo = active & ~ok
-            r2, bx2, by2, s2, ok2 = block(mi.UInt32(lev), redo)
-            take = redo & (ok2 | (lev == lay.coarsest))
+        step = mi.UInt32(0)
+        want_i = mi.Int32(want)
+
+        def cond(step, level, res, bx, by, s0, s1, s2, s3, ok):
+            return active & ~ok
+
+        def body(step, level, res, bx, by, s0, s1, s2, s3, ok):
+            lev = dr.select(step == 0, dr.maximum(want_i - 1, 0),
+                            dr.select(step == 1, dr.minimum(want_i + 1, lay.coarsest),
+                                      mi.Int32(lay.coarsest)))
+            r2, bx2, by2, new_slots, ok2 = block(mi.UInt32(lev), mi.Bool(True))
+            take = ok2 | (lev == lay.coarsest)
             level = dr.select(take, mi.UInt32(lev), level)
             res, bx, by = dr.select(take, r2, res), dr.select(take, bx2, bx), \
                 dr.select(take, by2, by)
-            slots = [dr.select(take, b, a) for a, b in zip(slots, s2)]
-            ok |= take
+            s0, s1, s2, s3 = (dr.select(take, b, a) for a, b in zip((s0, s1, s2, s3),
+                                                                     new_slots))
+            return step + 1, level, res, bx, by, s0, s1, s2, s3, ok | take
+
+        state = dr.while_loop((step, level, res, bx, by, *slots, ok), cond, body)
+        _, level, res, bx, by = state[:5]
+        slots = list(state[5:9])
         origin = mi.Point2i(bx * P, by * P)
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside))
         return BoundVirtualMap(self, local, res, level, slots)

@@ -166,6 +166,12 @@ class LightView:
         return mi.Point2f(self.uv_on_face_f64(face, p64 + mi.Vector3d(dp_world))
                           - self.uv_on_face_f64(face, p64))
 
+    def depth_differential(self, p_world, dp_world) -> mi.Float:
+        """First-order change of the map depth of ``p_world`` for a small step
+        ``dp_world`` (float32; for views projecting through a centre, the step along
+        the direction from the light)."""
+        return dr.dot(mi.Vector3f(dp_world), -self.direction_to_light(p_world))
+
     def face_texel_f64(self, face, xy_texel, res):
         """A texel at float64 continuous coordinates ``xy_texel`` of ``face`` (resolution
         ``res``, possibly per lane), continued on the neighbouring face where faces have

@@ -67,23 +67,39 @@ class LocalView:
         return depth - dr.abs(depth) * (DEPTH_ULPS * 2.0 ** -24)
 
     # ----------------------------------------------------------- interface
+    def _near_bound(self, p_world):
+        """``(uv_local, depth)`` of ``p_world`` from the bound point's float64
+        projection plus the first-order change for the small step between them, in
+        float32 (a normal offset of a texel or a pixel footprint: the step is exact in
+        float32 as a difference of nearby points, and the second-order term is
+        ``(step / distance)^2`` of it)."""
+        p0, uv64, depth64, _ = self._bound
+        if p_world is p0:
+            return self._to_local_uv(uv64), mi.Float(depth64)
+        dp = mi.Point3f(p_world) - mi.Point3f(p0)
+        duv = self.inner.uv_differential(self.face, p0, dp)
+        return (self._to_local_uv(uv64) + duv,
+                mi.Float(depth64) + self.inner.depth_differential(p0, dp))
+
     def project(self, p_world):
         """Expressed on the bound face (a point that crossed a cube seam gets
         off-face coordinates there, which :meth:`tap_texel` continues across)."""
-        if self._bound is not None and p_world is self._bound[0]:
-            _, uv64, depth, inside = self._bound
-        else:
-            p64 = mi.Point3d(p_world)
-            _, _, depth, inside = self.inner.project_f64(p64)
-            uv64 = self.inner.uv_on_face_f64(self.face, p64)
+        if self._bound is not None:
+            uv, depth = self._near_bound(p_world)
+            return mi.UInt32(self.face), uv, self._lowered(depth), self._bound[3]
+        p64 = mi.Point3d(p_world)
+        _, _, depth, inside = self.inner.project_f64(p64)
+        uv64 = self.inner.uv_on_face_f64(self.face, p64)
         return mi.UInt32(self.face), self._to_local_uv(uv64), self._lowered(depth), inside
 
     def uv_on_face(self, face, p_world):
+        if self._bound is not None:
+            return self._near_bound(p_world)[0]      # the bound face (see project)
         return self._to_local_uv(self.inner.uv_on_face_f64(face, mi.Point3d(p_world)))
 
     def depth_of(self, p_world) -> mi.Float:
-        if self._bound is not None and p_world is self._bound[0]:
-            return self._lowered(self._bound[2])
+        if self._bound is not None:
+            return self._lowered(self._near_bound(p_world)[1])
         return self._lowered(self.inner.project_f64(mi.Point3d(p_world))[2])
 
     def ray_through(self, face, uv_light):

@@ -75,6 +75,9 @@ class OrthoView(LightView):
         dp = mi.Transform4f(self.light_from_world) @ mi.Vector3f(dp_world)
         return mi.Point2f(0.5 * dp.x / self.half_extent[0], 0.5 * dp.y / self.half_extent[1])
 
+    def depth_differential(self, p_world, dp_world):
+        return dr.dot(mi.Vector3f(dp_world), dr.normalize(self._forward()))
+
     def project_f64(self, p_world):
         p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
         uv = mi.Point2d(0.5 * (p_light.x / self.half_extent[0] + 1.0),

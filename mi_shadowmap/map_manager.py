@@ -365,6 +365,21 @@ def view_fingerprint(view) -> tuple:
                                           for f in dataclasses.fields(view))
 
 
+def scene_slot(scenes: collections.OrderedDict, scene, state, max_scenes: int) -> list:
+    """The ``[scene, state, {key: entry}]`` slot of ``scene`` in ``scenes`` (by
+    ``id``), emptied when the scene's state changed; at most ``max_scenes`` kept, least
+    recently used out first. Shared by :class:`MapCache` and the virtual maps' page
+    cache (:class:`mi_shadowmap.pages.PageCache`)."""
+    slot = scenes.get(id(scene))
+    if slot is None or slot[0] is not scene or slot[1] != state:
+        slot = [scene, state, {}]
+        scenes[id(scene)] = slot
+    scenes.move_to_end(id(scene))
+    while len(scenes) > max_scenes:
+        scenes.popitem(last=False)
+    return slot
+
+
 class MapCache:
     """Depth-map layers kept across renders, shared by every integrator instance.
 
@@ -444,14 +459,7 @@ class MapCache:
         return h.hexdigest()
 
     def _slot(self, scene, state):
-        slot = self._scenes.get(id(scene))
-        if slot is None or slot[0] is not scene or slot[1] != state:
-            slot = [scene, state, {}]
-            self._scenes[id(scene)] = slot
-        self._scenes.move_to_end(id(scene))
-        while len(self._scenes) > self.max_scenes:
-            self._scenes.popitem(last=False)
-        return slot
+        return scene_slot(self._scenes, scene, state, self.max_scenes)
 
     def entries(self, scene, state, key):
         """``(layer, entry)`` pairs cached for ``key`` (e.g. culled maps)."""

@@ -73,6 +73,7 @@ import numpy as np
 
 from .depth_maps import first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS  # noqa: F401  (the layers built here)
+from .light_views import pixel_centres
 from .light_views.local import LocalView
 
 #: Largest virtual resolution per face side (texel coordinates stay in an Int32).
@@ -580,12 +581,7 @@ class BoundVirtualMap:
 def camera_hits(scene, sensor):
     """Camera hits at every pixel centre with one-pixel ray differentials:
     ``(si, dp_dx, dp_dy, valid)``."""
-    w, h = (int(x) for x in sensor.film().crop_size())
-    idx = dr.arange(mi.UInt32, w * h)
-    y = idx // w
-    x = idx - y * w
-    pos = mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
-    ray, _ = sensor.sample_ray_differential(0.0, 0.5, pos, mi.Point2f(0.5))
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
     si = scene.ray_intersect(ray)
     n = si.n
 
@@ -660,13 +656,8 @@ class PageCache:
         self._scenes = collections.OrderedDict()   # id(scene) -> [scene, state, {key: store}]
 
     def store(self, scene, state, key, make):
-        slot = self._scenes.get(id(scene))
-        if slot is None or slot[0] is not scene or slot[1] != state:
-            slot = [scene, state, {}]
-            self._scenes[id(scene)] = slot
-        self._scenes.move_to_end(id(scene))
-        while len(self._scenes) > self.max_scenes:
-            self._scenes.popitem(last=False)
+        from .map_manager import scene_slot
+        slot = scene_slot(self._scenes, scene, state, self.max_scenes)
         if key not in slot[2]:
             slot[2][key] = make()
         return slot[2][key]

@@ -38,7 +38,7 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "MultiView", "multi_view", "make_light_view", "emitter_kind", "emitter_label",
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
-           "footprint_ratio", "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
+           "footprint_ratio", "pixel_centres", "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
 
 SUPPORTED_EMITTERS = ("point", "spot", "directional", "area")
 _CLASS_TO_KIND = {
@@ -92,16 +92,20 @@ def make_light_view(emitter, scene, index: int) -> LightView:
            "them without shadows" if kind == "environment" else ""))
 
 
-def camera_visible_points(scene, sensor) -> np.ndarray:
-    """World points the camera sees: one ray through every pixel centre, ``(N, 3)``."""
-    if sensor is None:
-        return np.zeros((0, 3))
+def pixel_centres(sensor) -> mi.Point2f:
+    """The film position of every pixel centre of ``sensor``'s crop, row by row."""
     w, h = (int(x) for x in sensor.film().crop_size())
     idx = dr.arange(mi.UInt32, w * h)
     y = idx // w
     x = idx - y * w
-    pos = mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
-    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+
+
+def camera_visible_points(scene, sensor) -> np.ndarray:
+    """World points the camera sees: one ray through every pixel centre, ``(N, 3)``."""
+    if sensor is None:
+        return np.zeros((0, 3))
+    ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
     si = scene.ray_intersect(ray)
     p = np.stack([si.p.x.numpy(), si.p.y.numpy(), si.p.z.numpy()], axis=1)
     return p[si.is_valid().numpy()]

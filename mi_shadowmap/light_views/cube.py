@@ -46,6 +46,26 @@ def cube_face(d: mi.Vector3f):
     return face, u_comp * inv, v_comp * inv, major
 
 
+def face_split(face, v):
+    """``(major, u, w)``: the components of ``v`` along face ``face``'s axis (signed
+    towards the face) and along its ``u`` and ``v`` axes (see :func:`cube_dir`)."""
+    axis = face // 2
+    sign = dr.select((face & 1) == 0, 1.0, -1.0)
+    major = sign * dr.select(axis == 0, v.x, dr.select(axis == 1, v.y, v.z))
+    u = dr.select(axis == 0, v.y, dr.select(axis == 1, v.z, v.x))
+    w = dr.select(axis == 0, v.z, dr.select(axis == 1, v.x, v.y))
+    return major, u, w
+
+
+def face_uv(face, d):
+    """``uv_light`` of direction ``d`` on face ``face`` (off the face too), float32 or
+    float64 as ``d`` is."""
+    major, u, w = face_split(face, d)
+    inv = dr.rcp(dr.maximum(major, 1e-300 if isinstance(major, mi.Float64) else 1e-30))
+    point2 = mi.Point2d if isinstance(major, mi.Float64) else mi.Point2f
+    return point2(0.5 * (u * inv + 1.0), 0.5 * (w * inv + 1.0))
+
+
 @dataclass(frozen=True)
 class CubeView(LightView):
     """Six 90-degree faces around ``position`` in world axes."""
@@ -74,15 +94,8 @@ class CubeView(LightView):
         return face, uv, depth, major > 0
 
     def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
-        d = mi.Point3f(p_world) - mi.Point3f(self.position)
-        face = mi.UInt32(face)
-        axis = face // 2
-        sign = dr.select((face & 1) == 0, 1.0, -1.0)
-        major = sign * dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
-        u_comp = dr.select(axis == 0, d.y, dr.select(axis == 1, d.z, d.x))
-        v_comp = dr.select(axis == 0, d.z, dr.select(axis == 1, d.x, d.y))
-        inv = dr.rcp(dr.maximum(major, 1e-30))
-        return mi.Point2f(0.5 * (u_comp * inv + 1.0), 0.5 * (v_comp * inv + 1.0))
+        return mi.Point2f(face_uv(mi.UInt32(face),
+                                  mi.Point3f(p_world) - mi.Point3f(self.position)))
 
     def texel_world_size(self, res: int, depth, p_world=None):
         return depth * (2.0 * self.tan_half / res)
@@ -109,30 +122,12 @@ class CubeView(LightView):
 
     def uv_on_face_f64(self, face, p_world):
         d = mi.Point3d(p_world) - mi.Point3d(*(float(c) for c in position_np(self)))
-        face = mi.UInt32(face)
-        axis = face // 2
-        sign = dr.select((face & 1) == 0, 1.0, -1.0)
-        major = sign * dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
-        u_comp = dr.select(axis == 0, d.y, dr.select(axis == 1, d.z, d.x))
-        v_comp = dr.select(axis == 0, d.z, dr.select(axis == 1, d.x, d.y))
-        inv = dr.rcp(dr.maximum(major, 1e-300))
-        return mi.Point2d(0.5 * (u_comp * inv + 1.0), 0.5 * (v_comp * inv + 1.0))
+        return face_uv(mi.UInt32(face), d)
 
     def uv_differential(self, face, p_world, dp_world):
-        d = mi.Point3f(p_world) - mi.Point3f(self.position)
-        dd = mi.Vector3f(dp_world)
         face = mi.UInt32(face)
-        axis = face // 2
-        sign = dr.select((face & 1) == 0, 1.0, -1.0)
-
-        def split(v):
-            major = sign * dr.select(axis == 0, v.x, dr.select(axis == 1, v.y, v.z))
-            u = dr.select(axis == 0, v.y, dr.select(axis == 1, v.z, v.x))
-            w = dr.select(axis == 0, v.z, dr.select(axis == 1, v.x, v.y))
-            return major, u, w
-
-        m, u, w = split(d)
-        dm, du, dw = split(dd)
+        m, u, w = face_split(face, mi.Point3f(p_world) - mi.Point3f(self.position))
+        dm, du, dw = face_split(face, mi.Vector3f(dp_world))
         inv = dr.rcp(dr.maximum(m, 1e-30))
         return mi.Point2f(0.5 * (du - u * dm * inv) * inv, 0.5 * (dw - w * dm * inv) * inv)
 

@@ -309,6 +309,12 @@ def _prepare_virtual(scene, sensor, opts, views, t0) -> PreparedMaps:
     """``virtual=true``: virtual maps (:mod:`mi_shadowmap.pages`) for the emitters whose
     view supports them; the others (environment regions) get full maps as usual."""
     from .pages import prepare_virtual
+    if maps_need_gradients(scene):
+        # virtual pages are built detached: shadows would pass no gradient, silently
+        raise ValueError("shadowmap: property 'virtual' = true builds no differentiable "
+                         "maps, and a shape or emitter parameter of this render has "
+                         "gradients enabled; set virtual=false (full maps are built in "
+                         "the AD graph) or disable those gradients")
     if views is None:
         from .environment import light_view as environment_view
         views = [environment_view(e, scene, i, opts) if emitter_kind(e) == "environment"

@@ -45,6 +45,9 @@ literal, so moving the camera compiles no new kernel.
 frame's own pages do not fit, the finest marked pages are replaced by their
 parents (coarser, never missing) with a warning.
 
+**Gradients**: pages are built detached; a render whose shape or emitter parameters
+have gradients enabled is refused (full maps are built in the AD graph, issue 13).
+
 Deviations from UE5, and why:
 
 * One mechanism for every light: a mip chain over the whole (scene-fitted)

@@ -341,3 +341,19 @@ def test_a_user_method_reads_virtual_maps():
         assert np.array_equal(a, b)
     finally:
         unregister_method("my_nearest")
+
+
+def test_gradients_through_virtual_maps_are_refused_not_zero():
+    """Virtual pages are built detached: with a shape parameter's gradients enabled the
+    render says so instead of returning shadows without gradients."""
+    scene = mi.load_dict(default_scene(width=16, height=16, spp=1))
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if "vertex_positions" in k)
+    dr.enable_grad(params[key])
+    params.update()
+    integ = shadowmap(method="hard", virtual=True)
+    with pytest.raises(Exception) as e:
+        img = mi.render(scene, params, integrator=integ, spp=1)
+        dr.backward(dr.mean(img))
+    msg = str(e.value) + str(getattr(e.value, "__cause__", ""))
+    assert "virtual" in msg and "gradients" in msg

@@ -1,0 +1,505 @@
+"""Differentiable shadows (issue 13): our gradients against Mitsuba's ``direct_projective``.
+
+    python benchmarks/bench_gradients.py [--scene area|directional] [--image 128] [--spp 16]
+                                         [--map 512] [--seeds 8] [--mean-seeds 24]
+                                         [--param along|sideways] [--methods vsm,pcf]
+                                         [--no-projective] [--json out.json]
+
+One scalar parameter ``t`` moves an occluder (a cube mesh, through its
+``vertex_positions``) and the loss is the mean colour of the *receiver* pixels: ground
+pixels at least ``--margin`` pixels away, on screen, from anything that is not ground
+(so the occluder's own silhouette and shading never enter the loss; only its shadow).
+
+``--param along`` (default) moves every vertex of the occluder by ``t`` along the light
+ray through it: away from the area light's centre (the point its cube map is seen
+from), or along a directional light's direction. The occluder's outline in the maps
+stays where it is, so the maps change only through their depths -- the case the
+current differentiable maps handle (tests/test_differentiable.py). ``--param sideways``
+translates the occluder horizontally, across the light: its outline moves across
+texels, which the maps (not antialiased yet) do not differentiate -- expect wrong
+gradients from ours there.
+
+Integrators (all get the same scene, spp, parameter and loss):
+
+* ``vsm`` (``filter_size 4``) and ``pcf`` (``soft_compare 24``): ``shadowmap``, maps
+  rebuilt in the AD graph at every gradient (``maps_need_gradients``);
+* ``direct_projective``: Mitsuba's projective-sampling direct integrator
+  (``sppc = sppp = sppi = spp`` through ``mi.render(..., spp=)``).
+
+Each integrator runs in a fresh subprocess (``--worker``): one warm-up gradient
+(compiles), then one gradient per seed, ``mi.render(scene, params, seed=s, spp=)`` +
+``dr.backward(loss)``, timed with ``dr.sync_thread()``. Reported:
+
+1. time per gradient: median over the ``--seeds`` runs (warm), and the ratio
+   direct_projective / ours;
+2. spread: standard deviation of the scalar gradient over the first ``--seeds`` seeds,
+   and its ratio to direct_projective's; the mean over ``--mean-seeds`` seeds (sign
+   check), with its standard error;
+3. peak memory: ``ru_maxrss`` of the worker after the scene is loaded and at the end
+   (the difference is what the gradients added);
+4. our gradient against central finite differences of our own forward renders (same
+   seed on both sides; ``--fd-h``): the scalar ``t`` (relative error) and a vector of
+   per-corner offsets along the light (8 corners of the cube: cosine similarity), as in
+   tests/test_differentiable.py; plus a reference derivative: central differences of
+   ray-traced renders (``shadowmap method=raytraced``, ``--ref-spp`` spp, same seed).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+T = None   # mi.ScalarTransform4f, set after the import below (workers only import mitsuba)
+
+#: The directional scene's light (as tests/test_differentiable.py).
+DIR_LIGHT = np.array([1.0, -1.2, 0.3]) / np.linalg.norm([1.0, -1.2, 0.3])
+#: The area scene's light: a 0.6 x 0.6 quad facing down, its centre here.
+AREA_CENTRE = np.array([-1.2, 3.0, 0.0])
+
+METHODS = {
+    "vsm": {"type": "shadowmap", "method": "vsm", "filter_size": 4.0},
+    "pcf": {"type": "shadowmap", "method": "pcf", "soft_compare": 24.0},
+    "pcss": {"type": "shadowmap", "method": "pcss", "soft_compare": 24.0},
+    "direct_projective": {"type": "direct_projective"},
+}
+LABELS = {"vsm": "vsm (filter_size 4)", "pcf": "pcf (soft_compare 24)",
+          "pcss": "pcss (soft_compare 24)",
+          "direct_projective": "direct_projective"}
+
+
+# ------------------------------------------------------------------------ scenes
+def _diffuse(v):
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": v}}
+
+
+def scene_dict(kind, image, spp):
+    import mitsuba as mi
+    T = mi.ScalarTransform4f
+    d = {
+        "type": "scene",
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4),
+                   "bsdf": _diffuse(0.7)},
+    }
+    film = {"type": "hdrfilm", "width": image, "height": image, "rfilter": {"type": "box"}}
+    sampler = {"type": "independent", "sample_count": spp}
+    if kind == "area":
+        d["sensor"] = {"type": "perspective", "fov": 45,
+                       "to_world": T().look_at(origin=[0.0, 5.0, 4.5], target=[0.3, 0.0, 0.0],
+                                               up=[0, 1, 0]),
+                       "sampler": sampler, "film": film}
+        # the occluder: a cube (a mesh: 24 vertices, 3 per corner) 1 unit above the ground
+        d["occluder"] = {"type": "cube", "bsdf": _diffuse(0.5),
+                         "to_world": T().translate([0.0, 1.0, 0.0]).rotate([0, 1, 0], 20)
+                         .scale([0.35, 0.1, 0.35])}
+        d["light"] = {"type": "rectangle",
+                      "to_world": T().translate(AREA_CENTRE.tolist()).rotate([1, 0, 0], 90)
+                      .scale(0.3),
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 25.0}}}
+    else:   # tests/test_differentiable.py's scene (the box is the occluder)
+        d["sensor"] = {"type": "perspective", "fov": 40,
+                       "to_world": T().look_at(origin=[0.0, 5.5, 3.0], target=[0.0, 0.0, 0.0],
+                                               up=[0, 1, 0]),
+                       "sampler": sampler, "film": film}
+        d["occluder"] = {"type": "cube", "bsdf": _diffuse(0.55),
+                         "to_world": T().translate([0.3, 0.8, -0.6]).scale(0.25)}
+        d["slab"] = {"type": "cube", "bsdf": _diffuse(0.5),
+                     "to_world": T().translate([-1.0, 0.6, 0.3]).scale([0.35, 0.02, 0.35])}
+        d["post"] = {"type": "cube", "bsdf": _diffuse(0.6),
+                     "to_world": T().translate([3.8, 1.5, 3.8]).scale([0.05, 1.5, 0.05])}
+        d["sun"] = {"type": "directional", "direction": DIR_LIGHT.tolist(),
+                    "irradiance": {"type": "rgb", "value": 3.0}}
+    return d
+
+
+def receiver_mask(scene, spp, margin):
+    """Ground pixels at least ``margin`` pixels from anything else on screen."""
+    import mitsuba as mi
+    integ = mi.load_dict({"type": "aov", "aovs": "p:position"})
+    img = np.asarray(mi.render(scene, integrator=integ, spp=spp, seed=0))
+    bad = ~(np.abs(img[..., 1]) < 1e-4)
+    grown = bad.copy()
+    for dy in range(-margin, margin + 1):
+        for dx in range(-margin, margin + 1):
+            grown |= np.roll(np.roll(bad, dy, 0), dx, 1)
+    return ~grown
+
+
+class Occluder:
+    """The occluder's vertices as a function of parameters: ``set_scalar(t)`` (the
+    benchmark's parameter) or ``set_corners(theta)`` (one offset along the light per
+    distinct corner, for the finite-difference cosine)."""
+
+    def __init__(self, scene, kind, param):
+        import mitsuba as mi
+        self.params = mi.traverse(scene)
+        self.key = "occluder.vertex_positions"
+        self.base = np.array(self.params[self.key]).reshape(-1, 3).astype(np.float64)
+        _, inv = np.unique(np.round(self.base, 5), axis=0, return_inverse=True)
+        self.group = inv.ravel().astype(np.uint32)
+        self.n_corners = int(inv.max()) + 1
+        if param == "along":        # along the light ray through each vertex
+            if kind == "area":
+                d = self.base - AREA_CENTRE[None, :]
+                self.dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
+            else:
+                self.dirs = np.tile(DIR_LIGHT, (len(self.base), 1))
+        elif param == "sideways":   # horizontal, across the light
+            side = np.array([0.0, 0.0, 1.0])
+            self.dirs = np.tile(side, (len(self.base), 1))
+        else:
+            raise ValueError(param)
+        # per-corner directions along the light (the FD vector check)
+        if kind == "area":
+            d = self.base - AREA_CENTRE[None, :]
+            self.light_dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
+        else:
+            self.light_dirs = np.tile(DIR_LIGHT, (len(self.base), 1))
+
+    def _put(self, off, dirs):
+        import drjit as dr
+        import mitsuba as mi
+        v = mi.Point3f(*[mi.Float(self.base[:, i].astype(np.float32))
+                         + off * mi.Float(dirs[:, i].astype(np.float32)) for i in range(3)])
+        self.params[self.key] = dr.ravel(v)
+        self.params.update()
+
+    def set_scalar(self, t):
+        """``t``: a Python float or an attached ``mi.Float`` of size 1."""
+        import mitsuba as mi
+        self._put(mi.Float(t) if not isinstance(t, mi.Float) else t, self.dirs)
+
+    def set_corners(self, theta):
+        import drjit as dr
+        import mitsuba as mi
+        if not isinstance(theta, mi.Float):
+            theta = mi.Float(np.asarray(theta, dtype=np.float32))
+        self._put(dr.gather(mi.Float, theta, mi.UInt32(self.group)), self.light_dirs)
+
+
+def loss_of(img, weights):
+    import drjit as dr
+    return dr.sum(img.array * weights)
+
+
+# ------------------------------------------------------------------------ workers
+def _setup(args):
+    import mi_shadowmap  # noqa: F401  (variant, registration)
+    import drjit as dr  # noqa: F401
+    import mitsuba as mi
+    if mi.variant() != "llvm_ad_rgb":
+        mi.set_variant("llvm_ad_rgb")
+    scene = mi.load_dict(scene_dict(args.scene, args.image, args.spp))
+    mask = receiver_mask(scene, args.spp, args.margin)
+    occ = Occluder(scene, args.scene, args.param)
+    n_ch = 3 + 1   # RGB + shadowmap's visibility AOV; direct_projective has 3 channels
+    return scene, mask, occ, n_ch
+
+
+def _weights(mask, channels):
+    import mitsuba as mi
+    w = np.zeros(mask.shape + (channels,), np.float32)
+    w[..., :3] = mask[..., None] / (3.0 * mask.sum())   # mean colour over the receiver
+    return mi.Float(w.ravel())
+
+
+def _integrator(name, args):
+    import mitsuba as mi
+    d = dict(METHODS[name])
+    if d["type"] == "shadowmap":
+        d["resolution"] = args.map
+    return mi.load_dict(d)
+
+
+def worker_grad(args):
+    """Warm-up + one gradient per seed; prints one JSON line."""
+    import drjit as dr
+    import mitsuba as mi
+    scene, mask, occ, _ = _setup(args)
+    integ = _integrator(args.worker, args)
+    rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    weights = {}
+
+    def gradient(seed):
+        t = mi.Float(0.0)
+        dr.enable_grad(t)
+        occ.set_scalar(t)
+        img = mi.render(scene, occ.params, integrator=integ, spp=args.spp, seed=seed)
+        c = img.shape[-1]
+        if c not in weights:
+            weights[c] = _weights(mask, c)
+        loss = loss_of(img, weights[c])
+        dr.backward(loss)
+        g = float(dr.grad(t)[0])
+        lv = float(loss[0])
+        occ.set_scalar(0.0)   # detached again
+        return g, lv
+
+    t0 = time.perf_counter()
+    gradient(10_000)          # warm-up (compilation)
+    dr.sync_thread()
+    warm = time.perf_counter() - t0
+    grads, losses, times = [], [], []
+    for s in range(args.n_seeds):
+        t0 = time.perf_counter()
+        g, lv = gradient(s)
+        dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+        grads.append(g)
+        losses.append(lv)
+    out = {"name": args.worker, "grads": grads, "losses": losses, "times": times,
+           "first_seconds": warm, "rss_loaded_kb": rss_loaded,
+           "rss_peak_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+           "mask_pixels": int(mask.sum())}
+    print("RESULT " + json.dumps(out), flush=True)
+
+
+def worker_fd(args):
+    """AD vs central differences of the same method's forward renders (same seed)."""
+    import drjit as dr
+    import mitsuba as mi
+    scene, mask, occ, _ = _setup(args)
+    seed = 1
+    if args.worker == "ref":   # ray-traced reference derivative of the scalar parameter
+        integ = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
+        w = _weights(mask, 4)
+        vals = []
+        for sgn in (1.0, -1.0):
+            occ.set_scalar(sgn * args.ref_h)
+            img = mi.render(scene, integrator=integ, spp=args.ref_spp, seed=seed)
+            vals.append(float(loss_of(img, w)[0]))
+        occ.set_scalar(0.0)
+        print("RESULT " + json.dumps({"name": "ref", "fd_t": (vals[0] - vals[1]) / (2 * args.ref_h)}),
+              flush=True)
+        return
+    integ = _integrator(args.worker, args)
+    w = _weights(mask, 4)
+    h = args.fd_h
+
+    def loss_scalar(t):
+        occ.set_scalar(t)
+        img = mi.render(scene, integrator=integ, spp=args.spp, seed=seed)
+        return float(loss_of(img, w)[0])
+
+    def loss_corners(theta):
+        occ.set_corners(theta)
+        img = mi.render(scene, integrator=integ, spp=args.spp, seed=seed)
+        return float(loss_of(img, w)[0])
+
+    # scalar parameter: AD and FD
+    t = mi.Float(0.0)
+    dr.enable_grad(t)
+    occ.set_scalar(t)
+    img = mi.render(scene, occ.params, integrator=integ, spp=args.spp, seed=seed)
+    dr.backward(loss_of(img, w))
+    g_t = float(dr.grad(t)[0])
+    fd_t = (loss_scalar(h) - loss_scalar(-h)) / (2 * h)
+    # per-corner offsets along the light
+    n = occ.n_corners
+    th = mi.Float(np.zeros(n, np.float32))
+    dr.enable_grad(th)
+    occ.set_corners(th)
+    img = mi.render(scene, occ.params, integrator=integ, spp=args.spp, seed=seed)
+    dr.backward(loss_of(img, w))
+    g_v = dr.grad(th).numpy().astype(np.float64)
+    fd_v = []
+    for k in range(n):
+        e = np.zeros(n)
+        e[k] = h
+        fd_v.append((loss_corners(e) - loss_corners(-e)) / (2 * h))
+    fd_v = np.array(fd_v)
+    occ.set_scalar(0.0)
+    cos = float(g_v @ fd_v / (np.linalg.norm(g_v) * np.linalg.norm(fd_v) + 1e-30))
+    print("RESULT " + json.dumps({"name": args.worker, "ad_t": g_t, "fd_t": fd_t,
+                                  "cos": cos, "n": n, "ad_v": g_v.tolist(),
+                                  "fd_v": fd_v.tolist()}), flush=True)
+
+
+# ------------------------------------------------------------------------ driver
+def run_worker(args, name, mode, n_seeds=None, timeout=3600):
+    cmd = [sys.executable, os.path.abspath(__file__), "--worker", name, "--mode", mode,
+           "--scene", args.scene, "--image", str(args.image), "--spp", str(args.spp),
+           "--map", str(args.map), "--margin", str(args.margin), "--param", args.param,
+           "--fd-h", str(args.fd_h), "--ref-h", str(args.ref_h), "--ref-spp", str(args.ref_spp),
+           "--n-seeds", str(n_seeds or 0)]
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    dt = time.perf_counter() - t0
+    # (a Mitsuba warning's colour reset can precede the line's start)
+    lines = [l[l.index("RESULT "):] for l in p.stdout.splitlines() if "RESULT {" in l]
+    if p.returncode != 0 or not lines:
+        msg = (p.stderr or p.stdout).strip().splitlines()[-15:]
+        print(f"  worker {name}/{mode} FAILED (exit {p.returncode}, {dt:.0f} s):\n    "
+              + "\n    ".join(msg), flush=True)
+        return {"name": name, "failed": True, "returncode": p.returncode, "stderr": msg}
+    out = json.loads(lines[-1][len("RESULT "):])
+    out["wall_seconds"] = dt
+    print(f"  worker {name}/{mode}: {dt:.0f} s", flush=True)
+    return out
+
+
+def same_sign(a, b):
+    if b is None:
+        return "n/a"
+    if b == 0:
+        return "n/a (reference 0)"
+    return "yes" if np.sign(a) == np.sign(b) else "NO"
+
+
+def fmt(x, digits=4):
+    if x is None or (isinstance(x, float) and not np.isfinite(x)):
+        return "n/a"
+    return f"{x:.{digits}g}"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", default="area",
+                    help="area, directional, or both comma-separated (run in turn)")
+    ap.add_argument("--image", type=int, default=128, help="film width = height")
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--map", type=int, default=128, help="shadow-map resolution per face "
+                    "(128 as tests/test_differentiable.py; at 512, soft_compare 24 is "
+                    "narrower than the occluder's depth gap and pcf's gradient is exactly 0)")
+    ap.add_argument("--margin", type=int, default=None, help="receiver pixels' distance "
+                    "(px) from anything else on screen (default: image / 16, i.e. 8 at 128^2, "
+                    "as tests/test_differentiable.py's 2 px at 32^2; at 3 px direct_projective's "
+                    "mean was 1.8x the finite-difference reference on the area scene)")
+    ap.add_argument("--param", choices=("along", "sideways"), default="along")
+    ap.add_argument("--methods", default="vsm,pcf")
+    ap.add_argument("--seeds", type=int, default=8, help="seeds for time and spread")
+    ap.add_argument("--mean-seeds", type=int, default=24,
+                    help="seeds for the mean (sign check); >= --seeds")
+    ap.add_argument("--projective-mean-seeds", type=int, default=None,
+                    help="direct_projective's --mean-seeds (default: the same)")
+    ap.add_argument("--no-projective", action="store_true")
+    ap.add_argument("--no-fd", action="store_true")
+    ap.add_argument("--fd-h", type=float, default=0.02)
+    ap.add_argument("--ref-h", type=float, default=0.05)
+    ap.add_argument("--ref-spp", type=int, default=1024)
+    ap.add_argument("--json", default=None)
+    # worker mode (internal)
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--mode", default="grad", help=argparse.SUPPRESS)
+    ap.add_argument("--n-seeds", type=int, default=0, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.margin is None:
+        args.margin = max(1, args.image // 16)
+
+    if args.worker:
+        (worker_grad if args.mode == "grad" else worker_fd)(args)
+        return
+    allres = {}
+    for kind in args.scene.split(","):
+        a = argparse.Namespace(**vars(args))
+        a.scene = kind
+        allres[kind] = run_scene(a)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(allres, f, indent=1)
+
+
+def run_scene(args):
+    methods = [m for m in args.methods.split(",") if m]
+    mean_seeds = max(args.mean_seeds, args.seeds)
+    dp_mean_seeds = max(args.projective_mean_seeds or mean_seeds, args.seeds)
+    print(f"# bench_gradients: {args.scene} scene, {args.image}^2, {args.spp} spp, map "
+          f"{args.map}, parameter '{args.param}', {args.seeds} seeds (spread), "
+          f"{mean_seeds}/{dp_mean_seeds} seeds (mean: ours/direct_projective)", flush=True)
+    res = {"args": vars(args), "grad": {}, "fd": {}}
+    t_start = time.perf_counter()
+    for m in methods:
+        res["grad"][m] = run_worker(args, m, "grad", mean_seeds)
+    if not args.no_projective:
+        res["grad"]["direct_projective"] = run_worker(args, "direct_projective", "grad",
+                                                      dp_mean_seeds)
+    if not args.no_fd:
+        for m in methods:
+            res["fd"][m] = run_worker(args, m, "fd")
+        res["fd"]["ref"] = run_worker(args, "ref", "fd")
+    res["total_seconds"] = time.perf_counter() - t_start
+
+    # ---------------------------------------------------------------- tables
+    G = res["grad"]
+    dp = G.get("direct_projective")
+    dp_ok = dp is not None and not dp.get("failed")
+    n = args.seeds
+
+    def stats(r):
+        g = np.array(r["grads"])
+        t = float(statistics.median(r["times"][:n]))
+        sd = float(np.std(g[:n], ddof=1))
+        mean = float(g.mean())
+        se = float(np.std(g, ddof=1) / np.sqrt(len(g)))
+        return t, sd, mean, se, len(g)
+
+    ref_t = res["fd"].get("ref", {}).get("fd_t")
+    print()
+    print(f"Scene: {args.scene} light, {args.image}x{args.image}, {args.spp} spp; parameter: "
+          f"occluder moved '{args.param}' the light (scalar t, d loss / d t at t = 0); loss: "
+          f"mean colour over {next((r['mask_pixels'] for r in G.values() if 'mask_pixels' in r), '?')}"
+          f" receiver pixels.")
+    print()
+    print("| integrator | time / gradient (median, s) | speed-up vs dp | "
+          f"std over {n} seeds | std ratio (ours / dp), equal spp | std ratio, equal time "
+          f"| mean ({mean_seeds} / {dp_mean_seeds} seeds) | std. error of mean | sign = dp mean? "
+          "| sign = reference? | first gradient (compiles or reads the kernel cache), s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    dp_stats = stats(dp) if dp_ok else None
+
+    for m, r in G.items():
+        if r.get("failed"):
+            print(f"| {LABELS[m]} | failed (exit {r['returncode']}) | | | | | | | | | |")
+            continue
+        t, sd, mean, se, k = stats(r)
+        if m == "direct_projective" or dp_stats is None:
+            sp, ratio, ratio_t, sign = ("1" if m == "direct_projective" else "n/a"), "-", "-", "-"
+        else:
+            sp = f"{dp_stats[0] / t:.1f}x"
+            ok = dp_stats[1] > 0
+            ratio = f"{sd / dp_stats[1]:.3f}" if ok else "n/a"
+            # equal time: averaging k gradients divides the std by sqrt(k)
+            ratio_t = (f"{sd * np.sqrt(t) / (dp_stats[1] * np.sqrt(dp_stats[0])):.3f}"
+                       if ok else "n/a")
+            sign = same_sign(mean, dp_stats[2])
+        print(f"| {LABELS[m]} | {t:.3f} | {sp} | {fmt(sd)} | {ratio} | {ratio_t} | {fmt(mean)} "
+              f"| {fmt(se, 2)} | {sign} | {same_sign(mean, ref_t)} | {r['first_seconds']:.1f} |")
+    if ref_t is not None:
+        print(f"\nReference derivative (central differences of ray-traced renders, "
+              f"{args.ref_spp} spp, h = {args.ref_h}, same seed): {fmt(ref_t)}")
+
+    print()
+    print("| integrator | peak RSS after scene load (MiB) | peak RSS at end (MiB) | added by the gradients (MiB) |")
+    print("|---|---|---|---|")
+    for m, r in G.items():
+        if r.get("failed"):
+            continue
+        a, b = r["rss_loaded_kb"] / 1024, r["rss_peak_kb"] / 1024
+        print(f"| {LABELS[m]} | {a:.0f} | {b:.0f} | {b - a:.0f} |")
+
+    if res["fd"]:
+        print()
+        print(f"| method | AD d loss/dt (seed 1) | central FD (h = {args.fd_h}, seed 1) | rel. error "
+              "| cosine, AD vs FD, per-corner offsets along the light | sign = reference? |")
+        print("|---|---|---|---|---|---|")
+        for m in methods:
+            r = res["fd"].get(m)
+            if r is None or r.get("failed"):
+                print(f"| {LABELS[m]} | failed | | | | |")
+                continue
+            rel = abs(r["ad_t"] - r["fd_t"]) / max(abs(r["fd_t"]), 1e-30)
+            sgn = same_sign(r["ad_t"], ref_t)
+            print(f"| {LABELS[m]} | {fmt(r['ad_t'])} | {fmt(r['fd_t'])} | {rel:.3f} | "
+                  f"{r['cos']:.4f} ({r['n']} corners) | {sgn} |")
+    print(f"\nTotal {res['total_seconds']:.0f} s.\n")
+    return res
+
+
+if __name__ == "__main__":
+    main()

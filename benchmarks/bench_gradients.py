@@ -1,9 +1,23 @@
 """Differentiable shadows (issue 13): our gradients against Mitsuba's ``direct_projective``.
 
-    python benchmarks/bench_gradients.py [--scene area|directional] [--image 128] [--spp 16]
-                                         [--map 512] [--seeds 8] [--mean-seeds 24]
-                                         [--param along|sideways] [--methods vsm,pcf]
-                                         [--no-projective] [--json out.json]
+    python benchmarks/bench_gradients.py [--scene area,directional] [--image 128] [--spp 16]
+                                         [--map 128] [--margin 8] [--seeds 8] [--mean-seeds 24]
+                                         [--param along|sideways] [--methods vsm,pcf[,pcss]]
+                                         [--ref-spp 1024] [--ref-seeds 4] [--no-projective]
+                                         [--no-fd] [--json out.json]
+
+Default run: both scenes, about 4-6 minutes on 2 cores (direct_projective's 2 x 25
+gradients are most of it).
+
+Scenes: ``area`` -- a 0.6 x 0.6 rectangle area light 3 units up (its cube map seen from
+its centre) over a ground plane, a flat box occluder 1 unit up; ``directional`` --
+tests/test_differentiable.py's scene (the ``box`` is the occluder). The occluder is a
+welded 8-vertex box mesh (``--occluder welded``): on Mitsuba's 24-vertex ``cube``
+(``--occluder cube``) direct_projective's gradients come out about 2x too large (each
+silhouette edge is a boundary edge of two separate faces). For motion along
+the light the directional scene's true derivative is exactly 0 (a hard shadow whose
+outline does not move), so there only the self-consistency check means anything; the
+area scene's true derivative is small but nonzero (the penumbra narrows).
 
 One scalar parameter ``t`` moves an occluder (a cube mesh, through its
 ``vertex_positions``) and the loss is the mean colour of the *receiver* pixels: ground
@@ -41,7 +55,11 @@ Each integrator runs in a fresh subprocess (``--worker``): one warm-up gradient
    seed on both sides; ``--fd-h``): the scalar ``t`` (relative error) and a vector of
    per-corner offsets along the light (8 corners of the cube: cosine similarity), as in
    tests/test_differentiable.py; plus a reference derivative: central differences of
-   ray-traced renders (``shadowmap method=raytraced``, ``--ref-spp`` spp, same seed).
+   ray-traced renders (``shadowmap method=raytraced``, ``--ref-spp`` spp, the same seed
+   on both sides, averaged over ``--ref-seeds`` seeds): the sign checks use it.
+
+Times depend on the machine's load (direct_projective took 3.4 s per gradient on an
+idle 2-core machine and 5.7 s with another job on one core).
 """
 from __future__ import annotations
 
@@ -79,7 +97,37 @@ def _diffuse(v):
     return {"type": "diffuse", "reflectance": {"type": "rgb", "value": v}}
 
 
-def scene_dict(kind, image, spp):
+#: A unit cube's corners and its 12 triangles (outward), for the welded occluder.
+CUBE_V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float32)
+CUBE_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.uint32)
+
+
+def welded_cube(to_world, bsdf):
+    """A cube mesh with 8 shared vertices (Mitsuba's ``cube`` has 24: every face a
+    separate quad, so every edge is a boundary edge, and direct_projective counts each
+    silhouette edge of it twice -- measured: its gradient is 2.0x the finite
+    differences for a sideways translation, 1.0x with this mesh)."""
+    import drjit as dr
+    import mitsuba as mi
+    v = np.array([to_world @ mi.ScalarPoint3f(*p) for p in CUBE_V], np.float32)
+    m = mi.Mesh("occluder", vertex_count=8, face_count=12, has_vertex_normals=False)
+    p = mi.traverse(m)
+    p["vertex_positions"] = dr.ravel(mi.Point3f(v.T))
+    p["faces"] = dr.ravel(mi.Vector3u(CUBE_F.T))
+    p.update()
+    m.set_bsdf(mi.load_dict(bsdf))
+    return m
+
+
+def scene_dict(kind, image, spp, occluder="welded"):
+    d = _scene_dict(kind, image, spp)
+    if occluder == "welded":
+        d["occluder"] = welded_cube(d["occluder"]["to_world"], d["occluder"]["bsdf"])
+    return d
+
+
+def _scene_dict(kind, image, spp):
     import mitsuba as mi
     T = mi.ScalarTransform4f
     d = {
@@ -195,7 +243,7 @@ def _setup(args):
     import mitsuba as mi
     if mi.variant() != "llvm_ad_rgb":
         mi.set_variant("llvm_ad_rgb")
-    scene = mi.load_dict(scene_dict(args.scene, args.image, args.spp))
+    scene = mi.load_dict(scene_dict(args.scene, args.image, args.spp, args.occluder))
     mask = receiver_mask(scene, args.spp, args.margin)
     occ = Occluder(scene, args.scene, args.param)
     n_ch = 3 + 1   # RGB + shadowmap's visibility AOV; direct_projective has 3 channels
@@ -269,13 +317,16 @@ def worker_fd(args):
     if args.worker == "ref":   # ray-traced reference derivative of the scalar parameter
         integ = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
         w = _weights(mask, 4)
-        vals = []
-        for sgn in (1.0, -1.0):
-            occ.set_scalar(sgn * args.ref_h)
-            img = mi.render(scene, integrator=integ, spp=args.ref_spp, seed=seed)
-            vals.append(float(loss_of(img, w)[0]))
+        fds = []
+        for s in range(args.ref_seeds):   # the same seed on both sides of each difference
+            vals = []
+            for sgn in (1.0, -1.0):
+                occ.set_scalar(sgn * args.ref_h)
+                img = mi.render(scene, integrator=integ, spp=args.ref_spp, seed=s + 1)
+                vals.append(float(loss_of(img, w)[0]))
+            fds.append((vals[0] - vals[1]) / (2 * args.ref_h))
         occ.set_scalar(0.0)
-        print("RESULT " + json.dumps({"name": "ref", "fd_t": (vals[0] - vals[1]) / (2 * args.ref_h)}),
+        print("RESULT " + json.dumps({"name": "ref", "fd_t": float(np.mean(fds)), "fds": fds}),
               flush=True)
         return
     integ = _integrator(args.worker, args)
@@ -326,7 +377,9 @@ def run_worker(args, name, mode, n_seeds=None, timeout=3600):
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", name, "--mode", mode,
            "--scene", args.scene, "--image", str(args.image), "--spp", str(args.spp),
            "--map", str(args.map), "--margin", str(args.margin), "--param", args.param,
+           "--occluder", args.occluder,
            "--fd-h", str(args.fd_h), "--ref-h", str(args.ref_h), "--ref-spp", str(args.ref_spp),
+           "--ref-seeds", str(args.ref_seeds),
            "--n-seeds", str(n_seeds or 0)]
     t0 = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -360,7 +413,7 @@ def fmt(x, digits=4):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", default="area",
+    ap.add_argument("--scene", default="area,directional",
                     help="area, directional, or both comma-separated (run in turn)")
     ap.add_argument("--image", type=int, default=128, help="film width = height")
     ap.add_argument("--spp", type=int, default=16)
@@ -372,6 +425,9 @@ def main():
                     "as tests/test_differentiable.py's 2 px at 32^2; at 3 px direct_projective's "
                     "mean was 1.8x the finite-difference reference on the area scene)")
     ap.add_argument("--param", choices=("along", "sideways"), default="along")
+    ap.add_argument("--occluder", choices=("welded", "cube"), default="welded",
+                    help="the occluder mesh: 8 shared vertices (default), or Mitsuba's "
+                    "'cube' (24 vertices; direct_projective's gradient doubles on it)")
     ap.add_argument("--methods", default="vsm,pcf")
     ap.add_argument("--seeds", type=int, default=8, help="seeds for time and spread")
     ap.add_argument("--mean-seeds", type=int, default=24,
@@ -383,6 +439,8 @@ def main():
     ap.add_argument("--fd-h", type=float, default=0.02)
     ap.add_argument("--ref-h", type=float, default=0.05)
     ap.add_argument("--ref-spp", type=int, default=1024)
+    ap.add_argument("--ref-seeds", type=int, default=4, help="seeds averaged by the "
+                    "ray-traced finite-difference reference")
     ap.add_argument("--json", default=None)
     # worker mode (internal)
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
@@ -410,7 +468,8 @@ def run_scene(args):
     mean_seeds = max(args.mean_seeds, args.seeds)
     dp_mean_seeds = max(args.projective_mean_seeds or mean_seeds, args.seeds)
     print(f"# bench_gradients: {args.scene} scene, {args.image}^2, {args.spp} spp, map "
-          f"{args.map}, parameter '{args.param}', {args.seeds} seeds (spread), "
+          f"{args.map}, parameter '{args.param}', occluder '{args.occluder}', {args.seeds} "
+          f"seeds (spread), "
           f"{mean_seeds}/{dp_mean_seeds} seeds (mean: ours/direct_projective)", flush=True)
     res = {"args": vars(args), "grad": {}, "fd": {}}
     t_start = time.perf_counter()
@@ -471,8 +530,11 @@ def run_scene(args):
         print(f"| {LABELS[m]} | {t:.3f} | {sp} | {fmt(sd)} | {ratio} | {ratio_t} | {fmt(mean)} "
               f"| {fmt(se, 2)} | {sign} | {same_sign(mean, ref_t)} | {r['first_seconds']:.1f} |")
     if ref_t is not None:
+        fds = np.array(res["fd"]["ref"]["fds"])
+        se = float(np.std(fds, ddof=1) / np.sqrt(len(fds))) if len(fds) > 1 else float("nan")
         print(f"\nReference derivative (central differences of ray-traced renders, "
-              f"{args.ref_spp} spp, h = {args.ref_h}, same seed): {fmt(ref_t)}")
+              f"{args.ref_spp} spp, h = {args.ref_h}, the same seed on both sides, mean of "
+              f"{len(fds)} seeds): {fmt(ref_t)} (std. error {fmt(se, 2)})")
 
     print()
     print("| integrator | peak RSS after scene load (MiB) | peak RSS at end (MiB) | added by the gradients (MiB) |")

@@ -77,6 +77,7 @@ import numpy as np
 from .depth_maps import first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS  # noqa: F401  (the layers built here)
 from .light_views import pixel_centres
+from .light_views.base import scene_bounds
 from .light_views.local import LocalView
 
 #: Largest virtual resolution per face side (texel coordinates stay in an Int32).
@@ -136,12 +137,12 @@ def layout_for(view, scene, opts) -> VirtualLayout:
     """The virtual layout of ``view``: ``res0`` is ``resolution`` if given, else the
     power of two that puts :data:`SCENE_TEXELS` texels across the scene's bounding
     box as the light sees it (at least 2^20, at most :data:`MAX_VIRTUAL_RES`);
-    ``t0`` is 0.999 x the distance from the light to the scene's bounding box (0
-    from inside it, and for directional maps, which start at their near plane)."""
+    ``t0`` is 0.999 x the distance from the light to the scene's bounding box when that
+    is more than the box's diagonal (else 0, and 0 for directional maps, which start at
+    their near plane)."""
     P = opts.page_size
-    bbox = scene.bbox()
-    lo = np.array([float(c) for c in bbox.min]) if bbox.valid() else -np.ones(3)
-    hi = np.array([float(c) for c in bbox.max]) if bbox.valid() else np.ones(3)
+    bounds = scene_bounds(scene)      # scene.bbox() misses merged meshes
+    lo, hi = bounds if bounds is not None else (-np.ones(3), np.ones(3))
     diam = float(np.linalg.norm(hi - lo)) or 1.0
     pos = np.array([float(c) for c in view.position])
     dist = float(np.linalg.norm(np.maximum(np.maximum(lo - pos, 0.0), pos - hi)))
@@ -150,7 +151,10 @@ def layout_for(view, scene, opts) -> VirtualLayout:
         t0 = 0.0
         face_width = 2.0 * max(view.half_extent)
     else:
-        t0 = 0.999 * dist
+        # rays start near the scene only for a light far from it (float32 positions stay
+        # exact there); a light next to the scene starts them at the light, as full maps
+        # do (a blocker right at the light would otherwise fall within first_hit's skip)
+        t0 = 0.999 * dist if dist > diam else 0.0
         face_width = 2.0 * float(getattr(view, "tan_half", 1.0)) * max(
             float(np.linalg.norm(centre - pos)), 1e-30)
     if opts.resolution is not None:
@@ -737,6 +741,7 @@ def prepare_virtual(scene, sensor, opts, views, stats) -> list:
             store.evict(needed, over)
         t0 = time.perf_counter()
         stats.texels_built += store.build(scene, new)
+        store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page, exists
         dr.sync_thread()
         dt = time.perf_counter() - t0
         store.touch(needed)

@@ -357,3 +357,16 @@ def test_gradients_through_virtual_maps_are_refused_not_zero():
         dr.backward(dr.mean(img))
     msg = str(e.value) + str(getattr(e.value, "__cause__", ""))
     assert "virtual" in msg and "gradients" in msg
+
+
+def test_a_light_with_no_page_still_renders():
+    """A zero-area light emits nothing and marks no page (not even a coarse one): the
+    pool still holds the empty page, so lookups read +inf instead of failing."""
+    d = default_scene(width=16, height=16, spp=1, light="area")
+    key = next(k for k, v in d.items() if isinstance(v, dict) and "emitter" in v)
+    d[key]["to_world"] = d[key]["to_world"] @ T().scale(0.0)
+    scene = mi.load_dict(d)
+    for method in ("hard", "pcf", "pcss"):
+        img = np.asarray(mi.render(scene, integrator=shadowmap(method=method, virtual=True),
+                                   spp=1))
+        assert np.isfinite(img).all() and img.max() == 0.0

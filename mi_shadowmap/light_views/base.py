@@ -276,6 +276,26 @@ def transform_f64(m: np.ndarray, p, point: bool = True):
     return (mi.Point3d if point else mi.Vector3d)(*out)
 
 
+def scene_bounds(scene):
+    """``(lo, hi)`` (numpy float64) of every shape of ``scene``, or None without any.
+
+    Not ``scene.bbox()`` alone: Mitsuba 3.9 merges meshes that share a BSDF into one
+    mesh whose ``bbox()`` is invalid, and ``scene.bbox()`` leaves it out (e.g. two
+    rectangles with one BSDF); such a mesh is bounded by its vertex positions."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for shape in scene.shapes():
+        b = shape.bbox()
+        if b.valid():
+            lo = np.minimum(lo, [float(c) for c in b.min])
+            hi = np.maximum(hi, [float(c) for c in b.max])
+        elif shape.is_mesh() and hasattr(shape, "vertex_positions_buffer"):
+            v = shape.vertex_positions_buffer().numpy().reshape(-1, 3)
+            if len(v):
+                lo = np.minimum(lo, v.min(axis=0))
+                hi = np.maximum(hi, v.max(axis=0))
+    return (lo, hi) if np.all(lo <= hi) else None
+
+
 def light_matrix(view) -> np.ndarray:
     """``light_from_world`` as a float64 numpy 4x4 matrix."""
     return np.array(view.light_from_world.matrix, dtype=np.float64)

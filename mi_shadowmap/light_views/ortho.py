@@ -17,7 +17,7 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, light_matrix, look_along, look_along_np, position_np, scalar3,
-                   transform_f64, unit_grid)
+                   scene_bounds, transform_f64, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -173,9 +173,11 @@ def directional_view(emitter, scene, label: str) -> OrthoView:
     """The :class:`OrthoView` of a directional emitter, fitted to ``scene``'s bounds."""
     T = emitter.world_transform()
     d = dr.normalize(scalar3(T @ mi.Vector3f(0, 0, 1)))
-    bbox = scene.bbox()
-    if not bbox.valid():
+    bounds = scene_bounds(scene)      # scene.bbox() misses merged meshes
+    if bounds is None:
         bbox = mi.ScalarBoundingBox3f(mi.ScalarPoint3f(-1), mi.ScalarPoint3f(1))
+    else:
+        bbox = mi.ScalarBoundingBox3f(mi.ScalarPoint3f(*bounds[0]), mi.ScalarPoint3f(*bounds[1]))
     rot = look_along(mi.ScalarPoint3f(0), d)
     lo = [math.inf] * 3
     hi = [-math.inf] * 3

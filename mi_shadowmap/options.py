@@ -420,6 +420,10 @@ def parse_options(props: Any) -> Options:
         values["resolution"] = None
     res = values.get("resolution")
     budget = values["memory_budget"]
+    page = values.get("page_size")
+    if page is not None and page & (page - 1):
+        raise OptionError(f"shadowmap: property 'page_size' = {page} must be a power of two "
+                          "(8 to 1024)")
     if values.get("virtual"):
         _check_virtual(record, values, given)
         return Options(values, given, record)
@@ -444,9 +448,6 @@ def _check_virtual(record, values: dict, given) -> None:
                           f"'{record.name}' (it reads full maps); methods with virtual maps: "
                           f"{ok}; or set virtual=false")
     page = values["page_size"]
-    if page & (page - 1):
-        raise OptionError(f"shadowmap: property 'page_size' = {page} must be a power of two "
-                          "(8 to 1024)")
     res = values.get("resolution")
     if res is not None and (res & (res - 1) or res < page):
         raise OptionError(f"shadowmap: property 'resolution' = {res} must be a power of two "

@@ -94,14 +94,15 @@ def valid_sets(draw):
         n_min, n_max = props.get("min_samples", 2), props.get("num_samples", 16)
         if n_min > n_max:
             props["min_samples"], props["num_samples"] = n_max, n_min
+    if "page_size" in props:   # a power of two, whatever 'virtual' is
+        props["page_size"] = max(1 << (int(props["page_size"]).bit_length() - 1), 8)
     if props.get("virtual"):   # virtual maps: powers of two, no full-map-only properties
         if not _methods.get(method).virtual:
             del props["virtual"]
         else:
             for name in ("cascades", "fit_frusta", "cull_faces"):
                 props.pop(name, None)
-            page = 1 << (int(props.get("page_size", 64)).bit_length() - 1)
-            props["page_size"] = max(page, 8)
+            props["page_size"] = props.get("page_size", 32)
             if "resolution" in props:
                 props["resolution"] = max(1 << (int(props["resolution"]).bit_length() - 1),
                                           props["page_size"])

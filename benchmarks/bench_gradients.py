@@ -171,12 +171,8 @@ def receiver_mask(scene, spp, margin):
     import mitsuba as mi
     integ = mi.load_dict({"type": "aov", "aovs": "p:position"})
     img = np.asarray(mi.render(scene, integrator=integ, spp=spp, seed=0))
-    bad = ~(np.abs(img[..., 1]) < 1e-4)
-    grown = bad.copy()
-    for dy in range(-margin, margin + 1):
-        for dx in range(-margin, margin + 1):
-            grown |= np.roll(np.roll(bad, dy, 0), dx, 1)
-    return ~grown
+    from mi_shadowmap.metrics import dilate
+    return ~dilate(~(np.abs(img[..., 1]) < 1e-4), margin)
 
 
 class Occluder:

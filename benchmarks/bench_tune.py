@@ -41,17 +41,8 @@ SCENES = ("spot_sphere_box", "directional_mesh", "room_two_points", "cbox_area",
 def remeasure(scene, res: dict, config: dict, seed: int) -> float:
     """``config``'s metric against a fresh reference (same kind and spp as the tuner's),
     both rendered with seeds of their own."""
-    ref_info = res["reference"]
-    if harness.has_area_lights(scene):
-        ref = harness.converged_reference(scene, spp=ref_info["spp"], seed=seed + 1,
-                                          shadow_rays=1, n_light=ref_info["light_samples"])
-    else:
-        ref = harness.run_method(scene, "raytraced", spp=ref_info["spp"], seed=seed + 1,
-                                 measure_cached=False)
     spec = {"method": config["method"], **config["params"], "spp": config["spp"]}
-    out = harness.compare(scene, methods=[spec], reference=ref, seed=seed,
-                          measure_cached=False)
-    return float(out[1].metrics[res["metric"]])
+    return harness.remeasure(scene, res["reference"], spec, res["metric"], seed)
 
 
 def on_front(res: dict) -> bool:

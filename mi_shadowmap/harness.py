@@ -112,6 +112,21 @@ def render(scene, method="hard", spp: int = 16, seed: int = 0, **params):
     return integ, np.asarray(img)
 
 
+def remeasure(scene, reference_info: dict, spec: dict, metric: str, seed: int) -> float:
+    """``spec``'s ``metric`` measured again independently of whoever measured it first
+    (e.g. :func:`mi_shadowmap.tune`): a fresh reference of the kind and spp that
+    ``reference_info`` describes (the converged reference for area lights, else
+    ``raytraced``) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
+    if has_area_lights(scene):
+        ref = converged_reference(scene, spp=reference_info["spp"], seed=seed + 1,
+                                  shadow_rays=1, n_light=reference_info["light_samples"])
+    else:
+        ref = run_method(scene, "raytraced", spp=reference_info["spp"], seed=seed + 1,
+                         measure_cached=False)
+    out = compare(scene, methods=[spec], reference=ref, seed=seed, measure_cached=False)
+    return float(out[1].metrics[metric])
+
+
 # --------------------------------------------------------------------------- maps
 def map_specs(methods=None, params: dict | None = None) -> list[dict]:
     """Validated specs of ``methods`` (default: every method that reads a map) with the

@@ -377,6 +377,17 @@ def distinct_levels(values, decimals=6):
     return int(np.unique(np.round(v, decimals)).size)
 
 
+def dilate(mask, margin: int) -> np.ndarray:
+    """``mask`` (2-D bool) grown by ``margin`` pixels in every direction (a square
+    neighbourhood, wrapping at the borders): e.g. the pixels near an object on screen."""
+    mask = np.asarray(mask, bool)
+    out = mask.copy()
+    for dy in range(-margin, margin + 1):
+        for dx in range(-margin, margin + 1):
+            out |= np.roll(np.roll(mask, dy, 0), dx, 1)
+    return out
+
+
 def pareto_front(times, errors):
     """Mask of Pareto-optimal points (lower time and lower error are better).
 

@@ -25,6 +25,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from mi_shadowmap.metrics import dilate
+
 from mi_shadowmap.map_manager import MAP_CACHE, maps_need_gradients
 
 T = mi.ScalarTransform4f
@@ -72,12 +74,7 @@ def receiver_mask(scene, margin=2):
     integ = mi.load_dict({"type": "aov", "aovs": "p:position"})
     img = np.asarray(mi.render(scene, integrator=integ, spp=SPP, seed=0))
     ground = np.abs(img[..., 1]) < 1e-4
-    bad = ~ground
-    grown = bad.copy()
-    for dy in range(-margin, margin + 1):
-        for dx in range(-margin, margin + 1):
-            grown |= np.roll(np.roll(bad, dy, 0), dx, 1)
-    return ~grown
+    return ~dilate(~ground, margin)
 
 
 class Corners:

@@ -275,3 +275,12 @@ def test_module_has_no_mitsuba_dependency():
     for name in ("mitsuba", "drjit"):
         assert f"import {name}" not in src
         assert f"from {name}" not in src
+
+
+def test_dilate_grows_a_mask_by_the_margin():
+    from mi_shadowmap.metrics import dilate
+    m = np.zeros((9, 9), bool)
+    m[4, 4] = True
+    grown = dilate(m, 2)
+    assert grown.sum() == 25 and grown[2:7, 2:7].all() and not grown[1, 4]
+    assert np.array_equal(dilate(m, 0), m)

@@ -27,17 +27,8 @@ FAST = dict(search_size=32, repeats=1, progress=False)
 def remeasure(scene, res, seed=1000):
     """The pick's metric measured again through the harness alone: a fresh reference
     of the same kind and spp and a fresh render, both with seeds the tuner never used."""
-    ref_info = res["reference"]
-    if harness.has_area_lights(scene):
-        ref = harness.converged_reference(scene, spp=ref_info["spp"], seed=seed + 1,
-                                          shadow_rays=1, n_light=ref_info["light_samples"])
-    else:
-        ref = harness.run_method(scene, "raytraced", spp=ref_info["spp"], seed=seed + 1,
-                                 measure_cached=False)
     spec = {"method": res["method"], **res["params"], "spp": res["spp"]}
-    out = harness.compare(scene, methods=[spec], reference=ref, seed=seed,
-                          measure_cached=False)
-    return out[1].metrics[res["metric"]]
+    return harness.remeasure(scene, res["reference"], spec, res["metric"], seed)
 
 
 @pytest.fixture(scope="module")

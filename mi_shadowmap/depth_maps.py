@@ -41,6 +41,14 @@ class ShadowMap:
     resolution: int
     depth: mi.Float
     extra: dict = field(default_factory=dict)
+    #: Silhouette antialiasing (:mod:`mi_shadowmap.antialias`), else None: four
+    #: blend weights per texel, and the depths before blending (``depth`` holds the
+    #: blended ones; the prefiltered methods blend their moments from these).
+    coverage: mi.Float | None = None
+    raw_depth: mi.Float | None = None
+    #: The light's pose delta (:mod:`mi_shadowmap.light_views.pose`) when its
+    #: pose has gradients enabled, else None; lookups go through it.
+    pose: object = None
 
     @property
     def second_depth(self) -> mi.Float | None:
@@ -87,7 +95,8 @@ class ShadowMap:
         return ["depth"] + list(self.extra)
 
 
-def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = False):
+def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = False,
+              pose=None, return_hit: bool = False):
     """Distance to the first surface along (o, d), skipping the light's own shape.
 
     At most 32 skipped hits (own shape, hits at the light) per ray; a ray
@@ -110,7 +119,12 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
     used (``dr.replace_grad``), so the depth values are bit-identical to the
     detached build's. The skipped distance (the light's own shape, hits at
     the light) carries no gradient. False (the default): one detached
-    kernel, exactly as before.
+    kernel, exactly as before. ``pose`` (a
+    :class:`~mi_shadowmap.light_views.pose.LightPose`, with ``differentiable``):
+    the re-intersected ray moves with the light, so depths also carry the
+    light pose's derivatives. ``return_hit``: also return the hit's
+    ``(shape, prim_index)`` (null shape where nothing is hit), for
+    :mod:`mi_shadowmap.antialias`.
     """
     ray = mi.Ray3f(o, d)
     pi = scene.ray_intersect_preliminary(ray, coherent=True)
@@ -142,9 +156,15 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
     ray, pi, t_acc, it = dr.while_loop((ray, pi, t_acc, it), cond, body)
     t_hit = pi.t
     if differentiable:   # value of pi.t, derivatives of the re-intersected hit
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal)
+        ray_ad = ray if pose is None else mi.Ray3f(*pose.ray(ray.o, ray.d))
+        si = pi.compute_surface_interaction(ray_ad, mi.RayFlags.Minimal)
         t_hit = dr.replace_grad(t_hit, si.t)
-    return dr.select(pi.is_valid() & ~skip(pi, t_acc), t_acc + t_hit, dr.inf)
+    hit = pi.is_valid() & ~skip(pi, t_acc)
+    depth = dr.select(hit, t_acc + t_hit, dr.inf)
+    if return_hit:
+        return (depth, dr.select(hit, pi.shape, dr.zeros(mi.ShapePtr, dr.width(hit))),
+                dr.select(hit, pi.prim_index, 0))
+    return depth
 
 
 def shape_is_solid(shape) -> bool:
@@ -266,20 +286,34 @@ def build_layer(scene: mi.Scene, smap: ShadowMap, name: str, builder) -> mi.Floa
 
 
 def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
-                    layers: dict | None = None, differentiable: bool = False) -> ShadowMap:
+                    layers: dict | None = None, differentiable: bool = False,
+                    pose=None, antialias: bool = False) -> ShadowMap:
     """Ray-cast the first-surface depth of every texel of ``view``, plus ``layers``
     (``{name: builder}``, e.g. a method record's ``layers``); ``differentiable``:
-    depths attached to the AD graph (:func:`first_hit`)."""
+    depths attached to the AD graph (:func:`first_hit`), moving with the light's
+    ``pose`` if given; ``antialias``: silhouettes antialiased
+    (:mod:`mi_shadowmap.antialias`)."""
     o, d = view.texel_rays(resolution)
-    depth = first_hit(scene, view, o, d, differentiable)
-    dr.eval(depth)
-    smap = ShadowMap(view=view, resolution=resolution, depth=depth)
+    if not antialias:
+        depth = first_hit(scene, view, o, d, differentiable, pose)
+        dr.eval(depth)
+        smap = ShadowMap(view=view, resolution=resolution, depth=depth, pose=pose)
+    else:
+        from . import antialias as aa
+        aa.prepare_meshes(scene)
+        raw, shape, prim = first_hit(scene, view, o, d, differentiable, pose, return_hit=True)
+        cov = aa.silhouette_coverage(view, resolution, dr.detach(raw), shape, prim, pose)
+        depth = aa.blend(raw, cov, view.n_faces, resolution, finite_only=True)
+        dr.eval(raw, cov, depth)
+        smap = ShadowMap(view=view, resolution=resolution, depth=depth, coverage=cov,
+                         raw_depth=raw, pose=pose)
     for name, builder in (layers or {}).items():
         smap.extra[name] = build_layer(scene, smap, name, builder)
     return smap
 
 
-def build_culled_depth(scene, view, res: int, faces, differentiable: bool = False) -> mi.Float:
+def build_culled_depth(scene, view, res: int, faces, differentiable: bool = False,
+                       pose=None) -> mi.Float:
     """First-surface depth of the ``faces`` of a cube view; +inf in the others.
 
     Only the needed faces' texel rays are traced (gathered out of
@@ -296,7 +330,7 @@ def build_culled_depth(scene, view, res: int, faces, differentiable: bool = Fals
     if dr.width(o) > 1:
         o = dr.gather(mi.Point3f, o, idx)
     d = dr.gather(mi.Vector3f, d, idx)
-    depth_sub = first_hit(scene, view, o, d, differentiable)
+    depth_sub = first_hit(scene, view, o, d, differentiable, pose)
     depth = dr.full(mi.Float, dr.inf, view.n_faces * n)
     dr.scatter(depth, depth_sub, idx)
     dr.eval(depth)

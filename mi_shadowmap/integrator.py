@@ -191,11 +191,11 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
                 if smap is None:     # environment emitter lit without shadows
                     vis = mi.Float(1.0)
                 elif record.whole_light:   # averaged over the light, horizon included
-                    lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
+                    lk = self._lookup(smap, si, dp_dx, dp_dy, ds, sampler)
                     whole, above = vis_fn(smap, lk, opts, shade)
                     vis = dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
                 else:
-                    lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
+                    lk = self._lookup(smap, si, dp_dx, dp_dy, ds, sampler)
                     m = smap.bind(lk, lit) if isinstance(smap, VirtualShadowMap) else smap
                     vis = dr.select(lit, vis_fn(m, lk, opts, lit), 0.0)
                 result += dr.select(lit, unshadowed * vis, 0.0) / n_light
@@ -204,6 +204,17 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
             aovs.append(dr.select(contributes, vis_sum / n_light, 0.0) if whole is None
                         else dr.select(shade, whole, 0.0))
         return result, valid, aovs
+
+    @staticmethod
+    def _lookup(smap, si, dp_dx, dp_dy, ds, sampler) -> Lookup:
+        """The lookup of ``si`` in ``smap``; when the light's pose has gradients
+        (``smap.pose``, :mod:`mi_shadowmap.light_views.pose`) the point, normal and
+        footprint carry them (values unchanged)."""
+        pose = getattr(smap, "pose", None)
+        if pose is None:
+            return Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
+        return Lookup(pose.to_view(si.p), pose.vector_to_view(si.n),
+                      pose.vector_to_view(dp_dx), pose.vector_to_view(dp_dy), si, ds, sampler)
 
     def _footprint(self, ray: mi.RayDifferential3f, si):
         """World-space pixel footprint on the tangent plane (ray differentials)."""

@@ -27,6 +27,7 @@ import mitsuba as mi
 
 from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_depth_map,
                          build_layer)
+from .light_views.pose import light_pose
 from .light_views import camera_visible_points, emitter_kind, footprint_ratio, make_light_view
 
 
@@ -87,6 +88,8 @@ class MapPlan:
     cached_depth: tuple | None           # (array, seconds) or None
     depth_key: object                    # "depth", or ("depth", faces) when culled
     differentiable: bool = False         # build in the AD graph (maps_need_gradients)
+    pose: object = None                  # the light's pose delta (light_views.pose)
+    antialias: bool = False              # silhouette antialiasing (mi_shadowmap.antialias)
 
 
 @dataclasses.dataclass
@@ -177,19 +180,28 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
     diff = maps_need_gradients(scene)
     state = MAP_CACHE.scene_state(scene) if opts.cache_maps and not diff else None
     layers = {name: record.layers[name] for name in layer_names}
+    aa = getattr(opts, "antialias", "never")
+    aa = aa == "always" or (aa == "gradients" and diff)
     maps = [None if v is None else _plan_one(scene, state, v, res, layers,
-                                             v.faces_needed(opts, visible, res), diff)
-            for v in views]
+                                             v.faces_needed(opts, visible, res), diff,
+                                             light_pose(e, v) if diff else None, aa)
+            for v, e in zip(views, scene.emitters())]
     return RenderPlan(views, maps, res, state, gains)
 
 
-def _plan_one(scene, state, view, res, layers, faces, differentiable=False) -> MapPlan:
+def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose=None,
+              antialias=False) -> MapPlan:
     """One emitter's plan. A culled depth (``faces``) is cached under
     ``("depth", faces)`` and its layers under ``(name, faces)`` -- the face set of the
     depth they were built from -- so a layer is never taken from a depth of another
     face set; a full cached depth, or a culled one with a superset of the faces,
-    serves any face set. ``differentiable`` plans come with ``state`` None: no cache."""
+    serves any face set. ``differentiable`` plans come with ``state`` None: no cache;
+    ``pose``: the light's pose delta (gradients); ``antialias``: silhouette
+    antialiasing (all faces are built, culling skipped; never cached: the cache holds
+    plain depths)."""
     key = (view_fingerprint(view), res)
+    if antialias:
+        faces, state = None, None
     cached = MAP_CACHE.get(scene, state, key, "depth") if state is not None else None
     if faces is not None:
         faces = tuple(bool(f) for f in faces)
@@ -202,7 +214,7 @@ def _plan_one(scene, state, view, res, layers, faces, differentiable=False) -> M
                     cached, faces = entry, layer[1]
                     break
     depth_key = "depth" if faces is None else ("depth", faces)
-    return MapPlan(view, faces, layers, key, cached, depth_key, differentiable)
+    return MapPlan(view, faces, layers, key, cached, depth_key, differentiable, pose, antialias)
 
 
 def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
@@ -215,19 +227,22 @@ def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
 
 def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
     view = p.view
+    if p.antialias:   # the cache holds plain depths only
+        state = None
     if p.cached_depth is not None:
         smap = ShadowMap(view=view, resolution=res, depth=p.cached_depth[0])
         stats.maps_reused += 1
         stats.naive_build_seconds += p.cached_depth[1]
     else:
         t0 = time.perf_counter()
-        diff = {"differentiable": True} if p.differentiable else {}
+        diff = {"differentiable": True, "pose": p.pose} if p.differentiable else {}
         if p.faces is not None:   # no face needed: a map of +inf, nothing traced
             smap = ShadowMap(view=view, resolution=res,
-                             depth=build_culled_depth(scene, view, res, p.faces, **diff))
+                             depth=build_culled_depth(scene, view, res, p.faces, **diff),
+                             pose=p.pose)
             n_built = sum(p.faces)
         else:
-            smap = build_depth_map(scene, view, res, **diff)
+            smap = build_depth_map(scene, view, res, antialias=p.antialias, **diff)
             n_built = view.n_faces
         dr.sync_thread()
         dt = time.perf_counter() - t0

@@ -88,6 +88,15 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "footprint in finest-level texels: 0 puts texels of 0.5-1 footprint, -0.5 "
          "(default) 0.35-0.7, -1 0.25-0.5 (about 4/3 the texels and pages of the level "
          "above for each step of -0.5).", lo=-8.0, hi=8.0),
+    Prop("antialias", "str", "gradients",
+         "Silhouette antialiasing of full maps (Worchel & Alexa 2023, after nvdiffrast; "
+         "mi_shadowmap.antialias): texels next to an occluder mesh's outline blend towards "
+         "their neighbour by the fraction the outline covers, so shadows pass gradients "
+         "to an outline's motion. 'gradients' (default): only maps built for gradients "
+         "(a shape's or emitter's parameter has gradients enabled); 'always': every map "
+         "(so a primal render, or finite differences, see the same function as the "
+         "gradients); 'never': none (gradients from depths only).",
+         choices=("gradients", "always", "never")),
     Prop("bias", "float", None,
          "Constant depth bias in world units. Default: automatic (0 plus the texel-scaled "
          "slope and normal biases, which are scale-invariant).", lo=0.0),
@@ -122,7 +131,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
 #: Scope of each shared property (see EVERY, ACCEPTED, MAP).
 SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY, "env_lights": MAP,
           "resolution": ACCEPTED, "memory_budget": ACCEPTED, "cache_maps": ACCEPTED,
-          "cull_faces": MAP, "fit_frusta": MAP, "virtual": MAP, "page_size": MAP, "lod_bias": MAP, "bias": MAP, "slope_bias": MAP,
+          "cull_faces": MAP, "fit_frusta": MAP, "virtual": MAP, "page_size": MAP, "lod_bias": MAP, "antialias": MAP, "bias": MAP, "slope_bias": MAP,
           "normal_bias": MAP, "max_tan_slope": MAP, "cascades": MAP, "split_lambda": MAP}
 _GENERAL = {p.name: p for p in GENERAL_PROPERTIES}
 assert set(SCOPES) == set(_GENERAL)
@@ -453,6 +462,10 @@ def _check_virtual(record, values: dict, given) -> None:
         raise OptionError(f"shadowmap: property 'resolution' = {res} must be a power of two "
                           f"from page_size = {page} to 2^30 with virtual=true (the virtual "
                           "resolution of the finest level)")
+    if values.get("antialias") == "always":
+        raise OptionError("shadowmap: property 'antialias' = 'always' applies to full maps "
+                          "only (virtual pages are not antialiased); use 'gradients' or "
+                          "'never', or set virtual=false")
     for name, off in (("cascades", 1), ("fit_frusta", False), ("cull_faces", False)):
         if values.get(name, off) != off:
             raise OptionError(f"shadowmap: property '{name}' applies to full maps only; "

@@ -34,6 +34,7 @@ __all__ = [
     "terrain_with_pillars",
     "big_mesh",
     "check_closed",
+    "box",
     "main",
 ]
 
@@ -141,6 +142,19 @@ def _flat(v, f):
     vf = v[f.reshape(-1)]
     n = np.repeat(_normalize(_face_normals(v, f)), 3, axis=0)
     return vf, np.arange(len(vf)).reshape(-1, 3), n
+
+
+def box(half_extent=(1.0, 1.0, 1.0)):
+    """A box of 8 shared vertices and 12 outward triangles (closed and welded:
+    every edge has a neighbour, unlike Mitsuba's ``cube`` whose 24 vertices make
+    every edge between two sides a boundary). No normals (flat shading)."""
+    h = np.asarray(half_extent, dtype=np.float32)
+    v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
+                 np.float32) * h
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
+                 np.int32)
+    return v, f, None
 
 
 def merge(*parts):

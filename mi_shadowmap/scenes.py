@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 
+import drjit as dr
 import mitsuba as mi
 
 T = mi.ScalarTransform4f
@@ -58,6 +59,27 @@ def load_scene(scene, **xml_params) -> mi.Scene:
                          + ", ".join(f"${k}" for k in missing)
                          + " (declare <default name=... value=.../> to make it settable)")
     return mi.load_file(path, **{k: str(v) for k, v in xml_params.items()})
+
+
+def mesh(name: str, vertices, faces, to_world=None, bsdf: dict | None = None) -> mi.Mesh:
+    """A ``mi.Mesh`` from numpy ``vertices`` ``(V, 3)`` and ``faces`` ``(F, 3)``
+    (e.g. :func:`mi_shadowmap.procedural.box`), placed by ``to_world`` (a
+    ``mi.ScalarTransform4f``); usable as a value of a ``mi.load_dict`` scene,
+    and its ``vertex_positions`` can be optimised (``mi.traverse``)."""
+    import numpy as np
+    v = np.asarray(vertices, dtype=np.float64)
+    if to_world is not None:
+        m = np.array(to_world.matrix, dtype=np.float64)
+        v = v @ m[:3, :3].T + m[:3, 3]
+    f = np.asarray(faces, dtype=np.uint32)
+    out = mi.Mesh(name, vertex_count=len(v), face_count=len(f), has_vertex_normals=False)
+    params = mi.traverse(out)
+    params["vertex_positions"] = dr.ravel(mi.Point3f(v.T.astype(np.float32)))
+    params["faces"] = dr.ravel(mi.Vector3u(f.T))
+    params.update()
+    if bsdf is not None:
+        out.set_bsdf(mi.load_dict(bsdf))
+    return out
 
 
 def _diffuse(r, g, b):

@@ -239,6 +239,60 @@ def soft_tap_lit(z_map, z, inside, width) -> mi.Float:
     return dr.select(ok, x * x * (3.0 - 2.0 * x), step)
 
 
+def soft_tap(smap, z_map, z, inside, width, face, xy_texel, active=True,
+             cross_seams: bool = True) -> mi.Float:
+    """:func:`soft_tap_lit` of one tap, on any map. On a silhouette-antialiased map
+    (``smap.coverage``, :mod:`mi_shadowmap.antialias`) the tap's texel is a mix of
+    its own surface and its neighbours' (weights ``alpha_s``), and the lit
+    fraction is mixed the same way: ``lit(own) + sum_s alpha_s (lit(z_s) -
+    lit(own))`` -- the compares are blended, not the depths, so the result is
+    linear in the coverage (an outline moving by ``dx`` texels changes the
+    lit fraction by ``dx`` times the compare step, as the shadow's area does)."""
+    moving = dr.grad_enabled(xy_texel)
+    if getattr(smap, "coverage", None) is None and not moving:
+        return soft_tap_lit(z_map, z, inside, width)
+    res = smap.resolution
+    f2, i, j, _ = smap.view.tap_texel(face, xy_texel, res, cross_seams)
+    lit = _covered_tap(smap, f2, i, j, z, inside, width, active)
+    if not moving:
+        return lit
+    # The light's pose moves the tap across the texels (xy_texel carries its
+    # derivatives): the nearest texel's value, the bilinear interpolation's
+    # derivative (each neighbour on the tap's face, clamped at its edges).
+    xy = mi.Point2f(xy_texel)
+    fx, fy = xy.x - 0.5 - dr.floor(dr.detach(xy.x) - 0.5), xy.y - 0.5 - dr.floor(dr.detach(xy.y) - 0.5)
+    i0 = mi.Int32(dr.floor(dr.detach(xy.x) - 0.5))
+    j0 = mi.Int32(dr.floor(dr.detach(xy.y) - 0.5))
+    f0 = smap.view.tap_texel(face, dr.detach(xy), res, cross_seams)[0]
+    bil = mi.Float(0.0)
+    for dj in (0, 1):
+        for di in (0, 1):
+            w = (fx if di else 1.0 - fx) * (fy if dj else 1.0 - fy)
+            ii = dr.clip(i0 + di, 0, res - 1)
+            jj = dr.clip(j0 + dj, 0, res - 1)
+            bil += w * dr.detach(_covered_tap(smap, f0, ii, jj, z, inside, width, active))
+    return dr.replace_grad(lit, lit + bil - dr.detach(bil))
+
+
+def _covered_tap(smap, f2, i, j, z, inside, width, active):
+    """The smooth compare at texel ``(f2, i, j)``, coverage-blended on an antialiased map."""
+    res = smap.resolution
+    ok = active & inside
+    if getattr(smap, "coverage", None) is None:
+        return soft_tap_lit(smap.fetch(smap.depth, f2, i, j, ok), z, inside, width)
+    from ..antialias import STEPS
+    own = soft_tap_lit(smap.fetch(smap.raw_depth, f2, i, j, ok), z, inside, width)
+    out = own
+    k = mi.UInt32(f2) * (res * res) + mi.UInt32(dr.clip(j, 0, res - 1)) * res \
+        + mi.UInt32(dr.clip(i, 0, res - 1))
+    for s, (di, dj) in enumerate(STEPS):
+        alpha = dr.gather(mi.Float, smap.coverage, 4 * k + s, ok)
+        z_n = smap.fetch(smap.raw_depth, f2, i + di, j + dj, ok & (alpha > 0))
+        out = dr.select(alpha > 0, out + alpha * (soft_tap_lit(z_n, z, inside, width) - own),
+                        out)
+    return out
+
+
 # ------------------------------------------------ fixed texel blocks (W&M, MDSM)
 def nearest_block(smap, lk: Lookup, opts, active=True):
     """The receiver and the block of the ``k = pcf_samples`` nearest texels that
@@ -302,10 +356,27 @@ def normalized_depth(smap):
     every receiver", so they filter as unoccluded. Shared by the prefiltered
     methods, whose moments (z, z^2, exp(c z), ...) need bounded depths.
     """
-    finite = dr.isfinite(smap.depth)
-    far = dr.max(dr.select(finite, smap.depth, 0.0))
+    depth = texel_depths(smap)
+    finite = dr.isfinite(depth)
+    far = dr.max(dr.select(finite, depth, 0.0))
     far = dr.select(far > 0, 2.0 * far, 1.0)
-    return dr.select(finite, smap.depth / far, 1.0), far
+    return dr.select(finite, depth / far, 1.0), far
+
+
+def texel_depths(smap):
+    """The map's depths before silhouette antialiasing (``smap.depth`` when the map
+    is not antialiased, :mod:`mi_shadowmap.antialias`)."""
+    return smap.raw_depth if getattr(smap, "raw_depth", None) is not None else smap.depth
+
+
+def antialiased(smap, values):
+    """Per-texel ``values`` (e.g. a moment of the depth) blended across the map's
+    silhouettes (:func:`mi_shadowmap.antialias.blend`); unchanged when the map is
+    not antialiased. Prefiltered methods blend each moment, not the depth."""
+    if getattr(smap, "coverage", None) is None:
+        return values
+    from ..antialias import blend
+    return blend(values, smap.coverage, smap.view.n_faces, smap.resolution)
 
 
 def prefilter_box(smap, lk: Lookup, r: Receiver, filter_size):

@@ -147,7 +147,8 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, Receiver, normalized_depth, prefilter_box, receiver
+from .common import Lookup, Receiver, antialiased, normalized_depth, prefilter_box, receiver, \
+    texel_depths
 
 #: Largest allowed exponent: exp(2 c) of u = 1 stays a finite float32 (2 c <= 88.7).
 MAX_EXPONENT = 42.0
@@ -186,7 +187,7 @@ def depth_range(smap):
     map's finite normalised depths, widened to ``z_hi >= z_lo + MIN_SPAN`` (a map
     without surfaces gets ``[0, MIN_SPAN]``; its empty texels read ``u = 1``)."""
     z, far = normalized_depth(smap)
-    finite = dr.isfinite(smap.depth)
+    finite = dr.isfinite(texel_depths(smap))
     hi = dr.max(dr.select(finite, z, 0.0))
     lo = dr.minimum(dr.min(dr.select(finite, z, 1.0)), hi)
     return z, far, lo, dr.maximum(hi, lo + MIN_SPAN)
@@ -219,7 +220,8 @@ def moment_layer(smap, positive: bool, power: int, c: float):
     """Summed-area table of ``w^power``, ``w`` = the warp of exponent ``c``."""
     z, _, lo, hi = depth_range(smap)
     w = warp(warp_input(z, lo, hi), c, positive)
-    return summed_area_table(w if power == 1 else w * w, smap.view.n_faces, smap.resolution)
+    return summed_area_table(antialiased(smap, w if power == 1 else w * w),
+                             smap.view.n_faces, smap.resolution)
 
 
 def _moment_builder(positive: bool, power: int, c: float):

@@ -138,7 +138,7 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, normalized_depth, plane_depth_at, prefilter_box, receiver, \
+from .common import Lookup, antialiased, normalized_depth, plane_depth_at, prefilter_box, receiver, \
     receiver_plane
 
 #: The four moment layers (summed-area tables of u^1 .. u^4).
@@ -168,7 +168,7 @@ def moment_depth(smap):
 def _moment_layer(k: int):
     def build(scene, smap):
         u, _ = moment_depth(smap)
-        return summed_area_table(u ** k, smap.view.n_faces, smap.resolution)
+        return summed_area_table(antialiased(smap, u ** k), smap.view.n_faces, smap.resolution)
     build.__name__ = build.__qualname__ = f"msm_b{k}_layer"
     build.__doc__ = f"Summed-area table of u^{k} (see :func:`moment_depth`)."
     return build

@@ -14,7 +14,7 @@ import mitsuba as mi
 
 from ..methods import Method, Prop
 from .common import Lookup, ReceiverPlane, Receiver, footprint_texels, receiver, \
-    receiver_plane, soft_compare_width, soft_tap_lit, tap_depths, tap_lit
+    receiver_plane, soft_compare_width, soft_tap, tap_depths, tap_lit
 
 
 def reeves_sample_counts(width_s, width_t, num_samples: int, min_samples: int):
@@ -125,7 +125,8 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
             n_lit = dr.select(lit, n_lit + 1, n_lit)
         else:
             z_map, z, inside = tap_depths(smap, r, face, xy, plane, active)
-            n_lit = n_lit + soft_tap_lit(z_map, z - bias, inside, soft_width)
+            n_lit = n_lit + soft_tap(smap, z_map, z - bias, inside, soft_width, face, xy,
+                                     active)
         return k + 1, rng, n_lit
 
     if soft_width is not None:

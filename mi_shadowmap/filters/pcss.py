@@ -95,7 +95,7 @@ import mitsuba as mi
 
 from ..methods import Method, Prop
 from .common import (Lookup, Receiver, ReceiverPlane, receiver, receiver_plane,
-                     shifted_grid_point, soft_compare_width, soft_tap_lit, tap_depths)
+                     shifted_grid_point, soft_compare_width, soft_tap, tap_depths)
 from .hard import hard
 from .pcf import SOFT_COMPARE
 
@@ -228,7 +228,8 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
         z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
                                       cross_seams=False, lateral_texels=dr.norm(off))
         if soft_width is not None:
-            return k + 1, lit + soft_tap_lit(z_map, z, inside, soft_width)
+            return k + 1, lit + soft_tap(smap, z_map, z, inside, soft_width, r.face,
+                                         centre + off, active, cross_seams=False)
         return k + 1, dr.select(~inside | (z <= z_map), lit + 1.0, lit)
 
     k, lit = dr.while_loop((k, lit), cond, body)

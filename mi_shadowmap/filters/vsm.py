@@ -16,7 +16,7 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, normalized_depth, prefilter_box, receiver
+from .common import Lookup, antialiased, normalized_depth, prefilter_box, receiver
 
 
 #: The variance never goes below this (normalised depth squared: sigma = 1e-7, about the
@@ -191,7 +191,8 @@ def vsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
 def moment_layer(smap, power: int) -> mi.Float64:
     """Summed-area table of ``z**power`` (``z``: :func:`~.common.normalized_depth`)."""
     z = mi.Float64(normalized_depth(smap)[0])
-    return summed_area_table(z if power == 1 else z * z, smap.view.n_faces, smap.resolution)
+    return summed_area_table(antialiased(smap, z if power == 1 else z * z),
+                             smap.view.n_faces, smap.resolution)
 
 
 def far_layer(smap) -> mi.Float:

@@ -1,0 +1,190 @@
+"""Silhouette antialiasing of depth maps, for gradients of shadows (issue 13).
+
+A depth map is piecewise constant in an occluder's position: a texel either
+sees the occluder or what is behind it, so moving an outline across the map
+changes texels by jumps, and a derivative of the map passes nothing of that
+motion on. Worchel & Alexa (*Differentiable Shadow Mapping for Efficient
+Inverse Graphics*, CVPR 2023) antialias their rasterised shadow maps with
+nvdiffrast's analytic antialiasing (Laine et al., *Modular Primitives for
+High-Performance Differentiable Rendering*, 2020), which turns that motion
+into continuous coverage. This module does the same for ray-cast maps:
+
+* For every pair of horizontally or vertically adjacent texels of one face
+  that see different triangles (or one sees nothing), the *front* texel's
+  triangle (the smaller depth) is looked up, and each of its edges that is
+  a **silhouette edge** as seen from the light -- a boundary edge, or one
+  whose neighbouring triangle faces the light the other way -- is projected
+  into the face (through the light view, so through the light's pose too).
+* Where such an edge crosses the segment between the two texel centres, at
+  distance ``a`` (in texels, ``0 <= a <= 0.5``) from one centre, that
+  texel's value moves towards its neighbour's by ``alpha = 0.5 - a``: the
+  part of its footprint (along the segment) that lies on the other side of
+  the edge. The front surface thus extends continuously into the back
+  texel, or the back surface into the front one.
+* ``alpha`` is a function of the edge's projected vertices, so it carries
+  derivatives with respect to the mesh's vertex positions and ``to_world``,
+  and to the light's pose (:mod:`mi_shadowmap.light_views.pose`).
+
+Values blended (:func:`blend`): the depth itself for the depth-reading
+methods (``hard``, ``pcf``, ``pcss``, ...; a texel next to nothing keeps its
+depth), and each *moment* separately for the prefiltered ones (``vsm``,
+``evsm``, ``msm``: ``z`` and ``z^2`` are blended, not ``z`` then squared),
+which is what coverage-weighted moments are.
+
+Deviations and limits (biases against ray tracing):
+
+* Only triangle meshes have edges: analytic shapes (``sphere``,
+  ``rectangle``, ``disk``, ``cylinder``) and curves keep hard outlines, and
+  their shadows' gradients come from depths alone. Use a mesh occluder.
+* One edge per texel pair: the first silhouette edge crossing the segment
+  among the front texel's triangle and, failing that, its three neighbours
+  (nvdiffrast looks at the front triangle only; near the outline's corners
+  the crossing edge often belongs to the neighbour, and the blend then
+  jumped as the outline moved). Each edge is used by the pairs of one direction only: the
+  horizontal pairs for edges steeper than 45 degrees in the face, the
+  vertical pairs for the others, as in nvdiffrast. (Counting an edge in both
+  directions adds its swept area twice: gradients came out 2x the finite
+  differences.) Pairs across a cube seam are not blended.
+* Forward values change at silhouettes, by at most half a texel's worth of
+  the depth step: at a 256^2 map this moves a hard shadow's outline by less
+  than a texel; the measured effect on the image is in
+  ``benchmarks/RESULTS.md``.
+* A ``cube`` shape of Mitsuba has 24 unwelded vertices: every edge between
+  two of its faces is a boundary, so texels straddling two faces both
+  facing the light blend too (depths a fraction of a texel apart; harmless).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+#: ``opposite_dedge`` of an edge with no neighbour (a boundary edge).
+NO_EDGE = 0xFFFFFFFF
+#: The neighbour steps (di, dj) of a texel, in the order of :func:`silhouette_coverage`.
+STEPS = ((-1, 0), (1, 0), (0, -1), (0, 1))
+
+
+def prepare_meshes(scene) -> None:
+    """Build every mesh's edge topology (``opposite_dedge``) once."""
+    for shape in scene.shapes():
+        if shape.is_mesh() and not getattr(shape, "_mi_shadowmap_edges", False):
+            shape.build_directed_edges()
+            try:
+                shape._mi_shadowmap_edges = True
+            except AttributeError:   # nanobind objects may refuse new attributes
+                pass
+
+
+def _neighbour(res: int, k, step):
+    """Flat index of texel ``k``'s neighbour in direction ``step`` (lane-wise
+    ``mi.UInt32`` in 0..3), and whether it is on the same face."""
+    face = k // (res * res)
+    rem = k - face * (res * res)
+    j = rem // res
+    i = rem - j * res
+    di = dr.select(step == 0, -1, dr.select(step == 1, 1, 0))
+    dj = dr.select(step == 2, -1, dr.select(step == 3, 1, 0))
+    ni = mi.Int32(i) + mi.Int32(di)
+    nj = mi.Int32(j) + mi.Int32(dj)
+    inside = (ni >= 0) & (ni < res) & (nj >= 0) & (nj < res)
+    kn = face * (res * res) + mi.UInt32(dr.maximum(nj, 0)) * res + mi.UInt32(dr.maximum(ni, 0))
+    return kn, inside, face, i, j, mi.Float(di), mi.Float(dj)
+
+
+def silhouette_coverage(view, res: int, depth, shape, prim, pose=None) -> mi.Float:
+    """Four blend weights per texel (flat ``4 k + s`` for the neighbour ``STEPS[s]``).
+
+    ``depth`` (per texel, ``+inf`` for nothing), ``shape`` (``mi.ShapePtr``) and
+    ``prim`` (``mi.UInt32``) are the map's first hits; ``pose``: a
+    :class:`~mi_shadowmap.light_views.pose.LightPose` or None. Weights are 0
+    except next to a silhouette edge (module docstring), and attached to the
+    AD graph through the edge's vertices.
+    """
+    n = view.n_faces * res * res
+    lane = dr.arange(mi.UInt32, 4 * n)
+    k = lane // 4
+    step = lane - k * 4
+    kn, inside, face, i, j, di, dj = _neighbour(res, k, step)
+    d_a = dr.gather(mi.Float, depth, k)
+    d_n = dr.gather(mi.Float, depth, kn, inside)
+    sh_a = dr.gather(mi.ShapePtr, shape, k)
+    sh_n = dr.gather(mi.ShapePtr, shape, kn, inside)
+    pr_a = dr.gather(mi.UInt32, prim, k)
+    pr_n = dr.gather(mi.UInt32, prim, kn, inside)
+    differ = inside & ((sh_a != sh_n) | (pr_a != pr_n)) & (dr.isfinite(d_a) | dr.isfinite(d_n))
+    a_front = d_a <= d_n
+    sh_f = dr.select(a_front, sh_a, sh_n)
+    pr_f = dr.select(a_front, pr_a, pr_n)
+    ok = differ & sh_f.is_mesh()
+    mesh = mi.MeshPtr(sh_f)
+
+    horizontal = dj == 0.0
+    sign = dr.select(horizontal, di, dj)
+    cu = dr.select(horizontal, mi.Float(i), mi.Float(j)) + 0.5
+    cw = dr.select(horizontal, mi.Float(j), mi.Float(i)) + 0.5
+    alpha = mi.Float(0.0)
+    found = mi.Bool(False)
+
+    def edges_of(tri_id, active):
+        """Test the three edges of triangle ``tri_id``; returns its neighbours."""
+        nonlocal alpha, found
+        tri = mesh.face_indices(tri_id, active)
+        n_tri = dr.detach(mesh.face_normal(tri_id, active))
+        twins = []
+        for e in range(3):
+            a = mesh.vertex_position(tri[e], active)
+            b = mesh.vertex_position(tri[(e + 1) % 3], active)
+            opp = mesh.opposite_dedge(tri_id * 3 + e, active)
+            boundary = opp == NO_EDGE
+            twin = dr.select(boundary, tri_id, opp // 3)
+            twins.append((twin, active & ~boundary))
+            n_twin = dr.detach(mesh.face_normal(twin, active & ~boundary))
+            to_light = view.direction_to_light(dr.detach(mi.Point3f(0.5 * (a + b))))
+            silhouette = boundary | ((dr.dot(n_tri, to_light) > 0)
+                                     != (dr.dot(n_twin, to_light) > 0))
+            if pose is not None:
+                a, b = pose.to_view(a), pose.to_view(b)
+            qa = view.uv_on_face(face, mi.Point3f(a)) * res
+            qb = view.uv_on_face(face, mi.Point3f(b)) * res
+            ua, wa = dr.select(horizontal, qa.x, qa.y), dr.select(horizontal, qa.y, qa.x)
+            ub, wb = dr.select(horizontal, qb.x, qb.y), dr.select(horizontal, qb.y, qb.x)
+            den = wb - wa
+            # each edge in one direction only, the one more across it (nvdiffrast): an
+            # edge counted in both would add its swept area twice (measured: 2x gradients)
+            steep = dr.select(horizontal, dr.abs(den) >= dr.abs(ub - ua),
+                              dr.abs(den) > dr.abs(ub - ua))
+            usable = steep & (dr.abs(den) > 1e-12)
+            s = (cw - wa) / dr.select(usable, den, 1.0)
+            crosses = usable & (s >= 0.0) & (s <= 1.0)
+            along = (ua + s * (ub - ua) - cu) * sign   # from this texel's centre to the edge
+            hit = active & silhouette & crosses & (along >= 0.0) & (along <= 0.5) & ~found
+            alpha = dr.select(hit, 0.5 - along, alpha)
+            found |= hit
+        return twins
+
+    # The front texel's triangle; then its neighbours: near a corner of the outline
+    # the edge crossing the pair can belong to the triangle next to the one the
+    # front texel's centre sees (e.g. the other half of a quad), and missing it
+    # would make the blend jump as the outline moves.
+    for twin, has in edges_of(pr_f, ok):
+        edges_of(twin, has & ~found)
+    return alpha
+
+
+def blend(values, coverage, n_faces: int, res: int, finite_only: bool = False):
+    """``values`` (one per texel, ``mi.Float`` or ``mi.Float64``) moved towards each
+    neighbour's by its weight in ``coverage``: ``v + sum_s alpha_s (v_s - v)``.
+    ``finite_only``: a texel or neighbour at ``+inf`` (nothing) is not blended."""
+    cls = type(values)
+    n = n_faces * res * res
+    k = dr.arange(mi.UInt32, n)
+    out = cls(values)
+    for s in range(4):
+        kn, inside, *_ = _neighbour(res, k, mi.UInt32(s))
+        w = cls(dr.gather(mi.Float, coverage, 4 * k + s))
+        v_n = dr.gather(cls, values, kn, inside)
+        use = inside & (w > 0)
+        if finite_only:
+            use &= dr.isfinite(values) & dr.isfinite(v_n)
+        out = dr.select(use, out + w * (v_n - values), out)
+    return out

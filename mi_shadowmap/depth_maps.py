@@ -121,11 +121,15 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
     the light) carries no gradient. False (the default): one detached
     kernel, exactly as before. ``pose`` (a
     :class:`~mi_shadowmap.light_views.pose.LightPose`, with ``differentiable``):
-    the re-intersected ray moves with the light, so depths also carry the
-    light pose's derivatives. ``return_hit``: also return the hit's
+    the rays of ``view`` (its reference view) are moved with the light, and
+    depths also carry the light pose's derivatives. ``return_hit``: also return the hit's
     ``(shape, prim_index)`` (null shape where nothing is hit), for
     :mod:`mi_shadowmap.antialias`.
     """
+    o_ad = d_ad = None
+    if pose is not None:
+        o_ad, d_ad = pose.ray(o, d)
+        o, d = dr.detach(o_ad), dr.detach(d_ad)
     ray = mi.Ray3f(o, d)
     pi = scene.ray_intersect_preliminary(ray, coherent=True)
     own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
@@ -156,7 +160,7 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
     ray, pi, t_acc, it = dr.while_loop((ray, pi, t_acc, it), cond, body)
     t_hit = pi.t
     if differentiable:   # value of pi.t, derivatives of the re-intersected hit
-        ray_ad = ray if pose is None else mi.Ray3f(*pose.ray(ray.o, ray.d))
+        ray_ad = ray if pose is None else mi.Ray3f(o_ad + d_ad * t_acc, d_ad)
         si = pi.compute_surface_interaction(ray_ad, mi.RayFlags.Minimal)
         t_hit = dr.replace_grad(t_hit, si.t)
     hit = pi.is_valid() & ~skip(pi, t_acc)

@@ -27,6 +27,7 @@ import mitsuba as mi
 
 from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_depth_map,
                          build_layer)
+from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
 from .light_views import camera_visible_points, emitter_kind, footprint_ratio, make_light_view
 
@@ -182,10 +183,16 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
     layers = {name: record.layers[name] for name in layer_names}
     aa = getattr(opts, "antialias", "never")
     aa = aa == "always" or (aa == "gradients" and diff)
+    poses = [None] * len(views)
+    if diff:   # a light whose pose has gradients: its reference view and pose delta
+        bounds = scene_bounds(scene)
+        for k, (v, e) in enumerate(zip(views, scene.emitters())):
+            if v is not None:
+                views[k], poses[k] = light_pose(e, v, bounds)
     maps = [None if v is None else _plan_one(scene, state, v, res, layers,
                                              v.faces_needed(opts, visible, res), diff,
-                                             light_pose(e, v) if diff else None, aa)
-            for v, e in zip(views, scene.emitters())]
+                                             pose, aa)
+            for v, pose in zip(views, poses)]
     return RenderPlan(views, maps, res, state, gains)
 
 

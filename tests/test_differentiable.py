@@ -246,3 +246,173 @@ def test_adam_recovers_the_translation_along_the_light():
     print(f"Adam: t {history[0]:.4f} -> {history[-1]:.4f} in {len(history)} steps, "
           f"{dt:.1f} s; last 10: {np.round(history[-10:], 4)}")
     assert max(abs(t) for t in history[-10:]) <= 0.03
+
+
+# ------------------------------------------ silhouettes and the light's pose (antialiased maps)
+from mi_shadowmap import inverse   # noqa: E402
+
+SOFT = {"vsm": {"method": "vsm", "filter_size": 4.0},
+        "pcf": {"method": "pcf", "soft_compare": 8.0}}
+IMAGE, SPP_AD, MAP_AA = 64, 8, 256
+SEEDS = (1, 2, 3, 4)
+
+
+def _integ(method, **kw):
+    return mi.load_dict({"type": "shadowmap", "resolution": MAP_AA, **SOFT[method], **kw})
+
+
+def _weights(mask, channels, channel=None):
+    """Mean over ``mask`` of the colour channels (or of one ``channel``)."""
+    w = np.zeros(mask.shape + (channels,), np.float32)
+    if channel is None:
+        w[..., :3] = mask[..., None] / (3.0 * mask.sum())
+    else:
+        w[..., channel] = mask / mask.sum()
+    return mi.Float(w.ravel())
+
+
+def _ad(param, integ, w, n, seed=1, spp=SPP_AD):
+    x = mi.Float(np.zeros(n, np.float32))
+    dr.enable_grad(x)
+    param.set(x)
+    img = mi.render(param.scene, param.params, integrator=integ, spp=spp, seed=seed)
+    dr.backward(dr.sum(img.array * w))
+    g = dr.grad(x).numpy()
+    param.reset()
+    return g
+
+
+def _fd(param, integ, w, n, h, seed=1, spp=SPP_AD):
+    out = []
+    for k in range(n):
+        e = np.zeros(n)
+        e[k] = h
+        vals = []
+        for x in (e, -e):
+            param.set(x)
+            img = mi.render(param.scene, integrator=integ, spp=spp, seed=seed)
+            vals.append(float(dr.sum(img.array * w)[0]))
+        out.append((vals[0] - vals[1]) / (2 * h))
+    param.reset()
+    return np.array(out)
+
+
+def _cos(a, b):
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-30))
+
+
+@pytest.mark.parametrize("method", sorted(SOFT))
+def test_sideways_gradient_matches_ray_tracing(method):
+    """The occluder moves across the area light's rays (x and z): its outline crosses
+    texels, which only antialiased maps differentiate. The AD gradient of the mean
+    receiver colour matches central differences of ray-traced renders (cosine >= 0.95,
+    each component within 30 %) and of the method's own antialiased output; without
+    antialiasing it is two orders of magnitude too small. Measured: vsm cosine 0.996
+    against ray tracing, pcf 0.996, both 1 % shorter."""
+    scene = inverse.occluder_scene("area", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    param = inverse.translate_shape(scene, axes="xz")
+    w = _weights(mask, 4)
+    g = _ad(param, _integ(method), w, 2)
+    ref = _fd(param, mi.load_dict({"type": "shadowmap", "method": "raytraced"}), w, 2,
+              0.03, spp=256)
+    own = _fd(param, _integ(method, antialias="always"), w, 2, 0.01)
+    plain = _ad(param, _integ(method, antialias="never"), w, 2)
+    print(f"{method}: AD {g}, ray-traced FD {ref}, own FD {own}, not antialiased {plain}")
+    assert _cos(g, ref) >= 0.95 and _cos(g, own) >= 0.95
+    assert abs(np.linalg.norm(g) / np.linalg.norm(ref) - 1.0) <= 0.2
+    assert np.linalg.norm(plain) < 0.1 * np.linalg.norm(ref)
+
+
+def test_point_light_position_gradient():
+    """A point light's position (3 values): the gradient passes through the map's
+    rays, the receivers' projections and the occluder's projected outline. Against
+    central differences of the method's own antialiased output (cosine >= 0.95) and
+    of ray-traced renders (cosine >= 0.9: the shading part, Mitsuba's, is the same
+    in both; the shadow part is vsm's). Measured: 0.99 / 0.98."""
+    scene = inverse.occluder_scene("point", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    param = inverse.light_position(scene)
+    w = _weights(mask, 4)
+    g = _ad(param, _integ("vsm"), w, 3)
+    own = _fd(param, _integ("vsm", antialias="always"), w, 3, 0.02)
+    ref = _fd(param, mi.load_dict({"type": "shadowmap", "method": "raytraced"}), w, 3,
+              0.03, spp=256)
+    print(f"AD {g}, own FD {own}, ray-traced FD {ref}; cosines {_cos(g, own):.4f} "
+          f"{_cos(g, ref):.4f}")
+    assert _cos(g, own) >= 0.95
+    assert _cos(g, ref) >= 0.9
+
+
+@pytest.mark.parametrize("light", ["spot", "directional", "area"])
+def test_light_pose_moves_the_shadow(light):
+    """Spot (``to_world`` translation), directional (``to_world`` rotation) and area
+    lights (the shape's ``to_world`` translation): the gradient of the visibility AOV
+    (shadows only: Mitsuba's own emitter gradients for these poses disagree with its
+    finite differences by about 2x, in ``direct`` too) against central differences
+    of the same method's antialiased visibility, both averaged over four seeds (the
+    pixels' and the light's samples), within 25 %."""
+    scene = inverse.occluder_scene(light, IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    key = "light.to_world"
+    if light == "directional":
+        def apply(base, x):   # a rotation about z by x[0] radians
+            a = inverse._vec(x, 0)
+            c, s = dr.cos(a), dr.sin(a)
+            m = mi.Matrix4f(mi.Float(1.0) * c, -s, 0, 0, s, c, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)
+            return mi.Transform4f(m) @ mi.Transform4f(base)
+    else:
+        def apply(base, x):
+            return mi.Transform4f().translate(mi.Vector3f(inverse._vec(x, 0), 0.0, 0.0)) \
+                @ mi.Transform4f(base)
+    param = inverse.Parameter(scene, key, apply, 1)
+    w = _weights(mask, 4, channel=3)
+    g = np.mean([_ad(param, _integ("vsm"), w, 1, seed=s)[0] for s in SEEDS])
+    fd = np.mean([_fd(param, _integ("vsm", antialias="always"), w, 1, 0.01, seed=s)[0]
+                  for s in SEEDS])
+    print(f"{light}: AD {g:.5g}, FD {fd:.5g}")
+    assert abs(fd) > 1e-4
+    assert abs(g - fd) <= 0.25 * abs(fd)
+
+
+@pytest.mark.parametrize("method", sorted(SOFT))
+def test_adam_recovers_an_occluder_translation(method):
+    """The occluder starts 0.3 units from its place, across the light (x, z); Adam on
+    the receiver pixels' squared error against a ray-traced target (256 spp) brings
+    it within 0.03 units, held over the last 10 of 60 steps. Measured: vsm 0.011,
+    pcf 0.006 (~10 / 20 s)."""
+    scene = inverse.occluder_scene("area", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    target = mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
+                                                       "method": "raytraced"}),
+                       spp=256, seed=7)
+    param = inverse.translate_shape(scene, axes="xz")
+    x0 = np.array([0.24, -0.18])   # 0.3 units away
+    hist = inverse.optimize(param, _integ(method), target, mask, x0, steps=60, lr=0.02,
+                            spp=SPP_AD)
+    x, loss, sec = hist.as_arrays()
+    err = np.linalg.norm(x[-10:], axis=1)
+    print(f"{method}: |x| {np.linalg.norm(x0):.3f} -> {err[-1]:.4f} in {len(x)} steps, "
+          f"{sec[-1]:.1f} s; worst of the last 10 {err.max():.4f}")
+    assert err.max() <= 0.03
+
+
+def test_adam_recovers_a_point_light_position():
+    """A point light starts 0.71 units (9 % of the 8-unit scene) from its place; Adam
+    against a ray-traced target brings it within 2 % of the scene's size (0.16),
+    held over the last 10 of 80 steps. Without antialiased maps the same run
+    drifts away (measured: 1.1 units after 100 steps). Measured: 0.016 units."""
+    scene = inverse.occluder_scene("point", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    target = mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
+                                                       "method": "raytraced"}),
+                       spp=256, seed=7)
+    param = inverse.light_position(scene)
+    x0 = np.array([0.5, 0.3, -0.4])
+    hist = inverse.optimize(param, _integ("vsm"), target, mask, x0, steps=80, lr=0.03,
+                            spp=SPP_AD)
+    x, loss, sec = hist.as_arrays()
+    err = np.linalg.norm(x[-10:], axis=1)
+    print(f"light: {np.linalg.norm(x0):.3f} -> {err[-1]:.4f} units in {len(x)} steps, "
+          f"{sec[-1]:.1f} s; worst of the last 10 {err.max():.4f}")
+    assert err.max() <= 0.02 * inverse.SCENE_SIZE

@@ -224,8 +224,14 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
       differentiable in the map's and the receiver's depths (issue 13,
       differentiable shadows), at the price of light leaking under
       occluders closer than ``w`` to the receiver (contact shadows lighten).
-      Gradients of a *silhouette's* motion across texels are not captured:
-      the map is not antialiased.
+      A *silhouette's* motion across texels reaches the gradient through
+      the map's antialiasing (property ``antialias``,
+      :mod:`mi_shadowmap.antialias`): on such a map each tap blends the
+      compares against its texel's surface and its neighbours' by their
+      coverage (:func:`~.common.soft_tap`), and when the light's pose has
+      gradients a tap's motion across texels is differentiated through the
+      bilinear interpolation of its four texels' compares (values stay the
+      nearest texel's).
     """
     res = smap.resolution
     r = receiver(smap, lk, opts)

@@ -83,8 +83,8 @@ Deviations from the paper and why:
   kernel width, but tap positions are discrete, so none flows through it).
   The blocker search keeps the step, and a light of size 0 stays ``hard``
   (no smooth compare). Occluders within ``w`` of the receiver leak light;
-  a silhouette's motion across texels gives no gradient (the map is not
-  antialiased).
+  a silhouette's motion across texels reaches the gradient through the
+  map's antialiasing (property ``antialias``, :func:`~.common.soft_tap`).
 """
 from __future__ import annotations
 

@@ -198,6 +198,6 @@ def light_pose(emitter, view, bounds=None):
                  @ mi.Matrix4f(np.linalg.inv(r_ref).astype(np.float32))
                  @ mi.Matrix4f(np.array(mi.ScalarTransform4f().translate([-x for x in c]).matrix)))
     dr.make_opaque(delta)
-    inverse = dr.inverse(delta)
+    inverse = dr.rcp(delta)   # the matrix inverse (dr.inverse is deprecated)
     dr.make_opaque(inverse)
     return ref.view, LightPose(mi.Transform4f(delta), mi.Transform4f(inverse))

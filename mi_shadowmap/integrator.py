@@ -87,6 +87,42 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
         finally:
             self._in_render = False
 
+    #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
+    #: (``pcf``'s taps, ``max_iterations=-1``): their gradient renders run with symbolic
+    #: loops (:meth:`render_backward`). Others use Mitsuba's default, whose evaluated
+    #: loops store every iteration.
+    SYMBOLIC_BACKWARD = frozenset({"hard", "pcf", "vsm", "evsm", "msm", "unshadowed"})
+
+    def _symbolic_backward(self, scene) -> bool:
+        return (self.opts.record.name in self.SYMBOLIC_BACKWARD
+                and not any(e.is_environment() for e in scene.emitters()))
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        """Reverse mode (``dr.backward`` after ``mi.render(scene, params, ...)``): the
+        render again with gradients tracked (maps in the AD graph when a shape or
+        emitter needs them), then ``grad_in`` propagated back. For the methods of
+        :data:`SYMBOLIC_BACKWARD` in one pass of symbolic loops (measured: ``pcf`` with
+        ``soft_compare``, 128^2, 16 spp, 0.36 s a gradient against 1.3 s through
+        Mitsuba's default); the others go through Mitsuba's default."""
+        if not self._symbolic_backward(scene):
+            return self._mi_base.render_backward(self, scene, params, grad_in, sensor, seed,
+                                                 spp)
+        with dr.resume_grad():
+            image = self.render(scene, sensor, seed, spp, develop=True, evaluate=False)
+            dr.set_grad(image, grad_in)
+            dr.enqueue(dr.ADMode.Backward, image)
+            dr.traverse(dr.ADMode.Backward)
+        dr.eval()
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        """Forward mode (``dr.forward``): the derivative image, as :meth:`render_backward`."""
+        if not self._symbolic_backward(scene):
+            return self._mi_base.render_forward(self, scene, params, sensor, seed, spp)
+        with dr.resume_grad():
+            image = self.render(scene, sensor, seed, spp, develop=True, evaluate=False)
+            dr.forward_to(image)
+            return dr.grad(image)
+
     def prepare_maps(self, scene: mi.Scene, sensor=None) -> list[ShadowMap]:
         """First pass: one depth map per emitter (None for ``raytraced``).
 

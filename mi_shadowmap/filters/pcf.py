@@ -131,7 +131,11 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
 
     if soft_width is not None:
         n_lit = mi.Float(0.0)
-    k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body)
+        # a sum of taps: Dr.Jit's sum-style reverse mode differentiates the symbolic
+        # loop in place (no per-iteration state stored, no evaluated loop)
+        k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body, max_iterations=-1)
+    else:
+        k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body)
     return mi.Float(n_lit) / mi.Float(dr.maximum(n_taps, 1))
 
 

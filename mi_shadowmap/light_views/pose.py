@@ -81,15 +81,16 @@ class LightPose:
 
 @dataclass
 class _Reference:
+    emitter: object            # held, so that its id is not reused while this lives
     view: object
     kind: str
     value: np.ndarray          # position (3,) or world_from_light matrix (4, 4)
     scale: float               # the scene's size (for REFERENCE_MOVE)
 
 
-#: id(emitter) -> its reference (emitters live as long as their scene; a reference
-#: whose emitter is gone is never looked up again).
+#: id(emitter) -> its reference; the oldest are dropped beyond _MAX_REFERENCES.
 _REFERENCES: dict = {}
+_MAX_REFERENCES = 64
 
 
 def _attached(params, key):
@@ -179,9 +180,13 @@ def light_pose(emitter, view, bounds=None):
         # the cone turned: the reference frustum may no longer cover it
         r_now, r_ref = light_rotation(view), light_rotation(ref.view)
         turned = _angle(r_now @ r_ref.T) > REFERENCE_TURN
-    if ref is None or ref.kind != view.kind or turned or _far(ref, current):
-        ref = _Reference(view, view.kind, current, max(scene_size, 1e-30))
+    if (ref is None or ref.emitter is not emitter or ref.kind != view.kind or turned
+            or _far(ref, current)):
+        ref = _Reference(emitter, view, view.kind, current, max(scene_size, 1e-30))
+        _REFERENCES.pop(id(emitter), None)
         _REFERENCES[id(emitter)] = ref
+        while len(_REFERENCES) > _MAX_REFERENCES:
+            _REFERENCES.pop(next(iter(_REFERENCES)))
     if how == "translation":
         offset = mi.Vector3f(value) - mi.Vector3f(*[float(x) for x in ref.value])
         dr.make_opaque(offset)

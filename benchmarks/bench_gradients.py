@@ -2,61 +2,86 @@
 
     python benchmarks/bench_gradients.py [--scene area,directional] [--image 128] [--spp 16]
                                          [--map 128] [--margin 8] [--seeds 8] [--mean-seeds 24]
-                                         [--param along|sideways] [--methods vsm,pcf[,pcss]]
+                                         [--param sideways|along|light] [--methods vsm,pcf[,pcss]]
                                          [--ref-spp 1024] [--ref-seeds 4] [--no-projective]
+                                         [--projective-guiding octree|grid|none]
+                                         [--time-rounds 0] [--time-seeds 4]
                                          [--no-fd] [--json out.json]
 
-Default run: both scenes, about 4-6 minutes on 2 cores (direct_projective's 2 x 25
-gradients are most of it).
+Default run: both scenes, parameter ``sideways``, about 4-6 minutes per scene on 2
+cores (direct_projective's 25 gradients, 3-6 s each, are most of it).
 
 Scenes: ``area`` -- a 0.6 x 0.6 rectangle area light 3 units up (its cube map seen from
-its centre) over a ground plane, a flat box occluder 1 unit up; ``directional`` --
+its centre) over a ground plane, a flat box occluder 1 unit up: the same scene as
+``mi_shadowmap.inverse.occluder_scene('area')``; ``directional`` --
 tests/test_differentiable.py's scene (the ``box`` is the occluder). The occluder is a
-welded 8-vertex box mesh (``--occluder welded``): on Mitsuba's 24-vertex ``cube``
-(``--occluder cube``) direct_projective's gradients come out about 2x too large (each
-silhouette edge is a boundary edge of two separate faces). For motion along
-the light the directional scene's true derivative is exactly 0 (a hard shadow whose
-outline does not move), so there only the self-consistency check means anything; the
-area scene's true derivative is small but nonzero (the penumbra narrows).
+welded 8-vertex box mesh (``--occluder welded``: ``mi_shadowmap.procedural.box`` placed
+by ``mi_shadowmap.scenes.mesh``, the same vertices and faces as the benchmark's former
+``welded_cube``); on Mitsuba's 24-vertex ``cube`` (``--occluder cube``)
+direct_projective's gradients come out about 2x too large (each silhouette edge is a
+boundary edge of two separate faces).
 
-One scalar parameter ``t`` moves an occluder (a cube mesh, through its
-``vertex_positions``) and the loss is the mean colour of the *receiver* pixels: ground
-pixels at least ``--margin`` pixels away, on screen, from anything that is not ground
-(so the occluder's own silhouette and shading never enter the loss; only its shadow).
+One scalar parameter ``t`` (``d loss / d t`` at ``t = 0``); the loss is the mean colour
+of the *receiver* pixels: ground pixels at least ``--margin`` pixels away, on screen,
+from anything that is not ground (so the occluder's own silhouette and shading never
+enter the loss; only its shadow).
 
-``--param along`` (default) moves every vertex of the occluder by ``t`` along the light
-ray through it: away from the area light's centre (the point its cube map is seen
-from), or along a directional light's direction. The occluder's outline in the maps
-stays where it is, so the maps change only through their depths -- the case the
-current differentiable maps handle (tests/test_differentiable.py). ``--param sideways``
-translates the occluder horizontally, across the light: its outline moves across
-texels, which the maps (not antialiased yet) do not differentiate -- expect wrong
-gradients from ours there.
+* ``--param sideways`` (default): the occluder translated horizontally (+z), across the
+  light: its outline moves across the maps' texels. The maps are silhouette-
+  antialiased whenever they are built for gradients (``mi_shadowmap.antialias``;
+  property ``antialias``, default ``'gradients'``), which is what gives this motion its
+  gradient (without it ours were ~100x too small); each worker reports whether its
+  gradient renders' maps were antialiased.
+* ``--param along``: every vertex moved along the light ray through it (away from the
+  area light's centre, or along the directional light). The outline in the maps stays
+  put; the maps change through their depths only. The true derivative is tiny (area
+  scene: about -2.3e-5, the penumbra narrows; directional: exactly 0, a hard shadow
+  whose outline does not move), and ``vsm``/``pcf``/``pcss`` get the *opposite* sign
+  there: their smooth depth compares leak light as the occluder nears the receiver, so
+  their visibility depends on the occluder-receiver gap. That is a bias of the methods
+  (the self-consistency check below agrees), not a gradient bug.
+* ``--param light``: the light moves -- the area light's ``to_world`` translated along
+  +x (``mi_shadowmap.light_views.pose``), or the directional scene's sun turned about z
+  (radians). The colour loss then also has Mitsuba's own shading terms of the light's
+  pose (distance, cosines), in every integrator alike. direct_projective's default
+  guiding (``octree``) fails to build for this motion at 128^2 x 16 spp (a warning:
+  "Number of leaf nodes exceeds 'max_leaf_count'") and its gradient is then exactly 0
+  at every seed; ``--projective-guiding none`` gives the right gradient (``grid``: about
+  0.4x of it).
 
 Integrators (all get the same scene, spp, parameter and loss):
 
 * ``vsm`` (``filter_size 4``) and ``pcf`` (``soft_compare 24``): ``shadowmap``, maps
-  rebuilt in the AD graph at every gradient (``maps_need_gradients``);
+  rebuilt in the AD graph at every gradient (``maps_need_gradients``), antialiased
+  (``antialias`` left at its default);
 * ``direct_projective``: Mitsuba's projective-sampling direct integrator
-  (``sppc = sppp = sppi = spp`` through ``mi.render(..., spp=)``).
+  (``sppc = sppp = sppi = spp`` through ``mi.render(..., spp=)``; ``guiding`` Mitsuba's
+  default, ``octree``, unless ``--projective-guiding``).
 
 Each integrator runs in a fresh subprocess (``--worker``): one warm-up gradient
 (compiles), then one gradient per seed, ``mi.render(scene, params, seed=s, spp=)`` +
 ``dr.backward(loss)``, timed with ``dr.sync_thread()``. Reported:
 
-1. time per gradient: median over the ``--seeds`` runs (warm), and the ratio
-   direct_projective / ours;
+1. time per gradient: median over the ``--seeds`` runs (warm), and the speed-up
+   direct_projective / ours; with ``--time-rounds N``, the median over N interleaved
+   rounds of timing-only workers instead (ours, direct_projective, direct_projective,
+   ours, ...: a shared machine's changing load then hits all alike);
 2. spread: standard deviation of the scalar gradient over the first ``--seeds`` seeds,
-   and its ratio to direct_projective's; the mean over ``--mean-seeds`` seeds (sign
-   check), with its standard error;
+   and its ratio to direct_projective's at equal spp; at equal time, the same ratio
+   scaled by time, ``(std * sqrt(time / gradient))_ours / (...)_dp`` (averaging ``k``
+   gradients divides the std by ``sqrt(k)``: what the std would be for the same
+   seconds spent -- not a run at a different spp); the mean over ``--mean-seeds``
+   seeds (sign check), with its standard error;
 3. peak memory: ``ru_maxrss`` of the worker after the scene is loaded and at the end
    (the difference is what the gradients added);
 4. our gradient against central finite differences of our own forward renders (same
-   seed on both sides; ``--fd-h``): the scalar ``t`` (relative error) and a vector of
-   per-corner offsets along the light (8 corners of the cube: cosine similarity), as in
-   tests/test_differentiable.py; plus a reference derivative: central differences of
-   ray-traced renders (``shadowmap method=raytraced``, ``--ref-spp`` spp, the same seed
-   on both sides, averaged over ``--ref-seeds`` seeds): the sign checks use it.
+   seed on both sides, ``--fd-h``, the maps antialiased in those renders too:
+   ``antialias='always'``): the scalar ``t`` (relative error) and a small vector
+   (cosine): one offset per corner of the box in the parameter's direction
+   (``sideways``/``along``), or the light's translation x, y, z (``light``); plus a
+   reference derivative: central differences of ray-traced renders (``shadowmap
+   method=raytraced``, ``--ref-spp`` spp, the same seed on both sides, averaged over
+   ``--ref-seeds`` seeds): the sign checks use it.
 
 Times depend on the machine's load (direct_projective took 3.4 s per gradient on an
 idle 2-core machine and 5.7 s with another job on one core).
@@ -87,6 +112,9 @@ METHODS = {
     "pcss": {"type": "shadowmap", "method": "pcss", "soft_compare": 24.0},
     "direct_projective": {"type": "direct_projective"},
 }
+PARAM_TEXT = {"sideways": ("occluder moved sideways (+z), across the light",) * 2,
+              "along": ("occluder moved along the light",) * 2,
+              "light": ("sun turned about z (radians)", "area light translated along +x")}
 LABELS = {"vsm": "vsm (filter_size 4)", "pcf": "pcf (soft_compare 24)",
           "pcss": "pcss (soft_compare 24)",
           "direct_projective": "direct_projective"}
@@ -97,27 +125,18 @@ def _diffuse(v):
     return {"type": "diffuse", "reflectance": {"type": "rgb", "value": v}}
 
 
-#: A unit cube's corners and its 12 triangles (outward), for the welded occluder.
-CUBE_V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float32)
-CUBE_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.uint32)
-
-
 def welded_cube(to_world, bsdf):
-    """A cube mesh with 8 shared vertices (Mitsuba's ``cube`` has 24: every face a
-    separate quad, so every edge is a boundary edge, and direct_projective counts each
-    silhouette edge of it twice -- measured: its gradient is 2.0x the finite
-    differences for a sideways translation, 1.0x with this mesh)."""
-    import drjit as dr
-    import mitsuba as mi
-    v = np.array([to_world @ mi.ScalarPoint3f(*p) for p in CUBE_V], np.float32)
-    m = mi.Mesh("occluder", vertex_count=8, face_count=12, has_vertex_normals=False)
-    p = mi.traverse(m)
-    p["vertex_positions"] = dr.ravel(mi.Point3f(v.T))
-    p["faces"] = dr.ravel(mi.Vector3u(CUBE_F.T))
-    p.update()
-    m.set_bsdf(mi.load_dict(bsdf))
-    return m
+    """The welded occluder: :func:`mi_shadowmap.procedural.box` (8 shared vertices, 12
+    outward triangles) placed by ``to_world`` through :func:`mi_shadowmap.scenes.mesh`
+    -- the same vertices and faces as a unit ``cube`` shape's corners under
+    ``to_world``. (Mitsuba's ``cube`` has 24 vertices: every face a separate quad, so
+    every edge is a boundary edge, and direct_projective counts each silhouette edge
+    of it twice -- measured: its gradient is 2.0x the finite differences for a
+    sideways translation, 1.0x with this mesh.)"""
+    from mi_shadowmap.procedural import box
+    from mi_shadowmap.scenes import mesh
+    v, f, _ = box((1.0, 1.0, 1.0))
+    return mesh("occluder", v, f, to_world, bsdf)
 
 
 def scene_dict(kind, image, spp, occluder="welded"):
@@ -176,13 +195,29 @@ def receiver_mask(scene, spp, margin):
 
 
 class Occluder:
-    """The occluder's vertices as a function of parameters: ``set_scalar(t)`` (the
-    benchmark's parameter) or ``set_corners(theta)`` (one offset along the light per
-    distinct corner, for the finite-difference cosine)."""
+    """The benchmark's parameter as a function of a scalar ``t`` (``set_scalar(t)``)
+    and of a small vector ``theta`` (``set_vector(theta)``, for the finite-difference
+    cosine).
+
+    ``along`` / ``sideways``: the occluder's vertices (``occluder.vertex_positions``)
+    move by ``t`` along the light ray through each vertex / along +z; ``theta`` holds
+    one offset per distinct corner, in the same direction as ``t``'s.
+    ``light``: the light moves -- the area light's ``to_world`` is translated by ``t``
+    along +x (the directional scene's ``sun.to_world`` is turned by ``t`` radians
+    about z); ``theta``: the area light's translation (x, y, z) / the sun's turn about
+    (x, z)."""
 
     def __init__(self, scene, kind, param):
         import mitsuba as mi
         self.params = mi.traverse(scene)
+        self.kind, self.param = kind, param
+        if param == "light":
+            self.key = "light.to_world" if kind == "area" else "sun.to_world"
+            self.base_tf = mi.Transform4f(self.params[self.key])
+            self.n_corners = 3 if kind == "area" else 2
+            self.vector_label = ("light translation (x, y, z)" if kind == "area"
+                                 else "sun rotation about (x, z)")
+            return
         self.key = "occluder.vertex_positions"
         self.base = np.array(self.params[self.key]).reshape(-1, 3).astype(np.float64)
         _, inv = np.unique(np.round(self.base, 5), axis=0, return_inverse=True)
@@ -195,16 +230,10 @@ class Occluder:
             else:
                 self.dirs = np.tile(DIR_LIGHT, (len(self.base), 1))
         elif param == "sideways":   # horizontal, across the light
-            side = np.array([0.0, 0.0, 1.0])
-            self.dirs = np.tile(side, (len(self.base), 1))
+            self.dirs = np.tile(np.array([0.0, 0.0, 1.0]), (len(self.base), 1))
         else:
             raise ValueError(param)
-        # per-corner directions along the light (the FD vector check)
-        if kind == "area":
-            d = self.base - AREA_CENTRE[None, :]
-            self.light_dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
-        else:
-            self.light_dirs = np.tile(DIR_LIGHT, (len(self.base), 1))
+        self.vector_label = f"per-corner offsets {param} ({self.n_corners} corners)"
 
     def _put(self, off, dirs):
         import drjit as dr
@@ -214,17 +243,47 @@ class Occluder:
         self.params[self.key] = dr.ravel(v)
         self.params.update()
 
+    def _light(self, x, y, z):
+        """Area: translate by (x, y, z); directional: turn by x about x, then z about z."""
+        import drjit as dr
+        import mitsuba as mi
+        if self.kind == "area":
+            tf = mi.Transform4f().translate(mi.Vector3f(x, y, z)) @ self.base_tf
+        else:
+            cz, sz = dr.cos(z), dr.sin(z)
+            cx, sx = dr.cos(x), dr.sin(x)
+            rz = mi.Matrix4f(cz, -sz, 0, 0, sz, cz, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)
+            rx = mi.Matrix4f(1, 0, 0, 0, 0, cx, -sx, 0, 0, sx, cx, 0, 0, 0, 0, 1)
+            tf = mi.Transform4f(rz) @ mi.Transform4f(rx) @ self.base_tf
+        self.params[self.key] = tf
+        self.params.update()
+
     def set_scalar(self, t):
         """``t``: a Python float or an attached ``mi.Float`` of size 1."""
         import mitsuba as mi
-        self._put(mi.Float(t) if not isinstance(t, mi.Float) else t, self.dirs)
+        t = mi.Float(t) if not isinstance(t, mi.Float) else t
+        if self.param == "light":
+            zero = mi.Float(0.0)
+            if self.kind == "area":
+                self._light(t, zero, zero)
+            else:
+                self._light(zero, zero, t)
+            return
+        self._put(t, self.dirs)
 
-    def set_corners(self, theta):
+    def set_vector(self, theta):
         import drjit as dr
         import mitsuba as mi
         if not isinstance(theta, mi.Float):
             theta = mi.Float(np.asarray(theta, dtype=np.float32))
-        self._put(dr.gather(mi.Float, theta, mi.UInt32(self.group)), self.light_dirs)
+        if self.param == "light":
+            c = [dr.gather(mi.Float, theta, mi.UInt32(k)) for k in range(self.n_corners)]
+            if self.kind == "area":
+                self._light(*c)
+            else:
+                self._light(c[0], mi.Float(0.0), c[1])
+            return
+        self._put(dr.gather(mi.Float, theta, mi.UInt32(self.group)), self.dirs)
 
 
 def loss_of(img, weights):
@@ -253,12 +312,26 @@ def _weights(mask, channels):
     return mi.Float(w.ravel())
 
 
-def _integrator(name, args):
+def _integrator(name, args, antialias=None):
     import mitsuba as mi
     d = dict(METHODS[name])
+    if d["type"] == "direct_projective" and args.projective_guiding:
+        d["guiding"] = args.projective_guiding
     if d["type"] == "shadowmap":
         d["resolution"] = args.map
+        if antialias is not None:
+            d["antialias"] = antialias
     return mi.load_dict(d)
+
+
+def _antialias_state(integ):
+    """(the ``antialias`` property, whether the last render's maps were antialiased),
+    or (None, None) for an integrator without maps."""
+    opts = getattr(integ, "opts", None)
+    if opts is None:
+        return None, None
+    maps = [m for m in (getattr(integ, "maps", None) or []) if m is not None]
+    return getattr(opts, "antialias", None), any(m.coverage is not None for m in maps)
 
 
 def worker_grad(args):
@@ -289,6 +362,7 @@ def worker_grad(args):
     gradient(10_000)          # warm-up (compilation)
     dr.sync_thread()
     warm = time.perf_counter() - t0
+    aa_prop, aa_on = _antialias_state(integ)
     grads, losses, times = [], [], []
     for s in range(args.n_seeds):
         t0 = time.perf_counter()
@@ -298,7 +372,8 @@ def worker_grad(args):
         grads.append(g)
         losses.append(lv)
     out = {"name": args.worker, "grads": grads, "losses": losses, "times": times,
-           "first_seconds": warm, "rss_loaded_kb": rss_loaded,
+           "first_seconds": warm, "antialias": aa_prop, "antialiased": aa_on,
+           "rss_loaded_kb": rss_loaded,
            "rss_peak_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
            "mask_pixels": int(mask.sum())}
     print("RESULT " + json.dumps(out), flush=True)
@@ -325,7 +400,10 @@ def worker_fd(args):
         print("RESULT " + json.dumps({"name": "ref", "fd_t": float(np.mean(fds)), "fds": fds}),
               flush=True)
         return
-    integ = _integrator(args.worker, args)
+    # 'always': the forward renders of the differences see the antialiased maps the
+    # gradients see (with the default 'gradients' a primal render's maps are not
+    # antialiased, a different -- piecewise-constant -- function of the outline)
+    integ = _integrator(args.worker, args, antialias="always")
     w = _weights(mask, 4)
     h = args.fd_h
 
@@ -335,7 +413,7 @@ def worker_fd(args):
         return float(loss_of(img, w)[0])
 
     def loss_corners(theta):
-        occ.set_corners(theta)
+        occ.set_vector(theta)
         img = mi.render(scene, integrator=integ, spp=args.spp, seed=seed)
         return float(loss_of(img, w)[0])
 
@@ -351,7 +429,7 @@ def worker_fd(args):
     n = occ.n_corners
     th = mi.Float(np.zeros(n, np.float32))
     dr.enable_grad(th)
-    occ.set_corners(th)
+    occ.set_vector(th)
     img = mi.render(scene, occ.params, integrator=integ, spp=args.spp, seed=seed)
     dr.backward(loss_of(img, w))
     g_v = dr.grad(th).numpy().astype(np.float64)
@@ -364,7 +442,7 @@ def worker_fd(args):
     occ.set_scalar(0.0)
     cos = float(g_v @ fd_v / (np.linalg.norm(g_v) * np.linalg.norm(fd_v) + 1e-30))
     print("RESULT " + json.dumps({"name": args.worker, "ad_t": g_t, "fd_t": fd_t,
-                                  "cos": cos, "n": n, "ad_v": g_v.tolist(),
+                                  "cos": cos, "n": n, "vector": occ.vector_label, "ad_v": g_v.tolist(),
                                   "fd_v": fd_v.tolist()}), flush=True)
 
 
@@ -374,6 +452,7 @@ def run_worker(args, name, mode, n_seeds=None, timeout=3600):
            "--scene", args.scene, "--image", str(args.image), "--spp", str(args.spp),
            "--map", str(args.map), "--margin", str(args.margin), "--param", args.param,
            "--occluder", args.occluder,
+           *(["--projective-guiding", args.projective_guiding] if args.projective_guiding else []),
            "--fd-h", str(args.fd_h), "--ref-h", str(args.ref_h), "--ref-spp", str(args.ref_spp),
            "--ref-seeds", str(args.ref_seeds),
            "--n-seeds", str(n_seeds or 0)]
@@ -420,7 +499,9 @@ def main():
                     "(px) from anything else on screen (default: image / 16, i.e. 8 at 128^2, "
                     "as tests/test_differentiable.py's 2 px at 32^2; at 3 px direct_projective's "
                     "mean was 1.8x the finite-difference reference on the area scene)")
-    ap.add_argument("--param", choices=("along", "sideways"), default="along")
+    ap.add_argument("--param", choices=("sideways", "along", "light"), default="sideways",
+                    help="the occluder moved across the light (default), along the light, "
+                    "or the light moved (area: translation x; directional: turn about z)")
     ap.add_argument("--occluder", choices=("welded", "cube"), default="welded",
                     help="the occluder mesh: 8 shared vertices (default), or Mitsuba's "
                     "'cube' (24 vertices; direct_projective's gradient doubles on it)")
@@ -431,8 +512,21 @@ def main():
     ap.add_argument("--projective-mean-seeds", type=int, default=None,
                     help="direct_projective's --mean-seeds (default: the same)")
     ap.add_argument("--no-projective", action="store_true")
+    ap.add_argument("--projective-guiding", choices=("octree", "grid", "none"), default=None,
+                    help="direct_projective's 'guiding' of its indirect-discontinuity samples "
+                    "(default: Mitsuba's, 'octree'). For the area light's translation at "
+                    "128^2 x 16 spp its octree fails to build ('Number of leaf nodes exceeds "
+                    "max_leaf_count', a warning) and its gradient is then exactly 0; 'none' "
+                    "gives the right one (and is much faster)")
+    ap.add_argument("--time-rounds", type=int, default=0,
+                    help="after the main run, this many interleaved rounds of timing-only "
+                    "workers (ours, direct_projective, ours, ...; --time-seeds gradients "
+                    "each): the time per gradient and speed-up are then the median over "
+                    "the rounds' warm gradients (robust to another job's load changing)")
+    ap.add_argument("--time-seeds", type=int, default=4, help="gradients per timing worker")
     ap.add_argument("--no-fd", action="store_true")
-    ap.add_argument("--fd-h", type=float, default=0.02)
+    ap.add_argument("--fd-h", type=float, default=0.02, help="step of the self-consistency "
+                    "finite differences (units; radians for the directional light's turn)")
     ap.add_argument("--ref-h", type=float, default=0.05)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--ref-seeds", type=int, default=4, help="seeds averaged by the "
@@ -464,7 +558,8 @@ def run_scene(args):
     mean_seeds = max(args.mean_seeds, args.seeds)
     dp_mean_seeds = max(args.projective_mean_seeds or mean_seeds, args.seeds)
     print(f"# bench_gradients: {args.scene} scene, {args.image}^2, {args.spp} spp, map "
-          f"{args.map}, parameter '{args.param}', occluder '{args.occluder}', {args.seeds} "
+          f"{args.map}, parameter '{args.param}', occluder '{args.occluder}', "
+          f"direct_projective guiding '{args.projective_guiding or 'octree (default)'}', {args.seeds} "
           f"seeds (spread), "
           f"{mean_seeds}/{dp_mean_seeds} seeds (mean: ours/direct_projective)", flush=True)
     res = {"args": vars(args), "grad": {}, "fd": {}}
@@ -478,6 +573,15 @@ def run_scene(args):
         for m in methods:
             res["fd"][m] = run_worker(args, m, "fd")
         res["fd"]["ref"] = run_worker(args, "ref", "fd")
+    rounds = {}
+    if args.time_rounds > 0:
+        names = methods + ([] if args.no_projective else ["direct_projective"])
+        for k in range(args.time_rounds):
+            for m in (names if k % 2 == 0 else names[::-1]):   # interleaved
+                r = run_worker(args, m, "grad", args.time_seeds)
+                if not r.get("failed"):
+                    rounds.setdefault(m, []).extend(r["times"])
+    res["time_rounds"] = rounds
     res["total_seconds"] = time.perf_counter() - t_start
 
     # ---------------------------------------------------------------- tables
@@ -488,7 +592,7 @@ def run_scene(args):
 
     def stats(r):
         g = np.array(r["grads"])
-        t = float(statistics.median(r["times"][:n]))
+        t = float(statistics.median(rounds.get(r["name"]) or r["times"][:n]))
         sd = float(np.std(g[:n], ddof=1))
         mean = float(g.mean())
         se = float(np.std(g, ddof=1) / np.sqrt(len(g)))
@@ -497,10 +601,15 @@ def run_scene(args):
     ref_t = res["fd"].get("ref", {}).get("fd_t")
     print()
     print(f"Scene: {args.scene} light, {args.image}x{args.image}, {args.spp} spp; parameter: "
-          f"occluder moved '{args.param}' the light (scalar t, d loss / d t at t = 0); loss: "
+          f"{PARAM_TEXT[args.param][args.scene == 'area']} (scalar t, d loss / d t at t = 0); loss: "
           f"mean colour over {next((r['mask_pixels'] for r in G.values() if 'mask_pixels' in r), '?')}"
           f" receiver pixels.")
     print()
+    if rounds:
+        print(f"Times: median of {args.time_rounds} interleaved rounds x {args.time_seeds} "
+              "warm gradients (timing-only workers); the main run's own medians: "
+              + ", ".join(f"{m} {statistics.median(r['times'][:n]):.3f} s"
+                          for m, r in G.items() if not r.get("failed")) + ".")
     print("| integrator | time / gradient (median, s) | speed-up vs dp | "
           f"std over {n} seeds | std ratio (ours / dp), equal spp | std ratio, equal time "
           f"| mean ({mean_seeds} / {dp_mean_seeds} seeds) | std. error of mean | sign = dp mean? "
@@ -525,6 +634,10 @@ def run_scene(args):
             sign = same_sign(mean, dp_stats[2])
         print(f"| {LABELS[m]} | {t:.3f} | {sp} | {fmt(sd)} | {ratio} | {ratio_t} | {fmt(mean)} "
               f"| {fmt(se, 2)} | {sign} | {same_sign(mean, ref_t)} | {r['first_seconds']:.1f} |")
+    for m, r in G.items():
+        if not r.get("failed") and r.get("antialias") is not None:
+            print(f"{LABELS[m]}: property antialias = '{r['antialias']}'; the gradient "
+                  f"renders' maps {'were' if r['antialiased'] else 'were NOT'} antialiased.")
     if ref_t is not None:
         fds = np.array(res["fd"]["ref"]["fds"])
         se = float(np.std(fds, ddof=1) / np.sqrt(len(fds))) if len(fds) > 1 else float("nan")
@@ -543,8 +656,10 @@ def run_scene(args):
 
     if res["fd"]:
         print()
-        print(f"| method | AD d loss/dt (seed 1) | central FD (h = {args.fd_h}, seed 1) | rel. error "
-              "| cosine, AD vs FD, per-corner offsets along the light | sign = reference? |")
+        lab = next((r.get("vector") for r in res["fd"].values() if r.get("vector")), "vector")
+        print(f"| method | AD d loss/dt (seed 1) | central FD (h = {args.fd_h}, seed 1, "
+              f"antialias 'always') | rel. error | cosine, AD vs FD, {lab} "
+              "| sign = reference? |")
         print("|---|---|---|---|---|---|")
         for m in methods:
             r = res["fd"].get(m)
@@ -554,7 +669,7 @@ def run_scene(args):
             rel = abs(r["ad_t"] - r["fd_t"]) / max(abs(r["fd_t"]), 1e-30)
             sgn = same_sign(r["ad_t"], ref_t)
             print(f"| {LABELS[m]} | {fmt(r['ad_t'])} | {fmt(r['fd_t'])} | {rel:.3f} | "
-                  f"{r['cos']:.4f} ({r['n']} corners) | {sgn} |")
+                  f"{r['cos']:.4f} | {sgn} |")
     print(f"\nTotal {res['total_seconds']:.0f} s.\n")
     return res
 

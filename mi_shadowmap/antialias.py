@@ -64,15 +64,28 @@ NO_EDGE = 0xFFFFFFFF
 STEPS = ((-1, 0), (1, 0), (0, -1), (0, 1))
 
 
+#: id(mesh) -> (mesh, face count, vertex count) of the meshes whose edge topology was
+#: built (the mesh is held, so its id is not reused); the oldest beyond 256 are dropped.
+_EDGES: dict = {}
+
+
 def prepare_meshes(scene) -> None:
-    """Build every mesh's edge topology (``opposite_dedge``) once."""
+    """Build every mesh's edge topology (``opposite_dedge``) once per mesh and size
+    (measured: 16-44 ms for 180 k triangles, at every gradient render without this).
+    A mesh whose ``faces`` are replaced by as many other faces keeps its old topology:
+    call its ``build_directed_edges()`` after such a change."""
     for shape in scene.shapes():
-        if shape.is_mesh() and not getattr(shape, "_mi_shadowmap_edges", False):
-            shape.build_directed_edges()
-            try:
-                shape._mi_shadowmap_edges = True
-            except AttributeError:   # nanobind objects may refuse new attributes
-                pass
+        if not shape.is_mesh():
+            continue
+        size = (shape.face_count(), shape.vertex_count())
+        entry = _EDGES.get(id(shape))
+        if entry is not None and entry[0] is shape and entry[1:] == size:
+            continue
+        shape.build_directed_edges()
+        _EDGES.pop(id(shape), None)
+        _EDGES[id(shape)] = (shape, *size)
+        while len(_EDGES) > 256:
+            _EDGES.pop(next(iter(_EDGES)))
 
 
 def _neighbour(res: int, k, step):

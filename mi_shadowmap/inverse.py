@@ -31,7 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from .procedural import box
-from .scenes import mesh
+from .scenes import camera, mesh
 
 T = mi.ScalarTransform4f
 #: Where :func:`occluder_scene` puts the light (the area light's centre).
@@ -60,12 +60,7 @@ def occluder_scene(light: str = "area", image: int = 64, spp: int = 8,
         (v, f), to_world = occluder, None
     d = {
         "type": "scene",
-        "sensor": {"type": "perspective", "fov": 45,
-                   "to_world": T().look_at(origin=[0.0, 5.0, 4.5], target=[0.3, 0.0, 0.0],
-                                           up=[0, 1, 0]),
-                   "sampler": {"type": "independent", "sample_count": spp},
-                   "film": {"type": "hdrfilm", "width": image, "height": image,
-                            "rfilter": {"type": "box"}}},
+        "sensor": camera([0.0, 5.0, 4.5], [0.3, 0.0, 0.0], image, image, spp, fov=45.0),
         "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4),
                    "bsdf": _diffuse(0.7)},
         "occluder": mesh("occluder", v, f, to_world, _diffuse(0.5)),

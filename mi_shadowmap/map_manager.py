@@ -179,10 +179,12 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
             if gain is not None:
                 gains.append(gain)
     diff = maps_need_gradients(scene)
-    state = MAP_CACHE.scene_state(scene) if opts.cache_maps and not diff else None
-    layers = {name: record.layers[name] for name in layer_names}
     aa = getattr(opts, "antialias", "never")
     aa = aa == "always" or (aa == "gradients" and diff)
+    # the cache holds detached, plain depths: neither read nor written for gradients
+    # or antialiased maps
+    state = MAP_CACHE.scene_state(scene) if opts.cache_maps and not (diff or aa) else None
+    layers = {name: record.layers[name] for name in layer_names}
     poses = [None] * len(views)
     if diff:   # a light whose pose has gradients: its reference view and pose delta
         bounds = scene_bounds(scene)
@@ -204,11 +206,10 @@ def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose
     face set; a full cached depth, or a culled one with a superset of the faces,
     serves any face set. ``differentiable`` plans come with ``state`` None: no cache;
     ``pose``: the light's pose delta (gradients); ``antialias``: silhouette
-    antialiasing (all faces are built, culling skipped; never cached: the cache holds
-    plain depths)."""
+    antialiasing (all faces are built, culling skipped; comes with ``state`` None)."""
     key = (view_fingerprint(view), res)
     if antialias:
-        faces, state = None, None
+        faces = None
     cached = MAP_CACHE.get(scene, state, key, "depth") if state is not None else None
     if faces is not None:
         faces = tuple(bool(f) for f in faces)
@@ -234,8 +235,6 @@ def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
 
 def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
     view = p.view
-    if p.antialias:   # the cache holds plain depths only
-        state = None
     if p.cached_depth is not None:
         smap = ShadowMap(view=view, resolution=res, depth=p.cached_depth[0])
         stats.maps_reused += 1

@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from mi_shadowmap.metrics import dilate
+from mi_shadowmap.scenes import camera
 
 from mi_shadowmap.map_manager import MAP_CACHE, maps_need_gradients
 
@@ -48,12 +49,7 @@ def _diffuse(v):
 def scene_dict():
     return {
         "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": T().look_at(origin=[0.0, 5.5, 3.0], target=[0.0, 0.0, 0.0],
-                                           up=[0, 1, 0]),
-                   "sampler": {"type": "independent", "sample_count": SPP},
-                   "film": {"type": "hdrfilm", "width": RES, "height": RES,
-                            "rfilter": {"type": "box"}}},
+        "sensor": camera([0.0, 5.5, 3.0], [0.0, 0.0, 0.0], RES, RES, SPP),
         "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4),
                    "bsdf": _diffuse(0.7)},
         # a thin slab 0.6 above the ground (its top is what the map stores)

@@ -26,8 +26,9 @@ page under the receiver is missing at that level (a camera sample off the
 pixel centre) it takes the next finer level, else the next coarser one, else
 the coarsest level (one page per face), which is always built, so no point is
 lit for want of a page (a loop that only lanes with a missing page enter). The 2 x 2 pages around the receiver are looked up in
-the page table (per face and level, a grid of slots over the bounding
-rectangle of its built pages: two gathers, no loop) once per lookup; the
+the page table once per lookup (per face and level, a grid over the bounding
+rectangle of its built pages whose entry holds the 2 x 2 block's four slots:
+two packet gathers, no loop); the
 filter's taps then read through :meth:`BoundVirtualMap.fetch`,
 which picks one of those four slots, or for a tap outside them (a wide
 kernel, a cube seam) the coarsest level. Filters see a
@@ -45,8 +46,9 @@ literal, so moving the camera compiles no new kernel.
 frame's own pages do not fit, the finest marked pages are replaced by their
 parents (coarser, never missing) with a warning.
 
-**Gradients**: pages are built detached; a render whose shape or emitter parameters
-have gradients enabled is refused (full maps are built in the AD graph, issue 13).
+**Gradients**: pages are built detached; with ``virtual`` automatic (left out), a
+render whose shape or emitter parameters have gradients enabled gets full maps,
+built in the AD graph (issue 13); with ``virtual=true`` given it is refused.
 
 Deviations from UE5, and why:
 
@@ -89,8 +91,10 @@ SCENE_TEXELS = 2 ** 20
 ANISO = 2.0
 
 _INVALID = 0xFFFFFFFF
-#: Largest page grid of one (face, level) in the page table (entries).
-MAX_TABLE = 1 << 24
+#: Largest page grid of one (face, level) in the page table (entries of 4 slots).
+MAX_TABLE = 1 << 22
+#: Largest page grid side (the header packs width and height into one int32).
+MAX_TABLE_SIDE = (1 << 15) - 1
 
 
 def _array(cls, values):
@@ -319,11 +323,16 @@ class PageStore:
         ``face_near``: the nearest depth per face, PCSS's blocker-search bound).
 
         Per (face, level) -- entry ``face * n_levels + level`` -- ``header`` holds
-        ``(x0, y0, w, h, base)``: the bounding rectangle of that level's built pages
-        (in pages) and where its ``w x h`` slot grid starts in ``dense`` (slots,
-        ``_INVALID`` where no page is built). Two gathers resolve a page, with no
-        loop; a level whose rectangle would hold more than :data:`MAX_TABLE` entries
-        keeps its pages out of the table (lookups there walk to another level).
+        4 ints ``(x0 - 1, y0 - 1, W | H << 16, base)``: the grid of 2 x 2 blocks
+        whose lower-left page is in ``[x0 - 1, x0 + w - 1] x [y0 - 1, y0 + h - 1]``,
+        ``(x0, y0, w, h)`` the bounding rectangle of that level's built pages (in
+        pages), ``W = w + 1``, ``H = h + 1``, and where its ``W x H`` entries start
+        in ``dense``. Each entry of ``dense`` holds the block's 4 slots (pages
+        ``(bx, by)``, ``(bx + 1, by)``, ``(bx, by + 1)``, ``(bx + 1, by + 1)``;
+        ``_INVALID`` where none is built), so a lookup's block is one packet gather
+        of the header and one of ``dense``, with no loop. A level whose grid would
+        exceed :data:`MAX_TABLE` entries or :data:`MAX_TABLE_SIDE` per side keeps
+        its pages out of the table (lookups there walk to another level).
         """
         if self._table is not None and self._table[0] == self.version:
             return self._table[1]
@@ -335,23 +344,26 @@ class PageStore:
         px = ((keys >> np.uint64(27)) & np.uint64((1 << 27) - 1)).astype(np.int64)
         py = (keys & np.uint64((1 << 27) - 1)).astype(np.int64)
         group = face * L + level
-        header = np.zeros((lay.view.n_faces * L, 5), np.int64)
+        header = np.zeros((lay.view.n_faces * L, 4), np.int64)   # W = H = 0: no block
         parts, base = [], 0
         for g in np.unique(group):
             sel = group == g
             x0, y0 = px[sel].min(), py[sel].min()
             w, h = px[sel].max() - x0 + 1, py[sel].max() - y0 + 1
-            if w * h > MAX_TABLE:
+            W, H = w + 1, h + 1
+            if W * H > MAX_TABLE or max(W, H) > MAX_TABLE_SIDE:
                 warnings.warn(f"shadowmap: virtual map '{lay.view.label}': level "
                               f"{g % L} spans {w} x {h} pages, more than the page table "
                               "holds; its lookups use other levels", RuntimeWarning)
                 continue
-            grid = np.full(w * h, _INVALID, np.int64)
-            grid[(py[sel] - y0) * w + (px[sel] - x0)] = slots[sel]
-            header[g] = (x0, y0, w, h, base)
-            parts.append(grid)
-            base += w * h
-        dense = np.concatenate(parts + [np.full(2, _INVALID, np.int64)])
+            pages_grid = np.full((h + 2, w + 2), _INVALID, np.int64)   # a border of 1
+            pages_grid[py[sel] - y0 + 1, px[sel] - x0 + 1] = slots[sel]
+            block = np.stack([pages_grid[:H, :W], pages_grid[:H, 1:W + 1],
+                              pages_grid[1:H + 1, :W], pages_grid[1:H + 1, 1:W + 1]], -1)
+            header[g] = (x0 - 1, y0 - 1, W | (H << 16), base)
+            parts.append(block.reshape(-1))
+            base += W * H
+        dense = np.concatenate(parts + [np.full(4, _INVALID, np.int64)])
         n_faces = lay.view.n_faces
         coarse = np.zeros(n_faces, np.uint32)          # slot 0: the empty page
         for f in range(n_faces):
@@ -454,20 +466,17 @@ class VirtualShadowMap:
         level = mi.Int32(dr.floor(dr.log2(w_eff) + self.lod_bias))
         return mi.UInt32(dr.clip(level, 0, lay.coarsest))
 
-    def _level_table(self, face, level, active):
-        """``(x0, y0, w, h, base)`` of the page grid of ``(face, level)`` (see
-        :meth:`PageStore.table`)."""
-        h = (mi.UInt32(face) * self.layout.n_levels + mi.UInt32(level)) * 5
-        return tuple(dr.gather(mi.Int32, self.header, h + k, active) for k in range(5))
-
-    def _page_slot(self, table, px, py, active) -> mi.UInt32:
-        """Slot of page ``(px, py)`` in the level whose grid is ``table`` (``_INVALID``
-        where none is built)."""
-        x0, y0, w, h, base = table
-        lx, ly = px - x0, py - y0
-        ok = mi.Bool(active) & (lx >= 0) & (ly >= 0) & (lx < w) & (ly < h)
-        idx = mi.UInt32(base + ly * w + lx)
-        return dr.select(ok, dr.gather(mi.UInt32, self.dense, idx, ok), _INVALID)
+    def _block_slots(self, face, level, bx, by, active) -> list:
+        """Slots of the 2 x 2 pages whose lower-left page is ``(bx, by)`` at
+        ``(face, level)`` (``_INVALID`` where none is built): a packet gather of the
+        level's header, one of its block entry (see :meth:`PageStore.table`)."""
+        h = mi.UInt32(face) * self.layout.n_levels + mi.UInt32(level)
+        hdr = dr.gather(mi.Vector4i, self.header, h, active)
+        W, H = hdr.z & 0xFFFF, hdr.z >> 16
+        lx, ly = bx - hdr.x, by - hdr.y
+        ok = mi.Bool(active) & (lx >= 0) & (ly >= 0) & (lx < W) & (ly < H)
+        s4 = dr.gather(mi.Vector4u, self.dense, mi.UInt32(hdr.w + ly * W + lx), ok)
+        return [dr.select(ok, s4[k], _INVALID) for k in range(4)]
 
     def bind(self, lk, active=True) -> "BoundVirtualMap":
         """The map as one batch of lookups reads it (see the module doc)."""
@@ -484,9 +493,7 @@ class VirtualShadowMap:
             xy = uv64 * mi.Float64(res)
             bx = mi.Int32(dr.floor((xy.x - 0.5 * P) / P))
             by = mi.Int32(dr.floor((xy.y - 0.5 * P) / P))
-            table = self._level_table(face, level, act)
-            slots = [self._page_slot(table, bx + dx, by + dy, act)
-                     for dy in (0, 1) for dx in (0, 1)]
+            slots = self._block_slots(face, level, bx, by, act)
             cx = mi.Int32(dr.floor(xy.x / P)) > bx        # which of the 2 x 2 holds it
             cy = mi.Int32(dr.floor(xy.y / P)) > by
             own = dr.select(cy, dr.select(cx, slots[3], slots[2]),
@@ -589,7 +596,9 @@ def camera_hits(scene, sensor):
     """Camera hits at every pixel centre with one-pixel ray differentials:
     ``(si, dp_dx, dp_dy, valid)``."""
     ray, _ = sensor.sample_ray_differential(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
-    si = scene.ray_intersect(ray)
+    # position and geometric normal are all marking needs (RayFlags.All also computes
+    # UVs, shading frames and their derivatives: about half the pass)
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
     n = si.n
 
     def hit(o, d):
@@ -634,8 +643,26 @@ def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.nd
     px, py = lox + ox, loy + oy
     ok = g(act) & (px <= hix) & (py <= hiy) & (px >= 0) & (py >= 0) & (px < npg) & (py < npg)
     keys = page_key(g(face), g(level), dr.maximum(px, 0), dr.maximum(py, 0))
-    keys = dr.gather(mi.UInt64, keys, dr.compress(ok))
-    return np.unique(keys.numpy())
+    return np.unique(_dedupe(keys, ok))
+
+
+def _dedupe(keys, ok, bits: int = 16):
+    """Most of ``keys[ok]`` without repeats, on the device (neighbouring pixels read the
+    same pages: 4 x 65 k candidates hold a few hundred keys): every key is scattered into
+    a hash table of ``2^bits`` slots; the table's keys plus the keys that lost their
+    slot to another key are returned (a superset of the distinct keys, with few
+    repeats; ``np.unique`` finishes). Which key wins a slot does not matter: the
+    returned set is the same."""
+    size = 1 << bits
+    empty = mi.UInt64(0xFFFFFFFFFFFFFFFF)   # not a page key (face < 31)
+    slot = mi.UInt32((keys * mi.UInt64(0x9E3779B97F4A7C15)) >> (64 - bits))
+    table = dr.full(mi.UInt64, 0xFFFFFFFFFFFFFFFF, size)
+    dr.scatter(table, keys, slot, ok)
+    lost = ok & (dr.gather(mi.UInt64, table, slot, ok) != keys)
+    dr.eval(table, lost)
+    kept = dr.gather(mi.UInt64, table, dr.compress(table != empty))
+    rest = dr.gather(mi.UInt64, keys, dr.compress(lost))
+    return np.concatenate([kept.numpy(), rest.numpy()])
 
 
 def camera_state(sensor) -> bytes:

@@ -13,9 +13,8 @@ For every scene of ``--scenes`` (names of scenes_xml/*.xml, default: all of them
    ``raytraced``: the same camera samples as every configuration) and **unshadowed**
    (median warm frame of ``method=unshadowed``, measured in the same run: the shading
    cost without any shadow).
-2. For every method of ``--methods`` and every ``virtual`` of ``--virtual``
-   (``virtual=false`` is the integrator's default and is not passed, so the script runs
-   on a core without the property):
+2. For every method of ``--methods`` and every ``virtual`` of ``--virtual`` (passed
+   explicitly: the integrator's default is automatic):
 
    * **misclassified** (threshold 0.5, pooled over emitters) against the reference;
    * **texels** built by the first frame (``stats["texels_built"]``) and per film pixel;
@@ -67,10 +66,9 @@ def parse_bool(s: str) -> bool:
 
 def make_integrator(method: str, virtual: bool, page_size: int | None, **extra):
     """The shadowmap integrator of one configuration, validated like the harness does
-    (an unknown property is an OptionError naming it). ``virtual=False`` is not passed."""
-    spec = {"method": method}
+    (an unknown property is an OptionError naming it)."""
+    spec = {"method": method, "virtual": bool(virtual)}
     if virtual:
-        spec["virtual"] = True
         if page_size is not None:
             spec["page_size"] = page_size
     validate_spec(spec)

@@ -284,7 +284,9 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     ``build_seconds``, the time spent here (planning included).
     """
     t0 = time.perf_counter()
-    if opts.uses_map and opts.virtual:
+    if opts.uses_map and opts.virtual and not (
+            "virtual" not in opts.given and maps_need_gradients(scene)):
+        # (the automatic virtual=true: gradient renders build full maps, in the AD graph)
         return _prepare_virtual(scene, sensor, opts, views, t0)
     plan = plan_maps(scene, sensor, opts, views)
     maps, stats = build_maps(scene, plan)

@@ -73,12 +73,15 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "shadow projects into the same window, so casters are kept. Raises the texel "
          "density where the camera sees a small part of the scene; the maps then depend on "
          "the camera (a camera change rebuilds them)."),
-    Prop("virtual", "bool", False,
+    Prop("virtual", "bool", None,
          "Virtual shadow maps (after UE5; mi_shadowmap.pages): each face is a huge map "
          "split into pages; a mark pass (one camera ray per pixel) builds only the pages "
          "visible points read, at the mip level matching their pixel footprint, and keeps "
          "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth. "
-         "Environment regions keep full maps. false: one full map per face."),
+         "Environment regions keep full maps. false: one full map per face. Default: "
+         "automatic -- true for those methods unless a full-map property is given "
+         "(resolution, cascades, fit_frusta, cull_faces, antialias='always'); renders "
+         "whose maps need gradients then use full maps (built in the AD graph)."),
     Prop("page_size", "int", 32,
          "virtual=true: texels per side of a page, a power of two. Filter kernels up to "
          "page_size / 2 texels wide read the lookup's own pages; wider taps read the "
@@ -427,6 +430,8 @@ def parse_options(props: Any) -> Options:
         record.finalize(values, given)
     if values.get("resolution") == 0:      # 0: automatic, as if not given
         values["resolution"] = None
+    if values.get("virtual", False) is None:
+        values["virtual"] = _automatic_virtual(record, values)
     res = values.get("resolution")
     budget = values["memory_budget"]
     page = values.get("page_size")
@@ -446,6 +451,21 @@ def parse_options(props: Any) -> Options:
             f"{_fmt_bytes(res * res * _BYTES_PER_TEXEL)} per map face, more than "
             f"memory_budget = {budget:g} MiB; lower 'resolution' or raise 'memory_budget'")
     return Options(values, given, record)
+
+
+#: Properties that pin full maps: given (with these values excepted), the automatic
+#: ``virtual`` is false.
+FULL_MAP_PROPERTIES = {"resolution": None, "cascades": 1, "fit_frusta": False,
+                       "cull_faces": False}
+
+
+def _automatic_virtual(record, values: dict) -> bool:
+    """The automatic ``virtual``: virtual maps for the methods that read them, unless a
+    full-map property is set (an explicit ``resolution`` keeps its full-map meaning, so
+    scene files and sweeps that pin one compare the same maps as before)."""
+    if not record.virtual or values.get("antialias") == "always":
+        return False
+    return all(values.get(name, off) == off for name, off in FULL_MAP_PROPERTIES.items())
 
 
 def _check_virtual(record, values: dict, given) -> None:

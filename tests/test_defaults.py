@@ -36,11 +36,13 @@ def root_message(exc) -> str:
 
 # ----------------------------------------------------- automatic resolution
 def test_resolution_is_automatic_and_follows_the_film():
+    """Full maps (virtual=false; the default is virtual maps, whose automatic virtual
+    resolution tests/test_pages.py checks)."""
     assert parse_options({}).resolution is None
     res = {}
     for w in (32, 64):
         scene = mi.load_dict(default_scene(width=w, height=w, spp=1))
-        integ = mi.load_dict({"type": "shadowmap"})
+        integ = mi.load_dict({"type": "shadowmap", "virtual": False})
         mi.render(scene, integrator=integ, spp=1)
         res[w] = integ.resolution
         assert integ.maps[0].resolution == res[w]
@@ -51,7 +53,8 @@ def test_resolution_is_automatic_and_follows_the_film():
 def test_automatic_resolution_respects_the_memory_budget():
     scene = mi.load_dict(default_scene(width=64, height=64, spp=1, light="point"))
     budget_bytes = 6 * 4 * 40 * 40      # six cube faces of 40^2 float32 texels
-    integ = mi.load_dict({"type": "shadowmap", "memory_budget": budget_bytes / 2**20})
+    integ = mi.load_dict({"type": "shadowmap", "virtual": False,
+                          "memory_budget": budget_bytes / 2**20})
     mi.render(scene, integrator=integ, spp=1)
     assert integ.resolution == 40
     assert sum(m.nbytes for m in integ.maps) <= budget_bytes
@@ -103,15 +106,6 @@ KNOWN_MISSES = {
     ("contact_hardening", "hard"): "misclassified 2.59 %, false shadow 1.71 %: 22 % of the "
                                    "pixels are penumbra, which a point-light model misses",
     ("contact_hardening", "pcf"): "misclassified 2.66 %, false shadow 1.66 %: as for hard",
-    # issue 11's scenes (measured 2026-11-30): virtual=false is still the default, and one
-    # full map per face cannot hold their shadows; virtual=true meets the targets
-    # (tests/test_pages.py: large_world 0.3-0.6 %, far_point 0.1-0.2 %)
-    ("large_world", "hard"): "misclassified 3.23 %, nearly all false lit: a 2048^2 map of "
-                             "a 4 km world is 2 m per texel, the near shadows vanish",
-    ("large_world", "pcf"): "misclassified 3.26 %: as for hard",
-    ("far_point", "hard"): "misclassified 3.07 %, all false lit: the scene falls into a few "
-                           "texels of the cube face of a light 1e5 units away",
-    ("far_point", "pcf"): "misclassified 3.07 %: as for hard",
 }
 
 

@@ -140,7 +140,11 @@ def test_gradients_match_finite_differences(variant, which):
         if grad:
             dr.enable_grad(params[key])
         params.update()
-        img = mi.render(scene, params, integrator=integ, spp=2, seed=3)
+        # the finite differences render with the gradient pass's seed (seed_grad), so
+        # that both see the same samples (Mitsuba's own seed_grad would leave ~5 % of
+        # sample noise between them)
+        img = mi.render(scene, params, integrator=integ, spp=2, seed=4 if grad else 5,
+                        seed_grad=5 if grad else 6)
         value = dr.mean(img, axis=None)
         if grad:
             dr.backward(value)
@@ -155,7 +159,7 @@ def test_gradients_match_finite_differences(variant, which):
         params[key] = p0
         params.update()
         print(f"{variant} {which} {method}: AD {g:.6g}, finite differences {fd:.6g}")
-        assert fd > 0 and abs(g - fd) <= 0.05 * abs(fd), method
+        assert fd > 0 and abs(g - fd) <= 1e-3 * abs(fd), method
 
 
 # ------------------------------------------------------------------ other variants

@@ -51,6 +51,11 @@ contributes nothing; a method whose record has ``whole_light``, e.g.
 Maps: spot -- perspective covering the cutoff cone; point and area -- cube
 maps (area lights as their centre); directional -- orthographic, fitted to
 the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
+By default (``virtual`` left out) the methods that read virtual maps (``hard``,
+``pcf``, ``bilinear``, ``pcss``, ``second_depth``) build only the pages that
+camera-visible points read, at the density their pixel footprint needs
+(:mod:`mi_shadowmap.pages`); giving ``resolution``, ``cascades``,
+``fit_frusta``, ``cull_faces`` or ``virtual=false`` selects full maps.
 
 """ + opt_mod.docs_table()
 

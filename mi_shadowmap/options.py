@@ -39,13 +39,14 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Visibility lookup: one of the registered methods (see the method table; "
          "'raytraced' traces shadow rays and is the ground truth)."),
     Prop("resolution", "int", None,
-         "Depth-map resolution per map face (texels per side). Default: automatic -- twice "
+         "Depth-map resolution per map face (texels per side); giving it selects full "
+         "maps when virtual is automatic (left out). Default: automatic -- twice "
          "the film's larger side (Reeves et al. 1987 used maps the size of the image up to "
          "twice it) times a camera-footprint factor in [0.5, 4] (texel width over pixel "
          "width at the scene's centre), lowered if needed so that all maps of the scene fit "
          "in memory_budget (see Options.map_resolution). Accepted and ignored by "
          "'raytraced' and 'unshadowed', so that one scene file renders with any method. "
-         "With virtual=true: the virtual resolution of the finest level per face, a power "
+         "With virtual maps: the virtual resolution of the finest level per face, a power "
          "of two from page_size to 2^30 (default: automatic, 2^20 texels across the "
          "scene's extent as the light sees it, see mi_shadowmap.pages); full maps take at "
          "most 65536. 0 means automatic too (for scene files whose $resolution default "
@@ -494,13 +495,14 @@ def _check_virtual(record, values: dict, given) -> None:
     if values["memory_budget"] * 2**20 < 6 * page * page * 8:
         raise OptionError(f"shadowmap: property 'memory_budget' = "
                           f"{values['memory_budget']:g} MiB cannot hold the coarsest level of "
-                          f"a virtual cube map (6 pages of {page}^2 texels); raise it or lower "
-                          "'page_size'")
+                          f"a virtual cube map (6 pages of {page}^2 texels); raise it, lower "
+                          "'page_size' or set virtual=false (full maps)")
 
 
 def _row(p: Prop, where: str) -> str:
     return ("   * - " + p.name + "\n     - |" + p.kind + "|\n     - " + p.doc
-            + f" (default: {p.default!r}; {p.describe_range()}{where})")
+            + f" (default: {'automatic' if p.default is None else repr(p.default)}; "
+              f"{p.describe_range()}{where})")
 
 
 def docs_table() -> str:

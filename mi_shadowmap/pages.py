@@ -28,7 +28,7 @@ the coarsest level (one page per face), which is always built, so no point is
 lit for want of a page (a loop that only lanes with a missing page enter). The 2 x 2 pages around the receiver are looked up in
 the page table once per lookup (per face and level, a grid over the bounding
 rectangle of its built pages whose entry holds the 2 x 2 block's four slots:
-two packet gathers, no loop); the
+no loop); the
 filter's taps then read through :meth:`BoundVirtualMap.fetch`,
 which picks one of those four slots, or for a tap outside them (a wide
 kernel, a cube seam) the coarsest level. Filters see a
@@ -329,8 +329,7 @@ class PageStore:
         pages), ``W = w + 1``, ``H = h + 1``, and where its ``W x H`` entries start
         in ``dense``. Each entry of ``dense`` holds the block's 4 slots (pages
         ``(bx, by)``, ``(bx + 1, by)``, ``(bx, by + 1)``, ``(bx + 1, by + 1)``;
-        ``_INVALID`` where none is built), so a lookup's block is one packet gather
-        of the header and one of ``dense``, with no loop. A level whose grid would
+        ``_INVALID`` where none is built), so a lookup reads its block with no loop. A level whose grid would
         exceed :data:`MAX_TABLE` entries or :data:`MAX_TABLE_SIDE` per side keeps
         its pages out of the table (lookups there walk to another level).
         """
@@ -468,14 +467,17 @@ class VirtualShadowMap:
 
     def _block_slots(self, face, level, bx, by, active) -> list:
         """Slots of the 2 x 2 pages whose lower-left page is ``(bx, by)`` at
-        ``(face, level)`` (``_INVALID`` where none is built): a packet gather of the
-        level's header, one of its block entry (see :meth:`PageStore.table`)."""
+        ``(face, level)`` (``_INVALID`` where none is built): the level's header, then
+        its block entry (see :meth:`PageStore.table`). Plain gathers: Dr.Jit's packet
+        gathers (``mi.Vector4u``) were as fast here but made the render kernel depend on
+        the table's size, so a camera move compiled a new kernel."""
         h = mi.UInt32(face) * self.layout.n_levels + mi.UInt32(level)
-        hdr = dr.gather(mi.Vector4i, self.header, h, active)
-        W, H = hdr.z & 0xFFFF, hdr.z >> 16
-        lx, ly = bx - hdr.x, by - hdr.y
+        hdr = [dr.gather(mi.Int32, self.header, h * 4 + k, active) for k in range(4)]
+        W, H = hdr[2] & 0xFFFF, hdr[2] >> 16
+        lx, ly = bx - hdr[0], by - hdr[1]
         ok = mi.Bool(active) & (lx >= 0) & (ly >= 0) & (lx < W) & (ly < H)
-        s4 = dr.gather(mi.Vector4u, self.dense, mi.UInt32(hdr.w + ly * W + lx), ok)
+        e = mi.UInt32(hdr[3] + ly * W + lx) * 4
+        s4 = [dr.gather(mi.UInt32, self.dense, e + k, ok) for k in range(4)]
         return [dr.select(ok, s4[k], _INVALID) for k in range(4)]
 
     def bind(self, lk, active=True) -> "BoundVirtualMap":
@@ -654,15 +656,15 @@ def _dedupe(keys, ok, bits: int = 16):
     repeats; ``np.unique`` finishes). Which key wins a slot does not matter: the
     returned set is the same."""
     size = 1 << bits
-    empty = mi.UInt64(0xFFFFFFFFFFFFFFFF)   # not a page key (face < 31)
     slot = mi.UInt32((keys * mi.UInt64(0x9E3779B97F4A7C15)) >> (64 - bits))
-    table = dr.full(mi.UInt64, 0xFFFFFFFFFFFFFFFF, size)
+    table = dr.full(mi.UInt64, 0xFFFFFFFFFFFFFFFF, size)   # empty: not a page key
     dr.scatter(table, keys, slot, ok)
     lost = ok & (dr.gather(mi.UInt64, table, slot, ok) != keys)
-    dr.eval(table, lost)
-    kept = dr.gather(mi.UInt64, table, dr.compress(table != empty))
-    rest = dr.gather(mi.UInt64, keys, dr.compress(lost))
-    return np.concatenate([kept.numpy(), rest.numpy()])
+    dr.eval(table, lost, keys)
+    # on the host: the same kernels run every frame (a compress and gather here would
+    # trace new ones whenever a frame first has 0, 1 or more lost keys)
+    t = table.numpy()
+    return np.concatenate([t[t != np.uint64(0xFFFFFFFFFFFFFFFF)], keys.numpy()[lost.numpy()]])
 
 
 def camera_state(sensor) -> bytes:

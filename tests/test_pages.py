@@ -197,6 +197,46 @@ def test_camera_move_reuses_pages_and_compiles_nothing():
     assert compiled[1:] == [0, 0], "moving the camera compiled a new kernel"
 
 
+def test_camera_moves_in_a_large_world_compile_nothing():
+    """Six successive moves and turns under a low sun (pages built and reused at many
+    levels, the page table growing): after the first move, every render reuses the
+    kernels already traced. (A page table read with packet gathers once made the render
+    kernel depend on the table's size.)"""
+    pages.PAGE_CACHE.clear()
+    scene = mi.load_file(str(SCENES / "large_world.xml"), width=128, height=128)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world")
+               and isinstance(params.properties[k][2], mi.Sensor))
+    start = type(params[key])(params[key])
+    integ = shadowmap(method="hard")
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        vis_of(scene, integ, spp=2)
+        seen = _jit_hashes()
+        compiled, built = [], []
+        for j in range(6):
+            params[key] = start @ T().translate([0.05 * (j + 1), 0, 0]) \
+                @ T().rotate([0, 1, 0], 1.0 * (j + 1))
+            params.update()
+            # (Mitsuba's own sensor update runs a one-lane kernel whose rotation values
+            # are literals: new each move, with any integrator, `direct` included)
+            dr.kernel_history()
+            vis_of(scene, integ, spp=2)
+            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+            new = {k["hash"]: (k["size"], k["operation_count"]) for k in jit
+                   if k["hash"] not in seen}
+            compiled.append(len(new))
+            print("new kernels (size, operations):", list(new.values()))
+            seen |= set(new)
+            built.append(integ.stats["pages_built"])
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    print(f"kernels compiled per move {compiled}, pages built {built}")
+    assert sum(built) > 0
+    assert compiled[1:] == [0] * 5, "moving the camera compiled a new kernel"
+
+
 def test_geometry_change_drops_the_pages():
     pages.PAGE_CACHE.clear()
     scene = mi.load_dict(default_scene(width=32, height=32, spp=1))

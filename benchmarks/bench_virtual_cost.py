@@ -73,10 +73,11 @@ def part_heavy(args):
         scene = mi.load_dict(heavy_scene(args.triangles, args.image, tmp))
         configs = {"unshadowed": {"method": "unshadowed"},
                    "raytraced": {"method": "raytraced"},
-                   "hard full (built)": {"method": "hard", "cache_maps": False},
+                   "hard full (built)": {"method": "hard", "virtual": False,
+                                         "cache_maps": False},
                    "hard virtual (built)": {"method": "hard", "virtual": True,
                                             "cache_maps": False},
-                   "hard full (cached)": {"method": "hard"},
+                   "hard full (cached)": {"method": "hard", "virtual": False},
                    "hard virtual (cached)": {"method": "hard", "virtual": True}}
         res = interleaved(scene, configs, args.spp, args.rounds)
     base = res["unshadowed"][0]
@@ -98,7 +99,7 @@ def part_soft(args):
                          height=args.soft_image)
     ref = converged_visibility(scene, n_light=1024, spp=4, seed=7)
     ref = np.stack([ref[k] for k in sorted(ref)])
-    configs = {"pcss full (built)": {"method": "pcss", "cache_maps": False},
+    configs = {"pcss full (built)": {"method": "pcss", "virtual": False, "cache_maps": False},
                "pcss virtual (built)": {"method": "pcss", "virtual": True,
                                         "cache_maps": False}}
     for k in (1, 2, 4, 8, 16):

@@ -145,7 +145,9 @@ def prepare_maps(scene, methods=None, sensor=None, **params) -> list:
     """The depth maps the map manager prepares for ``scene`` (one
     :class:`~mi_shadowmap.depth_maps.ShadowMap` per emitter, None for environment
     emitters), holding every layer that one of ``methods`` uses (default: every
-    method that reads a map; items as in :func:`compare`).
+    method that reads a map; items as in :func:`compare`). Full maps, unless
+    ``virtual=true`` is given (then one method's :class:`~mi_shadowmap.pages.VirtualShadowMap`;
+    several methods whose layers differ are refused).
 
     Each method's maps come from :func:`mi_shadowmap.map_manager.prepare_maps`
     (the map cache shares the depth between them, unless ``cache_maps=False``);
@@ -154,17 +156,28 @@ def prepare_maps(scene, methods=None, sensor=None, **params) -> list:
     """
     opts = [validate_spec(s) for s in map_specs(methods, params)]
     scene = load_scene(scene)
+    # full maps unless virtual=true is given (the automatic virtual would give each
+    # method its own page pool, whose layers cannot be merged)
+    opts = [o.replace(virtual=False) if o.uses_map and o.virtual and "virtual" not in o.given
+            else o for o in opts]
     opts.sort(key=lambda o: -len(o.record.layer_names(o)))
     maps, res = None, None
     for o in opts:
-        if res is not None and o.resolution is None:
+        if res is not None and o.resolution is None and not o.virtual:
             o = o.replace(resolution=res)
         prepared = map_manager.prepare_maps(scene, sensor, o)
         if maps is None:
             maps, res = prepared.maps, prepared.resolution
             continue
         for mine, theirs in zip(maps, prepared.maps):
-            if mine is not None and theirs is not None:
-                for name, data in theirs.extra.items():
-                    mine.extra.setdefault(name, data)
+            if mine is None or theirs is None:
+                continue
+            missing = [n for n in theirs.extra if n not in mine.extra]
+            if missing and hasattr(mine, "page_records"):
+                raise ValueError(f"prepare_maps: the virtual map of '{mine.view.label}' holds "
+                                 f"only its own method's layers, not {', '.join(missing)} of "
+                                 f"method '{o.method}'; prepare each method's virtual maps "
+                                 "separately, or leave 'virtual' out (full maps)")
+            for name in missing:
+                mine.extra[name] = theirs.extra[name]
     return maps or []

@@ -54,8 +54,9 @@ the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
 By default (``virtual`` left out) the methods that read virtual maps (``hard``,
 ``pcf``, ``bilinear``, ``pcss``, ``second_depth``) build only the pages that
 camera-visible points read, at the density their pixel footprint needs
-(:mod:`mi_shadowmap.pages`); giving ``resolution``, ``cascades``,
-``fit_frusta``, ``cull_faces`` or ``virtual=false`` selects full maps.
+(:mod:`mi_shadowmap.pages`); ``resolution``, ``cascades``, ``fit_frusta``,
+``cull_faces``, ``antialias='always'`` or ``virtual=false`` select full maps, and so
+does a scene whose shape or emitter parameters have gradients enabled.
 
 """ + opt_mod.docs_table()
 

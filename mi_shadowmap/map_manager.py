@@ -285,8 +285,9 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     """
     t0 = time.perf_counter()
     if opts.uses_map and opts.virtual and not (
-            "virtual" not in opts.given and maps_need_gradients(scene)):
-        # (the automatic virtual=true: gradient renders build full maps, in the AD graph)
+            "virtual" not in opts.given and _differentiated(scene)):
+        # the automatic virtual=true: a scene being differentiated gets full maps (in the
+        # AD graph), in its primal render too, so loss and gradient see the same maps
         return _prepare_virtual(scene, sensor, opts, views, t0)
     plan = plan_maps(scene, sensor, opts, views)
     maps, stats = build_maps(scene, plan)
@@ -326,6 +327,15 @@ def maps_need_gradients(scene: mi.Scene) -> bool:
                 and dr.grad_enabled(params[name])):
             return True
     return False
+
+
+def _differentiated(scene: mi.Scene) -> bool:
+    """Whether a shape or emitter parameter has gradients enabled, whatever the current
+    AD scope: ``mi.render(scene, params)`` renders its primal image under
+    ``dr.suspend_grad()`` (where :func:`maps_need_gradients` is False) and its gradient
+    with gradients tracked; the automatic ``virtual`` must pick the same maps for both."""
+    with dr.resume_grad():
+        return maps_need_gradients(scene)
 
 
 def _prepare_virtual(scene, sensor, opts, views, t0) -> PreparedMaps:

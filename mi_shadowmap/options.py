@@ -80,9 +80,11 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "visible points read, at the mip level matching their pixel footprint, and keeps "
          "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth. "
          "Environment regions keep full maps. false: one full map per face. Default: "
-         "automatic -- true for those methods unless a full-map property is given "
-         "(resolution, cascades, fit_frusta, cull_faces, antialias='always'); renders "
-         "whose maps need gradients then use full maps (built in the AD graph)."),
+         "automatic -- true for those methods (and user methods registered with "
+         "virtual=True) unless a full-map property is set (resolution > 0, cascades > 1, "
+         "fit_frusta, cull_faces, antialias='always') or memory_budget cannot hold a "
+         "virtual cube map's coarsest level; a scene with shape or emitter gradients "
+         "enabled then gets full maps (built in the AD graph)."),
     Prop("page_size", "int", 32,
          "virtual=true: texels per side of a page, a power of two. Filter kernels up to "
          "page_size / 2 texels wide read the lookup's own pages; wider taps read the "
@@ -461,10 +463,16 @@ FULL_MAP_PROPERTIES = {"resolution": None, "cascades": 1, "fit_frusta": False,
 
 
 def _automatic_virtual(record, values: dict) -> bool:
-    """The automatic ``virtual``: virtual maps for the methods that read them, unless a
-    full-map property is set (an explicit ``resolution`` keeps its full-map meaning, so
-    scene files and sweeps that pin one compare the same maps as before)."""
+    """The automatic ``virtual``: virtual maps for the methods that read them (the
+    record's ``virtual``), unless a full-map property is set to other than its default
+    (an explicit ``resolution`` keeps its full-map meaning, so scene files and sweeps
+    that pin one compare the same maps as before; ``cascades=1`` from a scene file's
+    ``$cascades`` default does not count), ``antialias='always'`` is set, or
+    ``memory_budget`` cannot hold the coarsest level of a virtual cube map."""
     if not record.virtual or values.get("antialias") == "always":
+        return False
+    page = values.get("page_size") or 32
+    if values["memory_budget"] * 2**20 < 6 * page * page * 8:
         return False
     return all(values.get(name, off) == off for name, off in FULL_MAP_PROPERTIES.items())
 

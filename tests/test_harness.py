@@ -321,3 +321,15 @@ def test_prepare_maps_every_layer():
     assert set(maps[0].layers()) == expected
     with pytest.raises(OptionError, match="raytraced"):
         harness.prepare_maps(scene, ["hard", "raytraced"])
+
+
+def test_prepare_maps_at_defaults_gives_full_maps_with_every_layer():
+    """Without ``resolution`` (virtual maps by default in renders) the harness still
+    prepares full maps, so several methods' layers line up in one map; virtual maps of
+    methods with different layers are refused, naming the layer."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    scene = mi.load_dict(default_scene(**SMALL))
+    maps = harness.prepare_maps(scene, ["pcss", "second_depth"])
+    assert isinstance(maps[0], ShadowMap) and "second_depth" in maps[0].layers()
+    with pytest.raises(ValueError, match="second_depth"):
+        harness.prepare_maps(scene, ["pcss", "second_depth"], virtual=True)

@@ -401,9 +401,10 @@ def test_gradients_through_virtual_maps_are_refused_not_zero():
 
 
 def test_the_automatic_default_gives_gradient_renders_full_maps():
-    """``virtual`` left out: a render whose shape has gradients gets full maps (built in
-    the AD graph), so its shadows pass a gradient; the same integrator's next primal
-    render is virtual again."""
+    """``virtual`` left out: a scene whose shape has gradients enabled gets full maps
+    (built in the AD graph) in its primal render and its gradient render alike, so the
+    loss and its gradient see the same maps, and the shadows pass a gradient; once the
+    gradients are disabled the same integrator renders virtual maps again."""
     from mi_shadowmap.depth_maps import ShadowMap
     scene = mi.load_dict(default_scene(width=16, height=16, spp=1))
     params = mi.traverse(scene)
@@ -411,6 +412,9 @@ def test_the_automatic_default_gives_gradient_renders_full_maps():
     integ = shadowmap(method="hard")
     dr.enable_grad(params[key])
     params.update()
+    with dr.suspend_grad():   # how mi.render(scene, params) renders its primal image
+        mi.render(scene, integrator=integ, spp=1)
+    assert isinstance(integ.maps[0], ShadowMap), "the loss would see other maps"
     img = mi.render(scene, params, integrator=integ, spp=1)
     dr.backward(dr.mean(img, axis=None))
     assert isinstance(integ.maps[0], ShadowMap)
@@ -428,6 +432,7 @@ def test_the_automatic_default_gives_gradient_renders_full_maps():
     ({"virtual": False}, False), ({"resolution": 512}, False),
     ({"cascades": 4}, False), ({"fit_frusta": True}, False), ({"cull_faces": True}, False),
     ({"antialias": "always"}, False), ({"cascades": 1}, True),
+    ({"memory_budget": 0.03}, False),   # cannot hold a virtual cube map's coarsest level
     ({"method": "vsm"}, False), ({"method": "evsm"}, False), ({"method": "msm"}, False),
     ({"method": "mdsm"}, False), ({"method": "multiview"}, False)])
 def test_virtual_is_automatic(props, virtual):

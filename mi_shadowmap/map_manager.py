@@ -342,8 +342,9 @@ def _prepare_virtual(scene, sensor, opts, views, t0) -> PreparedMaps:
     """``virtual=true``: virtual maps (:mod:`mi_shadowmap.pages`) for the emitters whose
     view supports them; the others (environment regions) get full maps as usual."""
     from .pages import prepare_virtual
-    if maps_need_gradients(scene):
+    if "virtual" in opts.given and maps_need_gradients(scene):
         # virtual pages are built detached: shadows would pass no gradient, silently
+        # (an automatic virtual=true never gets here with gradients: prepare_maps checked)
         raise ValueError("shadowmap: property 'virtual' = true builds no differentiable "
                          "maps, and a shape or emitter parameter of this render has "
                          "gradients enabled; set virtual=false (full maps are built in "

@@ -86,11 +86,11 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "virtual cube map's coarsest level; a scene with shape or emitter gradients "
          "enabled then gets full maps (built in the AD graph)."),
     Prop("page_size", "int", 32,
-         "virtual=true: texels per side of a page, a power of two. Filter kernels up to "
+         "Virtual maps: texels per side of a page, a power of two. Filter kernels up to "
          "page_size / 2 texels wide read the lookup's own pages; wider taps read the "
          "coarsest level.", lo=8, hi=1024),
     Prop("lod_bias", "float", -0.5,
-         "virtual=true: each lookup reads level floor(log2(w) + lod_bias), w its pixel "
+         "Virtual maps: each lookup reads level floor(log2(w) + lod_bias), w its pixel "
          "footprint in finest-level texels: 0 puts texels of 0.5-1 footprint, -0.5 "
          "(default) 0.35-0.7, -1 0.25-0.5 (about 4/3 the texels and pages of the level "
          "above for each step of -0.5).", lo=-8.0, hi=8.0),

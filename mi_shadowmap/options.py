@@ -471,10 +471,15 @@ def _automatic_virtual(record, values: dict) -> bool:
     ``memory_budget`` cannot hold the coarsest level of a virtual cube map."""
     if not record.virtual or values.get("antialias") == "always":
         return False
-    page = values.get("page_size") or 32
-    if values["memory_budget"] * 2**20 < 6 * page * page * 8:
+    if not _holds_virtual_cube(values["memory_budget"], values.get("page_size") or 32):
         return False
     return all(values.get(name, off) == off for name, off in FULL_MAP_PROPERTIES.items())
+
+
+def _holds_virtual_cube(budget_mib: float, page: int) -> bool:
+    """Whether ``budget_mib`` holds the coarsest level of a virtual cube map: 6 pages of
+    ``page^2`` texels, depth and one more layer, 4 bytes each."""
+    return budget_mib * 2**20 >= 6 * page * page * 8
 
 
 def _check_virtual(record, values: dict, given) -> None:
@@ -500,7 +505,7 @@ def _check_virtual(record, values: dict, given) -> None:
             raise OptionError(f"shadowmap: property '{name}' applies to full maps only; "
                               "virtual=true chooses each lookup's level from its pixel "
                               "footprint (remove it or set virtual=false)")
-    if values["memory_budget"] * 2**20 < 6 * page * page * 8:
+    if not _holds_virtual_cube(values["memory_budget"], page):
         raise OptionError(f"shadowmap: property 'memory_budget' = "
                           f"{values['memory_budget']:g} MiB cannot hold the coarsest level of "
                           f"a virtual cube map (6 pages of {page}^2 texels); raise it, lower "

@@ -91,6 +91,8 @@ SCENE_TEXELS = 2 ** 20
 ANISO = 2.0
 
 _INVALID = 0xFFFFFFFF
+#: Never a page key (keys have face < 8): an empty slot of the mark pass's hash table.
+_NO_KEY = 0xFFFFFFFFFFFFFFFF
 #: Largest page grid of one (face, level) in the page table (entries of 4 slots).
 MAX_TABLE = 1 << 22
 #: Largest page grid side (the header packs width and height into one int32).
@@ -649,22 +651,22 @@ def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.nd
 
 
 def _dedupe(keys, ok, bits: int = 16):
-    """Most of ``keys[ok]`` without repeats, on the device (neighbouring pixels read the
-    same pages: 4 x 65 k candidates hold a few hundred keys): every key is scattered into
-    a hash table of ``2^bits`` slots; the table's keys plus the keys that lost their
-    slot to another key are returned (a superset of the distinct keys, with few
-    repeats; ``np.unique`` finishes). Which key wins a slot does not matter: the
-    returned set is the same."""
-    size = 1 << bits
+    """Most of ``keys[ok]`` without repeats (neighbouring pixels read the same pages:
+    4 x 65 k candidates hold a few hundred keys), so that ``np.unique`` sorts a few
+    hundred keys instead of all candidates: one kernel scatters every key into a hash
+    table of ``2^bits`` slots; the table's keys plus the keys that lost their slot to
+    another key are returned (a superset of the distinct keys, with few repeats).
+    Which key wins a slot does not matter: the returned set is the same. The selection
+    is done on the host with numpy, so every frame runs the same kernels (a compress
+    and gather would trace new ones whenever a frame first has 0, 1 or more lost
+    keys)."""
     slot = mi.UInt32((keys * mi.UInt64(0x9E3779B97F4A7C15)) >> (64 - bits))
-    table = dr.full(mi.UInt64, 0xFFFFFFFFFFFFFFFF, size)   # empty: not a page key
+    table = dr.full(mi.UInt64, _NO_KEY, 1 << bits)
     dr.scatter(table, keys, slot, ok)
     lost = ok & (dr.gather(mi.UInt64, table, slot, ok) != keys)
     dr.eval(table, lost, keys)
-    # on the host: the same kernels run every frame (a compress and gather here would
-    # trace new ones whenever a frame first has 0, 1 or more lost keys)
     t = table.numpy()
-    return np.concatenate([t[t != np.uint64(0xFFFFFFFFFFFFFFFF)], keys.numpy()[lost.numpy()]])
+    return np.concatenate([t[t != np.uint64(_NO_KEY)], keys.numpy()[lost.numpy()]])
 
 
 def camera_state(sensor) -> bytes:

@@ -3,6 +3,7 @@
     python benchmarks/bench_gradients.py [--scene area,directional] [--image 128] [--spp 16]
                                          [--map 128] [--margin 8] [--seeds 8] [--mean-seeds 24]
                                          [--param sideways|along|light] [--methods vsm,pcf[,pcss]]
+                                         [--sampler independent|stratified|multijitter|ldsampler]
                                          [--ref-spp 1024] [--ref-seeds 4] [--no-projective]
                                          [--projective-guiding octree|grid|none]
                                          [--time-rounds 0] [--time-seeds 4]
@@ -51,9 +52,23 @@ enter the loss; only its shadow).
 
 Integrators (all get the same scene, spp, parameter and loss):
 
-* ``vsm`` (``filter_size 4``) and ``pcf`` (``soft_compare 24``): ``shadowmap``, maps
-  rebuilt in the AD graph at every gradient (``maps_need_gradients``), antialiased
-  (``antialias`` left at its default);
+* ``shadowmap`` methods (``--methods``), maps rebuilt in the AD graph at every gradient
+  (``maps_need_gradients``), antialiased (``antialias`` left at its default). The short
+  names are the settings for gradients (measured with this script, 2026-11-30):
+
+  - ``vsm`` = ``vsm:filter_size=4,light_bleeding=0``. The default light-bleeding
+    reduction (0.2) clamps the visibility, so its derivative jumps where the Chebyshev
+    bound crosses 0.2: 2.5x the spread over seeds, and a mean 3 % off.
+  - ``pcf`` = ``pcf:soft_compare=2,sampling=regular,min_size=4``. Compares on an
+    antialiased map are blended by coverage, so a narrow smooth compare suffices for a
+    moving outline's gradient; a wide one (the former 24 texels) leaks light under the
+    occluder and gave moving it *along* the light the wrong sign. Regular taps
+    (deterministic) over at least 4 texels: 8x less spread than jittered taps over the
+    pixel's footprint.
+  - ``pcss`` = ``pcss:soft_compare=2``: the penumbra follows the blocker's depth, so
+    the along-the-light narrowing gets the right sign.
+
+  Any other entry is a method spec, e.g. ``"vsm:filter_size=6"``;
 * ``direct_projective``: Mitsuba's projective-sampling direct integrator
   (``sppc = sppp = sppi = spp`` through ``mi.render(..., spp=)``; ``guiding`` Mitsuba's
   default, ``octree``, unless ``--projective-guiding``).
@@ -106,18 +121,45 @@ DIR_LIGHT = np.array([1.0, -1.2, 0.3]) / np.linalg.norm([1.0, -1.2, 0.3])
 #: The area scene's light: a 0.6 x 0.6 quad facing down, its centre here.
 AREA_CENTRE = np.array([-1.2, 3.0, 0.0])
 
+#: Short names of ``--methods``; any other entry is a method spec of the ``shadowmap``
+#: plugin, ``"method:prop=value,..."`` (as ``mi-shadowmap --methods``).
 METHODS = {
-    "vsm": {"type": "shadowmap", "method": "vsm", "filter_size": 4.0},
-    "pcf": {"type": "shadowmap", "method": "pcf", "soft_compare": 24.0},
-    "pcss": {"type": "shadowmap", "method": "pcss", "soft_compare": 24.0},
-    "direct_projective": {"type": "direct_projective"},
+    "vsm": "vsm:filter_size=4,light_bleeding=0",
+    "pcf": "pcf:soft_compare=2,sampling=regular,min_size=4",
+    "pcss": "pcss:soft_compare=2",
 }
+#: The scene's sampler (``--sampler``), the same for every integrator.
+SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
 PARAM_TEXT = {"sideways": ("occluder moved sideways (+z), across the light",) * 2,
               "along": ("occluder moved along the light",) * 2,
               "light": ("sun turned about z (radians)", "area light translated along +x")}
-LABELS = {"vsm": "vsm (filter_size 4)", "pcf": "pcf (soft_compare 24)",
-          "pcss": "pcss (soft_compare 24)",
-          "direct_projective": "direct_projective"}
+
+
+def method_dict(name: str) -> dict:
+    """The integrator dict of a ``--methods`` entry (or ``direct_projective``)."""
+    if name == "direct_projective":
+        return {"type": "direct_projective"}
+    from mi_shadowmap.specs import parse_method_string
+    return {"type": "shadowmap", **parse_method_string(METHODS.get(name, name))}
+
+
+def label(name: str) -> str:
+    """``vsm (filter_size 4)`` for a ``--methods`` entry; ``direct_projective`` as is."""
+    if name == "direct_projective":
+        return name
+    d = {k: v for k, v in method_dict(name).items() if k != "type"}
+    props = ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+                      for k, v in d.items() if k != "method")
+    return d["method"] + (f" ({props})" if props else "")
+
+
+def split_methods(items) -> list:
+    """``--methods`` entries: space-separated specs; an entry without ``:`` may also be a
+    comma-separated list of names (``vsm,pcf``, as before)."""
+    out = []
+    for item in items:
+        out.extend([m for m in item.split(",") if m] if ":" not in item else [item])
+    return out
 
 
 # ------------------------------------------------------------------------ scenes
@@ -139,8 +181,9 @@ def welded_cube(to_world, bsdf):
     return mesh("occluder", v, f, to_world, bsdf)
 
 
-def scene_dict(kind, image, spp, occluder="welded"):
+def scene_dict(kind, image, spp, occluder="welded", sampler="independent"):
     d = _scene_dict(kind, image, spp)
+    d["sensor"]["sampler"] = {"type": sampler, "sample_count": spp}
     if occluder == "welded":
         d["occluder"] = welded_cube(d["occluder"]["to_world"], d["occluder"]["bsdf"])
     return d
@@ -298,7 +341,8 @@ def _setup(args):
     import mitsuba as mi
     if mi.variant() != "llvm_ad_rgb":
         mi.set_variant("llvm_ad_rgb")
-    scene = mi.load_dict(scene_dict(args.scene, args.image, args.spp, args.occluder))
+    scene = mi.load_dict(scene_dict(args.scene, args.image, args.spp, args.occluder,
+                                    args.sampler))
     mask = receiver_mask(scene, args.spp, args.margin)
     occ = Occluder(scene, args.scene, args.param)
     n_ch = 3 + 1   # RGB + shadowmap's visibility AOV; direct_projective has 3 channels
@@ -314,7 +358,7 @@ def _weights(mask, channels):
 
 def _integrator(name, args, antialias=None):
     import mitsuba as mi
-    d = dict(METHODS[name])
+    d = method_dict(name)
     if d["type"] == "direct_projective" and args.projective_guiding:
         d["guiding"] = args.projective_guiding
     if d["type"] == "shadowmap":
@@ -451,7 +495,7 @@ def run_worker(args, name, mode, n_seeds=None, timeout=3600):
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", name, "--mode", mode,
            "--scene", args.scene, "--image", str(args.image), "--spp", str(args.spp),
            "--map", str(args.map), "--margin", str(args.margin), "--param", args.param,
-           "--occluder", args.occluder,
+           "--occluder", args.occluder, "--sampler", args.sampler,
            *(["--projective-guiding", args.projective_guiding] if args.projective_guiding else []),
            "--fd-h", str(args.fd_h), "--ref-h", str(args.ref_h), "--ref-spp", str(args.ref_spp),
            "--ref-seeds", str(args.ref_seeds),
@@ -505,7 +549,15 @@ def main():
     ap.add_argument("--occluder", choices=("welded", "cube"), default="welded",
                     help="the occluder mesh: 8 shared vertices (default), or Mitsuba's "
                     "'cube' (24 vertices; direct_projective's gradient doubles on it)")
-    ap.add_argument("--methods", default="vsm,pcf")
+    ap.add_argument("--methods", nargs="+", default=["vsm,pcf"],
+                    help="shadowmap methods: short names (vsm, pcf, pcss: "
+                    + ", ".join(f"{k} = {v}" for k, v in METHODS.items())
+                    + "), comma-separated, or method specs 'method:prop=value,...' "
+                    "separated by spaces")
+    ap.add_argument("--sampler", choices=SAMPLERS, default="independent",
+                    help="the scene's sampler, for every integrator (our gradients are "
+                    "integrals over the pixels, which a stratified sampler helps; "
+                    "direct_projective's spread is its boundary samples')")
     ap.add_argument("--seeds", type=int, default=8, help="seeds for time and spread")
     ap.add_argument("--mean-seeds", type=int, default=24,
                     help="seeds for the mean (sign check); >= --seeds")
@@ -554,11 +606,12 @@ def main():
 
 
 def run_scene(args):
-    methods = [m for m in args.methods.split(",") if m]
+    methods = split_methods(args.methods)
     mean_seeds = max(args.mean_seeds, args.seeds)
     dp_mean_seeds = max(args.projective_mean_seeds or mean_seeds, args.seeds)
     print(f"# bench_gradients: {args.scene} scene, {args.image}^2, {args.spp} spp, map "
-          f"{args.map}, parameter '{args.param}', occluder '{args.occluder}', "
+          f"{args.map}, parameter '{args.param}', occluder '{args.occluder}', sampler "
+          f"'{args.sampler}', "
           f"direct_projective guiding '{args.projective_guiding or 'octree (default)'}', {args.seeds} "
           f"seeds (spread), "
           f"{mean_seeds}/{dp_mean_seeds} seeds (mean: ours/direct_projective)", flush=True)
@@ -619,7 +672,7 @@ def run_scene(args):
 
     for m, r in G.items():
         if r.get("failed"):
-            print(f"| {LABELS[m]} | failed (exit {r['returncode']}) | | | | | | | | | |")
+            print(f"| {label(m)} | failed (exit {r['returncode']}) | | | | | | | | | |")
             continue
         t, sd, mean, se, k = stats(r)
         if m == "direct_projective" or dp_stats is None:
@@ -632,11 +685,11 @@ def run_scene(args):
             ratio_t = (f"{sd * np.sqrt(t) / (dp_stats[1] * np.sqrt(dp_stats[0])):.3f}"
                        if ok else "n/a")
             sign = same_sign(mean, dp_stats[2])
-        print(f"| {LABELS[m]} | {t:.3f} | {sp} | {fmt(sd)} | {ratio} | {ratio_t} | {fmt(mean)} "
+        print(f"| {label(m)} | {t:.3f} | {sp} | {fmt(sd)} | {ratio} | {ratio_t} | {fmt(mean)} "
               f"| {fmt(se, 2)} | {sign} | {same_sign(mean, ref_t)} | {r['first_seconds']:.1f} |")
     for m, r in G.items():
         if not r.get("failed") and r.get("antialias") is not None:
-            print(f"{LABELS[m]}: property antialias = '{r['antialias']}'; the gradient "
+            print(f"{label(m)}: property antialias = '{r['antialias']}'; the gradient "
                   f"renders' maps {'were' if r['antialiased'] else 'were NOT'} antialiased.")
     if ref_t is not None:
         fds = np.array(res["fd"]["ref"]["fds"])
@@ -652,7 +705,7 @@ def run_scene(args):
         if r.get("failed"):
             continue
         a, b = r["rss_loaded_kb"] / 1024, r["rss_peak_kb"] / 1024
-        print(f"| {LABELS[m]} | {a:.0f} | {b:.0f} | {b - a:.0f} |")
+        print(f"| {label(m)} | {a:.0f} | {b:.0f} | {b - a:.0f} |")
 
     if res["fd"]:
         print()
@@ -664,11 +717,11 @@ def run_scene(args):
         for m in methods:
             r = res["fd"].get(m)
             if r is None or r.get("failed"):
-                print(f"| {LABELS[m]} | failed | | | | |")
+                print(f"| {label(m)} | failed | | | | |")
                 continue
             rel = abs(r["ad_t"] - r["fd_t"]) / max(abs(r["fd_t"]), 1e-30)
             sgn = same_sign(r["ad_t"], ref_t)
-            print(f"| {LABELS[m]} | {fmt(r['ad_t'])} | {fmt(r['fd_t'])} | {rel:.3f} | "
+            print(f"| {label(m)} | {fmt(r['ad_t'])} | {fmt(r['fd_t'])} | {rel:.3f} | "
                   f"{r['cos']:.4f} | {sgn} |")
     print(f"\nTotal {res['total_seconds']:.0f} s.\n")
     return res

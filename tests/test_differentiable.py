@@ -320,6 +320,53 @@ def test_sideways_gradient_matches_ray_tracing(method):
     assert np.linalg.norm(plain) < 0.1 * np.linalg.norm(ref)
 
 
+def _along_the_light(scene):
+    """The occluder's vertices moved by ``x[0]`` along the area light's ray through each
+    (away from the light's centre): the outline in the light's map stays put, only its
+    depths change, and the true shadow's penumbra narrows a little."""
+    base = np.array(mi.traverse(scene)["occluder.vertex_positions"]).reshape(-1, 3)
+    dirs = base - np.array(inverse.LIGHT_POSITION)[None, :]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+
+    def apply(b, x):
+        v = np.array(b).reshape(-1, 3)
+        return dr.ravel(mi.Point3f(*[mi.Float(v[:, c].astype(np.float32))
+                                     + inverse._vec(x, 0) * mi.Float(dirs[:, c].astype(np.float32))
+                                     for c in range(3)]))
+    return inverse.Parameter(scene, "occluder.vertex_positions", apply, 1)
+
+
+def test_along_the_light_a_narrow_soft_compare_does_not_leak():
+    """Moving the occluder along the light's rays changes only its depths in the map.
+    The true derivative is small and negative (ray-traced central differences in
+    ``benchmarks/bench_gradients.py --param along``: -2.7e-5 against -6.0e-3 for the
+    sideways motion). On an antialiased map a narrow ``soft_compare`` (2 texels) gives
+    ``pcf``, whose kernel does not depend on depth, no derivative at all, and ``pcss``,
+    whose penumbra follows the blocker's depth, a negative one; a wide one (24 texels,
+    wider than the occluder's height above the ground) lights the receiver as the
+    occluder nears it and gets the wrong sign."""
+    scene = inverse.occluder_scene("area", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    w = _weights(mask, 4)
+    side = inverse.translate_shape(scene, axes="z")
+    along = _along_the_light(scene)
+
+    def g(param, **props):
+        integ = mi.load_dict({"type": "shadowmap", "resolution": 128, **props})
+        return float(_ad(param, integ, w, 1)[0])
+
+    scale = abs(g(side, method="pcf", soft_compare=2.0))
+    pcf_narrow = g(along, method="pcf", soft_compare=2.0)
+    pcss_narrow = g(along, method="pcss", soft_compare=2.0)
+    pcf_wide = g(along, method="pcf", soft_compare=24.0)
+    print(f"sideways |pcf| {scale:.3e}; along: pcf(2) {pcf_narrow:.3e}, pcss(2) "
+          f"{pcss_narrow:.3e}, pcf(24) {pcf_wide:.3e}")
+    assert scale > 1e-3
+    assert abs(pcf_narrow) < 1e-5 * scale
+    assert pcss_narrow < -1e-3 * scale
+    assert pcf_wide > 1e-2 * scale
+
+
 def test_point_light_position_gradient():
     """A point light's position (3 values): the gradient passes through the map's
     rays, the receivers' projections and the occluder's projected outline. Against

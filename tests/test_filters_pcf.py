@@ -223,6 +223,7 @@ def test_pcf_reads_the_footprint():
 
 @pytest.mark.parametrize("props", [
     {"sampling": "uniform"},
+    {"sampling": "regular"},
     {"sampling": "gaussian", "num_samples": 32, "min_samples": 3},
     {"bias_range": "0.005, 0.01", "res_factor": 2.0, "min_size": 2.0},
 ])
@@ -285,3 +286,23 @@ def test_footprint_stays_in_the_receivers_cascade():
     expected = d / 2.0 * RES          # cascade 0: 2 world units over RES texels
     np.testing.assert_allclose(np.asarray(w.x), [expected, expected], rtol=1e-4)
     np.testing.assert_allclose(np.asarray(w.y), [expected, expected], rtol=1e-4)
+
+
+def test_regular_sampling_is_the_deterministic_staircase():
+    """``sampling='regular'``: one tap at each cell's centre, so every lane (whatever its
+    sampler seed) gives the same value, the box filter sampled at the 4 x 4 centres of a
+    4 x 4-texel region: the fraction of tap columns right of the edge."""
+    smap = edge_map()
+    lanes = 64
+    # receivers offset by a quarter texel: no tap centre falls on the edge
+    offs = np.arange(-3.75, 3.76, 0.5)
+    v = pcf_vis(smap, lookup(repeat_sweep(offs, lanes), seed=7), sampling="regular")
+    v = v.reshape(len(offs), lanes)
+    assert np.all(v == v[:, :1]), "regular taps depend on the sampler"
+    cols = offs[:, None] + (np.arange(4)[None, :] - 1.5)   # tap columns, texels from edge
+    expected = np.mean(cols >= 0.0, axis=1)
+    np.testing.assert_array_equal(v[:, 0], expected)
+    other = pcf_vis(smap, lookup(repeat_sweep(offs, lanes), seed=8), sampling="regular")
+    np.testing.assert_array_equal(other, v.ravel())
+    jitter = pcf_vis(smap, lookup(repeat_sweep(offs, lanes), seed=7), sampling="jitter")
+    assert np.any(jitter.reshape(len(offs), lanes) != v)   # the default stays jittered

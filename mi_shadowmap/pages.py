@@ -610,9 +610,12 @@ def camera_hits(scene, sensor):
         return o + d * t
 
     ok = ray.has_differentials
-    dp_dx = dr.select(ok, hit(ray.o_x, ray.d_x) - si.p, 0.0)
-    dp_dy = dr.select(ok, hit(ray.o_y, ray.d_y) - si.p, 0.0)
-    return si, mi.Vector3f(dp_dx), mi.Vector3f(dp_dy), si.is_valid()
+    dp_dx = mi.Vector3f(dr.select(ok, hit(ray.o_x, ray.d_x) - si.p, 0.0))
+    dp_dy = mi.Vector3f(dr.select(ok, hit(ray.o_y, ray.d_y) - si.p, 0.0))
+    valid = si.is_valid()
+    # traced once here, not once per light by each light's mark kernel
+    dr.eval(si.p, dp_dx, dp_dy, valid)
+    return si, dp_dx, dp_dy, valid
 
 
 def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.ndarray:

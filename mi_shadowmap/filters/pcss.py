@@ -78,10 +78,14 @@ Deviations from the paper and why:
   lit by ``smoothstep(1 + (z_map - z_plane) / w)``, ``w = s * texel_world``
   (the world width of one map texel at the receiver, the unit of
   ``slope_bias``), as in ``pcf`` (:func:`~.common.soft_tap_lit`): the
-  visibility becomes differentiable in the map's and the receiver's depths
-  (the blocker average also carries the map depths' gradients into the
-  kernel width, but tap positions are discrete, so none flows through it).
-  The blocker search keeps the step, and a light of size 0 stays ``hard``
+  visibility becomes differentiable in the map's and the receiver's depths.
+  The blocker average also carries the map depths' gradients into the
+  kernel width, and the taps' motion is differentiated through their
+  bilinear neighbours (:func:`~.common.soft_tap`). Moving an occluder along
+  the light's rays, that gives the true sign but 4x the ray-traced
+  derivative, and it disagrees with PCSS's own finite differences (the
+  blocker depth's derivative in a tight search region;
+  ``benchmarks/RESULTS.md``). The blocker search keeps the step, and a light of size 0 stays ``hard``
   (no smooth compare). Occluders within ``w`` of the receiver leak light;
   a silhouette's motion across texels reaches the gradient through the
   map's antialiasing (property ``antialias``, :func:`~.common.soft_tap`).

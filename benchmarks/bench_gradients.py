@@ -67,6 +67,9 @@ Integrators (all get the same scene, spp, parameter and loss):
     pixel's footprint.
   - ``pcss`` = ``pcss:soft_compare=2``: the penumbra follows the blocker's depth, so
     the along-the-light narrowing gets the right sign.
+  - ``bilinear`` = ``bilinear:soft_compare=2,kernel=4``: a fixed 4 x 4-texel box of
+    bilinearly weighted compares, deterministic, and its derivative is continuous
+    across texels.
 
   Any other entry is a method spec, e.g. ``"vsm:filter_size=6"``;
 * ``direct_projective``: Mitsuba's projective-sampling direct integrator
@@ -127,6 +130,7 @@ METHODS = {
     "vsm": "vsm:filter_size=4,light_bleeding=0",
     "pcf": "pcf:soft_compare=2,sampling=regular,min_size=4",
     "pcss": "pcss:soft_compare=2",
+    "bilinear": "bilinear:soft_compare=2,kernel=4",
 }
 #: The scene's sampler (``--sampler``), the same for every integrator.
 SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
@@ -550,7 +554,7 @@ def main():
                     help="the occluder mesh: 8 shared vertices (default), or Mitsuba's "
                     "'cube' (24 vertices; direct_projective's gradient doubles on it)")
     ap.add_argument("--methods", nargs="+", default=["vsm,pcf"],
-                    help="shadowmap methods: short names (vsm, pcf, pcss: "
+                    help="shadowmap methods: short names ("
                     + ", ".join(f"{k} = {v}" for k, v in METHODS.items())
                     + "), comma-separated, or method specs 'method:prop=value,...' "
                     "separated by spaces")

@@ -248,7 +248,8 @@ def test_adam_recovers_the_translation_along_the_light():
 from mi_shadowmap import inverse   # noqa: E402
 
 SOFT = {"vsm": {"method": "vsm", "filter_size": 4.0},
-        "pcf": {"method": "pcf", "soft_compare": 8.0}}
+        "pcf": {"method": "pcf", "soft_compare": 8.0},
+        "bilinear": {"method": "bilinear", "kernel": 4, "soft_compare": 2.0}}
 IMAGE, SPP_AD, MAP_AA = 64, 8, 256
 SEEDS = (1, 2, 3, 4)
 

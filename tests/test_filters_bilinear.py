@@ -189,3 +189,37 @@ def test_one_kernel_for_the_largest_footprint():
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert len(hist) == 1                            # 64 taps, one dr.while_loop kernel
+
+
+# --------------------------------------------------------------- soft_compare (issue 13)
+@pytest.mark.parametrize("kernel", (2, 4))
+def test_soft_compare_is_the_step_far_from_the_receiver_and_differentiable_near(kernel):
+    """``soft_compare = s``: a texel nearer than the receiver by ``d`` is lit by
+    smoothstep(1 - d / w), ``w = s`` texel widths. The edge map's occluder is at depth 1
+    and the receivers at 2: with ``w`` = 2 texels (0.0625) the compares are steps and the
+    ramp is the step filter's, bit for bit; with receivers 0.03 behind the occluder the
+    texels are half lit, and the visibility's derivative in the map's depth is that of
+    the smoothstep, weighted bilinearly."""
+    smap = edge_map()
+    offs = np.linspace(-3.0, 3.0, 97)
+    far = vis("bilinear", smap, lookup(offs * TEXEL), kernel=kernel, soft_compare=2.0)
+    step = vis("bilinear", smap, lookup(offs * TEXEL), kernel=kernel)
+    np.testing.assert_array_equal(far, step)
+    # receivers just behind the occluder plane, deep in its shadow
+    x = np.full(8, -0.5)
+    w = 2.0 * TEXEL
+    depth = mi.Float(np.where(np.arange(RES * RES) % RES < RES // 2, 1.0, np.inf)
+                     .astype(np.float32))
+    dr.enable_grad(depth)
+    smap_ad = ShadowMap(smap.view, RES, depth)
+    opts = parse_options({"method": "bilinear", "kernel": kernel, "soft_compare": 2.0,
+                          "receiver_plane": False, "bias": 0.0, "slope_bias": 0.0,
+                          "normal_bias": 0.0})
+    v = methods.get("bilinear").lookup(smap_ad, lookup(x, z=1.0 + 0.5 * w), opts, mi.Bool(True))
+    np.testing.assert_allclose(v.numpy(), 0.5, atol=1e-5)   # smoothstep(0.5) = 0.5
+    dr.backward(dr.sum(v))
+    g = dr.grad(depth).numpy()
+    # d smoothstep(x) / dz_map at x = 1/2: 6 x (1 - x) / w = 1.5 / w per receiver, the
+    # bilinear weights summing to one over the texels read
+    np.testing.assert_allclose(g.sum(), len(x) * 1.5 / w, rtol=1e-4)
+    assert np.count_nonzero(g) == kernel * kernel

@@ -12,9 +12,10 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from .common import Lookup, receiver, receiver_plane, tap_lit
+from .common import (Lookup, receiver, receiver_plane, soft_compare_width, soft_tap,
+                     tap_depths, tap_lit)
 from .hard import hard
-from .pcf import RECEIVER_PLANE
+from .pcf import RECEIVER_PLANE, SOFT_COMPARE
 
 
 def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
@@ -62,6 +63,15 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
       the paper's "fast PCF".
     * *Receiver plane* (``receiver_plane``): not in the paper; ``false`` gives
       its single receiver depth.
+    * *Smooth compare* (``soft_compare``, default 0 = the step, bit-identical;
+      issue 13, differentiable shadows), as in ``pcf``: each texel's compare
+      is the smoothstep :func:`~.common.soft_tap_lit`, blended by coverage on
+      a silhouette-antialiased map (:func:`~.common.soft_tap`), so a moving
+      outline passes its gradient. Unlike ``pcf``'s taps these are weighted
+      bilinearly by the receiver's position, so the visibility's derivative
+      is continuous across texels (no jump at texel edges) and deterministic:
+      a gradient estimated over a pixel's samples has little spread. A moving
+      light's pose reaches the result through the bilinear weights.
     """
     k = int(opts.kernel)
     if k == 1:
@@ -78,6 +88,7 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
     n_taps = k * k
     t = mi.UInt32(0)
     acc = mi.Float(0.0)
+    soft_width = soft_compare_width(r, opts.soft_compare)
 
     def cond(t, acc):
         return act & (t < n_taps)
@@ -88,11 +99,18 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
         wx = dr.select(col == 0, 1.0 - f.x, dr.select(col == k - 1, f.x, 1.0))
         wy = dr.select(row == 0, 1.0 - f.y, dr.select(row == k - 1, f.y, 1.0))
         xy = i0 + mi.Point2f(mi.Float(col) + 0.5, mi.Float(row) + 0.5)
-        lit = tap_lit(smap, r, face, xy, plane, 0.0, act)
-        acc = dr.select(lit, acc + wx * wy, acc)
-        return t + 1, acc
+        if soft_width is None:
+            lit = tap_lit(smap, r, face, xy, plane, 0.0, act)
+            return t + 1, dr.select(lit, acc + wx * wy, acc)
+        # the texel's own smooth compare: its motion enters through wx, wy only
+        z_map, z, inside = tap_depths(smap, r, face, xy, plane, act)
+        lit = soft_tap(smap, z_map, z, inside, soft_width, face, dr.detach(xy), act)
+        return t + 1, acc + wx * wy * lit
 
-    t, acc = dr.while_loop((t, acc), cond, body)
+    if soft_width is None:
+        t, acc = dr.while_loop((t, acc), cond, body)
+    else:   # a sum of taps: reverse mode differentiates the loop in place
+        t, acc = dr.while_loop((t, acc), cond, body, max_iterations=-1)
     vis = dr.clip(acc * (1.0 / (width * width)), 0.0, 1.0)
     return dr.select(r.inside, vis, 1.0)
 
@@ -107,6 +125,7 @@ METHOD = Method(
              "compare (exactly 'hard'), 2 = the 2x2 bilinear hardware PCF, k = k x k texels "
              "(a (k-1) x (k-1) grid of bilinear lookups one texel apart).", lo=1, hi=8),
         RECEIVER_PLANE,
+        SOFT_COMPARE,
     ),
     virtual_margin=lambda o: 2.0 + 0.5 * o.kernel,
     virtual=True, builtin=True,

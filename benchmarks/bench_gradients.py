@@ -521,10 +521,15 @@ def run_worker(args, name, mode, n_seeds=None, timeout=3600):
 
 
 def same_sign(a, b):
+    """'yes' / 'NO' for the signs of ``a`` and ``b``; a value below 1e-4 of the other's
+    magnitude is zero (e.g. ``pcf``'s +-2e-10 along the light: its kernel does not
+    depend on depth), and has no sign."""
     if b is None:
         return "n/a"
     if b == 0:
         return "n/a (reference 0)"
+    if abs(a) < 1e-4 * abs(b):
+        return "n/a (zero)"
     return "yes" if np.sign(a) == np.sign(b) else "NO"
 
 

@@ -94,10 +94,11 @@ does a scene whose shape or emitter parameters have gradients enabled.
             self._in_render = False
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
-    #: (``pcf``'s taps, ``max_iterations=-1``): their gradient renders run with symbolic
-    #: loops (:meth:`render_backward`). Others use Mitsuba's default, whose evaluated
-    #: loops store every iteration.
-    SYMBOLIC_BACKWARD = frozenset({"hard", "pcf", "vsm", "evsm", "msm", "unshadowed"})
+    #: (``pcf``'s and ``bilinear``'s taps, ``max_iterations=-1``): their gradient renders
+    #: run with symbolic loops (:meth:`render_backward`). Others use Mitsuba's default,
+    #: whose evaluated loops store every iteration.
+    SYMBOLIC_BACKWARD = frozenset({"hard", "pcf", "bilinear", "vsm", "evsm", "msm",
+                                   "unshadowed"})
 
     def _symbolic_backward(self, scene) -> bool:
         return (self.opts.record.name in self.SYMBOLIC_BACKWARD

@@ -471,7 +471,7 @@ def _automatic_virtual(record, values: dict) -> bool:
     ``memory_budget`` cannot hold the coarsest level of a virtual cube map."""
     if not record.virtual or values.get("antialias") == "always":
         return False
-    if not _holds_virtual_cube(values["memory_budget"], values.get("page_size") or 32):
+    if not _holds_virtual_cube(values["memory_budget"], values["page_size"]):
         return False
     return all(values.get(name, off) == off for name, off in FULL_MAP_PROPERTIES.items())
 

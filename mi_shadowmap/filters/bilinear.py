@@ -107,10 +107,9 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
         lit = soft_tap(smap, z_map, z, inside, soft_width, face, dr.detach(xy), act)
         return t + 1, acc + wx * wy * lit
 
-    if soft_width is None:
-        t, acc = dr.while_loop((t, acc), cond, body)
-    else:   # a sum of taps: reverse mode differentiates the loop in place
-        t, acc = dr.while_loop((t, acc), cond, body, max_iterations=-1)
+    # a sum of taps (with or without soft_compare): Dr.Jit's sum-style reverse mode
+    # differentiates the symbolic loop in place (the integrator's SYMBOLIC_BACKWARD)
+    t, acc = dr.while_loop((t, acc), cond, body, max_iterations=-1)
     vis = dr.clip(acc * (1.0 / (width * width)), 0.0, 1.0)
     return dr.select(r.inside, vis, 1.0)
 

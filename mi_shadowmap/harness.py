@@ -35,6 +35,7 @@ from .ground_truth import (converged_reference, has_area_lights,  # noqa: F401
                            make_reference, score)
 from . import map_manager
 from .options import OptionError
+from .pages import VirtualShadowMap
 from .scenes import load_scene
 from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F401
                     check_shared_params, default_methods, map_methods, method_spec,
@@ -173,7 +174,7 @@ def prepare_maps(scene, methods=None, sensor=None, **params) -> list:
             if mine is None or theirs is None:
                 continue
             missing = [n for n in theirs.extra if n not in mine.extra]
-            if missing and hasattr(mine, "page_records"):
+            if missing and isinstance(mine, VirtualShadowMap):
                 raise ValueError(f"prepare_maps: the virtual map of '{mine.view.label}' holds "
                                  f"only its own method's layers, not {', '.join(missing)} of "
                                  f"method '{o.method}'; prepare each method's virtual maps "

@@ -94,10 +94,12 @@ does a scene whose shape or emitter parameters have gradients enabled.
             self._in_render = False
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
-    #: (``pcf``'s and ``bilinear``'s taps, ``max_iterations=-1``): their gradient renders
+    #: (``pcf``'s, ``bilinear``'s and ``pcss``'s taps, ``max_iterations=-1``; ``pcss``
+    #: with ``soft_compare``, 128^2, 16 spp: 0.25 s a gradient against 0.75 s through
+    #: Mitsuba's default, gradients unchanged): their gradient renders
     #: run with symbolic loops (:meth:`render_backward`). Others use Mitsuba's default,
     #: whose evaluated loops store every iteration.
-    SYMBOLIC_BACKWARD = frozenset({"hard", "pcf", "bilinear", "vsm", "evsm", "msm",
+    SYMBOLIC_BACKWARD = frozenset({"hard", "pcf", "bilinear", "pcss", "vsm", "evsm", "msm",
                                    "unshadowed"})
 
     def _symbolic_backward(self, scene) -> bool:

@@ -240,14 +240,16 @@ def soft_tap_lit(z_map, z, inside, width) -> mi.Float:
 
 
 def soft_tap(smap, z_map, z, inside, width, face, xy_texel, active=True,
-             cross_seams: bool = True) -> mi.Float:
+             cross_seams: bool = True, z_at=None) -> mi.Float:
     """:func:`soft_tap_lit` of one tap, on any map. On a silhouette-antialiased map
     (``smap.coverage``, :mod:`mi_shadowmap.antialias`) the tap's texel is a mix of
     its own surface and its neighbours' (weights ``alpha_s``), and the lit
     fraction is mixed the same way: ``lit(own) + sum_s alpha_s (lit(z_s) -
     lit(own))`` -- the compares are blended, not the depths, so the result is
     linear in the coverage (an outline moving by ``dx`` texels changes the
-    lit fraction by ``dx`` times the compare step, as the shadow's area does)."""
+    lit fraction by ``dx`` times the compare step, as the shadow's area does).
+    ``z_at(face, i, j)``: the receiver depth to compare texel ``(i, j)`` with in the
+    moving tap's derivative (a receiver plane's depth there); None: ``z``."""
     moving = dr.grad_enabled(xy_texel)
     if getattr(smap, "coverage", None) is None and not moving:
         return soft_tap_lit(z_map, z, inside, width)
@@ -270,8 +272,76 @@ def soft_tap(smap, z_map, z, inside, width, face, xy_texel, active=True,
             w = (fx if di else 1.0 - fx) * (fy if dj else 1.0 - fy)
             ii = dr.clip(i0 + di, 0, res - 1)
             jj = dr.clip(j0 + dj, 0, res - 1)
-            bil += w * dr.detach(_covered_tap(smap, f0, ii, jj, z, inside, width, active))
+            z_n = z if z_at is None else z_at(f0, ii, jj)
+            bil += w * dr.detach(_covered_tap(smap, f0, ii, jj, z_n, inside, width, active))
     return dr.replace_grad(lit, lit + bil - dr.detach(bil))
+
+
+def soft_blocker(smap, z_map, z, inside, width, face, xy_texel, active=True,
+                 cross_seams: bool = True, z_at=None):
+    """A blocker-search tap with smooth, coverage-blended compares (PCSS step 1 with
+    ``soft_compare``): ``(weight, weight * depth)`` with ``weight = 1 -``
+    :func:`soft_tap_lit`, the tap's degree of being a blocker. On an antialiased map
+    (``smap.coverage``) the texel's own surface and its neighbours' are weighted by
+    their coverage, each with its *own* depth: a silhouette texel enters the blocker
+    average with the occluder's depth and a weight that grows from 0 with the
+    coverage, not (as the blended ``smap.depth``) with a depth that slides from the
+    receiver's to the occluder's. A tap that moves (the search region follows the
+    occluder's depth) is differentiated through its bilinear neighbours, as
+    :func:`soft_tap`. Both sums are then continuous in the occluder's motion, so
+    their derivatives match finite differences (issue 13)."""
+    moving = dr.grad_enabled(xy_texel)
+    if getattr(smap, "coverage", None) is None and not moving:
+        return _blocker_weight(z_map, z, inside, width)
+    res = smap.resolution
+    f2, i, j, _ = smap.view.tap_texel(face, dr.detach(xy_texel), res, cross_seams)
+    b, bz = _covered_blocker(smap, f2, i, j, z, inside, width, active)
+    if not moving:
+        return b, bz
+    xy = mi.Point2f(xy_texel)
+    fx = xy.x - 0.5 - dr.floor(dr.detach(xy.x) - 0.5)
+    fy = xy.y - 0.5 - dr.floor(dr.detach(xy.y) - 0.5)
+    i0 = mi.Int32(dr.floor(dr.detach(xy.x) - 0.5))
+    j0 = mi.Int32(dr.floor(dr.detach(xy.y) - 0.5))
+    bil_b, bil_bz = mi.Float(0.0), mi.Float(0.0)
+    for dj in (0, 1):
+        for di in (0, 1):
+            w = (fx if di else 1.0 - fx) * (fy if dj else 1.0 - fy)
+            ii = dr.clip(i0 + di, 0, res - 1)
+            jj = dr.clip(j0 + dj, 0, res - 1)
+            z_n = z if z_at is None else z_at(f2, ii, jj)
+            nb, nbz = _covered_blocker(smap, f2, ii, jj, z_n, inside, width, active)
+            bil_b += w * dr.detach(nb)
+            bil_bz += w * dr.detach(nbz)
+    return (dr.replace_grad(b, b + bil_b - dr.detach(bil_b)),
+            dr.replace_grad(bz, bz + bil_bz - dr.detach(bil_bz)))
+
+
+def _blocker_weight(z_k, z, inside, width):
+    """``(b, b * z_k)``, ``b = 1 -`` :func:`soft_tap_lit` (0 for an empty texel)."""
+    b = 1.0 - soft_tap_lit(z_k, z, inside, width)
+    return b, b * dr.select(b > 0, z_k, 0.0)
+
+
+def _covered_blocker(smap, f2, i, j, z, inside, width, active):
+    """:func:`_blocker_weight` at texel ``(f2, i, j)``, coverage-blended on an
+    antialiased map (each surface with its own depth)."""
+    ok = active & inside
+    if getattr(smap, "coverage", None) is None:
+        return _blocker_weight(smap.fetch(smap.depth, f2, i, j, ok), z, inside, width)
+    from ..antialias import STEPS
+    res = smap.resolution
+    b_own, s_own = _blocker_weight(smap.fetch(smap.raw_depth, f2, i, j, ok), z, inside, width)
+    b_out, s_out = mi.Float(b_own), mi.Float(s_own)
+    k = mi.UInt32(f2) * (res * res) + mi.UInt32(dr.clip(j, 0, res - 1)) * res \
+        + mi.UInt32(dr.clip(i, 0, res - 1))
+    for s, (di, dj) in enumerate(STEPS):
+        alpha = dr.gather(mi.Float, smap.coverage, 4 * k + s, ok)
+        b_n, s_n = _blocker_weight(smap.fetch(smap.raw_depth, f2, i + di, j + dj,
+                                              ok & (alpha > 0)), z, inside, width)
+        b_out = dr.select(alpha > 0, b_out + alpha * (b_n - b_own), b_out)
+        s_out = dr.select(alpha > 0, s_out + alpha * (s_n - s_own), s_out)
+    return b_out, s_out
 
 
 def _covered_tap(smap, f2, i, j, z, inside, width, active):

@@ -58,6 +58,14 @@ camera-visible points read, at the density their pixel footprint needs
 ``cull_faces``, ``antialias='always'`` or ``virtual=false`` select full maps, and so
 does a scene whose shape or emitter parameters have gradients enabled.
 
+Gradients (``mi.render(scene, params)`` with a shape's or an emitter's parameter
+enabled): the maps are built in the AD graph, antialiased at silhouettes, and with
+``gradient_at='pixel_centre'`` (default) each light's term keeps its value while its
+visibility derivative is taken at the surface point under the pixel's centre, times
+the unshadowed light averaged over ``gradient_light_samples`` stratified light
+samples (:meth:`_gradient_light_term`). Shadows only: an object's own outline on
+screen is Mitsuba's projective integrators' job.
+
 """ + opt_mod.docs_table()
 
     def __init__(self, props=None):
@@ -74,6 +82,7 @@ does a scene whose shape or emitter parameters have gradients enabled.
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale = dr.opaque(mi.Float, 1.0)
+        self._sensor = None
 
     # ---------------------------------------------------------------- passes
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -86,6 +95,7 @@ does a scene whose shape or emitter parameters have gradients enabled.
             else:
                 sensor_obj = sensor
             self.prepare_maps(scene, sensor_obj)
+            self._sensor = sensor_obj
             n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
             # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
             self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
@@ -196,10 +206,12 @@ does a scene whose shape or emitter parameters have gradients enabled.
         ctx = mi.BSDFContext()
         shade = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         record = opts.record
-        if record.needs_footprint or (opts.uses_map and opts.virtual):   # virtual: levels
+        gradient = self._gradient_render()   # gradient_at='pixel_centre' applies
+        if record.needs_footprint or (opts.uses_map and opts.virtual) or gradient:
             dp_dx, dp_dy = self._footprint(ray, si)
         else:
             dp_dx = dp_dy = mi.Vector3f(0.0)
+        p_centre = self._pixel_centre(si, dp_dx, dp_dy, valid) if gradient else None
         vis_fn = record.lookup
         aovs = []
         n_light = getattr(opts, record.shadow_rays) if record.shadow_rays else 1
@@ -220,6 +232,12 @@ does a scene whose shape or emitter parameters have gradients enabled.
             contributes = mi.Bool(False)
             shift = None
             whole = None   # record.whole_light: the lookup's visibility of the whole light
+            if p_centre is not None and smap is not None and n_light == 1:
+                c, vis, whole = self._gradient_light_term(
+                    smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy, p_centre)
+                result += c
+                aovs.append(vis if whole is None else dr.select(shade, whole, 0.0))
+                continue
             for s in range(n_light):
                 if n_light == 1:
                     u = sampler.next_2d(shade)
@@ -250,15 +268,95 @@ does a scene whose shape or emitter parameters have gradients enabled.
                         else dr.select(shade, whole, 0.0))
         return result, valid, aovs
 
+    def _gradient_light_term(self, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy,
+                             p_centre):
+        """One emitter's term in a gradient render with ``gradient_at='pixel_centre'``:
+        ``(contribution, visibility AOV, whole-light visibility or None)``.
+
+        The value is the usual one (one light sample ``L``, the visibility ``V`` at the
+        sample's point). Its derivative is ``dL V + L_avg dV(p_centre)``: the shading's
+        own derivative from the sample, and the visibility's derivative at the pixel
+        centre's surface point (the lookup run again there with the same random
+        numbers) times the unshadowed contribution averaged over
+        ``gradient_light_samples`` stratified light samples (the maps' visibility does
+        not depend on the light sample). Both are unbiased to first order in the
+        pixel's size; what they remove is the pixel position's and the light sample's
+        noise in the visibility's derivative."""
+        opts, record = self.opts, self.opts.record
+        vis_fn = record.lookup
+        u = sampler.next_2d(shade)
+        ds, w = emitter.sample_direction(si, u, shade)
+        lit = shade & (ds.pdf > 0)
+        f = bsdf.eval(ctx, si, si.to_local(ds.d), lit)
+        unshadowed = w * f
+        lit &= dr.max(unshadowed) > 0
+
+        def visibility(lk, active):
+            if record.whole_light:
+                whole, above = vis_fn(smap, lk, opts, shade)
+                return (dr.select(active & (above > 0), whole / dr.maximum(above, 1e-30), 0.0),
+                        whole)
+            m = smap.bind(lk, active) if isinstance(smap, VirtualShadowMap) else smap
+            return dr.select(active, vis_fn(m, lk, opts, active), 0.0), None
+
+        rec = _Recorder(sampler)
+        with dr.suspend_grad():
+            v_value, whole = visibility(self._lookup(smap, si, dp_dx, dp_dy, ds, rec), lit)
+        v_centre, whole_centre = visibility(self._lookup(smap, si, dp_dx, dp_dy, ds,
+                                                         rec.replay(), p_centre), shade)
+        delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
+        n = 1 if delta else opts.gradient_light_samples
+        with dr.suspend_grad():   # a weight: the shading's own derivative is the sample's
+            average = dr.select(lit, unshadowed, 0.0)
+            if n > 1:
+                shift = sampler.next_2d(shade)
+                average = mi.Spectrum(0.0)
+                for k in range(n):
+                    ds_k, w_k = emitter.sample_direction(si, shifted_grid_point(k, n, shift),
+                                                         shade)
+                    lit_k = shade & (ds_k.pdf > 0)
+                    f_k = bsdf.eval(ctx, si, si.to_local(ds_k.d), lit_k)
+                    average += dr.select(lit_k, w_k * f_k, 0.0)
+                average /= n
+        value = dr.select(lit, unshadowed * v_value, 0.0)
+        # d value = d(L) V + L_avg dV(p_centre)
+        grad = dr.select(lit, unshadowed * dr.detach(v_value), 0.0) + average * v_centre
+        aov = dr.replace_grad(v_value, v_centre)
+        if whole is not None:   # the whole-light AOV: its derivative at the centre too
+            whole = dr.replace_grad(whole, whole_centre)
+        return dr.replace_grad(value, grad), aov, whole
+
+    def _gradient_render(self) -> bool:
+        """Whether this render's maps are in the AD graph (a gradient render) and
+        ``gradient_at`` is ``'pixel_centre'``."""
+        if not self.opts.uses_map or self.opts.gradient_at != "pixel_centre":
+            return False
+        return any(isinstance(m, ShadowMap) and (dr.grad_enabled(m.depth)
+                                                   or m.pose is not None) for m in self.maps)
+
+    def _pixel_centre(self, si, dp_dx, dp_dy, active):
+        """The surface point under the centre of the camera sample's pixel, to first
+        order: ``p + dp_dx (1/2 - fx) + dp_dy (1/2 - fy)``, ``(fx, fy)`` the sample's
+        position in its pixel (the film position of ``p``, from the sensor's
+        ``sample_direction``; a pinhole or orthographic camera only, else ``p``)."""
+        sensor = self._sensor
+        if not isinstance(sensor, mi.ProjectiveCamera) or sensor.needs_aperture_sample():
+            return si.p
+        ds, _ = sensor.sample_direction(dr.detach(si), mi.Point2f(0.5), active)
+        uv = dr.detach(ds.uv)
+        off = 0.5 - (uv - dr.floor(uv))
+        return si.p + dp_dx * off.x + dp_dy * off.y
+
     @staticmethod
-    def _lookup(smap, si, dp_dx, dp_dy, ds, sampler) -> Lookup:
+    def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None) -> Lookup:
         """The lookup of ``si`` in ``smap``; when the light's pose has gradients
         (``smap.pose``, :mod:`mi_shadowmap.light_views.pose`) the point, normal and
         footprint carry them (values unchanged)."""
         pose = getattr(smap, "pose", None)
+        p = si.p if p is None else p
         if pose is None:
-            return Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
-        return Lookup(pose.to_view(si.p), pose.vector_to_view(si.n),
+            return Lookup(p, si.n, dp_dx, dp_dy, si, ds, sampler)
+        return Lookup(pose.to_view(p), pose.vector_to_view(si.n),
                       pose.vector_to_view(dp_dx), pose.vector_to_view(dp_dy), si, ds, sampler)
 
     def _footprint(self, ray: mi.RayDifferential3f, si):
@@ -283,6 +381,39 @@ does a scene whose shape or emitter parameters have gradients enabled.
     def to_string(self):
         res = self.opts.resolution if self.opts.resolution is not None else "auto"
         return f"ShadowMapIntegrator[method={self.opts.method}, resolution={res}]"
+
+
+class _Recorder:
+    """A sampler stand-in that records the numbers a lookup draws."""
+
+    def __init__(self, sampler):
+        self.sampler, self.drawn = sampler, []
+
+    def next_1d(self, active=True):
+        v = self.sampler.next_1d(active)
+        self.drawn.append(v)
+        return v
+
+    def next_2d(self, active=True):
+        v = self.sampler.next_2d(active)
+        self.drawn.append(v)
+        return v
+
+    def replay(self):
+        return _Replay(list(self.drawn))
+
+
+class _Replay:
+    """Replays a :class:`_Recorder`'s numbers in order (the same taps, jitter, seeds)."""
+
+    def __init__(self, drawn):
+        self.drawn = drawn
+
+    def next_1d(self, active=True):
+        return self.drawn.pop(0)
+
+    def next_2d(self, active=True):
+        return self.drawn.pop(0)
 
 
 def integrator_class():

@@ -103,6 +103,22 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "(so a primal render, or finite differences, see the same function as the "
          "gradients); 'never': none (gradients from depths only).",
          choices=("gradients", "always", "never")),
+    Prop("gradient_at", "str", "pixel_centre",
+         "Where a gradient render (a shape's or emitter's parameter has gradients enabled, "
+         "maps in the AD graph) takes the visibility's derivative. 'pixel_centre' "
+         "(default): at the surface point under the centre of the camera sample's pixel "
+         "(ray differentials; perspective and orthographic cameras, else at the sample), "
+         "times the light's unshadowed contribution averaged over "
+         "gradient_light_samples stratified light samples, as Worchel & Alexa's "
+         "rasteriser evaluates one point per pixel: the value is unchanged, the "
+         "derivative loses the pixel position's and the light sample's noise (measured: "
+         "gradient spread 9-14x lower for vsm, pcf and bilinear, 2x for pcss). 'sample': "
+         "the plain derivative of each sample.",
+         choices=("pixel_centre", "sample")),
+    Prop("gradient_light_samples", "int", 16,
+         "Stratified light samples that average the unshadowed contribution multiplying "
+         "the visibility's derivative, with gradient_at='pixel_centre' (delta lights: 1).",
+         lo=1, hi=1024),
     Prop("bias", "float", None,
          "Constant depth bias in world units. Default: automatic (0 plus the texel-scaled "
          "slope and normal biases, which are scale-invariant).", lo=0.0),
@@ -137,7 +153,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
 #: Scope of each shared property (see EVERY, ACCEPTED, MAP).
 SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY, "env_lights": MAP,
           "resolution": ACCEPTED, "memory_budget": ACCEPTED, "cache_maps": ACCEPTED,
-          "cull_faces": MAP, "fit_frusta": MAP, "virtual": MAP, "page_size": MAP, "lod_bias": MAP, "antialias": MAP, "bias": MAP, "slope_bias": MAP,
+          "cull_faces": MAP, "fit_frusta": MAP, "virtual": MAP, "page_size": MAP, "lod_bias": MAP, "antialias": MAP,
+          "gradient_at": MAP, "gradient_light_samples": MAP, "bias": MAP, "slope_bias": MAP,
           "normal_bias": MAP, "max_tan_slope": MAP, "cascades": MAP, "split_lambda": MAP}
 _GENERAL = {p.name: p for p in GENERAL_PROPERTIES}
 assert set(SCOPES) == set(_GENERAL)

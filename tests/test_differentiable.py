@@ -494,3 +494,78 @@ def test_adam_recovers_a_point_light_position():
     print(f"light: {np.linalg.norm(x0):.3f} -> {err[-1]:.4f} units in {len(x)} steps, "
           f"{sec[-1]:.1f} s; worst of the last 10 {err.max():.4f}")
     assert err.max() <= 0.02 * inverse.SCENE_SIZE
+
+
+# ------------------------------------------------- gradient_at: the pixel-centre estimator
+def test_pixel_centre_is_the_centre_rays_hit():
+    """``_pixel_centre`` moves a sample's surface point to the point under its pixel's
+    centre (first order, through the ray differentials): on the ground plane it lands
+    within 2 % of a pixel's footprint of the centre ray's own hit."""
+    scene = inverse.occluder_scene("area", 32, 1)
+    sensor = scene.sensors()[0]
+    integ = mi.load_dict({"type": "shadowmap", "method": "vsm"})
+    integ._sensor = sensor
+    integ._diff_scale = dr.opaque(mi.Float, 1.0)
+    film = np.array([[3.2, 20.8], [10.9, 25.1], [20.5, 28.05], [16.01, 30.97]])
+    pos = mi.Point2f(*[mi.Float(film[:, k].astype(np.float32)) for k in range(2)])
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, pos / 32, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    dp_dx, dp_dy = integ._footprint(ray, si)
+    p_c = integ._pixel_centre(si, dp_dx, dp_dy, si.is_valid())
+    centre = mi.Point2f(*[mi.Float((np.floor(film[:, k]) + 0.5).astype(np.float32))
+                          for k in range(2)])
+    ray_c, _ = sensor.sample_ray(0.0, 0.5, centre / 32, mi.Point2f(0.5))
+    si_c = scene.ray_intersect(ray_c)
+    err = np.linalg.norm((p_c - si_c.p).numpy(), axis=0)   # (3, n) arrays
+    pixel = np.linalg.norm(dp_dx.numpy(), axis=0)
+    assert si.is_valid().numpy().all() and si_c.is_valid().numpy().all()
+    assert (np.abs(si.p.y.numpy()) < 1e-4).all()   # on the ground
+    print("error / pixel footprint:", err / pixel)
+    assert (err <= 0.02 * pixel).all()
+
+
+GRADIENT_SETTINGS = {"vsm": {"method": "vsm", "filter_size": 4.0, "light_bleeding": 0.0},
+                     "pcf": {"method": "pcf", "soft_compare": 2.0, "sampling": "regular",
+                             "min_size": 4.0},
+                     "bilinear": {"method": "bilinear", "kernel": 4, "soft_compare": 2.0}}
+
+
+@pytest.mark.parametrize("method", sorted(GRADIENT_SETTINGS))
+def test_pixel_centre_gradients_have_less_spread(method):
+    """``gradient_at``: the default ``'pixel_centre'`` against ``'sample'`` (the plain
+    derivative of each sample), the README's gradient settings, the occluder moved
+    sideways, the ``independent`` sampler, 6 seeds: the same mean (within 4 %) and a
+    spread at least 3x smaller (measured at 128^2, 16 spp: 5-12x). ``pcf``'s regular
+    taps read nearest texels: their derivative sampled at the pixels' centres aliased
+    against the texel grid (12 % off at 128^2) until each tap's derivative became its
+    four texels' bilinear one."""
+    scene = inverse.occluder_scene("area", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    param = inverse.translate_shape(scene, axes="z")
+    w = _weights(mask, 4)
+    props = {"type": "shadowmap", "resolution": 128, **GRADIENT_SETTINGS[method]}
+    centre = [_ad(param, mi.load_dict(props), w, 1, seed=s)[0] for s in range(6)]
+    plain = [_ad(param, mi.load_dict({**props, "gradient_at": "sample"}), w, 1, seed=s)[0]
+             for s in range(6)]
+    print(f"{method}: pixel_centre {np.mean(centre):.4e} +- {np.std(centre):.2e}; "
+          f"sample {np.mean(plain):.4e} +- {np.std(plain):.2e}")
+    assert abs(np.mean(centre) / np.mean(plain) - 1.0) <= 0.04
+    assert np.std(centre) * 3.0 <= np.std(plain)
+
+
+def test_pixel_centre_keeps_the_image():
+    """A gradient render's image values are the same with either ``gradient_at`` (one
+    light: its random numbers are drawn first)."""
+    scene = inverse.occluder_scene("area", IMAGE, SPP_AD)
+    param = inverse.translate_shape(scene, axes="z")
+
+    images = []
+    for at in ("pixel_centre", "sample"):
+        x = mi.Float(0.0)
+        dr.enable_grad(x)
+        param.set(x)
+        with dr.resume_grad():
+            images.append(_integ("vsm", gradient_at=at).render(scene, seed=3, spp=SPP_AD)
+                          .numpy())
+        param.reset()
+    assert np.array_equal(images[0], images[1])

@@ -128,9 +128,12 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
         else:
             z_map, z, inside = tap_depths(smap, r, face, xy, plane, active)
             n_lit = n_lit + soft_tap(smap, z_map, z - bias, inside, soft_width, face, xy,
-                                     active)
+                                     active, smooth=smooth)
         return k + 1, rng, n_lit
 
+    # in a gradient render (the map in the AD graph): each tap's derivative is its four
+    # texels' bilinear one, continuous in the receiver's position (soft_tap)
+    smooth = soft_width is not None and dr.grad_enabled(getattr(smap, "depth", None))
     if soft_width is not None:
         n_lit = mi.Float(0.0)
         # a sum of taps: Dr.Jit's sum-style reverse mode differentiates the symbolic
@@ -244,7 +247,11 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
       coverage (:func:`~.common.soft_tap`), and when the light's pose has
       gradients a tap's motion across texels is differentiated through the
       bilinear interpolation of its four texels' compares (values stay the
-      nearest texel's).
+      nearest texel's). In a gradient render (the map in the AD graph) every
+      tap's whole derivative is that bilinear one, so it is continuous in the
+      receiver's position: the integrator's ``gradient_at='pixel_centre'``
+      samples it at the pixels' centres, where the nearest texel's
+      derivative aliased against the texel grid (regular taps: 12 % off).
     """
     res = smap.resolution
     r = receiver(smap, lk, opts)

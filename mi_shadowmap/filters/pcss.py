@@ -258,6 +258,9 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
     k = mi.UInt32(0)
     lit = mi.Float(0.0)
     active = mi.Bool(active)
+    # a gradient render: each tap's derivative is its four texels' bilinear one
+    # (soft_tap), continuous in the receiver's position
+    smooth = soft_width is not None and dr.grad_enabled(getattr(smap, "depth", None))
 
     def cond(k, lit):
         return active & (k < n)
@@ -271,7 +274,8 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
         if soft_width is not None:
             return k + 1, lit + soft_tap(smap, z_map, z, inside, soft_width, r.face,
                                          centre + off, active, cross_seams=False,
-                                         z_at=_plane_at(smap, plane, r, dr.norm(off)))
+                                         z_at=_plane_at(smap, plane, r, dr.norm(off)),
+                                         smooth=smooth)
         return k + 1, lit + dr.select(~inside | (z <= z_map), 1.0, 0.0)
 
     k, lit = dr.while_loop((k, lit), cond, body, max_iterations=-1)   # a sum, as above

@@ -61,7 +61,12 @@ def face_uv(face, d):
     """``uv_light`` of direction ``d`` on face ``face`` (off the face too), float32 or
     float64 as ``d`` is."""
     major, u, w = face_split(face, d)
-    inv = dr.rcp(dr.maximum(major, 1e-300 if isinstance(major, mi.Float64) else 1e-30))
+    # The clamp is relative (a point within 1e-7 rad of the face's plane, or behind it,
+    # lands 1e7 face widths off the face), so that reverse mode's partials stay finite:
+    # an absolute 1e-30 gave 1/major^2 = inf in float32, and zero gradients times it NaN
+    # (antialiased silhouette edges reaching behind a cube face, issue 13).
+    tiny = 1e-300 if isinstance(major, mi.Float64) else 1e-30
+    inv = dr.rcp(dr.maximum(major, dr.maximum(1e-7 * (dr.abs(u) + dr.abs(w)), tiny)))
     point2 = mi.Point2d if isinstance(major, mi.Float64) else mi.Point2f
     return point2(0.5 * (u * inv + 1.0), 0.5 * (w * inv + 1.0))
 

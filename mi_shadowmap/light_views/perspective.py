@@ -48,7 +48,10 @@ class PerspectiveView(LightView):
         p_world = mi.Point3f(p_world)   # Point + Vector arithmetic may yield a Vector3f
         p_light = mi.Transform4f(self.light_from_world) @ p_world
         z = p_light.z
-        inv_z = dr.rcp(dr.maximum(z, 1e-30))
+        # relative clamp (as cube.face_uv): reverse mode's partials stay finite for
+        # points at or behind the light's plane
+        inv_z = dr.rcp(dr.maximum(z, dr.maximum(1e-7 * (dr.abs(p_light.x) + dr.abs(p_light.y)),
+                                                1e-30)))
         uv = mi.Point2f(0.5 * (p_light.x * inv_z / self.tan_half + 1.0),
                         0.5 * (p_light.y * inv_z / self.tan_half + 1.0))
         depth = dr.norm(p_world - mi.Point3f(self.position))

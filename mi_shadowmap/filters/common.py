@@ -268,20 +268,12 @@ def soft_tap(smap, z_map, z, inside, width, face, xy_texel, active=True,
     # The light's pose moves the tap across the texels (xy_texel carries its
     # derivatives): the nearest texel's value, the bilinear interpolation's
     # derivative (each neighbour on the tap's face, clamped at its edges).
-    xy = mi.Point2f(xy_texel)
-    fx, fy = xy.x - 0.5 - dr.floor(dr.detach(xy.x) - 0.5), xy.y - 0.5 - dr.floor(dr.detach(xy.y) - 0.5)
-    i0 = mi.Int32(dr.floor(dr.detach(xy.x) - 0.5))
-    j0 = mi.Int32(dr.floor(dr.detach(xy.y) - 0.5))
-    f0 = smap.view.tap_texel(face, dr.detach(xy), res, cross_seams)[0]
+    f0 = smap.view.tap_texel(face, dr.detach(xy_texel), res, cross_seams)[0]
     bil = mi.Float(0.0)
-    for dj in (0, 1):
-        for di in (0, 1):
-            w = (fx if di else 1.0 - fx) * (fy if dj else 1.0 - fy)
-            ii = dr.clip(i0 + di, 0, res - 1)
-            jj = dr.clip(j0 + dj, 0, res - 1)
-            z_n = z if z_at is None else z_at(f0, ii, jj)
-            c = _covered_tap(smap, f0, ii, jj, z_n, inside, width, active)
-            bil += w * (c if smooth else dr.detach(c))
+    for w, ii, jj in _bilinear_texels(xy_texel, res):
+        z_n = z if z_at is None else z_at(f0, ii, jj)
+        c = _covered_tap(smap, f0, ii, jj, z_n, inside, width, active)
+        bil += w * (c if smooth else dr.detach(c))
     if smooth:   # the derivative of the bilinear interpolation, in the map too
         return dr.replace_grad(lit, bil)
     return dr.replace_grad(lit, lit + bil - dr.detach(bil))
@@ -308,21 +300,12 @@ def soft_blocker(smap, z_map, z, inside, width, face, xy_texel, active=True,
     b, bz = _covered_blocker(smap, f2, i, j, z, inside, width, active)
     if not moving:
         return b, bz
-    xy = mi.Point2f(xy_texel)
-    fx = xy.x - 0.5 - dr.floor(dr.detach(xy.x) - 0.5)
-    fy = xy.y - 0.5 - dr.floor(dr.detach(xy.y) - 0.5)
-    i0 = mi.Int32(dr.floor(dr.detach(xy.x) - 0.5))
-    j0 = mi.Int32(dr.floor(dr.detach(xy.y) - 0.5))
     bil_b, bil_bz = mi.Float(0.0), mi.Float(0.0)
-    for dj in (0, 1):
-        for di in (0, 1):
-            w = (fx if di else 1.0 - fx) * (fy if dj else 1.0 - fy)
-            ii = dr.clip(i0 + di, 0, res - 1)
-            jj = dr.clip(j0 + dj, 0, res - 1)
-            z_n = z if z_at is None else z_at(f2, ii, jj)
-            nb, nbz = _covered_blocker(smap, f2, ii, jj, z_n, inside, width, active)
-            bil_b += w * dr.detach(nb)
-            bil_bz += w * dr.detach(nbz)
+    for w, ii, jj in _bilinear_texels(xy_texel, res):
+        z_n = z if z_at is None else z_at(f2, ii, jj)
+        nb, nbz = _covered_blocker(smap, f2, ii, jj, z_n, inside, width, active)
+        bil_b += w * dr.detach(nb)
+        bil_bz += w * dr.detach(nbz)
     return (dr.replace_grad(b, b + bil_b - dr.detach(bil_b)),
             dr.replace_grad(bz, bz + bil_bz - dr.detach(bil_bz)))
 
@@ -336,41 +319,47 @@ def _blocker_weight(z_k, z, inside, width):
 def _covered_blocker(smap, f2, i, j, z, inside, width, active):
     """:func:`_blocker_weight` at texel ``(f2, i, j)``, coverage-blended on an
     antialiased map (each surface with its own depth)."""
-    ok = active & inside
-    if getattr(smap, "coverage", None) is None:
-        return _blocker_weight(smap.fetch(smap.depth, f2, i, j, ok), z, inside, width)
-    from ..antialias import STEPS
-    res = smap.resolution
-    b_own, s_own = _blocker_weight(smap.fetch(smap.raw_depth, f2, i, j, ok), z, inside, width)
-    b_out, s_out = mi.Float(b_own), mi.Float(s_own)
-    k = mi.UInt32(f2) * (res * res) + mi.UInt32(dr.clip(j, 0, res - 1)) * res \
-        + mi.UInt32(dr.clip(i, 0, res - 1))
-    for s, (di, dj) in enumerate(STEPS):
-        alpha = dr.gather(mi.Float, smap.coverage, 4 * k + s, ok)
-        b_n, s_n = _blocker_weight(smap.fetch(smap.raw_depth, f2, i + di, j + dj,
-                                              ok & (alpha > 0)), z, inside, width)
-        b_out = dr.select(alpha > 0, b_out + alpha * (b_n - b_own), b_out)
-        s_out = dr.select(alpha > 0, s_out + alpha * (s_n - s_own), s_out)
-    return b_out, s_out
+    return _coverage_mix(smap, f2, i, j, active & inside,
+                         lambda z_k: _blocker_weight(z_k, z, inside, width))
 
 
 def _covered_tap(smap, f2, i, j, z, inside, width, active):
     """The smooth compare at texel ``(f2, i, j)``, coverage-blended on an antialiased map."""
-    res = smap.resolution
-    ok = active & inside
+    return _coverage_mix(smap, f2, i, j, active & inside,
+                         lambda z_k: (soft_tap_lit(z_k, z, inside, width),))[0]
+
+
+def _coverage_mix(smap, f2, i, j, ok, fn) -> tuple:
+    """``fn(z)`` (a tuple of values) at texel ``(f2, i, j)``: of its depth, or on an
+    antialiased map (``smap.coverage``) of its own surface's depth mixed with its
+    neighbours' by their coverage, ``v + sum_s alpha_s (v_s - v)``."""
     if getattr(smap, "coverage", None) is None:
-        return soft_tap_lit(smap.fetch(smap.depth, f2, i, j, ok), z, inside, width)
+        return fn(smap.fetch(smap.depth, f2, i, j, ok))
     from ..antialias import STEPS
-    own = soft_tap_lit(smap.fetch(smap.raw_depth, f2, i, j, ok), z, inside, width)
-    out = own
+    res = smap.resolution
+    own = fn(smap.fetch(smap.raw_depth, f2, i, j, ok))
+    out = list(own)
     k = mi.UInt32(f2) * (res * res) + mi.UInt32(dr.clip(j, 0, res - 1)) * res \
         + mi.UInt32(dr.clip(i, 0, res - 1))
     for s, (di, dj) in enumerate(STEPS):
         alpha = dr.gather(mi.Float, smap.coverage, 4 * k + s, ok)
-        z_n = smap.fetch(smap.raw_depth, f2, i + di, j + dj, ok & (alpha > 0))
-        out = dr.select(alpha > 0, out + alpha * (soft_tap_lit(z_n, z, inside, width) - own),
-                        out)
-    return out
+        near = fn(smap.fetch(smap.raw_depth, f2, i + di, j + dj, ok & (alpha > 0)))
+        out = [dr.select(alpha > 0, o + alpha * (v_n - v), o)
+               for o, v, v_n in zip(out, own, near)]
+    return tuple(out)
+
+
+def _bilinear_texels(xy_texel, res: int):
+    """The four texels around the continuous tap ``xy_texel`` (clamped to the face)
+    and their bilinear weights, attached to ``xy_texel``: ``[(w, i, j)]``."""
+    xy = mi.Point2f(xy_texel)
+    fx = xy.x - 0.5 - dr.floor(dr.detach(xy.x) - 0.5)
+    fy = xy.y - 0.5 - dr.floor(dr.detach(xy.y) - 0.5)
+    i0 = mi.Int32(dr.floor(dr.detach(xy.x) - 0.5))
+    j0 = mi.Int32(dr.floor(dr.detach(xy.y) - 0.5))
+    return [((fx if di else 1.0 - fx) * (fy if dj else 1.0 - fy),
+             dr.clip(i0 + di, 0, res - 1), dr.clip(j0 + dj, 0, res - 1))
+            for dj in (0, 1) for di in (0, 1)]
 
 
 # ------------------------------------------------ fixed texel blocks (W&M, MDSM)

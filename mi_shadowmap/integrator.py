@@ -60,8 +60,9 @@ does a scene whose shape or emitter parameters have gradients enabled.
 
 Gradients (``mi.render(scene, params)`` with a shape's or an emitter's parameter
 enabled): the maps are built in the AD graph, antialiased at silhouettes, and with
-``gradient_at='pixel_centre'`` (default) each light's term keeps its value while its
-visibility derivative is taken at the surface point under the pixel's centre, times
+``gradient_at='pixel_centre'`` (default) each light's term (environment regions
+excepted) keeps its value while its visibility derivative is taken at the surface point
+under the pixel's centre (a perspective camera; other sensors at the sample), times
 the unshadowed light averaged over ``gradient_light_samples`` stratified light
 samples (:meth:`_gradient_light_term`). Shadows only: an object's own outline on
 screen is Mitsuba's projective integrators' job.
@@ -309,10 +310,11 @@ screen is Mitsuba's projective integrators' job.
         with dr.suspend_grad():   # a weight: the shading's own derivative is the sample's
             average = dr.select(lit, unshadowed, 0.0)
             if n > 1:
-                shift = sampler.next_2d(shade)
+                # the grid shifted by the sample's own u: no extra random number, so the
+                # values of later emitters match the primal render's
                 average = mi.Spectrum(0.0)
                 for k in range(n):
-                    ds_k, w_k = emitter.sample_direction(si, shifted_grid_point(k, n, shift),
+                    ds_k, w_k = emitter.sample_direction(si, shifted_grid_point(k, n, u),
                                                          shade)
                     lit_k = shade & (ds_k.pdf > 0)
                     f_k = bsdf.eval(ctx, si, si.to_local(ds_k.d), lit_k)
@@ -338,9 +340,11 @@ screen is Mitsuba's projective integrators' job.
         """The surface point under the centre of the camera sample's pixel, to first
         order: ``p + dp_dx (1/2 - fx) + dp_dy (1/2 - fy)``, ``(fx, fy)`` the sample's
         position in its pixel (the film position of ``p``, from the sensor's
-        ``sample_direction``; a pinhole or orthographic camera only, else ``p``)."""
+        ``sample_direction``). A ``perspective`` camera only: other sensors
+        (``orthographic`` has no ``sample_direction``; a thin lens's film position
+        depends on the aperture sample) keep ``p``, the sample's own point."""
         sensor = self._sensor
-        if not isinstance(sensor, mi.ProjectiveCamera) or sensor.needs_aperture_sample():
+        if not _is_pinhole(sensor):
             return si.p
         ds, _ = sensor.sample_direction(dr.detach(si), mi.Point2f(0.5), active)
         uv = dr.detach(ds.uv)
@@ -383,8 +387,17 @@ screen is Mitsuba's projective integrators' job.
         return f"ShadowMapIntegrator[method={self.opts.method}, resolution={res}]"
 
 
+def _is_pinhole(sensor) -> bool:
+    """A ``perspective`` camera (``sample_direction`` gives a point's film position)."""
+    return (isinstance(sensor, mi.ProjectiveCamera) and not sensor.needs_aperture_sample()
+            and str(sensor).startswith("PerspectiveCamera"))
+
+
 class _Recorder:
-    """A sampler stand-in that records the numbers a lookup draws."""
+    """The sampler a lookup sees in the value pass of :meth:`_gradient_light_term`:
+    the wrapped sampler, recording what ``next_1d``/``next_2d`` return so that the
+    pixel-centre pass draws the same numbers (:meth:`replay`). Other attributes are the
+    sampler's."""
 
     def __init__(self, sampler):
         self.sampler, self.drawn = sampler, []
@@ -400,20 +413,38 @@ class _Recorder:
         return v
 
     def replay(self):
-        return _Replay(list(self.drawn))
+        return _Replay(self.sampler, list(self.drawn))
+
+    def __getattr__(self, name):
+        return getattr(self.sampler, name)
 
 
 class _Replay:
-    """Replays a :class:`_Recorder`'s numbers in order (the same taps, jitter, seeds)."""
+    """The sampler of the pixel-centre pass: ``next_1d``/``next_2d`` return the value
+    pass's numbers in order (the same taps, jitter and seeds). A lookup must draw them
+    outside symbolic loops and the same way in both passes (see ``Lookup``)."""
 
-    def __init__(self, drawn):
-        self.drawn = drawn
+    def __init__(self, sampler, drawn):
+        self.sampler, self.drawn = sampler, drawn
+
+    def _next(self):
+        if not self.drawn:
+            raise RuntimeError(
+                "shadowmap: with gradient_at='pixel_centre' a lookup runs twice in a "
+                "gradient render (at the sample and at its pixel's centre) and must draw "
+                "the same random numbers both times; this lookup drew more the second "
+                "time. Draw them the same way in both (not depending on "
+                "dr.grad_enabled), or set gradient_at='sample'.")
+        return self.drawn.pop(0)
 
     def next_1d(self, active=True):
-        return self.drawn.pop(0)
+        return self._next()
 
     def next_2d(self, active=True):
-        return self.drawn.pop(0)
+        return self._next()
+
+    def __getattr__(self, name):
+        return getattr(self.sampler, name)
 
 
 def integrator_class():

@@ -107,7 +107,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Where a gradient render (a shape's or emitter's parameter has gradients enabled, "
          "maps in the AD graph) takes the visibility's derivative. 'pixel_centre' "
          "(default): at the surface point under the centre of the camera sample's pixel "
-         "(ray differentials; perspective and orthographic cameras, else at the sample), "
+         "(ray differentials; a perspective camera, other sensors at the sample), "
          "times the light's unshadowed contribution averaged over "
          "gradient_light_samples stratified light samples, as Worchel & Alexa's "
          "rasteriser evaluates one point per pixel: the value is unchanged, the "

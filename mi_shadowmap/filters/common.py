@@ -25,7 +25,14 @@ import mitsuba as mi
 
 @dataclass
 class Lookup:
-    """Inputs shared by every lookup at a batch of shading points."""
+    """Inputs shared by every lookup at a batch of shading points.
+
+    In a gradient render with the integrator's ``gradient_at='pixel_centre'`` (the
+    default) a lookup runs twice: for the value at the sample's point (gradients
+    suspended) and for the derivative at its pixel's centre. The second run's
+    ``sampler`` replays the first's ``next_1d``/``next_2d`` numbers, so a lookup
+    draws them outside symbolic loops (``dr.while_loop`` bodies), and the same way
+    in both runs; other sampler attributes are the real sampler's."""
     p_world: mi.Point3f
     n_world: mi.Vector3f          # geometric normal (any orientation)
     dp_dx: mi.Vector3f            # pixel footprint on the surface (world)
@@ -202,6 +209,27 @@ def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
     return z_map, z, inside
 
 
+def plane_z_at(smap, plane: ReceiverPlane | None, r: Receiver, lateral_texels=None,
+               offset=0.0):
+    """``z_at`` for :func:`soft_tap` / :func:`soft_blocker`: the receiver depth
+    :func:`tap_depths` would compare texel ``(face, i, j)`` with (the receiver plane's
+    depth through its centre, minus ``offset``), so a moving or smooth tap's
+    neighbours are each compared with their own plane depth. ``lateral_texels``: the
+    clamp's lateral distance (default: the texel centre's distance from the
+    receiver, as :func:`tap_depths`). None without a plane."""
+    if plane is None:
+        return None
+    res = smap.resolution
+
+    def z_at(face, i, j):
+        centre = mi.Point2f(i, j) + 0.5
+        lateral = (dr.norm(centre - r.uv * res) if lateral_texels is None
+                   else dr.detach(lateral_texels))
+        return plane_depth_at(smap, plane, face, centre * (1.0 / res),
+                              lateral * r.texel_world) - offset
+    return z_at
+
+
 def tap_lit(smap, r: Receiver, face, xy_texel: mi.Point2f, plane: ReceiverPlane | None = None,
             extra_bias=0.0, active=True) -> mi.Bool:
     """One percentage-closer comparison (:func:`tap_depths`): lit when the tap is
@@ -268,15 +296,17 @@ def soft_tap(smap, z_map, z, inside, width, face, xy_texel, active=True,
     # The light's pose moves the tap across the texels (xy_texel carries its
     # derivatives): the nearest texel's value, the bilinear interpolation's
     # derivative (each neighbour on the tap's face, clamped at its edges).
-    f0 = smap.view.tap_texel(face, dr.detach(xy_texel), res, cross_seams)[0]
+    # A tap that crossed a cube seam lies on another face, whose texels are not the
+    # neighbours of its coordinates: it keeps its nearest texel's derivative.
+    crossed = f2 != mi.UInt32(face)
     bil = mi.Float(0.0)
     for w, ii, jj in _bilinear_texels(xy_texel, res):
-        z_n = z if z_at is None else z_at(f0, ii, jj)
-        c = _covered_tap(smap, f0, ii, jj, z_n, inside, width, active)
+        z_n = z if z_at is None else z_at(f2, ii, jj)
+        c = _covered_tap(smap, f2, ii, jj, z_n, inside, width, active & ~crossed)
         bil += w * (c if smooth else dr.detach(c))
     if smooth:   # the derivative of the bilinear interpolation, in the map too
-        return dr.replace_grad(lit, bil)
-    return dr.replace_grad(lit, lit + bil - dr.detach(bil))
+        return dr.replace_grad(lit, dr.select(crossed, lit, bil))
+    return dr.replace_grad(lit, lit + dr.select(crossed, 0.0, bil - dr.detach(bil)))
 
 
 def soft_blocker(smap, z_map, z, inside, width, face, xy_texel, active=True,

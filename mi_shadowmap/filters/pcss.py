@@ -115,7 +115,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from .common import (Lookup, Receiver, ReceiverPlane, plane_depth_at, receiver,
+from .common import (Lookup, Receiver, ReceiverPlane, plane_z_at, receiver,
                      receiver_plane,
                      shifted_grid_point, soft_blocker, soft_compare_width, soft_tap,
                      tap_depths)
@@ -191,17 +191,6 @@ def tap_offset(k, n: int, pattern: str, rnd: mi.Point2f) -> mi.Point2f:
     return mi.Point2f(c * x - s * y, s * x + c * y)
 
 
-def _plane_at(smap, plane, r, lateral_texels):
-    """``z_at`` of :func:`~.common.soft_tap`: the receiver plane's depth at texel
-    ``(i, j)`` (as :func:`~.common.tap_depths` computes it for a tap there)."""
-    res = smap.resolution
-
-    def z_at(face, i, j):
-        uv_c = (mi.Point2f(i, j) + 0.5) * (1.0 / res)
-        return plane_depth_at(smap, plane, face, uv_c, dr.detach(lateral_texels) * r.texel_world)
-    return z_at
-
-
 def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
                    n: int, pattern: str, rnd: mi.Point2f, active, soft_width=None):
     """PCSS step 1 (Fernando 2005): mean depth of the blockers in a search region.
@@ -234,7 +223,7 @@ def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_tex
         if soft_width is not None:
             b, bz = soft_blocker(smap, z_map, z, inside, soft_width, r.face, centre + off,
                                  active, cross_seams=False,
-                                 z_at=_plane_at(smap, plane, r, dr.norm(off)))
+                                 z_at=plane_z_at(smap, plane, r, dr.norm(off)))
             return k + 1, z_sum + bz, count + b
         blocked = inside & (z_map < z)
         return k + 1, z_sum + dr.select(blocked, z_map, 0.0), count + dr.select(blocked, 1.0, 0.0)
@@ -274,7 +263,7 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
         if soft_width is not None:
             return k + 1, lit + soft_tap(smap, z_map, z, inside, soft_width, r.face,
                                          centre + off, active, cross_seams=False,
-                                         z_at=_plane_at(smap, plane, r, dr.norm(off)),
+                                         z_at=plane_z_at(smap, plane, r, dr.norm(off)),
                                          smooth=smooth)
         return k + 1, lit + dr.select(~inside | (z <= z_map), 1.0, 0.0)
 
@@ -324,8 +313,10 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     has_blocker = n_block > 0
 
     # 2. penumbra estimate (thesis eq. 2), guarded for d_blocker -> 0
-    # (a fractional count, from soft_compare's blocker weights, divides too)
-    d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_block, 1.0), guard)
+    # a fractional count (soft_compare's blocker weights) divides too; soft counts
+    # below 1e-6 (their shadow is scaled by the count below) keep the division sane
+    n_div = n_block if opts.soft_compare <= 0.0 else dr.maximum(n_block, 1e-6)
+    d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_div, 1.0), guard)
     w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular), 0.0)
     filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, half_max)
 

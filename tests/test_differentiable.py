@@ -553,24 +553,6 @@ def test_pixel_centre_gradients_have_less_spread(method):
     assert np.std(centre) * 3.0 <= np.std(plain)
 
 
-def test_pixel_centre_keeps_the_image():
-    """A gradient render's image values are the same with either ``gradient_at`` (one
-    light: its random numbers are drawn first)."""
-    scene = inverse.occluder_scene("area", IMAGE, SPP_AD)
-    param = inverse.translate_shape(scene, axes="z")
-
-    images = []
-    for at in ("pixel_centre", "sample"):
-        x = mi.Float(0.0)
-        dr.enable_grad(x)
-        param.set(x)
-        with dr.resume_grad():
-            images.append(_integ("vsm", gradient_at=at).render(scene, seed=3, spp=SPP_AD)
-                          .numpy())
-        param.reset()
-    assert np.array_equal(images[0], images[1])
-
-
 def test_area_light_translation_reverse_mode_equals_forward_mode():
     """An area light's ``to_world`` translated along x, y and z, ``pcf`` with the
     README's gradient settings: the reverse-mode gradient (``dr.backward``) equals the

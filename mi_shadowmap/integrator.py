@@ -213,7 +213,6 @@ screen is Mitsuba's projective integrators' job.
         else:
             dp_dx = dp_dy = mi.Vector3f(0.0)
         p_centre = self._pixel_centre(si, dp_dx, dp_dy, valid) if gradient else None
-        vis_fn = record.lookup
         aovs = []
         n_light = getattr(opts, record.shadow_rays) if record.shadow_rays else 1
         for k, emitter in enumerate(scene.emitters()):
@@ -246,22 +245,12 @@ screen is Mitsuba's projective integrators' job.
                     if s == 0:
                         shift = sampler.next_2d(shade)
                     u = shifted_grid_point(s, n_light, shift)
-                ds, w = emitter.sample_direction(si, u, shade)
-                lit = shade & (ds.pdf > 0)
-                wo = si.to_local(ds.d)
-                f = bsdf.eval(ctx, si, wo, lit)
-                unshadowed = w * f
-                lit &= dr.max(unshadowed) > 0
+                ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx, u, shade)
                 if smap is None:     # environment emitter lit without shadows
                     vis = mi.Float(1.0)
-                elif record.whole_light:   # averaged over the light, horizon included
-                    lk = self._lookup(smap, si, dp_dx, dp_dy, ds, sampler)
-                    whole, above = vis_fn(smap, lk, opts, shade)
-                    vis = dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
                 else:
-                    lk = self._lookup(smap, si, dp_dx, dp_dy, ds, sampler)
-                    m = smap.bind(lk, lit) if isinstance(smap, VirtualShadowMap) else smap
-                    vis = dr.select(lit, vis_fn(m, lk, opts, lit), 0.0)
+                    vis, whole = self._visibility(
+                        smap, self._lookup(smap, si, dp_dx, dp_dy, ds, sampler), lit, shade)
                 result += dr.select(lit, unshadowed * vis, 0.0) / n_light
                 vis_sum += vis
                 contributes |= lit
@@ -283,30 +272,17 @@ screen is Mitsuba's projective integrators' job.
         not depend on the light sample). Both are unbiased to first order in the
         pixel's size; what they remove is the pixel position's and the light sample's
         noise in the visibility's derivative."""
-        opts, record = self.opts, self.opts.record
-        vis_fn = record.lookup
         u = sampler.next_2d(shade)
-        ds, w = emitter.sample_direction(si, u, shade)
-        lit = shade & (ds.pdf > 0)
-        f = bsdf.eval(ctx, si, si.to_local(ds.d), lit)
-        unshadowed = w * f
-        lit &= dr.max(unshadowed) > 0
-
-        def visibility(lk, active):
-            if record.whole_light:
-                whole, above = vis_fn(smap, lk, opts, shade)
-                return (dr.select(active & (above > 0), whole / dr.maximum(above, 1e-30), 0.0),
-                        whole)
-            m = smap.bind(lk, active) if isinstance(smap, VirtualShadowMap) else smap
-            return dr.select(active, vis_fn(m, lk, opts, active), 0.0), None
-
+        ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx, u, shade)
         rec = _Recorder(sampler)
         with dr.suspend_grad():
-            v_value, whole = visibility(self._lookup(smap, si, dp_dx, dp_dy, ds, rec), lit)
-        v_centre, whole_centre = visibility(self._lookup(smap, si, dp_dx, dp_dy, ds,
-                                                         rec.replay(), p_centre), shade)
+            v_value, whole = self._visibility(
+                smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec), lit, shade)
+        v_centre, whole_centre = self._visibility(
+            smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec.replay(), p_centre), shade,
+            shade)
         delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
-        n = 1 if delta else opts.gradient_light_samples
+        n = 1 if delta else self.opts.gradient_light_samples
         with dr.suspend_grad():   # a weight: the shading's own derivative is the sample's
             average = dr.select(lit, unshadowed, 0.0)
             if n > 1:
@@ -314,11 +290,9 @@ screen is Mitsuba's projective integrators' job.
                 # values of later emitters match the primal render's
                 average = mi.Spectrum(0.0)
                 for k in range(n):
-                    ds_k, w_k = emitter.sample_direction(si, shifted_grid_point(k, n, u),
-                                                         shade)
-                    lit_k = shade & (ds_k.pdf > 0)
-                    f_k = bsdf.eval(ctx, si, si.to_local(ds_k.d), lit_k)
-                    average += dr.select(lit_k, w_k * f_k, 0.0)
+                    _, unshadowed_k, lit_k = _light_sample(
+                        emitter, si, bsdf, ctx, shifted_grid_point(k, n, u), shade)
+                    average += dr.select(lit_k, unshadowed_k, 0.0)
                 average /= n
         value = dr.select(lit, unshadowed * v_value, 0.0)
         # d value = d(L) V + L_avg dV(p_centre)
@@ -327,6 +301,17 @@ screen is Mitsuba's projective integrators' job.
         if whole is not None:   # the whole-light AOV: its derivative at the centre too
             whole = dr.replace_grad(whole, whole_centre)
         return dr.replace_grad(value, grad), aov, whole
+
+    def _visibility(self, smap, lk, lit, shade):
+        """``(visibility, whole-light visibility or None)`` of one light sample at
+        ``lk`` (0 where not ``lit``); a ``whole_light`` record's lookup sees the whole
+        light, horizon included."""
+        vis_fn, opts = self.opts.record.lookup, self.opts
+        if self.opts.record.whole_light:
+            whole, above = vis_fn(smap, lk, opts, shade)
+            return dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0), whole
+        m = smap.bind(lk, lit) if isinstance(smap, VirtualShadowMap) else smap
+        return dr.select(lit, vis_fn(m, lk, opts, lit), 0.0), None
 
     def _gradient_render(self) -> bool:
         """Whether this render's maps are in the AD graph (a gradient render) and
@@ -385,6 +370,15 @@ screen is Mitsuba's projective integrators' job.
     def to_string(self):
         res = self.opts.resolution if self.opts.resolution is not None else "auto"
         return f"ShadowMapIntegrator[method={self.opts.method}, resolution={res}]"
+
+
+def _light_sample(emitter, si, bsdf, ctx, u, shade):
+    """One light sample at ``si``: ``(ds, unshadowed = weight * bsdf, lit)``, ``lit``
+    where it contributes."""
+    ds, w = emitter.sample_direction(si, u, shade)
+    lit = shade & (ds.pdf > 0)
+    unshadowed = w * bsdf.eval(ctx, si, si.to_local(ds.d), lit)
+    return ds, unshadowed, lit & (dr.max(unshadowed) > 0)
 
 
 def _is_pinhole(sensor) -> bool:

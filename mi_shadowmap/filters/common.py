@@ -309,6 +309,12 @@ def soft_tap(smap, z_map, z, inside, width, face, xy_texel, active=True,
     return dr.replace_grad(lit, lit + dr.select(crossed, 0.0, bil - dr.detach(bil)))
 
 
+def smooth_taps(smap, soft_width) -> bool:
+    """``soft_tap``'s ``smooth``: smooth compares in a gradient render (the map in the
+    AD graph), where each tap's derivative is its four texels' bilinear one."""
+    return soft_width is not None and dr.grad_enabled(getattr(smap, "depth", None))
+
+
 def soft_blocker(smap, z_map, z, inside, width, face, xy_texel, active=True,
                  cross_seams: bool = True, z_at=None):
     """A blocker-search tap with smooth, coverage-blended compares (PCSS step 1 with

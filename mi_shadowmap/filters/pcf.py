@@ -14,7 +14,7 @@ import mitsuba as mi
 
 from ..methods import Method, Prop
 from .common import Lookup, ReceiverPlane, Receiver, footprint_texels, plane_z_at, \
-    receiver, receiver_plane, soft_compare_width, soft_tap, tap_depths, tap_lit
+    receiver, receiver_plane, smooth_taps, soft_compare_width, soft_tap, tap_depths, tap_lit
 
 
 def reeves_sample_counts(width_s, width_t, num_samples: int, min_samples: int):
@@ -136,9 +136,7 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
                                      active, z_at=z_at, smooth=smooth)
         return k + 1, rng, n_lit
 
-    # in a gradient render (the map in the AD graph): each tap's derivative is its four
-    # texels' bilinear one, continuous in the receiver's position (soft_tap)
-    smooth = soft_width is not None and dr.grad_enabled(getattr(smap, "depth", None))
+    smooth = smooth_taps(smap, soft_width)   # continuous in the receiver's position
     if soft_width is not None:
         n_lit = mi.Float(0.0)
         # a sum of taps: Dr.Jit's sum-style reverse mode differentiates the symbolic

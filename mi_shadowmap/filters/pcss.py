@@ -117,7 +117,7 @@ import mitsuba as mi
 from ..methods import Method, Prop
 from .common import (Lookup, Receiver, ReceiverPlane, plane_z_at, receiver,
                      receiver_plane,
-                     shifted_grid_point, soft_blocker, soft_compare_width, soft_tap,
+                     shifted_grid_point, smooth_taps, soft_blocker, soft_compare_width, soft_tap,
                      tap_depths)
 from .hard import hard
 from .pcf import SOFT_COMPARE
@@ -247,9 +247,7 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
     k = mi.UInt32(0)
     lit = mi.Float(0.0)
     active = mi.Bool(active)
-    # a gradient render: each tap's derivative is its four texels' bilinear one
-    # (soft_tap), continuous in the receiver's position
-    smooth = soft_width is not None and dr.grad_enabled(getattr(smap, "depth", None))
+    smooth = smooth_taps(smap, soft_width)   # continuous in the receiver's position
 
     def cond(k, lit):
         return active & (k < n)
@@ -315,7 +313,7 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     # 2. penumbra estimate (thesis eq. 2), guarded for d_blocker -> 0
     # a fractional count (soft_compare's blocker weights) divides too; soft counts
     # below 1e-6 (their shadow is scaled by the count below) keep the division sane
-    n_div = n_block if opts.soft_compare <= 0.0 else dr.maximum(n_block, 1e-6)
+    n_div = n_block if soft_width is None else dr.maximum(n_block, 1e-6)
     d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_div, 1.0), guard)
     w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular), 0.0)
     filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, half_max)

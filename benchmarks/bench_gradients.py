@@ -36,11 +36,16 @@ enter the loss; only its shadow).
 * ``--param along``: every vertex moved along the light ray through it (away from the
   area light's centre, or along the directional light). The outline in the maps stays
   put; the maps change through their depths only. The true derivative is tiny (area
-  scene: about -2.3e-5, the penumbra narrows; directional: exactly 0, a hard shadow
-  whose outline does not move), and ``vsm``/``pcf``/``pcss`` get the *opposite* sign
-  there: their smooth depth compares leak light as the occluder nears the receiver, so
-  their visibility depends on the occluder-receiver gap. That is a bias of the methods
-  (the self-consistency check below agrees), not a gradient bug.
+  scene: about -2.8e-5; directional: exactly 0, a hard shadow whose outline does not
+  move). On the area scene its sign comes from *which* part of the light each receiver
+  point loses (the shading's cosines and distances differ across the light): with the
+  visibility made a factor of the unshadowed light (``raytraced``,
+  ``light_sample='independent'``, printed as the "factored reference") the exact
+  derivative is about +1.2e-5, the opposite sign. Every map method is such a factor,
+  so none can get this motion's sign; ``pcss`` matches the factored reference,
+  ``vsm`` has its sign but larger (its Chebyshev bound leaks light as the occluder
+  nears the receiver), ``pcf``/``bilinear`` give 0 (a hard outline from the light's
+  centre does not move).
 * ``--param light``: the light moves -- the area light's ``to_world`` translated along
   +x (``mi_shadowmap.light_views.pose``), or the directional scene's sun turned about z
   (radians). The colour loss then also has Mitsuba's own shading terms of the light's
@@ -66,7 +71,7 @@ Integrators (all get the same scene, spp, parameter and loss):
     (deterministic) over at least 4 texels: 8x less spread than jittered taps over the
     pixel's footprint.
   - ``pcss`` = ``pcss:soft_compare=2``: the penumbra follows the blocker's depth, so
-    the along-the-light narrowing gets the right sign.
+    the along-the-light narrowing gets the factored reference's derivative.
   - ``bilinear`` = ``bilinear:soft_compare=2,kernel=4``: a fixed 4 x 4-texel box of
     bilinearly weighted compares, deterministic, and its derivative is continuous
     across texels.
@@ -433,20 +438,27 @@ def worker_fd(args):
     import mitsuba as mi
     scene, mask, occ, _ = _setup(args)
     seed = 1
-    if args.worker == "ref":   # ray-traced reference derivative of the scalar parameter
-        integ = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
-        w = _weights(mask, 4)
-        fds = []
-        for s in range(args.ref_seeds):   # the same seed on both sides of each difference
-            vals = []
-            for sgn in (1.0, -1.0):
-                occ.set_scalar(sgn * args.ref_h)
-                img = mi.render(scene, integrator=integ, spp=args.ref_spp, seed=s + 1)
-                vals.append(float(loss_of(img, w)[0]))
-            fds.append((vals[0] - vals[1]) / (2 * args.ref_h))
-        occ.set_scalar(0.0)
-        print("RESULT " + json.dumps({"name": "ref", "fd_t": float(np.mean(fds)), "fds": fds}),
-              flush=True)
+    if args.worker == "ref":   # ray-traced reference derivatives of the scalar parameter
+        # 'shared': the ground truth; 'independent': visibility as a factor of the
+        # unshadowed light (the shadow ray to an independent light sample), the ideal
+        # of every shadow-map method (the same for delta lights)
+        out = {"name": "ref"}
+        for mode in ("shared", "independent"):
+            integ = mi.load_dict({"type": "shadowmap", "method": "raytraced",
+                                  "light_sample": mode})
+            w = _weights(mask, 4)
+            fds = []
+            for s in range(args.ref_seeds):   # the same seed on both sides of each difference
+                vals = []
+                for sgn in (1.0, -1.0):
+                    occ.set_scalar(sgn * args.ref_h)
+                    img = mi.render(scene, integrator=integ, spp=args.ref_spp, seed=s + 1)
+                    vals.append(float(loss_of(img, w)[0]))
+                fds.append((vals[0] - vals[1]) / (2 * args.ref_h))
+            occ.set_scalar(0.0)
+            key = "" if mode == "shared" else "_factored"
+            out["fd_t" + key], out["fds" + key] = float(np.mean(fds)), fds
+        print("RESULT " + json.dumps(out), flush=True)
         return
     # 'always': the forward renders of the differences see the antialiased maps the
     # gradients see (with the default 'gradients' a primal render's maps are not
@@ -706,6 +718,16 @@ def run_scene(args):
         print(f"\nReference derivative (central differences of ray-traced renders, "
               f"{args.ref_spp} spp, h = {args.ref_h}, the same seed on both sides, mean of "
               f"{len(fds)} seeds): {fmt(ref_t)} (std. error {fmt(se, 2)})")
+        if "fds_factored" in res["fd"]["ref"]:
+            f2 = np.array(res["fd"]["ref"]["fds_factored"])
+            se2 = float(np.std(f2, ddof=1) / np.sqrt(len(f2))) if len(f2) > 1 else float("nan")
+            print(f"Factored reference (the same, raytraced light_sample='independent': "
+                  f"visibility a factor of the unshadowed light, the ideal of every map "
+                  f"method): {fmt(float(f2.mean()))} (std. error {fmt(se2, 2)})")
+            for m, r in G.items():
+                if m != "direct_projective" and not r.get("failed"):
+                    print(f"  {label(m)}: sign = factored reference? "
+                          f"{same_sign(float(np.mean(r['grads'])), float(f2.mean()))}")
 
     print()
     print("| integrator | peak RSS after scene load (MiB) | peak RSS at end (MiB) | added by the gradients (MiB) |")

@@ -402,6 +402,43 @@ def test_pcss_along_the_light_matches_its_own_differences():
     assert _cos(g, fd) >= 0.85
 
 
+def test_along_the_light_sign_is_the_factored_visibilitys():
+    """Why no shadow map gets the along-the-light motion's sign. The true derivative
+    is negative (``benchmarks/bench_gradients.py --param along``, 128^2: ray-traced
+    differences -2.8e-5 +- 0.5e-5, ``direct_projective`` -2.5e-5 +- 0.13e-5): as the
+    occluder nears the receiver, each receiver point loses light from a different part
+    of the area light, weighted by that part's cosines and distances. With the
+    visibility a factor of the unshadowed light (``raytraced``,
+    ``light_sample='independent'``: the shadow ray to an independent light sample;
+    exact for that model) the derivative is *positive* (there +1.2e-5 +- 0.35e-5). A
+    map's visibility does not depend on the light sample, so every map method
+    estimates the factored quantity, and ``pcss``'s AD has its sign (there +0.6e-5 +-
+    0.1e-5). Here (64^2) the ray-traced derivative is smaller (-0.6e-5 +- 0.5e-5):
+    asserted are the factorization's error (factored minus true, +3.8e-5 +- 0.5e-5
+    measured) and the signs of the factored derivative and of ``pcss``'s."""
+    scene = inverse.occluder_scene("area", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    w = _weights(mask, 4)
+    along = _along_the_light(scene)
+
+    def fd(mode):
+        integ = mi.load_dict({"type": "shadowmap", "method": "raytraced", "light_sample": mode})
+        return np.array([_fd(along, integ, w, 1, 0.05, seed=s, spp=4096)[0] for s in SEEDS])
+
+    def se(d):
+        return d.std(ddof=1) / np.sqrt(len(d))
+
+    shared, factored = fd("shared"), fd("independent")
+    integ = mi.load_dict({"type": "shadowmap", "resolution": 128, "method": "pcss",
+                          "soft_compare": 2.0})
+    g = np.array([_ad(along, integ, w, 1, seed=s, spp=16)[0] for s in SEEDS])
+    print(f"along: ray-traced {shared.mean():.2e} +- {se(shared):.1e}, factored "
+          f"{factored.mean():.2e} +- {se(factored):.1e}, pcss {g.mean():.2e} +- {se(g):.1e}")
+    assert factored.mean() - shared.mean() > 4 * np.hypot(se(shared), se(factored))
+    assert factored.mean() > 3 * se(factored)
+    assert g.mean() > 3 * se(g)
+
+
 def test_point_light_position_gradient():
     """A point light's position (3 values): the gradient passes through the map's
     rays, the receivers' projections and the occluder's projected outline. Against

@@ -16,10 +16,47 @@ def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
     offset and an end shortening relative to the coordinates involved), not by
     Mitsuba's ``si.spawn_ray_to``, whose offset has an absolute floor and makes
     the reference drift with the scene's scale.
+
+    With ``light_sample='independent'`` the ray goes to a second light sample of the
+    same emitter, drawn independently of the one that is shaded: the expected
+    contribution is then ``E[L] * E[V]``, the unshadowed light times the fraction of
+    the light that is visible. That is the quantity every shadow-map method
+    estimates (its visibility does not depend on which point of an area light was
+    sampled), so this is their ideal: the difference between the two settings is
+    the error of treating visibility as a factor, which no map can remove. For
+    delta lights (point, spot, directional) both settings are the same. A map sees
+    no horizon, so the second sample is drawn from the part of the light above the
+    receiver's horizon (see :func:`_independent_target`).
     """
-    ray = spawn_shadow_ray(lk.si, lk.ds.p, smap.scene)
+    target = lk.ds.p
+    if opts.light_sample == "independent":
+        target = _independent_target(lk, active)
+    ray = spawn_shadow_ray(lk.si, target, smap.scene)
     occluded = smap.scene.ray_test(ray, active)
     return dr.select(occluded, 0.0, 1.0)
+
+
+#: Draws of :func:`_independent_target` (rejection of samples below the horizon).
+HORIZON_TRIES = 8
+
+
+def _independent_target(lk: Lookup, active) -> mi.Point3f:
+    """A light point drawn independently of the shaded sample ``lk.ds``, from the part
+    of its emitter on the viewer's side of the receiver's surface (where the shaded
+    sample lies, as it is shaded): the first of :data:`HORIZON_TRIES` draws that is
+    there, else the shaded sample's point (only where the light barely clears the
+    horizon). Rejection makes it a sample of the visible part of the light, so the
+    visibility estimated is the fraction of *that* part left unoccluded, which is
+    what a shadow map's compare measures (it does not count the horizon)."""
+    si = lk.si
+    viewer = dr.sign(si.wi.z)
+    target, found = mi.Point3f(lk.ds.p), mi.Bool(False)
+    for _ in range(HORIZON_TRIES):   # unrolled: the draws stay outside any loop
+        ds, _ = lk.ds.emitter.sample_direction(si, lk.sampler.next_2d(active), active)
+        ok = active & ~found & (ds.pdf > 0) & (si.to_local(ds.d).z * viewer > 0)
+        target = dr.select(ok, ds.p, target)
+        found |= ok
+    return target
 
 
 METHOD = Method(
@@ -29,7 +66,14 @@ METHOD = Method(
             "'direct' with emitter_samples=1, bsdf_samples=0)",
     properties=(Prop("shadow_rays", "int", 1,
                      "Shadow rays per camera sample per emitter (stratified light samples).",
-                     lo=1, hi=65536),),
+                     lo=1, hi=65536),
+                Prop("light_sample", "str", "shared",
+                     "'shared': the shadow ray goes to the light sample that is shaded "
+                     "(Mitsuba's 'direct'; the ground truth). 'independent': to a second, "
+                     "independent sample of the same light, so visibility is a factor of "
+                     "the unshadowed light, as in every shadow-map method: the ideal those "
+                     "methods approximate (differs from 'shared' only for area lights).",
+                     choices=("shared", "independent"))),
     uses_map=False,
     shadow_rays="shadow_rays",
     builtin=True,

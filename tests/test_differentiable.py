@@ -562,8 +562,7 @@ def test_pixel_centre_is_the_centre_rays_hit():
 
 
 GRADIENT_SETTINGS = {"vsm": {"method": "vsm", "filter_size": 4.0, "light_bleeding": 0.0},
-                     "pcf": {"method": "pcf", "soft_compare": 2.0, "sampling": "regular",
-                             "min_size": 4.0},
+                     "pcf": {"method": "pcf", "soft_compare": 2.0, "sampling": "regular"},
                      "bilinear": {"method": "bilinear", "kernel": 4, "soft_compare": 2.0}}
 
 

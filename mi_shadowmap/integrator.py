@@ -338,15 +338,19 @@ screen is Mitsuba's projective integrators' job.
 
     @staticmethod
     def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None) -> Lookup:
-        """The lookup of ``si`` in ``smap``; when the light's pose has gradients
-        (``smap.pose``, :mod:`mi_shadowmap.light_views.pose`) the point, normal and
-        footprint carry them (values unchanged)."""
+        """The lookup of ``si`` in ``smap``, at ``p`` (the pixel centre's point in the
+        derivative run of :meth:`_gradient_light_term`, ``Lookup.centre``) or ``si.p``;
+        when the light's pose has gradients (``smap.pose``,
+        :mod:`mi_shadowmap.light_views.pose`) the point, normal and footprint carry
+        them (values unchanged)."""
         pose = getattr(smap, "pose", None)
+        centre = p is not None
         p = si.p if p is None else p
         if pose is None:
-            return Lookup(p, si.n, dp_dx, dp_dy, si, ds, sampler)
+            return Lookup(p, si.n, dp_dx, dp_dy, si, ds, sampler, centre)
         return Lookup(pose.to_view(p), pose.vector_to_view(si.n),
-                      pose.vector_to_view(dp_dx), pose.vector_to_view(dp_dy), si, ds, sampler)
+                      pose.vector_to_view(dp_dx), pose.vector_to_view(dp_dy), si, ds, sampler,
+                      centre)
 
     def _footprint(self, ray: mi.RayDifferential3f, si):
         """World-space pixel footprint on the tangent plane (ray differentials)."""

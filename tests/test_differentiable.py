@@ -589,6 +589,27 @@ def test_pixel_centre_gradients_have_less_spread(method):
     assert np.std(centre) * 3.0 <= np.std(plain)
 
 
+def test_bilinear_pixel_centre_gradient_with_a_map_finer_than_the_screen():
+    """A 256^2 map face under a 64^2 image (a texel a quarter of a pixel): ``bilinear``'s
+    4-texel box is narrower than the pixel, and the derivative of the box alone, taken
+    at the pixels' centres, aliased against the texel grid (measured 9 % low). The
+    pixel-centre run now widens the kernel by the pixel's footprint (the box convolved
+    with it), so the gradient matches ray-traced differences (measured 0.7 % off) and
+    keeps its small spread."""
+    scene = inverse.occluder_scene("point", IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    param = inverse.translate_shape(scene, axes="z")
+    w = _weights(mask, 4)
+    ref = np.mean([_fd(param, mi.load_dict({"type": "shadowmap", "method": "raytraced"}),
+                       w, 1, 0.03, seed=s, spp=256)[0] for s in (1, 2)])
+    integ = mi.load_dict({"type": "shadowmap", "method": "bilinear", "kernel": 4,
+                          "soft_compare": 2.0, "resolution": 256})
+    g = np.array([_ad(param, integ, w, 1, seed=s)[0] for s in range(6)])
+    print(f"bilinear, 256^2 map: AD {g.mean():.4e} +- {g.std():.1e}, ray-traced FD {ref:.4e}")
+    assert abs(g.mean() / ref - 1.0) <= 0.04
+    assert g.std() <= 0.02 * abs(ref)
+
+
 def test_area_light_translation_reverse_mode_equals_forward_mode():
     """An area light's ``to_world`` translated along x, y and z, ``pcf`` with the
     README's gradient settings: the reverse-mode gradient (``dr.backward``) equals the
@@ -667,7 +688,12 @@ def test_pixel_centre_keeps_every_lights_values():
                                   **GRADIENT_SETTINGS["vsm"], "gradient_at": at})
             images.append(integ.render(scene, seed=5).numpy())
         param.reset()
-    assert np.array_equal(images[0], images[1])
+    # equal up to float rounding (the film's accumulation of a pixel's samples is not
+    # ordered between threads: once, a last-bit difference); a different light sample
+    # would change pixels by several %
+    scale = float(np.abs(images[1]).max())
+    print("max difference", np.abs(images[0] - images[1]).max(), "of", scale)
+    assert np.abs(images[0] - images[1]).max() <= 1e-5 * scale
 
 
 def test_orthographic_camera_gradients_fall_back_to_the_sample():

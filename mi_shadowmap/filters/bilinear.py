@@ -12,8 +12,8 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from .common import (Lookup, receiver, receiver_plane, soft_compare_width, soft_tap,
-                     tap_depths, tap_lit)
+from .common import (Lookup, footprint_texels, receiver, receiver_plane, soft_compare_width,
+                     soft_tap, tap_depths, tap_lit)
 from .hard import hard
 from .pcf import RECEIVER_PLANE, SOFT_COMPARE
 
@@ -72,7 +72,21 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
       is continuous across texels (no jump at texel edges) and deterministic:
       a gradient estimated over a pixel's samples has little spread. A moving
       light's pose reaches the result through the bilinear weights.
+    * *Pixel-centre derivative* (gradient renders, the integrator's
+      ``gradient_at='pixel_centre'``: ``lk.centre``). The derivative of a box of
+      ``k - 1`` texels reads the compares at the box's edges; taken at the pixels'
+      centres it aliases against the texel grid once a pixel covers more than a
+      texel (measured: 9.5 % low with a 1024^2 map under a 128^2 image, 12 % low
+      at a texel a quarter pixel). There, when the pixel's footprint is wider than
+      one texel, the kernel is the box convolved with the footprint's box
+      (:func:`_trapezoid_cdf`, per axis, footprint widths from
+      :func:`~.common.footprint_texels`, capped so a side spans at most
+      :data:`MAX_SIDE` texels): its derivative at the centre *is* the pixel's
+      average derivative of the ``k x k`` filter. Only that run's derivative is
+      used; values are unchanged.
     """
+    if lk.centre and opts.soft_compare > 0:
+        return _pixel_average(smap, lk, opts, active)
     k = int(opts.kernel)
     if k == 1:
         return hard(smap, lk, opts, active)
@@ -112,6 +126,65 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
     t, acc = dr.while_loop((t, acc), cond, body, max_iterations=-1)
     vis = dr.clip(acc * (1.0 / (width * width)), 0.0, 1.0)
     return dr.select(r.inside, vis, 1.0)
+
+
+#: Texels per side of the pixel-centre derivative's kernel, at most (12 x 12 taps).
+MAX_SIDE = 12
+
+
+def _trapezoid_cdf(x, a, b):
+    """The CDF at ``x`` of the unit-area convolution of two centred boxes of widths
+    ``a >= 1`` and ``b >= 0`` (a trapezoid of support ``a + b``); ``b = 0``: the box."""
+    def r2(y):
+        y = dr.maximum(y, 0.0)
+        return 0.5 * y * y
+    bb = dr.maximum(b, 1e-3)
+    trap = (r2(x + 0.5 * (a + bb)) - r2(x + 0.5 * (a - bb)) - r2(x - 0.5 * (a - bb))
+            + r2(x - 0.5 * (a + bb))) / (a * bb)
+    box = dr.clip((x + 0.5 * a) / a, 0.0, 1.0)
+    return dr.select(b > 0.0, dr.clip(trap, 0.0, 1.0), box)
+
+
+def _pixel_average(smap, lk: Lookup, opts, active=True) -> mi.Float:
+    """The ``k x k`` filter averaged over the pixel's footprint (see ``bilinear``'s
+    *pixel-centre derivative*): texel compares weighted by the trapezoid's mass over
+    each texel, ``w_t = F(t + 1 - c) - F(t - c)`` per axis (``c`` the receiver's
+    position in texels, ``F`` :func:`_trapezoid_cdf`), continuous in ``c``. A footprint
+    of at most one texel keeps the ``k x k`` box itself."""
+    k = int(opts.kernel)
+    res = smap.resolution
+    r = receiver(smap, lk, opts)
+    plane = receiver_plane(smap, lk, r, opts) if opts.receiver_plane else None
+    a = float(k - 1)
+    foot = dr.detach(footprint_texels(smap, lk, r))    # the estimator's choice
+    wide = dr.maximum(foot.x, foot.y) > 1.0
+    b = dr.minimum(foot, float(MAX_SIDE - 1) - a)
+    b = mi.Point2f(dr.select(wide, b.x, 0.0), dr.select(wide, b.y, 0.0))
+    c = r.uv * res
+    lo = dr.floor(c - 0.5 * (a + b))
+    hi = dr.floor(c + 0.5 * (a + b))
+    n = mi.Vector2u(mi.UInt32(hi.x - lo.x) + 1, mi.UInt32(hi.y - lo.y) + 1)
+    face = mi.UInt32(r.face)
+    act = mi.Bool(active) & r.inside
+    soft_width = soft_compare_width(r, opts.soft_compare)
+    t = mi.UInt32(0)
+    acc = mi.Float(0.0)
+
+    def cond(t, acc):
+        return act & (t < n.x * n.y)
+
+    def body(t, acc):
+        col, row = t % n.x, t // n.x
+        tx, ty = lo.x + mi.Float(col), lo.y + mi.Float(row)
+        wx = _trapezoid_cdf(tx + 1.0 - c.x, a, b.x) - _trapezoid_cdf(tx - c.x, a, b.x)
+        wy = _trapezoid_cdf(ty + 1.0 - c.y, a, b.y) - _trapezoid_cdf(ty - c.y, a, b.y)
+        xy = mi.Point2f(dr.detach(tx) + 0.5, dr.detach(ty) + 0.5)
+        z_map, z, inside = tap_depths(smap, r, face, xy, plane, act)
+        lit = soft_tap(smap, z_map, z, inside, soft_width, face, xy, act)
+        return t + 1, acc + wx * wy * lit
+
+    t, acc = dr.while_loop((t, acc), cond, body, max_iterations=-1)
+    return dr.select(r.inside, dr.clip(acc, 0.0, 1.0), 1.0)
 
 
 METHOD = Method(

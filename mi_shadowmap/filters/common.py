@@ -32,7 +32,13 @@ class Lookup:
     suspended) and for the derivative at its pixel's centre. The second run's
     ``sampler`` replays the first's ``next_1d``/``next_2d`` numbers, so a lookup
     draws them outside symbolic loops (``dr.while_loop`` bodies), and the same way
-    in both runs; other sampler attributes are the real sampler's."""
+    in both runs; other sampler attributes are the real sampler's.
+
+    ``centre`` is True in that second run only: its value is not used, and its
+    derivative stands for the pixel's average derivative. A lookup whose kernel is
+    narrower than the pixel's footprint (``dp_dx``, ``dp_dy``) may widen it there to
+    the pixel's (``bilinear`` does), or the derivative at the centre aliases against
+    the texel grid."""
     p_world: mi.Point3f
     n_world: mi.Vector3f          # geometric normal (any orientation)
     dp_dx: mi.Vector3f            # pixel footprint on the surface (world)
@@ -40,6 +46,7 @@ class Lookup:
     si: object                    # mi.SurfaceInteraction3f (for spawning rays)
     ds: object                    # mi.DirectionSample3f of the light sample
     sampler: object
+    centre: bool = False          # the pixel-centre derivative run (see above)
 
 
 @dataclass

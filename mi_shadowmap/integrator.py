@@ -279,7 +279,8 @@ screen is Mitsuba's projective integrators' job.
             v_value, whole = self._visibility(
                 smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec), lit, shade)
         v_centre, whole_centre = self._visibility(
-            smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec.replay(), p_centre), shade,
+            smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec.replay(), p_centre,
+                               _is_pinhole(self._sensor)), shade,
             shade)
         delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
         n = 1 if delta else self.opts.gradient_light_samples
@@ -337,14 +338,13 @@ screen is Mitsuba's projective integrators' job.
         return si.p + dp_dx * off.x + dp_dy * off.y
 
     @staticmethod
-    def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None) -> Lookup:
-        """The lookup of ``si`` in ``smap``, at ``p`` (the pixel centre's point in the
-        derivative run of :meth:`_gradient_light_term`, ``Lookup.centre``) or ``si.p``;
-        when the light's pose has gradients (``smap.pose``,
-        :mod:`mi_shadowmap.light_views.pose`) the point, normal and footprint carry
-        them (values unchanged)."""
+    def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None, centre=False) -> Lookup:
+        """The lookup of ``si`` in ``smap``, at ``p`` (default ``si.p``); ``centre``:
+        ``p`` is the pixel centre's point, in the derivative run of
+        :meth:`_gradient_light_term` (``Lookup.centre``). When the light's pose has
+        gradients (``smap.pose``, :mod:`mi_shadowmap.light_views.pose`) the point,
+        normal and footprint carry them (values unchanged)."""
         pose = getattr(smap, "pose", None)
-        centre = p is not None
         p = si.p if p is None else p
         if pose is None:
             return Lookup(p, si.n, dp_dx, dp_dy, si, ds, sampler, centre)

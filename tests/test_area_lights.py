@@ -117,6 +117,17 @@ def test_raytraced_independent_light_sample_is_the_visible_fraction():
     err = float(np.sqrt(np.mean((aovs["vis_light"] - ref) ** 2)))
     print(f"independent light samples vs converged reference: RMSE {err:.4f}")
     assert err < 0.03
+    # ... from light samples of their own: at 1 spp the penumbra's per-pixel
+    # visibilities are other draws than the shaded samples' (identical if ignored)
+    one = [render_np(scene, {"type": "shadowmap", "method": "raytraced", "light_sample": m},
+                     spp=1, seed=4)[1]["vis_light"] for m in ("shared", "independent")]
+    # (where the whole light is above the horizon: the horizon is the shaded sample's)
+    above = converged_visibility(scene, n_light=1024, seed=5, spp=16,
+                                 occlusion=False)["vis_light"] > 0.999
+    penumbra = above & (ref > 0.1) & (ref < 0.9)
+    differ = float((one[0] != one[1])[penumbra].mean())
+    print(f"1 spp: visibility differs on {differ:.0%} of {penumbra.sum()} penumbra pixels")
+    assert penumbra.sum() >= 20 and differ > 0.2
     from mi_shadowmap import inverse
     point = inverse.occluder_scene("point", 16, 4)
     a, b = (np.asarray(mi.render(point, integrator=mi.load_dict(

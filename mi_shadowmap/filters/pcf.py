@@ -104,14 +104,14 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
     active = mi.Bool(active)
     b0, b1 = (0.0, 0.0) if bias_range is None else (float(bias_range[0]), float(bias_range[1]))
 
-    def cond(k, rng, n_lit):
+    col, row = mi.UInt32(0), mi.UInt32(0)   # tap k's cell, wrapped by hand (see below)
+
+    def cond(k, col, row, rng, n_lit):
         return active & (k < n_taps)
 
-    def body(k, rng, n_lit):
+    def body(k, col, row, rng, n_lit):
         xi = mi.Point2f(rng.next_float32(), rng.next_float32())
         if sampling == "jitter" or sampling == "regular":
-            col = k % ns
-            row = k // ns
             off = xi if sampling == "jitter" else mi.Point2f(0.5, 0.5)
             xy = lo + mi.Point2f(mi.Float(col) + off.x, mi.Float(row) + off.y) * cell
         elif sampling == "uniform":
@@ -134,16 +134,20 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
                     if getattr(smap, "pose", None) is not None else None)
             n_lit = n_lit + soft_tap(smap, z_map, z - bias, inside, soft_width, face, xy,
                                      active, z_at=z_at, smooth=smooth)
-        return k + 1, rng, n_lit
+        # k % ns and k // ns without an integer division by the per-lane ns: Dr.Jit 1.5's
+        # LLVM backend divides the padding lanes of a vector too, by 0 (SIGFPE)
+        last = col + 1 >= ns
+        return k + 1, dr.select(last, 0, col + 1), dr.select(last, row + 1, row), rng, n_lit
 
     smooth = smooth_taps(smap, soft_width)   # continuous in the receiver's position
     if soft_width is not None:
         n_lit = mi.Float(0.0)
         # a sum of taps: Dr.Jit's sum-style reverse mode differentiates the symbolic
         # loop in place (no per-iteration state stored, no evaluated loop)
-        k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body, max_iterations=-1)
+        k, col, row, rng, n_lit = dr.while_loop((k, col, row, rng, n_lit), cond, body,
+                                                max_iterations=-1)
     else:
-        k, rng, n_lit = dr.while_loop((k, rng, n_lit), cond, body)
+        k, col, row, rng, n_lit = dr.while_loop((k, col, row, rng, n_lit), cond, body)
     return mi.Float(n_lit) / mi.Float(dr.maximum(n_taps, 1))
 
 

@@ -234,7 +234,7 @@ screen is Mitsuba's projective integrators' job.
             whole = None   # record.whole_light: the lookup's visibility of the whole light
             if p_centre is not None and smap is not None and n_light == 1:
                 c, vis, whole = self._gradient_light_term(
-                    smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy, p_centre)
+                    smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy, p_centre, k)
                 result += c
                 aovs.append(vis if whole is None else dr.select(shade, whole, 0.0))
                 continue
@@ -259,28 +259,32 @@ screen is Mitsuba's projective integrators' job.
         return result, valid, aovs
 
     def _gradient_light_term(self, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy,
-                             p_centre):
+                             centre, k):
         """One emitter's term in a gradient render with ``gradient_at='pixel_centre'``:
         ``(contribution, visibility AOV, whole-light visibility or None)``.
 
         The value is the usual one (one light sample ``L``, the visibility ``V`` at the
         sample's point). Its derivative is ``dL V + L_avg dV(p_centre)``: the shading's
         own derivative from the sample, and the visibility's derivative at the pixel
-        centre's surface point (the lookup run again there with the same random
-        numbers) times the unshadowed contribution averaged over
+        centre's surface point (``centre = (p_centre, pixel)``, :meth:`_pixel_centre`;
+        the lookup run again there, its random numbers :class:`_PixelSampler`'s: the
+        same for every sample and seed of a pixel, independent between pixels and
+        emitters ``k``) times the unshadowed contribution averaged over
         ``gradient_light_samples`` stratified light samples (the maps' visibility does
         not depend on the light sample). Both are unbiased to first order in the
         pixel's size; what they remove is the pixel position's and the light sample's
         noise in the visibility's derivative."""
         u = sampler.next_2d(shade)
         ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx, u, shade)
-        rec = _Recorder(sampler)
+        p_centre, pixel = centre
+        rec = _Recorder(sampler) if pixel is None else sampler
         with dr.suspend_grad():
             v_value, whole = self._visibility(
                 smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec), lit, shade)
+        centre_sampler = rec.replay() if pixel is None else _PixelSampler(sampler, pixel, k)
         v_centre, whole_centre = self._visibility(
-            smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec.replay(), p_centre,
-                               _is_pinhole(self._sensor)), shade,
+            smap, self._lookup(smap, si, dp_dx, dp_dy, ds, centre_sampler, p_centre,
+                               pixel is not None), shade,
             shade)
         delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
         n = 1 if delta else self.opts.gradient_light_samples
@@ -328,14 +332,18 @@ screen is Mitsuba's projective integrators' job.
         position in its pixel (the film position of ``p``, from the sensor's
         ``sample_direction``). A ``perspective`` camera only: other sensors
         (``orthographic`` has no ``sample_direction``; a thin lens's film position
-        depends on the aperture sample) keep ``p``, the sample's own point."""
+        depends on the aperture sample) keep ``p``, the sample's own point.
+        Returns ``(point, pixel)``: ``pixel`` an id of the film pixel (``x + 65536 y``;
+        None with other sensors)."""
         sensor = self._sensor
         if not _is_pinhole(sensor):
-            return si.p
+            return si.p, None
         ds, _ = sensor.sample_direction(dr.detach(si), mi.Point2f(0.5), active)
         uv = dr.detach(ds.uv)
-        off = 0.5 - (uv - dr.floor(uv))
-        return si.p + dp_dx * off.x + dp_dy * off.y
+        cell = dr.floor(uv)
+        off = 0.5 - (uv - cell)
+        pixel = mi.UInt32(dr.maximum(cell.x, 0.0)) + mi.UInt32(dr.maximum(cell.y, 0.0)) * 65536
+        return si.p + dp_dx * off.x + dp_dy * off.y, pixel
 
     @staticmethod
     def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None, centre=False) -> Lookup:
@@ -412,6 +420,29 @@ class _Recorder:
 
     def replay(self):
         return _Replay(self.sampler, list(self.drawn))
+
+    def __getattr__(self, name):
+        return getattr(self.sampler, name)
+
+
+class _PixelSampler:
+    """The sampler of the pixel-centre pass (perspective cameras): ``next_1d`` /
+    ``next_2d`` come from a PCG32 stream per lane seeded by the film pixel and the
+    emitter's index, so every sample and seed of a pixel reads the same taps and
+    jitter there (the derivative's spread over seeds is not the taps' noise), while
+    pixels draw independently (so, over the pixels, the taps' quadrature error
+    averages out as with fresh random numbers). Other attributes are the sampler's."""
+
+    def __init__(self, sampler, pixel, stream: int):
+        self.sampler = sampler
+        self.rng = mi.PCG32(size=dr.width(pixel), initstate=mi.UInt64(pixel),
+                            initseq=mi.UInt64(0x5851F42D + stream))
+
+    def next_1d(self, active=True):
+        return self.rng.next_float32()
+
+    def next_2d(self, active=True):
+        return mi.Point2f(self.rng.next_float32(), self.rng.next_float32())
 
     def __getattr__(self, name):
         return getattr(self.sampler, name)

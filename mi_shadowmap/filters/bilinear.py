@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from .common import (Lookup, receiver, receiver_plane, soft_compare_width,
+from .common import (Lookup, footprint_texels, receiver, receiver_plane, soft_compare_width,
                      soft_tap, tap_depths, tap_lit)
 from .hard import hard
 from .pcf import RECEIVER_PLANE, SOFT_COMPARE
@@ -80,7 +80,7 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
       at a texel a quarter pixel). There, when the pixel's footprint is wider than
       one texel, the kernel is the box convolved with a box as wide as the
       footprint (:func:`_trapezoid_cdf`, per axis; widths of equal variance,
-      :func:`_footprint_widths`): for an axis-aligned footprint its derivative at
+      :func:`~.common.footprint_texels`): for an axis-aligned footprint its derivative at
       the centre is the pixel's average derivative of the ``k x k`` filter; a
       turned footprint is approximated by that separable box. Kernels wider than
       :data:`MAX_SIDE` texels read every ``g``-th texel for groups of ``g``. Only
@@ -146,21 +146,6 @@ def _trapezoid_cdf(x, a, b):
     return dr.select(b > 0.0, dr.clip(trap, 0.0, 1.0), box)
 
 
-def _footprint_widths(smap, lk: Lookup, r) -> mi.Point2f:
-    """Per map axis, the width in texels of the box with the same variance as the
-    pixel's footprint (the parallelogram ``dp_dx``, ``dp_dy`` projected onto the face):
-    ``sqrt(e1^2 + e2^2)`` of its edges' components. Exact for an axis-aligned
-    footprint; for a turned one narrower than its bounding box (45 degrees: the side,
-    not the diagonal), whose marginals are not boxes."""
-    view, res = smap.view, smap.resolution
-    uv0 = view.uv_on_face(r.face, lk.p_world)
-    e1 = (view.uv_on_face(r.face, lk.p_world + lk.dp_dx) - uv0) * res
-    e2 = (view.uv_on_face(r.face, lk.p_world + lk.dp_dy) - uv0) * res
-    w = dr.sqrt(e1 * e1 + e2 * e2)
-    w = mi.Point2f(dr.select(dr.isfinite(w.x), w.x, 0.0), dr.select(dr.isfinite(w.y), w.y, 0.0))
-    return dr.minimum(w, mi.Float(res))
-
-
 def _pixel_average(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """The ``k x k`` filter averaged over the pixel's footprint (see ``bilinear``'s
     *pixel-centre derivative*): texel compares weighted by the trapezoid's mass over
@@ -174,7 +159,8 @@ def _pixel_average(smap, lk: Lookup, opts, active=True) -> mi.Float:
     r = receiver(smap, lk, opts)
     plane = receiver_plane(smap, lk, r, opts) if opts.receiver_plane else None
     a = float(k - 1)
-    foot = dr.detach(_footprint_widths(smap, lk, r))    # the estimator's choice
+    # the kernel's width is the estimator's choice: not differentiated
+    foot = dr.detach(footprint_texels(smap, lk, r, equal_variance=True))
     wide = dr.maximum(foot.x, foot.y) > 1.0
     b = mi.Point2f(dr.select(wide, foot.x, 0.0), dr.select(wide, foot.y, 0.0))
     c = r.uv * res

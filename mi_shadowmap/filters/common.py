@@ -30,9 +30,13 @@ class Lookup:
     In a gradient render with the integrator's ``gradient_at='pixel_centre'`` (the
     default) a lookup runs twice: for the value at the sample's point (gradients
     suspended) and for the derivative at its pixel's centre. The second run's
-    ``sampler`` replays the first's ``next_1d``/``next_2d`` numbers, so a lookup
-    draws them outside symbolic loops (``dr.while_loop`` bodies), and the same way
-    in both runs; other sampler attributes are the real sampler's.
+    ``sampler`` gives ``next_1d``/``next_2d`` numbers of the pixel (a stream seeded
+    by the film pixel and the emitter: the same for every sample and seed of that
+    pixel, so random taps add no spread over seeds; with a camera other than
+    ``perspective`` it replays the first run's numbers, and a lookup must then draw
+    the same way in both runs). Either way a lookup draws them outside symbolic
+    loops (``dr.while_loop`` bodies); other sampler attributes are the real
+    sampler's.
 
     ``centre`` is True in that second run only: its value is not used, and its
     derivative stands for the pixel's average derivative. A lookup whose kernel is
@@ -166,7 +170,7 @@ def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, later
 # face (texel ``(i, j)`` covers ``[i, i+1) x [j, j+1)``, centre at ``+0.5``).
 
 
-def footprint_texels(smap, lk: Lookup, r: Receiver) -> mi.Point2f:
+def footprint_texels(smap, lk: Lookup, r: Receiver, equal_variance: bool = False) -> mi.Point2f:
     """Width in texels, per map axis, of the camera pixel's footprint.
 
     The pixel's footprint on the surface is the parallelogram
@@ -174,14 +178,22 @@ def footprint_texels(smap, lk: Lookup, r: Receiver) -> mi.Point2f:
     ray differentials, see the integrator); its corners are projected onto the
     receiver's face and the axis-aligned bounding box of the result is
     returned as full widths ``(w_s, w_t)`` (Reeves' ``2*sres``, ``2*tres`` in
-    texels). Non-finite widths (grazing views, no differentials) become 0 and
-    widths are capped at the map resolution.
+    texels). ``equal_variance``: instead, the width of the box with the same
+    variance as the projected parallelogram, ``sqrt(e1^2 + e2^2)`` of its edges'
+    components (the same for an axis-aligned footprint; for a turned one narrower
+    than the bounding box: at 45 degrees the side, not the diagonal). Non-finite
+    widths (grazing views, no differentials) become 0 and widths are capped at the
+    map resolution.
     """
     view, res = smap.view, smap.resolution
     uv0 = view.uv_on_face(r.face, lk.p_world)
     du_x = view.uv_on_face(r.face, lk.p_world + lk.dp_dx) - uv0
     du_y = view.uv_on_face(r.face, lk.p_world + lk.dp_dy) - uv0
-    w = (dr.abs(du_x) + dr.abs(du_y)) * res
+    if equal_variance:
+        e1, e2 = du_x * res, du_y * res
+        w = dr.sqrt(e1 * e1 + e2 * e2)
+    else:
+        w = (dr.abs(du_x) + dr.abs(du_y)) * res
     w = mi.Point2f(dr.select(dr.isfinite(w.x), w.x, 0.0), dr.select(dr.isfinite(w.y), w.y, 0.0))
     return dr.minimum(w, mi.Float(res))   # res: per lane on virtual maps
 

@@ -108,14 +108,6 @@ Deviations from the paper and why:
   compare). Occluders within ``w`` of the receiver leak light; a silhouette's
   motion across texels reaches the gradient through the map's antialiasing
   (property ``antialias``).
-* **Fixed taps for the pixel-centre derivative.** In the integrator's
-  pixel-centre derivative run (``gradient_at='pixel_centre'``, ``lk.centre``)
-  both tap patterns use a fixed offset (cell centres; no rotation) instead of
-  the sample's random one: the derivative is then a deterministic quadrature of
-  the kernels, not one random draw of them per sample. Values come from the
-  value run and are unchanged. Measured (area scene, 128^2, 16 spp, occluder
-  sideways, 12 seeds): spread over seeds 2.8e-5 -> 2.5e-6 (0.07x
-  ``direct_projective``'s), mean -6.005e-3 -> -6.014e-3 (reference -5.959e-3).
 """
 from __future__ import annotations
 
@@ -316,8 +308,6 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     search_half = dr.clip(0.5 * _spread(d_r, near, w_light, angular) / texel, 0.5, half_max)
     soft_width = soft_compare_width(r, opts.soft_compare)
     rnd_b = lk.sampler.next_2d(active)
-    if lk.centre:   # the pixel-centre derivative run: a fixed pattern (see the docstring)
-        rnd_b = mi.Point2f(0.5)
     z_sum, n_block = blocker_search(smap, lk, r, plane, search_half, opts.blocker_samples,
                                     opts.pattern, rnd_b, active, soft_width)
     has_blocker = n_block > 0
@@ -332,8 +322,6 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
 
     # 3. PCF with a kernel proportional to w, only where blockers were found
     rnd_f = lk.sampler.next_2d(active)
-    if lk.centre:
-        rnd_f = mi.Point2f(0.5)
     vis = pcf_plane(smap, lk, r, plane, filter_half, opts.filter_samples, opts.pattern, rnd_f,
                     active & has_blocker, soft_width)
     if soft_width is not None:

@@ -137,6 +137,10 @@ class Method:
       the lookup's taps reach (its kernel's half-width), so that the mark pass of
       virtual maps builds the pages they read (default 2: a nearest-texel lookup,
       its normal offset and the camera samples' spread within a pixel);
+    * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
+      slot from the page table (cheapest for a lookup that reads a texel or two, as
+      ``hard`` does) instead of the 2 x 2 pages' four slots once per lookup (default:
+      cheapest for wide kernels). Results are the same either way;
     * ``builtin`` -- shipped with the package.
     """
     name: str
@@ -155,6 +159,7 @@ class Method:
     whole_light: bool = False
     virtual: bool = False
     virtual_margin: Callable | None = None
+    virtual_per_tap: bool = False
     builtin: bool = False
 
     def layer_names(self, opts) -> tuple:
@@ -245,7 +250,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     layers_for: Callable | None = None, finalize: Callable | None = None,
                     uses_map: bool = True, layer_cost=None, view_for: Callable | None = None,
                     whole_light: bool = False, virtual: bool = False,
-                    virtual_margin: Callable | None = None, replace: bool = False) -> Method:
+                    virtual_margin: Callable | None = None, virtual_per_tap: bool = False,
+                    replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
     ``lookup(smap, lk, opts, active) -> mi.Float`` has the built-ins' signature
@@ -256,7 +262,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     'method': name}`` (and XML), :func:`~mi_shadowmap.harness.compare`,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
-    ``virtual`` and ``virtual_margin``: see :class:`Method` (a lookup that reads the
+    ``virtual``, ``virtual_margin`` and ``virtual_per_tap``: see :class:`Method` (a
+    lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
     Returns the :class:`Method` record. Raises :class:`MethodError` for a bad
     record or a name already taken (``replace=True`` replaces a user method).
@@ -267,7 +274,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     needs_footprint=bool(needs_footprint),
                     uses_map=bool(uses_map), bias_defaults=dict(bias_defaults or {}),
                     finalize=finalize, view_for=view_for, whole_light=bool(whole_light),
-                    virtual=bool(virtual), virtual_margin=virtual_margin)
+                    virtual=bool(virtual), virtual_margin=virtual_margin,
+                    virtual_per_tap=bool(virtual_per_tap))
     return add(record, replace=replace)
 
 

@@ -196,9 +196,10 @@ class PageStore:
         self._sorted = None
         self._table = None
         self.lit_faces = None                        # faces a one-sided light shines through
-        # slot 0 is never allocated: an empty page (+inf, lit) for the coarsest level of
-        # a face a one-sided light does not shine through
-        self.next_slot = 1
+        # slot 0 is never allocated: an empty page (+inf, lit). Slot f + 1 is reserved for
+        # face f's coarsest page (always built where the light shines; empty where a
+        # one-sided light does not), so a lookup finds it without a gather
+        self.next_slot = 1 + layout.view.n_faces
         self.last_mark = None     # (camera state, margin, lod_bias), marked page keys
         self.max_pages = 1 << 62      # the memory budget's pages (set per render)
 
@@ -279,12 +280,16 @@ class PageStore:
         lay = self.layout
         P = lay.page_size
         n_new = len(keys)
-        reuse = [self.free.pop() for _ in range(min(n_new, len(self.free)))]
+        coarse = ((keys >> np.uint64(54)) & np.uint64(31)) == np.uint64(lay.coarsest)
+        n_fine = int(n_new - coarse.sum())
+        reuse = [self.free.pop() for _ in range(min(n_fine, len(self.free)))]
         first = self.next_slot
-        fresh = list(range(first, first + n_new - len(reuse)))
+        fresh = list(range(first, first + n_fine - len(reuse)))
         self.next_slot += len(fresh)
         self._grow(self.next_slot)
-        slot_ids = np.array(reuse + fresh, dtype=np.uint32)
+        slot_ids = np.zeros(n_new, np.uint32)
+        slot_ids[coarse] = (keys[coarse] >> np.uint64(59)).astype(np.uint32) + 1
+        slot_ids[~coarse] = np.array(reuse + fresh, dtype=np.uint32)
         for k, s in zip(keys.tolist(), slot_ids.tolist()):
             self.slots[np.uint64(k)] = s
         self.version += 1
@@ -320,20 +325,23 @@ class PageStore:
         return n_new * tpp * (1 + ("second_depth" in self.pools))
 
     def table(self):
-        """The page table as Dr.Jit arrays ``(header, dense, coarse_slot, face_near)``,
-        rebuilt when pages change (``coarse_slot``: the coarsest page's slot per face;
-        ``face_near``: the nearest depth per face, PCSS's blocker-search bound).
+        """The page table as Dr.Jit arrays ``(header, dense, face_near)``, rebuilt when
+        pages change (``face_near``: the nearest depth per face, PCSS's blocker-search
+        bound).
 
         Per (face, level) -- entry ``face * n_levels + level`` -- ``header`` holds
-        4 ints ``(x0 - 1, y0 - 1, W | H << 16, base)``: the grid of 2 x 2 blocks
+        two 64-bit words, ``(x0 - 1) | (y0 - 1) << 32`` and ``W | H << 16 | base << 32``
+        (32-bit fields, the first two signed): the grid of 2 x 2 blocks
         whose lower-left page is in ``[x0 - 1, x0 + w - 1] x [y0 - 1, y0 + h - 1]``,
         ``(x0, y0, w, h)`` the bounding rectangle of that level's built pages (in
         pages), ``W = w + 1``, ``H = h + 1``, and where its ``W x H`` entries start
         in ``dense``. Each entry of ``dense`` holds the block's 4 slots (pages
         ``(bx, by)``, ``(bx + 1, by)``, ``(bx, by + 1)``, ``(bx + 1, by + 1)``;
-        ``_INVALID`` where none is built), so a lookup reads its block with no loop. A level whose grid would
-        exceed :data:`MAX_TABLE` entries or :data:`MAX_TABLE_SIDE` per side keeps
-        its pages out of the table (lookups there walk to another level).
+        ``_INVALID`` where none is built), so a lookup reads its block with no loop.
+        A level whose grid would exceed :data:`MAX_TABLE` entries or
+        :data:`MAX_TABLE_SIDE` per side keeps its pages out of the table (lookups
+        there walk to another level). The coarsest page of face ``f`` is in slot
+        ``f + 1`` (:class:`PageStore`), so it needs no table.
         """
         if self._table is not None and self._table[0] == self.version:
             return self._table[1]
@@ -346,34 +354,38 @@ class PageStore:
         py = (keys & np.uint64((1 << 27) - 1)).astype(np.int64)
         group = face * L + level
         header = np.zeros((lay.view.n_faces * L, 4), np.int64)   # W = H = 0: no block
-        parts, base = [], 0
-        for g in np.unique(group):
-            sel = group == g
-            x0, y0 = px[sel].min(), py[sel].min()
-            w, h = px[sel].max() - x0 + 1, py[sel].max() - y0 + 1
-            W, H = w + 1, h + 1
-            if W * H > MAX_TABLE or max(W, H) > MAX_TABLE_SIDE:
-                warnings.warn(f"shadowmap: virtual map '{lay.view.label}': level "
-                              f"{g % L} spans {w} x {h} pages, more than the page table "
-                              "holds; its lookups use other levels", RuntimeWarning)
-                continue
-            pages_grid = np.full((h + 2, w + 2), _INVALID, np.int64)   # a border of 1
-            pages_grid[py[sel] - y0 + 1, px[sel] - x0 + 1] = slots[sel]
-            block = np.stack([pages_grid[:H, :W], pages_grid[:H, 1:W + 1],
-                              pages_grid[1:H + 1, :W], pages_grid[1:H + 1, 1:W + 1]], -1)
-            header[g] = (x0 - 1, y0 - 1, W | (H << 16), base)
-            parts.append(block.reshape(-1))
-            base += W * H
-        dense = np.concatenate(parts + [np.full(4, _INVALID, np.int64)])
-        n_faces = lay.view.n_faces
-        coarse = np.zeros(n_faces, np.uint32)          # slot 0: the empty page
-        for f in range(n_faces):
-            s = self.slots.get(np.uint64(page_key(f, lay.coarsest, 0, 0)))
-            if s is not None:
-                coarse[f] = s
-        table = (_array(mi.Int32, header.reshape(-1).astype(np.int32)),
+        # keys are sorted, so each (face, level) group is one run: its bounding rectangle
+        # by reduceat, then every page is one of the 4 corners of 4 blocks (vectorised)
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]]) if len(keys) else \
+            np.zeros(0, np.int64)
+        groups = group[starts]
+        x0 = np.minimum.reduceat(px, starts) if len(keys) else starts
+        y0 = np.minimum.reduceat(py, starts) if len(keys) else starts
+        w = np.maximum.reduceat(px, starts) - x0 + 1 if len(keys) else starts
+        h = np.maximum.reduceat(py, starts) - y0 + 1 if len(keys) else starts
+        W, H = w + 1, h + 1
+        fits = (W * H <= MAX_TABLE) & (np.maximum(W, H) <= MAX_TABLE_SIDE)
+        for g, ww, hh in zip(groups[~fits], w[~fits], h[~fits]):
+            warnings.warn(f"shadowmap: virtual map '{lay.view.label}': level "
+                          f"{g % L} spans {ww} x {hh} pages, more than the page table "
+                          "holds; its lookups use other levels", RuntimeWarning)
+        base = np.cumsum(np.where(fits, W * H, 0)) - np.where(fits, W * H, 0)
+        header[groups[fits]] = np.stack([x0 - 1, y0 - 1, W | (H << 16), base], -1)[fits]
+        total = int(np.where(fits, W * H, 0).sum())
+        dense = np.full(4 * total + 4, _INVALID, np.int64)   # + 4: one empty entry
+        run = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(keys)]))
+        keep = fits[run]
+        for k in range(4):     # page (px, py) is corner k of block (px - k & 1, py - k >> 1)
+            lx = px - (k & 1) - (x0[run] - 1)
+            ly = py - (k >> 1) - (y0[run] - 1)
+            e = base[run] + ly * W[run] + lx
+            dense[4 * e[keep] + k] = slots[keep]
+        u32 = lambda a: a.astype(np.int64).astype(np.uint32).astype(np.uint64)  # noqa: E731
+        words = np.stack([u32(header[:, 0]) | (u32(header[:, 1]) << np.uint64(32)),
+                          u32(header[:, 2]) | (u32(header[:, 3]) << np.uint64(32))], -1)
+        table = (_array(mi.UInt64, words.reshape(-1)),
                  _array(mi.UInt32, dense.astype(np.uint32)),
-                 _array(mi.UInt32, coarse), _array(mi.Float, self.face_near(n_faces)))
+                 _array(mi.Float, self.face_near(lay.view.n_faces)))
         self._table = (self.version, table)
         return table
 
@@ -399,7 +411,7 @@ class VirtualShadowMap:
         self.store = store
         self.layout = store.layout
         self.view = store.layout.view
-        self.header, self.dense, self.coarse_slot, self.face_near = store.table()
+        self.header, self.dense, self.face_near = store.table()
         self.stats = stats
 
     # The texel-counting interface of ShadowMap, for the harness and reports.
@@ -467,23 +479,30 @@ class VirtualShadowMap:
         level = mi.Int32(dr.floor(dr.log2(w_eff) + self.lod_bias))
         return mi.UInt32(dr.clip(level, 0, lay.coarsest))
 
-    def _block_slots(self, face, level, bx, by, active) -> list:
-        """Slots of the 2 x 2 pages whose lower-left page is ``(bx, by)`` at
-        ``(face, level)`` (``_INVALID`` where none is built): the level's header, then
-        its block entry (see :meth:`PageStore.table`). Plain gathers: Dr.Jit's packet
+    def _block_entry(self, face, level, bx, by, active):
+        """``(e, ok)``: where in ``dense`` the 2 x 2 pages whose lower-left page is
+        ``(bx, by)`` at ``(face, level)`` have their 4 slots (``e`` to ``e + 3``), and
+        whether the table has that block: the level's header (two 64-bit words, see
+        :meth:`PageStore.table`), then plain arithmetic. Plain gathers: Dr.Jit's packet
         gathers (``mi.Vector4u``) were as fast here but made the render kernel depend on
         the table's size, so a camera move compiled a new kernel."""
-        h = mi.UInt32(face) * self.layout.n_levels + mi.UInt32(level)
-        hdr = [dr.gather(mi.Int32, self.header, h * 4 + k, active) for k in range(4)]
-        W, H = hdr[2] & 0xFFFF, hdr[2] >> 16
-        lx, ly = bx - hdr[0], by - hdr[1]
+        h = (mi.UInt32(face) * self.layout.n_levels + mi.UInt32(level)) * 2
+        w0 = dr.gather(mi.UInt64, self.header, h, active)
+        w1 = dr.gather(mi.UInt64, self.header, h + 1, active)
+        x0 = dr.reinterpret_array(mi.Int32, mi.UInt32(w0))
+        y0 = dr.reinterpret_array(mi.Int32, mi.UInt32(w0 >> 32))
+        wh = mi.UInt32(w1)
+        W, H = mi.Int32(wh & 0xFFFF), mi.Int32(wh >> 16)
+        lx, ly = bx - x0, by - y0
         ok = mi.Bool(active) & (lx >= 0) & (ly >= 0) & (lx < W) & (ly < H)
-        e = mi.UInt32(hdr[3] + ly * W + lx) * 4
-        s4 = [dr.gather(mi.UInt32, self.dense, e + k, ok) for k in range(4)]
-        return [dr.select(ok, s4[k], _INVALID) for k in range(4)]
+        e = (mi.UInt32(w1 >> 32) + mi.UInt32(ly * W + lx)) * 4
+        return e, ok
 
-    def bind(self, lk, active=True) -> "BoundVirtualMap":
-        """The map as one batch of lookups reads it (see the module doc)."""
+    def bind(self, lk, active=True, per_tap: bool = False) -> "BoundVirtualMap":
+        """The map as one batch of lookups reads it (see the module doc). With
+        ``per_tap`` every read gathers its own page's slot (cheapest for lookups that
+        read a texel or two: ``hard``); else the 2 x 2 pages' four slots are gathered
+        here, once per lookup (wide kernels)."""
         lay, P = self.layout, self.layout.page_size
         p64 = mi.Point3d(lk.p_world)
         face, uv64, depth64, inside = self.view.project_f64(p64)
@@ -491,49 +510,50 @@ class VirtualShadowMap:
         want = self.level_for(face, p64, lk.dp_dx, lk.dp_dy)
 
         def block(level, act):
-            """The 2 x 2 pages around the point at ``level``, and whether the page under
-            it is built."""
+            """The 2 x 2 pages around the point at ``level`` (their table entry), and
+            whether the page under it is built."""
             res = mi.Int32(mi.UInt32(lay.res0) >> level)
             xy = uv64 * mi.Float64(res)
             bx = mi.Int32(dr.floor((xy.x - 0.5 * P) / P))
             by = mi.Int32(dr.floor((xy.y - 0.5 * P) / P))
-            slots = self._block_slots(face, level, bx, by, act)
+            e, eok = self._block_entry(face, level, bx, by, act)
             cx = mi.Int32(dr.floor(xy.x / P)) > bx        # which of the 2 x 2 holds it
             cy = mi.Int32(dr.floor(xy.y / P)) > by
-            own = dr.select(cy, dr.select(cx, slots[3], slots[2]),
-                            dr.select(cx, slots[1], slots[0]))
-            return res, bx, by, slots, own != _INVALID
+            q = mi.UInt32(dr.select(cx, 1, 0) + dr.select(cy, 2, 0))
+            own = dr.gather(mi.UInt32, self.dense, e + q, eok)
+            return res, bx, by, e, eok, eok & (own != _INVALID)
 
         # the wanted level (nearly every lookup); else the next finer, else the next
         # coarser, else the coarsest (always built). The fallbacks run in a loop that
         # only lanes whose page is missing enter: most vector packets skip it.
-        res, bx, by, slots, ok = block(want, active)
+        res, bx, by, e, eok, ok = block(want, active)
         level = mi.UInt32(want)
         step = mi.UInt32(0)
         want_i = mi.Int32(want)
 
-        def cond(step, level, res, bx, by, s0, s1, s2, s3, ok):
+        def cond(step, level, res, bx, by, e, eok, ok):
             return active & ~ok
 
-        def body(step, level, res, bx, by, s0, s1, s2, s3, ok):
+        def body(step, level, res, bx, by, e, eok, ok):
             lev = dr.select(step == 0, dr.maximum(want_i - 1, 0),
                             dr.select(step == 1, dr.minimum(want_i + 1, lay.coarsest),
                                       mi.Int32(lay.coarsest)))
-            r2, bx2, by2, new_slots, ok2 = block(mi.UInt32(lev), mi.Bool(True))
+            r2, bx2, by2, e2, eok2, ok2 = block(mi.UInt32(lev), mi.Bool(True))
             take = ok2 | (lev == lay.coarsest)
-            level = dr.select(take, mi.UInt32(lev), level)
-            res, bx, by = dr.select(take, r2, res), dr.select(take, bx2, bx), \
-                dr.select(take, by2, by)
-            s0, s1, s2, s3 = (dr.select(take, b, a) for a, b in zip((s0, s1, s2, s3),
-                                                                     new_slots))
-            return step + 1, level, res, bx, by, s0, s1, s2, s3, ok | take
+            return (step + 1, dr.select(take, mi.UInt32(lev), level),
+                    dr.select(take, r2, res), dr.select(take, bx2, bx),
+                    dr.select(take, by2, by), dr.select(take, e2, e),
+                    dr.select(take, eok2, eok), ok | take)
 
-        state = dr.while_loop((step, level, res, bx, by, *slots, ok), cond, body)
-        _, level, res, bx, by = state[:5]
-        slots = list(state[5:9])
+        state = dr.while_loop((step, level, res, bx, by, e, eok, ok), cond, body)
+        _, level, res, bx, by, e, eok, _ = state
+        slots = None
+        if not per_tap:
+            slots = [dr.select(eok, dr.gather(mi.UInt32, self.dense, e + k, eok), _INVALID)
+                     for k in range(4)]
         origin = mi.Point2i(bx * P, by * P)
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside))
-        return BoundVirtualMap(self, local, res, level, slots)
+        return BoundVirtualMap(self, local, res, level, (e, eok), slots)
 
 
 class BoundVirtualMap:
@@ -545,12 +565,14 @@ class BoundVirtualMap:
     texels into pool indices.
     """
 
-    def __init__(self, vmap: VirtualShadowMap, view: LocalView, res, level, slots):
+    def __init__(self, vmap: VirtualShadowMap, view: LocalView, res, level, entry,
+                 slots=None):
         self.vmap = vmap
         self.view = view
         self.resolution = res
         self.level = level
-        self.slots = slots
+        self.entry = entry      # (where the 2 x 2 pages' slots are in the table, valid)
+        self.slots = slots      # their 4 slots, or None: gathered per read
         pools = vmap.store.pools
         self.depth = pools["depth"]
         self.extra = {k: v for k, v in pools.items() if k != "depth"}
@@ -571,15 +593,21 @@ class BoundVirtualMap:
         in_block = (mi.UInt32(face) == v.face) & (li >= 0) & (lj >= 0) & (li < 2 * P) \
             & (lj < 2 * P)
         q = dr.select(li >= P, 1, 0) + dr.select(lj >= P, 2, 0)
-        s = dr.select(q == 0, self.slots[0], dr.select(q == 1, self.slots[1],
-                      dr.select(q == 2, self.slots[2], self.slots[3])))
+        if self.slots is None:
+            e, eok = self.entry
+            m = eok & in_block
+            s = dr.select(m, dr.gather(mi.UInt32, self.vmap.dense, e + mi.UInt32(q), m),
+                          _INVALID)
+        else:
+            s = dr.select(q == 0, self.slots[0], dr.select(q == 1, self.slots[1],
+                          dr.select(q == 2, self.slots[2], self.slots[3])))
         fine = in_block & (s != _INVALID)
         fine_idx = s * (P * P) + mi.UInt32(lj & (P - 1)) * P + mi.UInt32(li & (P - 1))
-        # elsewhere: the coarsest level (one page per face, always built)
+        # elsewhere: the coarsest level (one page per face, always built, in slot
+        # face + 1; an empty page where a one-sided light does not shine)
         shift = mi.Int32(lay.coarsest) - mi.Int32(self.level)
         cx, cy = gx >> shift, gy >> shift
-        cs = dr.gather(mi.UInt32, self.vmap.coarse_slot, mi.UInt32(face))
-        coarse_idx = cs * (P * P) + mi.UInt32(cy) * P + mi.UInt32(cx)
+        coarse_idx = (mi.UInt32(face) + 1) * (P * P) + mi.UInt32(cy) * P + mi.UInt32(cx)
         return dr.select(fine, fine_idx, coarse_idx)
 
     def fetch(self, layer, face, i, j, active=True):
@@ -637,39 +665,42 @@ def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.nd
     n_pages = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1)
     lo = mi.Point2i(dr.floor((xy - m) / P))
     hi = mi.Point2i(dr.floor((xy + m) / P))
-    dr.eval(lo, hi, level, face, act, n_pages)
-    # 4 candidates per point (2 m <= P: at most 2 pages per axis), in one kernel; only
-    # the valid ones leave Dr.Jit (most points read one page)
-    n = dr.width(lo.x)
-    idx = dr.arange(mi.UInt32, 4 * n)
-    k4 = idx // n
-    lane = idx - k4 * n
-    ox, oy = mi.Int32(k4 & 1), mi.Int32(k4 >> 1)
-    g = lambda a: dr.gather(type(a), a, lane)   # noqa: E731
-    lox, loy, hix, hiy, npg = g(lo.x), g(lo.y), g(hi.x), g(hi.y), g(n_pages)
-    px, py = lox + ox, loy + oy
-    ok = g(act) & (px <= hix) & (py <= hiy) & (px >= 0) & (py >= 0) & (px < npg) & (py < npg)
-    keys = page_key(g(face), g(level), dr.maximum(px, 0), dr.maximum(py, 0))
-    return np.unique(_dedupe(keys, ok))
+    # 4 candidates per point (2 m <= P: at most 2 pages per axis), all in one kernel;
+    # only the valid ones leave Dr.Jit (most points read one page)
+    keys, oks = [], []
+    for k in range(4):
+        px, py = lo.x + (k & 1), lo.y + (k >> 1)
+        oks.append(act & (px <= hi.x) & (py <= hi.y) & (px >= 0) & (py >= 0)
+                   & (px < n_pages) & (py < n_pages))
+        keys.append(page_key(face, level, dr.maximum(px, 0), dr.maximum(py, 0)))
+    return np.unique(_dedupe(keys, oks))
 
 
-def _dedupe(keys, ok, bits: int = 16):
-    """Most of ``keys[ok]`` without repeats (neighbouring pixels read the same pages:
-    4 x 65 k candidates hold a few hundred keys), so that ``np.unique`` sorts a few
-    hundred keys instead of all candidates: one kernel scatters every key into a hash
-    table of ``2^bits`` slots; the table's keys plus the keys that lost their slot to
-    another key are returned (a superset of the distinct keys, with few repeats).
-    Which key wins a slot does not matter: the returned set is the same. The selection
-    is done on the host with numpy, so every frame runs the same kernels (a compress
-    and gather would trace new ones whenever a frame first has 0, 1 or more lost
-    keys)."""
-    slot = mi.UInt32((keys * mi.UInt64(0x9E3779B97F4A7C15)) >> (64 - bits))
-    table = dr.full(mi.UInt64, _NO_KEY, 1 << bits)
-    dr.scatter(table, keys, slot, ok)
-    lost = ok & (dr.gather(mi.UInt64, table, slot, ok) != keys)
-    dr.eval(table, lost, keys)
-    t = table.numpy()
-    return np.concatenate([t[t != np.uint64(_NO_KEY)], keys.numpy()[lost.numpy()]])
+def _dedupe(keys: list, oks: list, bits: int = 14):
+    """Most of the keys ``keys[i][oks[i]]`` without repeats (neighbouring pixels read
+    the same pages: 4 x 65 k candidates hold a few hundred keys), so that ``np.unique``
+    sorts a few hundred keys instead of all candidates: one kernel computes the keys
+    and scatters each list into its hash table of ``2^bits`` slots, a second finds the keys
+    that lost their slot to another key; the table's keys plus the lost keys are
+    returned (a superset of the distinct keys, with few repeats). Which key wins a
+    slot does not matter: the returned set is the same. The selection is done on the
+    host with numpy, so every frame runs the same kernels (a compress and gather would
+    trace new ones whenever a frame first has 0, 1 or more lost keys)."""
+    # one table per candidate list: Dr.Jit puts scatters into different arrays in one
+    # kernel (a second scatter into the same array would start a new kernel)
+    tables = [dr.full(mi.UInt64, _NO_KEY, 1 << bits) for _ in keys]
+    slot = [mi.UInt32((k * mi.UInt64(0x9E3779B97F4A7C15)) >> (64 - bits)) for k in keys]
+    for t, k, s, ok in zip(tables, keys, slot, oks):
+        dr.scatter(t, k, s, ok)
+    dr.eval(*tables, *keys, *oks)
+    lost = [ok & (dr.gather(mi.UInt64, t, s, ok) != k)
+            for t, k, s, ok in zip(tables, keys, slot, oks)]
+    dr.eval(*lost)
+    out = []
+    for t, k, lo in zip(tables, keys, lost):
+        t = t.numpy()
+        out += [t[t != np.uint64(_NO_KEY)], k.numpy()[lo.numpy()]]
+    return np.concatenate(out)
 
 
 def camera_state(sensor) -> bytes:
@@ -759,8 +790,10 @@ def prepare_virtual(scene, sensor, opts, views, stats) -> list:
         per_page = store.texels_per_page * 4 * (1 + len(layer_names))
         n_virtual = sum(1 for v in views if v is not None and getattr(v, "supports_virtual",
                                                                        False))
-        budget_pages = max(int(opts.budget_bytes // max(n_virtual, 1) // per_page) - 1,
-                           view.n_faces)       # - 1: the empty page (slot 0)
+        unlit = view.n_faces - len(store.lit_faces)
+        budget_pages = max(int(opts.budget_bytes // max(n_virtual, 1) // per_page) - 1 - unlit,
+                           view.n_faces)       # - 1: the empty page (slot 0); unlit faces'
+        #                                        reserved coarsest slots stay empty pages
         store.max_pages = budget_pages + 1
         needed, degraded = _fit_budget(needed, budget_pages, layout)
         if degraded:

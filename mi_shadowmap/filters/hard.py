@@ -20,4 +20,5 @@ def hard(smap, lk: Lookup, opts, active=True) -> mi.Float:
 
 
 METHOD = Method(name="hard", lookup=hard,
-                summary="Williams 1978: one nearest-texel depth comparison", virtual=True, builtin=True)
+                summary="Williams 1978: one nearest-texel depth comparison", virtual=True,
+                virtual_per_tap=True, builtin=True)

@@ -112,7 +112,7 @@ class PreparedMaps:
     stats: MapStats
 
 
-def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
+def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderPlan:
     """Decide one render's maps; nothing is built (the camera-visible points may be
     traced, one ray per pixel, when a view's refinement needs them).
 
@@ -178,12 +178,14 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None) -> RenderPlan:
             views[k], gain = view.refine(opts, scene, sensor, visible, res)
             if gain is not None:
                 gains.append(gain)
-    diff = maps_need_gradients(scene)
+    params = params if params is not None else _traverse(scene, opts)
+    diff = maps_need_gradients(scene, params)
     aa = getattr(opts, "antialias", "never")
     aa = aa == "always" or (aa == "gradients" and diff)
     # the cache holds detached, plain depths: neither read nor written for gradients
     # or antialiased maps
-    state = MAP_CACHE.scene_state(scene) if opts.cache_maps and not (diff or aa) else None
+    state = (MAP_CACHE.scene_state(scene, params) if opts.cache_maps and not (diff or aa)
+             else None)
     layers = {name: record.layers[name] for name in layer_names}
     poses = [None] * len(views)
     if diff:   # a light whose pose has gradients: its reference view and pose delta
@@ -284,12 +286,13 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     ``build_seconds``, the time spent here (planning included).
     """
     t0 = time.perf_counter()
+    params = _traverse(scene, opts)    # once per render: read by every check below
     if opts.uses_map and opts.virtual and not (
-            "virtual" not in opts.given and _differentiated(scene)):
+            "virtual" not in opts.given and _differentiated(scene, params)):
         # the automatic virtual=true: a scene being differentiated gets full maps (in the
         # AD graph), in its primal render too, so loss and gradient see the same maps
-        return _prepare_virtual(scene, sensor, opts, views, t0)
-    plan = plan_maps(scene, sensor, opts, views)
+        return _prepare_virtual(scene, sensor, opts, views, t0, params)
+    plan = plan_maps(scene, sensor, opts, views, params)
     maps, stats = build_maps(scene, plan)
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
@@ -301,7 +304,15 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
 _NOT_DEPTH_PARAMS = ("silhouette_sampling_weight", "sampling_weight")
 
 
-def maps_need_gradients(scene: mi.Scene) -> bool:
+def _traverse(scene: mi.Scene, opts):
+    """``mi.traverse(scene)`` if this render reads it (map caching or gradients), else
+    None. One render reads it several times; it is about 0.15-0.3 ms each time."""
+    if not opts.uses_map or not (opts.cache_maps or dr.is_diff_v(mi.Float)):
+        return None
+    return mi.traverse(scene)
+
+
+def maps_need_gradients(scene: mi.Scene, params=None) -> bool:
     """Whether this render's maps must be built in the AD graph (issue 13).
 
     True when Dr.Jit tracks gradients here (an AD variant, outside
@@ -319,7 +330,7 @@ def maps_need_gradients(scene: mi.Scene) -> bool:
     """
     if not dr.is_diff_v(mi.Float):
         return False
-    params = mi.traverse(scene)
+    params = params if params is not None else mi.traverse(scene)
     for name in params.keys():
         if name.rsplit(".", 1)[-1] in _NOT_DEPTH_PARAMS:
             continue
@@ -329,20 +340,20 @@ def maps_need_gradients(scene: mi.Scene) -> bool:
     return False
 
 
-def _differentiated(scene: mi.Scene) -> bool:
+def _differentiated(scene: mi.Scene, params=None) -> bool:
     """Whether a shape or emitter parameter has gradients enabled, whatever the current
     AD scope: ``mi.render(scene, params)`` renders its primal image under
     ``dr.suspend_grad()`` (where :func:`maps_need_gradients` is False) and its gradient
     with gradients tracked; the automatic ``virtual`` must pick the same maps for both."""
     with dr.resume_grad():
-        return maps_need_gradients(scene)
+        return maps_need_gradients(scene, params)
 
 
-def _prepare_virtual(scene, sensor, opts, views, t0) -> PreparedMaps:
+def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMaps:
     """``virtual=true``: virtual maps (:mod:`mi_shadowmap.pages`) for the emitters whose
     view supports them; the others (environment regions) get full maps as usual."""
     from .pages import prepare_virtual
-    if "virtual" in opts.given and maps_need_gradients(scene):
+    if "virtual" in opts.given and maps_need_gradients(scene, params):
         # virtual pages are built detached: shadows would pass no gradient, silently
         # (an automatic virtual=true never gets here with gradients: prepare_maps checked)
         raise ValueError("shadowmap: property 'virtual' = true builds no differentiable "
@@ -361,10 +372,10 @@ def _prepare_virtual(scene, sensor, opts, views, t0) -> PreparedMaps:
     maps = [None] * len(views)
     res = None
     if any(v is not None for v in full_views):
-        plan = plan_maps(scene, sensor, opts, full_views)
+        plan = plan_maps(scene, sensor, opts, full_views, params)
         maps, stats = build_maps(scene, plan)
         res = plan.resolution
-    virtual = prepare_virtual(scene, sensor, opts, views, stats)
+    virtual = prepare_virtual(scene, sensor, opts, views, stats, params)
     maps = [vm if vm is not None else m for vm, m in zip(virtual, maps)]
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
@@ -459,7 +470,7 @@ class MapCache:
         self.hits = 0
         self.misses = 0
 
-    def scene_state(self, scene) -> str:
+    def scene_state(self, scene, params=None) -> str:
         """Hash of the scene's shape and emitter parameters (see the class doc).
 
         Large JIT buffers (> ``_MEMO_MIN`` entries, e.g. vertex positions)
@@ -469,7 +480,7 @@ class MapCache:
         same, unmodified data (``params.update()`` installs new variables;
         Dr.Jit copies on write when an array is shared).
         """
-        params = mi.traverse(scene)
+        params = params if params is not None else mi.traverse(scene)
         memo_slot = self._memo.get(id(scene))
         if memo_slot is None or memo_slot[0] is not scene:
             memo_slot = self._memo[id(scene)] = (scene, {})

@@ -742,16 +742,17 @@ class PageCache:
 PAGE_CACHE = PageCache()
 
 
-def prepare_virtual(scene, sensor, opts, views, stats) -> list:
+def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     """First pass with ``virtual=true``: mark, build missing pages, return one
     :class:`VirtualShadowMap` per emitter whose view supports it (None elsewhere).
 
-    Updates ``stats`` (a :class:`~mi_shadowmap.map_manager.MapStats`): pages marked,
+    ``params``: the scene's ``mi.traverse`` where the caller has it (else traversed
+    here). Updates ``stats`` (a :class:`~mi_shadowmap.map_manager.MapStats`): pages marked,
     built, reused, the level histogram of the marked pages and ``texels_built``.
     """
     from .map_manager import MAP_CACHE, view_fingerprint
     layer_names = tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
-    state = MAP_CACHE.scene_state(scene) if opts.cache_maps else None
+    state = MAP_CACHE.scene_state(scene, params) if opts.cache_maps else None
     cam = camera_state(sensor) if sensor is not None else None
     hits = None
     out = []

@@ -340,6 +340,73 @@ def test_one_sided_area_light_builds_only_the_faces_in_front():
     assert 0.0 <= vis.min() and vis.max() <= 1.0
 
 
+def test_coarsest_pages_sit_in_fixed_slots():
+    """Face f's coarsest page is in slot f + 1, so a lookup finds it without the table;
+    a face a one-sided light does not shine through keeps an empty (+inf) page there."""
+    scene = mi.load_file(str(SCENES / "cbox_area.xml"), width=32, height=32)
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    store = integ.maps[0].store
+    lay, P = store.layout, store.layout.page_size
+    pool = store.pools["depth"].numpy().reshape(-1, P * P)
+    for f in range(lay.view.n_faces):
+        slot = store.slots.get(np.uint64(pages.page_key(f, lay.coarsest, 0, 0)))
+        if f == 2:                       # +y: behind the downward-emitting light
+            assert slot is None and np.all(np.isinf(pool[f + 1]))
+        else:
+            assert slot == f + 1
+    others = [s for k, s in store.slots.items()
+              if ((int(k) >> 54) & 31) != lay.coarsest]
+    assert others and min(others) > lay.view.n_faces
+
+
+@pytest.mark.parametrize("light", ["point", "area"])
+def test_page_table_resolves_every_built_page(light):
+    """Decoding the page table as a lookup does (the two 64-bit header words of the
+    page's face and level, then the entry of the 2 x 2 block whose lower-left page it
+    is) gives every built page's slot, and the block below and left of it holds it as
+    its upper-right corner."""
+    scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light=light))
+    integ = shadowmap(method="pcf", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap = integ.maps[0]
+    L = vmap.layout.n_levels
+    words = vmap.header.numpy().reshape(-1, 2)
+    dense = vmap.dense.numpy().reshape(-1, 4)
+    rec = vmap.page_records()
+    assert len(rec["slot"]) > 10
+    for f, lev, px, py, slot in zip(rec["face"], rec["level"], rec["px"], rec["py"],
+                                    rec["slot"]):
+        w0, w1 = (int(w) for w in words[f * L + lev])
+        x0 = np.int64(np.uint32(w0 & 0xFFFFFFFF).view(np.int32))
+        y0 = np.int64(np.uint32(w0 >> 32).view(np.int32))
+        W, H, base = w1 & 0xFFFF, (w1 >> 16) & 0xFFFF, w1 >> 32
+        lx, ly = px - x0, py - y0
+        assert 0 <= lx < W and 0 <= ly < H
+        assert dense[base + ly * W + lx][0] == slot
+        # the block to its upper right holds it as corner 3 (lower-left of that block:
+        # px - 1, py - 1, which the border of the rectangle always covers)
+        assert dense[base + (ly - 1) * W + (lx - 1)][3] == slot
+
+
+@pytest.mark.parametrize("light", ["spot", "point", "area"])
+def test_reading_slots_per_tap_or_per_block_gives_the_same_image(light):
+    """``virtual_per_tap`` is a speed hint only: ``hard`` (per-tap slot reads) and the
+    same lookup registered to read the 2 x 2 block's four slots up front render
+    identical images."""
+    from mi_shadowmap.filters.hard import hard
+    from mi_shadowmap.methods import register_method, unregister_method
+    register_method("hard_block_reads", hard, virtual=True, virtual_per_tap=False)
+    try:
+        scene = mi.load_dict(default_scene(width=48, height=48, spp=2, light=light))
+        a = vis_of(scene, shadowmap(method="hard", virtual=True), spp=2)
+        b = vis_of(scene, shadowmap(method="hard_block_reads", virtual=True), spp=2)
+        assert 0.0 < a.mean() < 1.0
+        np.testing.assert_array_equal(a, b)
+    finally:
+        unregister_method("hard_block_reads")
+
+
 @pytest.mark.parametrize("light", LIGHTS)
 def test_same_density_matches_the_full_map(light):
     """Issue 11: at the same effective density a virtual map gives today's result. With

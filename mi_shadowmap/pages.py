@@ -624,9 +624,10 @@ class BoundVirtualMap:
 
 
 # ------------------------------------------------------------------- mark pass
-def camera_hits(scene, sensor):
+def camera_hits(scene, sensor, evaluate: bool = True):
     """Camera hits at every pixel centre with one-pixel ray differentials:
-    ``(si, dp_dx, dp_dy, valid)``."""
+    ``(si, dp_dx, dp_dy, valid)``; unevaluated with ``evaluate=False`` (the mark pass
+    traces them in its own kernel)."""
     ray, _ = sensor.sample_ray_differential(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
     # position and geometric normal are all marking needs (RayFlags.All also computes
     # UVs, shading frames and their derivatives: about half the pass)
@@ -641,13 +642,20 @@ def camera_hits(scene, sensor):
     dp_dx = mi.Vector3f(dr.select(ok, hit(ray.o_x, ray.d_x) - si.p, 0.0))
     dp_dy = mi.Vector3f(dr.select(ok, hit(ray.o_y, ray.d_y) - si.p, 0.0))
     valid = si.is_valid()
-    # traced once here, not once per light by each light's mark kernel
-    dr.eval(si.p, dp_dx, dp_dy, valid)
+    if evaluate:
+        dr.eval(si.p, dp_dx, dp_dy, valid)
     return si, dp_dx, dp_dy, valid
 
 
 def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.ndarray:
-    """Keys of the pages the lookups at ``si`` read (see the module doc): at each
+    """Keys of the pages the lookups at ``si`` read (see :func:`mark_candidates`)."""
+    return np.unique(_dedupe_many([mark_candidates(vmap_like, si, dp_dx, dp_dy, valid,
+                                                   margin)])[0])
+
+
+def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> tuple:
+    """``(keys, oks)``, 4 lists of candidate page keys per point and whether each is
+    one (unevaluated): the pages the lookups at ``si`` read (see the module doc): at each
     point's level, the pages overlapping ``margin + 1`` texels around it (the
     method's kernel, plus one texel for camera samples off the pixel centre),
     capped at ``page_size / 2`` texels (what :meth:`VirtualShadowMap.bind`'s 2 x 2
@@ -673,34 +681,40 @@ def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.nd
         oks.append(act & (px <= hi.x) & (py <= hi.y) & (px >= 0) & (py >= 0)
                    & (px < n_pages) & (py < n_pages))
         keys.append(page_key(face, level, dr.maximum(px, 0), dr.maximum(py, 0)))
-    return np.unique(_dedupe(keys, oks))
+    return keys, oks
 
 
-def _dedupe(keys: list, oks: list, bits: int = 14):
-    """Most of the keys ``keys[i][oks[i]]`` without repeats (neighbouring pixels read
-    the same pages: 4 x 65 k candidates hold a few hundred keys), so that ``np.unique``
-    sorts a few hundred keys instead of all candidates: one kernel computes the keys
-    and scatters each list into its hash table of ``2^bits`` slots, a second finds the keys
-    that lost their slot to another key; the table's keys plus the lost keys are
-    returned (a superset of the distinct keys, with few repeats). Which key wins a
-    slot does not matter: the returned set is the same. The selection is done on the
-    host with numpy, so every frame runs the same kernels (a compress and gather would
-    trace new ones whenever a frame first has 0, 1 or more lost keys)."""
+def _dedupe_many(groups: list, bits: int = 14) -> list:
+    """For each ``(keys, oks)`` of ``groups`` (one per light), most of the keys
+    ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
+    65 k candidates hold a few hundred keys), so that ``np.unique`` sorts a few hundred
+    keys instead of all candidates: one kernel computes every light's keys (and the
+    camera hits they come from) and scatters each list into its hash table of
+    ``2^bits`` slots, a second finds the keys that lost their slot to another key; per
+    group, the tables' keys plus the lost keys are returned (a superset of the distinct
+    keys, with few repeats). Which key wins a slot does not matter: the returned set is
+    the same. The selection is done on the host with numpy, so every frame runs the
+    same kernels (a compress and gather would trace new ones whenever a frame first has
+    0, 1 or more lost keys)."""
     # one table per candidate list: Dr.Jit puts scatters into different arrays in one
     # kernel (a second scatter into the same array would start a new kernel)
-    tables = [dr.full(mi.UInt64, _NO_KEY, 1 << bits) for _ in keys]
-    slot = [mi.UInt32((k * mi.UInt64(0x9E3779B97F4A7C15)) >> (64 - bits)) for k in keys]
-    for t, k, s, ok in zip(tables, keys, slot, oks):
+    flat = [(k, ok) for keys, oks in groups for k, ok in zip(keys, oks)]
+    tables = [dr.full(mi.UInt64, _NO_KEY, 1 << bits) for _ in flat]
+    slot = [mi.UInt32((k * mi.UInt64(0x9E3779B97F4A7C15)) >> (64 - bits)) for k, _ in flat]
+    for t, (k, ok), s in zip(tables, flat, slot):
         dr.scatter(t, k, s, ok)
-    dr.eval(*tables, *keys, *oks)
+    dr.eval(*tables, *(k for k, _ in flat), *(ok for _, ok in flat))
     lost = [ok & (dr.gather(mi.UInt64, t, s, ok) != k)
-            for t, k, s, ok in zip(tables, keys, slot, oks)]
+            for t, (k, ok), s in zip(tables, flat, slot)]
     dr.eval(*lost)
-    out = []
-    for t, k, lo in zip(tables, keys, lost):
+    found = []
+    for t, (k, _), lo in zip(tables, flat, lost):
         t = t.numpy()
-        out += [t[t != np.uint64(_NO_KEY)], k.numpy()[lo.numpy()]]
-    return np.concatenate(out)
+        found.append(np.concatenate([t[t != np.uint64(_NO_KEY)], k.numpy()[lo.numpy()]]))
+    per = [len(keys) for keys, _ in groups]
+    starts = np.cumsum([0] + per)
+    return [np.concatenate(found[a:b]) if b > a else np.zeros(0, np.uint64)
+            for a, b in zip(starts[:-1], starts[1:])]
 
 
 def camera_state(sensor) -> bytes:
@@ -754,34 +768,38 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     layer_names = tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
     state = MAP_CACHE.scene_state(scene, params) if opts.cache_maps else None
     cam = camera_state(sensor) if sensor is not None else None
-    hits = None
-    out = []
-    budget_pages = None
-    for view in views:
+    margin = (opts.record.virtual_margin(opts) if opts.record.virtual_margin is not None
+              else 2.0)
+    mark_key = (cam, margin, opts.lod_bias)
+    stores = {}
+    for i, view in enumerate(views):
         if view is None or not getattr(view, "supports_virtual", False):
-            out.append(None)
             continue
         layout = layout_for(view, scene, opts)
         key = (view_fingerprint(view), layout.res0, layout.page_size, layer_names)
-
-        def make():
-            return PageStore(layout, layer_names)
-
-        store = (PAGE_CACHE.store(scene, state, key, make) if state is not None else make())
+        store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))
+                 if state is not None else PageStore(layout, layer_names))
         store.frame += 1
-        probe = _Marker(layout, opts.lod_bias)
-        margin = (opts.record.virtual_margin(opts) if opts.record.virtual_margin is not None
-                  else 2.0)
-        mark_key = (cam, margin, opts.lod_bias)
-        if cam is None:
-            marked = np.zeros(0, np.uint64)
-        elif store.last_mark is not None and store.last_mark[0] == mark_key:
-            marked = store.last_mark[1]          # same camera: the same pages
-        else:
-            if hits is None:
-                hits = camera_hits(scene, sensor)
-            marked = mark_pages(probe, *hits, margin=margin)
-            store.last_mark = (mark_key, marked)
+        stores[i] = store
+    # the mark pass: every light whose marks are stale, from one set of camera hits traced
+    # in the same kernel as all their marks (a still camera reuses its marks)
+    stale = [i for i, st in stores.items() if cam is not None
+             and (st.last_mark is None or st.last_mark[0] != mark_key)]
+    if stale:
+        hits = camera_hits(scene, sensor, evaluate=False)
+        found = _dedupe_many([mark_candidates(_Marker(stores[i].layout, opts.lod_bias),
+                                              *hits, margin=margin) for i in stale])
+        for i, keys in zip(stale, found):
+            stores[i].last_mark = (mark_key, np.unique(keys))
+    out = []
+    budget_pages = None
+    for i, view in enumerate(views):
+        if i not in stores:
+            out.append(None)
+            continue
+        store = stores[i]
+        layout = store.layout
+        marked = store.last_mark[1] if cam is not None else np.zeros(0, np.uint64)
         if store.lit_faces is None:
             store.lit_faces = _lit_faces(view)
         coarse = np.array([page_key(f, layout.coarsest, 0, 0) for f in store.lit_faces],

@@ -25,13 +25,15 @@ each batch of lookups. The level is chosen per lane the same way; if the
 page under the receiver is missing at that level (a camera sample off the
 pixel centre) it takes the next finer level, else the next coarser one, else
 the coarsest level (one page per face), which is always built, so no point is
-lit for want of a page (a loop that only lanes with a missing page enter). The 2 x 2 pages around the receiver are looked up in
-the page table once per lookup (per face and level, a grid over the bounding
-rectangle of its built pages whose entry holds the 2 x 2 block's four slots:
-no loop); the
-filter's taps then read through :meth:`BoundVirtualMap.fetch`,
-which picks one of those four slots, or for a tap outside them (a wide
-kernel, a cube seam) the coarsest level. Filters see a
+lit for want of a page (a loop that only lanes with a missing page enter). The
+2 x 2 pages around the receiver are found in the page table once per lookup (per
+face and level, a grid over the bounding rectangle of its built pages whose entry
+holds the 2 x 2 block's four slots: no loop). The filter's taps then read through
+:meth:`BoundVirtualMap.fetch`: a tap inside those pages reads its page's slot (the
+four gathered once per lookup, or, for a method with ``virtual_per_tap`` such as
+``hard``, each tap's own slot gathered when it reads), a tap outside them (a wide
+kernel, a cube seam) the coarsest level, whose page of face ``f`` is always in slot
+``f + 1`` (no gather). Filters see a
 :class:`~mi_shadowmap.light_views.local.LocalView`: coordinates local to
 the lookup, so float32 stays exact at any level.
 
@@ -61,7 +63,7 @@ Deviations from UE5, and why:
   the render's primary hits (Mitsuba's ``render()`` traces those inside one
   kernel with the shading); it is one ray per pixel against the frame's spp.
 * Taps that leave the receiver's 2 x 2 pages read the coarsest level rather
-  than the finest built one (one extra gather instead of a walk per tap).
+  than the finest built one (a fixed slot instead of a walk per tap).
 """
 from __future__ import annotations
 
@@ -95,7 +97,7 @@ _INVALID = 0xFFFFFFFF
 _NO_KEY = 0xFFFFFFFFFFFFFFFF
 #: Largest page grid of one (face, level) in the page table (entries of 4 slots).
 MAX_TABLE = 1 << 22
-#: Largest page grid side (the header packs width and height into one int32).
+#: Largest page grid side (the header packs width and height into 32 bits of one uint64).
 MAX_TABLE_SIDE = (1 << 15) - 1
 
 
@@ -217,7 +219,8 @@ class PageStore:
 
     @property
     def n_slots(self) -> int:
-        """Slots in use or reserved (the pages, the freed slots and the empty page)."""
+        """Slots in use or reserved (the pages, the freed slots, the empty page and the
+        coarsest page's slot of every face, built or not)."""
         return self.next_slot
 
     def _grow(self, need: int) -> None:
@@ -785,6 +788,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     # in the same kernel as all their marks (a still camera reuses its marks)
     stale = [i for i, st in stores.items() if cam is not None
              and (st.last_mark is None or st.last_mark[0] != mark_key)]
+    stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
+             if all(stores[j] is not stores[i] for j in stale[:k])]
     if stale:
         hits = camera_hits(scene, sensor, evaluate=False)
         found = _dedupe_many([mark_candidates(_Marker(stores[i].layout, opts.lod_bias),
@@ -813,7 +818,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         budget_pages = max(int(opts.budget_bytes // max(n_virtual, 1) // per_page) - 1 - unlit,
                            view.n_faces)       # - 1: the empty page (slot 0); unlit faces'
         #                                        reserved coarsest slots stay empty pages
-        store.max_pages = budget_pages + 1
+        store.max_pages = budget_pages + 1 + unlit
         needed, degraded = _fit_budget(needed, budget_pages, layout)
         if degraded:
             warnings.warn(f"shadowmap: emitter '{view.label}': memory_budget = "

@@ -387,6 +387,11 @@ def test_page_table_resolves_every_built_page(light):
         # the block to its upper right holds it as corner 3 (lower-left of that block:
         # px - 1, py - 1, which the border of the rectangle always covers)
         assert dense[base + (ly - 1) * W + (lx - 1)][3] == slot
+    # and the kernel's own decoding (VirtualShadowMap._block_entry) agrees
+    e, ok = vmap._block_entry(mi.UInt32(rec["face"]), mi.UInt32(rec["level"]),
+                              mi.Int32(rec["px"]), mi.Int32(rec["py"]), mi.Bool(True))
+    assert ok.numpy().all()
+    np.testing.assert_array_equal(vmap.dense.numpy()[e.numpy()], rec["slot"])
 
 
 @pytest.mark.parametrize("light", ["spot", "point", "area"])
@@ -396,15 +401,34 @@ def test_reading_slots_per_tap_or_per_block_gives_the_same_image(light):
     identical images."""
     from mi_shadowmap.filters.hard import hard
     from mi_shadowmap.methods import register_method, unregister_method
+    from mi_shadowmap.filters.common import Lookup
     register_method("hard_block_reads", hard, virtual=True, virtual_per_tap=False)
     try:
         scene = mi.load_dict(default_scene(width=48, height=48, spp=2, light=light))
-        a = vis_of(scene, shadowmap(method="hard", virtual=True), spp=2)
+        integ = shadowmap(method="hard", virtual=True)
+        a = vis_of(scene, integ, spp=2)
         b = vis_of(scene, shadowmap(method="hard_block_reads", virtual=True), spp=2)
         assert 0.0 < a.mean() < 1.0
         np.testing.assert_array_equal(a, b)
     finally:
         unregister_method("hard_block_reads")
+    # the two ways of reading slots give the same pool index for every texel around the
+    # receiver: its 2 x 2 pages, the pages beyond them, and a neighbouring face
+    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    vmap = integ.maps[0]
+    per_tap, block = vmap.bind(lk, valid, per_tap=True), vmap.bind(lk, valid, per_tap=False)
+    assert per_tap.slots is None and len(block.slots) == 4
+    P = vmap.layout.page_size
+    n_faces = vmap.view.n_faces
+    for di in range(-P, 3 * P, P // 2 + 1):
+        for dj in range(-P, 3 * P, P // 2 + 1):
+            for df in (0, 1) if n_faces > 1 else (0,):
+                face = (per_tap.view.face + df) % n_faces
+                i, j = mi.Int32(di), mi.Int32(dj)
+                np.testing.assert_array_equal(
+                    np.where(valid.numpy(), per_tap._index(face, i, j).numpy(), 0),
+                    np.where(valid.numpy(), block._index(face, i, j).numpy(), 0))
 
 
 @pytest.mark.parametrize("light", LIGHTS)

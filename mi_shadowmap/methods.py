@@ -218,6 +218,9 @@ def _check_record(m: Method) -> None:
                           f"virtual maps build ({', '.join(VIRTUAL_LAYERS)}); its layers "
                           f"{', '.join(sorted(set(m.layers) - set(VIRTUAL_LAYERS)))} are "
                           "built on full maps only (set virtual=False)")
+    if not isinstance(m.virtual_per_tap, bool):
+        raise MethodError(f"register_method('{m.name}'): virtual_per_tap must be True or "
+                          f"False, got {m.virtual_per_tap!r}")
     if m.virtual_margin is not None and not callable(m.virtual_margin):
         raise MethodError(f"register_method('{m.name}'): virtual_margin must be callable "
                           "fn(opts) -> texels")
@@ -275,7 +278,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     uses_map=bool(uses_map), bias_defaults=dict(bias_defaults or {}),
                     finalize=finalize, view_for=view_for, whole_light=bool(whole_light),
                     virtual=bool(virtual), virtual_margin=virtual_margin,
-                    virtual_per_tap=bool(virtual_per_tap))
+                    virtual_per_tap=virtual_per_tap)
     return add(record, replace=replace)
 
 

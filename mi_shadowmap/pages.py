@@ -9,7 +9,7 @@ page). Levels are split into pages of ``page_size^2`` texels anchored in
 light space. Only the pages that camera-visible points read are ray-cast,
 into one physical page pool (one ``mi.Float`` per layer) with a page table.
 
-**Mark pass** (:func:`mark_pages`): one camera ray through every pixel centre
+**Mark pass** (:func:`mark_candidates`): one camera ray through every pixel centre
 (with its ray differentials, one pixel wide). Each hit that can receive the
 light picks the level whose texel matches its pixel footprint projected into
 the light (:meth:`VirtualShadowMap.level_for`: ``floor(log2(w) + lod_bias)``
@@ -650,12 +650,6 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     return si, dp_dx, dp_dy, valid
 
 
-def mark_pages(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> np.ndarray:
-    """Keys of the pages the lookups at ``si`` read (see :func:`mark_candidates`)."""
-    return np.unique(_dedupe_many([mark_candidates(vmap_like, si, dp_dx, dp_dy, valid,
-                                                   margin)])[0])
-
-
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> tuple:
     """``(keys, oks)``, 4 lists of candidate page keys per point and whether each is
     one (unevaluated): the pages the lookups at ``si`` read (see the module doc): at each
@@ -812,10 +806,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         needed = np.unique(np.concatenate([marked, coarse]))
         # memory: the whole budget split evenly over the virtual maps
         per_page = store.texels_per_page * 4 * (1 + len(layer_names))
-        n_virtual = sum(1 for v in views if v is not None and getattr(v, "supports_virtual",
-                                                                       False))
         unlit = view.n_faces - len(store.lit_faces)
-        budget_pages = max(int(opts.budget_bytes // max(n_virtual, 1) // per_page) - 1 - unlit,
+        budget_pages = max(int(opts.budget_bytes // len(stores) // per_page) - 1 - unlit,
                            view.n_faces)       # - 1: the empty page (slot 0); unlit faces'
         #                                        reserved coarsest slots stay empty pages
         store.max_pages = budget_pages + 1 + unlit

@@ -454,6 +454,15 @@ def test_a_user_method_with_a_layer_virtual_maps_cannot_build_is_refused():
                         layers={"moments": lambda scene, smap: smap.depth}, virtual=True)
 
 
+@pytest.mark.parametrize("value", ["false", 1, None])
+def test_virtual_per_tap_must_be_a_bool(value):
+    """A string "false" would otherwise read as true: the record names the field."""
+    from mi_shadowmap.filters.hard import hard
+    from mi_shadowmap.methods import MethodError, register_method
+    with pytest.raises(MethodError, match=r"virtual_per_tap must be True or False, got"):
+        register_method("my_per_tap", hard, virtual=True, virtual_per_tap=value)
+
+
 def test_a_user_method_reads_virtual_maps():
     """A user lookup written against ``fetch``/``texel_index`` reads virtual maps too."""
     import drjit as dr_

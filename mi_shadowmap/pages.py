@@ -791,7 +791,6 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         for i, keys in zip(stale, found):
             stores[i].last_mark = (mark_key, np.unique(keys))
     out = []
-    budget_pages = None
     for i, view in enumerate(views):
         if i not in stores:
             out.append(None)

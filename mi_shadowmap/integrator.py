@@ -81,6 +81,7 @@ screen is Mitsuba's projective integrators' job.
         self._in_render = False
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
+        self._views_memo = None     # (scene, scene state, views, labels, unshadowed)
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale = dr.opaque(mi.Float, 1.0)
         self._sensor = None
@@ -150,13 +151,31 @@ screen is Mitsuba's projective integrators' job.
         memory budget, cascades, fitting, culling, cache); sets ``views``,
         ``maps``, ``resolution``, ``stats`` and ``build_seconds``.
         """
-        views = self.check_scene(scene)   # the light views, built once per render
+        views = self._light_views(scene)   # the light views, built once per render
         self.maps = [None] * len(scene.emitters())   # no stale maps if preparing fails
         prepared = prepare_maps(scene, sensor, self.opts, views)
         self.views, self.maps = prepared.views, prepared.maps
         self.resolution, self.stats = prepared.resolution, prepared.stats
         self.build_seconds = prepared.stats.build_seconds
         return self.maps
+
+    def _light_views(self, scene) -> list:
+        """:meth:`check_scene`'s views, kept while the scene's state (the map cache's
+        key: every shape and emitter parameter, which is all a light view reads) is
+        unchanged, so a re-render builds none (about 0.2 ms a frame). Without map caching
+        they are built every render."""
+        opts = self.opts
+        state = (MAP_CACHE.scene_state(scene, MAP_CACHE.traverse(scene))
+                 if opts.uses_map and opts.cache_maps else None)
+        memo = self._views_memo
+        if state is not None and memo is not None and memo[0] is scene and memo[1] == state:
+            self._emitter_labels, self._unshadowed = list(memo[3]), list(memo[4])
+            return list(memo[2])
+        views = self.check_scene(scene)
+        self._views_memo = (None if state is None else
+                            (scene, state, list(views), list(self._emitter_labels),
+                             list(self._unshadowed)))
+        return views
 
     def check_scene(self, scene):
         """Raise ValueError naming any emitter this integrator cannot handle.

@@ -309,7 +309,7 @@ def _traverse(scene: mi.Scene, opts):
     None. One render reads it several times; it is about 0.15-0.3 ms each time."""
     if not opts.uses_map or not (opts.cache_maps or dr.is_diff_v(mi.Float)):
         return None
-    return mi.traverse(scene)
+    return MAP_CACHE.traverse(scene)
 
 
 def maps_need_gradients(scene: mi.Scene, params=None) -> bool:
@@ -395,6 +395,58 @@ def _param_bytes(value) -> bytes:
         return repr(value).encode()
 
 
+def param_digest(memo: dict, name: str, value) -> bytes:
+    """Digest of parameter ``name``'s ``value``, through ``memo`` for JIT arrays.
+
+    A value made of JIT variables (a ``mi.Float`` buffer, a transform, a point) is
+    hashed once per set of variable indices: ``memo[name]`` keeps a reference to those
+    variables (``type(value)(value)``), so their indices cannot be recycled while the
+    entry lives, and equal indices mean the same, unmodified data: ``params.update()``
+    installs new variables, and Dr.Jit copies a variable written in place while another
+    reference to it exists (ours), so the written one gets a new index. Other values
+    (Python and scalar types) are their bytes.
+    """
+    ids = (tuple(dr.detail.collect_indices(value))
+           if isinstance(value, dr.ArrayBase) or hasattr(value, "matrix") else ())
+    if not ids or not all(ids):
+        return _param_bytes(value)
+    m = memo.get(name)
+    if m is None or m[1] != ids:
+        m = memo[name] = (type(value)(value), ids,
+                          hashlib.blake2b(_param_bytes(value), digest_size=16).digest())
+    return m[2]
+
+
+class ParamWatch:
+    """Reads parameters ``names`` of a ``mi.traverse`` result ``params`` with as little
+    Python as a render's first pass can afford (it runs with cold caches after the
+    previous frame's kernel: each Python operation costs several times its isolated
+    time). :meth:`read` returns ``(token, values)``: ``token`` is the JIT variable
+    indices of the JIT-array values (one ``collect_indices`` call over all of them)
+    and the bytes of the others; equal tokens mean the same variables (while
+    references to them are held, so indices cannot be recycled) and the same scalars.
+    """
+
+    def __init__(self, params, names):
+        self.params = params
+        self.names = list(names)
+        props = [params.properties[n] for n in self.names]
+        self._getters = [(v, t, node) for v, t, node, _ in props]
+        first = self._values()
+        self.jit = [isinstance(v, dr.ArrayBase) and dr.is_jit_v(v)
+                     or hasattr(v, "matrix") and dr.is_jit_v(v.matrix) for v in first]
+
+    def _values(self) -> list:
+        get = mi.get_property
+        return [v if t is None else get(v, t, node) for v, t, node in self._getters]
+
+    def read(self) -> tuple:
+        values = self._values()
+        jit = [v for v, j in zip(values, self.jit) if j]
+        scalars = tuple(_param_bytes(v) for v, j in zip(values, self.jit) if not j)
+        return (tuple(dr.detail.collect_indices(jit)), scalars), values
+
+
 def view_fingerprint(view) -> tuple:
     """A hashable summary of every field of a :class:`LightView` (transforms by value)."""
     def fp(v):
@@ -444,9 +496,9 @@ class MapCache:
       which a Python plugin cannot observe, and JIT variable indices are
       recycled, so the values themselves are hashed. Camera, film, BSDF and texture
       parameters are not part of it, so changing them keeps the maps.
-      Large buffers are hashed once per JIT variable (see
-      :meth:`scene_state`), so an unchanged 63k-triangle mesh costs
-      well under a millisecond per render.
+      JIT arrays are hashed once per JIT variable (:func:`param_digest`), so an
+      unchanged scene costs a read of its parameters' variable indices per render
+      (and ``mi.traverse(scene)`` is kept per scene: :meth:`traverse`).
     * the *light view* is :func:`view_fingerprint` of the emitter's
       :class:`~mi_shadowmap.light_views.LightView` (its class, transform,
       extents, ...), so anything that moves a frustum (a light, a directional
@@ -466,48 +518,58 @@ class MapCache:
         self.max_bytes = max_bytes
         self.max_scenes = max_scenes
         self._scenes = collections.OrderedDict()   # id(scene) -> [scene, state, {key: entry}]
-        self._memo = collections.OrderedDict()     # id(scene) -> (scene, {param: (array, digest)})
+        # id(scene) -> [scene, {param: (held value, JIT ids, digest)}, its mi.traverse,
+        #               (ParamWatch of its shape and emitter parameters, last state)]
+        self._memo = collections.OrderedDict()
         self.hits = 0
         self.misses = 0
+
+    def _memo_slot(self, scene) -> list:
+        slot = self._memo.get(id(scene))
+        if slot is None or slot[0] is not scene:
+            slot = self._memo[id(scene)] = [scene, {}, None, None]
+        self._memo.move_to_end(id(scene))
+        while len(self._memo) > self.max_scenes:
+            self._memo.popitem(last=False)
+        return slot
+
+    def traverse(self, scene) -> mi.SceneParameters:
+        """``mi.traverse(scene)``, kept per scene (about 0.1-0.3 ms a render otherwise).
+        A kept traversal is never stale: ``SceneParameters`` holds a pointer and a type
+        per parameter and reads the object's current value on every access, so it sees
+        every ``params.update()`` made through any other traversal; a loaded scene's
+        graph (its objects and their parameters) does not change."""
+        slot = self._memo_slot(scene)
+        if slot[2] is None:
+            slot[2] = mi.traverse(scene)
+        return slot[2]
 
     def scene_state(self, scene, params=None) -> str:
         """Hash of the scene's shape and emitter parameters (see the class doc).
 
-        Large JIT buffers (> ``_MEMO_MIN`` entries, e.g. vertex positions)
-        are hashed once per JIT variable: the digest is memoised with a
-        reference to the array itself, so its variable index cannot be
-        recycled while the memo entry lives, and an equal index means the
-        same, unmodified data (``params.update()`` installs new variables;
-        Dr.Jit copies on write when an array is shared).
+        Each JIT-array value is hashed once per set of JIT variables
+        (:func:`param_digest`): an unchanged scene costs a read of each parameter's
+        variable indices per render.
         """
-        params = params if params is not None else mi.traverse(scene)
-        memo_slot = self._memo.get(id(scene))
-        if memo_slot is None or memo_slot[0] is not scene:
-            memo_slot = self._memo[id(scene)] = (scene, {})
-        self._memo.move_to_end(id(scene))
-        while len(self._memo) > self.max_scenes:
-            self._memo.popitem(last=False)
-        memo = memo_slot[1]
+        params = params if params is not None else self.traverse(scene)
+        slot = self._memo_slot(scene)
+        if slot[3] is None or slot[3][0].params is not params:
+            slot[3] = [ParamWatch(params, [
+                name for name in params.keys()
+                if isinstance(params.properties[name][2], (mi.Shape, mi.Emitter))]), None]
+        watch, last = slot[3]
+        token, values = watch.read()
+        if last is not None and last[0] == token:    # the same variables and values
+            return last[1]
+        memo = slot[1]
         h = hashlib.blake2b(digest_size=16)
         h.update(f"{len(scene.shapes())}/{len(scene.emitters())}".encode())
-        for name in params.keys():
-            node = params.properties[name][2]
-            if not isinstance(node, (mi.Shape, mi.Emitter)):
-                continue
-            value = params[name]
+        for name, value in zip(watch.names, values):
             h.update(name.encode())
-            index = getattr(value, "index", 0) if isinstance(value, dr.ArrayBase) else 0
-            if index and dr.width(value) > _MEMO_MIN:
-                m = memo.get(name)
-                if m is None or m[0].index != index:
-                    # type(value)(value): our own reference to the variable (``value``
-                    # views the shape's member, whose index changes on update).
-                    m = memo[name] = (type(value)(value),
-                                      hashlib.blake2b(_param_bytes(value)).digest())
-                h.update(m[1])
-            else:
-                h.update(_param_bytes(value))
-        return h.hexdigest()
+            h.update(param_digest(memo, name, value))
+        # the memo holds references to every JIT value of this token (param_digest)
+        slot[3][1] = (token, h.hexdigest())
+        return slot[3][1][1]
 
     def _slot(self, scene, state):
         return scene_slot(self._scenes, scene, state, self.max_scenes)
@@ -550,7 +612,6 @@ class MapCache:
         self._memo.clear()
 
 
-_MEMO_MIN = 1024   # JIT buffers wider than this are hashed once per variable
 
 
 #: The cache of every ``shadowmap`` integrator (``MAP_CACHE.clear()`` empties it).

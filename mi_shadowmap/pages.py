@@ -203,6 +203,9 @@ class PageStore:
         # one-sided light does not), so a lookup finds it without a gather
         self.next_slot = 1 + layout.view.n_faces
         self.last_mark = None     # (camera state, margin, lod_bias), marked page keys
+        # the last render's (last_mark, budget, version, needed keys, their slots, level
+        # histogram, pages degraded): a render with the same three reuses the rest
+        self.settled = None
         self.max_pages = 1 << 62      # the memory budget's pages (set per render)
 
     @property
@@ -257,11 +260,6 @@ class PageStore:
         pos = np.clip(np.searchsorted(k, keys), 0, len(k) - 1)
         present = k[pos] == keys
         return present, np.where(present, sl[pos], -1)
-
-    def touch(self, keys: np.ndarray) -> None:
-        """Mark ``keys`` (present ones) used in this frame (for eviction)."""
-        present, slot = self.lookup(keys)
-        self.slot_frame[slot[present]] = self.frame
 
     def evict(self, keep: np.ndarray, n: int) -> int:
         """Free up to ``n`` slots of pages not in ``keep`` and not of the coarsest level
@@ -706,28 +704,65 @@ def _dedupe_many(groups: list, bits: int = 14) -> list:
     dr.eval(*lost)
     found = []
     for t, (k, _), lo in zip(tables, flat, lost):
-        t = t.numpy()
-        found.append(np.concatenate([t[t != np.uint64(_NO_KEY)], k.numpy()[lo.numpy()]]))
+        t, lo = t.numpy(), lo.numpy()
+        t = t[t != np.uint64(_NO_KEY)]
+        found.append(np.concatenate([t, k.numpy()[lo]]) if lo.any() else t)
     per = [len(keys) for keys, _ in groups]
     starts = np.cumsum([0] + per)
     return [np.concatenate(found[a:b]) if b > a else np.zeros(0, np.uint64)
             for a, b in zip(starts[:-1], starts[1:])]
 
 
-def camera_state(sensor) -> bytes:
-    """A digest of everything about ``sensor`` that moves what the camera sees (its
-    ``mi.traverse`` parameters: ``to_world``, field of view, ...; the film's crop): a
-    render with the same camera state marks the same pages, so the mark pass is
-    skipped (a still camera re-rendering, e.g. more spp or another seed)."""
-    from .map_manager import _param_bytes
-    h = hashlib.blake2b(digest_size=16)
-    params = mi.traverse(sensor)
-    for k in sorted(params.keys()):
-        h.update(k.encode())
-        h.update(_param_bytes(params[k]))
+class CameraState:
+    """What :func:`camera_state` returns: equal to another exactly when every camera
+    parameter is the same JIT variable (or, for a scalar one, the same value). It holds
+    references to those variables, so their indices cannot be recycled while it lives
+    (a page store keeps its marks' state), and a parameter written in place gets a new
+    variable (Dr.Jit copies on write while another reference exists). A camera set
+    back to earlier values through new variables compares unequal: the mark pass runs
+    again, which is never wrong."""
+
+    __slots__ = ("token", "refs")
+
+    def __init__(self, token: tuple, refs: list):
+        self.token, self.refs = token, refs
+
+    def __eq__(self, other):
+        return isinstance(other, CameraState) and self.token == other.token
+
+    def __hash__(self):
+        return hash(self.token)
+
+
+def camera_state(sensor) -> CameraState:
+    """Everything about ``sensor`` that moves what the camera sees (its
+    ``mi.traverse`` parameters: ``to_world``, field of view, ...; the film's crop), as a
+    :class:`CameraState`: a render with the same camera state marks the same pages, so
+    the mark pass is skipped (a still camera re-rendering, e.g. more spp or another
+    seed). Costs a read of each parameter's variable indices (the traversal is kept per
+    sensor)."""
+    from .map_manager import ParamWatch
+    slot = _CAMERAS.get(id(sensor))
+    if slot is None or slot[0] is not sensor:
+        params = mi.traverse(sensor)
+        slot = _CAMERAS[id(sensor)] = [sensor, ParamWatch(params, sorted(params.keys())),
+                                       None]
+    _CAMERAS.move_to_end(id(sensor))
+    while len(_CAMERAS) > 8:
+        _CAMERAS.popitem(last=False)
+    _, watch, last = slot
+    token, values = watch.read()
     film = sensor.film()
-    h.update(repr((tuple(film.crop_size()), tuple(film.crop_offset()))).encode())
-    return h.digest()
+    token += (tuple(film.crop_size()), tuple(film.crop_offset()))
+    if last is None or last.token != token:
+        last = slot[2] = CameraState(token, [type(v)(v) for v, j in zip(values, watch.jit)
+                                             if j])
+    return last
+
+
+#: Per sensor (by ``id``, holding it): ``[sensor, ParamWatch of its parameters, last
+#: CameraState]``.
+_CAMERAS = collections.OrderedDict()
 
 
 # ----------------------------------------------------------------------- cache
@@ -736,7 +771,8 @@ class PageCache:
 
     def __init__(self, max_scenes: int = 4):
         self.max_scenes = max_scenes
-        self._scenes = collections.OrderedDict()   # id(scene) -> [scene, state, {key: store}]
+        # id(scene) -> [scene, state, {key: store, ("layout", ...): layout}]
+        self._scenes = collections.OrderedDict()
 
     def store(self, scene, state, key, make):
         from .map_manager import scene_slot
@@ -745,8 +781,20 @@ class PageCache:
             slot[2][key] = make()
         return slot[2][key]
 
+    def layout(self, scene, state, view, fingerprint, opts) -> "VirtualLayout":
+        """:func:`layout_for`, kept with the scene's stores (``state`` None: computed)."""
+        if state is None:
+            return layout_for(view, scene, opts)
+        from .map_manager import scene_slot
+        slot = scene_slot(self._scenes, scene, state, self.max_scenes)
+        key = ("layout", fingerprint, opts.page_size, opts.resolution)
+        if key not in slot[2]:
+            slot[2][key] = layout_for(view, scene, opts)
+        return slot[2][key]
+
     def clear(self):
         self._scenes.clear()
+        _CAMERAS.clear()
 
 
 #: The page cache of every ``shadowmap`` integrator (``PAGE_CACHE.clear()`` empties it).
@@ -772,8 +820,9 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     for i, view in enumerate(views):
         if view is None or not getattr(view, "supports_virtual", False):
             continue
-        layout = layout_for(view, scene, opts)
-        key = (view_fingerprint(view), layout.res0, layout.page_size, layer_names)
+        fingerprint = view_fingerprint(view)
+        layout = PAGE_CACHE.layout(scene, state, view, fingerprint, opts)
+        key = (fingerprint, layout.res0, layout.page_size, layer_names)
         store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))
                  if state is not None else PageStore(layout, layer_names))
         store.frame += 1
@@ -797,38 +846,53 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             continue
         store = stores[i]
         layout = store.layout
-        marked = store.last_mark[1] if cam is not None else np.zeros(0, np.uint64)
-        if store.lit_faces is None:
-            store.lit_faces = _lit_faces(view)
-        coarse = np.array([page_key(f, layout.coarsest, 0, 0) for f in store.lit_faces],
-                          np.uint64).reshape(-1)
-        needed = np.unique(np.concatenate([marked, coarse]))
+        mark = store.last_mark if cam is not None else None
         # memory: the whole budget split evenly over the virtual maps
         per_page = store.texels_per_page * 4 * (1 + len(layer_names))
+        if store.lit_faces is None:
+            store.lit_faces = _lit_faces(view)
         unlit = view.n_faces - len(store.lit_faces)
         budget_pages = max(int(opts.budget_bytes // len(stores) // per_page) - 1 - unlit,
                            view.n_faces)       # - 1: the empty page (slot 0); unlit faces'
         #                                        reserved coarsest slots stay empty pages
         store.max_pages = budget_pages + 1 + unlit
-        needed, degraded = _fit_budget(needed, budget_pages, layout)
+        settled = store.settled
+        if (settled is not None and settled[0] is mark and settled[1] == budget_pages
+                and settled[2] == store.version):
+            # the same marks, budget and pages as the last render (a still camera): every
+            # needed page is built; only their last use is recorded
+            needed, slots, hist, degraded = settled[3:]
+            new = needed[:0]
+            dt = 0.0
+            store.slot_frame[slots] = store.frame
+        else:
+            marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
+            coarse = np.array([page_key(f, layout.coarsest, 0, 0) for f in store.lit_faces],
+                              np.uint64).reshape(-1)
+            needed = np.unique(np.concatenate([marked, coarse]))
+            needed, degraded = _fit_budget(needed, budget_pages, layout)
+            have, _ = store.lookup(needed)
+            new = needed[~have]
+            over = store.n_pages + len(new) - budget_pages
+            if over > 0:
+                store.evict(needed, over)
+            t0 = time.perf_counter()
+            stats.texels_built += store.build(scene, new)
+            store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page
+            dr.sync_thread()
+            dt = time.perf_counter() - t0
+            present, slots = store.lookup(needed)    # (all of them, once built)
+            slots = slots[present]
+            store.slot_frame[slots] = store.frame
+            levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
+            hist = np.bincount(levels, minlength=layout.n_levels)
+            store.settled = (mark, budget_pages, store.version, needed, slots, hist,
+                             degraded)
         if degraded:
             warnings.warn(f"shadowmap: emitter '{view.label}': memory_budget = "
                           f"{opts.memory_budget:g} MiB holds {budget_pages} pages of "
                           f"{layout.page_size}^2; {degraded} marked pages were replaced by "
                           "coarser ones", RuntimeWarning, stacklevel=3)
-        have, _ = store.lookup(needed)
-        new = needed[~have]
-        over = store.n_pages + len(new) - budget_pages
-        if over > 0:
-            store.evict(needed, over)
-        t0 = time.perf_counter()
-        stats.texels_built += store.build(scene, new)
-        store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page, exists
-        dr.sync_thread()
-        dt = time.perf_counter() - t0
-        store.touch(needed)
-        levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
-        hist = np.bincount(levels, minlength=layout.n_levels)
         stats.pages_marked += int(len(needed))
         stats.pages_built += int(len(new))
         stats.pages_reused += int(len(needed) - len(new))

@@ -169,7 +169,7 @@ def test_cache_memory_is_bounded():
 
 
 def test_large_mesh_edits_are_seen_through_the_memo(builds):
-    """Buffers > 1024 entries are hashed once per JIT variable; every update
+    """JIT buffers are hashed once per JIT variable; every update
     (even back to an earlier value) must still rebuild."""
     path = [p for p in SCENE_FILES if p.stem == "directional_mesh"][0]
     scene = mi.load_file(str(path), width=16, height=16)

@@ -256,6 +256,56 @@ def test_geometry_change_drops_the_pages():
     assert misclassified(vis, ref) <= 0.02
 
 
+def test_still_camera_reuses_its_marks_and_a_moved_one_marks_again(monkeypatch):
+    """A re-render with the same camera skips the mark pass and every page step (the
+    same image); a camera move marks again, and so does moving it back through new
+    variables (a camera state compares JIT variables, not values): the image is then
+    the first one again."""
+    pages.PAGE_CACHE.clear()
+    traced = []
+    real = pages.camera_hits
+    monkeypatch.setattr(pages, "camera_hits", lambda *a, **k: traced.append(1) or real(*a, **k))
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
+    integ = shadowmap(method="pcf", virtual=True)
+    first = vis_of(scene, integ, spp=1)
+    assert len(traced) == 1
+    assert np.array_equal(vis_of(scene, integ, spp=1), first)
+    assert len(traced) == 1 and integ.stats["pages_built"] == 0
+    assert integ.stats["pages_marked"] == integ.stats["pages_reused"] > 0
+    params = mi.traverse(scene)
+    start = T(params["sensor.to_world"].matrix.numpy()[..., 0])
+    params["sensor.to_world"] = T().translate([0.3, 0.0, 0.0]) @ start
+    params.update()
+    moved = vis_of(scene, integ, spp=1)
+    assert len(traced) == 2 and not np.array_equal(moved, first)
+    params["sensor.to_world"] = start
+    params.update()
+    assert np.array_equal(vis_of(scene, integ, spp=1), first)
+    assert len(traced) == 3
+
+
+def test_light_views_follow_an_emitter_edit():
+    """The integrator keeps its light views while the scene's state is unchanged; a
+    light moved through ``params.update()`` gets new views, and its render equals a
+    new integrator's."""
+    pages.PAGE_CACHE.clear()
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
+    integ = shadowmap(method="hard", virtual=True)
+    before = vis_of(scene, integ, spp=1)
+    views = integ.views
+    vis_of(scene, integ, spp=1)
+    assert all(a is b for a, b in zip(integ.views, views))
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world") and "spot" in k)
+    params[key] = T().translate([0.4, 0.0, 0.2]) @ T(params[key].matrix.numpy()[..., 0])
+    params.update()
+    after = vis_of(scene, integ, spp=1)
+    assert not any(a is b for a, b in zip(integ.views, views))
+    assert not np.array_equal(before, after)
+    assert np.array_equal(after, vis_of(scene, shadowmap(method="hard", virtual=True),
+                                        spp=1))
+
+
 def test_cache_off_builds_every_frame():
     scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
     integ = shadowmap(method="hard", virtual=True, cache_maps=False)

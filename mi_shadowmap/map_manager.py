@@ -395,16 +395,23 @@ def _param_bytes(value) -> bytes:
         return repr(value).encode()
 
 
+def hold(value):
+    """A new reference to the JIT variables of ``value`` (detached: holding it keeps no
+    AD graph alive). While it lives their indices cannot be recycled, and Dr.Jit copies
+    a variable written in place while a second reference exists, so the writer's value
+    gets a new index."""
+    return type(value)(dr.detach(value))
+
+
 def param_digest(memo: dict, name: str, value) -> bytes:
     """Digest of parameter ``name``'s ``value``, through ``memo`` for JIT arrays.
 
     A value made of JIT variables (a ``mi.Float`` buffer, a transform, a point) is
     hashed once per set of variable indices: ``memo[name]`` keeps a reference to those
-    variables (``type(value)(value)``), so their indices cannot be recycled while the
-    entry lives, and equal indices mean the same, unmodified data: ``params.update()``
-    installs new variables, and Dr.Jit copies a variable written in place while another
-    reference to it exists (ours), so the written one gets a new index. Other values
-    (Python and scalar types) are their bytes.
+    variables (:func:`hold`), so their indices cannot be recycled while the entry lives,
+    and equal indices mean the same, unmodified data: ``params.update()`` installs new
+    variables, and a variable written in place gets a new index. Other values (Python
+    and scalar types) are their bytes.
     """
     ids = (tuple(dr.detail.collect_indices(value))
            if isinstance(value, dr.ArrayBase) or hasattr(value, "matrix") else ())
@@ -412,7 +419,7 @@ def param_digest(memo: dict, name: str, value) -> bytes:
         return _param_bytes(value)
     m = memo.get(name)
     if m is None or m[1] != ids:
-        m = memo[name] = (type(value)(value), ids,
+        m = memo[name] = (hold(value), ids,
                           hashlib.blake2b(_param_bytes(value), digest_size=16).digest())
     return m[2]
 

@@ -477,7 +477,11 @@ class VirtualShadowMap:
         w = (dr.abs(du_x) + dr.abs(du_y)) * float(lay.res0)
         w_eff = dr.maximum(dr.minimum(w.x, w.y), dr.maximum(w.x, w.y) * (1.0 / ANISO))
         w_eff = dr.select(dr.isfinite(w_eff) & (w_eff > 1.0), w_eff, 1.0)
-        level = mi.Int32(dr.floor(dr.log2(w_eff) + self.lod_bias))
+        # floor(log2(w) + lod_bias) is the binary exponent of w 2^lod_bias, a normal float
+        # or +inf (w >= 1, |lod_bias| <= 8): read from its bits, not through a log2
+        # polynomial (about 1 ns of a lookup's 6-13)
+        scaled = w_eff * float(2.0 ** self.lod_bias)
+        level = mi.Int32(dr.reinterpret_array(mi.UInt32, scaled) >> 23) - 127
         return mi.UInt32(dr.clip(level, 0, lay.coarsest))
 
     def _block_entry(self, face, level, bx, by, active):

@@ -450,7 +450,8 @@ class ParamWatch:
     def read(self) -> tuple:
         values = self._values()
         jit = [v for v, j in zip(values, self.jit) if j]
-        scalars = tuple(_param_bytes(v) for v, j in zip(values, self.jit) if not j)
+        scalars = tuple(v if type(v) in (bool, int, float, str) else _param_bytes(v)
+                        for v, j in zip(values, self.jit) if not j)
         return (tuple(dr.detail.collect_indices(jit)), scalars), values
 
 

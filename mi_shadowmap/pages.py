@@ -776,6 +776,7 @@ class PageCache:
         self.max_scenes = max_scenes
         # id(scene) -> [scene, state, {key: store, ("layout", ...): layout}]
         self._scenes = collections.OrderedDict()
+        self._fingerprints = collections.OrderedDict()   # id(view) -> (view, fingerprint)
 
     def store(self, scene, state, key, make):
         from .map_manager import scene_slot
@@ -783,6 +784,18 @@ class PageCache:
         if key not in slot[2]:
             slot[2][key] = make()
         return slot[2][key]
+
+    def fingerprint(self, view) -> tuple:
+        """:func:`~mi_shadowmap.map_manager.view_fingerprint` of ``view``, kept per view
+        object (views are frozen, and the integrator keeps its views while the scene's
+        state is unchanged)."""
+        hit = self._fingerprints.get(id(view))
+        if hit is None or hit[0] is not view:
+            from .map_manager import view_fingerprint
+            hit = self._fingerprints[id(view)] = (view, view_fingerprint(view))
+            while len(self._fingerprints) > 64:
+                self._fingerprints.popitem(last=False)
+        return hit[1]
 
     def layout(self, scene, state, view, fingerprint, opts) -> "VirtualLayout":
         """:func:`layout_for`, kept with the scene's stores (``state`` None: computed)."""
@@ -797,6 +810,7 @@ class PageCache:
 
     def clear(self):
         self._scenes.clear()
+        self._fingerprints.clear()
         _CAMERAS.clear()
 
 
@@ -812,7 +826,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     here). Updates ``stats`` (a :class:`~mi_shadowmap.map_manager.MapStats`): pages marked,
     built, reused, the level histogram of the marked pages and ``texels_built``.
     """
-    from .map_manager import MAP_CACHE, view_fingerprint
+    from .map_manager import MAP_CACHE
     layer_names = tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
     state = MAP_CACHE.scene_state(scene, params) if opts.cache_maps else None
     cam = camera_state(sensor) if sensor is not None else None
@@ -823,7 +837,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     for i, view in enumerate(views):
         if view is None or not getattr(view, "supports_virtual", False):
             continue
-        fingerprint = view_fingerprint(view)
+        fingerprint = PAGE_CACHE.fingerprint(view)
         layout = PAGE_CACHE.layout(scene, state, view, fingerprint, opts)
         key = (fingerprint, layout.res0, layout.page_size, layer_names)
         store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))

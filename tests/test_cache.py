@@ -188,6 +188,31 @@ def test_large_mesh_edits_are_seen_through_the_memo(builds):
         assert len(builds) == 2 + k
 
 
+def test_scene_state_sees_every_edit_and_hashes_nothing_when_unchanged(monkeypatch):
+    """The scene state compares JIT variables before hashing: an unchanged scene hashes
+    no parameter; an edit through ``params.update()`` and a write in place into a buffer
+    read from a traversal (Dr.Jit gives the shape's member a new variable) change it."""
+    cache = MapCache()
+    scene = mi.load_dict(default_scene(width=8, height=8))
+    s0 = cache.scene_state(scene)
+    digests = []
+    real = mm_mod.param_digest
+    monkeypatch.setattr(mm_mod, "param_digest", lambda *a: digests.append(a[1]) or real(*a))
+    assert cache.scene_state(scene) == s0 and digests == []
+    params = mi.traverse(scene)
+    original = mi.Float(params["box.vertex_positions"])
+    params["box.vertex_positions"] = original * 1.5
+    params.update()
+    s1 = cache.scene_state(scene)
+    assert s1 != s0 and digests
+    v = params["box.vertex_positions"]              # the member itself, written in place
+    dr.scatter(v, mi.Float(7.0), mi.UInt32(0))
+    s2 = cache.scene_state(scene)
+    assert s2 not in (s0, s1)
+    digests.clear()
+    assert cache.scene_state(scene) == s2 and digests == []
+
+
 # ------------------------------------------------------------ cube-face culling
 @pytest.mark.parametrize("method", MAP_READY)
 def test_cull_faces_builds_fewer_faces_with_identical_results(builds, method):

@@ -512,8 +512,10 @@ class MapCache:
       extents, ...), so anything that moves a frustum (a light, a directional
       light's fit to the scene bounds) also misses the cache.
 
-    Geometry changed by other means than ``params.update()`` (e.g. writing
-    into a buffer in place) is not seen.
+    A buffer written in place (``dr.scatter`` into a value read from a traversal) is
+    seen too: Dr.Jit gives the written variable a new index while the memo holds a
+    reference to the old one (``tests/test_cache.py``). Mitsuba itself only rebuilds
+    its acceleration structure on ``params.update()``.
 
     **Memory.** The cache holds a reference to each scene it has maps of
     (so a freed scene's ``id`` can never alias a live one), at most

@@ -165,8 +165,7 @@ screen is Mitsuba's projective integrators' job.
         unchanged, so a re-render builds none (about 0.2 ms a frame). Without map caching
         they are built every render."""
         opts = self.opts
-        state = (MAP_CACHE.scene_state(scene, MAP_CACHE.traverse(scene))
-                 if opts.uses_map and opts.cache_maps else None)
+        state = MAP_CACHE.scene_state(scene) if opts.uses_map and opts.cache_maps else None
         memo = self._views_memo
         if state is not None and memo is not None and memo[0] is scene and memo[1] == state:
             self._emitter_labels, self._unshadowed = list(memo[3]), list(memo[4])

@@ -69,7 +69,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import hashlib
 import math
 import time
 import warnings

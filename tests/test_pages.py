@@ -484,6 +484,44 @@ def test_page_table_resolves_every_built_page(light):
     np.testing.assert_array_equal(vmap.dense.numpy()[e.numpy()], rec["slot"])
 
 
+@pytest.mark.parametrize("light", ["spot", "point", "directional"])
+def test_local_taps_continue_off_the_face_as_in_float64(light):
+    """A bound lookup's taps (local texel coordinates, on the face or up to 3 texels off
+    it, at levels of 2^3 to 2^20 texels and anywhere on the face): the same texel as
+    the wrapped view's float64 continuation of the global coordinates (the neighbouring
+    cube face, or off the map of a spot or directional light), which
+    :class:`~mi_shadowmap.light_views.local.LocalView` only runs for taps off the face."""
+    from mi_shadowmap.light_views import make_light_view
+    from mi_shadowmap.light_views.local import LocalView
+    scene = mi.load_dict(default_scene(width=16, height=16, spp=1, light=light))
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    rng = np.random.default_rng(11)
+    n = 8192
+    res = 1 << rng.integers(3, 21, n)
+    face = rng.integers(0, view.n_faces, n)
+    # the bound block's first texel: anywhere, mostly near an edge of the face
+    ox = np.where(rng.random(n) < 0.5, rng.integers(-2, 3, n), res - rng.integers(0, 40, n))
+    oy = np.where(rng.random(n) < 0.5, rng.integers(0, 1 << 20, n) % res,
+                  res - rng.integers(0, 40, n))
+    origin = mi.Point2i(mi.Int32(ox), mi.Int32(oy))
+    local = LocalView(view, mi.UInt32(face), mi.Int32(res), origin)
+    xy = mi.Point2f(mi.Float(rng.uniform(-4.0, 68.0, n)), mi.Float(rng.uniform(-4.0, 68.0, n)))
+    got = local.tap_texel(mi.UInt32(face), xy, mi.Int32(res))
+    xy64 = mi.Point2d(xy) + mi.Point2d(origin)
+    f, i, j, inside = view.face_texel_f64(mi.UInt32(face), xy64, mi.Int32(res))
+    want = (f, i - origin.x, j - origin.y, inside)
+    g = [np.broadcast_to(np.asarray(a.numpy()), (n,)).astype(np.int64) for a in got]
+    w = [np.broadcast_to(np.asarray(a.numpy()), (n,)).astype(np.int64) for a in want]
+    ins = w[3].astype(bool)
+    gx, gy = ox + np.floor(xy.x.numpy()), oy + np.floor(xy.y.numpy())
+    off = (gx < 0) | (gx >= res) | (gy < 0) | (gy >= res)
+    print(f"{light}: {off.sum()} of {n} taps off the face, {np.sum(off & ins)} continued "
+          "on another face")
+    assert off.sum() > 1000 and np.all(g[3] == w[3])
+    for a, b in zip(g[:3], w[:3]):
+        assert np.all(a[ins] == b[ins])
+
+
 @pytest.mark.parametrize("light", ["spot", "point", "area"])
 def test_reading_slots_per_tap_or_per_block_gives_the_same_image(light):
     """``virtual_per_tap`` is a speed hint only: ``hard`` (per-tap slot reads) and the

@@ -131,11 +131,26 @@ class LocalView:
         minus ``origin``); off the face, the neighbouring face's texel (cube maps) or
         ``inside`` False, as the wrapped view's :meth:`face_texel_f64` says; with
         ``cross_seams`` False clamped to the face."""
-        xy64 = mi.Point2d(xy_texel) + mi.Point2d(self.origin)
+        # floor(xy + origin) = floor(xy) + origin: the global texel in integers (the
+        # local coordinates are exact in float32); only taps off the face (a symbolic
+        # dr.if_stmt: packets with one) go through the wrapped view's float64 continuation
+        ij = mi.Point2i(dr.floor(mi.Point2f(xy_texel))) + self.origin
         if not cross_seams:
-            ij = dr.clip(mi.Point2i(dr.floor(xy64)), 0, self.res_level - 1)
+            ij = dr.clip(ij, 0, self.res_level - 1)
             return mi.UInt32(face), ij.x - self.origin.x, ij.y - self.origin.y, mi.Bool(True)
-        f2, i, j, inside = self.inner.face_texel_f64(face, xy64, self.res_level)
+        res = self.res_level
+        in_face = (ij.x >= 0) & (ij.x < res) & (ij.y >= 0) & (ij.y < res)
+
+        def off_face(face, xy, i, j):
+            xy64 = mi.Point2d(xy) + mi.Point2d(self.origin)
+            f2, i2, j2, inside = self.inner.face_texel_f64(face, xy64, res)
+            return mi.UInt32(f2), mi.Int32(i2), mi.Int32(j2), mi.Bool(inside)
+
+        def on_face(face, xy, i, j):
+            return face, i, j, mi.Bool(True)
+
+        f2, i, j, inside = dr.if_stmt((mi.UInt32(face), mi.Point2f(xy_texel), ij.x, ij.y),
+                                      ~in_face, off_face, on_face)
         return f2, i - self.origin.x, j - self.origin.y, inside
 
     def describe(self) -> str:

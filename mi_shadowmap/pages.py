@@ -326,9 +326,7 @@ class PageStore:
             dr.scatter(self.pools["second_depth"], sd, dst)
         # one kernel: the depths (kept: the page minima read them) and the scatters
         dr.eval(depth)
-        pages_depth = depth.numpy().reshape(n_new, tpp)
-        self.page_min[slot_ids] = np.where(np.isfinite(pages_depth), pages_depth,
-                                           np.inf).min(axis=1)
+        self.page_min[slot_ids] = page_minima(depth, tpp)
         self.page_face[slot_ids] = (keys >> np.uint64(59)).astype(np.int64)
         return n_new * tpp * (1 + ("second_depth" in self.pools))
 
@@ -926,6 +924,20 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(len(new))},
                                     opts.lod_bias))
     return out
+
+
+def page_minima(depth, tpp: int, on_host: bool | None = None) -> np.ndarray:
+    """Nearest finite depth of each page of ``depth`` (evaluated, ``tpp`` texels a page;
+    +inf for a page with none), as numpy. ``on_host`` (default: on the CPU backend, which
+    reads the depths in place): numpy; else a block reduction on the device, so that a
+    GPU copies one value a page instead of the pages."""
+    if on_host is None:
+        on_host = dr.backend_v(depth) == dr.JitBackend.LLVM
+    if on_host:
+        d = depth.numpy().reshape(-1, tpp)
+        return np.where(np.isfinite(d), d, np.inf).min(axis=1)
+    finite = dr.select(dr.isfinite(depth), depth, dr.inf)
+    return dr.block_reduce(dr.ReduceOp.Min, finite, tpp).numpy()
 
 
 def _lit_faces(view) -> list:

@@ -344,6 +344,23 @@ def test_a_small_budget_degrades_to_coarser_pages_never_lit():
     assert lit_small <= lit_coarse + 0.002
 
 
+def test_page_minima_on_the_host_and_on_the_device_agree():
+    """Each page's nearest finite depth (+inf for an empty page), as the CPU backend
+    computes it in numpy and a GPU would on the device: the same values."""
+    rng = np.random.default_rng(3)
+    tpp = 64
+    d = rng.uniform(0.5, 1e5, 7 * tpp).astype(np.float32)
+    d[rng.random(d.size) < 0.3] = np.inf
+    d[2 * tpp:3 * tpp] = np.inf                 # an empty page
+    depth = mi.Float(d)
+    dr.eval(depth)
+    host = pages.page_minima(depth, tpp, on_host=True)
+    device = pages.page_minima(depth, tpp, on_host=False)
+    want = np.where(np.isfinite(d), d, np.inf).reshape(7, tpp).min(axis=1)
+    assert np.array_equal(host, want) and np.array_equal(device, want)
+    assert np.isinf(host[2])
+
+
 def test_camera_moves_under_a_budget_evict_and_reuse_slots(monkeypatch):
     """A pool that holds one view's pages and a bit: moving the camera away evicts the
     first view's pages (least recently used) into free slots, and moving back builds

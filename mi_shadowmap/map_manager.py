@@ -622,7 +622,5 @@ class MapCache:
         self._memo.clear()
 
 
-
-
 #: The cache of every ``shadowmap`` integrator (``MAP_CACHE.clear()`` empties it).
 MAP_CACHE = MapCache()

@@ -177,7 +177,8 @@ def layout_for(view, scene, opts) -> VirtualLayout:
 class PageStore:
     """The physical pages of one emitter's virtual map, kept across renders.
 
-    ``slots``: page key -> slot; the pool of each layer holds ``capacity``
+    ``slots``: page key -> slot (a view of the built pages, kept as two arrays); the
+    pool of each layer holds ``capacity``
     pages of ``page_size^2`` float32 texels; ``slot_frame``: the frame each slot was
     last read in (least recently used pages are evicted first).
     """
@@ -185,8 +186,7 @@ class PageStore:
     def __init__(self, layout: VirtualLayout, layers: tuple):
         self.layout = layout
         self.layers = tuple(layers)
-        self.slots: dict = {}
-        # the same pages as two arrays (key, slot), in insertion order (for _index)
+        # the built pages: key and slot, in the order they were built
         self._keys = np.zeros(0, np.uint64)
         self._slot_of = np.zeros(0, np.int64)
         self.free: list = []
@@ -213,7 +213,12 @@ class PageStore:
 
     @property
     def n_pages(self) -> int:
-        return len(self.slots)
+        return len(self._keys)
+
+    @property
+    def slots(self) -> dict:
+        """Page key -> slot of every built page."""
+        return dict(zip(self._keys.tolist(), self._slot_of.tolist()))
 
     @property
     def texels_per_page(self) -> int:
@@ -270,8 +275,7 @@ class PageStore:
         cand = ~np.isin(k, keep) & ~coarse
         order = np.argsort(self.slot_frame[sl[cand]], kind="stable")[:n]
         victims = k[cand][order]
-        for key in victims.tolist():
-            self.free.append(self.slots.pop(key))
+        self.free.extend(sl[cand][order].tolist())
         kept = ~np.isin(self._keys, victims)
         self._keys, self._slot_of = self._keys[kept], self._slot_of[kept]
         self.version += 1
@@ -294,10 +298,6 @@ class PageStore:
         slot_ids = np.zeros(n_new, np.uint32)
         slot_ids[coarse] = (keys[coarse] >> np.uint64(59)).astype(np.uint32) + 1
         slot_ids[~coarse] = np.array(reuse + fresh, dtype=np.uint32)
-        n_before = len(self.slots)
-        self.slots.update(zip(keys.tolist(), slot_ids.tolist()))
-        if len(self.slots) != n_before + n_new:
-            raise RuntimeError("shadowmap: PageStore.build() got a page that is built")
         self._keys = np.concatenate([self._keys, keys.astype(np.uint64)])
         self._slot_of = np.concatenate([self._slot_of, slot_ids.astype(np.int64)])
         self.version += 1

@@ -131,8 +131,9 @@ class Method:
     * ``virtual`` -- the lookup reads the map only through ``smap.fetch``,
       ``smap.texel_index``, ``smap.depth``/``smap.extra`` gathers at those indices and
       ``smap.view``, with ``smap.resolution`` possibly a per-lane ``mi.Int32``, and its
-      layers are among :data:`VIRTUAL_LAYERS`: it can read virtual
-      maps (``virtual=true``, :mod:`mi_shadowmap.pages`);
+      layers are among :data:`VIRTUAL_LAYERS` (with ``layers_for``: the layers it
+      returns for options with ``virtual`` true, checked when options are parsed): it
+      can read virtual maps (``virtual=true``, :mod:`mi_shadowmap.pages`);
     * ``virtual_margin`` -- ``fn(opts) -> texels``: how far from the receiver's texel
       the lookup's taps reach (its kernel's half-width), so that the mark pass of
       virtual maps builds the pages they read (default 2: a nearest-texel lookup,
@@ -213,11 +214,12 @@ def _check_record(m: Method) -> None:
             isinstance(c, (int, float)) and c >= 0 for c in m.layer_cost.values()):
         raise MethodError(f"register_method('{m.name}'): layer_cost must map names of its "
                           "layers to numbers >= 0 (float32 arrays of a face's size)")
-    if m.virtual and set(m.layers) - set(VIRTUAL_LAYERS):
+    if m.virtual and m.layers_for is None and set(m.layers) - set(VIRTUAL_LAYERS):
         raise MethodError(f"register_method('{m.name}'): virtual=True needs layers that "
                           f"virtual maps build ({', '.join(VIRTUAL_LAYERS)}); its layers "
                           f"{', '.join(sorted(set(m.layers) - set(VIRTUAL_LAYERS)))} are "
-                          "built on full maps only (set virtual=False)")
+                          "built on full maps only (set virtual=False, or give layers_for "
+                          "returning only those layers when opts.virtual is true)")
     if not isinstance(m.virtual_per_tap, bool):
         raise MethodError(f"register_method('{m.name}'): virtual_per_tap must be True or "
                           f"False, got {m.virtual_per_tap!r}")

@@ -78,7 +78,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Virtual shadow maps (after UE5; mi_shadowmap.pages): each face is a huge map "
          "split into pages; a mark pass (one camera ray per pixel) builds only the pages "
          "visible points read, at the mip level matching their pixel footprint, and keeps "
-         "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth. "
+         "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth, mdsm. "
          "Environment regions keep full maps. false: one full map per face. Default: "
          "automatic -- true for those methods (and user methods registered with "
          "virtual=True) unless a full-map property is set (resolution > 0, cascades > 1, "
@@ -507,6 +507,13 @@ def _check_virtual(record, values: dict, given) -> None:
         raise OptionError(f"shadowmap: property 'virtual' = true is not supported by method "
                           f"'{record.name}' (it reads full maps); methods with virtual maps: "
                           f"{ok}; or set virtual=false")
+    extra = set(record.layer_names(Options(values, given, record))) - set(
+        _methods.VIRTUAL_LAYERS)
+    if extra:
+        raise OptionError(f"shadowmap: method '{record.name}' with these options reads "
+                          f"layers built on full maps only ({', '.join(sorted(extra))}); "
+                          f"virtual maps build {', '.join(_methods.VIRTUAL_LAYERS)}; "
+                          "set virtual=false")
     page = values["page_size"]
     res = values.get("resolution")
     if res is not None and (res & (res - 1) or res < page):

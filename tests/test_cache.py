@@ -19,8 +19,9 @@ MAP_READY = list(MAP_METHODS)
 
 
 def layer_names(method):
-    """The layers a render of ``method`` at its defaults builds (from its record)."""
-    opts = parse_options({"method": method})
+    """The layers a render of ``method`` at its defaults with full maps of ``RES``
+    builds (from its record), as :func:`shadowmap` renders them."""
+    opts = parse_options({"method": method, "resolution": RES})
     return opts.record.layer_names(opts)
 
 

@@ -316,7 +316,7 @@ def test_prepare_maps_every_layer():
     assert len(maps) == 1 and maps[0].resolution == 32
     expected = {"depth"}
     for m in harness.map_methods():
-        opts = options.parse_options({"method": m})
+        opts = options.parse_options({"method": m, "resolution": 32})   # full maps, as built
         expected |= set(methods.get(m).layer_names(opts))
     assert set(maps[0].layers()) == expected
     with pytest.raises(OptionError, match="raytraced"):

@@ -88,9 +88,14 @@ def test_layers_are_3x3_min_and_max_and_built_only_for_mdsm():
 def test_layers_requested_only_where_read(depths, search, layers):
     """The layers a render builds depend on the options (review item 36): ``depths=1``
     and ``search=1`` read only the base depth; a 2-SM reads only the maximum."""
-    opts = parse_options({"method": "mdsm", "depths": depths, "search": search})
+    opts = parse_options({"method": "mdsm", "depths": depths, "search": search,
+                          "virtual": False})
     assert opts.record.layer_names(opts) == layers
     assert set(layers) <= set(methods.get("mdsm").layers)     # every one is an exportable layer
+    # virtual maps build none: the lookup computes them from the base depths
+    opts = parse_options({"method": "mdsm", "depths": depths, "search": search,
+                          "virtual": True})
+    assert opts.record.layer_names(opts) == ()
 
 
 @pytest.mark.parametrize("search", [1, 3, 5, 7, 9])
@@ -104,6 +109,28 @@ def test_search_neighbourhood(search):
     for layer, reduce in (("mdsm_min", np.min), ("mdsm_max", np.max)):
         got = np.asarray(neighbourhood_depth(smap, layer, mi.UInt32(0), ij, search, True))
         np.testing.assert_array_equal(got.reshape(res, res), np_window(depth, search, reduce))
+
+
+@pytest.mark.parametrize("search", [1, 3, 5, 7, 9])
+def test_search_neighbourhood_without_stored_layers(search):
+    """On a map without the min/max layers (virtual maps build none) the same extremes
+    are computed from the base depths at lookup time: exactly the stored layers' values,
+    also where the windows are clamped at the face's border."""
+    from mi_shadowmap.filters.mdsm import neighbourhood_depths
+    res = 24
+    depth = np.random.default_rng(10 + search).uniform(1, 2, (res, res)).astype(np.float32)
+    smap = hand_map(depth, res)
+    bare = ShadowMap(smap.view, res, depth=smap.depth)
+    assert not bare.extra
+    jj, ii = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
+    ij = mi.Point2i(mi.Int32(ii.ravel()), mi.Int32(jj.ravel()))
+    names = ("mdsm_min", "mdsm_max")
+    got = neighbourhood_depths(bare, names, mi.UInt32(0), ij, search, True)
+    stored = neighbourhood_depths(smap, names, mi.UInt32(0), ij, search, True)
+    for layer, reduce in (("mdsm_min", np.min), ("mdsm_max", np.max)):
+        g = np.asarray(got[layer]).reshape(res, res)
+        np.testing.assert_array_equal(g, np_window(depth, search, reduce))
+        np.testing.assert_array_equal(g, np.asarray(stored[layer]).reshape(res, res))
 
 
 def test_search_1_is_a_standard_map():

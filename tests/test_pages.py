@@ -21,7 +21,7 @@ from mi_shadowmap.scenes import default_scene
 
 from conftest import SCENES
 
-VIRTUAL_METHODS = ["hard", "pcf", "bilinear", "pcss", "second_depth"]
+VIRTUAL_METHODS = ["hard", "pcf", "bilinear", "pcss", "second_depth", "mdsm"]
 LIGHTS = ["spot", "point", "directional", "area"]
 T = mi.ScalarTransform4f
 
@@ -127,8 +127,16 @@ def test_virtual_maps_agree_with_raytracing(light, method):
     full = misclassified(vis_of(scene, shadowmap(method=method, virtual=False)), ref)
     virt = misclassified(vis_of(scene, shadowmap(method=method, virtual=True)), ref)
     print(f"{light} {method}: misclassified full {full:.3%}, virtual {virt:.3%}")
-    # virtual maps at lod_bias -0.5 are at least as dense as the automatic full map
-    assert virt <= max(1.5 * full, full + 0.004)
+    if method == "mdsm":
+        # the 2-SM's maximum lights a band about one texel wide on an edge's shadow side,
+        # so mdsm's error follows the texel's width more closely than the others': at
+        # 64^2 the automatic full map has about 5 texels a pixel across, the virtual
+        # level 1.4-2.8 (measured: point 1.10 % against 0.59 %, directional 1.00 against
+        # 0.66; at 256^2 0.24 against 0.17 and 0.22 against 0.15)
+        assert virt <= max(2.0 * full, full + 0.006)
+    else:
+        # virtual maps at lod_bias -0.5 are about as dense as the automatic full map
+        assert virt <= max(1.5 * full, full + 0.004)
 
 
 @pytest.mark.parametrize("method", ["hard", "pcf"])
@@ -592,11 +600,56 @@ def test_same_density_matches_the_full_map(light):
     assert differ <= 0.002
 
 
+@pytest.mark.parametrize("light", ["spot", "point"])
+@pytest.mark.parametrize("depths, search", [(2, 3), (3, 5)])
+def test_mdsm_same_density_matches_the_full_map(light, depths, search):
+    """Virtual maps store no multiple-depth layers: ``mdsm`` computes the stored 3 x 3
+    extremes it reads from the base depths at lookup time. At the same effective density
+    (level 0 of a 256 virtual map against the full 256^2 map with its stored layers) it
+    renders the same visibility but for float rounding, also where the windows are
+    composed (``search`` 5) and clamped at the face's border (the point light's cube)."""
+    scene = mi.load_dict(default_scene(width=64, height=64, spp=2, light=light))
+    props = dict(method="mdsm", depths=depths, search=search, resolution=256)
+    full_integ = shadowmap(virtual=False, **props)
+    full = vis_of(scene, full_integ, spp=2)
+    assert set(full_integ.maps[0].extra) >= ({"mdsm_max"} if depths == 2
+                                             else {"mdsm_max", "mdsm_min"})
+    virt_integ = shadowmap(virtual=True, lod_bias=-8.0, page_size=32, **props)
+    virt = vis_of(scene, virt_integ, spp=2)
+    assert not set(virt_integ.maps[0].extra) & {"mdsm_max", "mdsm_min"}
+    partial = float(np.mean((full > 0.01) & (full < 0.99)))
+    differ = float(np.mean(np.abs(full - virt) > 0.01))
+    print(f"{light} depths {depths} search {search}: {partial:.2%} partly lit, "
+          f"{differ:.3%} of the pixels differ")
+    assert partial > 0.01, "no pixel reads the extra depths"
+    assert differ <= 0.003
+
+
 def test_a_user_method_with_a_layer_virtual_maps_cannot_build_is_refused():
     from mi_shadowmap.methods import MethodError, register_method
     with pytest.raises(MethodError, match="virtual=True needs layers"):
         register_method("my_virtual", lambda smap, lk, opts, a: 1.0,
                         layers={"moments": lambda scene, smap: smap.depth}, virtual=True)
+
+
+def test_a_user_method_whose_options_need_a_full_map_layer_is_refused_with_virtual():
+    """A method whose ``layers_for`` decides its layers per option registers with
+    ``virtual=True``; options under which it would read a layer virtual maps cannot
+    build are refused when parsed, naming the method and the layer."""
+    from mi_shadowmap.filters.hard import hard
+    from mi_shadowmap.methods import Prop, register_method, unregister_method
+    register_method("my_layered", hard, virtual=True,
+                    properties=(Prop("fancy", "bool", False, "Read the moments layer."),),
+                    layers={"moments": lambda scene, smap: smap.depth},
+                    layers_for=lambda o: ("moments",) if o.fancy else ())
+    try:
+        assert parse_options({"method": "my_layered"}).virtual is True
+        with pytest.raises(OptionError, match=r"my_layered.*\(moments\).*virtual=false"):
+            parse_options({"method": "my_layered", "fancy": True, "virtual": True})
+        assert parse_options({"method": "my_layered", "fancy": True,
+                              "virtual": False}).virtual is False
+    finally:
+        unregister_method("my_layered")
 
 
 @pytest.mark.parametrize("value", ["false", 1, None])
@@ -679,7 +732,7 @@ def test_the_automatic_default_gives_gradient_renders_full_maps():
     ({"antialias": "always"}, False), ({"cascades": 1}, True),
     ({"memory_budget": 0.03}, False),   # cannot hold a virtual cube map's coarsest level
     ({"method": "vsm"}, False), ({"method": "evsm"}, False), ({"method": "msm"}, False),
-    ({"method": "mdsm"}, False), ({"method": "multiview"}, False)])
+    ({"method": "mdsm"}, True), ({"method": "multiview"}, False)])
 def test_virtual_is_automatic(props, virtual):
     assert parse_options(props).virtual is virtual
 

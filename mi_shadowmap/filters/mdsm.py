@@ -51,6 +51,15 @@ Deviations from the paper, and why:
 * Only the layers the options read are built (:data:`LAYERS_FOR`, via
   :func:`mi_shadowmap.filters.layers_for`): none for ``depths = 1`` or
   ``search = 1``, ``mdsm_max`` for ``depths = 2``, both for ``depths = 3``.
+* **Virtual maps** (``virtual=true``, :mod:`mi_shadowmap.pages`) store no extra
+  depths: their pages hold the base depth only, and a page's 3 x 3 extremes at its
+  border would need its neighbours' texels, which may not be built. The lookup
+  computes each stored value it would read from the base depths instead (the same
+  clamped 3 x 3 windows: the same visibility as a full map of the level's
+  resolution), at ``9 x`` windows fetches per tap and extra depth: 9 per tap at the
+  default ``search = 3``. The mark pass builds the pages within the taps' windows
+  (``virtual_margin``); a window beyond the lookup's 2 x 2 pages reads the coarsest
+  level, as every virtual tap does.
 * **Stored window.** The layer builders
   (:data:`mi_shadowmap.depth_maps.LAYER_BUILDERS`, ``mdsm_min`` /
   ``mdsm_max``) always store the 3 x 3 (q = 9, the paper's default)
@@ -77,18 +86,43 @@ def _window_offsets(search: int) -> list:
     return sorted({round(-(r - 1) + k * (2 * (r - 1)) / (m - 1)) for k in range(m)})
 
 
+_REDUCE = {"mdsm_min": dr.minimum, "mdsm_max": dr.maximum}
+
+
 def neighbourhood_depth(smap, layer: str, face, ij: mi.Point2i, search: int, active):
     """Min (``layer='mdsm_min'``) or max (``'mdsm_max'``) of the base map over the
     ``search x search`` texels around ``ij``."""
+    return neighbourhood_depths(smap, (layer,), face, ij, search, active)[layer]
+
+
+def neighbourhood_depths(smap, layers: tuple, face, ij: mi.Point2i, search: int,
+                         active) -> dict:
+    """:func:`neighbourhood_depth` of each of ``layers`` (``'mdsm_min'``,
+    ``'mdsm_max'``): the stored 3 x 3 windows tiling the search square, read from the
+    map's layers, or, on a map without them (virtual maps, which build no such layer),
+    computed from the same base depths here (the stored value at the window's clamped
+    centre: the extreme of its 3 x 3 clamped neighbours), the fetches shared between
+    the minimum and the maximum."""
     if search == 1:
-        return smap.fetch(smap.depth, face, ij.x, ij.y, active)
-    data = smap.extra[layer]
-    reduce = dr.minimum if layer == "mdsm_min" else dr.maximum
-    out = None
+        z = smap.fetch(smap.depth, face, ij.x, ij.y, active)
+        return {name: z for name in layers}
+    out = {name: None for name in layers}
+    stored = all(name in smap.extra for name in layers)
     for dj in _window_offsets(search):
         for di in _window_offsets(search):
-            z = smap.fetch(data, face, ij.x + di, ij.y + dj, active)
-            out = z if out is None else reduce(out, z)
+            if stored:
+                zs = {name: smap.fetch(smap.extra[name], face, ij.x + di, ij.y + dj, active)
+                      for name in layers}
+            else:
+                c = smap.clamp_texel(mi.Point2i(ij.x + di, ij.y + dj))
+                zs = {name: None for name in layers}
+                for ej in (-1, 0, 1):
+                    for ei in (-1, 0, 1):
+                        z = smap.fetch(smap.depth, face, c.x + ei, c.y + ej, active)
+                        zs = {name: z if v is None else _REDUCE[name](v, z)
+                              for name, v in zs.items()}
+            out = {name: zs[name] if v is None else _REDUCE[name](v, zs[name])
+                   for name, v in out.items()}
     return out
 
 
@@ -120,18 +154,18 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
         min_drop = mi.Float(0.0)
 
     def body(tap, n_shadow):
-        ij = dr.clip(mi.Point2i(i0.x + mi.Int32(tap % side), i0.y + mi.Int32(tap // side)),
-                     0, res - 1)
+        ij = smap.clamp_texel(mi.Point2i(i0.x + mi.Int32(tap % side),
+                                         i0.y + mi.Int32(tap // side)))
         z_rec, _ = plane_depth(ij)
         z = smap.fetch(smap.depth, r.face, ij.x, ij.y, active)
         one, zero = mi.UInt32(1), mi.UInt32(0)
         s = dr.select(z < z_rec, one, zero)
         if n_depths >= 2:
-            z_max = neighbourhood_depth(smap, "mdsm_max", r.face, ij, search, active)
-            s += dr.select(z_max < z_rec, one, zero)
+            names = ("mdsm_max",) if n_depths == 2 else ("mdsm_max", "mdsm_min")
+            ext = neighbourhood_depths(smap, names, r.face, ij, search, active)
+            s += dr.select(ext["mdsm_max"] < z_rec, one, zero)
         if n_depths == 3:
-            z_min = neighbourhood_depth(smap, "mdsm_min", r.face, ij, search, active)
-            s += dr.select(z_min < z_rec - min_drop, one, zero)
+            s += dr.select(ext["mdsm_min"] < z_rec - min_drop, one, zero)
         return (n_shadow + s,)
 
     (n_shadow,) = taps_loop(k, body, (mi.UInt32(0),), active)
@@ -160,8 +194,8 @@ def neighbourhood_extreme(smap, reduce) -> mi.Float:
 def _layers_used(opts) -> tuple:
     """The layers :func:`mdsm` reads with ``opts``: none for ``depths = 1`` or
     ``search = 1`` (base depth only), ``mdsm_max`` for ``depths = 2``, both for 3."""
-    if opts.depths == 1 or opts.search == 1:
-        return ()
+    if opts.depths == 1 or opts.search == 1 or getattr(opts, "virtual", False):
+        return ()   # virtual maps: the lookup computes them from the base depths
     return ("mdsm_max",) if opts.depths == 2 else ("mdsm_min", "mdsm_max")
 
 
@@ -186,5 +220,9 @@ METHOD = Method(
     layers={"mdsm_min": lambda scene, smap: neighbourhood_extreme(smap, dr.minimum),
             "mdsm_max": lambda scene, smap: neighbourhood_extreme(smap, dr.maximum)},
     layers_for=_layers_used,
+    # taps reach (side - 1) / 2 texels, their windows (search - 1) / 2 more, plus the
+    # nearest-texel margin (normal offset, camera samples within a pixel)
+    virtual_margin=lambda o: 2.0 + 0.5 * math.isqrt(o.pcf_samples) + (o.search - 1) // 2,
+    virtual=True,
     builtin=True,
 )

@@ -52,7 +52,8 @@ Maps: spot -- perspective covering the cutoff cone; point and area -- cube
 maps (area lights as their centre); directional -- orthographic, fitted to
 the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
 By default (``virtual`` left out) the methods that read virtual maps (``hard``,
-``pcf``, ``bilinear``, ``pcss``, ``second_depth``, ``mdsm``) build only the pages that
+``pcf``, ``bilinear``, ``pcss``, ``second_depth``, ``mdsm``, ``vsm``, ``evsm``,
+``msm``) build only the pages that
 camera-visible points read, at the density their pixel footprint needs
 (:mod:`mi_shadowmap.pages`); ``resolution``, ``cascades``, ``fit_frusta``,
 ``cull_faces``, ``antialias='always'`` or ``virtual=false`` select full maps, and so

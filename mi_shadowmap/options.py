@@ -78,7 +78,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Virtual shadow maps (after UE5; mi_shadowmap.pages): each face is a huge map "
          "split into pages; a mark pass (one camera ray per pixel) builds only the pages "
          "visible points read, at the mip level matching their pixel footprint, and keeps "
-         "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth, mdsm. "
+         "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth, mdsm, vsm, evsm, msm. "
          "Environment regions keep full maps. false: one full map per face. Default: "
          "automatic -- true for those methods (and user methods registered with "
          "virtual=True) unless a full-map property is set (resolution > 0, cascades > 1, "

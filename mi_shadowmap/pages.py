@@ -127,6 +127,9 @@ class VirtualLayout:
     page_size: int
     res0: int
     t0: float          # texel rays start this far along (near the scene), in float64
+    #: ``(d_lo, d_hi)``: bounds of the depths the map can hold, from the scene's bounding
+    #: box as the light sees it (what the prefiltered methods normalise by)
+    depth_range: tuple = (0.0, 1.0)
 
     @property
     def n_levels(self) -> int:
@@ -170,7 +173,24 @@ def layout_for(view, scene, opts) -> VirtualLayout:
         want = max(SCENE_TEXELS * face_width / diam, SCENE_TEXELS)
         res0 = 1 << max(int(math.ceil(math.log2(want))), 0)
         res0 = min(max(res0, P), MAX_VIRTUAL_RES)
-    return VirtualLayout(view, P, res0, t0)
+    return VirtualLayout(view, P, res0, t0, _depth_range(view, lo, hi, dist))
+
+
+def _depth_range(view, lo, hi, dist) -> tuple:
+    """``(d_lo, d_hi)``: the depths of the box ``[lo, hi]`` as ``view`` measures them
+    (a directional map's along its direction from its near plane; the others' at most
+    the distance from the light), d_hi > d_lo >= 0."""
+    corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)])
+    if view.kind == "directional":
+        p = mi.Point3d(*(corners[:, a].copy() for a in range(3)))
+        depth = np.asarray(view.project_f64(p)[2].numpy(), np.float64)
+        d_lo, d_hi = max(float(depth.min()), 0.0), float(depth.max())
+    else:
+        pos = np.array([float(c) for c in view.position])
+        d_lo, d_hi = dist, float(np.linalg.norm(corners - pos, axis=1).max())
+    if not (math.isfinite(d_hi) and d_hi > 0.0):
+        d_lo, d_hi = 0.0, 1.0
+    return (min(d_lo, 0.5 * d_hi), d_hi)
 
 
 # ---------------------------------------------------------------- the page store
@@ -417,6 +437,7 @@ class VirtualShadowMap:
         self.layout = store.layout
         self.view = store.layout.view
         self.header, self.dense, self.face_near = store.table()
+        self.depth_bounds = _array(mi.Float64, self.layout.depth_range)
         self.stats = stats
 
     # The texel-counting interface of ShadowMap, for the harness and reports.
@@ -586,6 +607,7 @@ class BoundVirtualMap:
         self.depth = pools["depth"]
         self.extra = {k: v for k, v in pools.items() if k != "depth"}
         self.extra["pcss_near"] = vmap.face_near
+        self.depth_bounds = vmap.depth_bounds
 
     @property
     def second_depth(self):

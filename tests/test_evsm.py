@@ -45,7 +45,7 @@ def lookup(x, y, z):
 
 
 def options(**props):
-    return parse_options({"method": "evsm", **props})
+    return parse_options({"method": "evsm", "virtual": False, **props})   # full-map layers
 
 
 def with_layers(smap: ShadowMap, opts) -> ShadowMap:

@@ -516,3 +516,87 @@ def prefilter_box(smap, lk: Lookup, r: Receiver, filter_size):
     width = dr.maximum(footprint_texels(smap, lk, r), filter_size)
     centre = r.uv * smap.resolution
     return centre - 0.5 * width, centre + 0.5 * width
+
+
+#: Largest side, in texels, of a filter box summed texel by texel
+#: (:func:`box_means_of_depths`); wider boxes are narrowed about their centre.
+MAX_DIRECT_BOX = 64
+
+
+def has_moment_tables(smap, names) -> bool:
+    """Whether the map carries the prefiltered layers ``names`` (full maps build them;
+    virtual maps build none: their lookups sum the box's texels, :func:`box_means_of_depths`)."""
+    return all(name in smap.extra for name in names)
+
+
+def map_depth_bounds(smap):
+    """``(d_lo, d_hi)`` (``mi.Float64``, per lane): bounds of the depths a virtual map
+    can hold (from the scene's bounding box as its light sees it,
+    :attr:`mi_shadowmap.pages.VirtualLayout.depth_range`): what the prefiltered methods
+    normalise by on maps without their layers, instead of the built map's extremes."""
+    b = getattr(smap, "depth_bounds", None)
+    if b is None:
+        raise ValueError(f"shadowmap: the map of emitter '{smap.view.label}' has neither the "
+                         "prefiltered method's layers (a full map builds them through "
+                         "methods.get(name).layers) nor a virtual map's depth bounds")
+    zero = dr.zeros(mi.UInt32, 1)
+    return dr.gather(mi.Float64, b, zero), dr.gather(mi.Float64, b, zero + 1)
+
+
+def face_rect(smap) -> tuple:
+    """``(lo, hi)``: the receiver's face in the continuous texel coordinates the map's
+    view gives (``[0, res]`` on a full map; shifted by the lookup's origin on a bound
+    virtual map), from ``smap.clamp_texel``."""
+    big = mi.Point2i(1 << 30)
+    return mi.Point2f(smap.clamp_texel(-big)), mi.Point2f(smap.clamp_texel(big)) + 1.0
+
+
+def box_means_of_depths(smap, face, lo: mi.Point2f, hi: mi.Point2f, per_texel,
+                        active=True) -> tuple:
+    """Means over the box ``[lo, hi]`` (continuous texel coordinates of ``face`` as the
+    map's view gives them) of ``per_texel(depth)`` (a tuple of ``mi.Float64``), each
+    texel counted by its covered fraction: the value :func:`~mi_shadowmap.depth_maps.box_mean`
+    reads from a summed-area table, computed by visiting the box's texels (one
+    ``dr.while_loop``, as many iterations as the box covers texels in each lane). For
+    maps without the tables (virtual maps, whose page set grows with the camera).
+
+    The box is clipped to the face (as ``box_mean`` clips it) and made at least
+    ``1e-3`` texels wide; a box wider than :data:`MAX_DIRECT_BOX` texels is narrowed to
+    that about its centre. Texels are read through ``smap.fetch``.
+    """
+    f_lo, f_hi = face_rect(smap)
+    wide = (hi - lo) > MAX_DIRECT_BOX
+    centre = 0.5 * (lo + hi)
+    lo = dr.clip(dr.select(wide, centre - 0.5 * MAX_DIRECT_BOX, lo), f_lo, f_hi)
+    hi = dr.clip(dr.select(wide, centre + 0.5 * MAX_DIRECT_BOX, hi), f_lo, f_hi)
+    hi = dr.maximum(hi, dr.minimum(lo + 1e-3, f_hi))
+    lo = dr.minimum(lo, hi - 1e-3)
+    i0 = mi.Point2i(dr.floor(lo))
+    n = dr.maximum(mi.Point2i(dr.ceil(hi)) - i0, 1)
+    count = mi.UInt32(n.x * n.y)
+    active = mi.Bool(active)
+    Float64 = mi.Float64
+    lo64, hi64 = mi.Point2d(lo), mi.Point2d(hi)
+    n_values = len(per_texel(dr.zeros(mi.Float, 1)))
+    tap = mi.UInt32(0)
+    sums = tuple(dr.zeros(Float64, dr.width(count)) for _ in range(n_values))
+
+    def cond(tap, *sums):
+        return active & (tap < count)
+
+    def body(tap, *sums):
+        dj = mi.Int32(tap) // n.x
+        di = mi.Int32(tap) - dj * n.x
+        i, j = i0.x + di, i0.y + dj
+        # covered fractions in float64: exact (float32 would round 1 - 0.13)
+        wx = dr.minimum(hi64.x, Float64(i + 1)) - dr.maximum(lo64.x, Float64(i))
+        wy = dr.minimum(hi64.y, Float64(j + 1)) - dr.maximum(lo64.y, Float64(j))
+        w = wx * wy
+        z = smap.fetch(smap.depth, face, i, j, active)
+        vals = per_texel(z)
+        return (tap + 1,) + tuple(s + w * v for s, v in zip(sums, vals))
+
+    # a sum: reverse-mode differentiates it in place (the integrator's SYMBOLIC_BACKWARD)
+    state = dr.while_loop((tap,) + sums, cond, body, max_iterations=-1)
+    area = Float64(hi.x - lo.x) * Float64(hi.y - lo.y)
+    return tuple(s / area for s in state[1:]), count

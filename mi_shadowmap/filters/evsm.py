@@ -137,6 +137,13 @@ Deviations from the paper, and why:
   normal-offset biases (smaller defaults than ``hard``, see above).
 * *Area lights* are treated as their centre point, like ``hard``, ``pcf``
   and ``vsm``.
+* *Virtual maps* (``virtual=true``, the default): pages hold depths only; the warps'
+  box means are summed over the box's texels at lookup time (the values the tables
+  give, with a rounding bound of their own instead of the tables'), and the depth
+  range is the scene's bounding box as the light sees it (``far`` twice its largest
+  depth, ``z_lo`` its nearest) instead of the built map's, which would change as
+  camera moves build pages: where the scene's box is much deeper than its surfaces the
+  warps spread over a wider range than with full maps.
 """
 from __future__ import annotations
 
@@ -147,8 +154,8 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, Receiver, antialiased, normalized_depth, prefilter_box, receiver, \
-    texel_depths
+from .common import Lookup, Receiver, antialiased, box_means_of_depths, face_rect, \
+    has_moment_tables, map_depth_bounds, normalized_depth, prefilter_box, receiver, texel_depths
 
 #: Largest allowed exponent: exp(2 c) of u = 1 stays a finite float32 (2 c <= 88.7).
 MAX_EXPONENT = 42.0
@@ -254,6 +261,8 @@ class _Costs(dict):
 
 
 def _layers_for(opts) -> tuple:
+    if getattr(opts, "virtual", False):
+        return ()      # virtual maps: the lookup sums the box's texels (_direct_bounds)
     return (RANGE_LAYER,) + moment_layer_names(opts.exponent, opts.negative_exponent)
 
 
@@ -279,9 +288,10 @@ def filter_box(smap, lk: Lookup, r: Receiver, filter_size: float):
     res = smap.resolution
     lo, hi = prefilter_box(smap, lk, r, max(float(filter_size), MIN_BOX))
     centre = r.uv * res
-    border = dr.maximum(dr.minimum(centre, res - centre), 0.5 * MIN_BOX)
+    f_lo, f_hi = face_rect(smap)         # [0, res] on a full map
+    border = dr.maximum(dr.minimum(centre - f_lo, f_hi - centre), 0.5 * MIN_BOX)
     half = dr.minimum(0.5 * (hi - lo), border)
-    return (dr.clip(centre - half, 0.0, float(res)), dr.clip(centre + half, 0.0, float(res)))
+    return dr.clip(centre - half, f_lo, f_hi), dr.clip(centre + half, f_lo, f_hi)
 
 
 def evsm_bounds(smap, lk: Lookup, opts, active=True):
@@ -291,6 +301,9 @@ def evsm_bounds(smap, lk: Lookup, opts, active=True):
     r = receiver(smap, lk, opts)
     active = mi.Bool(active) & r.inside
     lo, hi = filter_box(smap, lk, r, opts.filter_size)
+    names = moment_layer_names(opts.exponent, opts.negative_exponent)
+    if not has_moment_tables(smap, (RANGE_LAYER,) + names):
+        return _direct_bounds(smap, r, lo, hi, opts, active)
     rng = smap.extra[RANGE_LAYER]
     idx = dr.zeros(mi.UInt32, dr.width(r.depth))
     far = mi.Float(dr.gather(Float64, rng, idx))
@@ -301,7 +314,6 @@ def evsm_bounds(smap, lk: Lookup, opts, active=True):
     ci = mi.UInt32(dr.clip(mi.Int32(dr.ceil(hi.x)), 1, res) - 1)
     cj = mi.UInt32(dr.clip(mi.Int32(dr.ceil(hi.y)), 1, res) - 1)
     corner = mi.UInt32(r.face) * (res * res) + cj * res + ci
-    names = moment_layer_names(opts.exponent, opts.negative_exponent)
     bounds = []
     for k, (positive, c) in enumerate(((True, opts.exponent), (False, opts.negative_exponent))):
         sat1, sat2 = smap.extra[names[2 * k]], smap.extra[names[2 * k + 1]]
@@ -313,6 +325,38 @@ def evsm_bounds(smap, lk: Lookup, opts, active=True):
         t = warp(u, c, positive)
         min_var = opts.min_variance * dr.square(c * t * dudz)      # (dw/dz)^2
         bounds.append(chebyshev(m1, m2, t, min_var, opts.light_bleeding, err1, err2))
+    return bounds[0], bounds[1], r.inside
+
+
+def _direct_bounds(smap, r: Receiver, lo, hi, opts, active):
+    """:func:`evsm_bounds` on a map without the tables (virtual maps): the warps' box
+    means summed over the box's texels, the depth range from the scene's bounding box
+    (``far`` twice its largest depth as the light sees it, ``z_lo`` its nearest), each
+    mean with a rounding bound of 4 x (texels summed) x 2^-52 of its magnitude."""
+    Float64 = mi.Float64
+    d_lo, d_hi = map_depth_bounds(smap)
+    far = 2.0 * d_hi
+    z_lo = d_lo / far
+    z_hi = dr.maximum(d_hi / far, z_lo + MIN_SPAN)
+    c_pos, c_neg = opts.exponent, opts.negative_exponent
+
+    def per_texel(d):
+        z = dr.select(dr.isfinite(d), Float64(d) / far, 1.0)
+        u = warp_input(z, z_lo, z_hi)
+        wp, wn = warp(u, c_pos, True), warp(u, c_neg, False)
+        return wp, wp * wp, wn, wn * wn
+
+    means, count = box_means_of_depths(smap, r.face, lo, hi, per_texel, active)
+    u = warp_input(Float64(r.depth) / far, z_lo, z_hi)
+    dudz = 2.0 / (z_hi - z_lo)
+    rel = 4.0 * Float64(count) * _EPS64
+    bounds = []
+    for k, (positive, c) in enumerate(((True, c_pos), (False, c_neg))):
+        m1, m2 = means[2 * k], means[2 * k + 1]
+        t = warp(u, c, positive)
+        min_var = opts.min_variance * dr.square(c * t * dudz)
+        bounds.append(chebyshev(m1, m2, t, min_var, opts.light_bleeding,
+                                rel * dr.abs(m1), rel * dr.abs(m2)))
     return bounds[0], bounds[1], r.inside
 
 
@@ -359,5 +403,7 @@ METHOD = Method(
     layer_cost=_Costs({name: 0.0 if name == RANGE_LAYER else 2.0 for name in _LAYERS}),
     needs_footprint=True,
     bias_defaults={"slope_bias": 0.5, "normal_bias": 0.25},
+    virtual_margin=lambda o: 2.0 + 0.5 * max(o.filter_size, 6.0),
+    virtual=True,
     builtin=True,
 )

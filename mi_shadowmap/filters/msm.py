@@ -130,6 +130,11 @@ Deviations from the paper, and why:
   is clipped at the face's border (it does not continue across seams).
 * *Build.* The tables are :func:`~mi_shadowmap.depth_maps.summed_area_table`'s
   (float64, O(texels)).
+* *Virtual maps* (``virtual=true``, the default): pages hold depths only; the four
+  moments' box means are summed over the box's texels at lookup time (the values the
+  tables give; the box is a few texels wide, as the level matches the pixel
+  footprint), and ``far`` is twice the largest depth of the scene's bounding box as
+  the light sees it (the built map's own changes as camera moves build pages).
 """
 from __future__ import annotations
 
@@ -138,8 +143,8 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, antialiased, normalized_depth, plane_depth_at, prefilter_box, receiver, \
-    receiver_plane
+from .common import Lookup, antialiased, box_means_of_depths, has_moment_tables, \
+    map_depth_bounds, normalized_depth, plane_depth_at, prefilter_box, receiver, receiver_plane
 
 #: The four moment layers (summed-area tables of u^1 .. u^4).
 MOMENT_LAYERS = ("msm_b1", "msm_b2", "msm_b3", "msm_b4")
@@ -281,8 +286,20 @@ def msm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     r = receiver(smap, lk, opts)
     act = mi.Bool(active) & r.inside
     lo, hi = prefilter_box(smap, lk, r, opts.filter_size)
-    b = tuple(box_mean(smap.extra[name], res, r.face, lo, hi, act) for name in MOMENT_LAYERS)
-    far = mi.Float64(smap.extra[FAR_LAYER])
+    if has_moment_tables(smap, MOMENT_LAYERS + (FAR_LAYER,)):
+        b = tuple(box_mean(smap.extra[name], res, r.face, lo, hi, act)
+                  for name in MOMENT_LAYERS)
+        far = mi.Float64(smap.extra[FAR_LAYER])
+    else:
+        # virtual maps: the box's texels summed here, far from the scene's bounds
+        far = 2.0 * map_depth_bounds(smap)[1]
+
+        def per_texel(d):
+            u = dr.select(dr.isfinite(d), 2.0 * mi.Float64(d) / far - 1.0, 1.0)
+            u2 = u * u
+            return u, u2, u2 * u, u2 * u2
+
+        b, _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, act)
     z = receiver_depth(smap, lk, r, opts, lo, hi)
     # Receivers deeper than every texel stay in front of the empty texels (u = 1).
     zf = dr.minimum(2.0 * mi.Float64(z) / far - 1.0, 1.0 - 1e-6)
@@ -315,6 +332,9 @@ METHOD = Method(
              "receiver's own depth, as in the paper)."),
     ),
     layers=LAYERS,
+    layers_for=lambda o: () if getattr(o, "virtual", False) else tuple(LAYERS),
+    virtual_margin=lambda o: 2.0 + 0.5 * max(o.filter_size, 6.0),
+    virtual=True,
     #: four float64 tables (2 float32 arrays each) and one value
     layer_cost={**{name: 2.0 for name in MOMENT_LAYERS}, FAR_LAYER: 0.0},
     needs_footprint=True,

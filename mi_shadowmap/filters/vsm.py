@@ -16,7 +16,11 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, antialiased, normalized_depth, prefilter_box, receiver
+from .common import (Lookup, antialiased, box_means_of_depths, has_moment_tables,
+                     map_depth_bounds, normalized_depth, prefilter_box, receiver)
+
+#: The layers of a full map (virtual maps build none: see :func:`vsm_moments`).
+LAYERS = ("vsm_m1", "vsm_m2", "vsm_far")
 
 
 #: The variance never goes below this (normalised depth squared: sigma = 1e-7, about the
@@ -54,6 +58,18 @@ def vsm_moments(smap, lk: Lookup, r, filter_size, active=True):
     biased depth ``t``, all in normalised depth (``mi.Float64``)."""
     res = smap.resolution
     lo, hi = prefilter_box(smap, lk, r, filter_size)
+    if not has_moment_tables(smap, LAYERS):
+        # virtual maps: the box's texels summed here, normalised by twice the largest
+        # depth the scene's bounding box allows (the map's own largest changes with the
+        # pages built)
+        far = 2.0 * map_depth_bounds(smap)[1]
+
+        def per_texel(d):
+            z = dr.select(dr.isfinite(d), mi.Float64(d) / far, 1.0)
+            return z, z * z
+
+        (m1, m2), _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, active)
+        return m1, m2, dr.minimum(mi.Float64(r.depth) / far, 1.0)
     m1 = box_mean(smap.extra["vsm_m1"], res, r.face, lo, hi, active)
     m2 = box_mean(smap.extra["vsm_m2"], res, r.face, lo, hi, active)
     far = dr.gather(mi.Float, smap.extra["vsm_far"], dr.zeros(mi.UInt32, dr.width(r.depth)))
@@ -179,6 +195,13 @@ def vsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
       normal-offset biases (see above).
     * *Area lights* are treated as their centre point, as ``hard`` and ``pcf``
       do (VSM itself has no light size).
+    * *Virtual maps* (``virtual=true``, the default): pages hold depths only, and the
+      moments' box means are summed over the box's texels at lookup time (the same
+      coverage-weighted means a summed-area table gives; the box is a few texels wide,
+      as the level matches the pixel footprint). ``far`` is twice the largest depth of
+      the scene's bounding box as the light sees it, not the built map's largest depth
+      (which would change as camera moves build pages), so ``min_variance`` is relative
+      to a slightly larger ``far`` than with full maps.
 
     Known limitation (inherent to VSM): a receiver that is not level with the
     light inside a wide box (a tilted floor under a pixel footprint of many
@@ -229,6 +252,11 @@ METHOD = Method(
     layers={"vsm_m1": lambda scene, smap: moment_layer(smap, 1),
             "vsm_m2": lambda scene, smap: moment_layer(smap, 2),
             "vsm_far": lambda scene, smap: far_layer(smap)},
+    layers_for=lambda o: () if getattr(o, "virtual", False) else LAYERS,
+    # the box: the pixel footprint (at most about 6 texels of a virtual level) or
+    # filter_size, centred on the receiver; plus the nearest-texel margin
+    virtual_margin=lambda o: 2.0 + 0.5 * max(o.filter_size, 6.0),
+    virtual=True,
     layer_cost={"vsm_m1": 2.0, "vsm_m2": 2.0, "vsm_far": 0.0},   # float64 tables; one value
     needs_footprint=True,
     bias_defaults={"slope_bias": 0.5, "normal_bias": 0.25},

@@ -162,7 +162,10 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     if sensor is not None and any(v.needs_camera_points(opts) for v in live):
         visible = camera_visible_points(scene, sensor)
     film_size = sensor.film().crop_size() if sensor is not None else (512, 512)
-    layer_names = record.layer_names(opts)
+    # full maps (also those of a virtual render's environment regions) build the full
+    # maps' layers: a method's layers_for may leave them out for its virtual maps
+    full_opts = opts.replace(virtual=False) if getattr(opts, "virtual", False) else opts
+    layer_names = record.layer_names(full_opts)
     n_faces = sum(v.planned_faces(opts, visible) for v in live)
     footprint = 1.0
     if opts.resolution is None:

@@ -328,7 +328,8 @@ def reference(path):
 
 
 @pytest.mark.parametrize("path", full_map_scenes(
-    "full maps lose the shadows of the issue-11 scenes (see conftest.VIRTUAL_SCENES); evsm reads full maps only"))
+    "full maps lose the shadows of the issue-11 scenes (see conftest.VIRTUAL_SCENES); "
+    "this test pins full maps (resolution 1024)"))
 def test_repository_scene_misclassified_and_false_lit(path):
     scene, ref = reference(path)
     _, v = render_np(scene, {"type": "shadowmap", "method": "evsm", "resolution": 1024},

@@ -333,7 +333,8 @@ def test_gradients_flow_through_the_moment_layers():
 
 # ------------------------------------------------- 5. repository scenes (1024^2)
 @pytest.mark.parametrize("path", full_map_scenes(
-    "full maps lose the shadows of the issue-11 scenes (see conftest.VIRTUAL_SCENES); msm reads full maps only"))
+    "full maps lose the shadows of the issue-11 scenes (see conftest.VIRTUAL_SCENES); "
+    "this test pins full maps (resolution 1024)"))
 def test_repository_scenes_misclassified_and_false_lit(path):
     scene, ref = reference(path)
     _, vis_ = render_np(scene, {"type": "shadowmap", "method": "msm", "resolution": 1024},

@@ -831,3 +831,18 @@ def test_a_light_with_no_page_still_renders():
         img = np.asarray(mi.render(scene, integrator=shadowmap(method=method, virtual=True),
                                    spp=1))
         assert np.isfinite(img).all() and img.max() == 0.0
+
+
+@pytest.mark.parametrize("method", ["vsm", "evsm", "msm", "mdsm"])
+def test_environment_regions_of_a_virtual_render_build_full_map_layers(method):
+    """An environment's regions keep full maps in a virtual render; those maps build
+    the full maps' layers even though the method's virtual maps build none."""
+    from conftest import SCENE_FILES
+    from mi_shadowmap.depth_maps import ShadowMap
+    path = [p for p in SCENE_FILES if p.stem == "sky_sun"][0]
+    scene = mi.load_file(str(path), width=16, height=16)
+    integ = shadowmap(method=method, virtual=True)
+    img = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    assert np.isfinite(img).all()
+    maps = [m for m in integ.maps if isinstance(m, ShadowMap)]
+    assert maps and all(any(k.startswith(method) for k in m.extra) for m in maps)

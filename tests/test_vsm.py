@@ -285,7 +285,8 @@ def test_gradients_reach_the_map_depths():
 
 # ----------------------------------------------------- 5. the repository scenes
 @pytest.mark.parametrize("path", full_map_scenes(
-    "full maps lose the shadows of the issue-11 scenes (see conftest.VIRTUAL_SCENES); vsm reads full maps only"))
+    "full maps lose the shadows of the issue-11 scenes (see conftest.VIRTUAL_SCENES); "
+    "this test pins full maps (resolution 1024)"))
 def test_repository_scenes_misclassified_and_light_bleeding(path):
     """Against the reference of test_methods_on_scenes (1024^2 maps, 64^2, 4 spp):
     misclassified <= 3 % and false lit (light bleeding) <= 1 %."""

@@ -529,18 +529,24 @@ def has_moment_tables(smap, names) -> bool:
     return all(name in smap.extra for name in names)
 
 
-def map_depth_bounds(smap):
-    """``(d_lo, d_hi)`` (``mi.Float64``, per lane): bounds of the depths a virtual map
-    can hold (from the scene's bounding box as its light sees it,
-    :attr:`mi_shadowmap.pages.VirtualLayout.depth_range`): what the prefiltered methods
-    normalise by on maps without their layers, instead of the built map's extremes."""
+def virtual_depth_scale(smap):
+    """``(d_lo, scale)`` (``mi.Float64``, per lane): how the prefiltered methods
+    normalise the depths of a map without their layers (virtual maps), ``z = (depth -
+    d_lo) scale`` with ``scale = 1 / (2 (d_hi - d_lo))``: the scene's depth span as the
+    light sees it (:attr:`mi_shadowmap.pages.VirtualLayout.depth_range`) maps to
+    ``[0, 1/2]``, as a full map's ``depth / far`` maps its depths to ``[0, 1/2]``
+    (``far`` twice its largest depth). Unlike ``far`` the span does not grow with the
+    light's distance, so ``min_variance`` stays relative to the scene's depths for a
+    light far away (a full map's ``far`` of a light 1e5 away puts ``sigma_min`` at 60
+    units), and it does not change as camera moves build pages."""
     b = getattr(smap, "depth_bounds", None)
     if b is None:
         raise ValueError(f"shadowmap: the map of emitter '{smap.view.label}' has neither the "
                          "prefiltered method's layers (a full map builds them through "
                          "methods.get(name).layers) nor a virtual map's depth bounds")
     zero = dr.zeros(mi.UInt32, 1)
-    return dr.gather(mi.Float64, b, zero), dr.gather(mi.Float64, b, zero + 1)
+    d_lo, d_hi = dr.gather(mi.Float64, b, zero), dr.gather(mi.Float64, b, zero + 1)
+    return d_lo, 0.5 / (d_hi - d_lo)
 
 
 def face_rect(smap) -> tuple:

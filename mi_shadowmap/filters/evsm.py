@@ -139,11 +139,12 @@ Deviations from the paper, and why:
   and ``vsm``.
 * *Virtual maps* (``virtual=true``, the default): pages hold depths only; the warps'
   box means are summed over the box's texels at lookup time (the values the tables
-  give, with a rounding bound of their own instead of the tables'), and the depth
-  range is the scene's bounding box as the light sees it (``far`` twice its largest
-  depth, ``z_lo`` its nearest) instead of the built map's, which would change as
-  camera moves build pages: where the scene's box is much deeper than its surfaces the
-  warps spread over a wider range than with full maps.
+  give, with a rounding bound of their own instead of the tables'), and the warped
+  range is the scene's depth span as the light sees it
+  (:func:`~.common.virtual_depth_scale`) instead of the built map's, which would change
+  as camera moves build pages: where the scene's box is much deeper than its surfaces
+  the warps spread over a wider range than with full maps. ``min_variance`` is in that
+  span's normalised depth squared.
 """
 from __future__ import annotations
 
@@ -155,7 +156,8 @@ import mitsuba as mi
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
 from .common import Lookup, Receiver, antialiased, box_means_of_depths, face_rect, \
-    has_moment_tables, map_depth_bounds, normalized_depth, prefilter_box, receiver, texel_depths
+    has_moment_tables, normalized_depth, prefilter_box, receiver, texel_depths, \
+    virtual_depth_scale
 
 #: Largest allowed exponent: exp(2 c) of u = 1 stays a finite float32 (2 c <= 88.7).
 MAX_EXPONENT = 42.0
@@ -330,24 +332,22 @@ def evsm_bounds(smap, lk: Lookup, opts, active=True):
 
 def _direct_bounds(smap, r: Receiver, lo, hi, opts, active):
     """:func:`evsm_bounds` on a map without the tables (virtual maps): the warps' box
-    means summed over the box's texels, the depth range from the scene's bounding box
-    (``far`` twice its largest depth as the light sees it, ``z_lo`` its nearest), each
-    mean with a rounding bound of 4 x (texels summed) x 2^-52 of its magnitude."""
+    means summed over the box's texels, depths normalised over the scene's depth span
+    (:func:`~.common.virtual_depth_scale`: ``z`` in ``[0, 1/2]``, the warps' range),
+    each mean with a rounding bound of 4 x (texels summed) x 2^-52 of its magnitude."""
     Float64 = mi.Float64
-    d_lo, d_hi = map_depth_bounds(smap)
-    far = 2.0 * d_hi
-    z_lo = d_lo / far
-    z_hi = dr.maximum(d_hi / far, z_lo + MIN_SPAN)
+    d_lo, scale = virtual_depth_scale(smap)
+    z_lo, z_hi = 0.0, 0.5
     c_pos, c_neg = opts.exponent, opts.negative_exponent
 
     def per_texel(d):
-        z = dr.select(dr.isfinite(d), Float64(d) / far, 1.0)
+        z = dr.select(dr.isfinite(d), (Float64(d) - d_lo) * scale, 1.0)
         u = warp_input(z, z_lo, z_hi)
         wp, wn = warp(u, c_pos, True), warp(u, c_neg, False)
         return wp, wp * wp, wn, wn * wn
 
     means, count = box_means_of_depths(smap, r.face, lo, hi, per_texel, active)
-    u = warp_input(Float64(r.depth) / far, z_lo, z_hi)
+    u = warp_input((Float64(r.depth) - d_lo) * scale, z_lo, z_hi)
     dudz = 2.0 / (z_hi - z_lo)
     rel = 4.0 * Float64(count) * _EPS64
     bounds = []

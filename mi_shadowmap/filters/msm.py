@@ -133,8 +133,10 @@ Deviations from the paper, and why:
 * *Virtual maps* (``virtual=true``, the default): pages hold depths only; the four
   moments' box means are summed over the box's texels at lookup time (the values the
   tables give; the box is a few texels wide, as the level matches the pixel
-  footprint), and ``far`` is twice the largest depth of the scene's bounding box as
-  the light sees it (the built map's own changes as camera moves build pages).
+  footprint), and depths are normalised over the scene's depth span as the light sees
+  it (:func:`~.common.virtual_depth_scale`: geometry in ``u in [-1, 0]`` as with full
+  maps) instead of the built map's ``far``, which changes as camera moves build pages
+  and grows with the light's distance.
 """
 from __future__ import annotations
 
@@ -144,7 +146,7 @@ import mitsuba as mi
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
 from .common import Lookup, antialiased, box_means_of_depths, has_moment_tables, \
-    map_depth_bounds, normalized_depth, plane_depth_at, prefilter_box, receiver, receiver_plane
+    virtual_depth_scale, normalized_depth, plane_depth_at, prefilter_box, receiver, receiver_plane
 
 #: The four moment layers (summed-area tables of u^1 .. u^4).
 MOMENT_LAYERS = ("msm_b1", "msm_b2", "msm_b3", "msm_b4")
@@ -291,18 +293,22 @@ def msm(smap, lk: Lookup, opts, active=True) -> mi.Float:
                   for name in MOMENT_LAYERS)
         far = mi.Float64(smap.extra[FAR_LAYER])
     else:
-        # virtual maps: the box's texels summed here, far from the scene's bounds
-        far = 2.0 * map_depth_bounds(smap)[1]
+        # virtual maps: the box's texels summed here, normalised over the scene's depth
+        # span (virtual_depth_scale)
+        d_lo, scale = virtual_depth_scale(smap)
 
         def per_texel(d):
-            u = dr.select(dr.isfinite(d), 2.0 * mi.Float64(d) / far - 1.0, 1.0)
+            u = dr.select(dr.isfinite(d), 2.0 * (mi.Float64(d) - d_lo) * scale - 1.0, 1.0)
             u2 = u * u
             return u, u2, u2 * u, u2 * u2
 
         b, _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, act)
     z = receiver_depth(smap, lk, r, opts, lo, hi)
     # Receivers deeper than every texel stay in front of the empty texels (u = 1).
-    zf = dr.minimum(2.0 * mi.Float64(z) / far - 1.0, 1.0 - 1e-6)
+    if has_moment_tables(smap, MOMENT_LAYERS + (FAR_LAYER,)):
+        zf = dr.minimum(2.0 * mi.Float64(z) / far - 1.0, 1.0 - 1e-6)
+    else:
+        zf = dr.minimum(2.0 * (mi.Float64(z) - d_lo) * scale - 1.0, 1.0 - 1e-6)
     g = shadow_intensity(b, zf, opts.moment_bias)
     vis = reduce_light_bleeding(mi.Float(1.0 - g), opts.light_bleeding)
     return dr.select(act, vis, 1.0)

@@ -17,7 +17,7 @@ import mitsuba as mi
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
 from .common import (Lookup, antialiased, box_means_of_depths, has_moment_tables,
-                     map_depth_bounds, normalized_depth, prefilter_box, receiver)
+                     virtual_depth_scale, normalized_depth, prefilter_box, receiver)
 
 #: The layers of a full map (virtual maps build none: see :func:`vsm_moments`).
 LAYERS = ("vsm_m1", "vsm_m2", "vsm_far")
@@ -59,17 +59,16 @@ def vsm_moments(smap, lk: Lookup, r, filter_size, active=True):
     res = smap.resolution
     lo, hi = prefilter_box(smap, lk, r, filter_size)
     if not has_moment_tables(smap, LAYERS):
-        # virtual maps: the box's texels summed here, normalised by twice the largest
-        # depth the scene's bounding box allows (the map's own largest changes with the
-        # pages built)
-        far = 2.0 * map_depth_bounds(smap)[1]
+        # virtual maps: the box's texels summed here, normalised over the scene's depth
+        # span (virtual_depth_scale; the map's own extremes change with the pages built)
+        d_lo, scale = virtual_depth_scale(smap)
 
         def per_texel(d):
-            z = dr.select(dr.isfinite(d), mi.Float64(d) / far, 1.0)
+            z = dr.select(dr.isfinite(d), (mi.Float64(d) - d_lo) * scale, 1.0)
             return z, z * z
 
         (m1, m2), _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, active)
-        return m1, m2, dr.minimum(mi.Float64(r.depth) / far, 1.0)
+        return m1, m2, dr.minimum((mi.Float64(r.depth) - d_lo) * scale, 1.0)
     m1 = box_mean(smap.extra["vsm_m1"], res, r.face, lo, hi, active)
     m2 = box_mean(smap.extra["vsm_m2"], res, r.face, lo, hi, active)
     far = dr.gather(mi.Float, smap.extra["vsm_far"], dr.zeros(mi.UInt32, dr.width(r.depth)))
@@ -198,10 +197,12 @@ def vsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     * *Virtual maps* (``virtual=true``, the default): pages hold depths only, and the
       moments' box means are summed over the box's texels at lookup time (the same
       coverage-weighted means a summed-area table gives; the box is a few texels wide,
-      as the level matches the pixel footprint). ``far`` is twice the largest depth of
-      the scene's bounding box as the light sees it, not the built map's largest depth
-      (which would change as camera moves build pages), so ``min_variance`` is relative
-      to a slightly larger ``far`` than with full maps.
+      as the level matches the pixel footprint). Depths are normalised over the scene's
+      depth span as the light sees it (:func:`~.common.virtual_depth_scale`: ``z =
+      (depth - d_lo) / (2 (d_hi - d_lo))``), not by the built map's ``far`` (which would
+      change as camera moves build pages, and which grows with the light's distance:
+      for a point light 1e5 away ``sigma_min`` would be 60 units and every shadow
+      lit), so ``min_variance`` is relative to the scene's depths.
 
     Known limitation (inherent to VSM): a receiver that is not level with the
     light inside a wide box (a tilted floor under a pixel footprint of many

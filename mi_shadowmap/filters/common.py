@@ -549,6 +549,25 @@ def virtual_depth_scale(smap):
     return d_lo, 0.5 / (d_hi - d_lo)
 
 
+#: A virtual map's variance floors are those of a full map with this many texels across
+#: twice the scene's depth span (a 1024^2 map across the span), per texel of the
+#: lookup's level (:func:`virtual_variance_factor`).
+FLOOR_TEXELS = 2048.0
+
+
+def virtual_variance_factor(r: Receiver, scale):
+    """Factor on a prefiltered method's variance floor (``min_variance``, in normalised
+    depth squared) for a virtual map normalised with ``scale``
+    (:func:`virtual_depth_scale`): ``min(1, FLOOR_TEXELS texel_world scale)^2``. The
+    floor ``sqrt(min_variance)`` of normalised depth is then at most the one a full map
+    of :data:`FLOOR_TEXELS` texels across the normalised range would have per texel:
+    the same as a 1024^2 full map's where the level is that coarse, and proportionally
+    smaller on finer levels, so a scene whose depth span is far larger than the shadows
+    it casts (a light 1e5 away over a wide ground) keeps them."""
+    f = dr.minimum(mi.Float64(FLOOR_TEXELS) * mi.Float64(r.texel_world) * scale, 1.0)
+    return f * f
+
+
 def face_rect(smap) -> tuple:
     """``(lo, hi)``: the receiver's face in the continuous texel coordinates the map's
     view gives (``[0, res]`` on a full map; shifted by the lookup's origin on a bound

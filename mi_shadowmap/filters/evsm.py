@@ -144,7 +144,8 @@ Deviations from the paper, and why:
   (:func:`~.common.virtual_depth_scale`) instead of the built map's, which would change
   as camera moves build pages: where the scene's box is much deeper than its surfaces
   the warps spread over a wider range than with full maps. ``min_variance`` is in that
-  span's normalised depth squared.
+  span's normalised depth squared, scaled per texel as for ``vsm``
+  (:func:`~.common.virtual_variance_factor`).
 """
 from __future__ import annotations
 
@@ -157,7 +158,7 @@ from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
 from .common import Lookup, Receiver, antialiased, box_means_of_depths, face_rect, \
     has_moment_tables, normalized_depth, prefilter_box, receiver, texel_depths, \
-    virtual_depth_scale
+    virtual_depth_scale, virtual_variance_factor
 
 #: Largest allowed exponent: exp(2 c) of u = 1 stays a finite float32 (2 c <= 88.7).
 MAX_EXPONENT = 42.0
@@ -350,11 +351,12 @@ def _direct_bounds(smap, r: Receiver, lo, hi, opts, active):
     u = warp_input((Float64(r.depth) - d_lo) * scale, z_lo, z_hi)
     dudz = 2.0 / (z_hi - z_lo)
     rel = 4.0 * Float64(count) * _EPS64
+    floor = virtual_variance_factor(r, scale)     # the floor per texel, as for vsm
     bounds = []
     for k, (positive, c) in enumerate(((True, c_pos), (False, c_neg))):
         m1, m2 = means[2 * k], means[2 * k + 1]
         t = warp(u, c, positive)
-        min_var = opts.min_variance * dr.square(c * t * dudz)
+        min_var = opts.min_variance * floor * dr.square(c * t * dudz)
         bounds.append(chebyshev(m1, m2, t, min_var, opts.light_bleeding,
                                 rel * dr.abs(m1), rel * dr.abs(m2)))
     return bounds[0], bounds[1], r.inside

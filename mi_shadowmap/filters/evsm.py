@@ -381,7 +381,8 @@ METHOD = Method(
         Prop("filter_size", "float", 1.0,
              "evsm: minimum width of the filter box in texels per axis (at least 1); the "
              "camera pixel's footprint widens it (O(1) lookups through summed-area "
-             "tables whatever the width).", lo=0.0),
+             "tables on full maps; virtual maps sum the box's texels, at most 64 per "
+             "side).", lo=0.0),
         Prop("exponent", "float", EXPONENTS[0],
              "evsm: exponent c+ of the positive warp exp(c+ u), u = the depth mapped to "
              "[-1, 1] over the map's depth range; at most 42, the float32 limit of "

@@ -252,8 +252,8 @@ METHOD = Method(
     properties=(
         Prop("filter_size", "float", 2.0,
              "Minimum width of the filter box in texels per axis; the camera pixel's "
-             "footprint widens it (O(1) lookups through summed-area tables whatever the "
-             "width).", lo=0.0),
+             "footprint widens it (O(1) lookups through summed-area tables on full maps; "
+             "virtual maps sum the box's texels, at most 64 per side).", lo=0.0),
         Prop("min_variance", "float", 1e-7,
              "Lower clamp of the variance, in normalised depth squared (depth / far, "
              "far = twice the map's largest depth): sigma_min = sqrt(min_variance) * far.",

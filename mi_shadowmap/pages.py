@@ -37,6 +37,13 @@ kernel, a cube seam) the coarsest level, whose page of face ``f`` is always in s
 :class:`~mi_shadowmap.light_views.local.LocalView`: coordinates local to
 the lookup, so float32 stays exact at any level.
 
+**Derived layers**: pages hold depths (and ``second_depth``, ray-cast per page). A
+method whose full maps carry layers derived from the whole face -- ``mdsm``'s 3 x 3
+extremes, the prefiltered methods' summed-area tables -- computes what it reads from
+the pages' depths at lookup time instead (see those modules); the prefiltered methods
+normalise depths by the layout's ``depth_range`` (the scene's bounding box as the light
+sees it), which does not change as pages are built.
+
 **Caching** (:data:`PAGE_CACHE`): pages live in light space, so a camera move
 builds only the pages that were never built; the cache is dropped when the
 scene's shapes or emitters change (the map cache's scene state). Every

@@ -686,7 +686,7 @@ def test_box_means_of_depths_equal_the_summed_area_tables():
         zz = dr.select(dr.isfinite(d), mi.Float64(d) / 8.0, 1.0)
         return zz, zz * zz
 
-    (m1, m2), count = box_means_of_depths(smap, face, lo, hi, per_texel)
+    (m1, m2), count = box_means_of_depths(smap, face, lo, hi, per_texel, 2)
     # the tables' means are differences of sums over the whole face: on the 1e-6 texel^2
     # boxes of boxes clipped away entirely their cancellation reaches 1e-7 (the direct
     # sums are exact there), elsewhere both agree to float64 rounding

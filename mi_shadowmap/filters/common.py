@@ -523,9 +523,10 @@ def prefilter_box(smap, lk: Lookup, r: Receiver, filter_size):
 MAX_DIRECT_BOX = 64
 
 
-def has_moment_tables(smap, names) -> bool:
-    """Whether the map carries the prefiltered layers ``names`` (full maps build them;
-    virtual maps build none: their lookups sum the box's texels, :func:`box_means_of_depths`)."""
+def has_layers(smap, names) -> bool:
+    """Whether the map carries the layers ``names``: full maps build a method's layers;
+    virtual maps build none derived from the whole face (``mdsm``'s extremes, the
+    prefiltered methods' tables), whose lookups compute them from the depths instead."""
     return all(name in smap.extra for name in names)
 
 
@@ -577,9 +578,10 @@ def face_rect(smap) -> tuple:
 
 
 def box_means_of_depths(smap, face, lo: mi.Point2f, hi: mi.Point2f, per_texel,
-                        active=True) -> tuple:
+                        n_values: int, active=True) -> tuple:
     """Means over the box ``[lo, hi]`` (continuous texel coordinates of ``face`` as the
-    map's view gives them) of ``per_texel(depth)`` (a tuple of ``mi.Float64``), each
+    map's view gives them) of ``per_texel(depth)`` (a tuple of ``n_values``
+    ``mi.Float64``), each
     texel counted by its covered fraction: the value :func:`~mi_shadowmap.depth_maps.box_mean`
     reads from a summed-area table, computed by visiting the box's texels (one
     ``dr.while_loop``, as many iterations as the box covers texels in each lane). For
@@ -602,7 +604,6 @@ def box_means_of_depths(smap, face, lo: mi.Point2f, hi: mi.Point2f, per_texel,
     active = mi.Bool(active)
     Float64 = mi.Float64
     lo64, hi64 = mi.Point2d(lo), mi.Point2d(hi)
-    n_values = len(per_texel(dr.zeros(mi.Float, 1)))
     tap = mi.UInt32(0)
     sums = tuple(dr.zeros(Float64, dr.width(count)) for _ in range(n_values))
 

@@ -157,7 +157,7 @@ import mitsuba as mi
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
 from .common import Lookup, Receiver, antialiased, box_means_of_depths, face_rect, \
-    has_moment_tables, normalized_depth, prefilter_box, receiver, texel_depths, \
+    has_layers, normalized_depth, prefilter_box, receiver, texel_depths, \
     virtual_depth_scale, virtual_variance_factor
 
 #: Largest allowed exponent: exp(2 c) of u = 1 stays a finite float32 (2 c <= 88.7).
@@ -265,7 +265,7 @@ class _Costs(dict):
 
 def _layers_for(opts) -> tuple:
     if getattr(opts, "virtual", False):
-        return ()      # virtual maps: the lookup sums the box's texels (_direct_bounds)
+        return ()      # virtual maps: the lookup sums the box's texels (_summed_moments)
     return (RANGE_LAYER,) + moment_layer_names(opts.exponent, opts.negative_exponent)
 
 
@@ -299,14 +299,28 @@ def filter_box(smap, lk: Lookup, r: Receiver, filter_size: float):
 
 def evsm_bounds(smap, lk: Lookup, opts, active=True):
     """``(p+, p-, inside)``: the two Chebyshev bounds (float64) of a lookup."""
-    Float64 = mi.Float64
-    res = smap.resolution
     r = receiver(smap, lk, opts)
     active = mi.Bool(active) & r.inside
     lo, hi = filter_box(smap, lk, r, opts.filter_size)
     names = moment_layer_names(opts.exponent, opts.negative_exponent)
-    if not has_moment_tables(smap, (RANGE_LAYER,) + names):
-        return _direct_bounds(smap, r, lo, hi, opts, active)
+    if has_layers(smap, (RANGE_LAYER,) + names):
+        u, dudz, moments, floor = _table_moments(smap, r, lo, hi, names, active)
+    else:
+        u, dudz, moments, floor = _summed_moments(smap, r, lo, hi, opts, active)
+    bounds = []
+    for (positive, c), (m1, m2, err1, err2) in zip(
+            ((True, opts.exponent), (False, opts.negative_exponent)), moments):
+        t = warp(u, c, positive)
+        min_var = opts.min_variance * floor * dr.square(c * t * dudz)      # (dw/dz)^2
+        bounds.append(chebyshev(m1, m2, t, min_var, opts.light_bleeding, err1, err2))
+    return bounds[0], bounds[1], r.inside
+
+
+def _table_moments(smap, r: Receiver, lo, hi, names, active):
+    """``(u, du/dz, [(m1, m2, err1, err2)] per warp, floor factor)`` from a full map's
+    summed-area tables, each mean with its tables' error bound."""
+    Float64 = mi.Float64
+    res = smap.resolution
     rng = smap.extra[RANGE_LAYER]
     idx = dr.zeros(mi.UInt32, dr.width(r.depth))
     far = mi.Float(dr.gather(Float64, rng, idx))
@@ -317,25 +331,23 @@ def evsm_bounds(smap, lk: Lookup, opts, active=True):
     ci = mi.UInt32(dr.clip(mi.Int32(dr.ceil(hi.x)), 1, res) - 1)
     cj = mi.UInt32(dr.clip(mi.Int32(dr.ceil(hi.y)), 1, res) - 1)
     corner = mi.UInt32(r.face) * (res * res) + cj * res + ci
-    bounds = []
-    for k, (positive, c) in enumerate(((True, opts.exponent), (False, opts.negative_exponent))):
+    scale = SAT_ERROR * _EPS64 / area
+    moments = []
+    for k in range(2):
         sat1, sat2 = smap.extra[names[2 * k]], smap.extra[names[2 * k + 1]]
-        m1 = box_mean(sat1, res, r.face, lo, hi, active)
-        m2 = box_mean(sat2, res, r.face, lo, hi, active)
-        scale = SAT_ERROR * _EPS64 / area
-        err1 = scale * dr.abs(dr.gather(Float64, sat1, corner, active))
-        err2 = scale * dr.abs(dr.gather(Float64, sat2, corner, active))
-        t = warp(u, c, positive)
-        min_var = opts.min_variance * dr.square(c * t * dudz)      # (dw/dz)^2
-        bounds.append(chebyshev(m1, m2, t, min_var, opts.light_bleeding, err1, err2))
-    return bounds[0], bounds[1], r.inside
+        moments.append((box_mean(sat1, res, r.face, lo, hi, active),
+                        box_mean(sat2, res, r.face, lo, hi, active),
+                        scale * dr.abs(dr.gather(Float64, sat1, corner, active)),
+                        scale * dr.abs(dr.gather(Float64, sat2, corner, active))))
+    return u, dudz, moments, 1.0
 
 
-def _direct_bounds(smap, r: Receiver, lo, hi, opts, active):
-    """:func:`evsm_bounds` on a map without the tables (virtual maps): the warps' box
+def _summed_moments(smap, r: Receiver, lo, hi, opts, active):
+    """:func:`_table_moments` on a map without the tables (virtual maps): the warps' box
     means summed over the box's texels, depths normalised over the scene's depth span
     (:func:`~.common.virtual_depth_scale`: ``z`` in ``[0, 1/2]``, the warps' range),
-    each mean with a rounding bound of 4 x (texels summed) x 2^-52 of its magnitude."""
+    each mean with a rounding bound of 4 x (texels summed) x 2^-52 of its magnitude,
+    and the floor scaled per texel as for ``vsm``."""
     Float64 = mi.Float64
     d_lo, scale = virtual_depth_scale(smap)
     z_lo, z_hi = 0.0, 0.5
@@ -347,19 +359,12 @@ def _direct_bounds(smap, r: Receiver, lo, hi, opts, active):
         wp, wn = warp(u, c_pos, True), warp(u, c_neg, False)
         return wp, wp * wp, wn, wn * wn
 
-    means, count = box_means_of_depths(smap, r.face, lo, hi, per_texel, active)
+    means, count = box_means_of_depths(smap, r.face, lo, hi, per_texel, 4, active)
     u = warp_input((Float64(r.depth) - d_lo) * scale, z_lo, z_hi)
-    dudz = 2.0 / (z_hi - z_lo)
     rel = 4.0 * Float64(count) * _EPS64
-    floor = virtual_variance_factor(r, scale)     # the floor per texel, as for vsm
-    bounds = []
-    for k, (positive, c) in enumerate(((True, c_pos), (False, c_neg))):
-        m1, m2 = means[2 * k], means[2 * k + 1]
-        t = warp(u, c, positive)
-        min_var = opts.min_variance * floor * dr.square(c * t * dudz)
-        bounds.append(chebyshev(m1, m2, t, min_var, opts.light_bleeding,
-                                rel * dr.abs(m1), rel * dr.abs(m2)))
-    return bounds[0], bounds[1], r.inside
+    moments = [(m1, m2, rel * dr.abs(m1), rel * dr.abs(m2))
+               for m1, m2 in (means[:2], means[2:])]
+    return u, 2.0 / (z_hi - z_lo), moments, virtual_variance_factor(r, scale)
 
 
 def evsm(smap, lk: Lookup, opts, active=True) -> mi.Float:

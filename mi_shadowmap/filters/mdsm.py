@@ -76,7 +76,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from .common import Lookup, nearest_block, taps_loop, virtual_sample_depth
+from .common import Lookup, has_layers, nearest_block, taps_loop, virtual_sample_depth
 
 
 def _window_offsets(search: int) -> list:
@@ -109,7 +109,7 @@ def neighbourhood_depths(smap, layers: tuple, face, ij: mi.Point2i, search: int,
         z = smap.fetch(smap.depth, face, ij.x, ij.y, active)
         return {name: z for name in layers}
     out = {name: None for name in layers}
-    stored = all(name in smap.extra for name in layers)
+    stored = has_layers(smap, layers)
     for dj in _window_offsets(search):
         for di in _window_offsets(search):
             if stored:
@@ -155,6 +155,8 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     else:
         min_drop = mi.Float(0.0)
 
+    names = ("mdsm_max",) if n_depths == 2 else ("mdsm_max", "mdsm_min")
+
     def body(tap, n_shadow):
         ij = smap.clamp_texel(mi.Point2i(i0.x + mi.Int32(tap % side),
                                          i0.y + mi.Int32(tap // side)))
@@ -163,7 +165,6 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
         one, zero = mi.UInt32(1), mi.UInt32(0)
         s = dr.select(z < z_rec, one, zero)
         if n_depths >= 2:
-            names = ("mdsm_max",) if n_depths == 2 else ("mdsm_max", "mdsm_min")
             ext = neighbourhood_depths(smap, names, r.face, ij, search, active)
             s += dr.select(ext["mdsm_max"] < z_rec, one, zero)
         if n_depths == 3:
@@ -174,8 +175,7 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
         (n_shadow,) = taps_loop(k, body, (mi.UInt32(0),), active)
         return n_shadow
 
-    names = ("mdsm_max",) if n_depths == 2 else ("mdsm_max", "mdsm_min")
-    if n_depths == 1 or search == 1 or all(name in smap.extra for name in names):
+    if n_depths == 1 or search == 1 or has_layers(smap, names):
         n_shadow = all_taps(r.face, i0)
     else:
         # no stored extremes (virtual maps): the taps' search squares overlap, so read

@@ -145,7 +145,7 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, antialiased, box_means_of_depths, has_moment_tables, \
+from .common import Lookup, antialiased, box_means_of_depths, has_layers, \
     normalized_depth, plane_depth_at, prefilter_box, receiver, receiver_plane, \
     virtual_depth_scale, virtual_variance_factor
 
@@ -289,31 +289,34 @@ def msm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     r = receiver(smap, lk, opts)
     act = mi.Bool(active) & r.inside
     lo, hi = prefilter_box(smap, lk, r, opts.filter_size)
-    has_tables = has_moment_tables(smap, MOMENT_LAYERS + (FAR_LAYER,))
-    if has_tables:
+    if has_layers(smap, MOMENT_LAYERS + (FAR_LAYER,)):
         b = tuple(box_mean(smap.extra[name], res, r.face, lo, hi, act)
                   for name in MOMENT_LAYERS)
         far = mi.Float64(smap.extra[FAR_LAYER])
+        alpha = opts.moment_bias
+
+        def to_u(z):
+            return 2.0 * mi.Float64(z) / far - 1.0
     else:
         # virtual maps: the box's texels summed here, normalised over the scene's depth
         # span (virtual_depth_scale)
         d_lo, scale = virtual_depth_scale(smap)
 
+        def to_u(z):
+            return 2.0 * (mi.Float64(z) - d_lo) * scale - 1.0
+
         def per_texel(d):
-            u = dr.select(dr.isfinite(d), 2.0 * (mi.Float64(d) - d_lo) * scale - 1.0, 1.0)
+            u = dr.select(dr.isfinite(d), to_u(d), 1.0)
             u2 = u * u
             return u, u2, u2 * u, u2 * u2
 
-        b, _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, act)
+        b, _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, 4, act)
         # the moment bias adds variance like vsm's floor: scaled per texel the same way
         alpha = opts.moment_bias * virtual_variance_factor(r, scale)
     z = receiver_depth(smap, lk, r, opts, lo, hi)
     # Receivers deeper than every texel stay in front of the empty texels (u = 1).
-    if has_tables:
-        zf = dr.minimum(2.0 * mi.Float64(z) / far - 1.0, 1.0 - 1e-6)
-    else:
-        zf = dr.minimum(2.0 * (mi.Float64(z) - d_lo) * scale - 1.0, 1.0 - 1e-6)
-    g = shadow_intensity(b, zf, opts.moment_bias if has_tables else alpha)
+    zf = dr.minimum(to_u(z), 1.0 - 1e-6)
+    g = shadow_intensity(b, zf, alpha)
     vis = reduce_light_bleeding(mi.Float(1.0 - g), opts.light_bleeding)
     return dr.select(act, vis, 1.0)
 

@@ -16,7 +16,7 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import (Lookup, antialiased, box_means_of_depths, has_moment_tables,
+from .common import (Lookup, antialiased, box_means_of_depths, has_layers,
                      normalized_depth, prefilter_box, receiver, virtual_depth_scale,
                      virtual_variance_factor)
 
@@ -43,11 +43,7 @@ def chebyshev_upper_bound(m1, m2, t, min_variance: float = 0.0,
     (the lookup passes ``mi.Float64``: the variance is a difference of nearly
     equal means).
     """
-    if isinstance(min_variance, (int, float)):
-        min_variance = max(min_variance, VARIANCE_FLOOR)
-    else:     # per lane (virtual maps: virtual_variance_factor)
-        min_variance = dr.maximum(min_variance, VARIANCE_FLOOR)
-    var = dr.maximum(m2 - m1 * m1, min_variance)
+    var = dr.maximum(m2 - m1 * m1, dr.maximum(min_variance, VARIANCE_FLOOR))
     d = t - m1
     p_max = var / (var + d * d)
     p = dr.select(t <= m1, 1.0, p_max)
@@ -56,14 +52,16 @@ def chebyshev_upper_bound(m1, m2, t, min_variance: float = 0.0,
     return p
 
 
-def vsm_moments(smap, lk: Lookup, r, filter_size, active=True, floor_factor=None):
-    """``(m1, m2, t)``: the means of ``z`` and ``z^2`` over the lookup's filter box
+def vsm_moments(smap, lk: Lookup, r, filter_size, active=True):
+    """``(m1, m2, t, floor)``: the means of ``z`` and ``z^2`` over the lookup's filter box
     (:func:`~.common.prefilter_box`: the pixel footprint, at least
     ``filter_size`` texels, clipped to the receiver's face) and the receiver's
-    biased depth ``t``, all in normalised depth (``mi.Float64``)."""
+    biased depth ``t``, all in normalised depth (``mi.Float64``), and the factor on
+    ``min_variance`` (1 on full maps; :func:`~.common.virtual_variance_factor` on
+    virtual maps)."""
     res = smap.resolution
     lo, hi = prefilter_box(smap, lk, r, filter_size)
-    if not has_moment_tables(smap, LAYERS):
+    if not has_layers(smap, LAYERS):
         # virtual maps: the box's texels summed here, normalised over the scene's depth
         # span (virtual_depth_scale; the map's own extremes change with the pages built)
         d_lo, scale = virtual_depth_scale(smap)
@@ -72,17 +70,16 @@ def vsm_moments(smap, lk: Lookup, r, filter_size, active=True, floor_factor=None
             z = dr.select(dr.isfinite(d), (mi.Float64(d) - d_lo) * scale, 1.0)
             return z, z * z
 
-        (m1, m2), _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, active)
-        if floor_factor is not None:
-            floor_factor.append(virtual_variance_factor(r, scale))
-        return m1, m2, dr.minimum((mi.Float64(r.depth) - d_lo) * scale, 1.0)
+        (m1, m2), _ = box_means_of_depths(smap, r.face, lo, hi, per_texel, 2, active)
+        return (m1, m2, dr.minimum((mi.Float64(r.depth) - d_lo) * scale, 1.0),
+                virtual_variance_factor(r, scale))
     m1 = box_mean(smap.extra["vsm_m1"], res, r.face, lo, hi, active)
     m2 = box_mean(smap.extra["vsm_m2"], res, r.face, lo, hi, active)
     far = dr.gather(mi.Float, smap.extra["vsm_far"], dr.zeros(mi.UInt32, dr.width(r.depth)))
     # Clamped at 1, the value of empty texels: they stay "behind every receiver" even
     # for a receiver beyond ``far`` (e.g. a map too coarse to hold any surface).
     t = dr.minimum(mi.Float64(r.depth) / mi.Float64(far), 1.0)
-    return m1, m2, t
+    return m1, m2, t, 1.0
 
 
 def vsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
@@ -224,10 +221,8 @@ def vsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """
     r = receiver(smap, lk, opts)
     act = mi.Bool(active) & r.inside
-    factor = []          # virtual maps: the floor per texel (virtual_variance_factor)
-    m1, m2, t = vsm_moments(smap, lk, r, opts.filter_size, act, factor)
-    min_var = opts.min_variance * factor[0] if factor else opts.min_variance
-    p = chebyshev_upper_bound(m1, m2, t, min_var, opts.light_bleeding)
+    m1, m2, t, floor = vsm_moments(smap, lk, r, opts.filter_size, act)
+    p = chebyshev_upper_bound(m1, m2, t, opts.min_variance * floor, opts.light_bleeding)
     return dr.select(r.inside, mi.Float(p), 1.0)
 
 

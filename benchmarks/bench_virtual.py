@@ -4,7 +4,8 @@
     python benchmarks/bench_virtual.py [--scenes large_world far_point ...]
                                        [--methods hard pcf] [--virtual false true]
                                        [--image 256] [--spp 16] [--repeats 3]
-                                       [--page-size N] [--out benchmarks/virtual_results.md]
+                                       [--page-size N] [--props NAME=VALUE ...]
+                                       [--out benchmarks/virtual_results.md]
 
 For every scene of ``--scenes`` (names of scenes_xml/*.xml, default: all of them), at
 ``--image``^2 pixels and ``--spp`` spp, seed 0:
@@ -64,10 +65,27 @@ def parse_bool(s: str) -> bool:
     raise argparse.ArgumentTypeError(f"not a boolean: {s!r}")
 
 
+def parse_prop(s: str) -> tuple:
+    """``NAME=VALUE`` of ``--props``: the value as a bool, int, float or string."""
+    name, sep, value = s.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"not NAME=VALUE: {s!r}")
+    for conv in (parse_bool, int, float):
+        try:
+            return name, conv(value)
+        except (ValueError, argparse.ArgumentTypeError):
+            pass
+    return name, value
+
+
+#: ``--props``: further integrator properties of every configuration (e.g. cascades=4)
+EXTRA_PROPS: dict = {}
+
+
 def make_integrator(method: str, virtual: bool, page_size: int | None, **extra):
     """The shadowmap integrator of one configuration, validated like the harness does
     (an unknown property is an OptionError naming it)."""
-    spec = {"method": method, "virtual": bool(virtual)}
+    spec = {"method": method, "virtual": bool(virtual), **EXTRA_PROPS}
     if virtual:
         if page_size is not None:
             spec["page_size"] = page_size
@@ -270,8 +288,14 @@ def main(argv=None) -> int:
     ap.add_argument("--move", type=float, default=0.05,
                     help="camera move, world units along the sensor's x axis")
     ap.add_argument("--turn", type=float, default=1.0, help="camera yaw, degrees")
+    ap.add_argument("--props", nargs="+", type=parse_prop, default=[],
+                    metavar="NAME=VALUE",
+                    help="further integrator properties of every configuration, e.g. "
+                         "cascades=4")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "virtual_results.md"))
     args = ap.parse_args(argv)
+    EXTRA_PROPS.clear()
+    EXTRA_PROPS.update(dict(args.props))
     missing = [s for s in args.scenes if not (SCENES / f"{s}.xml").exists()]
     if missing:
         ap.error(f"no scenes_xml/{missing[0]}.xml")

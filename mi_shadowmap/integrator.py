@@ -57,7 +57,8 @@ By default (``virtual`` left out) the methods that read virtual maps (``hard``,
 camera-visible points read, at the density their pixel footprint needs
 (:mod:`mi_shadowmap.pages`); ``resolution``, ``cascades``, ``fit_frusta``,
 ``cull_faces``, ``antialias='always'`` or ``virtual=false`` select full maps, and so
-does a scene whose shape or emitter parameters have gradients enabled.
+does a scene whose shape or emitter parameters have gradients enabled
+(``virtual=true`` with ``cascades``: one virtual face per cascade).
 
 Gradients (``mi.render(scene, params)`` with a shape's or an emitter's parameter
 enabled): the maps are built in the AD graph, antialiased at silhouettes, and with

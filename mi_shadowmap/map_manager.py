@@ -369,6 +369,8 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
                  else make_light_view(e, scene, i) for i, e in enumerate(scene.emitters())]
     if sensor is None and len(scene.sensors()) > 0:
         sensor = scene.sensors()[0]
+    if opts.cascades > 1:
+        views = _virtual_cascades(scene, sensor, opts, views)
     full_views = [None if v is None or getattr(v, "supports_virtual", False) else v
                   for v in views]
     stats = MapStats()
@@ -383,6 +385,45 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
     return PreparedMaps(list(views), maps, res, stats)
+
+
+#: ``(id(view), camera state) -> CascadedView`` of the latest renders with ``virtual=true``
+#: and ``cascades`` > 1 (a still camera keeps its cascades, and their pages).
+_VIRTUAL_CASCADES = collections.OrderedDict()
+
+
+def _virtual_cascades(scene, sensor, opts, views) -> list:
+    """``cascades`` > 1 with ``virtual=true``: every directional light's one-face view
+    becomes its :class:`~mi_shadowmap.light_views.CascadedView`, fitted to the
+    camera-visible points as for full maps; each cascade is then a virtual face. The
+    rectangles grow by 4 texels of a 256^2 map (3 % of a cascade: camera samples off
+    the pixel centres stay inside). Kept per camera state, so a still camera reuses its
+    cascades and their pages; a moved one fits new cascades, whose pages are built anew
+    (cascades follow the camera; the default, footprint-chosen levels without cascades,
+    do not)."""
+    from .light_views import CascadedView, cascaded_view
+    from .pages import camera_state
+    if sensor is None:
+        return views
+    cam = camera_state(sensor)
+    out, points = [], None
+    for v in views:
+        if (v is not None and v.kind == "directional" and v.n_faces == 1
+                and getattr(v, "supports_virtual", False)
+                and not isinstance(v, CascadedView)):
+            key = (id(v), cam)
+            hit = _VIRTUAL_CASCADES.get(key)
+            if hit is None or hit[0] is not v:
+                if points is None:
+                    points = camera_visible_points(scene, sensor)
+                hit = _VIRTUAL_CASCADES[key] = (v, cascaded_view(
+                    v, scene, sensor, opts.cascades, opts.split_lambda, res=256,
+                    points=points))
+                while len(_VIRTUAL_CASCADES) > 16:
+                    _VIRTUAL_CASCADES.popitem(last=False)
+            v = hit[1]
+        out.append(v)
+    return out
 
 
 # ------------------------------------------------------------------ map cache

@@ -85,7 +85,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "virtual=True) unless a full-map property is set (resolution > 0, cascades > 1, "
          "fit_frusta, cull_faces, antialias='always') or memory_budget cannot hold a "
          "virtual cube map's coarsest level; a scene with shape or emitter gradients "
-         "enabled then gets full maps (built in the AD graph)."),
+         "enabled then gets full maps (built in the AD graph). virtual=true with "
+         "cascades > 1: one virtual face per cascade."),
     Prop("page_size", "int", 32,
          "Virtual maps: texels per side of a page, a power of two. Filter kernels up to "
          "page_size / 2 texels wide read the lookup's own pages; wider taps read the "
@@ -146,7 +147,10 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          lo_open=True),
     Prop("cascades", "int", 1,
          "Directional lights: number of parallel-split maps over the camera's view depth "
-         "(each 'resolution' squared, fitted to its slice).", lo=1, hi=4),
+         "(each 'resolution' squared, fitted to its slice). With virtual=true each "
+         "cascade is a virtual face (pages rebuilt when the camera moves, as the "
+         "cascades follow it); the automatic virtual maps need no cascades: their "
+         "levels follow the pixel footprint.", lo=1, hi=4),
     Prop("split_lambda", "float", 0.5,
          "Weight of the uniform split scheme against the logarithmic one (thesis eq. in "
          "sec. 5.1: C_i = lambda*C_uni + (1-lambda)*C_log).", lo=0.0, hi=1.0),
@@ -525,11 +529,12 @@ def _check_virtual(record, values: dict, given) -> None:
         raise OptionError("shadowmap: property 'antialias' = 'always' applies to full maps "
                           "only (virtual pages are not antialiased); use 'gradients' or "
                           "'never', or set virtual=false")
-    for name, off in (("cascades", 1), ("fit_frusta", False), ("cull_faces", False)):
+    for name, off in (("fit_frusta", False), ("cull_faces", False)):
         if values.get(name, off) != off:
             raise OptionError(f"shadowmap: property '{name}' applies to full maps only; "
-                              "virtual=true chooses each lookup's level from its pixel "
-                              "footprint (remove it or set virtual=false)")
+                              "virtual=true builds only the pages the camera reads, at "
+                              "each lookup's pixel footprint (remove it or set "
+                              "virtual=false)")
     if not _holds_virtual_cube(values["memory_budget"], page):
         raise OptionError(f"shadowmap: property 'memory_budget' = "
                           f"{values['memory_budget']:g} MiB cannot hold the coarsest level of "

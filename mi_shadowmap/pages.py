@@ -44,6 +44,12 @@ the pages' depths at lookup time instead (see those modules); the prefiltered me
 normalise depths by the layout's ``depth_range`` (the scene's bounding box as the light
 sees it), which does not change as pages are built.
 
+**Cascades** (``virtual=true`` with ``cascades`` > 1): a directional light's view is
+its :class:`~mi_shadowmap.light_views.CascadedView`, fitted to the camera as for full
+maps, and each cascade is a virtual face. Cascades follow the camera, so a moved camera
+gets new faces and their pages are built anew (:meth:`PageCache.retire` drops the old
+ones); the automatic virtual maps need no cascades.
+
 **Caching** (:data:`PAGE_CACHE`): pages live in light space, so a camera move
 builds only the pages that were never built; the cache is dropped when the
 scene's shapes or emitters change (the map cache's scene state). Every
@@ -189,7 +195,10 @@ def _depth_range(view, lo, hi, dist) -> tuple:
     the distance from the light), d_hi > d_lo >= 0."""
     corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)])
     if view.kind == "directional":
-        p = mi.Point3d(*(corners[:, a].copy() for a in range(3)))
+        # from lists: Dr.Jit copies them into its own (aligned) memory, while numpy
+        # arrays may be read in place, and their alignment would enter the kernel's hash
+        # (a kernel compiled per layout: with cascades, per camera move)
+        p = mi.Point3d(*(mi.Float64(corners[:, a].tolist()) for a in range(3)))
         depth = np.asarray(view.project_f64(p)[2].numpy(), np.float64)
         d_lo, d_hi = max(float(depth.min()), 0.0), float(depth.max())
     else:
@@ -841,6 +850,22 @@ class PageCache:
             slot[2][key] = layout_for(view, scene, opts)
         return slot[2][key]
 
+    def retire(self, scene, state, label: str, fingerprint) -> None:
+        """Keep one fingerprint's store and layout for ``label``'s camera-following view
+        (cascades): when it changes, the stores and layouts of the previous one are
+        dropped, so a camera path does not pile up page pools."""
+        if state is None:
+            return
+        from .map_manager import scene_slot
+        entries = scene_slot(self._scenes, scene, state, self.max_scenes)[2]
+        group = ("follows camera", label)
+        old = entries.get(group)
+        if old is not None and old != fingerprint:
+            for k in [k for k in entries if k != group and (
+                    k[0] == old or k[0] == "layout" and k[1] == old)]:
+                del entries[k]
+        entries[group] = fingerprint
+
     def clear(self):
         self._scenes.clear()
         self._fingerprints.clear()
@@ -871,6 +896,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         if view is None or not getattr(view, "supports_virtual", False):
             continue
         fingerprint = PAGE_CACHE.fingerprint(view)
+        if getattr(view, "follows_camera", False):
+            PAGE_CACHE.retire(scene, state, view.label, fingerprint)
         layout = PAGE_CACHE.layout(scene, state, view, fingerprint, opts)
         key = (fingerprint, layout.res0, layout.page_size, layer_names)
         store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))

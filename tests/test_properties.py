@@ -102,7 +102,7 @@ def valid_sets(draw):
         if not _methods.get(method).virtual:
             del props["virtual"]
         else:
-            for name in ("cascades", "fit_frusta", "cull_faces"):
+            for name in ("fit_frusta", "cull_faces"):
                 props.pop(name, None)
             if props.get("antialias") == "always":   # full maps only
                 del props["antialias"]

@@ -4,6 +4,13 @@
 plane, face ``i`` fitted to the camera-visible points of view-depth slice
 ``i`` (thesis 002, sec. 2.1.6 / 5.1); a point uses the face of its camera view
 depth (:meth:`CascadedView.cascade_of`).
+
+The cascades' camera-dependent values (rectangles, split depths, the camera's
+origin and axis) enter kernels as data, never as literals, so a camera move
+rebuilds the cascades but compiles no new kernel. With ``virtual=true`` each
+cascade is a virtual face (:mod:`mi_shadowmap.pages`, the float64 methods
+below): pages of it are built where lookups read them, at their pixel
+footprint's level, and, as the cascades follow the camera, rebuilt when it moves.
 """
 from __future__ import annotations
 
@@ -13,8 +20,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import light_matrix, unit_grid
+from .base import light_matrix, transform_f64, unit_grid
 from .ortho import OrthoView
+
+
+def _opaque(cls, scalar, values):
+    """``cls(*values)`` as opaque Dr.Jit variables (data, not kernel literals)."""
+    return cls(*(dr.opaque(scalar, float(v)) for v in values))
 
 
 @dataclass(frozen=True)
@@ -37,20 +49,30 @@ class CascadedView(OrthoView):
     def cascade_of(self, p_world) -> mi.UInt32:
         """Cascade (face) of ``p_world``: how many split depths its camera view depth
         exceeds."""
-        cam_o = mi.Point3f(*self.camera_origin)
-        cam_f = mi.Vector3f(*self.camera_forward)
+        cam_o = _opaque(mi.Point3f, mi.Float, self.camera_origin)
+        cam_f = _opaque(mi.Vector3f, mi.Float, self.camera_forward)
         z_view = dr.dot(mi.Point3f(p_world) - cam_o, cam_f)
         face = mi.UInt32(0)
         for split in self.split_depths[1:-1]:
-            face += dr.select(z_view > split, 1, 0)
+            face += dr.select(z_view > dr.opaque(mi.Float, split), 1, 0)
         return face
 
-    def _rect(self, face):
+    def _cascade_of_f64(self, p64) -> mi.UInt32:
+        """:meth:`cascade_of` in float64 (what virtual maps mark and bind by)."""
+        cam_o = _opaque(mi.Point3d, mi.Float64, self.camera_origin)
+        cam_f = _opaque(mi.Vector3d, mi.Float64, self.camera_forward)
+        z_view = dr.dot(mi.Point3d(p64) - cam_o, cam_f)
+        face = mi.UInt32(0)
+        for split in self.split_depths[1:-1]:
+            face += dr.select(z_view > dr.opaque(mi.Float64, split), 1, 0)
+        return face
+
+    def _rect(self, face, dtype=mi.Float):
         """Per-face ``(cx, cy, hx, hy)`` of the light-space rectangle, gathered."""
         out = []
         for k in range(4):
-            table = mi.Float([r[k] for r in self.rects])
-            out.append(dr.gather(mi.Float, table, mi.UInt32(face)))
+            table = dtype([r[k] for r in self.rects])     # >= 2 entries: never a literal
+            out.append(dr.gather(dtype, table, mi.UInt32(face)))
         return tuple(out)
 
     def texel_rays(self, res: int):
@@ -84,6 +106,41 @@ class CascadedView(OrthoView):
     def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
         p_light = mi.Transform4f(self.light_from_world) @ mi.Point3f(p_world)
         return self._uv_in(mi.UInt32(face), p_light)
+
+    # ------------------------------------------------------------- float64
+    supports_virtual = True     # each cascade a virtual face
+    follows_camera = True       # its virtual pages are dropped when the camera moves
+
+    def _uv_in_f64(self, face, p_light):
+        cx, cy, hx, hy = self._rect(face, mi.Float64)
+        return mi.Point2d(0.5 * ((p_light.x - cx) / hx + 1.0),
+                          0.5 * ((p_light.y - cy) / hy + 1.0))
+
+    def project_f64(self, p_world):
+        p64 = mi.Point3d(p_world)
+        p_light = transform_f64(light_matrix(self), p64)
+        face = self._cascade_of_f64(p64)
+        uv = self._uv_in_f64(face, p_light)
+        inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        return face, uv, p_light.z, inside
+
+    def uv_on_face_f64(self, face, p_world):
+        p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
+        return self._uv_in_f64(mi.UInt32(face), p_light)
+
+    def uv_differential(self, face, p_world, dp_world):
+        dp = mi.Transform4f(self.light_from_world) @ mi.Vector3f(dp_world)
+        _, _, hx, hy = self._rect(mi.UInt32(face))
+        return mi.Point2f(0.5 * dp.x / hx, 0.5 * dp.y / hy)
+
+    def ray_through_f64(self, face, uv_light):
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        cx, cy, hx, hy = self._rect(mi.UInt32(face), mi.Float64)
+        W = np.linalg.inv(light_matrix(self))
+        o = transform_f64(W, mi.Point3d(cx + s * hx, cy + t * hy, 0.0))
+        d = transform_f64(W, mi.Vector3d(0.0, 0.0, 1.0), point=False)
+        return o, dr.normalize(d)
 
     def texel_world_size(self, res: int, depth, p_world=None):
         """Needs ``p_world`` (its cascade sets the texel size); without it, the

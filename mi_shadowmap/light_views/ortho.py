@@ -64,7 +64,7 @@ class OrthoView(LightView):
     # ------------------------------------------------------------- float64
     @property
     def supports_virtual(self):
-        return type(self) is OrthoView   # cascades are full maps only
+        return type(self) is OrthoView   # CascadedView says so itself
 
     def uv_on_face_f64(self, face, p_world):
         p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))

@@ -396,12 +396,16 @@ def _virtual_cascades(scene, sensor, opts, views) -> list:
     """``cascades`` > 1 with ``virtual=true``: every directional light's one-face view
     becomes its :class:`~mi_shadowmap.light_views.CascadedView`, fitted to the
     camera-visible points as for full maps; each cascade is then a virtual face. The
-    rectangles grow by 4 texels of a 256^2 map (3 % of a cascade: camera samples off
-    the pixel centres stay inside). Kept per camera state, so a still camera reuses its
+    rectangles grow by 4 texels of a 256^2 map (3 % of a cascade), and one more face,
+    the whole scene-fitted rectangle, serves the points outside their cascade's
+    rectangle (:func:`~mi_shadowmap.light_views.cascaded.with_catch_all`: camera samples
+    off the pixel centres, towards the horizon, at 2-4 % of the samples of a ground seen
+    at eye height). Kept per camera state, so a still camera reuses its
     cascades and their pages; a moved one fits new cascades, whose pages are built anew
     (cascades follow the camera; the default, footprint-chosen levels without cascades,
     do not)."""
     from .light_views import CascadedView, cascaded_view
+    from .light_views.cascaded import with_catch_all
     from .pages import camera_state
     if sensor is None:
         return views
@@ -416,9 +420,9 @@ def _virtual_cascades(scene, sensor, opts, views) -> list:
             if hit is None or hit[0] is not v:
                 if points is None:
                     points = camera_visible_points(scene, sensor)
-                hit = _VIRTUAL_CASCADES[key] = (v, cascaded_view(
+                hit = _VIRTUAL_CASCADES[key] = (v, with_catch_all(cascaded_view(
                     v, scene, sensor, opts.cascades, opts.split_lambda, res=256,
-                    points=points))
+                    points=points)))
                 while len(_VIRTUAL_CASCADES) > 16:
                     _VIRTUAL_CASCADES.popitem(last=False)
             v = hit[1]

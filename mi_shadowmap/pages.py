@@ -46,9 +46,11 @@ sees it), which does not change as pages are built.
 
 **Cascades** (``virtual=true`` with ``cascades`` > 1): a directional light's view is
 its :class:`~mi_shadowmap.light_views.CascadedView`, fitted to the camera as for full
-maps, and each cascade is a virtual face. Cascades follow the camera, so a moved camera
-gets new faces and their pages are built anew (:meth:`PageCache.retire` drops the old
-ones); the automatic virtual maps need no cascades.
+maps, and each cascade is a virtual face, plus one face for the whole rectangle, read by
+points outside their cascade's (camera samples off the pixel centres, towards the
+horizon). Cascades follow the camera, so a moved camera gets new faces and their pages
+are built anew (:meth:`PageCache.retire` drops the old ones); the automatic virtual maps
+need no cascades.
 
 **Caching** (:data:`PAGE_CACHE`): pages live in light space, so a camera move
 builds only the pages that were never built; the cache is dropped when the

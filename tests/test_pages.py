@@ -440,11 +440,47 @@ def test_virtual_cascades_at_the_same_density_match_full_cascades():
     integ = shadowmap(method="hard", cascades=4, resolution=256, virtual=True, lod_bias=-8.0)
     virt = vis_of(scene, integ, spp=2)
     assert isinstance(integ.maps[0], pages.VirtualShadowMap)
-    assert integ.views[0].n_faces == 4 and integ.maps[0].layout.res0 == 256
-    assert set(integ.maps[0].page_records()["face"]) == {0, 1, 2, 3}
+    # 4 cascades and the catch-all face (the whole rectangle, for points outside theirs)
+    assert integ.views[0].n_faces == 5 and integ.maps[0].layout.res0 == 256
+    assert {0, 1, 2, 3} <= set(integ.maps[0].page_records()["face"])
     differ = float(np.mean(np.abs(full - virt) > 0.01))
     print(f"{differ:.3%} of the pixels differ")
     assert differ <= 0.002
+
+
+def test_points_outside_their_cascade_read_the_catch_all_face():
+    """A virtual cascade's rectangle holds the visible points of its depth slice at the
+    pixel centres; a point outside it (a camera sample off the centre, towards the
+    horizon) reads the last face, the whole scene-fitted rectangle, instead of finding no
+    map; float32 and float64 projections agree on the face."""
+    from mi_shadowmap.map_manager import _virtual_cascades
+    from mi_shadowmap.light_views import make_light_view
+    scene = mi.load_file(str(SCENES / "large_world.xml"), width=64, height=64)
+    opts = parse_options({"method": "hard", "virtual": True, "cascades": 4})
+    sun = next(i for i, e in enumerate(scene.emitters())
+               if e.flags() & mi.EmitterFlags.DeltaDirection)
+    base = make_light_view(scene.emitters()[sun], scene, sun)
+    view = _virtual_cascades(scene, scene.sensors()[0], opts, [base])[0]
+    assert view.catch_all and view.n_faces == 5 and view.rects[-1][:2] == (0.0, 0.0)
+    rng = np.random.default_rng(3)
+    lo, hi = pages.scene_bounds(scene)
+    p = rng.uniform(lo, hi, (20000, 3))
+    p[:, 1] = 0.0                                # on the ground
+    p64 = mi.Point3d(*(p[:, a].copy() for a in range(3)))
+    face, uv, _, inside = view.project_f64(p64)
+    face32 = view.project(mi.Point3f(p64))[0]
+    cascade = view._cascade_of_f64(p64).numpy()
+    light = np.asarray(view.light_from_world.matrix, np.float64)
+    p_l = p @ light[:3, :3].T + light[:3, 3]
+    rects = np.array(view.rects)
+    in_own = ((np.abs(p_l[:, 0] - rects[cascade, 0]) <= rects[cascade, 2])
+              & (np.abs(p_l[:, 1] - rects[cascade, 1]) <= rects[cascade, 3]))
+    face = face.numpy()
+    assert inside.numpy().all()
+    assert (~in_own).sum() > 1000, "the test needs points outside their cascade"
+    np.testing.assert_array_equal(face[in_own], cascade[in_own])
+    assert (face[~in_own] == 4).all()
+    assert np.mean(face32.numpy() == face) > 0.999   # float32 differs only at edges
 
 
 @pytest.mark.parametrize("method, cascades", [("hard", 4), ("pcf", 4), ("pcss", 2),

@@ -14,6 +14,7 @@ footprint's level, and, as the cascades follow the camera, rebuilt when it moves
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import drjit as dr
@@ -39,6 +40,9 @@ class CascadedView(OrthoView):
     split_depths: tuple = ()
     camera_origin: tuple = (0.0, 0.0, 0.0)
     camera_forward: tuple = (0.0, 0.0, 1.0)
+    #: the last face is the whole scene-fitted rectangle, read by points outside their
+    #: cascade's rectangle (virtual maps: :func:`with_catch_all`)
+    catch_all: bool = False
 
     projection = "cascaded"
 
@@ -95,12 +99,24 @@ class CascadedView(OrthoView):
         return mi.Point2f(0.5 * ((p_light.x - cx) / hx + 1.0),
                           0.5 * ((p_light.y - cy) / hy + 1.0))
 
+    def _face_uv(self, face, p_light, uv_in):
+        """``(face, uv, inside)`` of a point whose cascade is ``face``: with
+        ``catch_all``, a point outside that cascade's rectangle moves to the last face."""
+        uv = uv_in(face, p_light)
+        inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        if self.catch_all:
+            last = mi.UInt32(self.n_faces - 1)
+            uv_all = uv_in(last, p_light)
+            face = dr.select(inside, face, last)
+            uv = dr.select(inside, uv, uv_all)
+            inside = inside | ((uv_all.x >= 0) & (uv_all.x <= 1) & (uv_all.y >= 0)
+                               & (uv_all.y <= 1))
+        return face, uv, inside
+
     def project(self, p_world: mi.Point3f):
         p_world = mi.Point3f(p_world)
         p_light = mi.Transform4f(self.light_from_world) @ p_world
-        face = self.cascade_of(p_world)
-        uv = self._uv_in(face, p_light)
-        inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        face, uv, inside = self._face_uv(self.cascade_of(p_world), p_light, self._uv_in)
         return face, uv, p_light.z, inside
 
     def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
@@ -119,9 +135,8 @@ class CascadedView(OrthoView):
     def project_f64(self, p_world):
         p64 = mi.Point3d(p_world)
         p_light = transform_f64(light_matrix(self), p64)
-        face = self._cascade_of_f64(p64)
-        uv = self._uv_in_f64(face, p_light)
-        inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        face, uv, inside = self._face_uv(self._cascade_of_f64(p64), p_light,
+                                         self._uv_in_f64)
         return face, uv, p_light.z, inside
 
     def uv_on_face_f64(self, face, p_world):
@@ -148,7 +163,8 @@ class CascadedView(OrthoView):
         if p_world is None:
             w = max(max(r[2], r[3]) for r in self.rects)
             return dr.full(mi.Float, 2.0 * w / res, dr.width(depth))
-        _, _, hx, hy = self._rect(self.cascade_of(p_world))
+        face = self.project(p_world)[0] if self.catch_all else self.cascade_of(p_world)
+        _, _, hx, hy = self._rect(face)
         return 2.0 * dr.maximum(hx, hy) / res
 
     def map_width(self, p_world: np.ndarray) -> float:
@@ -159,6 +175,19 @@ class CascadedView(OrthoView):
 
     def refine(self, opts, scene, sensor, visible, res):
         return self, None
+
+
+def with_catch_all(view):
+    """``view`` (a :class:`CascadedView`) with one more face, the whole scene-fitted
+    rectangle of its :class:`OrthoView`, read by points outside their cascade's rectangle
+    (camera samples off the pixel centres beyond the farthest or nearest visible point,
+    e.g. towards the horizon). Virtual maps build its pages only where such points read
+    them; a full map would spend a whole face on it. Any other view: unchanged."""
+    if not isinstance(view, CascadedView) or view.catch_all:
+        return view
+    hx, hy = view.half_extent
+    return dataclasses.replace(view, rects=view.rects + ((0.0, 0.0, float(hx), float(hy)),),
+                               catch_all=True)
 
 
 def split_depths(z_near: float, z_far: float, cascades: int, split_lambda: float) -> list:

@@ -179,6 +179,42 @@ def _jit_hashes():
     return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
 
 
+def _moves(scene, integ, n, each=None) -> list:
+    """After one render, ``n`` successive small moves and turns of ``scene``'s camera,
+    each followed by a render of ``integ``; returns the JIT kernels each move compiled
+    that no earlier render had (``(size, operations)``) and calls ``each()`` after each
+    move's render. (Mitsuba's own sensor update runs a one-lane kernel whose rotation
+    values are literals: new each move, with any integrator, ``direct`` included; it
+    runs before the render and is not counted.)"""
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world")
+               and isinstance(params.properties[k][2], mi.Sensor))
+    start = type(params[key])(params[key])
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        vis_of(scene, integ, spp=2)
+        seen = _jit_hashes()
+        compiled = []
+        for j in range(n):
+            params[key] = start @ T().translate([0.05 * (j + 1), 0, 0]) \
+                @ T().rotate([0, 1, 0], 1.0 * (j + 1))
+            params.update()
+            dr.kernel_history()
+            vis_of(scene, integ, spp=2)
+            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+            new = {k["hash"]: (k["size"], k["operation_count"]) for k in jit
+                   if k["hash"] not in seen}
+            print("new kernels (size, operations):", list(new.values()))
+            compiled.append(len(new))
+            seen |= set(new)
+            if each is not None:
+                each()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return compiled
+
+
 def test_camera_move_reuses_pages_and_compiles_nothing():
     """Small camera moves build few pages and compile no kernel. (Mitsuba's sensor
     holds its first ``to_world`` as a kernel literal; the first ``params.update()``
@@ -221,34 +257,9 @@ def test_camera_moves_in_a_large_world_compile_nothing():
     kernel depend on the table's size.)"""
     pages.PAGE_CACHE.clear()
     scene = mi.load_file(str(SCENES / "large_world.xml"), width=128, height=128)
-    params = mi.traverse(scene)
-    key = next(k for k in params.keys() if k.endswith("to_world")
-               and isinstance(params.properties[k][2], mi.Sensor))
-    start = type(params[key])(params[key])
     integ = shadowmap(method="hard")
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        dr.kernel_history()
-        vis_of(scene, integ, spp=2)
-        seen = _jit_hashes()
-        compiled, built = [], []
-        for j in range(6):
-            params[key] = start @ T().translate([0.05 * (j + 1), 0, 0]) \
-                @ T().rotate([0, 1, 0], 1.0 * (j + 1))
-            params.update()
-            # (Mitsuba's own sensor update runs a one-lane kernel whose rotation values
-            # are literals: new each move, with any integrator, `direct` included)
-            dr.kernel_history()
-            vis_of(scene, integ, spp=2)
-            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-            new = {k["hash"]: (k["size"], k["operation_count"]) for k in jit
-                   if k["hash"] not in seen}
-            compiled.append(len(new))
-            print("new kernels (size, operations):", list(new.values()))
-            seen |= set(new)
-            built.append(integ.stats["pages_built"])
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    built = []
+    compiled = _moves(scene, integ, 6, lambda: built.append(integ.stats["pages_built"]))
     print(f"kernels compiled per move {compiled}, pages built {built}")
     assert sum(built) > 0
     assert compiled[1:] == [0] * 5, "moving the camera compiled a new kernel"
@@ -506,36 +517,18 @@ def test_virtual_cascades_follow_the_camera_and_compile_nothing():
     data)."""
     pages.PAGE_CACHE.clear()
     scene = mi.load_file(str(SCENES / "large_world.xml"), width=64, height=64)
-    params = mi.traverse(scene)
-    key = next(k for k in params.keys() if k.endswith("to_world")
-               and isinstance(params.properties[k][2], mi.Sensor))
-    start = type(params[key])(params[key])
     integ = shadowmap(method="hard", virtual=True, cascades=4)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        dr.kernel_history()
-        vis_of(scene, integ, spp=2)
-        first = integ.stats["texels_built"]
-        vis_of(scene, integ, spp=2)
-        assert integ.stats["texels_built"] == 0 and integ.stats["pages_reused"] > 0
-        seen = _jit_hashes()
-        compiled, built, entries = [], [], []
-        for j in range(4):
-            params[key] = start @ T().translate([0.05 * (j + 1), 0, 0]) \
-                @ T().rotate([0, 1, 0], 1.0 * (j + 1))
-            params.update()
-            dr.kernel_history()
-            vis_of(scene, integ, spp=2)
-            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-            new = {k["hash"]: (k["size"], k["operation_count"]) for k in jit
-                   if k["hash"] not in seen}
-            print("new kernels (size, operations):", list(new.values()))
-            compiled.append(len(new))
-            seen |= set(new)
-            built.append(integ.stats["texels_built"])
-            entries.append(len(next(iter(pages.PAGE_CACHE._scenes.values()))[2]))
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    vis_of(scene, integ, spp=2)
+    first = integ.stats["texels_built"]
+    vis_of(scene, integ, spp=2)
+    assert integ.stats["texels_built"] == 0 and integ.stats["pages_reused"] > 0
+    built, entries = [], []
+
+    def each():
+        built.append(integ.stats["texels_built"])
+        entries.append(len(next(iter(pages.PAGE_CACHE._scenes.values()))[2]))
+
+    compiled = _moves(scene, integ, 4, each)
     print(f"first {first} texels; moves: built {built}, compiled {compiled}, cache "
           f"entries {entries}")
     assert all(b > 0 for b in built)

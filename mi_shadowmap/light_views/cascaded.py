@@ -53,22 +53,21 @@ class CascadedView(OrthoView):
     def cascade_of(self, p_world) -> mi.UInt32:
         """Cascade (face) of ``p_world``: how many split depths its camera view depth
         exceeds."""
-        cam_o = _opaque(mi.Point3f, mi.Float, self.camera_origin)
-        cam_f = _opaque(mi.Vector3f, mi.Float, self.camera_forward)
-        z_view = dr.dot(mi.Point3f(p_world) - cam_o, cam_f)
-        face = mi.UInt32(0)
-        for split in self.split_depths[1:-1]:
-            face += dr.select(z_view > dr.opaque(mi.Float, split), 1, 0)
-        return face
+        return self._slice_of(mi.Point3f(p_world), mi.Float)
 
     def _cascade_of_f64(self, p64) -> mi.UInt32:
         """:meth:`cascade_of` in float64 (what virtual maps mark and bind by)."""
-        cam_o = _opaque(mi.Point3d, mi.Float64, self.camera_origin)
-        cam_f = _opaque(mi.Vector3d, mi.Float64, self.camera_forward)
-        z_view = dr.dot(mi.Point3d(p64) - cam_o, cam_f)
+        return self._slice_of(mi.Point3d(p64), mi.Float64)
+
+    def _slice_of(self, p, scalar) -> mi.UInt32:
+        """:meth:`cascade_of` of ``p`` in the precision of ``scalar``."""
+        vector = mi.Vector3f if scalar is mi.Float else mi.Vector3d
+        cam_o = _opaque(type(p), scalar, self.camera_origin)
+        cam_f = _opaque(vector, scalar, self.camera_forward)
+        z_view = dr.dot(p - cam_o, cam_f)
         face = mi.UInt32(0)
         for split in self.split_depths[1:-1]:
-            face += dr.select(z_view > dr.opaque(mi.Float64, split), 1, 0)
+            face += dr.select(z_view > dr.opaque(scalar, split), 1, 0)
         return face
 
     def _rect(self, face, dtype=mi.Float):

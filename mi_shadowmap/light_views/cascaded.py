@@ -6,11 +6,13 @@ plane, face ``i`` fitted to the camera-visible points of view-depth slice
 depth (:meth:`CascadedView.cascade_of`).
 
 The cascades' camera-dependent values (rectangles, split depths, the camera's
-origin and axis) enter kernels as data, never as literals, so a camera move
-rebuilds the cascades but compiles no new kernel. With ``virtual=true`` each
-cascade is a virtual face (:mod:`mi_shadowmap.pages`, the float64 methods
+origin and axis) enter kernels as data, never as literals. With ``virtual=true``
+each cascade is a virtual face (:mod:`mi_shadowmap.pages`, the float64 methods
 below): pages of it are built where lookups read them, at their pixel
-footprint's level, and, as the cascades follow the camera, rebuilt when it moves.
+footprint's level, and, as the cascades follow the camera, rebuilt when it
+moves, with no new kernel. (Full-map cascades still compile kernels after a move
+when their automatic resolution follows the camera: full maps hold it as a
+literal.)
 """
 from __future__ import annotations
 

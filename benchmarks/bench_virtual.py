@@ -48,7 +48,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_shadowmap import harness
-from mi_shadowmap.specs import to_mitsuba, validate_spec
+from mi_shadowmap.specs import parse_assignments, to_mitsuba, validate_spec
 from mi_shadowmap.timing import compile_stats, render_timed, split_channels
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -65,27 +65,11 @@ def parse_bool(s: str) -> bool:
     raise argparse.ArgumentTypeError(f"not a boolean: {s!r}")
 
 
-def parse_prop(s: str) -> tuple:
-    """``NAME=VALUE`` of ``--props``: the value as a bool, int, float or string."""
-    name, sep, value = s.partition("=")
-    if not sep or not name:
-        raise argparse.ArgumentTypeError(f"not NAME=VALUE: {s!r}")
-    for conv in (parse_bool, int, float):
-        try:
-            return name, conv(value)
-        except (ValueError, argparse.ArgumentTypeError):
-            pass
-    return name, value
-
-
-#: ``--props``: further integrator properties of every configuration (e.g. cascades=4)
-EXTRA_PROPS: dict = {}
-
-
-def make_integrator(method: str, virtual: bool, page_size: int | None, **extra):
+def make_integrator(method: str, virtual: bool, page_size: int | None, props=None,
+                    **extra):
     """The shadowmap integrator of one configuration, validated like the harness does
-    (an unknown property is an OptionError naming it)."""
-    spec = {"method": method, "virtual": bool(virtual), **EXTRA_PROPS}
+    (an unknown property is an OptionError naming it); ``props``: ``--props``."""
+    spec = {"method": method, "virtual": bool(virtual), **(props or {})}
     if virtual:
         if page_size is not None:
             spec["page_size"] = page_size
@@ -132,7 +116,7 @@ def stat(stats, key):
 def run_config(scene, ref, method, virtual, args, t_unshadowed, n_pixels) -> dict:
     """Every measurement of one (method, virtual) configuration (see the module doc)."""
     row = {"method": method, "virtual": virtual}
-    built = make_integrator(method, virtual, args.page_size, cache_maps=False)
+    built = make_integrator(method, virtual, args.page_size, args.props, cache_maps=False)
     built.check_scene(scene)
     # first frame: kernels traced / compiled or loaded; maps built
     img, t_first = render_timed(scene, built, args.spp, args.seed)
@@ -154,7 +138,7 @@ def run_config(scene, ref, method, virtual, args, t_unshadowed, n_pixels) -> dic
     row["t_built"] = median_frame(scene, built, args.spp, args.seed, args.repeats)
     del built
 
-    cached = make_integrator(method, virtual, args.page_size)
+    cached = make_integrator(method, virtual, args.page_size, args.props)
     render_timed(scene, cached, args.spp, args.seed)            # primes the map cache
     row["t_cached"] = median_frame(scene, cached, args.spp, args.seed, args.repeats)
 
@@ -288,14 +272,13 @@ def main(argv=None) -> int:
     ap.add_argument("--move", type=float, default=0.05,
                     help="camera move, world units along the sensor's x axis")
     ap.add_argument("--turn", type=float, default=1.0, help="camera yaw, degrees")
-    ap.add_argument("--props", nargs="+", type=parse_prop, default=[],
+    ap.add_argument("--props", nargs="+", default=[],
                     metavar="NAME=VALUE",
                     help="further integrator properties of every configuration, e.g. "
                          "cascades=4")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "virtual_results.md"))
     args = ap.parse_args(argv)
-    EXTRA_PROPS.clear()
-    EXTRA_PROPS.update(dict(args.props))
+    args.props = parse_assignments(args.props, "--props")
     missing = [s for s in args.scenes if not (SCENES / f"{s}.xml").exists()]
     if missing:
         ap.error(f"no scenes_xml/{missing[0]}.xml")

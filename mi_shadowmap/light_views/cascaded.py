@@ -74,11 +74,9 @@ class CascadedView(OrthoView):
 
     def _rect(self, face, dtype=mi.Float):
         """Per-face ``(cx, cy, hx, hy)`` of the light-space rectangle, gathered."""
-        out = []
-        for k in range(4):
-            table = dtype([r[k] for r in self.rects])     # >= 2 entries: never a literal
-            out.append(dr.gather(dtype, table, mi.UInt32(face)))
-        return tuple(out)
+        table = dtype([x for r in self.rects for x in r])   # one upload, never a literal
+        base = mi.UInt32(face) * 4
+        return tuple(dr.gather(dtype, table, base + k) for k in range(4))
 
     def texel_rays(self, res: int):
         face, s, t = unit_grid(self.n_faces, res)

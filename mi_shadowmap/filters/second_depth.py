@@ -28,11 +28,18 @@ Deviations from the paper, and why:
   the virtual sample's depth is the same point computed directly: the ray
   through the texel centre meets the plane at
   ``t = n . (p - o) / (n . d)``. ``n . d`` plays the role of ``c_L``.
-* **Guard for c_L -> 0.** Where the tangent plane is nearly parallel to
-  the texel's light ray (``tan`` of the angle between ``n`` and the ray
-  above ``max_tan_slope``), or the intersection is behind the light, the
-  virtual sample is unusable; that tap keeps its ordinary comparison
-  (Figure 9 of the paper: there the ordinary comparison is right).
+* **Guard for c_L -> 0.** The paper computes virtual samples whatever the
+  plane's slope: its answer to Figure 9 (a curved surface whose tangent
+  plane is nearly parallel to the light ray) is to compute them only where
+  the ordinary comparisons disagree, which we do. Only where the division
+  itself is meaningless -- the plane within ``1 / _PARALLEL_TAN`` radians
+  (1e-4) of the texel's ray, where ``n . d`` is rounding noise -- or where
+  the intersection is behind the light, does a tap keep its ordinary
+  comparison. The guard is deliberately not ``max_tan_slope`` (the slope
+  bias's clamp, 20, i.e. 2.9 degrees): a planar receiver under a grazing
+  light is exactly where virtual samples are exact and the ordinary
+  comparisons of a non-solid fail (half of the 2 x 2 taps lie in front of
+  the receiver), and such a guard left lit floors at visibility 0.5.
 * **Equality tolerance.** Sec. 3.3 makes the test ``<=`` so that planar
   non-solids (first = second surface) light themselves. In floating
   point the plane's depth computed from the shading point and the
@@ -70,6 +77,9 @@ from .common import Lookup, nearest_block, taps_loop, virtual_sample_depth
 
 #: Relative rounding tolerance of the ``<=`` test at virtual samples.
 _EQ_REL = 1e-5
+#: Virtual samples are unusable only where ``tan`` of the angle between the plane's
+#: normal and the texel's ray exceeds this (the plane within 1e-4 rad of the ray).
+_PARALLEL_TAN = 1e4
 
 
 def shading_normal(lk: Lookup) -> mi.Vector3f:
@@ -112,7 +122,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
 
     def virt_body(tap, n_virt):
         ij, z_second = fetch(tap_texel(tap), mixed)
-        z_v, ok = virtual_sample_depth(view, r.face, ij, res, p, n, opts.max_tan_slope)
+        z_v, ok = virtual_sample_depth(view, r.face, ij, res, p, n, _PARALLEL_TAN)
         z_v = z_v - offset
         lit_v = z_v <= z_second + _EQ_REL * dr.abs(z_second)
         lit = dr.select(ok, lit_v, r.depth <= z_second)

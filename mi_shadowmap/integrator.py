@@ -345,7 +345,8 @@ screen is Mitsuba's projective integrators' job.
         if not self.opts.uses_map or self.opts.gradient_at != "pixel_centre":
             return False
         return any(isinstance(m, ShadowMap) and (dr.grad_enabled(m.depth)
-                                                   or m.pose is not None) for m in self.maps)
+                                                   or (m.pose is not None and m.pose.attached))
+                   for m in self.maps)
 
     def _pixel_centre(self, si, dp_dx, dp_dy, active):
         """The surface point under the centre of the camera sample's pixel, to first

@@ -191,14 +191,19 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
              else None)
     layers = {name: record.layers[name] for name in layer_names}
     poses = [None] * len(views)
-    if diff:   # a light whose pose has gradients: its reference view and pose delta
+    if diff or _differentiated(scene, params):
+        # a light whose pose has gradients: its reference view and pose delta, attached
+        # in the gradient pass and detached in mi.render's primal pass (under
+        # dr.suspend_grad), so that neither holds the moving light as kernel literals
         bounds = scene_bounds(scene)
         for k, (v, e) in enumerate(zip(views, scene.emitters())):
             if v is not None:
-                views[k], poses[k] = light_pose(e, v, bounds)
-    maps = [None if v is None else _plan_one(scene, state, v, res, layers,
-                                             v.faces_needed(opts, visible, res), diff,
-                                             pose, aa)
+                views[k], poses[k] = light_pose(e, v, bounds, detached=not diff)
+    # a posed map (a reference view moved by the pose) is never cached: its key would
+    # be the reference view's
+    maps = [None if v is None else _plan_one(scene, state if pose is None else None, v, res,
+                                             layers, v.faces_needed(opts, visible, res),
+                                             diff, pose, aa)
             for v, pose in zip(views, poses)]
     return RenderPlan(views, maps, res, state, gains)
 
@@ -246,7 +251,7 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
         stats.naive_build_seconds += p.cached_depth[1]
     else:
         t0 = time.perf_counter()
-        diff = {"differentiable": True, "pose": p.pose} if p.differentiable else {}
+        diff = {"differentiable": p.differentiable, "pose": p.pose}
         if p.faces is not None:   # no face needed: a map of +inf, nothing traced
             smap = ShadowMap(view=view, resolution=res,
                              depth=build_culled_depth(scene, view, res, p.faces, **diff),

@@ -463,38 +463,10 @@ def test_point_light_position_gradient():
     assert _cos(g, ref) >= 0.9
 
 
-@pytest.mark.parametrize("light", ["spot", "directional", "area"])
-def test_light_pose_moves_the_shadow(light):
-    """Spot (``to_world`` translation), directional (``to_world`` rotation) and area
-    lights (the shape's ``to_world`` translation): the gradient of the visibility AOV
-    (shadows only: Mitsuba's own emitter gradients for these poses disagree with its
-    finite differences by about 2x, in ``direct`` too) against central differences
-    of the same method's antialiased visibility, both averaged over four seeds (the
-    pixels' and the light's samples), within 25 %."""
-    scene = inverse.occluder_scene(light, IMAGE, SPP_AD)
-    mask = inverse.receiver_mask(scene)
-    key = "light.to_world"
-    if light == "directional":
-        def apply(base, x):   # a rotation about z by x[0] radians
-            a = inverse._vec(x, 0)
-            c, s = dr.cos(a), dr.sin(a)
-            m = mi.Matrix4f(mi.Float(1.0) * c, -s, 0, 0, s, c, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)
-            return mi.Transform4f(m) @ mi.Transform4f(base)
-    else:
-        def apply(base, x):
-            return mi.Transform4f().translate(mi.Vector3f(inverse._vec(x, 0), 0.0, 0.0)) \
-                @ mi.Transform4f(base)
-    param = inverse.Parameter(scene, key, apply, 1)
-    w = _weights(mask, 4, channel=3)
-    g = np.mean([_ad(param, _integ("vsm"), w, 1, seed=s)[0] for s in SEEDS])
-    fd = np.mean([_fd(param, _integ("vsm", antialias="always"), w, 1, 0.01, seed=s)[0]
-                  for s in SEEDS])
-    print(f"{light}: AD {g:.5g}, FD {fd:.5g}")
-    assert abs(fd) > 1e-4
-    assert abs(g - fd) <= 0.25 * abs(fd)
-
-
 def _pose_parameter(scene, light):
+    """The pose of the occluder scene's light: a point light's position (3 values);
+    a directional light's rotation about z (radians); a spot or area light's
+    ``to_world`` moved along x."""
     if light == "point":
         return inverse.light_position(scene)
     if light == "directional":
@@ -510,15 +482,40 @@ def _pose_parameter(scene, light):
     return inverse.Parameter(scene, "light.to_world", apply, 1)
 
 
-@pytest.mark.parametrize("light", ["point", "spot", "directional"])
+@pytest.mark.parametrize("light", ["spot", "directional", "area"])
+def test_light_pose_moves_the_shadow(light):
+    """Spot (``to_world`` translation), directional (``to_world`` rotation) and area
+    lights (the shape's ``to_world`` translation): the gradient of the visibility AOV
+    (shadows only: Mitsuba's own emitter gradients for these poses disagree with its
+    finite differences by about 2x, in ``direct`` too) against central differences
+    of the same method's antialiased visibility, both averaged over four seeds (the
+    pixels' and the light's samples), within 25 %."""
+    scene = inverse.occluder_scene(light, IMAGE, SPP_AD)
+    mask = inverse.receiver_mask(scene)
+    param = _pose_parameter(scene, light)
+    w = _weights(mask, 4, channel=3)
+    g = np.mean([_ad(param, _integ("vsm"), w, 1, seed=s)[0] for s in SEEDS])
+    fd = np.mean([_fd(param, _integ("vsm", antialias="always"), w, 1, 0.01, seed=s)[0]
+                  for s in SEEDS])
+    print(f"{light}: AD {g:.5g}, FD {fd:.5g}")
+    assert abs(fd) > 1e-4
+    assert abs(g - fd) <= 0.25 * abs(fd)
+
+
+@pytest.mark.parametrize("light", ["point", "spot"])
 def test_optimising_a_light_pose_compiles_no_kernel_per_step(light):
     """``mi.render(scene, params)`` renders its primal image under
     ``dr.suspend_grad()``; that pass too reads the light through its reference view
     and opaque pose delta (``light_pose(..., detached=True)``), not through the
     current view, whose position would be a kernel literal: an optimisation would
     compile its map build and its render kernel at every step (measured before: 2
-    kernels a step on the point light). Steps 3 to 5 compile nothing, and the
-    primal image is the plain render's at the same pose (up to rounding)."""
+    kernels a step on the point, spot and directional lights). Steps 3 to 5 compile
+    nothing, and the primal image is the plain render's at the same pose (up to
+    rounding). The directional light's rotation takes the same path (``plan_maps``);
+    it is left out here for time: its first steps compile 135 kernels (34 s in the
+    suite), and it measured 0 a step from the third too (2 % of the pixels differ from
+    the plain render by up to 0.03: its reference is the fit along the reference
+    direction, turned, another texel grid)."""
     scene = inverse.occluder_scene(light, 32, 2)
     mask = inverse.receiver_mask(scene)
     target = mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
@@ -552,12 +549,7 @@ def test_optimising_a_light_pose_compiles_no_kernel_per_step(light):
     d = np.abs(primal[..., 3] - plain[..., 3])
     print(f"primal - plain visibility: max {d.max():.3g}, > 1e-3 on {np.mean(d > 1e-3):.2%}")
     assert np.all(np.isfinite(primal))
-    if light == "directional":
-        # its reference map is the fit along the reference direction, turned: another
-        # texel grid (measured: 2 % of the pixels differ by up to 0.03 at 0.05 rad)
-        assert np.mean(d > 1e-2) <= 0.05
-    else:   # the same texel rays, moved: equal up to rounding
-        assert d.max() <= 1e-4
+    assert d.max() <= 1e-4   # the same texel rays, moved: equal up to rounding
 
 
 @pytest.mark.parametrize("method", sorted(SOFT))

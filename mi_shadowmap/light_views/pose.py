@@ -47,6 +47,7 @@ area          the translation of the shape's ``to_world`` (rectangle, disk, sphe
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -183,10 +184,7 @@ def light_pose(emitter, view, bounds=None, detached: bool = False):
     centre = [float(x) for x in 0.5 * (np.asarray(lo) + np.asarray(hi))]
     if not dr.is_diff_v(mi.Float):
         return view, None
-    if detached:
-        with dr.resume_grad():
-            found = _pose_value(emitter, view.kind)
-    else:
+    with dr.resume_grad() if detached else contextlib.nullcontext():
         found = _pose_value(emitter, view.kind)
     if found is None:
         return view, None

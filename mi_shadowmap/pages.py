@@ -141,9 +141,15 @@ class VirtualLayout:
     view: object
     page_size: int
     res0: int
-    t0: float          # texel rays start this far along (near the scene), in float64
+    #: texel rays start this far along (near the scene), in float64; the pages' depths
+    #: are measured from there (``t0`` less than the light's distance): float32 keeps
+    #: them to a scene-sized precision for a light at any distance, where the distance
+    #: from the light itself would round to 64 units at 1e9 (lookups subtract ``t0``
+    #: from the receiver's float64 depth the same way, :class:`LocalView`)
+    t0: float
     #: ``(d_lo, d_hi)``: bounds of the depths the map can hold, from the scene's bounding
-    #: box as the light sees it (what the prefiltered methods normalise by)
+    #: box as the light sees it, measured from ``t0`` (what the prefiltered methods
+    #: normalise by)
     depth_range: tuple = (0.0, 1.0)
 
     @property
@@ -162,11 +168,13 @@ def layout_for(view, scene, opts) -> VirtualLayout:
     """The virtual layout of ``view``: ``res0`` is ``resolution`` if given, else the
     power of two that puts :data:`SCENE_TEXELS` texels across the scene's bounding
     box as the light sees it (at least 2^20, at most :data:`MAX_VIRTUAL_RES`);
-    ``t0`` is 0.999 x the distance from the light to the scene's bounding box when that
-    is more than the box's diagonal (else 0, and 0 for directional maps, which start at
-    their near plane)."""
+    ``t0`` is the distance from the light to the scene's bounding box less the box's
+    diagonal when that is more than the diagonal (else 0, and 0 for directional maps,
+    which start at their near plane). The scene is what the light shadows: every shape
+    but an area light's own (a large far light would otherwise widen the box to itself)."""
     P = opts.page_size
-    bounds = scene_bounds(scene)      # scene.bbox() misses merged meshes
+    # scene.bbox() misses merged meshes
+    bounds = scene_bounds(scene, exclude=getattr(view, "ignore_shape", None))
     lo, hi = bounds if bounds is not None else (-np.ones(3), np.ones(3))
     diam = float(np.linalg.norm(hi - lo)) or 1.0
     pos = np.array([float(c) for c in view.position])
@@ -176,10 +184,12 @@ def layout_for(view, scene, opts) -> VirtualLayout:
         t0 = 0.0
         face_width = 2.0 * max(view.half_extent)
     else:
-        # rays start near the scene only for a light far from it (float32 positions stay
-        # exact there); a light next to the scene starts them at the light, as full maps
-        # do (a blocker right at the light would otherwise fall within first_hit's skip)
-        t0 = 0.999 * dist if dist > diam else 0.0
+        # rays start near the scene only for a light far from it, one box diagonal before
+        # the box (float32 positions stay exact there, and the depths the pages hold,
+        # measured from there, stay within a few diagonals whatever the distance); a
+        # light next to the scene starts them at the light, as full maps do (a blocker
+        # right at the light would otherwise fall within first_hit's skip)
+        t0 = dist - diam if dist > diam else 0.0
         face_width = 2.0 * float(getattr(view, "tan_half", 1.0)) * max(
             float(np.linalg.norm(centre - pos)), 1e-30)
     if opts.resolution is not None:
@@ -188,7 +198,10 @@ def layout_for(view, scene, opts) -> VirtualLayout:
         want = max(SCENE_TEXELS * face_width / diam, SCENE_TEXELS)
         res0 = 1 << max(int(math.ceil(math.log2(want))), 0)
         res0 = min(max(res0, P), MAX_VIRTUAL_RES)
-    return VirtualLayout(view, P, res0, t0, _depth_range(view, lo, hi, dist))
+    d_lo, d_hi = _depth_range(view, lo, hi, dist)
+    if t0 > 0.0:     # the far light's depths, measured from t0 (see VirtualLayout)
+        d_lo, d_hi = dist - t0, d_hi - t0
+    return VirtualLayout(view, P, res0, t0, (d_lo, d_hi))
 
 
 def _depth_range(view, lo, hi, dist) -> tuple:
@@ -357,10 +370,11 @@ class PageStore:
         o = mi.Point3f(o64 + d64 * lay.t0)     # start near the scene: float32 stays exact
         d = dr.normalize(mi.Vector3f(d64))
         dst = dr.gather(mi.UInt32, _array(mi.UInt32, slot_ids), page) * tpp + local
-        depth = mi.Float(mi.Float64(first_hit(scene, lay.view, o, d)) + lay.t0)
+        # depths from the rays' start (t0 along them, VirtualLayout.t0)
+        depth = first_hit(scene, lay.view, o, d)
         dr.scatter(self.pools["depth"], depth, dst)
         if "second_depth" in self.pools:
-            sd = mi.Float(mi.Float64(second_depth_along(scene, lay.view, o, d)) + lay.t0)
+            sd = second_depth_along(scene, lay.view, o, d)
             dr.scatter(self.pools["second_depth"], sd, dst)
         # one kernel: the depths (kept: the page minima read them) and the scatters
         dr.eval(depth)
@@ -456,6 +470,10 @@ class VirtualShadowMap:
         self.view = store.layout.view
         self.header, self.dense, self.face_near = store.table()
         self.depth_bounds = _array(mi.Float64, self.layout.depth_range)
+        # where the pages' depths start (a far light's, VirtualLayout.t0): an opaque
+        # variable, not a kernel literal (a moved light would compile a new lookup)
+        t0 = float(self.layout.t0)
+        self.depth_origin = dr.opaque(mi.Float64, t0) if t0 > 0.0 else None
         self.stats = stats
 
     # The texel-counting interface of ShadowMap, for the harness and reports.
@@ -600,7 +618,8 @@ class VirtualShadowMap:
             slots = [dr.select(eok, dr.gather(mi.UInt32, self.dense, e + k, eok), _INVALID)
                      for k in range(4)]
         origin = mi.Point2i(bx * P, by * P)
-        local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside))
+        local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside),
+                          depth_origin=self.depth_origin)
         return BoundVirtualMap(self, local, res, level, (e, eok), slots)
 
 

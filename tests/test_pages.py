@@ -174,6 +174,62 @@ def test_far_point_light_at_defaults(method, distance):
     assert mis <= (0.006 if method in ("mdsm", "msm") else 0.003)
 
 
+@pytest.mark.parametrize("distance", ["1e7", "1e8"])
+@pytest.mark.parametrize("method", ["hard", "pcf", "second_depth", "pcss", "msm"])
+def test_far_point_light_beyond_the_issue(method, distance):
+    """A point light 1e7 and 1e8 away keeps its shadows. The pages hold depths measured
+    from near the scene (``VirtualLayout.t0``): measured from the light, a depth 1e8
+    away rounds to 8 units in float32, and receivers lowered by their roundoff (0.24
+    units at 1e6, 24 at 1e8) lost every shadow of this 10-unit scene (before: 2.3 % false
+    lit at 1e7, 3.1 % at 1e8, all of its shadow). Beyond 1e8 the finest level's texel
+    (``MAX_VIRTUAL_RES``) is wider than the scene's casters are tall: 3 % at 1e9."""
+    intensity = {"1e7": "3e14", "1e8": "3e16"}[distance]
+    scene = mi.load_file(str(SCENES / "far_point.xml"), width=128, height=128,
+                         light_distance=distance, light_intensity=intensity)
+    ref = reference(("far_point", distance), scene, spp=16)
+    vis = vis_of(scene, shadowmap(method=method), spp=16)
+    mis = misclassified(vis, ref)
+    false_lit = float(np.mean((vis >= 0.5) & (ref < 0.5)))
+    print(f"far_point {distance} {method}: {mis:.3%} (false lit {false_lit:.3%})")
+    assert mis <= 0.006 and false_lit <= 0.005
+
+
+def far_area_light_scene(distance: float, size: int = 64):
+    """far_point.xml's layout (a 10 x 10 ground, a box, a sphere) lit by a square area
+    light ``distance`` away and 0.04 ``distance`` wide, facing the scene (the same
+    penumbrae at any distance)."""
+    d = np.array([-0.4, 0.7, -0.55]) / np.linalg.norm([-0.4, 0.7, -0.55])
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": T().look_at([3, 8.5, 11], [0.2, 0, 0.3], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": size, "height": size,
+                            "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(5)},
+        "box": {"type": "cube", "to_world": T().translate([0, 1, 0]).scale([0.6, 1, 0.6])},
+        "ball": {"type": "sphere", "center": [2, 0.5, 1.5], "radius": 0.5},
+        "light": {"type": "rectangle",
+                  "to_world": T().look_at((d * distance).tolist(), [0, 0, 0], [0, 1, 0])
+                  .scale(0.04 * distance),
+                  "emitter": {"type": "area", "radiance": 1.0}}})
+
+
+@pytest.mark.parametrize("method", ["hard", "pcss"])
+def test_far_area_light_keeps_its_shadows(method):
+    """A large area light 1e6 away: the scene it shadows is every shape but its own, so
+    the pages' depths start near the scene (``VirtualLayout.t0``), not at the light
+    (its own shape in the box put it "inside" the scene: 2.2 % misclassified, every
+    shadow lost to the float32 roundoff of depths near 1e6; now 0.15-0.17 %)."""
+    scene = far_area_light_scene(1e6)
+    ref = vis_of(scene, shadowmap(method="raytraced", shadow_rays=16), spp=16)
+    vis = vis_of(scene, shadowmap(method=method), spp=16)
+    mis = misclassified(vis, ref)
+    rmse = float(np.sqrt(np.mean((vis - ref) ** 2)))
+    print(f"far area light {method}: {mis:.3%}, RMSE {rmse:.4f}")
+    assert mis <= 0.006 and rmse <= 0.05
+
+
 # ------------------------------------------------------------ cache and moves
 def _jit_hashes():
     return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}

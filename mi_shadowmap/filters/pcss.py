@@ -271,11 +271,16 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
     return lit / n
 
 
-def _spread(d_r, d, w_light, angular):
-    """World width on the receiver's plane of the light seen past depth ``d``."""
+def _spread(d_r, d, w_light, angular, depth_origin=0.0):
+    """World width on the receiver's plane of the light seen past depth ``d``; depths
+    as the map measures them, ``depth_origin`` short of the light (a far light's
+    virtual map, :attr:`~mi_shadowmap.light_views.base.LightView.depth_origin`): the
+    difference stays exact, the ratio takes the distance from the light."""
     if angular:
         return (d_r - d) * w_light
-    return (d_r - d) * w_light / d
+    if isinstance(depth_origin, float) and depth_origin == 0.0:
+        return (d_r - d) * w_light / d
+    return (d_r - d) * w_light / (d + depth_origin)
 
 
 def _texel_parallel(smap, r, p_world) -> mi.Float:
@@ -298,14 +303,17 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     active = mi.Bool(active) & r.inside
     plane = receiver_plane(smap, lk, r, opts, light_front=True)
     d_r = plane.depth0
-    guard = 1e-3 * d_r
+    origin = smap.view.depth_origin     # 0.0 but for a far light's virtual map
+    # blockers no nearer than 1e-3 of the receiver's distance from the light
+    guard = 1e-3 * d_r if isinstance(origin, float) else 1e-3 * (d_r + origin) - origin
     half_max = 0.5 * opts.max_kernel
     texel = dr.maximum(_texel_parallel(smap, r, lk.p_world), 1e-30)
 
     # 1. blocker search over the similar-triangles region
     near = dr.gather(mi.Float, face_near_depth(smap), r.face, active)
     near = dr.clip(near, guard, d_r)
-    search_half = dr.clip(0.5 * _spread(d_r, near, w_light, angular) / texel, 0.5, half_max)
+    search_half = dr.clip(0.5 * _spread(d_r, near, w_light, angular, origin) / texel,
+                          0.5, half_max)
     soft_width = soft_compare_width(r, opts.soft_compare)
     rnd_b = lk.sampler.next_2d(active)
     z_sum, n_block = blocker_search(smap, lk, r, plane, search_half, opts.blocker_samples,
@@ -317,7 +325,7 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     # below 1e-6 (their shadow is scaled by the count below) keep the division sane
     n_div = n_block if soft_width is None else dr.maximum(n_block, 1e-6)
     d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_div, 1.0), guard)
-    w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular), 0.0)
+    w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular, origin), 0.0)
     filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, half_max)
 
     # 3. PCF with a kernel proportional to w, only where blockers were found

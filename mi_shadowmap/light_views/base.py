@@ -144,6 +144,11 @@ class LightView:
     # float64 forms of project / uv_on_face / ray_through. Views that do not provide
     # them cannot be virtual (``supports_virtual`` False).
     supports_virtual = False
+    #: Where the map's depths start along each texel's ray: 0 (from the light) for every
+    #: view but a virtual map's local frame of a far light
+    #: (:class:`~.local.LocalView`), whose depths start near the scene. A map depth plus
+    #: this is the distance from the light.
+    depth_origin = 0.0
 
     def project_f64(self, p_world):
         """:meth:`project` in float64: ``(face, uv_light: Point2d, depth: Float64, inside)``."""
@@ -276,14 +281,21 @@ def transform_f64(m: np.ndarray, p, point: bool = True):
     return (mi.Point3d if point else mi.Vector3d)(*out)
 
 
-def scene_bounds(scene):
-    """``(lo, hi)`` (numpy float64) of every shape of ``scene``, or None without any.
+def scene_bounds(scene, exclude=None):
+    """``(lo, hi)`` (numpy float64) of every shape of ``scene`` but ``exclude`` (a
+    shape, e.g. an area light's own), or None without any.
 
     Not ``scene.bbox()`` alone: Mitsuba 3.9 merges meshes that share a BSDF into one
     mesh whose ``bbox()`` is invalid, and ``scene.bbox()`` leaves it out (e.g. two
     rectangles with one BSDF); such a mesh is bounded by its vertex positions."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    # the scene's copy of an emitter's shape is another object (Mitsuba 3.9 turns a
+    # rectangle into a mesh): matched through its emitter, as cube.area_view does
+    own = exclude.emitter() if exclude is not None else None
     for shape in scene.shapes():
+        if exclude is not None and (shape == exclude
+                                    or (own is not None and shape.emitter() is own)):
+            continue
         b = shape.bbox()
         if b.valid():
             lo = np.minimum(lo, [float(c) for c in b.min])

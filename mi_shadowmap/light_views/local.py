@@ -11,10 +11,19 @@ texel coordinates *minus* ``origin``: small numbers, exact in float32. It
 computes every projection in float64 through the wrapped view's
 ``*_f64`` methods and knows nothing of any projection itself.
 
-Depth precision: the receiver depth it returns is lowered by
-``DEPTH_ULPS`` float32 roundoffs of itself, because a map depth and a
-receiver depth are each rounded to float32 once (relative 2^-24): for a light
-1e6 units away this is 0.24 units, far above the texel-scaled biases there.
+Depths: a far light's pages hold depths measured from ``depth_origin``
+along each texel's ray (:attr:`mi_shadowmap.pages.VirtualLayout.t0`, a box
+diagonal before the scene), so every depth a :class:`LocalView` returns
+(:meth:`~LocalView.project`, :meth:`~LocalView.depth_of`,
+:meth:`~LocalView.ray_plane`) is the float64 distance from the light minus
+``depth_origin``, rounded to float32 only then. Measured from the light
+itself, a depth 1e9 away would round to 64 units, and the receivers' lowering
+below (24 units at 1e8) would lose every shadow of a scene 10 units wide
+(``far_point.xml`` before: 2.3 of its 3.1 % shadow lost at 1e7, all at 1e8). The
+receiver depth is lowered by ``DEPTH_ULPS`` float32 roundoffs of itself,
+because a map depth and a receiver depth are each rounded to float32 once
+(relative 2^-24). Filters that need the distance from the light itself
+(PCSS's similar triangles) add :attr:`LocalView.depth_origin` back.
 """
 from __future__ import annotations
 
@@ -36,7 +45,7 @@ class LocalView:
 
     projection = "local"
 
-    def __init__(self, inner, face, res_level, origin, bound=None):
+    def __init__(self, inner, face, res_level, origin, bound=None, depth_origin=None):
         self.inner = inner
         self.face = mi.UInt32(face)
         self.res_level = mi.Int32(res_level)
@@ -44,6 +53,21 @@ class LocalView:
         # (p_world, uv64 on the bound face, depth64, inside) of the point the lookup was
         # bound at: projecting that same point again reuses them (same Python object)
         self._bound = bound
+        # mi.Float64 (opaque) where the map's depths start along its rays, or None: from
+        # the light (see the module doc)
+        self._depth_origin = depth_origin
+
+    @property
+    def depth_origin(self):
+        """Where the map's depths start along each texel's ray (``mi.Float``), or 0.0
+        (from the light): a depth here plus this is the distance from the light."""
+        return 0.0 if self._depth_origin is None else mi.Float(self._depth_origin)
+
+    def _from_origin(self, depth64) -> mi.Float:
+        """A float64 distance from the light as this map measures it, in float32."""
+        if self._depth_origin is None:
+            return mi.Float(depth64)
+        return mi.Float(mi.Float64(depth64) - self._depth_origin)
 
     def __getattr__(self, name):   # kind, position, light_size, light_normal, label, ...
         return getattr(self.inner, name)
@@ -62,8 +86,8 @@ class LocalView:
         res = mi.Float64(self.res_level)
         return (mi.Point2d(uv_local) * res + mi.Point2d(self.origin)) / res
 
-    def _lowered(self, depth64) -> mi.Float:
-        depth = mi.Float(depth64)
+    def _lowered(self, depth) -> mi.Float:
+        depth = mi.Float(depth)
         return depth - dr.abs(depth) * (DEPTH_ULPS * 2.0 ** -24)
 
     # ----------------------------------------------------------- interface
@@ -75,11 +99,11 @@ class LocalView:
         ``(step / distance)^2`` of it)."""
         p0, uv64, depth64, _ = self._bound
         if p_world is p0:
-            return self._to_local_uv(uv64), mi.Float(depth64)
+            return self._to_local_uv(uv64), self._from_origin(depth64)
         dp = mi.Point3f(p_world) - mi.Point3f(p0)
         duv = self.inner.uv_differential(self.face, p0, dp)
         return (self._to_local_uv(uv64) + duv,
-                mi.Float(depth64) + self.inner.depth_differential(p0, dp))
+                self._from_origin(depth64) + self.inner.depth_differential(p0, dp))
 
     def project(self, p_world):
         """Expressed on the bound face (a point that crossed a cube seam gets
@@ -90,7 +114,8 @@ class LocalView:
         p64 = mi.Point3d(p_world)
         _, _, depth, inside = self.inner.project_f64(p64)
         uv64 = self.inner.uv_on_face_f64(self.face, p64)
-        return mi.UInt32(self.face), self._to_local_uv(uv64), self._lowered(depth), inside
+        return (mi.UInt32(self.face), self._to_local_uv(uv64),
+                self._lowered(self._from_origin(depth)), inside)
 
     def uv_on_face(self, face, p_world):
         if self._bound is not None:
@@ -100,7 +125,7 @@ class LocalView:
     def depth_of(self, p_world) -> mi.Float:
         if self._bound is not None:
             return self._lowered(self._near_bound(p_world)[1])
-        return self._lowered(self.inner.project_f64(mi.Point3d(p_world))[2])
+        return self._lowered(self._from_origin(self.inner.project_f64(mi.Point3d(p_world))[2]))
 
     def ray_through(self, face, uv_light):
         o, d = self.inner.ray_through_f64(face, self._to_global_uv(uv_light))
@@ -112,9 +137,12 @@ class LocalView:
         n = mi.Vector3d(n_world)
         c = dr.dot(n, d)
         t = dr.dot(n, mi.Point3d(p_world) - o) / dr.select(dr.abs(c) >= cos_min, c, cos_min)
-        return self._lowered(t), mi.Float(c)
+        return self._lowered(self._from_origin(t)), mi.Float(c)
 
     def texel_world_size(self, res, depth, p_world=None):
+        """``depth`` as this view measures it (from :attr:`depth_origin`)."""
+        if self._depth_origin is not None:
+            depth = depth + self.depth_origin
         return self.inner.texel_world_size(res, depth, p_world)
 
     def texel_parallel_size(self, res, face, p_world, texel_world):

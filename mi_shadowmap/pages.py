@@ -97,6 +97,7 @@ from .methods import VIRTUAL_LAYERS  # noqa: F401  (the layers built here)
 from .light_views import pixel_centres
 from .light_views.base import scene_bounds
 from .light_views.local import LocalView
+from .light_views import box_view
 
 #: Largest virtual resolution per face side (texel coordinates stay in an Int32).
 MAX_VIRTUAL_RES = 2 ** 30
@@ -138,6 +139,8 @@ def page_key(face, level, px, py):
 @dataclasses.dataclass
 class VirtualLayout:
     """The fixed (camera-independent) shape of one emitter's virtual map."""
+    #: the emitter's view, or for a light far from the scene one face aimed at it
+    #: (:func:`~mi_shadowmap.light_views.perspective.box_view`, see :func:`layout_for`)
     view: object
     page_size: int
     res0: int
@@ -171,7 +174,11 @@ def layout_for(view, scene, opts) -> VirtualLayout:
     ``t0`` is the distance from the light to the scene's bounding box less the box's
     diagonal when that is more than the diagonal (else 0, and 0 for directional maps,
     which start at their near plane). The scene is what the light shadows: every shape
-    but an area light's own (a large far light would otherwise widen the box to itself)."""
+    but an area light's own (a large far light would otherwise widen the box to itself).
+    Without ``resolution``, a light so far that ``res0`` would be capped gets one face
+    aimed at the box (:func:`~mi_shadowmap.light_views.perspective.box_view`) as the
+    layout's view: a cube face's capped finest level has texels 1.9 units wide 1e9 away,
+    coarser than a 10-unit scene's casters."""
     P = opts.page_size
     # scene.bbox() misses merged meshes
     bounds = scene_bounds(scene, exclude=getattr(view, "ignore_shape", None))
@@ -182,7 +189,6 @@ def layout_for(view, scene, opts) -> VirtualLayout:
     centre = 0.5 * (lo + hi)
     if view.kind == "directional":
         t0 = 0.0
-        face_width = 2.0 * max(view.half_extent)
     else:
         # rays start near the scene only for a light far from it, one box diagonal before
         # the box (float32 positions stay exact there, and the depths the pages hold,
@@ -190,12 +196,23 @@ def layout_for(view, scene, opts) -> VirtualLayout:
         # light next to the scene starts them at the light, as full maps do (a blocker
         # right at the light would otherwise fall within first_hit's skip)
         t0 = dist - diam if dist > diam else 0.0
-        face_width = 2.0 * float(getattr(view, "tan_half", 1.0)) * max(
-            float(np.linalg.norm(centre - pos)), 1e-30)
+
+        def face_width(view):
+            return 2.0 * float(getattr(view, "tan_half", 1.0)) * max(
+                float(np.linalg.norm(centre - pos)), 1e-30)
+        # a light so far that the finest level would be capped (about 500 box diagonals
+        # away for a cube): one face aimed at the box instead (box_view), whose texels
+        # all fall on the scene; the layout's view is then that face
+        if (opts.resolution is None and bounds is not None
+                and SCENE_TEXELS * face_width(view) / diam > MAX_VIRTUAL_RES):
+            fitted = box_view(view, lo, hi)
+            if fitted is not None and fitted.tan_half < float(getattr(view, "tan_half", 1.0)):
+                view = fitted
     if opts.resolution is not None:
         res0 = int(opts.resolution)
     else:
-        want = max(SCENE_TEXELS * face_width / diam, SCENE_TEXELS)
+        width = 2.0 * max(view.half_extent) if view.kind == "directional" else face_width(view)
+        want = max(SCENE_TEXELS * width / diam, SCENE_TEXELS)
         res0 = 1 << max(int(math.ceil(math.log2(want))), 0)
         res0 = min(max(res0, P), MAX_VIRTUAL_RES)
     d_lo, d_hi = _depth_range(view, lo, hi, dist)
@@ -947,6 +964,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         mark = store.last_mark if cam is not None else None
         # memory: the whole budget split evenly over the virtual maps
         per_page = store.texels_per_page * 4 * (1 + len(layer_names))
+        view = layout.view      # the emitter's view, or one face aimed at a far scene
         if store.lit_faces is None:
             store.lit_faces = _lit_faces(view)
             store.coarse_keys = np.array([page_key(f, layout.coarsest, 0, 0)

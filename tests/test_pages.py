@@ -174,16 +174,20 @@ def test_far_point_light_at_defaults(method, distance):
     assert mis <= (0.006 if method in ("mdsm", "msm") else 0.003)
 
 
-@pytest.mark.parametrize("distance", ["1e7", "1e8"])
+@pytest.mark.parametrize("distance", ["1e7", "1e8", "1e9", "1e12"])
 @pytest.mark.parametrize("method", ["hard", "pcf", "second_depth", "pcss", "msm"])
 def test_far_point_light_beyond_the_issue(method, distance):
-    """A point light 1e7 and 1e8 away keeps its shadows. The pages hold depths measured
-    from near the scene (``VirtualLayout.t0``): measured from the light, a depth 1e8
-    away rounds to 8 units in float32, and receivers lowered by their roundoff (0.24
-    units at 1e6, 24 at 1e8) lost every shadow of this 10-unit scene (before: 2.3 % false
-    lit at 1e7, 3.1 % at 1e8, all of its shadow). Beyond 1e8 the finest level's texel
-    (``MAX_VIRTUAL_RES``) is wider than the scene's casters are tall: 3 % at 1e9."""
-    intensity = {"1e7": "3e14", "1e8": "3e16"}[distance]
+    """A point light 1e7 to 1e12 away keeps its shadows.
+
+    * The pages hold depths measured from near the scene (``VirtualLayout.t0``):
+      measured from the light, a depth 1e8 away rounds to 8 units in float32, and
+      receivers lowered by their roundoff (0.24 units at 1e6, 24 at 1e8) lost every
+      shadow of this 10-unit scene (before: 2.3 % false lit at 1e7, 3.1 % at 1e8, all of
+      its shadow).
+    * Beyond about 500 box diagonals the layout's view is one face aimed at the box
+      (``box_view``): a cube face's finest level (``MAX_VIRTUAL_RES``) has 1.9-unit
+      texels at 1e9 (before: 3.0 % false lit at 1e9 and 1e12)."""
+    intensity = {"1e7": "3e14", "1e8": "3e16", "1e9": "3e18", "1e12": "3e24"}[distance]
     scene = mi.load_file(str(SCENES / "far_point.xml"), width=128, height=128,
                          light_distance=distance, light_intensity=intensity)
     ref = reference(("far_point", distance), scene, spp=16)
@@ -192,6 +196,38 @@ def test_far_point_light_beyond_the_issue(method, distance):
     false_lit = float(np.mean((vis >= 0.5) & (ref < 0.5)))
     print(f"far_point {distance} {method}: {mis:.3%} (false lit {false_lit:.3%})")
     assert mis <= 0.006 and false_lit <= 0.005
+
+
+def test_a_far_light_gets_one_face_aimed_at_the_scene():
+    """At 1e5 and 1e9 the layout's view is a perspective face whose frustum holds the
+    scene's box (its corners project inside), 2^20 to 2^24 texels across it (the face's
+    axis is float32: 6e-8 rad off the box's centre at 1e9 is 60 units, which the
+    frustum covers: 2^23 there), and a first frame builds at most 8 texels per pixel;
+    at 10 units (a light next to the scene) the cube stays."""
+    from mi_shadowmap.light_views import make_light_view
+    from mi_shadowmap.light_views.base import scene_bounds
+    for distance, cube in (("1e9", False), ("1e5", False), ("10", True)):
+        intensity = f"{3 * float(distance) ** 2:g}"
+        scene = mi.load_file(str(SCENES / "far_point.xml"), width=64, height=64,
+                             light_distance=distance, light_intensity=intensity)
+        view = make_light_view(scene.emitters()[0], scene, 0)
+        lay = pages.layout_for(view, scene, parse_options(mi.Properties()))
+        assert (lay.view.projection == "cube") == cube, distance
+        if cube:
+            continue
+        assert lay.view.n_faces == 1 and 2 ** 20 <= lay.res0 <= 2 ** 24
+        lo, hi = scene_bounds(scene)
+        corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)])
+        p = mi.Point3d(*(mi.Float64(corners[:, a].tolist()) for a in range(3)))
+        _, uv, _, inside = lay.view.project_f64(p)
+        assert np.all(inside.numpy()), distance
+        assert np.all((uv.x.numpy() > 0.01) & (uv.x.numpy() < 0.99)), distance
+        scene = mi.load_file(str(SCENES / "far_point.xml"), width=128, height=128,
+                             light_distance=distance, light_intensity=intensity)
+        integ = shadowmap(method="hard")
+        vis_of(scene, integ, spp=1)
+        print(distance, integ.stats["texels_built"] / 128 ** 2, "texels per pixel")
+        assert integ.stats["texels_built"] <= 8 * 128 * 128, integ.stats["texels_built"]
 
 
 def far_area_light_scene(distance: float, size: int = 64):

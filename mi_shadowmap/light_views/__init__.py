@@ -14,6 +14,10 @@ point, area            CubeView         :mod:`.cube`
 any (``multiview``)    MultiView        :mod:`.multi` (K views in one map)
 =====================  ===============  ====================================
 
+A virtual map of a light far from the scene (:func:`mi_shadowmap.pages.layout_for`)
+replaces the emitter's view by :func:`~.perspective.box_view`: one perspective face
+from the same light, aimed at the scene's box.
+
 Adding a light type means one class (and one line in :func:`make_light_view`).
 The helpers below are the camera-side inputs of the map manager: the points
 the camera sees (:func:`camera_visible_points`) and the texel-to-pixel
@@ -31,10 +35,10 @@ from .base import LightView
 from .cascaded import CascadedView, cascaded_view, split_depths
 from .cube import CubeView, area_light_size, area_view, point_view
 from .ortho import OrthoView, directional_view
-from .perspective import PerspectiveView, spot_view
+from .perspective import PerspectiveView, box_view, spot_view
 from .multi import MultiView, multi_view
 
-__all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeView",
+__all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeView", "box_view",
            "MultiView", "multi_view", "make_light_view", "emitter_kind", "emitter_label",
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",

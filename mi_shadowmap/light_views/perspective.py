@@ -61,8 +61,16 @@ class PerspectiveView(LightView):
     # ------------------------------------------------------------- float64
     supports_virtual = True
 
+    def _light_f64(self, p_world) -> mi.Point3d:
+        """``light_from_world @ p_world`` in float64 as the rotation of ``p_world - position``:
+        the matrix's own translation is float32, ``-R position`` rounded to 2^-24 of the
+        light's distance (64 units at 1e9), which a view fitted to a far scene
+        (:func:`box_view`, a face a few units wide there) cannot afford."""
+        rel = mi.Point3d(p_world) - mi.Point3d(*(float(c) for c in position_np(self)))
+        return transform_f64(light_matrix(self), rel, point=False)
+
     def uv_on_face_f64(self, face, p_world):
-        p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
+        p_light = self._light_f64(p_world)
         inv_z = dr.rcp(dr.maximum(p_light.z, 1e-300))
         return mi.Point2d(0.5 * (p_light.x * inv_z / self.tan_half + 1.0),
                           0.5 * (p_light.y * inv_z / self.tan_half + 1.0))
@@ -78,7 +86,7 @@ class PerspectiveView(LightView):
 
     def project_f64(self, p_world):
         p_world = mi.Point3d(p_world)
-        p_light = transform_f64(light_matrix(self), p_world)
+        p_light = self._light_f64(p_world)
         uv = self.uv_on_face_f64(0, p_world)
         depth = dr.norm(p_world - mi.Point3d(*(float(c) for c in position_np(self))))
         inside = (p_light.z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
@@ -149,6 +157,38 @@ class PerspectiveView(LightView):
             return self, 1.0
         return (dataclasses.replace(self, light_from_world=new_lfw, tan_half=tan),
                 (self.tan_half / tan) ** 2)
+
+
+def box_view(view: LightView, lo, hi, margin: float = 0.05):
+    """A :class:`PerspectiveView` from ``view``'s light aimed at the box ``[lo, hi]``
+    (numpy) whose square frustum covers its 8 corners, widened by ``margin`` of its
+    width per side (normal offsets and filter taps at the box's edge); None if the
+    light is inside the box's cone (a corner at or behind the light's plane). Every
+    field but the projection is ``view``'s (kind, position, light size and normal,
+    ignored shape, label).
+
+    For a light far from the scene: a cube face (90 degrees) or a wide spot cone then
+    spends its texels on directions where nothing is, and a virtual map's finest level
+    (``pages.MAX_VIRTUAL_RES`` texels a side) is wider than the scene's details (a
+    point light 1e9 from a 12-unit scene: 1.9-unit texels). Aimed at the box, the
+    face's texels all fall on the scene, whatever its distance."""
+    pos = position_np(view)
+    centre = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
+    axis = centre - pos
+    if not np.linalg.norm(axis) > 0:
+        return None
+    lfw = look_along_np(pos, axis / np.linalg.norm(axis))
+    R = np.array(lfw.matrix, dtype=np.float64)[:3, :3]
+    corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)],
+                       np.float64)
+    q = (corners - pos) @ R.T
+    if np.any(q[:, 2] <= 1e-6 * np.linalg.norm(q, axis=1)):
+        return None
+    tan = float(np.max(np.abs(q[:, :2]) / q[:, 2:3])) * (1.0 + 2.0 * margin)
+    tan = max(tan, 1e-300)
+    return PerspectiveView(view.kind, view.position, lfw, light_size=view.light_size,
+                           ignore_shape=view.ignore_shape, light_normal=view.light_normal,
+                           label=view.label, tan_half=tan)
 
 
 def spot_view(emitter, label: str) -> PerspectiveView:

@@ -273,17 +273,22 @@ screen is Mitsuba's projective integrators' job.
                         shift = sampler.next_2d(shade)
                     u = shifted_grid_point(s, n_light, shift)
                 ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx, u, shade)
-                if smap is None:     # environment emitter lit without shadows
-                    vis = mi.Float(1.0)
-                else:
-                    vis, whole = self._visibility(
-                        smap, self._lookup(smap, si, dp_dx, dp_dy, ds, sampler), lit, shade)
+                vis, whole = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit,
+                                                     shade)
                 result += dr.select(lit, unshadowed * vis, 0.0) / n_light
                 vis_sum += vis
                 contributes |= lit
             aovs.append(dr.select(contributes, vis_sum / n_light, 0.0) if whole is None
                         else dr.select(shade, whole, 0.0))
         return result, valid, aovs
+
+    def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade):
+        """``(visibility, whole)`` of one light sample (see :meth:`_visibility`); 1 and
+        None without a map (``smap`` None: an environment emitter lit without shadows)."""
+        if smap is None:
+            return mi.Float(1.0), None
+        return self._visibility(smap, self._lookup(smap, si, dp_dx, dp_dy, ds, sampler), lit,
+                                shade)
 
     def _light_samples(self, scene, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx,
                        dp_dy, n: int):
@@ -304,8 +309,7 @@ screen is Mitsuba's projective integrators' job.
         def body(k, result, vis_sum, contributes, sampler):
             ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx,
                                                 shifted_grid_point(k, n, shift), shade)
-            vis, _ = self._visibility(smap, self._lookup(smap, si, dp_dx, dp_dy, ds, sampler),
-                                      lit, shade)
+            vis, _ = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit, shade)
             return (k + 1, result + dr.select(lit, unshadowed * vis, 0.0) / n, vis_sum + vis,
                     contributes | lit, sampler)
 

@@ -152,6 +152,26 @@ def test_unshadowed_and_error():
         integ.check_scene(scene)
 
 
+def test_unshadowed_environment_with_several_shadow_rays():
+    """``environment='unshadowed'`` with ``shadow_rays`` > 1: the environment's light
+    samples run in the light-sample loop without a map (visibility 1), the sun's with
+    shadow rays; the same expectation as one shadow ray (a crash before: the loop
+    looked the environment's samples up in a map it does not have)."""
+    scene = _scene()
+    env_k = [k for k, e in enumerate(scene.emitters()) if e.is_environment()]
+    assert env_k
+    n = 1 if mi.is_monochromatic else 3
+    many = _render(scene, {"type": "shadowmap", "method": "raytraced", "shadow_rays": 4,
+                           "environment": "unshadowed"}, 16)
+    one = _render(scene, {"type": "shadowmap", "method": "raytraced",
+                          "environment": "unshadowed"}, 16)
+    assert np.isfinite(many).all()
+    for k in env_k:     # 1 wherever a sample contributes: no occlusion at all
+        vis = many[..., n + k]
+        assert vis.min() >= 0.0 and vis.max() == 1.0 and vis.mean() > 0.5
+    assert abs(many[..., :n].mean() / one[..., :n].mean() - 1.0) < 0.03
+
+
 @pytest.mark.parametrize("props, name", [
     ({"environment": "sometimes"}, "environment"),
     ({"env_lights": 0}, "env_lights"),

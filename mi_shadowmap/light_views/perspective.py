@@ -146,17 +146,29 @@ class PerspectiveView(LightView):
         axis = dirs.mean(axis=0)
         if np.linalg.norm(axis) < 1e-6:
             return self, 1.0
-        new_lfw = look_along_np(pos, axis / np.linalg.norm(axis))
-        M = np.array(new_lfw.matrix, dtype=np.float64)
-        q = p_world[keep] @ M[:3, :3].T + M[:3, 3]
-        if np.any(q[:, 2] <= 1e-9 * np.abs(q).max()):
+        aimed = _aimed_frustum(pos, axis, p_world[keep], margin)
+        if aimed is None:
             return self, 1.0
-        tan = float(np.max(np.abs(q[:, :2]) / q[:, 2:3]))
-        tan = max(tan * (1.0 + 2.0 * margin), 1e-6 * self.tan_half)
+        new_lfw, tan = aimed
+        tan = max(tan, 1e-6 * self.tan_half)
         if tan >= self.tan_half:
             return self, 1.0
         return (dataclasses.replace(self, light_from_world=new_lfw, tan_half=tan),
                 (self.tan_half / tan) ** 2)
+
+
+def _aimed_frustum(pos, axis, p_world: np.ndarray, margin: float):
+    """``(light_from_world, tan_half)`` of the square frustum from ``pos`` along ``axis``
+    (numpy) that holds ``p_world`` (``(N, 3)``), widened by ``margin`` of its width per
+    side; None if a point lies at or behind the light's plane. The points are rotated
+    relative to ``pos`` in float64 (the float32 matrix's own translation would round to
+    2^-24 of the light's distance)."""
+    lfw = look_along_np(pos, axis / np.linalg.norm(axis))
+    R = np.array(lfw.matrix, dtype=np.float64)[:3, :3]
+    q = (np.asarray(p_world, np.float64) - pos) @ R.T
+    if np.any(q[:, 2] <= 1e-9 * np.abs(q).max()):
+        return None
+    return lfw, float(np.max(np.abs(q[:, :2]) / q[:, 2:3])) * (1.0 + 2.0 * margin)
 
 
 def box_view(view: LightView, lo, hi, margin: float = 0.05):
@@ -174,21 +186,17 @@ def box_view(view: LightView, lo, hi, margin: float = 0.05):
     face's texels all fall on the scene, whatever its distance."""
     pos = position_np(view)
     centre = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
-    axis = centre - pos
-    if not np.linalg.norm(axis) > 0:
+    if not np.linalg.norm(centre - pos) > 0:
         return None
-    lfw = look_along_np(pos, axis / np.linalg.norm(axis))
-    R = np.array(lfw.matrix, dtype=np.float64)[:3, :3]
     corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)],
                        np.float64)
-    q = (corners - pos) @ R.T
-    if np.any(q[:, 2] <= 1e-6 * np.linalg.norm(q, axis=1)):
+    aimed = _aimed_frustum(pos, centre - pos, corners, margin)
+    if aimed is None:
         return None
-    tan = float(np.max(np.abs(q[:, :2]) / q[:, 2:3])) * (1.0 + 2.0 * margin)
-    tan = max(tan, 1e-300)
+    lfw, tan = aimed
     return PerspectiveView(view.kind, view.position, lfw, light_size=view.light_size,
                            ignore_shape=view.ignore_shape, light_normal=view.light_normal,
-                           label=view.label, tan_half=tan)
+                           label=view.label, tan_half=max(tan, 1e-300))
 
 
 def spot_view(emitter, label: str) -> PerspectiveView:

@@ -35,13 +35,25 @@ class ShadowMapIntegratorMixin:
 Shadow-map direct illumination (``shadowmap``)
 ----------------------------------------------
 
-Direct illumination from every emitter of the scene (emitter sampling only:
+Direct illumination from every emitter of the scene (emitter sampling:
 one light sample per emitter per camera sample, or ``shadow_rays`` for
 ``raytraced``), where visibility comes from a depth map built with Dr.Jit
 ray queries from each light (first pass) and looked up with the chosen
 ``method`` (second pass). ``method='raytraced'`` traces real shadow rays and
-is the ground truth; it matches Mitsuba's ``direct`` integrator with
-``emitter_samples=1, bsdf_samples=0``.
+is the ground truth; it matches Mitsuba's ``direct`` integrator (for scenes
+without delta BSDF lobes sample for sample with ``emitter_samples=1,
+bsdf_samples=0``).
+
+Light seen through a delta lobe -- an area light or the environment in a
+mirror (``conductor``), through glass (``dielectric``, ``thindielectric``), in
+a smooth ``plastic``'s coating, or through a ``mask`` -- cannot be reached by
+light sampling; as in ``direct`` (whose BSDF samples give it, with weight 1), one
+BSDF sample restricted to the delta lobes and one traced ray add it, for every
+method alike (that ray's visibility is its own, not a shadow map's). Scenes
+without such a BSDF pay nothing for it. (Mitsuba's ``blendbsdf`` mixing a delta
+lobe with a non-delta one weights its delta samples by the mixture's density in
+``direct`` and ``path``: 0.77x of the blend's share on a diffuse/conductor blend;
+this term uses the delta lobes alone and gives the share.)
 
 One visibility AOV per emitter, ``vis_<id>`` (``vis_<index>`` when the
 emitter has no id), carries the visibility used for it (0 where it
@@ -87,6 +99,7 @@ screen is Mitsuba's projective integrators' job.
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale = dr.opaque(mi.Float, 1.0)
         self._sensor = None
+        self._delta_term = False    # the scene has delta BSDF lobes (render() sets it)
 
     # ---------------------------------------------------------------- passes
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -100,6 +113,7 @@ screen is Mitsuba's projective integrators' job.
                 sensor_obj = sensor
             self.prepare_maps(scene, sensor_obj)
             self._sensor = sensor_obj
+            self._delta_term = has_delta_bsdf(scene)
             n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
             # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
             self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
@@ -280,6 +294,8 @@ screen is Mitsuba's projective integrators' job.
                 contributes |= lit
             aovs.append(dr.select(contributes, vis_sum / n_light, 0.0) if whole is None
                         else dr.select(shade, whole, 0.0))
+        if self._delta_term:
+            result += _delta_lobe_term(scene, si, bsdf, sampler, valid)
         return result, valid, aovs
 
     def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade):
@@ -460,6 +476,46 @@ def _tracks_gradients(scene) -> bool:
         return False
     params = MAP_CACHE.traverse(scene)
     return any(dr.grad_enabled(params[k]) for k in params.keys())
+
+
+def has_delta_bsdf(scene) -> bool:
+    """Whether a shape of ``scene`` may have a delta BSDF lobe (a mirror, glass, smooth
+    plastic, a ``mask``'s pass-through): then :func:`_delta_lobe_term` is part of the
+    shading. Instances count as yes (their shape group's BSDFs are not reachable from
+    Python), so such scenes pay one masked ray per camera sample."""
+    delta = int(mi.BSDFFlags.Delta)
+    for shape in scene.shapes():
+        if shape.class_name() == "Instance":
+            return True
+        bsdf = shape.bsdf()
+        if bsdf is not None and int(bsdf.flags()) & delta:
+            return True
+    return False
+
+
+def _delta_lobe_term(scene, si, bsdf, sampler, valid):
+    """Emitted light seen through the delta lobes of ``bsdf`` at ``si`` (a mirror's
+    reflection of an area light or of the environment, light refracted by glass or
+    seen through a ``mask``): one BSDF sample restricted to the delta lobes and one
+    traced ray; its radiance if the ray reaches an emitter (the environment when it
+    escapes).
+
+    Light sampling cannot reach these lobes (their value is a Dirac delta), so
+    Mitsuba's ``direct`` gets them from its BSDF samples, where the multiple-importance
+    weight of a delta lobe is 1; this is that term, for every method alike. The ray is
+    a real one: whether it reaches the light is the mirror image's own visibility,
+    which a shadow map of the light does not hold. For every other lobe, light
+    sampling alone is the estimator (the same expectation as ``direct``'s MIS)."""
+    ctx = mi.BSDFContext()
+    ctx.type_mask = mi.BSDFFlags.Delta
+    active = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
+    bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
+    active &= (bs.pdf > 0) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    active &= dr.max(weight) > 0
+    si_e = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), active)
+    emitter = si_e.emitter(scene, active)
+    active &= emitter != None  # noqa: E711  (a Dr.Jit pointer array)
+    return dr.select(active, weight * emitter.eval(si_e, active), 0.0)
 
 
 def _light_sample(emitter, si, bsdf, ctx, u, shade):

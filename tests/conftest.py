@@ -56,3 +56,27 @@ def vis_stack(aovs: dict) -> np.ndarray:
 
 def relative_rmse(ref, test) -> float:
     return float(np.sqrt(np.mean((ref - test) ** 2)) / max(np.sqrt(np.mean(ref ** 2)), 1e-12))
+
+
+DELTA_BSDFS = {"conductor": {"type": "conductor"}, "dielectric": {"type": "dielectric"},
+               "plastic": {"type": "plastic"}}
+
+
+def delta_scene(bsdf: str, light: str):
+    """A ball of ``bsdf`` on a diffuse floor filling a 32^2 view, under an area light or
+    a constant environment: the light reaches the camera through the ball's delta lobes."""
+    T = mi.ScalarTransform4f
+    d = {"type": "scene",
+         "cam": {"type": "perspective", "fov": 45,
+                 "to_world": T().look_at([0.3, 1.0, 2.4], [0, 0.5, 0], [0, 1, 0]),
+                 "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                          "rfilter": {"type": "box"}}},
+         "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(5)},
+         "ball": {"type": "sphere", "to_world": T().translate([0, 0.6, 0]).scale(0.6),
+                  "bsdf": DELTA_BSDFS[bsdf]}}
+    if light == "area":
+        d["light"] = {"type": "rectangle", "emitter": {"type": "area", "radiance": 8.0},
+                      "to_world": T().look_at([1.5, 4, 1], [0, 0, 0], [0, 1, 0]).scale(0.7)}
+    else:
+        d["light"] = {"type": "constant", "radiance": 0.5}
+    return mi.load_dict(d)

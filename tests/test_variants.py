@@ -19,7 +19,7 @@ from mi_shadowmap.options import MAP_METHODS, METHODS
 from mi_shadowmap.reference import converged_visibility
 from mi_shadowmap.variants import SUPPORTED_VARIANTS, UnsupportedVariantError
 
-from conftest import SCENES, relative_rmse, render_np
+from conftest import SCENES, delta_scene, relative_rmse, render_np
 
 LLVM = ("llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral")
 OTHER = ("llvm_ad_mono", "llvm_ad_spectral")
@@ -64,6 +64,22 @@ def test_raytraced_matches_direct(variant, scene_name):
     err = relative_rmse(direct, ours)
     print(f"{variant} {scene_name}: raytraced vs direct relative RMSE {err:.2e}")
     assert err <= 0.01
+
+
+@pytest.mark.parametrize("variant", OTHER)
+def test_mirror_reflects_the_area_light_as_direct(variant):
+    """The delta-lobe term (a conductor ball under an area light) in mono and spectral:
+    measured relative RMSE 0.024 / 0.026, mean +0.3 / +0.5 % against ``direct``
+    (light sampling alone: 0.99 / -47 %)."""
+    mi.set_variant(variant)
+    scene = delta_scene("conductor", "area")
+    ref = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=1024,
+                               seed=1))
+    for method in ("raytraced", "hard"):
+        ours, _ = render_np(scene, {"type": "shadowmap", "method": method}, spp=1024, seed=2)
+        err, bias = relative_rmse(ref, ours), ours.mean() / ref.mean() - 1
+        print(f"{variant} {method}: relative RMSE {err:.4f}, mean {bias:+.4f}")
+        assert err <= 0.06 and abs(bias) <= 0.015
 
 
 @pytest.mark.parametrize("variant", OTHER)

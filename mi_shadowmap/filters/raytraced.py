@@ -63,7 +63,7 @@ METHOD = Method(
     name="raytraced",
     lookup=raytraced,
     summary="shadow rays toward each light sample: the ground truth (matches Mitsuba's "
-            "'direct' with emitter_samples=1, bsdf_samples=0)",
+            "'direct')",
     properties=(Prop("shadow_rays", "int", 1,
                      "Shadow rays per camera sample per emitter (stratified light samples).",
                      lo=1, hi=65536),

@@ -60,7 +60,8 @@ emitter has no id), carries the visibility used for it (0 where it
 contributes nothing; a method whose record has ``whole_light``, e.g.
 ``multiview``, reports its visibility of the whole light, horizon included).
 
-Maps: spot -- perspective covering the cutoff cone; point and area -- cube
+Maps: spot -- perspective covering the cutoff cone (cube faces from a
+``cutoff_angle`` of 80 degrees); point and area -- cube
 maps (area lights as their centre); directional -- orthographic, fitted to
 the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
 By default (``virtual`` left out) the methods that read virtual maps (``hard``,

@@ -139,6 +139,43 @@ def test_cube_faces_depth_is_distance_to_room_walls():
     np.testing.assert_allclose(got, expected, rtol=1e-5)
 
 
+@pytest.mark.parametrize("cutoff", [40.0, 79.0, 80.0, 90.0, 170.0])
+def test_wide_spot_gets_cube_faces_at_the_spot(cutoff):
+    """Below ``WIDE_SPOT_CUTOFF`` one perspective face covers the cone; from there on
+    (Mitsuba allows any cutoff; 90 and more cover a half space or beyond) six cube faces
+    at the spot's position, whose depths are the distances to the room's walls, and the
+    spot's own frame (PCSS's and ``multiview``'s light square)."""
+    from mi_shadowmap.light_views import CubeView, PerspectiveView
+    from mi_shadowmap.light_views.perspective import WIDE_SPOT_CUTOFF
+    c, h = np.array([0.3, -0.2, 0.5]), 2.0
+    walls = {}
+    for a in range(3):
+        for s in (1.0, -1.0):
+            q, nrm = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+            q[a], nrm[a] = s * h, -s
+            walls[f"wall{a}{int(s)}"] = plane(q, nrm, size=h)
+    to_world = T().look_at(origin=c.tolist(), target=[1.0, -1.0, 0.7], up=[0, 0, 1])
+    _, view, smap = build({**walls, "lamp": {"type": "spot", "cutoff_angle": cutoff,
+                                              "to_world": to_world}})
+    if cutoff < WIDE_SPOT_CUTOFF:
+        assert isinstance(view, PerspectiveView)
+        return
+    assert isinstance(view, CubeView) and view.kind == "spot" and view.label == "lamp"
+    np.testing.assert_allclose(np.array(view.light_from_world.matrix),
+                               np.array(to_world.inverse().matrix), atol=1e-6)
+    d = cube_dirs_np(RES)
+    with np.errstate(divide="ignore"):
+        t_axes = (np.sign(d) * h - c) / d
+    expected = np.min(np.where(t_axes > 0, t_axes, np.inf), axis=1)
+    np.testing.assert_allclose(smap.to_numpy().reshape(-1), expected, rtol=1e-5)
+
+
+def test_spot_without_a_cone_is_refused_by_name():
+    scene = mi.load_dict({"type": "scene", "lamp": {"type": "spot", "cutoff_angle": 0.0}})
+    with pytest.raises(ValueError, match="lamp.*cutoff_angle=0.0.*> 0"):
+        make_light_view(scene.emitters()[0], scene, 0)
+
+
 def test_projection_inverts_texel_rays():
     """Every texel's own hit point looks up that texel, at its stored depth."""
     scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere", "radius": 5.0},

@@ -220,7 +220,27 @@ def narrow_spot():
     return d
 
 
+def wide_spot(cutoff, upward=False):
+    """The default scene's spot with a cone of ``cutoff`` degrees: 90 lights the half
+    space in front of it, 150 more (Mitsuba allows any angle); ``upward``: the spot
+    points away from the scene, which its cone reaches beyond 90 degrees from the axis.
+    A cube of faces, as a point light's, holds its depths
+    (``light_views.perspective.WIDE_SPOT_CUTOFF``)."""
+    def build():
+        d = small_scene("spot")
+        d["spot"]["cutoff_angle"] = cutoff
+        d["spot"]["beam_width"] = 0.8 * cutoff
+        if upward:
+            o = [float(x) for x in d["spot"]["to_world"].translation()]
+            d["spot"]["to_world"] = T().look_at(origin=o, target=[o[0] + 0.3, o[1] + 1.0,
+                                                                  o[2] + 0.2], up=[1, 0, 0])
+        return d
+    return build
+
+
 PLACEMENTS = {"inside_closed_object": (light_inside_sphere, 0.005),
+              "spot_cutoff_90": (wide_spot(90.0), 0.02),
+              "spot_cutoff_150_upward": (wide_spot(150.0, upward=True), 0.02),
               "on_a_surface": (light_on_surface, 0.05),
               "far_away": (light_far_away, None),
               "receivers_behind_spot": (receivers_behind_spot, 0.02),

@@ -8,6 +8,7 @@ interface and the conventions) lives in its own module:
 emitter                view             module
 =====================  ===============  ====================================
 spot                   PerspectiveView  :mod:`.perspective`
+spot, cutoff >= 80     CubeView         :mod:`.cube` (kind ``'spot'``)
 directional            OrthoView        :mod:`.ortho`
 directional, cascades  CascadedView     :mod:`.cascaded`
 point, area            CubeView         :mod:`.cube`

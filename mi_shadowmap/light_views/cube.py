@@ -1,4 +1,4 @@
-"""Point and area lights: six 90-degree faces around the light (:class:`CubeView`).
+"""Point and area lights, and spots of wide cones: six 90-degree faces around the light (:class:`CubeView`).
 
 Face ``2*a + s`` looks along world axis ``a`` with sign ``+`` (s=0) or ``-``
 (s=1); its ``u``/``v`` are the axes ``(a+1)%3`` and ``(a+2)%3``. A filter tap

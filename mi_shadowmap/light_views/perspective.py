@@ -199,16 +199,29 @@ def box_view(view: LightView, lo, hi, margin: float = 0.05):
                            label=view.label, tan_half=max(tan, 1e-300))
 
 
-def spot_view(emitter, label: str) -> PerspectiveView:
-    """The :class:`PerspectiveView` of a spot emitter (0 < cutoff_angle < 90 degrees)."""
+#: Spot lights whose ``cutoff_angle`` (degrees) is at least this get a cube of faces
+#: around the light (:class:`~.cube.CubeView`, kind ``'spot'``) instead of one
+#: perspective face: a square frustum cannot cover a cone of 90 degrees or more, and
+#: short of that its texels stretch by ``1 / cos^2`` towards the rim.
+WIDE_SPOT_CUTOFF = 80.0
+
+
+def spot_view(emitter, label: str):
+    """The light view of a spot emitter: a :class:`PerspectiveView` covering the cutoff
+    cone, or, for ``cutoff_angle >= WIDE_SPOT_CUTOFF`` (Mitsuba allows any angle; 90 and
+    more light a hemisphere or beyond), a :class:`~.cube.CubeView` at the spot's
+    position keeping its frame (the cone only shades: outside it no light sample is
+    taken, so no face there is read)."""
     from . import UnsupportedEmitterError
+    from .cube import CubeView
     T = emitter.world_transform()
     pos = mi.ScalarPoint3f(scalar3(T.translation()))
     cutoff = float(dr.ravel(mi.traverse(emitter)["cutoff_angle"])[0])
-    if not (0.0 < cutoff < 90.0):
-        # A square perspective frustum cannot cover a cone of >= 90 degrees.
+    if not cutoff > 0.0:
         raise UnsupportedEmitterError(
-            f"shadowmap: spot emitter '{label}' has cutoff_angle={cutoff}; a perspective "
-            "depth map needs 0 < cutoff_angle < 90 degrees")
+            f"shadowmap: spot emitter '{label}' has cutoff_angle={cutoff}; it must be > 0 "
+            "degrees (a spot with no cone lights nothing)")
+    if cutoff >= WIDE_SPOT_CUTOFF:
+        return CubeView("spot", pos, emitter_frame(T, pos), label=label)
     return PerspectiveView("spot", pos, emitter_frame(T, pos), label=label,
                            tan_half=math.tan(math.radians(cutoff)))

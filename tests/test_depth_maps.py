@@ -170,6 +170,24 @@ def test_wide_spot_gets_cube_faces_at_the_spot(cutoff):
     np.testing.assert_allclose(smap.to_numpy().reshape(-1), expected, rtol=1e-5)
 
 
+def test_projector_gets_cube_faces_at_its_position():
+    from mi_shadowmap.light_views import CubeView
+    to_world = T().look_at(origin=[0.3, -0.2, 0.5], target=[1.0, -1.0, 0.7], up=[0, 0, 1])
+    scene = mi.load_dict({"type": "scene", "floor": plane([0, -1, 0], [0, 1, 0]),
+                          "lamp": {"type": "projector", "fov": 30, "to_world": to_world}})
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    assert isinstance(view, CubeView) and view.kind == "projector" and view.label == "lamp"
+    np.testing.assert_allclose(np.array(view.position), [0.3, -0.2, 0.5], atol=1e-6)
+    np.testing.assert_allclose(np.array(view.light_from_world.matrix),
+                               np.array(to_world.inverse().matrix), atol=1e-6)
+    smap = build_depth_map(scene, view, 16)
+    d = cube_dirs_np(16)
+    with np.errstate(divide="ignore"):
+        t = (-1.0 - (-0.2)) / d[:, 1]        # the floor plane y = -1 (100 wide)
+    expected = np.where(t > 0, t, np.inf)
+    np.testing.assert_allclose(smap.to_numpy().reshape(-1), expected, rtol=1e-5)
+
+
 def test_spot_without_a_cone_is_refused_by_name():
     scene = mi.load_dict({"type": "scene", "lamp": {"type": "spot", "cutoff_angle": 0.0}})
     with pytest.raises(ValueError, match="lamp.*cutoff_angle=0.0.*> 0"):

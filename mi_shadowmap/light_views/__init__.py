@@ -12,6 +12,7 @@ spot, cutoff >= 80     CubeView         :mod:`.cube` (kind ``'spot'``)
 directional            OrthoView        :mod:`.ortho`
 directional, cascades  CascadedView     :mod:`.cascaded`
 point, area            CubeView         :mod:`.cube`
+projector              CubeView         :mod:`.cube` (kind ``'projector'``)
 any (``multiview``)    MultiView        :mod:`.multi` (K views in one map)
 =====================  ===============  ====================================
 
@@ -34,7 +35,7 @@ import numpy as np
 
 from .base import LightView
 from .cascaded import CascadedView, cascaded_view, split_depths
-from .cube import CubeView, area_light_size, area_view, point_view
+from .cube import CubeView, area_light_size, area_view, point_view, projector_view
 from .ortho import OrthoView, directional_view
 from .perspective import PerspectiveView, box_view, spot_view
 from .multi import MultiView, multi_view
@@ -45,12 +46,13 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
            "footprint_ratio", "pixel_centres", "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
 
-SUPPORTED_EMITTERS = ("point", "spot", "directional", "area")
+SUPPORTED_EMITTERS = ("point", "spot", "directional", "area", "projector")
 _CLASS_TO_KIND = {
     "PointLight": "point",
     "SpotLight": "spot",
     "DirectionalEmitter": "directional",
     "AreaLight": "area",
+    "Projector": "projector",
 }
 
 
@@ -65,7 +67,8 @@ def emitter_class(emitter) -> str:
 
 
 def emitter_kind(emitter) -> str:
-    """'point' | 'spot' | 'directional' | 'area' | 'environment' | class name."""
+    """'point' | 'spot' | 'directional' | 'area' | 'projector' | 'environment' | class
+    name."""
     if emitter.is_environment():
         return "environment"
     cls = emitter_class(emitter)
@@ -90,6 +93,8 @@ def make_light_view(emitter, scene, index: int) -> LightView:
         return directional_view(emitter, scene, label)
     if kind == "area":
         return area_view(emitter, scene, label)
+    if kind == "projector":
+        return projector_view(emitter, label)
     raise UnsupportedEmitterError(
         f"shadowmap: emitter '{label}' ({emitter_class(emitter)}) is not supported; "
         f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}"

@@ -1,4 +1,4 @@
-"""Point and area lights, and spots of wide cones: six 90-degree faces around the light (:class:`CubeView`).
+"""Point and area lights, projectors and spots of wide cones: six 90-degree faces around the light (:class:`CubeView`).
 
 Face ``2*a + s`` looks along world axis ``a`` with sign ``+`` (s=0) or ``-``
 (s=1); its ``u``/``v`` are the axes ``(a+1)%3`` and ``(a+2)%3``. A filter tap
@@ -210,6 +210,16 @@ class CubeView(LightView):
 def point_view(emitter, label: str) -> CubeView:
     pos = mi.ScalarPoint3f(scalar3(mi.traverse(emitter)["position"]))
     return CubeView("point", pos, mi.ScalarTransform4f(), label=label)
+
+
+def projector_view(emitter, label: str) -> CubeView:
+    """A ``projector`` (a pinhole light: delta position, its image and field of view
+    only shade): cube faces at its position, its frame kept (as a wide spot's; the
+    frustum's faces that no light sample reaches are never read)."""
+    from .base import emitter_frame
+    T = emitter.world_transform()
+    pos = mi.ScalarPoint3f(scalar3(T.translation()))
+    return CubeView("projector", pos, emitter_frame(T, pos), label=label)
 
 
 def area_light_size(shape) -> float:

@@ -413,7 +413,7 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                                           light_from_world=lfw)
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
                          normals=_normals(n), samples=samples)
-    if view.kind in ("point", "spot"):
+    if view.kind in ("point", "spot", "projector"):
         size = float(light_size or 0.0)
         if size <= 0.0:
             return None
@@ -425,7 +425,7 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
             p = centre + 0.5 * size * n
             return MultiView(**base, sub=view, positions=tuple(map(tuple, p.tolist())),
                              normals=tuple(map(tuple, n.tolist())), samples=samples)
-        # spot: a square of side `size` across the axis, same frame otherwise
+        # spot, projector: a square of side `size` across the axis, same frame otherwise
         R = np.array(view.light_from_world.matrix, dtype=np.float64)[:3, :3]
         offsets = np.stack([u[:, 0] - 0.5, u[:, 1] - 0.5, np.zeros(K)], axis=1) * size
         p = centre + offsets @ R   # rows of R are the light axes in world space

@@ -115,11 +115,11 @@ def _pose_value(emitter, kind):
     if kind == "point":
         p = _attached(params, "position")
         return None if p is None else (mi.Point3f(p), "translation")
-    if kind in ("spot", "directional"):
+    if kind in ("spot", "projector", "directional"):
         t = _attached(params, "to_world")
         if t is None:
             return None
-        if kind == "spot":
+        if kind != "directional":
             return mi.Point3f(mi.Transform4f(t).translation()), "translation"
         return mi.Transform4f(t).matrix, "rotation"
     if kind == "area":

@@ -60,6 +60,11 @@ emitter has no id), carries the visibility used for it (0 where it
 contributes nothing; a method whose record has ``whole_light``, e.g.
 ``multiview``, reports its visibility of the whole light, horizon included).
 
+Nested in Mitsuba's ``aov`` integrator (``{'type': 'aov', 'aovs': 'dd:depth',
+'inner': {'type': 'shadowmap', ...}}``) it renders the same image; the maps are then
+planned for the scene's first sensor, and the visibility AOVs are left out (``aov``
+sizes its channels before any scene is known).
+
 Maps: spot -- perspective covering the cutoff cone (cube faces from a
 ``cutoff_angle`` of 80 degrees); point and area -- cube
 maps (area lights as their centre); directional -- orthographic, fitted to
@@ -94,6 +99,7 @@ screen is Mitsuba's projective integrators' job.
         self.resolution = None      # the resolution of the last render's maps
         self.stats = MapStats()     # see map_manager.prepare_maps()
         self._in_render = False
+        self._nested = False        # sample() is called by another integrator (aov)
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
         self._views_memo = None     # (scene, scene state, views, labels, unshadowed)
@@ -107,6 +113,7 @@ screen is Mitsuba's projective integrators' job.
         if self._in_render:   # Mitsuba re-enters a Python render() override
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         self._in_render = True
+        self._nested = False
         try:
             if isinstance(sensor, int):
                 sensor_obj = scene.sensors()[sensor]
@@ -227,9 +234,36 @@ screen is Mitsuba's projective integrators' job.
         return views
 
     def aov_names(self):
+        """``vis_<emitter>`` per emitter of the last scene rendered (none before one: an
+        ``aov`` integrator nesting this one gets no visibility channels, see
+        :meth:`_prepare_nested`)."""
+        if self._nested:
+            return []
         return [f"vis_{lab}" for lab in self._emitter_labels]
 
+    def _prepare_nested(self, scene, sampler):
+        """``sample()`` called by another integrator's render -- Mitsuba's ``aov``
+        integrator nesting this one, which calls ``sample()`` of its children and never
+        their ``render()``: the first pass runs here (maps for the scene's first sensor,
+        the footprints' spp from the render's sampler), and the visibility AOVs are left
+        out (the ``aov`` integrator sized its channels by :meth:`aov_names` when it was
+        built, before any scene: none)."""
+        sensors = scene.sensors()
+        sensor = sensors[0] if len(sensors) > 0 else None
+        self.prepare_maps(scene, sensor)
+        self._sensor = sensor
+        self._delta_term = has_delta_bsdf(scene)
+        self._diff_scale = dr.opaque(mi.Float, math.sqrt(max(sampler.sample_count(), 1)))
+
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        if not self._in_render:
+            self._nested = True
+            self._prepare_nested(scene, sampler)
+            result, valid, _ = self._sample(scene, sampler, ray, medium, active)
+            return result, valid, []
+        return self._sample(scene, sampler, ray, medium, active)
+
+    def _sample(self, scene, sampler, ray, medium=None, active=True):
         opts = self.opts
         if not isinstance(ray, mi.RayDifferential3f):   # copying drops the differentials
             ray = mi.RayDifferential3f(ray)

@@ -21,7 +21,7 @@ from . import environment as env_mod
 from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
-from .light_views import emitter_kind, emitter_label, make_light_view
+from .light_views import emitter_kind, emitter_label, make_light_view, pixel_step
 from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
 from .pages import VirtualShadowMap
 from .map_manager import MAP_CACHE, MapCache, MapStats, prepare_maps  # noqa: F401  (re-exported)
@@ -106,6 +106,8 @@ screen is Mitsuba's projective integrators' job.
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale = dr.opaque(mi.Float, 1.0)
         self._sensor = None
+        self._pixel_step = None       # a sensor without ray differentials (render() sets it)
+        self._pixel_step_memo = None
         self._delta_term = False    # the scene has delta BSDF lobes (render() sets it)
 
     # ---------------------------------------------------------------- passes
@@ -125,6 +127,7 @@ screen is Mitsuba's projective integrators' job.
             n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
             # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
             self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
+            self._pixel_step = self._sensor_pixel_step(sensor_obj)
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         finally:
             self._in_render = False
@@ -254,6 +257,26 @@ screen is Mitsuba's projective integrators' job.
         self._sensor = sensor
         self._delta_term = has_delta_bsdf(scene)
         self._diff_scale = dr.opaque(mi.Float, math.sqrt(max(sampler.sample_count(), 1)))
+        self._pixel_step = self._sensor_pixel_step(sensor)
+
+    def _sensor_pixel_step(self, sensor):
+        """None for a sensor whose rays carry ray differentials; else the per-pixel
+        ``(angle, offset)`` of :func:`~mi_shadowmap.light_views.pixel_step` as opaque
+        JIT scalars (a ``batch`` sensor: :meth:`_footprint` then takes a cone of that
+        angle around each ray), kept while the sensor's state is unchanged."""
+        if sensor is None or not (self.opts.record.needs_footprint or self.opts.uses_map):
+            return None
+        ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(0.5), mi.Point2f(0.5))
+        if ray.has_differentials:
+            return None
+        memo = self._pixel_step_memo
+        key = (id(sensor), tuple(sensor.film().crop_size()), tuple(sensor.film().crop_offset()),
+               str(mi.traverse(sensor)))
+        if memo is None or memo[0] != key:
+            angle, offset = pixel_step(sensor)
+            memo = (key, dr.opaque(mi.Float, angle), dr.opaque(mi.Float, offset))
+            self._pixel_step_memo = memo
+        return memo[1], memo[2]
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         if not self._in_render:
@@ -490,11 +513,19 @@ screen is Mitsuba's projective integrators' job.
                                                 dr.dot(n, d), 1e-12)
             return o + d * t
 
+        ok = ray.has_differentials
+        if not ok and self._pixel_step is not None:
+            # a sensor without ray differentials (batch): a cone of one pixel's angle
+            angle, offset = self._pixel_step
+            frame = mi.Frame3f(dr.normalize(ray.d))
+            o_x, o_y = ray.o + frame.s * offset, ray.o + frame.t * offset
+            d_x, d_y = frame.n + frame.s * angle, frame.n + frame.t * angle
+            dp_dx, dp_dy = hit(o_x, d_x) - si.p, hit(o_y, d_y) - si.p
+            return mi.Vector3f(dp_dx), mi.Vector3f(dp_dy)
         o_x = ray.o + (ray.o_x - ray.o) * scale
         o_y = ray.o + (ray.o_y - ray.o) * scale
         d_x = ray.d + (ray.d_x - ray.d) * scale
         d_y = ray.d + (ray.d_y - ray.d) * scale
-        ok = ray.has_differentials
         dp_dx = dr.select(ok, hit(o_x, d_x) - si.p, 0.0)
         dp_dy = dr.select(ok, hit(o_y, d_y) - si.p, 0.0)
         return mi.Vector3f(dp_dx), mi.Vector3f(dp_dy)

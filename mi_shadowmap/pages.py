@@ -94,7 +94,7 @@ import numpy as np
 
 from .depth_maps import first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS  # noqa: F401  (the layers built here)
-from .light_views import pixel_centres
+from .light_views import pixel_centres, pixel_ray_differentials
 from .light_views.base import scene_bounds
 from .light_views.local import LocalView
 from .light_views import box_view
@@ -713,7 +713,7 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     """Camera hits at every pixel centre with one-pixel ray differentials:
     ``(si, dp_dx, dp_dy, valid)``; unevaluated with ``evaluate=False`` (the mark pass
     traces them in its own kernel)."""
-    ray, _ = sensor.sample_ray_differential(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
+    ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
     # position and geometric normal are all marking needs (RayFlags.All also computes
     # UVs, shading frames and their derivatives: about half the pass)
     si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)

@@ -1054,3 +1054,67 @@ def test_environment_regions_of_a_virtual_render_build_full_map_layers(method):
     assert np.isfinite(img).all()
     maps = [m for m in integ.maps if isinstance(m, ShadowMap)]
     assert maps and all(any(k.startswith(method) for k in m.extra) for m in maps)
+
+
+# ------------------------------------------------------ sensors without differentials
+def test_batch_sensor_pages_follow_each_views_pixels():
+    """Mitsuba's ``batch`` sensor (several cameras side by side on one film) gives rays
+    without ray differentials. The mark pass then saw no footprint and asked for the
+    finest level everywhere (2.3 M texels, 2,225 pages at a level the page table cannot
+    hold, a warning) and lookups fell back to the coarsest page: 2.69 % misclassified.
+    Now the mark pass takes the next pixel's ray and the render a cone of one pixel's
+    angle: pages and accuracy as for the two cameras rendered alone (measured: 23,552
+    texels against 18,432 + 17,408; 0.68 % against 0.29 / 0.59 %)."""
+    views = {"a": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at([0, 3, 5], [0, 0, 0], [0, 1, 0])},
+             "b": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at([5, 3, 0], [0, 0, 0], [0, 1, 0])}}
+    film = {"type": "hdrfilm", "height": 32, "rfilter": {"type": "box"}}
+
+    def load(sensor):
+        d = default_scene(width=32, height=32)
+        d["sensor"] = sensor
+        return mi.load_dict(d)
+
+    alone = []
+    for name, v in views.items():
+        integ = shadowmap(method="hard")
+        vis_of(load({**v, "film": {**film, "width": 32}}), integ, spp=16)
+        alone.append(integ.stats.texels_built)
+    scene = load({"type": "batch", "film": {**film, "width": 64}, **views})
+    integ = shadowmap(method="hard")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")        # no level beyond the page table
+        vis = vis_of(scene, integ, spp=16)
+    ref = vis_of(scene, shadowmap(method="raytraced"), spp=16)
+    mis = misclassified(ref, vis)
+    print(f"batch: {integ.stats.texels_built} texels (alone {alone}), misclassified {mis:.2%}")
+    assert integ.stats.texels_built <= 1.5 * sum(alone)
+    assert mis <= 0.015
+
+
+def test_pixel_ray_differentials_of_a_batch_equal_each_cameras_own():
+    """The finite-difference differentials (next pixel's ray; at a sub-camera's last
+    column the previous pixel's, mirrored: within 5 % of a pixel's step there) equal
+    the differentials each camera gives alone, at every pixel centre of the batch."""
+    from mi_shadowmap.light_views import pixel_centres, pixel_ray_differentials
+    cams = [{"type": "perspective", "fov": 40, "to_world": T().look_at(o, [0, 0, 0], [0, 1, 0])}
+            for o in ([0, 3, 5], [5, 3, 0])]
+    batch = mi.load_dict({"type": "batch", "film": {"type": "hdrfilm", "width": 32,
+                                                   "height": 8}, "a": cams[0], "b": cams[1]})
+    ray = pixel_ray_differentials(batch, pixel_centres(batch))
+    assert ray.has_differentials
+    for k, cam in enumerate(cams):
+        alone = mi.load_dict({**cam, "film": {"type": "hdrfilm", "width": 16, "height": 8}})
+        own, _ = alone.sample_ray_differential(0.0, 0.5, pixel_centres(alone), mi.Point2f(0.5))
+        x = np.arange(32 * 8) % 32
+        cols = x // 16 == k
+        last = (x[cols] % 16) == 15           # backward, mirrored: second order
+        np.testing.assert_allclose(np.array(ray.d)[:, cols], np.array(own.d), atol=1e-6)
+        # origins on the near plane (0.01 from the pinhole): the next pixel's, Mitsuba's o
+        assert np.abs(np.array(ray.o_x)[:, cols] - np.array(own.o_x)).max() <= 1e-3
+        for got, want in ((ray.d_x, own.d_x), (ray.d_y, own.d_y)):
+            got, want = np.array(got)[:, cols], np.array(want)
+            np.testing.assert_allclose(got[:, ~last], want[:, ~last], atol=2e-6)
+            step = np.linalg.norm(want - np.array(own.d), axis=0)
+            assert np.all(np.linalg.norm(got - want, axis=0) <= 0.05 * step)

@@ -44,7 +44,8 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "MultiView", "multi_view", "make_light_view", "emitter_kind", "emitter_label",
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
-           "footprint_ratio", "pixel_centres", "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
+           "footprint_ratio", "pixel_centres", "pixel_ray_differentials", "pixel_step",
+           "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
 
 SUPPORTED_EMITTERS = ("point", "spot", "directional", "area", "projector")
 _CLASS_TO_KIND = {
@@ -109,6 +110,48 @@ def pixel_centres(sensor) -> mi.Point2f:
     y = idx // w
     x = idx - y * w
     return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+
+
+def pixel_ray_differentials(sensor, position: mi.Point2f, time=0.0):
+    """The ray of ``sensor`` through film ``position`` (in [0, 1]^2 over its crop) with
+    one-pixel ray differentials: the sensor's own, or, for a sensor that gives none
+    (Mitsuba's ``batch`` sensor, ``radiancemeter``), its rays through the next pixel
+    in x and y, from ``sample_ray`` -- forward or, where the forward ray turns more than
+    twice as far as the backward one (the last column of a batch's sub-camera, whose
+    next pixel is another camera's), backward, mirrored."""
+    ray, _ = sensor.sample_ray_differential(time, 0.5, position, mi.Point2f(0.5))
+    if ray.has_differentials:
+        return ray
+    w, h = (int(x) for x in sensor.film().crop_size())
+
+    def neighbour(step):
+        fwd, _ = sensor.sample_ray(time, 0.5, position + step, mi.Point2f(0.5))
+        bwd, _ = sensor.sample_ray(time, 0.5, position - step, mi.Point2f(0.5))
+        turn_f = 1.0 - dr.dot(fwd.d, ray.d)      # ~ angle^2 / 2
+        turn_b = 1.0 - dr.dot(bwd.d, ray.d)
+        shift_f, shift_b = dr.squared_norm(fwd.o - ray.o), dr.squared_norm(bwd.o - ray.o)
+        use_fwd = (turn_f <= 4.0 * turn_b + 1e-12) & (shift_f <= 4.0 * shift_b + 1e-30)
+        return (dr.select(use_fwd, fwd.o, 2.0 * ray.o - bwd.o),
+                dr.select(use_fwd, fwd.d, dr.normalize(2.0 * ray.d - bwd.d)))
+
+    ray.o_x, ray.d_x = neighbour(mi.Vector2f(1.0 / w, 0.0))
+    ray.o_y, ray.d_y = neighbour(mi.Vector2f(0.0, 1.0 / h))
+    ray.has_differentials = True
+    return ray
+
+
+def pixel_step(sensor):
+    """``(angle, offset)``: the median change of a ray's direction (radians) and origin
+    from one pixel to the next, over the pixel centres of ``sensor``
+    (:func:`pixel_ray_differentials`); the render's footprint of a sensor without ray
+    differentials (its rays in ``sample()`` have none) is a cone of this angle."""
+    ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
+    d = dr.normalize(ray.d)
+    angles = [dr.norm(dr.normalize(dd) - d).numpy() for dd in (ray.d_x, ray.d_y)]
+    offsets = [dr.norm(o - ray.o).numpy() for o in (ray.o_x, ray.o_y)]
+    angle = float(np.median(np.concatenate(angles))) if len(angles[0]) else 0.0
+    offset = float(np.median(np.concatenate(offsets))) if len(offsets[0]) else 0.0
+    return angle, offset
 
 
 def camera_visible_points(scene, sensor) -> np.ndarray:

@@ -272,20 +272,17 @@ screen is Mitsuba's projective integrators' job.
         """None for a sensor whose rays carry ray differentials; else the per-pixel
         ``(angle, offset)`` of :func:`~mi_shadowmap.light_views.pixel_step` as opaque
         JIT scalars (a ``batch`` sensor: :meth:`_footprint` then takes a cone of that
-        angle around each ray), kept while the sensor's state is unchanged."""
+        angle around each ray)."""
         if sensor is None or not (self.opts.record.needs_footprint or self.opts.uses_map):
             return None
-        ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(0.5), mi.Point2f(0.5))
-        if ray.has_differentials:
+        memo = self._pixel_step_memo     # (sensor, its rays have differentials)
+        if memo is None or memo[0] is not sensor:
+            ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(0.5), mi.Point2f(0.5))
+            memo = self._pixel_step_memo = (sensor, bool(ray.has_differentials))
+        if memo[1]:
             return None
-        memo = self._pixel_step_memo
-        key = (id(sensor), tuple(sensor.film().crop_size()), tuple(sensor.film().crop_offset()),
-               str(mi.traverse(sensor)))
-        if memo is None or memo[0] != key:
-            angle, offset = pixel_step(sensor)
-            memo = (key, dr.opaque(mi.Float, angle), dr.opaque(mi.Float, offset))
-            self._pixel_step_memo = memo
-        return memo[1], memo[2]
+        angle, offset = pixel_step(sensor)   # every render: its cameras may have moved
+        return dr.opaque(mi.Float, angle), dr.opaque(mi.Float, offset)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         if not self._in_render:

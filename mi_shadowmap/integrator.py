@@ -13,8 +13,10 @@ parameters.
 from __future__ import annotations
 
 import math
+import warnings
 
 import drjit as dr
+import numpy as np
 import mitsuba as mi
 
 from . import environment as env_mod
@@ -22,6 +24,7 @@ from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import emitter_kind, emitter_label, make_light_view, pixel_step
+from .light_views.base import scene_bounds
 from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
 from .pages import VirtualShadowMap
 from .map_manager import MAP_CACHE, MapCache, MapStats, prepare_maps  # noqa: F401  (re-exported)
@@ -231,6 +234,9 @@ screen is Mitsuba's projective integrators' job.
             # environment='unshadowed': visibility 1, every method
             unshadowed.append(is_env and self.opts.environment == "unshadowed")
             labels.append(emitter_label(e, i))
+        if self.opts.uses_map and not self.opts.record.whole_light:
+            for view in views:
+                _warn_if_enclosing(scene, view, self.opts.method)
         # AOV names must be unique: fall back to indices for duplicate ids.
         self._emitter_labels = [
             lab if labels.count(lab) == 1 else str(i) for i, lab in enumerate(labels)]
@@ -548,6 +554,28 @@ def _tracks_gradients(scene) -> bool:
         return False
     params = MAP_CACHE.traverse(scene)
     return any(dr.grad_enabled(params[k]) for k in params.keys())
+
+
+def _warn_if_enclosing(scene, view, method: str) -> None:
+    """Warn when an area light's shape encloses every other shape (a sky dome: a
+    sphere light turned inwards): a map from its centre sees it as a point light there,
+    inside the scene (a dome over a floor and a box: ``hard`` 24 % too dark, ``pcf``
+    17 %), which only methods sampling the light itself model."""
+    if view is None or getattr(view, "kind", None) != "area" or view.ignore_shape is None:
+        return
+    b = view.ignore_shape.bbox()
+    bounds = scene_bounds(scene, exclude=view.ignore_shape)
+    if bounds is None or not b.valid():
+        return
+    lo_l = np.array([float(c) for c in b.min])
+    hi_l = np.array([float(c) for c in b.max])
+    if np.all(lo_l <= bounds[0]) and np.all(bounds[1] <= hi_l):
+        warnings.warn(
+            f"shadowmap: area light '{view.label}' encloses the scene (a dome or sky "
+            f"sphere); method '{method}' sees it from its centre, as a light at one point "
+            "inside the scene. Use method='multiview' (maps from points on the light) or "
+            "'raytraced', or an environment emitter (envmap, constant) with "
+            "environment='shadowed'", RuntimeWarning, stacklevel=3)
 
 
 def has_delta_bsdf(scene) -> bool:

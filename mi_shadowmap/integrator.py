@@ -45,7 +45,7 @@ ray queries from each light (first pass) and looked up with the chosen
 ``method`` (second pass). ``method='raytraced'`` traces real shadow rays and
 is the ground truth; it matches Mitsuba's ``direct`` integrator (for scenes
 without delta BSDF lobes sample for sample with ``emitter_samples=1,
-bsdf_samples=0``).
+bsdf_samples=0``; but see ``blendbsdf`` below).
 
 Light seen through a delta lobe -- an area light or the environment in a
 mirror (``conductor``), through glass (``dielectric``, ``thindielectric``), in
@@ -64,12 +64,11 @@ contributes nothing; a method whose record has ``whole_light``, e.g.
 ``multiview``, reports its visibility of the whole light, horizon included).
 
 Nested in Mitsuba's ``aov`` integrator (``{'type': 'aov', 'aovs': 'dd:depth',
-'inner': {'type': 'shadowmap', ...}}``) it renders the same image; the maps are then
-planned for the scene's first sensor, and the visibility AOVs are left out (``aov``
-sizes its channels before any scene is known).
+'inner': {'type': 'shadowmap', ...}}``) it renders the same image, visibility AOVs
+included, beside ``aov``'s channels (see :meth:`_prepare_nested`).
 
 Maps: spot -- perspective covering the cutoff cone (cube faces from a
-``cutoff_angle`` of 80 degrees); point and area -- cube
+``cutoff_angle`` of 80 degrees); point, projector and area -- cube
 maps (area lights as their centre); directional -- orthographic, fitted to
 the scene bounds seen along the light. See :mod:`mi_shadowmap.light_views`.
 By default (``virtual`` left out) the methods that read virtual maps (``hard``,
@@ -103,6 +102,8 @@ screen is Mitsuba's projective integrators' job.
         self.stats = MapStats()     # see map_manager.prepare_maps()
         self._in_render = False
         self._nested = False        # sample() is called by another integrator (aov)
+        self._names_given: list[str] = []   # aov_names() given outside a render
+        self._last_render = None    # the scene of the render in progress or just done
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
         self._views_memo = None     # (scene, scene state, views, labels, unshadowed)
@@ -120,6 +121,7 @@ screen is Mitsuba's projective integrators' job.
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         self._in_render = True
         self._nested = False
+        self._last_render = None
         try:
             if isinstance(sensor, int):
                 sensor_obj = scene.sensors()[sensor]
@@ -132,6 +134,7 @@ screen is Mitsuba's projective integrators' job.
             # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
             self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
             self._pixel_step = self._sensor_pixel_step(sensor_obj)
+            self._last_render = scene
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         finally:
             self._in_render = False
@@ -244,22 +247,34 @@ screen is Mitsuba's projective integrators' job.
         return views
 
     def aov_names(self):
-        """``vis_<emitter>`` per emitter of the last scene rendered (none before one: an
-        ``aov`` integrator nesting this one gets no visibility channels, see
-        :meth:`_prepare_nested`)."""
+        """``vis_<emitter>`` per emitter of the last scene rendered (none before one).
+        Outside a render the list given is remembered: an integrator nesting this one
+        (Mitsuba's ``aov``) sizes its channels by it when it is built, so while nested
+        ``sample()`` returns values for exactly those names (:meth:`sample`)."""
         if self._nested:
-            return []
+            return list(self._names_given)
+        names = self._names()
+        if not self._in_render:
+            self._names_given = list(names)
+        return names
+
+    def _names(self):
         return [f"vis_{lab}" for lab in self._emitter_labels]
 
     def _prepare_nested(self, scene, sampler):
-        """``sample()`` called by another integrator's render -- Mitsuba's ``aov``
-        integrator nesting this one, which calls ``sample()`` of its children and never
-        their ``render()``: the first pass runs here (maps for the scene's first sensor,
-        the footprints' spp from the render's sampler), and the visibility AOVs are left
-        out (the ``aov`` integrator sized its channels by :meth:`aov_names` when it was
-        built, before any scene: none)."""
-        sensors = scene.sensors()
-        sensor = sensors[0] if len(sensors) > 0 else None
+        """``sample()`` called by another integrator's render: Mitsuba's ``aov`` (or
+        ``moment``) integrator nesting this one. Mitsuba 3.9's ``aov`` renders its child
+        with the child's ``render()`` (our image, visibility AOVs included) and then
+        calls the child's ``sample()`` again in its own render, for its own channels;
+        other integrators may call ``sample()`` alone. The first pass runs here: for
+        the sensor of our render of this scene that just ran (its maps come from the
+        cache), else for the scene's first sensor; footprints take the spp from the
+        render's sampler."""
+        if self._last_render is scene and self._sensor is not None:
+            sensor = self._sensor
+        else:
+            sensors = scene.sensors()
+            sensor = sensors[0] if len(sensors) > 0 else None
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
@@ -292,10 +307,13 @@ screen is Mitsuba's projective integrators' job.
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         if not self._in_render:
+            # Nested: the parent reserved one channel per name aov_names() gave it when
+            # it was built (before any scene: none) and advances by aov_names() now.
             self._nested = True
             self._prepare_nested(scene, sampler)
-            result, valid, _ = self._sample(scene, sampler, ray, medium, active)
-            return result, valid, []
+            result, valid, aovs = self._sample(scene, sampler, ray, medium, active)
+            mine = dict(zip(self._names(), aovs))
+            return result, valid, [mine.get(n, mi.Float(0.0)) for n in self._names_given]
         return self._sample(scene, sampler, ray, medium, active)
 
     def _sample(self, scene, sampler, ray, medium=None, active=True):
@@ -558,7 +576,8 @@ def _tracks_gradients(scene) -> bool:
 
 def _warn_if_enclosing(scene, view, method: str) -> None:
     """Warn when an area light's shape encloses every other shape (a sky dome: a
-    sphere light turned inwards): a map from its centre sees it as a point light there,
+    sphere light turned inwards; its bounding box holds the scene's, whose own box holds
+    the light's centre): a map from its centre sees it as a point light there,
     inside the scene (a dome over a floor and a box: ``hard`` 24 % too dark, ``pcf``
     17 %), which only methods sampling the light itself model."""
     if view is None or getattr(view, "kind", None) != "area" or view.ignore_shape is None:
@@ -569,7 +588,9 @@ def _warn_if_enclosing(scene, view, method: str) -> None:
         return
     lo_l = np.array([float(c) for c in b.min])
     hi_l = np.array([float(c) for c in b.max])
-    if np.all(lo_l <= bounds[0]) and np.all(bounds[1] <= hi_l):
+    centre = np.array([float(c) for c in view.position])
+    if (np.all(lo_l <= bounds[0]) and np.all(bounds[1] <= hi_l)
+            and np.all(bounds[0] <= centre) and np.all(centre <= bounds[1])):
         warnings.warn(
             f"shadowmap: area light '{view.label}' encloses the scene (a dome or sky "
             f"sphere); method '{method}' sees it from its centre, as a light at one point "

@@ -208,6 +208,12 @@ def test_enclosing_area_light_warns_the_map_methods():
         for method in ("raytraced", "multiview"):
             mi.render(scene, integrator=mi.load_dict({"type": "shadowmap", "method": method}),
                       spp=1)
+        T = mi.ScalarTransform4f                      # a big sphere light beside a box
+        beside = mi.load_dict({"type": "scene", "box": {
+            "type": "cube", "to_world": T().translate([1.5, 1.5, 1.5]).scale(0.5)},
+            "lamp": {"type": "sphere", "center": [10.5, 10.5, 10.5], "radius": 10.0,
+                     "e": {"type": "area", "radiance": 1.0}}})
+        mi.load_dict({"type": "shadowmap", "method": "hard"}).check_scene(beside)
         for path in sorted(SCENES.glob("*.xml")):     # no repository scene warns
             s = mi.load_file(str(path), width=8, height=8)
             if any(e.is_environment() for e in s.emitters()):

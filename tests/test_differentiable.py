@@ -796,3 +796,27 @@ def test_orthographic_camera_gradients_fall_back_to_the_sample():
     print("orthographic gradients:", g)
     assert np.isfinite(g[0]).all() and np.abs(g[0]).max() > 0
     assert np.allclose(g[0], g[1], rtol=0.03)
+
+
+def test_light_pose_reference_follows_a_changed_spot_cone():
+    """With gradients on a spot's ``to_world``, maps are built from a reference view
+    (light_views.pose). A new ``cutoff_angle`` -- here across ``WIDE_SPOT_CUTOFF``, from
+    one perspective face to a cube -- must replace the reference: the old 60-degree
+    frustum does not cover an 85-degree cone."""
+    from mi_shadowmap.light_views import CubeView, PerspectiveView, make_light_view
+    from mi_shadowmap.light_views.pose import light_pose
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({"type": "scene", "floor": {"type": "rectangle"},
+                          "sp": {"type": "spot", "cutoff_angle": 60.0,
+                                 "to_world": T().look_at([0, 3, 0], [0, 0, 0], [0, 0, 1])}})
+    emitter = scene.emitters()[0]
+    bounds = (np.zeros(3), np.ones(3))
+    for cutoff, kind in ((60.0, PerspectiveView), (85.0, CubeView), (30.0, PerspectiveView)):
+        params = mi.traverse(emitter)
+        params["cutoff_angle"] = cutoff
+        dr.enable_grad(params["to_world"])
+        params.update()
+        view, pose = light_pose(emitter, make_light_view(emitter, scene, 0), bounds)
+        assert isinstance(view, kind) and pose is not None
+        if kind is PerspectiveView:
+            assert view.tan_half == pytest.approx(np.tan(np.radians(cutoff)))

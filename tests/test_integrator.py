@@ -408,18 +408,24 @@ def test_projector_casts_shadows_for_every_method():
 
 @pytest.mark.parametrize("method", ["raytraced", "hard", "pcss"])
 def test_nested_in_mitsubas_aov_integrator(method):
-    """Mitsuba's ``aov`` integrator calls a nested integrator's ``sample()`` and never its
-    ``render()``, and sizes its channels by ``aov_names()`` when it is built. This
-    crashed the process (a heap overflow: the visibility AOVs written past channels
-    sized for none). Now the first pass runs inside ``sample()`` and the image equals
-    the direct render's, beside the ``aov`` integrator's own channels."""
+    """Mitsuba's ``aov`` integrator sizes its channels by its child's ``aov_names()`` when
+    it is built, renders the child with the child's ``render()``, then calls the child's
+    ``sample()`` in its own render. This crashed the process (a heap overflow: the
+    visibility AOVs written past channels sized for none), and, with an instance rendered
+    before (its names known when ``aov`` was built), failed with a JIT size error. Now
+    both render; the image's colour (our render) and the film's own colour (our
+    ``sample()`` called by ``aov``) equal the direct render's, beside ``aov``'s depth."""
     scene = mi.load_dict(default_scene(width=32, height=32))
-    nested = mi.load_dict({"type": "aov", "aovs": "dd:depth",
-                           "inner": {"type": "shadowmap", "method": method}})
-    img = np.asarray(mi.render(scene, integrator=nested, spp=4, seed=1))
     alone = np.asarray(mi.render(scene, integrator=mi.load_dict(
         {"type": "shadowmap", "method": method}), spp=4, seed=1))
-    assert img.shape[-1] == 5                          # RGBA + depth
-    assert np.isfinite(img).all()
-    np.testing.assert_allclose(img[..., :3], alone[..., :3], rtol=1e-5, atol=1e-6)
-    assert img[..., 4].max() > 0                       # the depth channel
+    for rendered_before in (False, True):
+        inner = mi.load_dict({"type": "shadowmap", "method": method})
+        if rendered_before:
+            mi.render(scene, integrator=inner, spp=1)
+        nested = mi.load_dict({"type": "aov", "aovs": "dd:depth", "inner": inner})
+        img = np.asarray(mi.render(scene, integrator=nested, spp=4, seed=1))
+        assert np.isfinite(img).all()
+        np.testing.assert_allclose(img[..., :3], alone[..., :3], rtol=1e-5, atol=1e-6)
+        assert img[..., -1].max() > 0                  # aov's depth channel
+        film = np.asarray(scene.sensors()[0].film().bitmap())
+        np.testing.assert_allclose(film[..., :3], alone[..., :3], rtol=1e-5, atol=1e-6)

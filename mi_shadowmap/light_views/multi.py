@@ -16,8 +16,9 @@ area             the shape's own ``sample_position(u_k)`` (the points    cube ma
                  the converged reference samples), with their normals
 point            ``light_size`` > 0: uniform on the sphere of diameter   cube maps
                  ``light_size`` (a sphere light), with their normals
-spot             ``light_size`` > 0: a square of side ``light_size``     perspective maps
-                 across the spot's axis (same axis and cone)
+spot,            ``light_size`` > 0: a square of side ``light_size``     the light's own
+projector        across the light's axis (same axis and cone)            (perspective or
+                                                                         cube maps)
 directional      ``angular_diameter`` > 0: ``K`` directions in the       orthographic maps
                  disk of that angular diameter, each fitted to the
                  scene's bounds like the ordinary map
@@ -388,8 +389,8 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                angular_diameter: float = 0.0) -> MultiView | None:
     """The :class:`MultiView` of ``views`` light points of an emitter whose ordinary
     view is ``view`` (see the module doc), or None for a light without extent
-    (point/spot with ``light_size`` 0 or None, directional with ``angular_diameter``
-    0): its ordinary map is then the one view."""
+    (point/spot/projector with ``light_size`` 0 or None, directional with
+    ``angular_diameter`` 0): its ordinary map is then the one view."""
     from .ortho import directional_view
     K = int(views)
     u = stratified_points(K)

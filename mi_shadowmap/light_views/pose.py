@@ -195,9 +195,11 @@ def light_pose(emitter, view, bounds=None, detached: bool = False):
     ref = _REFERENCES.get(id(emitter))
     turned = False
     if view.kind == "spot" and ref is not None and ref.kind == "spot":
-        # the cone turned: the reference frustum may no longer cover it
+        # the cone turned or changed (a new cutoff_angle, or a cube of faces from
+        # WIDE_SPOT_CUTOFF on): the reference frustum may no longer cover it
         r_now, r_ref = light_rotation(view), light_rotation(ref.view)
-        turned = _angle(r_now @ r_ref.T) > REFERENCE_TURN
+        turned = (_angle(r_now @ r_ref.T) > REFERENCE_TURN or type(view) is not type(ref.view)
+                  or getattr(view, "tan_half", None) != getattr(ref.view, "tan_half", None))
     if (ref is None or ref.emitter is not emitter or ref.kind != view.kind or turned
             or _far(ref, current)):
         ref = _Reference(emitter, view, view.kind, current, max(scene_size, 1e-30))

@@ -127,13 +127,8 @@ screen is Mitsuba's projective integrators' job.
                 sensor_obj = scene.sensors()[sensor]
             else:
                 sensor_obj = sensor
-            self.prepare_maps(scene, sensor_obj)
-            self._sensor = sensor_obj
-            self._delta_term = self._scene_has_delta(scene)
-            n_spp = spp if spp > 0 else sensor_obj.sampler().sample_count()
-            # Mitsuba scales ray differentials by 1/sqrt(spp); footprints use whole pixels.
-            self._diff_scale = dr.opaque(mi.Float, math.sqrt(n_spp))
-            self._pixel_step = self._sensor_pixel_step(sensor_obj)
+            self._first_pass(scene, sensor_obj,
+                             spp if spp > 0 else sensor_obj.sampler().sample_count())
             self._last_render = scene
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         finally:
@@ -275,10 +270,18 @@ screen is Mitsuba's projective integrators' job.
         else:
             sensors = scene.sensors()
             sensor = sensors[0] if len(sensors) > 0 else None
+        self._first_pass(scene, sensor, max(sampler.sample_count(), 1))
+
+    def _first_pass(self, scene, sensor, spp: int):
+        """What ``sample()`` reads of a render, set before it is traced: the maps for
+        ``sensor``, whether the delta-lobe term applies, the footprints' scale (Mitsuba
+        scales ray differentials by 1/sqrt(spp); footprints use whole pixels; an opaque
+        value, so a new spp compiles nothing) and a sensor's pixel step without ray
+        differentials."""
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
-        self._diff_scale = dr.opaque(mi.Float, math.sqrt(max(sampler.sample_count(), 1)))
+        self._diff_scale = dr.opaque(mi.Float, math.sqrt(spp))
         self._pixel_step = self._sensor_pixel_step(sensor)
 
     def _scene_has_delta(self, scene) -> bool:

@@ -212,14 +212,21 @@ def point_view(emitter, label: str) -> CubeView:
     return CubeView("point", pos, mi.ScalarTransform4f(), label=label)
 
 
-def projector_view(emitter, label: str) -> CubeView:
-    """A ``projector`` (a pinhole light: delta position, its image and field of view
-    only shade): cube faces at its position, its frame kept (as a wide spot's; the
-    frustum's faces that no light sample reaches are never read)."""
+def framed_cube_view(emitter, kind: str, label: str) -> CubeView:
+    """Cube faces at the position of an emitter with a frame (``to_world``), that frame
+    kept as ``light_from_world`` (multiview's light square, the pose reference): a spot
+    of a wide cone, a ``projector``. Its cone or frustum only shades: faces no light
+    sample reaches are never read."""
     from .base import emitter_frame
     T = emitter.world_transform()
     pos = mi.ScalarPoint3f(scalar3(T.translation()))
-    return CubeView("projector", pos, emitter_frame(T, pos), label=label)
+    return CubeView(kind, pos, emitter_frame(T, pos), label=label)
+
+
+def projector_view(emitter, label: str) -> CubeView:
+    """A ``projector`` (a pinhole light: delta position, its image and field of view
+    only shade): :func:`framed_cube_view`, kind ``'projector'``."""
+    return framed_cube_view(emitter, "projector", label)
 
 
 def area_light_size(shape) -> float:

@@ -213,15 +213,15 @@ def spot_view(emitter, label: str):
     position keeping its frame (the cone only shades: outside it no light sample is
     taken, so no face there is read)."""
     from . import UnsupportedEmitterError
-    from .cube import CubeView
-    T = emitter.world_transform()
-    pos = mi.ScalarPoint3f(scalar3(T.translation()))
+    from .cube import framed_cube_view
     cutoff = float(dr.ravel(mi.traverse(emitter)["cutoff_angle"])[0])
     if not cutoff > 0.0:
         raise UnsupportedEmitterError(
             f"shadowmap: spot emitter '{label}' has cutoff_angle={cutoff}; it must be > 0 "
             "degrees (a spot with no cone lights nothing)")
     if cutoff >= WIDE_SPOT_CUTOFF:
-        return CubeView("spot", pos, emitter_frame(T, pos), label=label)
+        return framed_cube_view(emitter, "spot", label)
+    T = emitter.world_transform()
+    pos = mi.ScalarPoint3f(scalar3(T.translation()))
     return PerspectiveView("spot", pos, emitter_frame(T, pos), label=label,
                            tan_half=math.tan(math.radians(cutoff)))

@@ -58,6 +58,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .light_views.base import TEXEL_SAMPLE
+
 #: ``opposite_dedge`` of an edge with no neighbour (a boundary edge).
 NO_EDGE = 0xFFFFFFFF
 #: The neighbour steps (di, dj) of a texel, in the order of :func:`silhouette_coverage`.
@@ -133,8 +135,9 @@ def silhouette_coverage(view, res: int, depth, shape, prim, pose=None) -> mi.Flo
 
     horizontal = dj == 0.0
     sign = dr.select(horizontal, di, dj)
-    cu = dr.select(horizontal, mi.Float(i), mi.Float(j)) + 0.5
-    cw = dr.select(horizontal, mi.Float(j), mi.Float(i)) + 0.5
+    # where the texels' rays cross them (base.TEXEL_SAMPLE: the centre, moved a little)
+    cu = dr.select(horizontal, mi.Float(i) + TEXEL_SAMPLE[0], mi.Float(j) + TEXEL_SAMPLE[1])
+    cw = dr.select(horizontal, mi.Float(j) + TEXEL_SAMPLE[1], mi.Float(i) + TEXEL_SAMPLE[0])
 
     def crossing(a, b):
         """``(along, usable)``: where the edge ``a b`` (world points) crosses the

@@ -95,7 +95,7 @@ import numpy as np
 from .depth_maps import first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS  # noqa: F401  (the layers built here)
 from .light_views import pixel_centres, pixel_ray_differentials
-from .light_views.base import scene_bounds
+from .light_views.base import TEXEL_SAMPLE, scene_bounds
 from .light_views.local import LocalView
 from .light_views import box_view
 
@@ -382,7 +382,8 @@ class PageStore:
         gx = (mi.UInt32(key >> 27) & ((1 << 27) - 1)) * P + ti
         gy = (mi.UInt32(key) & ((1 << 27) - 1)) * P + tj
         res = mi.Float64(mi.UInt32(lay.res0) >> lev)
-        uv = mi.Point2d((mi.Float64(gx) + 0.5) / res, (mi.Float64(gy) + 0.5) / res)
+        uv = mi.Point2d((mi.Float64(gx) + TEXEL_SAMPLE[0]) / res,
+                        (mi.Float64(gy) + TEXEL_SAMPLE[1]) / res)
         o64, d64 = lay.view.ray_through_f64(f_l, uv)
         o = mi.Point3f(o64 + d64 * lay.t0)     # start near the scene: float32 stays exact
         d = dr.normalize(mi.Vector3f(d64))

@@ -6,6 +6,7 @@ import pytest
 
 from mi_shadowmap.depth_maps import build_depth_map, write_exr
 from mi_shadowmap.light_views import make_light_view
+from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 
 T = mi.ScalarTransform4f
 RES = 64
@@ -26,10 +27,11 @@ def build(scene_dict, res=RES):
 
 def texel_st(res, n_faces=1):
     """``(face, s, t)`` of every texel in the documented flat order
-    ``face*res*res + j*res + i``, centre ``(i+.5)/res`` mapped to [-1, 1]."""
+    ``face*res*res + j*res + i``, its ray at ``(i + TEXEL_SAMPLE[0]) / res`` (the
+    centre, moved a little) mapped to [-1, 1]."""
     face, j, i = np.meshgrid(np.arange(n_faces), np.arange(res), np.arange(res), indexing="ij")
-    s = 2.0 * (i.reshape(-1) + 0.5) / res - 1.0
-    t = 2.0 * (j.reshape(-1) + 0.5) / res - 1.0
+    s = 2.0 * (i.reshape(-1) + TEXEL_SAMPLE[0]) / res - 1.0
+    t = 2.0 * (j.reshape(-1) + TEXEL_SAMPLE[1]) / res - 1.0
     return face.reshape(-1), s, t
 
 
@@ -137,6 +139,51 @@ def test_cube_faces_depth_is_distance_to_room_walls():
     per_face = np.abs(got - expected).reshape(6, -1).max(axis=1) / expected.max()
     assert np.all(per_face < 1e-5), per_face
     np.testing.assert_allclose(got, expected, rtol=1e-5)
+
+
+def closed_box_around(position, half):
+    return {"box": {"type": "cube", "to_world": T().translate(position).scale(half)},
+            "floor": {"type": "rectangle", "to_world": T().scale(10.0)}}
+
+
+@pytest.mark.parametrize("light", ["point", "spot"])
+@pytest.mark.parametrize("half", [0.1, 0.3, 0.7])
+def test_no_ray_escapes_a_closed_box_centred_on_the_light(light, half):
+    """A light at the centre of a closed cube mesh: every texel's ray hits the cube.
+
+    Texel centres lie on the faces' diagonals, here the planes of the cube's
+    triangle diagonals; Embree misses rays exactly on a shared edge, so with
+    rays through the exact centres 16-87 texels per cube map read the floor
+    behind (a line of light through the box). base.TEXEL_SAMPLE moves the rays
+    off those planes.
+    """
+    pos = [0.0, 0.0, 3.0]
+    lamp = ({"type": "point", "position": pos} if light == "point" else
+            {"type": "spot", "cutoff_angle": 40.0,
+             "to_world": T().look_at(origin=pos, target=[0, 0, 0], up=[0, 1, 0])})
+    _, view, smap = build({**closed_box_around(pos, half), "lamp": lamp})
+    depth = smap.to_numpy().reshape(-1)
+    assert np.all(depth >= half * (1 - 1e-5)), depth.min()
+    escaped = np.flatnonzero(depth > half * np.sqrt(3.0) * (1 + 1e-5))
+    assert escaped.size == 0, (escaped.size, depth[escaped[:5]])
+
+
+@pytest.mark.parametrize("virtual", [True, False])
+def test_nothing_lit_outside_a_closed_box_around_a_point_light(virtual):
+    """The same through the whole render, virtual pages included: the floor and
+    the box's outside stay dark for hard and pcf."""
+    pos = [0.0, 0.0, 3.0]
+    scene = mi.load_dict({
+        "type": "scene", **closed_box_around(pos, 0.3),
+        "lamp": {"type": "point", "position": pos, "intensity": {"type": "rgb", "value": 20.0}},
+        "cam": {"type": "perspective", "fov": 45.0,
+                "to_world": T().look_at(origin=[6, -6, 5], target=[0, 0, 0.5], up=[0, 0, 1]),
+                "film": {"type": "hdrfilm", "width": 48, "height": 48,
+                         "rfilter": {"type": "box"}}}})
+    for method in ("hard", "pcf"):
+        integ = mi.load_dict({"type": "shadowmap", "method": method, "virtual": virtual})
+        img = np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))
+        assert np.all(img == 0.0), (method, int(np.count_nonzero(img[..., 3])))
 
 
 @pytest.mark.parametrize("cutoff", [40.0, 79.0, 80.0, 90.0, 170.0])

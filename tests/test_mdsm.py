@@ -13,6 +13,7 @@ from mi_shadowmap import methods
 from mi_shadowmap.filters import Lookup
 from mi_shadowmap.filters.mdsm import neighbourhood_depth
 from mi_shadowmap.light_views import OrthoView
+from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 from mi_shadowmap.metrics import distinct_levels, misclassified, rmse
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import camera
@@ -52,7 +53,8 @@ def mdsm_vis(smap, lk, **props):
 
 
 def texel_centres(res):
-    return (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    """x of the texels' rays (light_views.base.TEXEL_SAMPLE: the centres, moved a little)."""
+    return (np.arange(res) + TEXEL_SAMPLE[0]) / res * 2.0 - 1.0
 
 
 def np_window(depth, search, reduce):

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from mi_shadowmap import pages
+from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import default_scene
 
@@ -89,7 +90,7 @@ def test_page_texels_hold_the_analytic_depth(kind):
     gx = px[:, None] * P + t % P
     gy = py[:, None] * P + t // P
     res = (store.layout.res0 >> level)[:, None].astype(np.float64)
-    uv = mi.Point2d(((gx + 0.5) / res).ravel(), ((gy + 0.5) / res).ravel())
+    uv = mi.Point2d(((gx + TEXEL_SAMPLE[0]) / res).ravel(), ((gy + TEXEL_SAMPLE[1]) / res).ravel())
     o, d = vmap.view.ray_through_f64(mi.UInt32(np.repeat(face, P * P)), uv)
     oy, dy = o.y.numpy(), d.y.numpy()
     t_plane = -oy / dy

@@ -17,6 +17,7 @@ from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.procedural import check_closed
 from mi_shadowmap.scenes import camera
+from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 
 from conftest import SCENE_FILES, render_np, vis_stack
 
@@ -27,7 +28,7 @@ DIFFUSE = {"type": "diffuse"}
 # ------------------------------------------------------------------ helpers
 def hand_map(second, res):
     """A ShadowMap over an orthographic light looking along +z from z = 0, x/y in [-1, 1]
-    (texel (i, j) centre: x = (i+.5)/res*2-1, y = (j+.5)/res*2-1), with a hand-written
+    (texel (i, j)'s ray: x = (i+TEXEL_SAMPLE[0])/res*2-1, y likewise), with a hand-written
     second-depth layer (the first-depth layer is unused by this method)."""
     view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0),
                      mi.ScalarTransform4f(), half_extent=(1.0, 1.0), label="hand")
@@ -45,7 +46,8 @@ def hand_lookup(x, y, z, normal):
 
 
 def texel_centres(res):
-    return (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    """x of the texels' rays (light_views.base.TEXEL_SAMPLE: the centres, moved a little)."""
+    return (np.arange(res) + TEXEL_SAMPLE[0]) / res * 2.0 - 1.0
 
 
 def second_depth_vis(smap, lk, **props):

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from ..light_views.base import texel_sample_uv
+
 
 @dataclass
 class Lookup:
@@ -219,7 +221,7 @@ def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
     z_map = smap.fetch(smap.depth, f2, i, j, active & inside)
     if plane is not None:
         res = smap.resolution
-        uv_c = (mi.Point2f(i, j) + 0.5) * (1.0 / res)
+        uv_c = texel_sample_uv(mi.Point2f(i, j), res)
         if lateral_texels is None:
             lateral_texels = dr.norm(dr.floor(xy_texel) + 0.5 - r.uv * res)
         z = plane_depth_at(smap, plane, f2, uv_c, lateral_texels * r.texel_world)
@@ -448,7 +450,7 @@ def virtual_sample_depth(view, face, ij: mi.Point2i, res: int, p_world: mi.Point
     ``atan(max_tan)`` of parallel to the ray (the paper's ``c_L -> 0``) or meets
     it behind the light. Used by ``second_depth`` and ``mdsm``.
     """
-    uv = (mi.Point2f(ij) + 0.5) * (1.0 / res)
+    uv = texel_sample_uv(ij, res)
     cos_min = 1.0 / math.sqrt(1.0 + max_tan * max_tan)
     t, c = view.ray_plane(face, uv, p_world, n_world, cos_min)
     ok = dr.abs(c) >= cos_min

@@ -28,7 +28,9 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
     * ``k = 2`` (default): the 2x2 hardware-style PCF -- the four texels
       around the receiver are compared with its depth and the four binary
       results are weighted bilinearly by the receiver's position between the
-      texel centres ``((i+0.5)/res, (j+0.5)/res)``;
+      texel centres ``((i+0.5)/res, (j+0.5)/res)`` (the texels' rays pass
+      ``light_views.base.TEXEL_SAMPLE``, ~1/100 texel off them: far below the
+      biases, so the weights keep the centres);
     * ``k >= 3``: ``k x k`` texels, the average of a ``(k-1) x (k-1)`` grid of
       such bilinear lookups one texel apart. That is the exact box filter of
       width ``k-1`` texels over the nearest-texel comparison: weights

@@ -443,8 +443,8 @@ def block_origin(uv_light: mi.Point2f, res: int, side: int) -> mi.Point2i:
 def virtual_sample_depth(view, face, ij: mi.Point2i, res: int, p_world: mi.Point3f,
                          n_world: mi.Vector3f, max_tan: float):
     """Depth of the virtual sample at texel ``ij`` (Wang & Molnar 1994): where the
-    ray through that texel's centre meets the plane through ``p_world`` with
-    normal ``n_world``.
+    texel's own ray (through its centre moved by ``base.TEXEL_SAMPLE``, as the map
+    was built) meets the plane through ``p_world`` with normal ``n_world``.
 
     Returns ``(depth, ok)``; ``ok`` is False where the plane is within
     ``atan(max_tan)`` of parallel to the ray (the paper's ``c_L -> 0``) or meets

@@ -25,8 +25,9 @@ Deviations from the paper, and why:
 * **Depth space.** The paper solves the tangent plane in light *screen*
   coordinates, ``z_L = -(a_L x_L + b_L y_L + d_L) / c_L``. Our maps store the
   distance along each texel's ray (see :mod:`mi_shadowmap.light_views`), so
-  the virtual sample's depth is the same point computed directly: the ray
-  through the texel centre meets the plane at
+  the virtual sample's depth is the same point computed directly: the
+  texel's own ray (through its centre, moved by ``light_views.base.TEXEL_SAMPLE``,
+  about 1/100 texel) meets the plane at
   ``t = n . (p - o) / (n . d)``. ``n . d`` plays the role of ``c_L``.
 * **Guard for c_L -> 0.** The paper computes virtual samples whatever the
   plane's slope: its answer to Figure 9 (a curved surface whose tangent

@@ -168,6 +168,42 @@ def test_no_ray_escapes_a_closed_box_centred_on_the_light(light, half):
     assert escaped.size == 0, (escaped.size, depth[escaped[:5]])
 
 
+def uv_sphere_mesh(centre, radius, n_lon, n_lat):
+    """A closed UV-sphere mesh (poles as rings of coincident vertices): its meridian
+    edges lie in planes through ``centre``."""
+    theta = np.pi * np.arange(n_lat + 1) / n_lat
+    phi = 2.0 * np.pi * np.arange(n_lon) / n_lon
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    v = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    v = (np.asarray(centre) + radius * v).reshape(-1, 3).astype(np.float32)
+    faces = []
+    for j in range(n_lat):
+        for i in range(n_lon):
+            a, b = j * n_lon + i, j * n_lon + (i + 1) % n_lon
+            c, d = a + n_lon, b + n_lon
+            faces += [[a, c, b], [b, c, d]]
+    faces = np.asarray(faces, np.uint32)
+    mesh = mi.Mesh("ball", len(v), len(faces))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(v.ravel())
+    params["faces"] = mi.UInt32(faces.ravel())
+    params.update()
+    return mesh
+
+
+@pytest.mark.parametrize("segments", [(8, 4), (16, 8)])
+def test_no_ray_escapes_a_closed_uv_sphere_centred_on_the_light(segments):
+    """The same for a sphere mesh: with rays through the exact centres its cube map
+    had texels reading the floor through it (measured: 61 lit pixels over 8 spheres)."""
+    pos, radius = [0.0, 0.0, 3.0], 0.3
+    _, view, smap = build({"ball": uv_sphere_mesh(pos, radius, *segments),
+                           "floor": {"type": "rectangle", "to_world": T().scale(10.0)},
+                           "lamp": {"type": "point", "position": pos}})
+    depth = smap.to_numpy().reshape(-1)
+    escaped = np.flatnonzero(depth > radius * (1 + 1e-4))
+    assert escaped.size == 0, (escaped.size, depth[escaped[:5]])
+
+
 @pytest.mark.parametrize("virtual", [True, False])
 def test_nothing_lit_outside_a_closed_box_around_a_point_light(virtual):
     """The same through the whole render, virtual pages included: the floor and

@@ -141,9 +141,12 @@ def test_cube_faces_depth_is_distance_to_room_walls():
     np.testing.assert_allclose(got, expected, rtol=1e-5)
 
 
+FLOOR = {"type": "rectangle", "to_world": T().scale(10.0)}
+
+
 def closed_box_around(position, half):
     return {"box": {"type": "cube", "to_world": T().translate(position).scale(half)},
-            "floor": {"type": "rectangle", "to_world": T().scale(10.0)}}
+            "floor": FLOOR}
 
 
 @pytest.mark.parametrize("light", ["point", "spot"])
@@ -197,8 +200,7 @@ def test_no_ray_escapes_a_closed_uv_sphere_centred_on_the_light(segments):
     had texels reading the floor through it (measured: 61 lit pixels over 8 spheres)."""
     pos, radius = [0.0, 0.0, 3.0], 0.3
     _, view, smap = build({"ball": uv_sphere_mesh(pos, radius, *segments),
-                           "floor": {"type": "rectangle", "to_world": T().scale(10.0)},
-                           "lamp": {"type": "point", "position": pos}})
+                           "floor": FLOOR, "lamp": {"type": "point", "position": pos}})
     depth = smap.to_numpy().reshape(-1)
     escaped = np.flatnonzero(depth > radius * (1 + 1e-4))
     assert escaped.size == 0, (escaped.size, depth[escaped[:5]])

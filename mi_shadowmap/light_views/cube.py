@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import LightView, axial_texel_size, position_np, scalar3, unit_grid
+from .base import LightView, axial_texel_size, emitter_frame, position_np, scalar3, unit_grid
 
 
 def cube_dir(face, s, t) -> mi.Vector3f:
@@ -217,7 +217,6 @@ def framed_cube_view(emitter, kind: str, label: str) -> CubeView:
     kept as ``light_from_world`` (multiview's light square, the pose reference): a spot
     of a wide cone, a ``projector``. Its cone or frustum only shades: faces no light
     sample reaches are never read."""
-    from .base import emitter_frame
     T = emitter.world_transform()
     pos = mi.ScalarPoint3f(scalar3(T.translation()))
     return CubeView(kind, pos, emitter_frame(T, pos), label=label)

@@ -128,3 +128,106 @@ def default_scene(scale: float = 1.0, width: int = 128, height: int = 128, spp: 
     else:
         raise ValueError(f"default_scene: light={light!r}; valid: spot, point, directional, area")
     return scene
+
+
+# ------------------------------------------------- random scenes (issue 11's kinds)
+def _placed(rng, yaw: float, fov: float, dist: float, spread: float):
+    """A ground point ``dist`` from the origin within ``spread`` half-fields of view of
+    the heading ``yaw`` (radians)."""
+    import math
+    a = yaw + rng.uniform(-spread, spread) * math.radians(fov) / 2
+    return dist * math.sin(a), -dist * math.cos(a)
+
+
+def random_large_world(seed: int, width: int = 128, height: int | None = None,
+                       spp: int = 16) -> dict:
+    """A random scene like issue 11's large world (``scenes_xml/large_world.xml`` is
+    one): a 4 km x 4 km ground under a sun 8-40 degrees high from any azimuth, seen
+    from eye height (1.4-2.2) with a field of view of 45-75 degrees, 2-8 degrees
+    below the horizon, in any heading; 4 thin posts 2-7 away, 6 boxes or spheres
+    8-80 away, 5 buildings 100-1500 away, all in or near the view. The same ``seed``
+    gives the same scene (numpy's ``default_rng``). For checking that results hold
+    beyond the repository's scenes (``benchmarks/bench_unseen.py``)."""
+    import math
+    import numpy as np
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(0, 2 * math.pi)
+    h, pitch = rng.uniform(1.4, 2.2), math.radians(rng.uniform(2, 8))
+    fov = rng.uniform(45, 75)
+    target = [20 * math.sin(yaw) * math.cos(pitch), h - 20 * math.sin(pitch),
+              -20 * math.cos(yaw) * math.cos(pitch)]
+    elev, az = math.radians(rng.uniform(8, 40)), rng.uniform(0, 2 * math.pi)
+    scene = {
+        "type": "scene",
+        "sensor": camera([0.0, h, 0.0], target, width, height or width, spp, fov=fov),
+        "ground": {"type": "rectangle", "to_world": T().scale(2000).rotate([1, 0, 0], -90),
+                   "bsdf": _diffuse(0.55, 0.52, 0.45)},
+        "sun": {"type": "directional",
+                "direction": [-math.cos(elev) * math.cos(az), -math.sin(elev),
+                              -math.cos(elev) * math.sin(az)],
+                "irradiance": {"type": "rgb", "value": 3.0}},
+    }
+    for k, dist in enumerate(rng.uniform(2, 7, 4)):
+        x, z = _placed(rng, yaw, fov, dist, 0.9)
+        w, hh = rng.uniform(0.03, 0.08), rng.uniform(0.6, 1.5)
+        scene[f"post_{k}"] = {"type": "cube", "bsdf": _diffuse(0.8, 0.8, 0.8),
+                              "to_world": T().translate([x, hh, z]).scale([w, hh, w])}
+    for k, dist in enumerate(rng.uniform(8, 80, 6)):
+        x, z = _placed(rng, yaw, fov, dist, 0.9)
+        r, sphere, turn = rng.uniform(0.3, 2.0), rng.random() < 0.5, rng.uniform(0, 90)
+        scene[f"object_{k}"] = (
+            {"type": "sphere", "center": [x, r, z], "radius": r, "bsdf": _diffuse(0.7, 0.3, 0.2)}
+            if sphere else
+            {"type": "cube", "bsdf": _diffuse(0.2, 0.3, 0.7),
+             "to_world": T().translate([x, r, z]).rotate([0, 1, 0], turn).scale(r)})
+    for k, dist in enumerate(rng.uniform(100, 1500, 5)):
+        x, z = _placed(rng, yaw, fov, dist, 1.0)
+        w, hh, turn, deep = (rng.uniform(10, 60), rng.uniform(10, 120), rng.uniform(0, 90),
+                             rng.uniform(0.5, 2))
+        scene[f"building_{k}"] = {"type": "cube", "bsdf": _diffuse(0.7, 0.68, 0.62),
+                                  "to_world": T().translate([x, hh, z]).rotate([0, 1, 0], turn)
+                                  .scale([w, hh, w * deep])}
+    return scene
+
+
+def random_far_point(seed: int, distance: float = 1e5, width: int = 128,
+                     height: int | None = None, spp: int = 16) -> dict:
+    """A random scene like issue 11's far point light (``scenes_xml/far_point.xml`` is
+    one): a 12 x 12 ground with 4 boxes (flattened, up to 3 times as tall as wide)
+    and 4 spheres (some floating), lit by a point light ``distance`` away at 25-75
+    degrees of elevation from any azimuth (intensity ``3 distance^2``: the ground's
+    irradiance stays about 3), seen from 8-14 away and 3-8 high with a field of view
+    of 35-60 degrees. The same ``seed`` gives the same layout at every ``distance``."""
+    import math
+    import numpy as np
+    if not (isinstance(distance, (int, float)) and math.isfinite(distance) and distance > 0):
+        raise ValueError(f"random_far_point: distance must be a finite number > 0, got "
+                         f"{distance!r}")
+    rng = np.random.default_rng(seed)
+    elev, az = math.radians(rng.uniform(25, 75)), rng.uniform(0, 2 * math.pi)
+    position = [distance * math.cos(elev) * math.cos(az), distance * math.sin(elev),
+                distance * math.cos(elev) * math.sin(az)]
+    turn, r = rng.uniform(0, 2 * math.pi), rng.uniform(8, 14)
+    origin = [r * math.cos(turn), rng.uniform(3, 8), r * math.sin(turn)]
+    scene = {
+        "type": "scene",
+        "sensor": camera(origin, [0.0, 0.5, 0.0], width, height or width, spp,
+                         fov=rng.uniform(35, 60)),
+        "ground": {"type": "rectangle", "to_world": T().scale(6).rotate([1, 0, 0], -90),
+                   "bsdf": _diffuse(0.5, 0.5, 0.5)},
+        "light": {"type": "point", "position": position,
+                  "intensity": {"type": "rgb", "value": 3.0 * distance ** 2}},
+    }
+    for k in range(8):
+        x, z = rng.uniform(-4, 4, 2)
+        s = rng.uniform(0.15, 0.9)
+        if k % 2:
+            scene[f"sphere_{k // 2}"] = {"type": "sphere", "radius": s,
+                                         "center": [x, s + rng.uniform(0, 1), z],
+                                         "bsdf": _diffuse(0.7, 0.3, 0.2)}
+        else:
+            turn, tall = rng.uniform(0, 90), rng.uniform(0.5, 3)
+            scene[f"box_{k // 2}"] = {"type": "cube", "bsdf": _diffuse(0.2, 0.3, 0.7),
+                                      "to_world": T().translate([x, s, z]).rotate([0, 1, 0], turn)
+                                      .scale([s, s * tall, s * 0.3])}
+    return scene

@@ -128,8 +128,11 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Slope-scaled depth bias in texels (multiplied by the texel's world size and "
          "tan(angle to the light)). Default: 1.0 (0 for second_depth).", lo=0.0),
     Prop("normal_bias", "float", None,
-         "Offset of the lookup point along the surface normal, in texels. Default: 0.5 "
-         "(0 for second_depth).", lo=0.0),
+         "Offset of the lookup point along the surface normal (turned towards the light), "
+         "in texels, times cos(theta), theta the angle between the normal and the light "
+         "(so the offset does not shift shadows sideways on surfaces the light grazes; "
+         "the full offset where tan(theta) > max_tan_slope clamps the slope bias). "
+         "Default: 0.5 (0 for second_depth).", lo=0.0),
     Prop("hide_emitters", "bool", False, "Hide directly visible emitters."),
     Prop("environment", "str", "shadowed",
          "What to do with environment/constant emitters: 'shadowed' splits them into "

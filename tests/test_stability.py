@@ -264,13 +264,18 @@ def test_light_placement(method, case):
         assert mis <= bound
 
 
-def test_far_light_loses_shadows_as_documented():
-    """The documented limitation: the raytraced shadow exists, the map's does not."""
+def test_far_light_keeps_its_shadow():
+    """A point light 1e6 away: full maps lost its shadow (one cube face spread over the
+    whole sky: the limitation this test once documented); virtual maps keep it
+    (measured: 36.0 % of the pixels shadowed by ray tracing, 0.68 % misclassified by
+    `hard`, 1.07 % before the normal offset was scaled by cos(theta))."""
     ref = reference("far_away", light_far_away)
     _, vis = render(light_far_away(), "hard")
     shadowed_ref = float(np.mean(ref < 0.5))
-    print(f"far light: raytraced shadowed {shadowed_ref:.1%}, hard {np.mean(vis < 0.5):.1%}")
-    assert shadowed_ref > 0.05 and np.mean(vis < 0.5) <= shadowed_ref
+    mis = float(np.mean((ref < 0.5) != (vis < 0.5)))
+    print(f"far light: raytraced shadowed {shadowed_ref:.1%}, hard {np.mean(vis < 0.5):.1%}, "
+          f"misclassified {mis:.2%}")
+    assert shadowed_ref > 0.05 and mis <= 0.01
 
 
 # ------------------------------------------------------- degenerate emitters

@@ -19,7 +19,6 @@ first frame at a 256^2 film.
 from __future__ import annotations
 
 import argparse
-import ast
 import time
 
 import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
@@ -28,6 +27,7 @@ import numpy as np
 
 from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.scenes import random_far_point, random_large_world
+from mi_shadowmap.specs import parse_assignments
 
 TARGET = {"world": 0.01, "1e5": 0.003, "1e6": 0.003}
 
@@ -54,17 +54,15 @@ def main(argv=None):
     ap.add_argument("--methods", nargs="+", default=["hard", "pcf"])
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
                     help="integrator properties for the map methods (not the reference), "
-                         "e.g. normal_bias=0; values parsed as Python literals")
+                         "e.g. normal_bias=0 (values: true/false, int, float or string)")
     args = ap.parse_args(argv)
-    props = {}
-    for item in args.set:
-        name, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--set {item!r}: expected NAME=VALUE")
-        props[name] = ast.literal_eval(value) if value not in ("true", "false") else value == "true"
+    props = parse_assignments(args.set, "--set")
     for k in args.kinds:
         if k != "world":
-            float(k)  # a distance; ValueError names it otherwise
+            try:
+                float(k)
+            except ValueError:
+                ap.error(f"--kinds {k!r}: expected 'world' or a point-light distance")
     t_start = time.perf_counter()
     print(f"# {args.image}^2, {args.spp} spp, seeds 0-{args.seeds - 1}, "
           f"variant {mi.variant()}, map methods with {props or 'defaults'}\n")
@@ -73,7 +71,7 @@ def main(argv=None):
         for m in args.methods) + " |"
     print(head)
     print("|" + "---|" * (3 + 2 * len(args.methods)))
-    worst = {(k, m): [] for k in args.kinds for m in args.methods}
+    errors = {(k, m): [] for k in args.kinds for m in args.methods}
     texels = {(k, m): [] for k in args.kinds for m in args.methods}
     noise = {k: [] for k in args.kinds}
     for kind in args.kinds:
@@ -89,7 +87,7 @@ def main(argv=None):
                 v, integ = visibility(mi.load_dict(d), {"method": m, **props}, 0)
                 mc = misclassified(ref, v)
                 tpp = integ.stats["texels_built"] / (args.image * args.image)
-                worst[(kind, m)].append(mc["misclassified"])
+                errors[(kind, m)].append(mc["misclassified"])
                 texels[(kind, m)].append(tpp)
                 cells.append(f"{mc['misclassified']:.2%} ({mc['false_lit']:.2%} / "
                              f"{mc['false_shadow']:.2%}) | {tpp:.1f}")
@@ -97,7 +95,7 @@ def main(argv=None):
     print("\n| scene | method | misclassified: max (median) | over the target | above rt noise "
           "| texels / pixel: max (median) |")
     print("|---|---|---|---|---|---|")
-    for (kind, m), errs in worst.items():
+    for (kind, m), errs in errors.items():
         e, t = np.array(errs), np.array(texels[(kind, m)])
         over = int(np.sum(e > TARGET[kind]))
         above = int(np.sum(e > np.array(noise[kind])))

@@ -11,10 +11,12 @@ harness (a loaded scene, a dict, an XML path with ``$`` parameters) into an
 """
 from __future__ import annotations
 
+import math
 import os
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 T = mi.ScalarTransform4f
 
@@ -66,7 +68,6 @@ def mesh(name: str, vertices, faces, to_world=None, bsdf: dict | None = None) ->
     (e.g. :func:`mi_shadowmap.procedural.box`), placed by ``to_world`` (a
     ``mi.ScalarTransform4f``); usable as a value of a ``mi.load_dict`` scene,
     and its ``vertex_positions`` can be optimised (``mi.traverse``)."""
-    import numpy as np
     v = np.asarray(vertices, dtype=np.float64)
     if to_world is not None:
         m = np.array(to_world.matrix, dtype=np.float64)
@@ -134,7 +135,6 @@ def default_scene(scale: float = 1.0, width: int = 128, height: int = 128, spp: 
 def _placed(rng, yaw: float, fov: float, dist: float, spread: float):
     """A ground point ``dist`` from the origin within ``spread`` half-fields of view of
     the heading ``yaw`` (radians)."""
-    import math
     a = yaw + rng.uniform(-spread, spread) * math.radians(fov) / 2
     return dist * math.sin(a), -dist * math.cos(a)
 
@@ -148,8 +148,6 @@ def random_large_world(seed: int, width: int = 128, height: int | None = None,
     8-80 away, 5 buildings 100-1500 away, all in or near the view. The same ``seed``
     gives the same scene (numpy's ``default_rng``). For checking that results hold
     beyond the repository's scenes (``benchmarks/bench_unseen.py``)."""
-    import math
-    import numpy as np
     rng = np.random.default_rng(seed)
     yaw = rng.uniform(0, 2 * math.pi)
     h, pitch = rng.uniform(1.4, 2.2), math.radians(rng.uniform(2, 8))
@@ -198,8 +196,6 @@ def random_far_point(seed: int, distance: float = 1e5, width: int = 128,
     degrees of elevation from any azimuth (intensity ``3 distance^2``: the ground's
     irradiance stays about 3), seen from 8-14 away and 3-8 high with a field of view
     of 35-60 degrees. The same ``seed`` gives the same layout at every ``distance``."""
-    import math
-    import numpy as np
     if not (isinstance(distance, (int, float)) and math.isfinite(distance) and distance > 0):
         raise ValueError(f"random_far_point: distance must be a finite number > 0, got "
                          f"{distance!r}")

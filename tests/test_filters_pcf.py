@@ -358,3 +358,30 @@ def test_regular_sampling_is_the_deterministic_staircase():
     np.testing.assert_array_equal(other, v.ravel())
     jitter = pcf_vis(smap, lookup(repeat_sweep(offs, lanes), seed=7), sampling="jitter")
     assert np.any(jitter.reshape(len(offs), lanes) != v)   # the default stays jittered
+
+
+def test_normal_offset_is_scaled_by_cos_theta_below_the_slope_clamp():
+    """The receiver's normal offset (``filters.common.receiver``): ``normal_bias *
+    cos(theta)`` texels along the normal, so its sideways shift in the light's view is
+    ``normal_bias sin(theta) cos(theta)`` texels; where ``tan(theta)`` exceeds
+    ``max_tan_slope`` (20) the full offset, ``normal_bias sin(theta)`` sideways.
+    (Unscaled, every angle moved ``normal_bias sin(theta)``: 0.43 texel at 60 degrees.)"""
+    from mi_shadowmap.filters.common import receiver
+    smap = ortho_map(np.full((RES, RES), np.inf, np.float32))   # light along +z
+    angles = np.radians([0.0, 30.0, 60.0, 80.0, 88.0, 89.5])     # tan 88 deg = 28.6 > 20
+    n = mi.Vector3f(mi.Float(np.sin(angles)), mi.Float(np.zeros(angles.size)),
+                    mi.Float(-np.cos(angles)))
+    p = mi.Point3f(mi.Float(np.full(angles.size, 0.1)), mi.Float(np.zeros(angles.size)),
+                   mi.Float(np.full(angles.size, 2.0)))
+    d = 0.01
+    lk = Lookup(p, n, mi.Vector3f(d, 0, 0), mi.Vector3f(0, d, 0), None, None, None)
+
+    def uv_x(normal_bias):
+        opts = parse_options({"method": "hard", "normal_bias": normal_bias,
+                              "slope_bias": 0.0})
+        return np.asarray(receiver(smap, lk, opts).uv.x, np.float64)
+
+    shift = (uv_x(0.5) - uv_x(0.0)) * RES                       # texels
+    scale = np.where(np.tan(angles) > 20.0, 1.0, np.cos(angles))
+    np.testing.assert_allclose(shift, 0.5 * scale * np.sin(angles), atol=2e-3)
+    assert shift[2] < 0.22 and shift[4] > 0.49

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from mi_shadowmap.light_views import emitter_kind
+from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.scenes import random_far_point, random_large_world
 
 
@@ -29,10 +30,6 @@ def visibility(scene_dict, **props):
     img = np.asarray(mi.render(mi.load_dict(scene_dict), integrator=integ, seed=0))
     assert np.isfinite(img).all()
     return img[..., 3]
-
-
-def misclassified(ref, vis):
-    return float(np.mean((ref >= 0.5) != (vis >= 0.5)))
 
 
 def test_random_scenes_are_reproducible_and_differ_by_seed():
@@ -65,7 +62,7 @@ def test_random_large_worlds_meet_the_target_at_defaults(seed):
     d = random_large_world(seed, width=128, spp=16)
     ref = visibility(d, method="raytraced")
     for method in ("hard", "pcf"):
-        mis = misclassified(ref, visibility(d, method=method))
+        mis = misclassified(ref, visibility(d, method=method))["misclassified"]
         print(f"large world {seed} {method}: {mis:.3%}")
         assert mis <= 0.01, (seed, method, mis)
 
@@ -78,6 +75,6 @@ def test_random_far_point_lights_meet_the_target_at_defaults(seed, distance):
     d = random_far_point(seed, distance=distance, width=256, spp=16)
     ref = visibility(d, method="raytraced")
     for method in ("hard", "pcf"):
-        mis = misclassified(ref, visibility(d, method=method))
+        mis = misclassified(ref, visibility(d, method=method))["misclassified"]
         print(f"far point {distance:g} {seed} {method}: {mis:.3%}")
         assert mis <= 0.003, (seed, distance, method, mis)

@@ -272,7 +272,7 @@ def test_far_light_keeps_its_shadow():
     ref = reference("far_away", light_far_away)
     _, vis = render(light_far_away(), "hard")
     shadowed_ref = float(np.mean(ref < 0.5))
-    mis = float(np.mean((ref < 0.5) != (vis < 0.5)))
+    mis = misclassified(ref, vis)
     print(f"far light: raytraced shadowed {shadowed_ref:.1%}, hard {np.mean(vis < 0.5):.1%}, "
           f"misclassified {mis:.2%}")
     assert shadowed_ref > 0.05 and mis <= 0.01

@@ -90,7 +90,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
     Prop("page_size", "int", 32,
          "Virtual maps: texels per side of a page, a power of two. Filter kernels up to "
          "page_size / 2 texels wide read the lookup's own pages; wider taps read the "
-         "coarsest level.", lo=8, hi=1024),
+         "coarsest level. Pages are ray-cast in tiles of max(8, page_size / 4) texels "
+         "per side, only those the lookups read.", lo=8, hi=1024),
     Prop("lod_bias", "float", -0.5,
          "Virtual maps: each lookup reads level floor(log2(w) + lod_bias), w its pixel "
          "footprint in finest-level texels: 0 puts texels of 0.5-1 footprint, -0.5 "

@@ -65,8 +65,9 @@ def plane_scene(light: dict):
 
 @pytest.mark.parametrize("kind", ["spot", "point", "directional"])
 def test_page_texels_hold_the_analytic_depth(kind):
-    """Every texel of every built page stores the distance along its own ray to the
-    plane y = 0 (or +inf where that ray misses the 6 x 6 rectangle)."""
+    """Every texel of every ray-cast tile stores the distance along its own ray to the
+    plane y = 0 (or +inf where that ray misses the 6 x 6 rectangle); a page's other
+    tiles hold the coarsest level's texel over them."""
     light = {"spot": {"type": "spot", "cutoff_angle": 40,
                       "to_world": T().look_at(origin=[0.3, 4, 0.2], target=[0, 0, 0],
                                               up=[0, 0, 1])},
@@ -99,9 +100,17 @@ def test_page_texels_hold_the_analytic_depth(kind):
     hits = (t_plane > 0) & (np.abs(hx) <= 3) & (np.abs(hz) <= 3)
     inner = hits & (np.abs(hx) < 2.99) & (np.abs(hz) < 2.99)   # away from the rim
     z = depth.ravel()
-    assert inner.sum() > 1000
-    np.testing.assert_allclose(z[inner], t_plane[inner], rtol=2e-5, atol=1e-5)
-    assert np.all(np.isinf(z[~hits & (np.abs(hx) > 3.01) | (t_plane <= 0)]))
+    tile, S = store.layout.tile_size, store.layout.tiles_per_side
+    bit = (t % P) // tile + ((t // P) // tile) * S
+    cast = (((store.slot_mask[slots][:, None] >> bit[None, :]) & 1) == 1).ravel()
+    assert inner[cast].sum() > 1000
+    np.testing.assert_allclose(z[inner & cast], t_plane[inner & cast], rtol=2e-5, atol=1e-5)
+    assert np.all(np.isinf(z[cast & (~hits & (np.abs(hx) > 3.01) | (t_plane <= 0))]))
+    # the other tiles: the coarsest level's texel (face f's coarsest page in slot f + 1)
+    pool = store.pools["depth"].numpy().reshape(-1, P * P)
+    shift = (store.layout.coarsest - level)[:, None]
+    src = pool[np.repeat(face, P * P) + 1, ((gy >> shift) * P + (gx >> shift)).ravel()]
+    np.testing.assert_array_equal(z[~cast], src[~cast])
 
 
 def test_level_follows_the_pixel_footprint():
@@ -117,6 +126,66 @@ def test_level_follows_the_pixel_footprint():
         per_px[w] = integ.stats["texels_built"] / (w * w)
     assert 0.6 <= levels[64] - levels[128] <= 1.4, levels
     assert 0.4 <= per_px[128] / per_px[64] <= 1.6, per_px
+
+
+def test_pages_are_ray_cast_in_the_tiles_their_lookups_read():
+    """A page's lookups often read a corner of it (a thin post, the edge of what the
+    camera sees): only the tiles they read are ray-cast. ``texels_built`` counts the
+    tiles' texels, far fewer than the pages' on the large world."""
+    scene = mi.load_file(str(SCENES / "large_world.xml"), width=128, height=128)
+    integ = shadowmap(method="hard", cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    store = integ.maps[0].store
+    lay = store.layout
+    _, slots = store._index()
+    cast = sum(bin(int(m)).count("1") for m in store.slot_mask[slots])
+    assert lay.tiles_per_side == 4
+    assert integ.stats["texels_built"] == cast * lay.tile_size ** 2
+    whole = integ.stats["pages_built"] * lay.page_size ** 2
+    print(f"{integ.stats['texels_built']} texels cast of {whole} in whole pages")
+    assert integ.stats["texels_built"] <= 0.75 * whole
+    assert np.all(store.slot_mask[slots] > 0)       # no page without a tile
+
+
+def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
+    """The tile under the receiver must be ray-cast for a lookup to read its level (the
+    rest of a page holds the coarsest level's depths): pixel centres find their own
+    level; with one of their tiles taken out of its page's mask, the lookups in it walk
+    to another level and the others do not move."""
+    from mi_shadowmap.filters.common import Lookup
+    scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light="spot"))
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap = integ.maps[0]
+    store, lay = vmap.store, vmap.layout
+    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    p64 = mi.Point3d(lk.p_world)
+    face, uv64, _, inside = vmap.view.project_f64(p64)
+    want = vmap.level_for(face, p64, dp_dx, dp_dy).numpy()
+    lit = (valid & inside).numpy()
+    before = vmap.bind(lk, valid, per_tap=True).level.numpy()
+    assert lit.sum() > 500 and np.all(before[lit] == want[lit])
+    # the tile of every lit lane at its level; take out the most common one
+    P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
+    res = (lay.res0 >> want).astype(np.float64)
+    gx = np.floor(uv64.x.numpy() * res).astype(np.int64)
+    gy = np.floor(uv64.y.numpy() * res).astype(np.int64)
+    tile = pages.page_key(face.numpy().astype(np.uint64), want.astype(np.uint64),
+                          gx // T, gy // T)
+    keys, counts = np.unique(tile[lit & (want < lay.coarsest)], return_counts=True)
+    k = int(keys[np.argmax(counts)])
+    tx, ty = (k >> 27) & ((1 << 27) - 1), k & ((1 << 27) - 1)
+    page = pages.page_key(k >> 59, (k >> 54) & 31, tx // S, ty // S)
+    present, slot = store.lookup(np.array([page], np.uint64))
+    assert present[0]
+    store.slot_mask[slot[0]] &= ~(1 << (tx % S + (ty % S) * S))
+    store.version += 1
+    after = pages.VirtualShadowMap(store, {}, vmap.lod_bias).bind(lk, valid, per_tap=True)
+    moved = after.level.numpy() != want
+    inside_tile = lit & (tile == np.uint64(k))
+    assert inside_tile.sum() == counts.max() > 0
+    assert np.all(moved[inside_tile]) and not np.any(moved[lit & ~inside_tile])
 
 
 # ---------------------------------------------------------- against the truth
@@ -514,7 +583,7 @@ def test_camera_moves_under_a_budget_evict_and_reuse_slots(monkeypatch):
         assert dict(zip(keys.tolist(), slots.tolist())) == store.slots
         assert np.all(keys[1:] > keys[:-1])          # sorted, no repeats
         assert len(set(store.slots.values())) == len(store.slots)   # one page per slot
-        header, dense, _ = store.table()
+        header, dense, *_ = store.table()
         assert set(np.unique(dense.numpy())) - {pages._INVALID} <= set(slots.tolist())
     print(f"{store.n_pages} pages, {store.n_slots} slots, evicted {evicted}")
     assert sum(evicted) > 0, "the budget never made the store evict"

@@ -16,7 +16,7 @@ from conftest import SCENE_FILES, full_map_scenes, render_np
 from mi_shadowmap import methods, metrics
 from mi_shadowmap.depth_maps import ShadowMap, build_layer
 from mi_shadowmap.filters import evsm as E
-from mi_shadowmap.filters.common import Lookup
+from mi_shadowmap.filters.common import DEPTH_ULPS, Lookup
 from mi_shadowmap.light_views import OrthoView, emitter_kind
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.reference import converged_visibility
@@ -172,7 +172,10 @@ def test_each_warp_is_chebyshev_on_its_box_moments(cp, cn, filter_size, min_vari
     props = dict(exponent=cp, negative_exponent=cn, filter_size=filter_size,
                  min_variance=min_variance, **NO_BIAS)
     p_pos, p_neg = bounds(smap, lookup(x, y, z_r), **props)
-    want_pos, want_neg = numpy_bounds(depth, x, y, z_r, filter_size, cp, cn, min_variance)
+    # the receiver depth after the rounding margin (common.DEPTH_ULPS), in float32
+    z32 = z_r.astype(np.float32)
+    z32 = z32 - np.float32(DEPTH_ULPS) * z32
+    want_pos, want_neg = numpy_bounds(depth, x, y, z32, filter_size, cp, cn, min_variance)
     print(f"c+ {cp} c- {cn}: max |p+ - numpy| {np.abs(p_pos - want_pos).max():.2e}, "
           f"max |p- - numpy| {np.abs(p_neg - want_neg).max():.2e}; "
           f"{np.mean((want_pos > 0.01) & (want_pos < 0.99)):.0%} / "

@@ -12,7 +12,7 @@ from conftest import SCENE_FILES, render_np, vis_stack
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
 from mi_shadowmap import methods
-from mi_shadowmap.filters.common import Lookup
+from mi_shadowmap.filters.common import DEPTH_ULPS, Lookup
 from mi_shadowmap.light_views import OrthoView
 from mi_shadowmap.options import OptionError, parse_options
 
@@ -215,7 +215,9 @@ def test_soft_compare_is_the_step_far_from_the_receiver_and_differentiable_near(
     opts = parse_options({"method": "bilinear", "kernel": kernel, "soft_compare": 2.0,
                           "receiver_plane": False, "bias": 0.0, "slope_bias": 0.0,
                           "normal_bias": 0.0})
-    v = methods.get("bilinear").lookup(smap_ad, lookup(x, z=1.0 + 0.5 * w), opts, mi.Bool(True))
+    # the receiver depth after the rounding margin (common.DEPTH_ULPS) is 1 + w / 2
+    z = (1.0 + 0.5 * w) / (1.0 - DEPTH_ULPS)
+    v = methods.get("bilinear").lookup(smap_ad, lookup(x, z=z), opts, mi.Bool(True))
     np.testing.assert_allclose(v.numpy(), 0.5, atol=1e-5)   # smoothstep(0.5) = 0.5
     dr.backward(dr.sum(v))
     g = dr.grad(depth).numpy()

@@ -155,6 +155,18 @@ def page_key(face, level, px, py):
             | U(mi.UInt32(py)))
 
 
+def key_fields(keys):
+    """``(face, level, px, py)`` of page (or tile) keys, the inverse of :func:`page_key`:
+    ``np.uint64`` arrays for numpy keys, ``mi.UInt32`` for ``mi.UInt64`` keys."""
+    M = (1 << 27) - 1
+    if isinstance(keys, np.ndarray):
+        k = keys.astype(np.uint64, copy=False)
+        return (k >> np.uint64(59), (k >> np.uint64(54)) & np.uint64(31),
+                (k >> np.uint64(27)) & np.uint64(M), k & np.uint64(M))
+    return (mi.UInt32(keys >> 59), mi.UInt32(keys >> 54) & 31,
+            mi.UInt32(keys >> 27) & M, mi.UInt32(keys) & M)
+
+
 @dataclasses.dataclass
 class VirtualLayout:
     """The fixed (camera-independent) shape of one emitter's virtual map."""
@@ -433,11 +445,9 @@ class PageStore:
         built = 0
         second = "second_depth" in self.pools
         if n_tiles:
-            k = keys[page_i]
-            tx = ((k >> np.uint64(27)) & np.uint64((1 << 27) - 1)) * np.uint64(S) \
-                + (tile_b % S).astype(np.uint64)
-            ty = (k & np.uint64((1 << 27) - 1)) * np.uint64(S) + (tile_b // S).astype(np.uint64)
-            tkeys = page_key(k >> np.uint64(59), (k >> np.uint64(54)) & np.uint64(31), tx, ty)
+            f, lv, px, py = key_fields(keys[page_i])
+            tkeys = page_key(f, lv, px * np.uint64(S) + (tile_b % S).astype(np.uint64),
+                             py * np.uint64(S) + (tile_b // S).astype(np.uint64))
             tslots = slot_ids[page_i]
             tpt = T * T
             idx = dr.arange(mi.UInt32, n_tiles * tpt)
@@ -446,11 +456,8 @@ class PageStore:
             ti = local % T
             tj = local // T
             # one upload of the tile keys (decoded in the kernel) and one of the slots
-            key = dr.gather(mi.UInt64, _array(mi.UInt64, tkeys), tile)
-            f_l = mi.UInt32(key >> 59)
-            lev = mi.UInt32(key >> 54) & 31
-            gx = (mi.UInt32(key >> 27) & ((1 << 27) - 1)) * T + ti
-            gy = (mi.UInt32(key) & ((1 << 27) - 1)) * T + tj
+            f_l, lev, tx, ty = key_fields(dr.gather(mi.UInt64, _array(mi.UInt64, tkeys), tile))
+            gx, gy = tx * T + ti, ty * T + tj
             res = mi.Float64(mi.UInt32(lay.res0) >> lev)
             uv = mi.Point2d((mi.Float64(gx) + TEXEL_SAMPLE[0]) / res,
                             (mi.Float64(gy) + TEXEL_SAMPLE[1]) / res)
@@ -487,13 +494,10 @@ class PageStore:
         page = idx // tpp
         local = idx - page * tpp
         ti, tj = local % P, local // P
-        key = dr.gather(mi.UInt64, _array(mi.UInt64, keys), page)
+        face, lev, px, py = key_fields(dr.gather(mi.UInt64, _array(mi.UInt64, keys), page))
         mask = dr.gather(mi.UInt32, _array(mi.UInt32, masks.astype(np.uint32)), page)
         slot = dr.gather(mi.UInt32, _array(mi.UInt32, slots.astype(np.uint32)), page)
-        face = mi.UInt32(key >> 59)
-        lev = mi.UInt32(key >> 54) & 31
-        gx = (mi.UInt32(key >> 27) & ((1 << 27) - 1)) * P + ti
-        gy = (mi.UInt32(key) & ((1 << 27) - 1)) * P + tj
+        gx, gy = px * P + ti, py * P + tj
         shift = mi.UInt32(lay.coarsest) - lev
         src = (face + 1) * tpp + (gy >> shift) * P + (gx >> shift)
         b = (ti // T) + (tj // T) * S
@@ -530,10 +534,7 @@ class PageStore:
         lay = self.layout
         L = lay.n_levels
         keys, slots = self._index()
-        face = (keys >> np.uint64(59)).astype(np.int64)
-        level = ((keys >> np.uint64(54)) & np.uint64(31)).astype(np.int64)
-        px = ((keys >> np.uint64(27)) & np.uint64((1 << 27) - 1)).astype(np.int64)
-        py = (keys & np.uint64((1 << 27) - 1)).astype(np.int64)
+        face, level, px, py = (f.astype(np.int64) for f in key_fields(keys))
         group = face * L + level
         header = np.zeros((lay.view.n_faces * L, 4), np.int64)   # W = H = 0: no block
         # keys are sorted, so each (face, level) group is one run: its bounding rectangle
@@ -631,11 +632,9 @@ class VirtualShadowMap:
         resolution) and the page's ``uv`` rectangle on its face (``u0, v0, u1, v1``)."""
         keys, slots = self.store._index()
         P = self.layout.page_size
-        rec = {"face": (keys >> np.uint64(59)).astype(np.int64),
-               "level": ((keys >> np.uint64(54)) & np.uint64(31)).astype(np.int64),
-               "px": ((keys >> np.uint64(27)) & np.uint64((1 << 27) - 1)).astype(np.int64),
-               "py": (keys & np.uint64((1 << 27) - 1)).astype(np.int64),
-               "slot": slots}
+        rec = {name: f.astype(np.int64)
+               for name, f in zip(("face", "level", "px", "py"), key_fields(keys))}
+        rec["slot"] = slots
         rec["res"] = self.layout.res0 >> rec["level"]
         for name, c, off in (("u0", "px", 0), ("v0", "py", 0), ("u1", "px", 1), ("v1", "py", 1)):
             rec[name] = (rec[c] + off) * P / rec["res"].astype(np.float64)
@@ -887,11 +886,8 @@ def tile_pages(tiles: np.ndarray, layout) -> tuple:
     each page's tile mask (bit ``tx + ty * tiles_per_side`` for tile ``(tx, ty)`` of
     the page)."""
     S = np.uint64(layout.tiles_per_side)
-    M = np.uint64((1 << 27) - 1)
-    tiles = np.asarray(tiles, np.uint64)
-    tx, ty = (tiles >> np.uint64(27)) & M, tiles & M
-    pk = page_key(tiles >> np.uint64(59), (tiles >> np.uint64(54)) & np.uint64(31),
-                  tx // S, ty // S)
+    face, level, tx, ty = key_fields(np.asarray(tiles, np.uint64))
+    pk = page_key(face, level, tx // S, ty // S)
     pages, inv = np.unique(pk, return_inverse=True)
     masks = np.zeros(len(pages), np.int64)
     np.bitwise_or.at(masks, inv.reshape(-1), np.int64(1) << (tx % S + (ty % S) * S)
@@ -1200,23 +1196,20 @@ def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
     """Replace the finest level's tiles by their parents (the tiles under them one level
     coarser) until the pages of ``tiles`` fit the budget; ``(tiles, pages replaced)``."""
     degraded = 0
-    M = np.uint64((1 << 27) - 1)
     S = np.uint64(layout.tiles_per_side)
     while True:
-        levels = ((tiles >> np.uint64(54)) & np.uint64(31)).astype(int)
-        pages = page_key(tiles >> np.uint64(59), levels.astype(np.uint64),
-                         ((tiles >> np.uint64(27)) & M) // S, (tiles & M) // S)
+        face, level, tx, ty = key_fields(tiles)
+        pages = page_key(face, level, tx // S, ty // S)
         if len(np.unique(pages)) <= budget_pages:
             break
+        levels = level.astype(int)
         finest = levels.min()
         if finest >= layout.coarsest:
             break
         sel = levels == finest
         k = tiles[sel]
-        face = k >> np.uint64(59)
-        tx = ((k >> np.uint64(27)) & M) >> np.uint64(1)
-        ty = (k & M) >> np.uint64(1)
-        parents = page_key(face, finest + 1, tx, ty) if len(k) else k
+        parents = page_key(face[sel], finest + 1, tx[sel] >> np.uint64(1),
+                           ty[sel] >> np.uint64(1)) if len(k) else k
         degraded += len(np.unique(pages[sel]))
         tiles = np.unique(np.concatenate([tiles[~sel], parents.astype(np.uint64)]))
     return tiles, degraded

@@ -47,6 +47,7 @@ from .options import METHODS, OptionError  # noqa: E402,F401
 from .methods import Method, Prop, register_method, unregister_method  # noqa: E402,F401
 from . import harness, metrics  # noqa: E402,F401
 from .harness import compare  # noqa: E402,F401
+from .map_manager import clear_caches  # noqa: E402,F401
 from .tune import tune  # noqa: E402,F401  (the function; helpers: from mi_shadowmap.tune import ...)
 
 

@@ -1,6 +1,7 @@
 """Shared fixtures: paths, small renders, and helpers that return numpy arrays."""
 from __future__ import annotations
 
+import gc
 import os
 import pathlib
 
@@ -38,6 +39,26 @@ def _llvm_variant():
     yield
     if mi.variant() != "llvm_ad_rgb":
         mi.set_variant("llvm_ad_rgb")
+
+
+@pytest.fixture(autouse=True)
+def _fresh_caches():
+    """Every test ends with the package's caches emptied, so its scenes are freed
+    (:func:`mi_shadowmap.clear_caches`): shapes that earlier tests' scenes left alive
+    in the caches change every kernel that dispatches over shapes or BSDFs, so each
+    test compiled its kernels anew depending on which tests ran before it. Freed, a
+    test's kernels depend on that test (and its module's fixtures) alone: the same
+    kernels in every run, found in Dr.Jit's kernel cache. (Scenes are freed by
+    reference counting; a collection of cycles per module, below, not per test: it
+    costs 35-70 ms.)"""
+    yield
+    mi_shadowmap.clear_caches()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _collect_after_module():
+    yield
+    gc.collect()
 
 
 def render_np(scene, integrator, spp=16, seed=0):

@@ -345,3 +345,38 @@ def test_mdsm_builds_only_the_layers_its_depths_need(builds):
                               "resolution": RES, "cache_maps": False})
         mi.render(scene, integrator=integ, spp=1)
         assert set(integ.maps[0].extra) == expected, depths
+
+
+def test_clear_caches_frees_the_scenes_and_their_kernels_repeat():
+    """:func:`mi_shadowmap.clear_caches` empties every cache (depth maps, pages,
+    antialiasing edges), so a scene dropped by the user is freed; a like scene loaded
+    afterwards then renders with exactly the same kernels (Dr.Jit traces calls over
+    the live shapes and BSDFs: with the first scene still cached, its render kernel
+    differed)."""
+    import mi_shadowmap
+    from mi_shadowmap import antialias, pages
+
+    def render_hashes(props):
+        scene = mi.load_dict(default_scene(width=32, height=32))
+        dr.kernel_history()   # clear
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            mi.render(scene, integrator=mi.load_dict({"type": "shadowmap", **props}),
+                      spp=2)
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+        return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT
+                and k["size"] == 32 * 32 * 2}         # the render kernel
+
+    for props in ({"method": "hard", "virtual": False}, {"method": "pcf"}):  # full, virtual
+        mi_shadowmap.clear_caches()
+        first = render_hashes(props)
+        assert MAP_CACHE._scenes or pages.PAGE_CACHE._scenes   # the scene is held
+        mi_shadowmap.clear_caches()
+        assert not MAP_CACHE._scenes and not MAP_CACHE._memo
+        assert not pages.PAGE_CACHE._scenes and not antialias._EDGES
+        again = render_hashes(props)
+        assert first and again == first
+        # kept alive by the cache, the earlier scene changes the next one's kernel
+        held = render_hashes(props)
+        assert held != again

@@ -41,23 +41,18 @@ def _llvm_variant():
         mi.set_variant("llvm_ad_rgb")
 
 
-@pytest.fixture(autouse=True)
+@pytest.fixture(autouse=True, scope="module")
 def _fresh_caches():
-    """Every test ends with the package's caches emptied, so its scenes are freed
-    (:func:`mi_shadowmap.clear_caches`): shapes that earlier tests' scenes left alive
-    in the caches change every kernel that dispatches over shapes or BSDFs, so each
-    test compiled its kernels anew depending on which tests ran before it. Freed, a
-    test's kernels depend on that test (and its module's fixtures) alone: the same
-    kernels in every run, found in Dr.Jit's kernel cache. (Scenes are freed by
-    reference counting; a collection of cycles per module, below, not per test: it
-    costs 35-70 ms.)"""
+    """Every test module ends with the package's caches emptied, so its scenes are
+    freed (:func:`mi_shadowmap.clear_caches`): shapes that earlier modules' scenes left
+    alive in the caches change every kernel that dispatches over shapes or BSDFs, so a
+    module's kernels depended on the modules run before it and were compiled anew
+    whenever those changed. Per module, not per test: tests of one module share scenes
+    and cached maps (clearing after every test made test_pages.py and test_stability.py
+    330 -> 445 s). ``tests/test_differentiable.py``, whose tests each build their own
+    scenes, clears after every test."""
     yield
     mi_shadowmap.clear_caches()
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _collect_after_module():
-    yield
     gc.collect()
 
 

@@ -90,6 +90,11 @@ def prepare_meshes(scene) -> None:
             _EDGES.pop(next(iter(_EDGES)))
 
 
+def clear_meshes() -> None:
+    """Forget every mesh :func:`prepare_meshes` holds (their topologies stay built)."""
+    _EDGES.clear()
+
+
 def _neighbour(res: int, k, step):
     """Flat index of texel ``k``'s neighbour in direction ``step`` (lane-wise
     ``mi.UInt32`` in 0..3), and whether it is on the same face."""

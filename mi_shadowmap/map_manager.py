@@ -701,5 +701,5 @@ def clear_caches() -> None:
     MAP_CACHE.clear()
     pages.PAGE_CACHE.clear()
     _VIRTUAL_CASCADES.clear()
-    pose._REFERENCES.clear()
-    antialias._EDGES.clear()
+    pose.clear_references()
+    antialias.clear_meshes()

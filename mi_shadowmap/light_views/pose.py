@@ -100,6 +100,11 @@ _REFERENCES: dict = {}
 _MAX_REFERENCES = 64
 
 
+def clear_references() -> None:
+    """Forget every light's reference (and the emitter it holds)."""
+    _REFERENCES.clear()
+
+
 def _attached(params, key):
     if key not in params.keys():
         return None

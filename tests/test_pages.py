@@ -533,6 +533,41 @@ def test_a_small_budget_degrades_to_coarser_pages_never_lit():
     assert lit_small <= lit_coarse + 0.002
 
 
+@pytest.mark.parametrize("bits", [4, 14])
+def test_mark_dedupe_returns_every_distinct_key(bits):
+    """The mark pass's hash-table dedupe (:func:`pages._dedupe_many`) returns, per light,
+    exactly the distinct keys of its valid candidates (repeats allowed, none missed):
+    with tables of 2^14 slots (the default) and of 16 slots, where most keys lose their
+    slot in both rounds and come back as candidates. Then the sort-based helpers give
+    ``np.unique``'s answers."""
+    rng = np.random.default_rng(11)
+    groups, want = [], []
+    for n_keys in (300, 40, 0):                 # lights with many, few and no keys
+        keys, oks, valid = [], [], []
+        pool = rng.integers(0, 2 ** 62, max(n_keys, 1), dtype=np.uint64)
+        for _ in range(4):                      # four candidate lists per light
+            k = pool[rng.integers(0, len(pool), 5000)]
+            ok = rng.random(5000) < (0.7 if n_keys else 0.0)
+            keys.append(mi.UInt64(k))
+            oks.append(mi.Bool(ok))
+            valid.append(k[ok])
+        groups.append((keys, oks))
+        want.append(np.unique(np.concatenate(valid)))
+    found = pages._dedupe_many(groups, bits=bits)
+    assert len(found) == 3
+    for got, w in zip(found, want):
+        assert np.array_equal(np.unique(got), w)
+        if bits == 14 and len(w):
+            assert len(got) < 2 * len(w)        # few repeats
+    for a in (found[0], found[1], np.zeros(0, np.uint64), np.array([5], np.uint64)):
+        assert np.array_equal(pages._sorted_unique(a), np.unique(a))
+    base = np.unique(found[0])
+    more = np.sort(np.concatenate([base[:3], rng.integers(0, 2 ** 62, 4, dtype=np.uint64)]))
+    assert np.array_equal(pages._with_keys(base, more),
+                          np.unique(np.concatenate([base, more])))
+    assert np.array_equal(pages._with_keys(np.zeros(0, np.uint64), more), more)
+
+
 def test_page_minima_on_the_host_and_on_the_device_agree():
     """Each page's nearest finite depth (+inf for an empty page), as the CPU backend
     computes it in numpy and a GPU would on the device: the same values."""

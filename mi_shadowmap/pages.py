@@ -898,8 +898,8 @@ def tile_pages(tiles: np.ndarray, layout) -> tuple:
 def _dedupe_many(groups: list, bits: int = 14) -> list:
     """For each ``(keys, oks)`` of ``groups`` (one per light), most of the keys
     ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
-    65 k candidates hold a few thousand keys), so that ``np.unique`` sorts a few thousand
-    keys instead of all candidates: one kernel computes every light's keys (and the
+    65 k candidates hold a few thousand keys), so that the host sorts a few thousand keys
+    (:func:`_sorted_unique`) instead of all candidates: one kernel computes every light's keys (and the
     camera hits they come from) and scatters each list into its hash table of
     ``2^bits`` slots; a second finds the candidates whose key lost its slot to another
     key and scatters them into a second table (another hash); a third finds those that
@@ -1258,7 +1258,7 @@ def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
         k = tiles[sel]
         parents = page_key(face[sel], finest + 1, tx[sel] >> np.uint64(1),
                            ty[sel] >> np.uint64(1)) if len(k) else k
-        degraded += len(np.unique(pages[sel]))
+        degraded += len(_sorted_unique(pages[sel]))
         tiles = _sorted_unique(np.concatenate([tiles[~sel], parents.astype(np.uint64)]))
     return tiles, degraded
 

@@ -489,9 +489,12 @@ screen is Mitsuba's projective integrators' job.
         if self.opts.record.whole_light:
             whole, above = vis_fn(smap, lk, opts, shade)
             return dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0), whole
-        m = (smap.bind(lk, lit, per_tap=self.opts.record.virtual_per_tap)
-             if isinstance(smap, VirtualShadowMap) else smap)
-        return dr.select(lit, vis_fn(m, lk, opts, lit), 0.0), None
+        if isinstance(smap, VirtualShadowMap):
+            vis = smap.visibility(vis_fn, lk, opts, lit,
+                                  per_tap=self.opts.record.virtual_per_tap)
+        else:
+            vis = vis_fn(smap, lk, opts, lit)
+        return dr.select(lit, vis, 0.0), None
 
     def _gradient_render(self) -> bool:
         """Whether this render's maps are in the AD graph (a gradient render) and

@@ -141,7 +141,11 @@ class Method:
     * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
       slot from the page table (cheapest for a lookup that reads a texel or two, as
       ``hard`` does) instead of the 2 x 2 pages' four slots once per lookup (default:
-      cheapest for wide kernels). Results are the same either way;
+      cheapest for wide kernels). Results are the same either way. Such a lookup runs at
+      each lane's wanted level first and again for the lanes whose read found its page
+      missing, so it must read the map outside symbolic loops and conditionals and must
+      not draw random numbers (:meth:`~mi_shadowmap.pages.VirtualShadowMap.visibility`;
+      either raises a :class:`MethodError` at the first render);
     * ``builtin`` -- shipped with the package.
     """
     name: str

@@ -37,6 +37,9 @@ page under the receiver is missing at that level, or its tile there is not ray-c
 (a camera sample off the pixel centre) it takes the next finer level, else the next coarser one, else
 the coarsest level (one page per face), which is always built, so no point is
 lit for want of a page (a loop that only lanes with a missing page enter). The
+lookup of a method with ``virtual_per_tap`` (``hard``) does not wait for that walk: it
+reads at its wanted level, each read checking its own page and tile, and only the lanes
+where one is missing run again, walked (:meth:`VirtualShadowMap.visibility`). The
 2 x 2 pages around the receiver are found in the page table once per lookup (per
 face and level, a grid over the bounding rectangle of its built pages whose entry
 holds the 2 x 2 block's four slots: no loop). The filter's taps then read through
@@ -109,7 +112,7 @@ import mitsuba as mi
 import numpy as np
 
 from .depth_maps import first_hit, second_depth_along
-from .methods import VIRTUAL_LAYERS  # noqa: F401  (the layers built here)
+from .methods import VIRTUAL_LAYERS, MethodError  # noqa: F401  (VIRTUAL_LAYERS: built here)
 from .light_views import pixel_centres, pixel_ray_differentials
 from .light_views.base import TEXEL_SAMPLE, scene_bounds
 from .light_views.local import LocalView
@@ -510,7 +513,8 @@ class PageStore:
         dr.eval(*self.pools.values())
 
     def table(self):
-        """The page table as Dr.Jit arrays ``(header, dense, face_near, tile_masks)``,
+        """The page table as Dr.Jit arrays ``(header, dense, face_near, tile_masks,
+        dense_tiles)``,
         rebuilt when pages change (``face_near``: the nearest depth per face, PCSS's
         blocker-search bound; ``tile_masks``: which tiles of each slot are ray-cast).
 
@@ -527,7 +531,8 @@ class PageStore:
         :data:`MAX_TABLE_SIDE` per side keeps its pages out of the table (lookups
         there walk to another level). The coarsest page of face ``f`` is in slot
         ``f + 1`` (:class:`PageStore`), so it needs no table. The fourth array holds
-        each slot's tile mask (which of its tiles are ray-cast).
+        each slot's tile mask (which of its tiles are ray-cast), the fifth the tile mask
+        of each entry of ``dense`` (0 where none is built): read with its slot, not after.
         """
         if self._table is not None and self._table[0] == self.version:
             return self._table[1]
@@ -568,7 +573,9 @@ class PageStore:
         table = (_array(mi.UInt64, words.reshape(-1)),
                  _array(mi.UInt32, dense.astype(np.uint32)),
                  _array(mi.Float, self.face_near(lay.view.n_faces)),
-                 _array(mi.UInt32, self.slot_mask[:max(self.next_slot, 1)].astype(np.uint32)))
+                 _array(mi.UInt32, self.slot_mask[:max(self.next_slot, 1)].astype(np.uint32)),
+                 _array(mi.UInt32, np.where(dense == _INVALID, 0, self.slot_mask[
+                     np.where(dense == _INVALID, 0, dense)]).astype(np.uint32)))
         self._table = (self.version, table)
         return table
 
@@ -594,7 +601,8 @@ class VirtualShadowMap:
         self.store = store
         self.layout = store.layout
         self.view = store.layout.view
-        self.header, self.dense, self.face_near, self.tile_masks = store.table()
+        self.header, self.dense, self.face_near, self.tile_masks, self.dense_tiles = \
+            store.table()
         self.depth_bounds = _array(mi.Float64, self.layout.depth_range)
         # where the pages' depths start (a far light's, VirtualLayout.t0): an opaque
         # variable, not a kernel literal (a moved light would compile a new lookup)
@@ -688,11 +696,15 @@ class VirtualShadowMap:
         e = (mi.UInt32(w1 >> 32) + mi.UInt32(ly * W + lx)) * 4
         return e, ok
 
-    def bind(self, lk, active=True, per_tap: bool = False) -> "BoundVirtualMap":
+    def bind(self, lk, active=True, per_tap: bool = False,
+             walk: bool = True) -> "BoundVirtualMap":
         """The map as one batch of lookups reads it (see the module doc). With
         ``per_tap`` every read gathers its own page's slot (cheapest for lookups that
         read a texel or two: ``hard``); else the 2 x 2 pages' four slots are gathered
-        here, once per lookup (wide kernels)."""
+        here, once per lookup (wide kernels). With ``walk`` False (``per_tap`` only) every
+        lane stays at its wanted level and each read checks that its own page and tile
+        are built there, collecting the lanes where one is not in the result's
+        ``missed`` (:meth:`visibility` runs those again, walked)."""
         lay, P = self.layout, self.layout.page_size
         T, S = lay.tile_size, lay.tiles_per_side
         p64 = mi.Point3d(lk.p_world)
@@ -725,6 +737,11 @@ class VirtualShadowMap:
         # only lanes whose page is missing enter: most vector packets skip it.
         res, bx, by, e, eok, ok = block(want, active)
         level = mi.UInt32(want)
+        if not walk:
+            if not per_tap:
+                raise ValueError("VirtualShadowMap.bind: walk=False needs per_tap=True")
+            return self._bound(lk, face, uv64, depth64, inside, res, level, bx, by, e, eok,
+                               per_tap, check_reads=True)
         step = mi.UInt32(0)
         want_i = mi.Int32(want)
 
@@ -744,6 +761,12 @@ class VirtualShadowMap:
 
         state = dr.while_loop((step, level, res, bx, by, e, eok, ok), cond, body)
         _, level, res, bx, by, e, eok, _ = state
+        return self._bound(lk, face, uv64, depth64, inside, res, level, bx, by, e, eok,
+                           per_tap)
+
+    def _bound(self, lk, face, uv64, depth64, inside, res, level, bx, by, e, eok, per_tap,
+               check_reads=False) -> "BoundVirtualMap":
+        P = self.layout.page_size
         slots = None
         if not per_tap:
             slots = [dr.select(eok, dr.gather(mi.UInt32, self.dense, e + k, eok), _INVALID)
@@ -751,7 +774,59 @@ class VirtualShadowMap:
         origin = mi.Point2i(bx * P, by * P)
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside),
                           depth_origin=self.depth_origin)
-        return BoundVirtualMap(self, local, res, level, (e, eok), slots)
+        bound = BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads)
+        bound.inside = inside     # the point projects into the map (else read as lit)
+        return bound
+
+    def visibility(self, lookup, lk, opts, active=True, per_tap: bool = False) -> mi.Float:
+        """``lookup(bound, lk, opts, active)`` (a method's lookup) on this map.
+
+        With ``per_tap`` (``hard``) the lookup first runs at every lane's wanted level,
+        each read checking its own page and tile (gathered with its slot), and a symbolic
+        ``dr.if_stmt`` runs it again, :meth:`bind`'s walk included, for the lanes where a
+        read found one missing (a vector packet without such a lane skips it). A lane
+        whose texel is built at its wanted level reads it there; every other lane gets
+        what the walk gives. The bound point's own page and tile are then not read
+        before the texel's address: 2 of a ``hard`` lookup's 6 gathers (1-1.5 ns of
+        5-12 ns on ``bench_virtual_lookup.py``'s hits). The second run must not draw
+        random numbers (its lanes would draw twice): a per-tap lookup that calls
+        ``lk.sampler`` gets a :class:`~mi_shadowmap.methods.MethodError` there. In a
+        render with gradients (``lk``'s point or normal tracking them) and for the other
+        methods, the lookup runs once, walked."""
+        if not per_tap or dr.grad_enabled(lk.p_world, lk.n_world):
+            return lookup(self.bind(lk, active, per_tap), lk, opts, active)
+        first = self.bind(lk, active, per_tap, walk=False)
+        vis = mi.Float(lookup(first, lk, opts, active))
+        if first.missed is None:       # the lookup read no texel
+            return vis
+        retry = mi.Bool(active) & first.inside & first.missed
+        again = dataclasses.replace(lk, sampler=None if lk.sampler is None
+                                    else _NoDraws(lk.sampler))
+
+        def walked(vis):
+            return mi.Float(lookup(self.bind(again, retry, per_tap), again, opts, retry))
+
+        return dr.if_stmt((vis,), retry, walked, lambda vis: vis,
+                          label="virtual map: lookups whose page is missing")
+
+
+class _NoDraws:
+    """A sampler for :meth:`VirtualShadowMap.visibility`'s second run of a per-tap
+    lookup: drawing from it is an error; other attributes are the sampler's."""
+
+    def __init__(self, sampler):
+        self._sampler = sampler
+
+    def _refuse(self, *args, **kwargs):
+        raise MethodError("shadowmap: a lookup with virtual_per_tap=True runs again for "
+                          "lanes whose virtual page is missing and must not draw random "
+                          "numbers (lk.sampler.next_1d/next_2d); register it with "
+                          "virtual_per_tap=False")
+
+    next_1d = next_2d = _refuse
+
+    def __getattr__(self, name):
+        return getattr(self._sampler, name)
 
 
 class BoundVirtualMap:
@@ -764,13 +839,18 @@ class BoundVirtualMap:
     """
 
     def __init__(self, vmap: VirtualShadowMap, view: LocalView, res, level, entry,
-                 slots=None):
+                 slots=None, check_reads: bool = False):
         self.vmap = vmap
         self.view = view
         self.resolution = res
         self.level = level
         self.entry = entry      # (where the 2 x 2 pages' slots are in the table, valid)
         self.slots = slots      # their 4 slots, or None: gathered per read
+        # bound unwalked (VirtualShadowMap.visibility): reads check their page and tile,
+        # and ``missed`` collects the lanes where one is missing (None before a read)
+        self.check_reads = check_reads
+        self.missed = None
+        self._scope = dr.flag(dr.JitFlag.SymbolicScope)
         pools = vmap.store.pools
         self.depth = pools["depth"]
         self.extra = {k: v for k, v in pools.items() if k != "depth"}
@@ -801,6 +881,21 @@ class BoundVirtualMap:
             s = dr.select(q == 0, self.slots[0], dr.select(q == 1, self.slots[1],
                           dr.select(q == 2, self.slots[2], self.slots[3])))
         fine = in_block & (s != _INVALID)
+        if self.check_reads:     # and its tile ray-cast; else this lane runs again, walked
+            if dr.flag(dr.JitFlag.SymbolicScope) and not self._scope:
+                raise MethodError("shadowmap: a lookup with virtual_per_tap=True must read "
+                                  "the map outside symbolic loops and conditionals "
+                                  "(dr.while_loop, dr.if_stmt: its reads decide which lanes "
+                                  "run again, walked); register it with "
+                                  "virtual_per_tap=False")
+            e, eok = self.entry
+            m = eok & in_block
+            tiles = dr.gather(mi.UInt32, self.vmap.dense_tiles, e + mi.UInt32(q), m)
+            S = lay.tiles_per_side
+            t = mi.UInt32(li & (P - 1)) // lay.tile_size \
+                + mi.UInt32(lj & (P - 1)) // lay.tile_size * S
+            fine &= ((tiles >> t) & 1) != 0
+            self.missed = ~fine if self.missed is None else self.missed | ~fine
         fine_idx = s * (P * P) + mi.UInt32(lj & (P - 1)) * P + mi.UInt32(li & (P - 1))
         # elsewhere: the coarsest level (one page per face, always built, in slot
         # face + 1; an empty page where a one-sided light does not shine)

@@ -188,6 +188,79 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
     assert np.all(moved[inside_tile]) and not np.any(moved[lit & ~inside_tile])
 
 
+def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
+    """``hard`` reads at every lane's wanted level and runs again, walked, where its
+    read finds the page or tile missing (:meth:`VirtualShadowMap.visibility`): with one
+    tile taken out of its page, the lanes reading it are the ones that miss, and the
+    result equals the lookup bound with the walk, lane for lane."""
+    from mi_shadowmap.filters.common import Lookup, receiver
+    from mi_shadowmap.filters.hard import hard
+    scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light="spot"))
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap, opts = integ.maps[0], integ.opts
+    store, lay = vmap.store, vmap.layout
+    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    first = vmap.bind(lk, valid, per_tap=True, walk=False)
+    hard(first, lk, opts, valid)
+    assert not np.any((valid & first.inside & first.missed).numpy())   # all marked: built
+    # take out the tile the most lanes read
+    r = receiver(first, lk, opts)
+    idx = first.texel_index(r.face, r.uv).numpy()
+    lit = (valid & r.inside).numpy()
+    P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
+    slot, local = idx // (P * P), idx % (P * P)
+    tile = slot * S * S + (local // P) // T * S + (local % P) // T
+    fine = lit & (slot > vmap.view.n_faces)                 # not the coarsest pages
+    tiles, counts = np.unique(tile[fine], return_counts=True)
+    t = int(tiles[np.argmax(counts)])
+    store.slot_mask[t // (S * S)] &= ~(1 << (t % (S * S)))
+    store.version += 1
+    vmap2 = pages.VirtualShadowMap(store, {}, vmap.lod_bias)
+    first = vmap2.bind(lk, valid, per_tap=True, walk=False)
+    hard(first, lk, opts, valid)
+    missed = (valid & first.inside & first.missed).numpy()
+    assert missed.sum() == counts.max() > 0 and np.all(missed == (fine & (tile == t)))
+    walked = hard(vmap2.bind(lk, valid, per_tap=True), lk, opts, valid).numpy()
+    ours = vmap2.visibility(hard, lk, opts, valid, per_tap=True).numpy()
+    np.testing.assert_array_equal(ours[valid.numpy()], walked[valid.numpy()])
+
+
+@pytest.mark.parametrize("misuse", ["draws", "loops"])
+def test_per_tap_lookups_that_draw_or_read_in_loops_are_refused(misuse):
+    """A per-tap lookup may run twice for some lanes: one that draws random numbers or
+    reads the map inside a ``dr.while_loop`` gets a MethodError naming the flag."""
+    from mi_shadowmap.filters.hard import hard
+    from mi_shadowmap.methods import MethodError, register_method, unregister_method
+
+    def draws(smap, lk, opts, active=True):
+        u = lk.sampler.next_1d(active)
+        return hard(smap, lk, opts, active) * dr.select(u < 2.0, 1.0, 0.0)
+
+    def loops(smap, lk, opts, active=True):
+        def body(k, v):
+            return k + 1, v + hard(smap, lk, opts, active)
+        _, v = dr.while_loop((mi.UInt32(0), mi.Float(0.0)), lambda k, v: k < 2, body)
+        return v * 0.5
+
+    register_method("per_tap_misuse", draws if misuse == "draws" else loops, virtual=True,
+                    virtual_per_tap=True)
+    try:
+        scene = mi.load_dict(default_scene(width=16, height=16, spp=1, light="spot"))
+        with pytest.raises(RuntimeError) as info:
+            mi.render(scene, integrator=shadowmap(method="per_tap_misuse", virtual=True), spp=1)
+        chain, e = [], info.value
+        while e is not None:
+            chain.append(e)
+            e = e.__cause__ or e.__context__
+        errors = [c for c in chain if isinstance(c, MethodError)]
+        assert errors and "virtual_per_tap=False" in str(errors[0])
+        assert ("random numbers" if misuse == "draws" else "symbolic loops") in str(errors[0])
+    finally:
+        unregister_method("per_tap_misuse")
+
+
 # ---------------------------------------------------------- against the truth
 #: (light, method) -> measured misclassified at 64^2, 4 spp (virtual defaults); bounds x2.
 @pytest.mark.parametrize("light", LIGHTS)

@@ -1,9 +1,10 @@
 """Where a virtual map's ``hard`` lookup spends its time, step by step (issue 11).
 
     python benchmarks/bench_virtual_lookup.py [--scenes large_world far_point ...]
-                                              [--image 1024] [--repeats 9]
+                                              [--image 1024] [--repeats 9] [--spp 1]
 
-For each scene, the camera's pixel-centre hits at ``--image``^2 (one lookup per pixel,
+For each scene, the camera's pixel-centre hits at ``--image``^2 (one lookup per pixel; with
+``--spp`` N, N jittered samples per pixel in adjacent lanes, as a render orders them;
 about 1 M lookups at the default) are evaluated once; then each prefix of the lookup is
 evaluated on them as its own kernel, and its execution time (Dr.Jit's kernel history,
 median of ``--repeats``) is reported with the time of a kernel that only reads the
@@ -16,7 +17,10 @@ points (``read``), so that each row's increment is what that step adds:
                   fallback for a missing page (``per_tap``, as ``hard`` binds)
   receiver        + ``receiver()`` through the bound local frame (biases, normal offset)
   texel index     + the texel's pool index (page slot gathered per tap)
-  hard            the whole lookup: + the depth gather and the compare
+  hard            the whole lookup bound with the walk: + the depth gather and the compare
+  hard, rendered  the lookup as the integrator runs it (``VirtualShadowMap.visibility``:
+                  unwalked, each read checking its page and tile; lanes that miss
+                  run again, walked)
   full: hard      ``hard`` on the full map of ``virtual=false`` (same points)
 
 Each row writes its outputs (a few arrays per lane), so increments are approximate; read
@@ -35,6 +39,7 @@ import mitsuba as mi
 from mi_shadowmap import harness, pages
 from mi_shadowmap.filters.common import Lookup, receiver
 from mi_shadowmap.filters.hard import hard
+from mi_shadowmap.light_views import pixel_ray_differentials
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -51,6 +56,30 @@ def kernel_ms(fn, repeats: int) -> float:
     return statistics.median(times[2:])
 
 
+def camera_samples(scene, spp: int):
+    """``pages.camera_hits`` at the pixel centres (``spp`` 1), else ``spp`` uniformly
+    jittered camera samples per pixel, a pixel's samples in adjacent lanes as Mitsuba's
+    ``render()`` orders them, with one-pixel ray differentials."""
+    sensor = scene.sensors()[0]
+    if spp <= 1:
+        return pages.camera_hits(scene, sensor)
+    w, h = (int(x) for x in sensor.film().crop_size())
+    pixel = dr.arange(mi.UInt32, w * h * spp) // spp
+    y = pixel // w
+    rng = mi.PCG32(size=w * h * spp)
+    pos = mi.Point2f((mi.Float(pixel - y * w) + rng.next_float32()) / w,
+                     (mi.Float(y) + rng.next_float32()) / h)
+    ray = pixel_ray_differentials(sensor, pos)
+    si = scene.ray_intersect(ray)
+    n = si.n
+
+    def hit(o, d):
+        c = dr.dot(n, d)
+        return o + d * (dr.dot(n, si.p - o) / dr.select(dr.abs(c) > 1e-12, c, 1e-12))
+
+    return si, hit(ray.o_x, ray.d_x) - si.p, hit(ray.o_y, ray.d_y) - si.p, si.is_valid()
+
+
 def bench_scene(name: str, args) -> list:
     scene = harness.load_scene(str(ROOT / "scenes_xml" / f"{name}.xml"),
                                width=str(args.image), height=str(args.image))
@@ -60,7 +89,7 @@ def bench_scene(name: str, args) -> list:
     mi.render(scene, integrator=full, spp=1)
     vm = next(m for m in virt.maps if isinstance(m, pages.VirtualShadowMap))
     fm = full.maps[virt.maps.index(vm)]
-    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    si, dp_dx, dp_dy, valid = camera_samples(scene, args.spp)
     p = dr.select(valid, si.p, 0.0)
     dr.eval(p, si.n, dp_dx, dp_dy, valid)
     lk = Lookup(p, si.n, dp_dx, dp_dy, si, None, None)
@@ -84,6 +113,7 @@ def bench_scene(name: str, args) -> list:
         ("texel index", lambda: (lambda br: (br[0].texel_index(br[1].face, br[1].uv),
                                              br[1].depth))(rec())),
         ("hard", lambda: hard(bound(), lk, vo, valid)),
+        ("hard, rendered", lambda: vm.visibility(hard, lk, vo, valid, per_tap=True)),
         ("full: hard", lambda: hard(fm, lk, fo, valid)),
     ]
     rows = []
@@ -101,9 +131,12 @@ def main():
                                                     "room_two_points", "cbox_area"])
     ap.add_argument("--image", type=int, default=1024)
     ap.add_argument("--repeats", type=int, default=9)
+    ap.add_argument("--spp", type=int, default=1,
+                    help="jittered camera samples per pixel (1: the pixel centres)")
     args = ap.parse_args()
     dr.set_flag(dr.JitFlag.KernelHistory, True)
-    print(f"`hard` lookups at {args.image}^2 pixel-centre hits, kernel time, median of "
+    where = "pixel-centre hits" if args.spp <= 1 else f"hits, {args.spp} jittered per pixel"
+    print(f"`hard` lookups at {args.image}^2 {where}, kernel time, median of "
           f"{args.repeats}; ns / lookup = (kernel - read) / hits\n")
     print("| scene | step | kernel [ms] | ns / lookup over `read` |")
     print("|---|---|---|---|")

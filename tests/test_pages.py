@@ -1296,3 +1296,62 @@ def test_pixel_ray_differentials_of_a_batch_equal_each_cameras_own():
             np.testing.assert_allclose(got[:, ~last], want[:, ~last], atol=2e-6)
             step = np.linalg.norm(want - np.array(own.d), axis=0)
             assert np.all(np.linalg.norm(got - want, axis=0) <= 0.05 * step)
+
+
+@pytest.mark.parametrize("light", ["spot", "point", "directional", "area", "far_point"])
+def test_receiver_plane_depths_in_float32_match_float64(light):
+    """A bound lookup meets a filter tap's ray with the receiver's plane in float32,
+    relative to the receiver's own ray (:meth:`LocalView._plane_step`): at taps up to 12
+    texels away (crossing onto another cube face too), on the camera's hits and on
+    planes tilted up to 87 degrees from the light, the depth and cosine equal the
+    float64 intersection's up to float32 rounding (a few units in the last place of the
+    depth and of the step), also for a point light 1e5 away (depths from its
+    ``depth_origin``); so does the tap's ray direction."""
+    from mi_shadowmap.filters.common import Lookup
+    from mi_shadowmap.light_views.local import LocalView
+    if light == "far_point":
+        scene = mi.load_file(str(SCENES / "far_point.xml"), width=48, height=48)
+    else:
+        scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light=light))
+    integ = shadowmap(method="pcf", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap = integ.maps[0]
+    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    bound = vmap.bind(lk, valid)
+    local = bound.view
+    assert isinstance(local, LocalView) and local._frame is not None
+    n = dr.width(si.p)
+    rng = np.random.default_rng(5)
+    res = bound.resolution
+    uv0 = local._frame[4]
+    for trial in range(3):
+        off = mi.Point2f(mi.Float(rng.uniform(-12, 12, n)), mi.Float(rng.uniform(-12, 12, n)))
+        uv = uv0 + off / mi.Float(res)
+        # the surface normal, then random planes with |cos| to the light >= 0.05
+        if trial == 0:
+            nrm = mi.Vector3f(si.n)
+        else:
+            v = rng.normal(size=(3, n))
+            nrm = dr.normalize(mi.Vector3f(*(mi.Float(x) for x in v)))
+        face = local.face
+        if trial == 2 and vmap.view.n_faces > 1:     # some taps on the next cube face
+            face = dr.select(mi.Float(rng.random(n)) < 0.2, (local.face + 2) % 6, local.face)
+        t, c = local.ray_plane(face, uv, lk.p_world, nrm, 1e-12)
+        t64, c64 = local._ray_plane_f64(face, uv, lk.p_world, nrm, 1e-12)
+        ok = (valid & bound.inside & (dr.abs(c64) >= 0.05)).numpy()
+        t, t64, c, c64 = (np.asarray(x.numpy(), np.float64) for x in (t, t64, c, c64))
+        t0 = np.asarray(local._frame[6].numpy(), np.float64)
+        assert ok.sum() > 500
+        ulp = np.spacing(np.maximum(np.abs(t64), np.abs(t0)).astype(np.float32))
+        err = np.abs(t - t64)[ok]
+        tol = (8.0 * ulp + 1e-5 * np.abs(t64 - t0))[ok]
+        print(f"{light} trial {trial}: max |t - t64| / tolerance {np.max(err / tol):.3f}")
+        assert np.all(err <= tol)
+        np.testing.assert_allclose(c[ok], c64[ok], atol=2e-6)
+        # the tap's ray direction (PCSS's front test for one-sided area lights)
+        d = local.ray_through(face, uv)[1]
+        d64 = local._ray_through_f64(face, uv)[1]
+        for x, y in zip(d, d64):
+            np.testing.assert_allclose(np.broadcast_to(x.numpy(), (n,))[ok],
+                                       np.broadcast_to(y.numpy(), (n,))[ok], atol=2e-6)

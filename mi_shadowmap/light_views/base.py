@@ -162,6 +162,16 @@ class LightView:
         """:meth:`ray_through` in float64: ``(o_world: Point3d, d_world: Vector3d)``."""
         raise NotImplementedError
 
+    #: Optional: ``ray_frame_f64(face, uv_light: Point2d) -> (central, base, d_du, d_dv)``,
+    #: the rays of ``face`` near ``uv_light`` as an affine function of ``uv`` (float32
+    #: world vectors, per unit of ``uv``). ``central`` (a Python bool): every ray starts at
+    #: the light's position and its *unnormalised* direction is ``base + du d_du + dv d_dv``
+    #: (perspective and cube faces); else every ray has the unit direction ``base`` and its
+    #: origin moves by ``du d_du + dv d_dv`` (orthographic). A virtual map's local frame
+    #: (:meth:`~.local.LocalView.ray_plane`) then meets a filter tap's ray with the
+    #: receiver's plane in float32 relative to the receiver's own ray. None: float64 rays.
+    ray_frame_f64 = None
+
     def uv_differential(self, face, p_world, dp_world) -> mi.Point2f:
         """``d uv_light`` on ``face`` for a small step ``dp_world`` at ``p_world`` (the
         first-order change, in float32: no difference of two nearby float64 ``uv``

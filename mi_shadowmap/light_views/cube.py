@@ -165,6 +165,16 @@ class CubeView(LightView):
         t = mi.Float64(uv_light.y * 2.0 - 1.0)
         return mi.Point3d(*(float(c) for c in position_np(self))), dr.normalize(cube_dir(mi.UInt32(face), s, t))
 
+    def ray_frame_f64(self, face, uv_light):
+        """(:attr:`~.base.LightView.ray_frame_f64`) Central rays: the unnormalised
+        direction :func:`cube_dir` ``(face, s, t)``, ``s = 2 u - 1``, is affine in ``uv``."""
+        face = mi.UInt32(face)
+        base = cube_dir(face, mi.Float64(uv_light.x * 2.0 - 1.0),
+                        mi.Float64(uv_light.y * 2.0 - 1.0))
+        o = cube_dir(face, mi.Float(0.0), mi.Float(0.0))
+        return (True, mi.Vector3f(base), 2.0 * (cube_dir(face, mi.Float(1.0), mi.Float(0.0)) - o),
+                2.0 * (cube_dir(face, mi.Float(0.0), mi.Float(1.0)) - o))
+
     def face_texel_f64(self, face, xy_texel, res):
         """Off the face: the texel of the neighbouring face the direction falls on
         (:func:`_across_seams`, in float64)."""

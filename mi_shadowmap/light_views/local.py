@@ -16,7 +16,11 @@ along each texel's ray (:attr:`mi_shadowmap.pages.VirtualLayout.t0`, a box
 diagonal before the scene), so every depth a :class:`LocalView` returns
 (:meth:`~LocalView.project`, :meth:`~LocalView.depth_of`,
 :meth:`~LocalView.ray_plane`) is the float64 distance from the light minus
-``depth_origin``, rounded to float32 only then. Measured from the light
+``depth_origin``, rounded to float32 only then (or, near the bound point, that
+rounded depth plus a small float32 step: see :meth:`~LocalView.ray_plane`, whose
+receiver-plane depths agree with float64 ones to a few float32 roundoffs; in
+float64 a filter's taps cost ``pcf`` 0.1-0.17 of an unshadowed frame more, measured
+in ``benchmarks/RESULTS.md``, 2026-12-03). Measured from the light
 itself, a depth 1e9 away would round to 64 units, and the receivers' lowering
 below (24 units at 1e8) would lose every shadow of a scene 10 units wide
 (``far_point.xml`` before: 2.3 of its 3.1 % shadow lost at 1e7, all at 1e8). The
@@ -33,6 +37,18 @@ import mitsuba as mi
 #: Receiver depths are lowered by this many float32 roundoffs (2^-24 relative) of
 #: themselves: the map's and the receiver's float32 roundings together, with margin.
 DEPTH_ULPS = 4.0
+
+
+def _same_point(a, b) -> bool:
+    """Whether ``a`` and ``b`` are the same point (the same object, or the same JIT
+    variables per component, as ``mi.Point3f(p)`` of a ``Point3f`` gives)."""
+    if a is b:
+        return True
+    try:
+        return type(a) is type(b) and all(x.index == y.index and x.index != 0
+                                          for x, y in zip(a, b))
+    except (AttributeError, TypeError):
+        return False
 
 
 class LocalView:
@@ -56,6 +72,16 @@ class LocalView:
         # mi.Float64 (opaque) where the map's depths start along its rays, or None: from
         # the light (see the module doc)
         self._depth_origin = depth_origin
+        # the bound point's ray frame (ray_plane's float32 path), made here: outside the
+        # filters' symbolic tap loops (unused, it costs nothing in a kernel)
+        self._frame = None
+        frame = getattr(inner, "ray_frame_f64", None)
+        if bound is not None and frame is not None:
+            p0, uv64, depth64, _ = bound
+            central, base, a, b = frame(self.face, mi.Point2d(uv64))
+            self._frame = (central, mi.Vector3f(base), mi.Vector3f(a), mi.Vector3f(b),
+                           self._to_local_uv(uv64), mi.Float(depth64),
+                           self._from_origin(depth64))
 
     @property
     def depth_origin(self):
@@ -128,16 +154,83 @@ class LocalView:
         return self._lowered(self._from_origin(self.inner.project_f64(mi.Point3d(p_world))[2]))
 
     def ray_through(self, face, uv_light):
+        """In float64; for central rays on the bound face (a one-sided area light's
+        front test in PCSS's taps), from the bound point's ray frame in float32 (the
+        unnormalised direction there plus the ``uv`` step's, normalised)."""
+        if self._frame is None or not self._frame[0]:
+            return self._ray_through_f64(face, uv_light)
+        _, base, a, b, uv0 = self._frame[:5]
+        duv = mi.Point2f(uv_light) - uv0
+        o, d = mi.Point3f(self.inner.position), dr.normalize(base + a * duv.x + b * duv.y)
+        if self.inner.n_faces == 1:
+            return o, d
+        return dr.if_stmt((mi.UInt32(face), mi.Point2f(uv_light), o, d),
+                          mi.UInt32(face) != self.face,
+                          lambda f, uv, o, d: self._ray_through_f64(f, uv),
+                          lambda f, uv, o, d: (o, d), label="LocalView.ray_through: another face")
+
+    def _ray_through_f64(self, face, uv_light):
         o, d = self.inner.ray_through_f64(face, self._to_global_uv(uv_light))
         return mi.Point3f(o), mi.Vector3f(d)
 
     def ray_plane(self, face, uv_light, p_world, n_world, cos_min: float):
-        """In float64: ``p_world - o`` would lose the light's distance's roundoff."""
+        """Where the ray through ``uv_light`` of ``face`` meets the plane through
+        ``p_world`` with normal ``n_world`` (see :meth:`~.base.LightView.ray_plane`).
+
+        For the plane through the bound point (a filter's receiver plane) on the bound
+        face, and a wrapped view with :attr:`~.base.LightView.ray_frame_f64`: in float32,
+        as the bound point's depth plus the change from its own ray to the tap's
+        (:meth:`_plane_step`), exact up to float32 rounding of that change. Else, and
+        for lanes of taps that crossed onto another face (a ``dr.if_stmt``), in float64:
+        ``p_world - o`` in float32 would lose the light's distance's roundoff."""
+        if self._frame is None or not _same_point(p_world, self._bound[0]):
+            return self._ray_plane_f64(face, uv_light, p_world, n_world, cos_min)
+        t, c = self._plane_step(uv_light, n_world, cos_min)
+        if self.inner.n_faces == 1:
+            return t, c
+        return dr.if_stmt(
+            (mi.UInt32(face), mi.Point2f(uv_light), mi.Vector3f(n_world), t, c),
+            mi.UInt32(face) != self.face,
+            lambda f, uv, n, t, c: self._ray_plane_f64(f, uv, p_world, n, cos_min),
+            lambda f, uv, n, t, c: (t, c), label="LocalView.ray_plane: another face")
+
+    def _ray_plane_f64(self, face, uv_light, p_world, n_world, cos_min: float):
         o, d = self.inner.ray_through_f64(face, self._to_global_uv(uv_light))
         n = mi.Vector3d(n_world)
         c = dr.dot(n, d)
         t = dr.dot(n, mi.Point3d(p_world) - o) / dr.select(dr.abs(c) >= cos_min, c, cos_min)
         return self._lowered(self._from_origin(t)), mi.Float(c)
+
+    def _plane_step(self, uv_light, n_world, cos_min: float):
+        """:meth:`ray_plane` for the bound point's plane on the bound face, in float32.
+
+        The receiver ``p`` lies on its own ray (through its float64 ``uv``, at its depth
+        ``t0``), so only the change to the tap's ray is computed, from the
+        ``uv`` step (local coordinates: small and exact in float32) and the view's
+        affine ray frame. Parallel rays (unit direction ``d``, origin moved by ``o``):
+        ``t = t0 - n.o / n.d``. Central rays (unnormalised directions ``D0`` and
+        ``D = D0 + e``): ``t = K |D| / n.D`` with ``K = t0 n.D0 / |D0|``, so
+        ``t - t0 = t0 (c0 - c) / c`` with ``c0 - c = (n.D0 (|D| - |D0|) - |D0| n.e) /
+        (|D0| |D|)`` and ``|D| - |D0| = (2 D0.e + e.e) / (|D| + |D0|)``: no difference
+        of two nearly equal float32 numbers. ``c`` below ``cos_min`` is clamped, as in
+        float64."""
+        central, base, a, b, uv0, t0_light, t0_local = self._frame
+        n = mi.Vector3f(n_world)
+        duv = mi.Point2f(uv_light) - uv0
+        e = a * duv.x + b * duv.y
+        if central:
+            D = base + e
+            l0, l1 = dr.norm(base), dr.norm(D)
+            c = dr.dot(n, D) / l1
+            num = dr.dot(n, base) * (2.0 * dr.dot(base, e) + dr.dot(e, e)) / (l1 + l0) \
+                - l0 * dr.dot(n, e)
+            cc = dr.select(dr.abs(c) >= cos_min, c, cos_min)
+            dt = t0_light * (num / (l0 * l1)) / cc
+        else:
+            c = dr.dot(n, base)
+            cc = dr.select(dr.abs(c) >= cos_min, c, cos_min)
+            dt = -dr.dot(n, e) / cc
+        return self._lowered(t0_local + dt), c
 
     def texel_world_size(self, res, depth, p_world=None):
         """``depth`` as this view measures it (from :attr:`depth_origin`)."""

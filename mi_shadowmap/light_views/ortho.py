@@ -93,6 +93,15 @@ class OrthoView(LightView):
         d = transform_f64(W, mi.Vector3d(0.0, 0.0, 1.0), point=False)
         return o, dr.normalize(d)
 
+    def ray_frame_f64(self, face, uv_light):
+        """(:attr:`~.base.LightView.ray_frame_f64`) Parallel rays: the origin moves by
+        ``2 half_extent`` along the light's x and y per unit of ``uv``."""
+        R = np.linalg.inv(light_matrix(self))[:3, :3]
+        d = R[:, 2] / np.linalg.norm(R[:, 2])
+        return (False, mi.Vector3f(*d.tolist()),
+                mi.Vector3f(*(2.0 * self.half_extent[0] * R[:, 0]).tolist()),
+                mi.Vector3f(*(2.0 * self.half_extent[1] * R[:, 1]).tolist()))
+
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
         return dr.dot(p_world - mi.Point3f(self.position), self._forward())
 

@@ -99,6 +99,19 @@ class PerspectiveView(LightView):
         d = transform_f64(np.linalg.inv(light_matrix(self)), d_light, point=False)
         return mi.Point3d(*(float(c) for c in position_np(self))), dr.normalize(d)
 
+    def ray_frame_f64(self, face, uv_light):
+        """(:attr:`~.base.LightView.ray_frame_f64`) Central rays: the unnormalised
+        direction ``R (s tan_half, t tan_half, 1)``, ``s = 2 u - 1``, is affine in ``uv``."""
+        W = np.linalg.inv(light_matrix(self))
+        s = uv_light.x * 2.0 - 1.0
+        t = uv_light.y * 2.0 - 1.0
+        base = transform_f64(W, mi.Vector3d(s * self.tan_half, t * self.tan_half, 1.0),
+                             point=False)
+        R = W[:3, :3]
+        k = 2.0 * self.tan_half
+        return (True, mi.Vector3f(base), mi.Vector3f(*(k * R[:, 0]).tolist()),
+                mi.Vector3f(*(k * R[:, 1]).tolist()))
+
     def texel_world_size(self, res: int, depth, p_world=None):
         return depth * (2.0 * self.tan_half / res)
 

@@ -19,8 +19,8 @@ diagonal before the scene), so every depth a :class:`LocalView` returns
 ``depth_origin``, rounded to float32 only then (or, near the bound point, that
 rounded depth plus a small float32 step: see :meth:`~LocalView.ray_plane`, whose
 receiver-plane depths agree with float64 ones to a few float32 roundoffs; in
-float64 a filter's taps cost ``pcf`` 0.1-0.17 of an unshadowed frame more, measured
-in ``benchmarks/RESULTS.md``, 2026-12-03). Measured from the light
+float64 a filter's taps cost ``pcf`` up to 0.21 and ``pcss`` up to 0.74 of an
+unshadowed frame more, ``benchmarks/RESULTS.md``, 2026-12-03). Measured from the light
 itself, a depth 1e9 away would round to 64 units, and the receivers' lowering
 below (24 units at 1e8) would lose every shadow of a scene 10 units wide
 (``far_point.xml`` before: 2.3 of its 3.1 % shadow lost at 1e7, all at 1e8). The

@@ -1298,7 +1298,8 @@ def test_pixel_ray_differentials_of_a_batch_equal_each_cameras_own():
             assert np.all(np.linalg.norm(got - want, axis=0) <= 0.05 * step)
 
 
-@pytest.mark.parametrize("light", ["spot", "point", "directional", "area", "far_point"])
+@pytest.mark.parametrize("light", ["spot", "point", "directional", "area", "far_point",
+                                   "cascades"])
 def test_receiver_plane_depths_in_float32_match_float64(light):
     """A bound lookup meets a filter tap's ray with the receiver's plane in float32,
     relative to the receiver's own ray (:meth:`LocalView._plane_step`): at taps up to 12
@@ -1306,16 +1307,21 @@ def test_receiver_plane_depths_in_float32_match_float64(light):
     planes tilted up to 87 degrees from the light, the depth and cosine equal the
     float64 intersection's up to float32 rounding (a few units in the last place of the
     depth and of the step), also for a point light 1e5 away (depths from its
-    ``depth_origin``); so does the tap's ray direction."""
+    ``depth_origin``), and on a directional light's virtual cascades; so does the tap's
+    ray direction."""
     from mi_shadowmap.filters.common import Lookup
     from mi_shadowmap.light_views.local import LocalView
     if light == "far_point":
         scene = mi.load_file(str(SCENES / "far_point.xml"), width=48, height=48)
     else:
-        scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light=light))
-    integ = shadowmap(method="pcf", virtual=True, cache_maps=False)
+        scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light={
+            "cascades": "directional"}.get(light, light)))
+    integ = shadowmap(method="pcf", virtual=True, cache_maps=False,
+                      **({"cascades": 3} if light == "cascades" else {}))
     vis_of(scene, integ, spp=1)
     vmap = integ.maps[0]
+    if light == "cascades":
+        assert vmap.view.n_faces >= 3     # the cascades (and a catch-all face)
     si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
     lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
     bound = vmap.bind(lk, valid)
@@ -1335,8 +1341,9 @@ def test_receiver_plane_depths_in_float32_match_float64(light):
             v = rng.normal(size=(3, n))
             nrm = dr.normalize(mi.Vector3f(*(mi.Float(x) for x in v)))
         face = local.face
-        if trial == 2 and vmap.view.n_faces > 1:     # some taps on the next cube face
-            face = dr.select(mi.Float(rng.random(n)) < 0.2, (local.face + 2) % 6, local.face)
+        if trial == 2 and vmap.view.n_faces > 1:     # some taps on another face
+            face = dr.select(mi.Float(rng.random(n)) < 0.2,
+                             (local.face + 2) % vmap.view.n_faces, local.face)
         t, c = local.ray_plane(face, uv, lk.p_world, nrm, 1e-12)
         t64, c64 = local._ray_plane_f64(face, uv, lk.p_world, nrm, 1e-12)
         ok = (valid & bound.inside & (dr.abs(c64) >= 0.05)).numpy()

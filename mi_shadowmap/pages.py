@@ -774,9 +774,7 @@ class VirtualShadowMap:
         origin = mi.Point2i(bx * P, by * P)
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside),
                           depth_origin=self.depth_origin)
-        bound = BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads)
-        bound.inside = inside     # the point projects into the map (else read as lit)
-        return bound
+        return BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside)
 
     def visibility(self, lookup, lk, opts, active=True, per_tap: bool = False) -> mi.Float:
         """``lookup(bound, lk, opts, active)`` (a method's lookup) on this map.
@@ -839,13 +837,14 @@ class BoundVirtualMap:
     """
 
     def __init__(self, vmap: VirtualShadowMap, view: LocalView, res, level, entry,
-                 slots=None, check_reads: bool = False):
+                 slots=None, check_reads: bool = False, inside=True):
         self.vmap = vmap
         self.view = view
         self.resolution = res
         self.level = level
         self.entry = entry      # (where the 2 x 2 pages' slots are in the table, valid)
         self.slots = slots      # their 4 slots, or None: gathered per read
+        self.inside = inside    # the point projects into the map (else read as lit)
         # bound unwalked (VirtualShadowMap.visibility): reads check their page and tile,
         # and ``missed`` collects the lanes where one is missing (None before a read)
         self.check_reads = check_reads
@@ -872,9 +871,9 @@ class BoundVirtualMap:
         in_block = (mi.UInt32(face) == v.face) & (li >= 0) & (lj >= 0) & (li < 2 * P) \
             & (lj < 2 * P)
         q = dr.select(li >= P, 1, 0) + dr.select(lj >= P, 2, 0)
+        e, eok = self.entry
+        m = eok & in_block              # the table has the block (read per tap only)
         if self.slots is None:
-            e, eok = self.entry
-            m = eok & in_block
             s = dr.select(m, dr.gather(mi.UInt32, self.vmap.dense, e + mi.UInt32(q), m),
                           _INVALID)
         else:
@@ -888,8 +887,6 @@ class BoundVirtualMap:
                                   "(dr.while_loop, dr.if_stmt: its reads decide which lanes "
                                   "run again, walked); register it with "
                                   "virtual_per_tap=False")
-            e, eok = self.entry
-            m = eok & in_block
             tiles = dr.gather(mi.UInt32, self.vmap.dense_tiles, e + mi.UInt32(q), m)
             S = lay.tiles_per_side
             t = mi.UInt32(li & (P - 1)) // lay.tile_size \

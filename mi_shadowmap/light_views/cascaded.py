@@ -160,10 +160,7 @@ class CascadedView(OrthoView):
         """Each cascade's parallel rays (:meth:`OrthoView.ray_frame_f64`, its own
         rectangle's half sizes)."""
         _, _, hx, hy = self._rect(mi.UInt32(face))
-        R = np.linalg.inv(light_matrix(self))[:3, :3]
-        d = R[:, 2] / np.linalg.norm(R[:, 2])
-        return (False, mi.Vector3f(*d.tolist()), mi.Vector3f(*(2.0 * R[:, 0]).tolist()) * hx,
-                mi.Vector3f(*(2.0 * R[:, 1]).tolist()) * hy)
+        return self._parallel_frame(hx, hy)
 
     def texel_world_size(self, res: int, depth, p_world=None):
         """Needs ``p_world`` (its cascade sets the texel size); without it, the

@@ -96,11 +96,15 @@ class OrthoView(LightView):
     def ray_frame_f64(self, face, uv_light):
         """(:attr:`~.base.LightView.ray_frame_f64`) Parallel rays: the origin moves by
         ``2 half_extent`` along the light's x and y per unit of ``uv``."""
+        return self._parallel_frame(*self.half_extent)
+
+    def _parallel_frame(self, hx, hy):
+        """The parallel ray frame of a rectangle of half sizes ``hx``, ``hy`` (floats or
+        per-lane ``mi.Float``) in the light's plane."""
         R = np.linalg.inv(light_matrix(self))[:3, :3]
         d = R[:, 2] / np.linalg.norm(R[:, 2])
-        return (False, mi.Vector3f(*d.tolist()),
-                mi.Vector3f(*(2.0 * self.half_extent[0] * R[:, 0]).tolist()),
-                mi.Vector3f(*(2.0 * self.half_extent[1] * R[:, 1]).tolist()))
+        return (False, mi.Vector3f(*d.tolist()), mi.Vector3f(*(2.0 * R[:, 0]).tolist()) * hx,
+                mi.Vector3f(*(2.0 * R[:, 1]).tolist()) * hy)
 
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
         return dr.dot(p_world - mi.Point3f(self.position), self._forward())

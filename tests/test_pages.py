@@ -1346,6 +1346,14 @@ def test_receiver_plane_depths_in_float32_match_float64(light):
                              (local.face + 2) % vmap.view.n_faces, local.face)
         t, c = local.ray_plane(face, uv, lk.p_world, nrm, 1e-12)
         t64, c64 = local._ray_plane_f64(face, uv, lk.p_world, nrm, 1e-12)
+        # the float32 path is the one taken on the bound face, also for a copy of the
+        # point (mdsm's and second_depth's mi.Point3f(lk.p_world))
+        t32 = local._plane_step(uv, nrm, 1e-12)[0]
+        tc = local.ray_plane(face, uv, mi.Point3f(lk.p_world), nrm, 1e-12)[0]
+        same = (valid & (mi.UInt32(face) == local.face)).numpy()
+        assert same.sum() > 500
+        for x in (t, tc):
+            np.testing.assert_array_equal(x.numpy()[same], t32.numpy()[same])
         ok = (valid & bound.inside & (dr.abs(c64) >= 0.05)).numpy()
         t, t64, c, c64 = (np.asarray(x.numpy(), np.float64) for x in (t, t64, c, c64))
         t0 = np.asarray(local._frame[6].numpy(), np.float64)

@@ -23,7 +23,8 @@ from . import environment as env_mod
 from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
-from .light_views import emitter_kind, emitter_label, make_light_view, pixel_step
+from .light_views import (differential_origins, emitter_kind, emitter_label, is_pinhole,
+                          make_light_view, pinhole, pixel_step)
 from .light_views.base import scene_bounds
 from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
 from .pages import VirtualShadowMap
@@ -112,6 +113,9 @@ screen is Mitsuba's projective integrators' job.
         self._sensor = None
         self._pixel_step = None       # a sensor without ray differentials (render() sets it)
         self._pixel_step_memo = None
+        # a perspective camera's pinhole (opaque, render() sets it): its differentials'
+        # origin (light_views.differential_origins)
+        self._pinhole = None
         self._delta_term = False
         self._delta_memo = None    # the scene has delta BSDF lobes (render() sets it)
 
@@ -277,12 +281,16 @@ screen is Mitsuba's projective integrators' job.
         ``sensor``, whether the delta-lobe term applies, the footprints' scale (Mitsuba
         scales ray differentials by 1/sqrt(spp); footprints use whole pixels; an opaque
         value, so a new spp compiles nothing) and a sensor's pixel step without ray
-        differentials."""
+        differentials; a perspective camera's pinhole, where its differentials start
+        (:func:`~mi_shadowmap.light_views.differential_origins`: Mitsuba's start on the
+        near plane)."""
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
         self._diff_scale = dr.opaque(mi.Float, math.sqrt(spp))
         self._pixel_step = self._sensor_pixel_step(sensor)
+        pin = pinhole(sensor)
+        self._pinhole = None if pin is None else dr.opaque(mi.Point3f, pin)
 
     def _scene_has_delta(self, scene) -> bool:
         """:func:`has_delta_bsdf`, kept per scene (a scene's shapes and their BSDFs'
@@ -515,7 +523,7 @@ screen is Mitsuba's projective integrators' job.
         Returns ``(point, pixel)``: ``pixel`` an id of the film pixel (``x + 65536 y``;
         None with other sensors)."""
         sensor = self._sensor
-        if not _is_pinhole(sensor):
+        if not is_pinhole(sensor):
             return si.p, None
         ds, _ = sensor.sample_direction(dr.detach(si), mi.Point2f(0.5), active)
         uv = dr.detach(ds.uv)
@@ -540,7 +548,9 @@ screen is Mitsuba's projective integrators' job.
                       centre)
 
     def _footprint(self, ray: mi.RayDifferential3f, si):
-        """World-space pixel footprint on the tangent plane (ray differentials)."""
+        """World-space pixel footprint on the tangent plane (ray differentials; a
+        perspective camera's from its pinhole, see
+        :func:`~mi_shadowmap.light_views.differential_origins`)."""
         n = si.n
         scale = self._diff_scale
 
@@ -560,6 +570,8 @@ screen is Mitsuba's projective integrators' job.
             return mi.Vector3f(dp_dx), mi.Vector3f(dp_dy)
         o_x = ray.o + (ray.o_x - ray.o) * scale
         o_y = ray.o + (ray.o_y - ray.o) * scale
+        if self._pinhole is not None:   # Mitsuba's start on the near plane, not the pinhole
+            o_x, o_y = differential_origins(ray, self._pinhole, o_x, o_y)
         d_x = ray.d + (ray.d_x - ray.d) * scale
         d_y = ray.d + (ray.d_y - ray.d) * scale
         dp_dx = dr.select(ok, hit(o_x, d_x) - si.p, 0.0)
@@ -652,12 +664,6 @@ def _light_sample(emitter, si, bsdf, ctx, u, shade):
     lit = shade & (ds.pdf > 0)
     unshadowed = w * bsdf.eval(ctx, si, si.to_local(ds.d), lit)
     return ds, unshadowed, lit & (dr.max(unshadowed) > 0)
-
-
-def _is_pinhole(sensor) -> bool:
-    """A ``perspective`` camera (``sample_direction`` gives a point's film position)."""
-    return (isinstance(sensor, mi.ProjectiveCamera) and not sensor.needs_aperture_sample()
-            and str(sensor).startswith("PerspectiveCamera"))
 
 
 class _Recorder:

@@ -1370,3 +1370,38 @@ def test_receiver_plane_depths_in_float32_match_float64(light):
         for x, y in zip(d, d64):
             np.testing.assert_allclose(np.broadcast_to(x.numpy(), (n,))[ok],
                                        np.broadcast_to(y.numpy(), (n,))[ok], atol=2e-6)
+
+
+@pytest.mark.parametrize("near", [1e-3, 0.8])
+def test_footprints_start_at_the_pinhole_whatever_the_near_clip(near):
+    """Mitsuba's ``perspective`` camera starts rays on its near plane and gives their
+    differentials that same origin with the neighbouring pixels' directions through
+    the pinhole (``light_views.differential_origins``). One pixel's footprint on a
+    plane parallel to the film, ``D`` away, is ``2 D tan(fov / 2) / W`` at every pixel
+    and any ``near_clip``: in the mark pass (``camera_hits``) and in the render
+    (``_footprint``, differentials scaled by 1 / sqrt(spp) as Mitsuba's render does).
+    From the near-plane origin it would be ``1 - near`` of that (a fifth at 0.8)."""
+    from mi_shadowmap.light_views import pixel_centres
+    D, W, fov, spp = 10.0, 32, 40.0, 4
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": fov, "near_clip": near * D, "far_clip": 1e3,
+                   "to_world": T().look_at([1, 2, 3], [1, 2, 3 - D], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": W, "height": W}},
+        "plane": {"type": "rectangle", "to_world": T().translate([1, 2, 3 - D]).scale(50)},
+        "light": {"type": "point", "position": [1, 2, 2]}})
+    sensor = scene.sensors()[0]
+    want = 2.0 * D * math.tan(math.radians(fov / 2)) / W
+    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, sensor)
+    assert np.all(valid.numpy())
+    for dp in (dp_dx, dp_dy):
+        np.testing.assert_allclose(np.linalg.norm(np.array(dp), axis=0), want, rtol=1e-3)
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard"})
+    integ._first_pass(scene, sensor, spp)
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
+    s = 1.0 / math.sqrt(spp)         # RayDifferential3f.scale_differentials (C++ only)
+    ray.o_x, ray.o_y = ray.o + (ray.o_x - ray.o) * s, ray.o + (ray.o_y - ray.o) * s
+    ray.d_x, ray.d_y = ray.d + (ray.d_x - ray.d) * s, ray.d + (ray.d_y - ray.d) * s
+    si = scene.ray_intersect(ray)
+    for dp in integ._footprint(ray, si):
+        np.testing.assert_allclose(np.linalg.norm(np.array(dp), axis=0), want, rtol=1e-3)

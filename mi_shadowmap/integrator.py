@@ -23,8 +23,8 @@ from . import environment as env_mod
 from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
-from .light_views import (differential_origins, emitter_kind, emitter_label, is_pinhole,
-                          make_light_view, pinhole, pixel_step)
+from .light_views import (emitter_kind, emitter_label, is_pinhole, make_light_view,
+                          pinhole_footprint, pinhole_frame, pixel_step)
 from .light_views.base import scene_bounds
 from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
 from .pages import VirtualShadowMap
@@ -113,8 +113,7 @@ screen is Mitsuba's projective integrators' job.
         self._sensor = None
         self._pixel_step = None       # a sensor without ray differentials (render() sets it)
         self._pixel_step_memo = None
-        # a perspective camera's pinhole (opaque, render() sets it): its differentials'
-        # origin (light_views.differential_origins)
+        # a perspective camera's light_views.pinhole_frame (opaque; render() sets it)
         self._pinhole = None
         self._delta_term = False
         self._delta_memo = None    # the scene has delta BSDF lobes (render() sets it)
@@ -281,16 +280,16 @@ screen is Mitsuba's projective integrators' job.
         ``sensor``, whether the delta-lobe term applies, the footprints' scale (Mitsuba
         scales ray differentials by 1/sqrt(spp); footprints use whole pixels; an opaque
         value, so a new spp compiles nothing) and a sensor's pixel step without ray
-        differentials; a perspective camera's pinhole, where its differentials start
-        (:func:`~mi_shadowmap.light_views.differential_origins`: Mitsuba's start on the
-        near plane)."""
+        differentials; a perspective camera's pinhole and pixel steps, from which its
+        footprints are taken (:func:`~mi_shadowmap.light_views.pinhole_footprint`)."""
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
         self._diff_scale = dr.opaque(mi.Float, math.sqrt(spp))
         self._pixel_step = self._sensor_pixel_step(sensor)
-        pin = pinhole(sensor)
-        self._pinhole = None if pin is None else dr.opaque(mi.Point3f, pin)
+        frame = pinhole_frame(sensor)   # opaque: a moved camera compiles nothing
+        self._pinhole = None if frame is None else tuple(
+            dr.opaque(mi.Point3f if k == 0 else mi.Vector3f, v) for k, v in enumerate(frame))
 
     def _scene_has_delta(self, scene) -> bool:
         """:func:`has_delta_bsdf`, kept per scene (a scene's shapes and their BSDFs'
@@ -548,9 +547,13 @@ screen is Mitsuba's projective integrators' job.
                       centre)
 
     def _footprint(self, ray: mi.RayDifferential3f, si):
-        """World-space pixel footprint on the tangent plane (ray differentials; a
-        perspective camera's from its pinhole, see
-        :func:`~mi_shadowmap.light_views.differential_origins`)."""
+        """World-space pixel footprint on the tangent plane: a perspective camera's from
+        its pinhole and pixel steps (:func:`~mi_shadowmap.light_views.pinhole_footprint`,
+        the points its ray differentials would give, at a fraction of their cost: a
+        virtual ``hard`` lookup's footprint cost as much as a full map's whole lookup);
+        other sensors' from their ray differentials."""
+        if self._pinhole is not None:
+            return pinhole_footprint(si.p, si.n, self._pinhole)
         n = si.n
         scale = self._diff_scale
 
@@ -570,8 +573,6 @@ screen is Mitsuba's projective integrators' job.
             return mi.Vector3f(dp_dx), mi.Vector3f(dp_dy)
         o_x = ray.o + (ray.o_x - ray.o) * scale
         o_y = ray.o + (ray.o_y - ray.o) * scale
-        if self._pinhole is not None:   # Mitsuba's start on the near plane, not the pinhole
-            o_x, o_y = differential_origins(ray, self._pinhole, o_x, o_y)
         d_x = ray.d + (ray.d_x - ray.d) * scale
         d_y = ray.d + (ray.d_y - ray.d) * scale
         dp_dx = dr.select(ok, hit(o_x, d_x) - si.p, 0.0)

@@ -113,7 +113,8 @@ import numpy as np
 
 from .depth_maps import first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS, MethodError  # noqa: F401  (VIRTUAL_LAYERS: built here)
-from .light_views import pixel_centres, pixel_ray_differentials
+from .light_views import (pinhole_footprint, pinhole_frame, pixel_centres,
+                          pixel_ray_differentials)
 from .light_views.base import TEXEL_SAMPLE, scene_bounds
 from .light_views.local import LocalView
 from .light_views import box_view
@@ -916,13 +917,24 @@ class BoundVirtualMap:
 
 # ------------------------------------------------------------------- mark pass
 def camera_hits(scene, sensor, evaluate: bool = True):
-    """Camera hits at every pixel centre with one-pixel ray differentials:
-    ``(si, dp_dx, dp_dy, valid)``; unevaluated with ``evaluate=False`` (the mark pass
-    traces them in its own kernel)."""
+    """Camera hits at every pixel centre with their one-pixel footprints (where the next
+    pixel's rays meet the tangent plane: a perspective camera's from its pinhole, as the
+    render takes them, :func:`~mi_shadowmap.light_views.pinhole_footprint`; other
+    sensors' from their ray differentials): ``(si, dp_dx, dp_dy, valid)``; unevaluated
+    with ``evaluate=False`` (the mark pass traces them in its own kernel)."""
     ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
     # position and geometric normal are all marking needs (RayFlags.All also computes
     # UVs, shading frames and their derivatives: about half the pass)
     si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
+    valid = si.is_valid()
+    frame = pinhole_frame(sensor)
+    if frame is not None:       # as the render takes them (integrator._footprint)
+        frame = tuple(dr.opaque(mi.Point3f if k == 0 else mi.Vector3f, v)
+                      for k, v in enumerate(frame))
+        dp_dx, dp_dy = pinhole_footprint(si.p, si.n, frame)
+        if evaluate:
+            dr.eval(si.p, dp_dx, dp_dy, valid)
+        return si, dp_dx, dp_dy, valid
     n = si.n
 
     def hit(o, d):
@@ -932,7 +944,6 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     ok = ray.has_differentials
     dp_dx = mi.Vector3f(dr.select(ok, hit(ray.o_x, ray.d_x) - si.p, 0.0))
     dp_dy = mi.Vector3f(dr.select(ok, hit(ray.o_y, ray.d_y) - si.p, 0.0))
-    valid = si.is_valid()
     if evaluate:
         dr.eval(si.p, dp_dx, dp_dy, valid)
     return si, dp_dx, dp_dy, valid

@@ -45,7 +45,8 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
            "footprint_ratio", "pixel_centres", "pixel_ray_differentials", "pixel_step",
-           "is_pinhole", "pinhole", "differential_origins",
+           "is_pinhole", "pinhole", "differential_origins", "pinhole_frame",
+           "pinhole_footprint",
            "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
 
 SUPPORTED_EMITTERS = ("point", "spot", "directional", "area", "projector")
@@ -176,6 +177,58 @@ def differential_origins(ray, pin, o_x=None, o_y=None):
     o_y = ray.o_y if o_y is None else o_y
     return (dr.select(dr.all(ray.o_x == ray.o), pin, o_x),
             dr.select(dr.all(ray.o_y == ray.o), pin, o_y))
+
+
+def pinhole_frame(sensor):
+    """``(pinhole, forward, step_x, step_y)`` of a ``perspective`` camera (world space,
+    tuples of floats), else None: its pinhole, its unit viewing axis, and the change of a
+    ray's direction scaled to unit depth along that axis (``d / (forward . d)``) from one
+    pixel of the film's crop to the next in x and in y (the same at every pixel: it is
+    affine in the film position), measured across the middle half of the crop in float64.
+    What :func:`pinhole_footprint` needs."""
+    if sensor is None or not is_pinhole(sensor):
+        return None
+    w, h = (int(x) for x in sensor.film().crop_size())
+    pos = mi.Point2f(mi.Float([0.25, 0.75, 0.5, 0.5]), mi.Float([0.5, 0.5, 0.25, 0.75]))
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    d = np.array(ray.d, dtype=np.float64)             # (3, 4)
+    to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    fwd = to_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    fwd /= np.linalg.norm(fwd)
+    unit = d / (fwd @ d)
+    step_x = (unit[:, 1] - unit[:, 0]) / (0.5 * w)
+    step_y = (unit[:, 3] - unit[:, 2]) / (0.5 * h)
+    pin = to_world[:3, 3]
+    return tuple(tuple(float(x) for x in v) for v in (pin, fwd, step_x, step_y))
+
+
+def pinhole_footprint(p_world, n_world, frame):
+    """``(dp_dx, dp_dy)``: where the rays from the pinhole through the next pixel in x and
+    in y meet the tangent plane of ``p_world`` (normal ``n_world``), minus ``p_world``;
+    ``frame`` is :func:`pinhole_frame`'s, as JIT values.
+
+    With ``v = p - pinhole``, ``z = forward . v``, ``a = n . v`` and ``b = z (n . step)``,
+    the next pixel's ray ``pinhole + l (v / z + step)`` meets the plane at
+    ``p + (a z step - b v) / (a + b)``: the same point as intersecting the camera's ray
+    differentials with the plane (a finite difference of one pixel, not a derivative),
+    from the pinhole whatever the ``near_clip`` (Mitsuba's ``perspective`` camera gives
+    its differentials the near-plane origin, see :func:`differential_origins`), with one
+    division per axis and no ray differentials (Mitsuba's ``d_x``, ``d_y`` are then not
+    computed at all). A neighbour's ray parallel to the plane gives a huge footprint, as
+    intersecting it would."""
+    pin, fwd, step_x, step_y = frame
+    v = mi.Vector3f(p_world - pin)
+    n = mi.Vector3f(n_world)
+    z = dr.dot(v, fwd)
+    a = dr.dot(n, v)
+    tiny = 1e-12 * dr.abs(z)
+    out = []
+    for step in (step_x, step_y):
+        b = z * dr.dot(n, step)
+        den = a + b
+        den = dr.select(dr.abs(den) > tiny, den, tiny)
+        out.append(mi.Vector3f((a * z * step - b * v) / den))
+    return tuple(out)
 
 
 def pixel_step(sensor):

@@ -24,10 +24,10 @@ from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import (emitter_kind, emitter_label, is_pinhole, make_light_view,
-                          pinhole_footprint, pinhole_frame, pixel_step)
+                          pinhole_footprint, pixel_step)
 from .light_views.base import scene_bounds
 from .variants import SUPPORTED_VARIANTS, check_variant, variant_class
-from .pages import VirtualShadowMap
+from .pages import VirtualShadowMap, camera_frame
 from .map_manager import MAP_CACHE, MapCache, MapStats, prepare_maps  # noqa: F401  (re-exported)
 
 
@@ -287,9 +287,7 @@ screen is Mitsuba's projective integrators' job.
         self._delta_term = self._scene_has_delta(scene)
         self._diff_scale = dr.opaque(mi.Float, math.sqrt(spp))
         self._pixel_step = self._sensor_pixel_step(sensor)
-        frame = pinhole_frame(sensor)   # opaque: a moved camera compiles nothing
-        self._pinhole = None if frame is None else tuple(
-            dr.opaque(mi.Point3f if k == 0 else mi.Vector3f, v) for k, v in enumerate(frame))
+        self._pinhole = camera_frame(sensor)   # shared with the mark pass
 
     def _scene_has_delta(self, scene) -> bool:
         """:func:`has_delta_bsdf`, kept per scene (a scene's shapes and their BSDFs'

@@ -927,10 +927,8 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     # UVs, shading frames and their derivatives: about half the pass)
     si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
     valid = si.is_valid()
-    frame = pinhole_frame(sensor)
+    frame = camera_frame(sensor)
     if frame is not None:       # as the render takes them (integrator._footprint)
-        frame = tuple(dr.opaque(mi.Point3f if k == 0 else mi.Vector3f, v)
-                      for k, v in enumerate(frame))
         dp_dx, dp_dy = pinhole_footprint(si.p, si.n, frame)
         if evaluate:
             dr.eval(si.p, dp_dx, dp_dy, valid)
@@ -1107,6 +1105,30 @@ def camera_state(sensor) -> CameraState:
 #: Per sensor (by ``id``, holding it): ``[sensor, ParamWatch of its parameters, last
 #: CameraState]``.
 _CAMERAS = collections.OrderedDict()
+
+
+def camera_frame(sensor):
+    """:func:`~mi_shadowmap.light_views.pinhole_frame` of ``sensor`` as opaque JIT values
+    (a moved camera compiles nothing), or None; kept per camera state
+    (:func:`camera_state`), so the render and its mark pass share one, and a still camera
+    measures its pixel steps once (a small kernel and a read-back each time)."""
+    if sensor is None:
+        return None
+    state = camera_state(sensor)
+    slot = _FRAMES.get(id(sensor))
+    if slot is None or slot[0] is not sensor or slot[1] != state:
+        frame = pinhole_frame(sensor)
+        if frame is not None:
+            frame = tuple(dr.opaque(mi.Point3f if k == 0 else mi.Vector3f, v)
+                          for k, v in enumerate(frame))
+        slot = _FRAMES[id(sensor)] = (sensor, state, frame)
+        while len(_FRAMES) > 8:
+            _FRAMES.pop(next(iter(_FRAMES)))
+    return slot[2]
+
+
+#: Per sensor (by ``id``, holding it): ``(sensor, CameraState, camera_frame)``.
+_FRAMES = {}
 
 
 # ----------------------------------------------------------------------- cache

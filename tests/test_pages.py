@@ -606,6 +606,17 @@ def test_a_small_budget_degrades_to_coarser_pages_never_lit():
     assert lit_small <= lit_coarse + 0.002
 
 
+@pytest.mark.parametrize("T", [1, 2, 8, 16])
+def test_morton_order_visits_every_texel_of_a_tile_once(T):
+    """The page build's texel order (:func:`pages.morton_xy`) is a permutation of the
+    tile's texels, whose first 8 are a 4 x 2 block (one vector of neighbours)."""
+    i, j = pages.morton_xy(dr.arange(mi.UInt32, T * T), T)
+    i, j = i.numpy().astype(int), j.numpy().astype(int)
+    assert sorted(zip(i, j)) == [(a, b) for a in range(T) for b in range(T)]
+    if T >= 4:
+        assert (i[:8].max(), j[:8].max()) == (3, 1)
+
+
 @pytest.mark.parametrize("bits", [4, 14])
 def test_mark_dedupe_returns_every_distinct_key(bits):
     """The mark pass's hash-table dedupe (:func:`pages._dedupe_many`) returns, per light,

@@ -90,7 +90,8 @@ def _add_scene_args(p, sizes=True, out="out"):
     p.add_argument("--out", default=out, help=f"output folder (default: {out})")
     p.add_argument("--variant", default=None, metavar="NAME",
                    help="Mitsuba variant to render in: llvm_ad_rgb (default), llvm_ad_mono, "
-                        "llvm_ad_spectral, or cuda_ad_* where a CUDA GPU exists")
+                        "llvm_ad_spectral, their *_polarized twins, or cuda_ad_* where a "
+                        "CUDA GPU exists")
     _add_common_args(p)
 
 

@@ -83,6 +83,7 @@ import numpy as np
 from .light_views.base import look_along_np, position_np
 from .light_views.multi import MultiView, SubView, stratified_points
 from .light_views.ortho import directional_view
+from .variants import unpolarized
 
 #: Grid of a ``constant`` emitter's cut (rows x columns).
 CONSTANT_GRID = (32, 64)
@@ -143,10 +144,10 @@ def _eval_luminance(emitter, d_local: np.ndarray) -> np.ndarray:
     si = dr.zeros(mi.SurfaceInteraction3f, len(d))
     si.wi = mi.Vector3f(*[mi.Float(-d[:, a].astype(np.float32)) for a in range(3)])
     if mi.is_spectral:
-        si.wavelengths = mi.Spectrum(*_WAVELENGTHS)
-    val = emitter.eval(si)
+        si.wavelengths = type(si.wavelengths)(*_WAVELENGTHS)
+    val = unpolarized(emitter.eval(si))
     chans = np.stack([np.asarray(val[c].numpy(), dtype=np.float64).reshape(-1)
-                      for c in range(dr.size_v(mi.Spectrum))], axis=1)
+                      for c in range(dr.size_v(mi.UnpolarizedSpectrum))], axis=1)
     if mi.is_rgb:
         lum = chans @ np.array([0.212671, 0.715160, 0.072169])
     else:
@@ -471,9 +472,9 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         si_e = dr.zeros(mi.SurfaceInteraction3f)
         si_e.wi = -d
         si_e.wavelengths = si.wavelengths
-        L = emitter.eval(si_e, act)
+        L = unpolarized(emitter.eval(si_e, act))
         wo = si.to_local(d)
-        f = bsdf.eval(ctx, si, wo, act)
+        f = unpolarized(bsdf.eval(ctx, si, wo, act))
         contrib = L * f * omega
         lit = act & (dr.max(contrib) > 0)
         ds = dr.zeros(mi.DirectionSample3f)
@@ -495,6 +496,6 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
 
     z = mi.Float(0.0)
     _, result, wsum, vsum, _ = dr.while_loop(
-        (mi.UInt32(0), mi.Spectrum(0.0), z, z, sampler), cond, body)
+        (mi.UInt32(0), mi.UnpolarizedSpectrum(0.0), z, z, sampler), cond, body)
     aov = dr.select(act, vsum / dr.maximum(wsum, 1e-30), 0.0)
     return result, aov

@@ -32,7 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from .rays import spawn_shadow_ray
-from .variants import variant_class
+from .variants import as_spectrum, unpolarized, variant_class
 
 
 def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
@@ -85,7 +85,8 @@ class _ConvergedVisibilityMixin:
                 u = mi.Point2f(dr.gather(mi.Float, self.ux, k), dr.gather(mi.Float, self.uy, k))
                 ds, w = emitter.sample_direction(si, u, shade)
                 lit = shade & (ds.pdf > 0)
-                f = bsdf.eval(ctx, si, si.to_local(ds.d), lit)
+                w = unpolarized(w)
+                f = unpolarized(bsdf.eval(ctx, si, si.to_local(ds.d), lit))
                 lit &= dr.max(w * f) > 0
                 if self.occlusion:
                     occluded = scene.ray_test(spawn_shadow_ray(si, ds.p, scene), lit)
@@ -97,7 +98,7 @@ class _ConvergedVisibilityMixin:
             k, n_vis, any_lit = dr.while_loop((k, n_vis, any_lit), cond, body)
             aovs.append(dr.select(any_lit, n_vis / n, 0.0))
         mean = sum(aovs, mi.Float(0.0)) / max(len(aovs), 1)
-        return mi.Spectrum(mean), shade, aovs
+        return as_spectrum(mi.UnpolarizedSpectrum(mean)), shade, aovs
 
 
 def converged_visibility(scene: mi.Scene, n_light: int = 1024, seed: int = 0, spp: int = 16,

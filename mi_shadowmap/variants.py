@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-#: Variants the package supports (JIT, unpolarized): every colour mode, LLVM and CUDA.
+#: Variants the package supports (JIT): every colour mode, polarized or not, LLVM and CUDA.
 SUPPORTED_VARIANTS = tuple(f"{backend}_ad_{colour}" for backend in ("llvm", "cuda")
-                           for colour in ("rgb", "mono", "spectral"))
+                           for colour in ("rgb", "mono", "spectral", "mono_polarized",
+                                          "spectral_polarized"))
 
 
 class UnsupportedVariantError(RuntimeError):
@@ -25,9 +26,8 @@ class UnsupportedVariantError(RuntimeError):
 def check_variant(variant: str | None = None) -> str:
     """Return ``variant`` (default: the current one), or raise naming it and the supported ones.
 
-    Scalar variants run a Python integrator once per ray; polarized variants
-    carry Mueller matrices, which the shading (a scalar visibility times an
-    unpolarized ``weight * bsdf``) does not model.
+    Scalar variants run a Python integrator once per ray (see :func:`unpolarized` for
+    the polarized ones).
     """
     variant = variant or mi.variant()
     if variant in SUPPORTED_VARIANTS:
@@ -37,14 +37,36 @@ def check_variant(variant: str | None = None) -> str:
     elif variant.startswith("scalar"):
         why = ("a Python integrator in a scalar variant runs once per ray, so it needs a JIT "
                "(llvm_ad_* or cuda_ad_*) variant")
-    elif "polarized" in variant:
-        why = ("polarized variants carry Mueller matrices, which its unpolarized shading "
-               "does not model")
     else:
         why = "it is not one of the supported JIT variants"
     raise UnsupportedVariantError(
         f"shadowmap: the Mitsuba variant '{variant}' is not supported ({why}); supported "
         f"variants: {', '.join(SUPPORTED_VARIANTS)} (cuda_ad_* where a CUDA GPU exists)")
+
+
+def unpolarized(spectrum):
+    """The intensity of ``spectrum`` (``mi.unpolarized_spectrum``): in a polarized
+    variant, where BSDFs and emitters return Mueller matrices, their ``(0, 0)`` entry;
+    elsewhere ``spectrum`` itself.
+
+    Why the shading may work on intensities alone in a polarized variant: every
+    Mitsuba emitter is unpolarized (its Mueller matrix is a depolarizer, zero but for
+    the ``(0, 0)`` entry), and every term of this integrator's estimate has one
+    interaction between the light and the film (a light sample's BSDF, or one delta
+    lobe's sample for light seen in a mirror or through glass); a film records the
+    intensity (``(0, 0)``) of what arrives. The ``(0, 0)`` entry of ``M L`` with ``L``
+    a depolarizer is ``M[0, 0] L[0, 0]``, whatever frames ``M`` is expressed in (Stokes
+    frame rotations leave intensities alone), so the image equals ``direct``'s in that
+    variant. Light reflected twice (a mirror seen in a mirror) would need the whole
+    matrices; the integrator does not trace such paths."""
+    return mi.unpolarized_spectrum(spectrum)
+
+
+def as_spectrum(value):
+    """An intensity (``mi.UnpolarizedSpectrum``) as the variant's ``mi.Spectrum``: a
+    depolarizer Mueller matrix in a polarized variant (``mi.depolarizer``), else
+    ``value`` itself; what ``sample()`` returns."""
+    return mi.depolarizer(value)
 
 
 _CLASSES: dict = {}

@@ -57,6 +57,7 @@ import dataclasses
 import drjit as dr
 import mitsuba as mi
 
+from ..variants import unpolarized
 from ..light_views.multi import as_multi_view, multi_view
 from ..methods import Method, Prop
 from .common import Lookup, receiver, receiver_plane, tap_lit
@@ -106,14 +107,14 @@ def multiview(smap, lk: Lookup, opts, active=True):
     # Delta lights (point, spot, directional): whether the emitter itself lights p
     # (the spot's cone), from its own sample; area lights: per point, emits_towards.
     ds0, w0 = lk.ds.emitter.sample_direction(si, mi.Point2f(0.5, 0.5), act)
-    act &= ~ds0.delta | ((ds0.pdf > 0) & (dr.max(w0) > 0))
+    act &= ~ds0.delta | ((ds0.pdf > 0) & (dr.max(unpolarized(w0)) > 0))
     shift = lk.sampler.next_1d(act) if L < K else mi.Float(0.0)
     step = K / L
     # The horizon test: the BSDF towards the light's centre, evaluated once; a view on
     # the same side of the shading plane gets the same answer (BSDFs are zero or not per
     # hemisphere), only views across it evaluate the BSDF themselves.
     wo_c = si.to_local(smap.view.direction_to_light(p))
-    above_c = dr.max(bsdf.eval(ctx, si, wo_c, act)) > 0
+    above_c = dr.max(unpolarized(bsdf.eval(ctx, si, wo_c, act))) > 0
     side_c = mi.Frame3f.cos_theta(wo_c) > 0
 
     def cond(j, n_emit, n_above, n_lit):
@@ -125,7 +126,7 @@ def multiview(smap, lk: Lookup, opts, active=True):
         emits = act & view.emits_towards(k, p)
         wo = si.to_local(sub.view.direction_to_light(p))
         across = emits & ((mi.Frame3f.cos_theta(wo) > 0) != side_c)
-        f = bsdf.eval(ctx, si, wo, across)
+        f = unpolarized(bsdf.eval(ctx, si, wo, across))
         above = emits & dr.select(across, dr.max(f) > 0, above_c)
         vis = dr.select(above, test(sub, lk, opts, above), 0.0)
         return (j + 1, dr.select(emits, n_emit + 1.0, n_emit),

@@ -78,9 +78,10 @@ DELTA_BSDFS = {"conductor": {"type": "conductor"}, "dielectric": {"type": "diele
                "plastic": {"type": "plastic"}}
 
 
-def delta_scene(bsdf: str, light: str):
-    """A ball of ``bsdf`` on a diffuse floor filling a 32^2 view, under an area light or
-    a constant environment: the light reaches the camera through the ball's delta lobes."""
+def delta_scene(bsdf, light: str):
+    """A ball of ``bsdf`` (a key of :data:`DELTA_BSDFS`, or a BSDF dict) on a diffuse floor
+    filling a 32^2 view, under an area light or a constant environment: the light reaches
+    the camera through the ball's delta lobes."""
     T = mi.ScalarTransform4f
     d = {"type": "scene",
          "cam": {"type": "perspective", "fov": 45,
@@ -89,7 +90,7 @@ def delta_scene(bsdf: str, light: str):
                           "rfilter": {"type": "box"}}},
          "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(5)},
          "ball": {"type": "sphere", "to_world": T().translate([0, 0.6, 0]).scale(0.6),
-                  "bsdf": DELTA_BSDFS[bsdf]}}
+                  "bsdf": DELTA_BSDFS[bsdf] if isinstance(bsdf, str) else bsdf}}
     if light == "area":
         d["light"] = {"type": "rectangle", "emitter": {"type": "area", "radiance": 8.0},
                       "to_world": T().look_at([1.5, 4, 1], [0, 0, 0], [0, 1, 0]).scale(0.7)}

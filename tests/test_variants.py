@@ -71,8 +71,7 @@ def test_raytraced_matches_direct(variant, scene_name):
 def test_mirror_reflects_the_area_light_as_direct(variant):
     """The delta-lobe term (a conductor ball under an area light) in mono and spectral:
     measured relative RMSE 0.024 / 0.026, mean +0.3 / +0.5 % against ``direct``
-    (light sampling alone: 0.99 / -47 %); in spectral_polarized, where the conductor's
-    Fresnel term is a Mueller matrix, as in spectral."""
+    (light sampling alone: 0.99 / -47 %); in spectral_polarized as in spectral."""
     mi.set_variant(variant)
     scene = delta_scene("conductor", "area")
     ref = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=1024,
@@ -113,7 +112,7 @@ def test_spectral_scene_is_spectral():
     assert rgb[..., 0].mean() > 1.5 * rgb[..., 2].mean()
 
 
-@pytest.mark.parametrize("variant", OTHER)
+@pytest.mark.parametrize("variant", OTHER + POLARIZED)
 def test_converged_reference_and_harness(variant):
     mi.set_variant(variant)
     scene = load("cbox_area.xml", width=24, height=24)
@@ -181,23 +180,30 @@ def test_gradients_match_finite_differences(variant, which):
 
 
 # --------------------------------------------------------------- polarized variants
+#: Balls whose delta lobes polarize (a Mueller matrix with more than a (0, 0) entry): gold
+#: (complex index of refraction) under the sky, glass under the area light
+POLARIZING = {"gold under the sky": ({"type": "conductor", "material": "Au"}, "constant"),
+              "glass under the area light": ({"type": "dielectric"}, "area")}
+
+
 @pytest.mark.parametrize("variant", POLARIZED)
-@pytest.mark.parametrize("scene_name", ["spot_sphere_box.xml", "cbox_area.xml", "sky_sun.xml",
-                                        "conductor under the sky"])
+@pytest.mark.parametrize("scene_name", ["spot_sphere_box.xml", "spectral_point.xml",
+                                        "cbox_area.xml", "sky_sun.xml", *POLARIZING])
 def test_polarized_variant_renders_its_unpolarized_twins_image(variant, scene_name):
     """A polarized variant's image is its unpolarized twin's (same seed, same samples):
     every term of the estimate has one interaction between an unpolarized emitter and
     the film, whose intensity is the Mueller matrix's (0, 0) entry
     (:func:`mi_shadowmap.variants.unpolarized`). Point, spot and area lights, the
-    environment's median-cut regions (sky_sun) and a conductor ball seen under a constant
-    sky (the delta-lobe term; the conductor's Fresnel term is a Mueller matrix there);
+    environment's median-cut regions (sky_sun), and balls whose delta lobes polarize
+    (:data:`POLARIZING`: the delta-lobe term, through Fresnel terms that are full Mueller
+    matrices there);
     ``raytraced``, a map method per kind of lookup, and the visibility AOVs, which do
     not depend on the colour model at all."""
     twin = variant.removesuffix("_polarized")
     out = {}
     for v in (twin, variant):
         mi.set_variant(v)
-        scene = (delta_scene("conductor", "constant") if scene_name.startswith("conductor")
+        scene = (delta_scene(*POLARIZING[scene_name]) if scene_name in POLARIZING
                  else load(scene_name, width=32, height=32))
         for method in ("raytraced", "hard", "pcss", "multiview"):
             out[v, method] = render_np(scene, {"type": "shadowmap", "method": method}, spp=4,

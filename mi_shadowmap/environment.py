@@ -83,7 +83,7 @@ import numpy as np
 from .light_views.base import look_along_np, position_np
 from .light_views.multi import MultiView, SubView, stratified_points
 from .light_views.ortho import directional_view
-from .variants import unpolarized
+from .variants import bsdf_to_world, unpolarized
 
 #: Grid of a ``constant`` emitter's cut (rows x columns).
 CONSTANT_GRID = (32, 64)
@@ -472,11 +472,11 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         si_e = dr.zeros(mi.SurfaceInteraction3f)
         si_e.wi = -d
         si_e.wavelengths = si.wavelengths
-        L = unpolarized(emitter.eval(si_e, act))
+        L = emitter.eval(si_e, act)
         wo = si.to_local(d)
-        f = unpolarized(bsdf.eval(ctx, si, wo, act))
-        contrib = L * f * omega
-        lit = act & (dr.max(contrib) > 0)
+        f = bsdf_to_world(si, bsdf.eval(ctx, si, wo, act), wo)
+        contrib = f * L * omega
+        lit = act & (dr.max(unpolarized(contrib)) > 0)
         ds = dr.zeros(mi.DirectionSample3f)
         ds.p = si.p + d * bsphere
         ds.d = d
@@ -496,6 +496,6 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
 
     z = mi.Float(0.0)
     _, result, wsum, vsum, _ = dr.while_loop(
-        (mi.UInt32(0), mi.UnpolarizedSpectrum(0.0), z, z, sampler), cond, body)
+        (mi.UInt32(0), mi.Spectrum(0.0), z, z, sampler), cond, body)
     aov = dr.select(act, vsum / dr.maximum(wsum, 1e-30), 0.0)
     return result, aov

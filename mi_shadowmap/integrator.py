@@ -26,7 +26,7 @@ from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import (emitter_kind, emitter_label, is_pinhole, make_light_view,
                           pinhole_footprint, pixel_step)
 from .light_views.base import scene_bounds
-from .variants import (SUPPORTED_VARIANTS, as_spectrum, check_variant, unpolarized,
+from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
                        variant_class)
 from .pages import VirtualShadowMap, camera_frame
 from .map_manager import MAP_CACHE, MapCache, MapStats, prepare_maps  # noqa: F401  (re-exported)
@@ -331,9 +331,9 @@ screen is Mitsuba's projective integrators' job.
             ray = mi.RayDifferential3f(ray)
         si = scene.ray_intersect(ray, active)
         valid = active & si.is_valid()
-        result = mi.UnpolarizedSpectrum(0.0)   # intensities (variants.unpolarized)
+        result = mi.Spectrum(0.0)
         if not opts.hide_emitters:
-            result += unpolarized(si.emitter(scene, active).eval(si, active))
+            result += si.emitter(scene, active).eval(si, active)
         bsdf = si.bsdf(ray)
         ctx = mi.BSDFContext()
         shade = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
@@ -393,7 +393,7 @@ screen is Mitsuba's projective integrators' job.
                         else dr.select(shade, whole, 0.0))
         if self._delta_term:
             result += _delta_lobe_term(scene, si, bsdf, sampler, valid)
-        return as_spectrum(result), valid, aovs
+        return result, valid, aovs
 
     def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade):
         """``(visibility, whole)`` of one light sample (see :meth:`_visibility`); 1 and
@@ -427,8 +427,7 @@ screen is Mitsuba's projective integrators' job.
                     contributes | lit, sampler)
 
         _, result, vis_sum, contributes, _ = dr.while_loop(
-            (mi.UInt32(0), mi.UnpolarizedSpectrum(0.0), mi.Float(0.0), mi.Bool(False),
-             sampler), cond,
+            (mi.UInt32(0), mi.Spectrum(0.0), mi.Float(0.0), mi.Bool(False), sampler), cond,
             body, labels=("k", "result", "vis_sum", "contributes", "sampler"),
             label="shadowmap light samples",
             mode="evaluated" if _tracks_gradients(scene) else None)
@@ -475,7 +474,7 @@ screen is Mitsuba's projective integrators' job.
                         emitter, si, bsdf, ctx, shifted_grid_point(k, n, u), shade)
                     return k + 1, average + dr.select(lit_k, unshadowed_k, 0.0)
 
-                _, average = dr.while_loop((mi.UInt32(0), mi.UnpolarizedSpectrum(0.0)),
+                _, average = dr.while_loop((mi.UInt32(0), mi.Spectrum(0.0)),
                                            lambda k, average: k < n, body,
                                            labels=("k", "average"),
                                            label="shadowmap gradient light samples")
@@ -650,22 +649,24 @@ def _delta_lobe_term(scene, si, bsdf, sampler, valid):
     ctx.type_mask = mi.BSDFFlags.Delta
     active = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
     bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
-    weight = unpolarized(weight)
+    weight = bsdf_to_world(si, weight, bs.wo)
     active &= (bs.pdf > 0) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-    active &= dr.max(weight) > 0
+    active &= dr.max(unpolarized(weight)) > 0
     si_e = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), active)
     emitter = si_e.emitter(scene, active)
     active &= emitter != None  # noqa: E711  (a Dr.Jit pointer array)
-    return dr.select(active, weight * unpolarized(emitter.eval(si_e, active)), 0.0)
+    return dr.select(active, weight * emitter.eval(si_e, active), 0.0)
 
 
 def _light_sample(emitter, si, bsdf, ctx, u, shade):
-    """One light sample at ``si``: ``(ds, unshadowed = weight * bsdf, lit)``, ``lit``
-    where it contributes; intensities (:func:`~mi_shadowmap.variants.unpolarized`)."""
+    """One light sample at ``si``: ``(ds, unshadowed = bsdf * weight, lit)``, ``lit``
+    where it contributes (Mueller matrices in a polarized variant:
+    :func:`~mi_shadowmap.variants.bsdf_to_world`)."""
     ds, w = emitter.sample_direction(si, u, shade)
     lit = shade & (ds.pdf > 0)
-    unshadowed = unpolarized(w) * unpolarized(bsdf.eval(ctx, si, si.to_local(ds.d), lit))
-    return ds, unshadowed, lit & (dr.max(unshadowed) > 0)
+    wo = si.to_local(ds.d)
+    unshadowed = bsdf_to_world(si, bsdf.eval(ctx, si, wo, lit), wo) * w
+    return ds, unshadowed, lit & (dr.max(unpolarized(unshadowed)) > 0)
 
 
 class _Recorder:

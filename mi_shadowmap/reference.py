@@ -32,7 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from .rays import spawn_shadow_ray
-from .variants import as_spectrum, unpolarized, variant_class
+from .variants import unpolarized, variant_class
 
 
 def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
@@ -98,7 +98,7 @@ class _ConvergedVisibilityMixin:
             k, n_vis, any_lit = dr.while_loop((k, n_vis, any_lit), cond, body)
             aovs.append(dr.select(any_lit, n_vis / n, 0.0))
         mean = sum(aovs, mi.Float(0.0)) / max(len(aovs), 1)
-        return as_spectrum(mi.UnpolarizedSpectrum(mean)), shade, aovs
+        return mi.depolarizer(mi.UnpolarizedSpectrum(mean)), shade, aovs
 
 
 def converged_visibility(scene: mi.Scene, n_light: int = 1024, seed: int = 0, spp: int = 16,

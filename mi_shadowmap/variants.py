@@ -46,27 +46,24 @@ def check_variant(variant: str | None = None) -> str:
 
 def unpolarized(spectrum):
     """The intensity of ``spectrum`` (``mi.unpolarized_spectrum``): in a polarized
-    variant, where BSDFs and emitters return Mueller matrices, their ``(0, 0)`` entry;
-    elsewhere ``spectrum`` itself.
-
-    Why the shading may work on intensities alone in a polarized variant: every
-    Mitsuba emitter is unpolarized (its Mueller matrix is a depolarizer, zero but for
-    the ``(0, 0)`` entry), and every term of this integrator's estimate has one
-    interaction between the light and the film (a light sample's BSDF, or one delta
-    lobe's sample for light seen in a mirror or through glass); a film records the
-    intensity (``(0, 0)``) of what arrives. The ``(0, 0)`` entry of ``M L`` with ``L``
-    a depolarizer is ``M[0, 0] L[0, 0]``, whatever frames ``M`` is expressed in (Stokes
-    frame rotations leave intensities alone), so the image equals ``direct``'s in that
-    variant. Light reflected twice (a mirror seen in a mirror) would need the whole
-    matrices; the integrator does not trace such paths."""
+    variant, where spectra are Mueller matrices, their ``(0, 0)`` entry; elsewhere
+    ``spectrum`` itself. For tests and masks (whether a term contributes at all)."""
     return mi.unpolarized_spectrum(spectrum)
 
 
-def as_spectrum(value):
-    """An intensity (``mi.UnpolarizedSpectrum``) as the variant's ``mi.Spectrum``: a
-    depolarizer Mueller matrix in a polarized variant (``mi.depolarizer``), else
-    ``value`` itself; what ``sample()`` returns."""
-    return mi.depolarizer(value)
+def bsdf_to_world(si, value, wo_local):
+    """A BSDF value (or sample weight) at ``si`` for light arriving from local direction
+    ``wo_local`` and leaving along ``si.wi``, with its Mueller matrix in world space
+    (``si.to_world_mueller``, as Mitsuba's ``direct`` and ``path`` do); unchanged in
+    unpolarized variants.
+
+    In a polarized variant every spectrum is a Mueller matrix and the shading composes
+    them as Mitsuba does: a term is ``bsdf_to_world(f) * emitter weight`` (the light's
+    Stokes vector enters on the right), so the polarization that a reflection gives
+    reaches the film (Mitsuba's ``stokes`` integrator records it); a film of intensities
+    reads the ``(0, 0)`` entry. A shadow map scales a term by a visibility, which does
+    not polarize."""
+    return si.to_world_mueller(value, -wo_local, si.wi)
 
 
 _CLASSES: dict = {}

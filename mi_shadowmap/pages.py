@@ -921,12 +921,15 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     render takes them, :func:`~mi_shadowmap.light_views.pinhole_footprint`; other
     sensors' from their ray differentials): ``(si, dp_dx, dp_dy, valid)``; unevaluated
     with ``evaluate=False`` (the mark pass traces them in its own kernel)."""
-    ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
+    frame = camera_frame(sensor)
+    if frame is not None:    # plain rays: the footprints come from the frame, not differentials
+        ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
+    else:
+        ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
     # position and geometric normal are all marking needs (RayFlags.All also computes
     # UVs, shading frames and their derivatives: about half the pass)
     si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
     valid = si.is_valid()
-    frame = camera_frame(sensor)
     if frame is not None:       # as the render takes them (integrator._footprint)
         dp_dx, dp_dy = pinhole_footprint(si.p, si.n, frame)
         if evaluate:

@@ -6,7 +6,25 @@ median cut (*A Median Cut Algorithm for Light Probe Sampling*, 2005) and
 shadows each region with one orthographic depth map along its centroid
 direction; all K maps live in one :class:`EnvironmentView` (a
 :class:`~mi_shadowmap.light_views.multi.MultiView` of K orthographic
-sub-views), planned, budgeted and cached by the map manager like every map.
+sub-views).
+
+**Virtual maps** (``virtual`` true or automatic, the default, for K <=
+:data:`MAX_VIRTUAL_REGIONS`): region ``k`` is face ``k`` of one virtual map
+(:mod:`mi_shadowmap.pages`), with the float64 interface of a virtual map's view
+(:meth:`EnvironmentView.ray_through_f64` for the page build, per texel's face;
+:class:`RegionView`'s for the lookups, per lane's region: the shading loop's). The
+mark pass projects every camera point into every region
+(:meth:`EnvironmentView.mark_views`) that can light it: whose directions reach
+above the point's horizon (its normal facing the camera; the region's largest angle
+from its centroid plus :data:`MARK_SLACK`), so a region behind a wall or below the
+ground builds no page there; each marks the pages of the point's pixel footprint as
+for a directional light. A region's lookup that finds its page missing (a shading
+normal beyond the slack) walks to a coarser level as every virtual lookup does. On
+sky_sun (16 regions, 64^2 film) the first frame casts 76 texels per film pixel
+against the full maps' 484, with the same visibility against 256 shadow rays per
+camera sample (``tests/test_environment.py``). More than 32 regions keep full maps
+(a page key has 5 bits of face). Full maps (``virtual=false``) are planned, budgeted
+and cached by the map manager like every map.
 
 **The cut** (:func:`median_cut`, numpy, at set-up; cached per emitter parameters
 and K). The emitter's radiance is evaluated (``emitter.eval``, so whatever the
@@ -94,6 +112,11 @@ MAX_ANGULAR_DIAMETER = 30.0
 #: Share of a region's texel-sampling probability spread by solid angle (the rest
 #: follows the texels' energy), so every texel, dark or not, can be sampled.
 UNIFORM_SHARE = 0.1
+#: Most regions a virtual map holds (its page keys' face field); more keep full maps.
+MAX_VIRTUAL_REGIONS = 32
+#: Angle (radians, about 6 degrees) beyond a region's extent that the mark pass still
+#: counts as above a point's horizon (shading normals differ from geometric ones).
+MARK_SLACK = 0.1
 #: Wavelengths (nm) at which spectral variants evaluate the map for the cut.
 _WAVELENGTHS = (470.0, 530.0, 590.0, 650.0)
 
@@ -325,11 +348,61 @@ class _Direction:
 @dataclass(frozen=True)
 class RegionView(SubView):
     """Sub-view ``k`` of an :class:`EnvironmentView`: the region's orthographic map,
-    reporting the region's angular diameter as a directional light's width (per lane)."""
+    reporting the region's angular diameter as a directional light's width (per lane).
+
+    With ``rows64`` (the region's ``light_from_world`` rows in float64, gathered per
+    lane, :meth:`EnvironmentView.region_view`) it also has the float64 interface of a
+    virtual map's view (:mod:`mi_shadowmap.pages`): face ``k`` of the environment's
+    K-face virtual map, one orthographic face per region."""
     spread: object = 0.0
+    rows64: tuple = ()
 
     def light_width(self, light_size=None, angular_diameter: float = 0.0):
         return self.spread, True
+
+    # ---------------------------------------------- float64 (virtual maps)
+    @property
+    def _half(self):
+        return self.inner.half_extent
+
+    def _light64(self, p_world):
+        M = self.rows64
+        p = mi.Point3d(p_world)
+        return [M[4 * r] * p.x + M[4 * r + 1] * p.y + M[4 * r + 2] * p.z + M[4 * r + 3]
+                for r in range(3)]
+
+    def project_f64(self, p_world):
+        x, y, z = self._light64(p_world)
+        hx, hy = self._half
+        uv = mi.Point2d(0.5 * (x / hx + 1.0), 0.5 * (y / hy + 1.0))
+        inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
+        return mi.UInt32(self.offset), uv, z, inside
+
+    def uv_on_face_f64(self, face, p_world):
+        return self.project_f64(p_world)[1]
+
+    def _axes(self):
+        """The region's light axes x, y, z as world vectors (float32, per lane)."""
+        M = self.rows64
+        return [mi.Vector3f(mi.Float(M[4 * r]), mi.Float(M[4 * r + 1]), mi.Float(M[4 * r + 2]))
+                for r in range(3)]
+
+    def ray_through_f64(self, face, uv_light):
+        return _region_ray64(self.rows64, self._half, uv_light)
+
+    def ray_frame_f64(self, face, uv_light):
+        ax, ay, az = self._axes()
+        hx, hy = self._half
+        return False, az, ax * (2.0 * hx), ay * (2.0 * hy)
+
+    def uv_differential(self, face, p_world, dp_world):
+        ax, ay, _ = self._axes()
+        dp = mi.Vector3f(dp_world)
+        hx, hy = self._half
+        return mi.Point2f(0.5 * dr.dot(ax, dp) / hx, 0.5 * dr.dot(ay, dp) / hy)
+
+    def depth_differential(self, p_world, dp_world):
+        return dr.dot(mi.Vector3f(dp_world), self._axes()[2])
 
 
 @dataclass(frozen=True)
@@ -375,9 +448,91 @@ class EnvironmentView(MultiView):
     def region_view(self, k) -> RegionView:
         k = mi.UInt32(k)
         s = dr.gather(mi.Float, self._region_tables["spread"], k)
+        rows = tuple(dr.gather(mi.Float64, c, k) for c in self._rows64)
         return RegionView(self.kind, self.position, self.light_from_world, self.light_size,
                           self.ignore_shape, self.light_normal, self.label,
-                          inner=self.lane(k), offset=k * self.sub.n_faces, spread=s)
+                          inner=self.lane(k), offset=k * self.sub.n_faces, spread=s,
+                          rows64=rows)
+
+    # ---------------------------------------------------- virtual maps
+    # With ``virtual`` (the default), the K regions are the K faces of one virtual map
+    # (:mod:`mi_shadowmap.pages`): face k is region k's orthographic face, pages are
+    # built where the camera's points read region k, at the density their pixels need.
+    # A lookup reads through :meth:`region_view` (``k`` per lane: the shading loop's
+    # region), the page build through :meth:`ray_through_f64` (the face per texel).
+    @property
+    def supports_virtual(self) -> bool:
+        """Up to :data:`MAX_VIRTUAL_REGIONS` regions (faces of a virtual map's page key);
+        more keep full maps."""
+        return self.n_views <= MAX_VIRTUAL_REGIONS
+
+    @property
+    def half_extent(self) -> tuple:
+        """Half sizes of every region's face (shared: the largest over the regions)."""
+        return self.sub.half_extent
+
+    @functools.cached_property
+    def _matrices64(self) -> np.ndarray:
+        """``(K, 3, 4)`` float64 ``light_from_world`` of every region: ``[R | -R p]``,
+        ``R`` the nearest rotation to the stored (float32-rounded) one, so that ``R^T``
+        inverts it to float64 precision (the page build casts through ``R^T``, lookups
+        project through ``R``)."""
+        U, _, Vt = np.linalg.svd(np.asarray(self.rotations, np.float64).reshape(-1, 3, 3))
+        R = U @ Vt
+        p = np.asarray(self.positions, np.float64).reshape(-1, 3)
+        return np.concatenate([R, -np.einsum("kij,kj->ki", R, p)[:, :, None]], axis=2)
+
+    @functools.cached_property
+    def _rows64(self) -> tuple:
+        M = self._matrices64.reshape(-1, 12)
+        return tuple(mi.Float64(M[:, c].tolist() + [0.0] * (len(M) < 2))
+                     for c in range(12))
+
+    def ray_through_f64(self, face, uv_light):
+        """Texel rays of ``face`` (the region, per lane) in float64 (the page build)."""
+        face = mi.UInt32(face)
+        return _region_ray64(tuple(dr.gather(mi.Float64, c, face) for c in self._rows64),
+                             self.half_extent, uv_light)
+
+    def depth_range64(self, corners: np.ndarray) -> tuple:
+        """``(lo, hi)`` of the depths of ``corners`` (``(n, 3)``) over every region."""
+        M = self._matrices64
+        d = np.einsum("kj,nj->kn", M[:, 2, :3], corners) + M[:, 2, 3:4]
+        return float(d.min()), float(d.max())
+
+    @functools.cached_property
+    def region_radii(self) -> np.ndarray:
+        """Per region, the largest angle (radians) between its centroid and a direction
+        of its rectangle (its boundary and interior on a 17 x 17 grid)."""
+        R = np.asarray(self.to_world_env, np.float64).reshape(3, 3)
+        out = []
+        for (u0, u1, v0, v1), c in zip(np.asarray(self.rects).reshape(-1, 4),
+                                       self.centroids):
+            s = np.linspace(0.0, 1.0, 17)
+            theta = (v0 + s * (v1 - v0)) * np.pi
+            phi = (u0 + s * (u1 - u0)) * 2.0 * np.pi
+            d = _directions(theta, phi).reshape(-1, 3) @ R.T
+            out.append(float(np.arccos(np.clip(d @ c, -1.0, 1.0)).max()))
+        return np.array(out)
+
+    @property
+    def centroids(self) -> np.ndarray:
+        """``(K, 3)`` world directions towards each region's centroid (against the light's
+        travel: each face's ``-z``)."""
+        return -self._matrices64[:, 2, :3]
+
+    def mark_views(self) -> list:
+        """``(view, active(p, n))`` per region for the mark pass: the region's view and
+        which camera points it can light (``n`` their normal facing the camera): those
+        whose horizon the region reaches, with :data:`MARK_SLACK` radians to spare
+        (shading normals), so that a lookup finds its pages."""
+        out = []
+        for k, (c, r) in enumerate(zip(self.centroids, self.region_radii)):
+            lim = -math.sin(min(r + MARK_SLACK, 0.5 * math.pi))
+            cv = mi.Vector3f(*c.tolist())
+            out.append((self.region_view(k),
+                        lambda p, n, cv=cv, lim=lim: dr.dot(n, cv) > lim))
+        return out
 
     def describe(self) -> str:
         return (f"{self.label}: environment light, {self.n_views} median-cut regions x "
@@ -415,6 +570,20 @@ def light_view(emitter, scene, index: int, opts):
     return environment_view(emitter, scene, emitter_label(emitter, index), opts.env_lights)
 
 
+def _region_ray64(rows, half, uv_light):
+    """The texel ray through ``uv_light`` of the orthographic face whose float64
+    ``light_from_world`` rows are ``rows`` (12 values, rotation rows and translation)."""
+    uv = mi.Point2d(uv_light)
+    s = (uv.x * 2.0 - 1.0) * half[0]
+    t = (uv.y * 2.0 - 1.0) * half[1]
+    M = rows
+    # world_from_light of [R | q]: o = R^T ((s, t, 0) - q)
+    lx, ly, lz = s - M[3], t - M[7], -M[11]
+    o = mi.Point3d(*[M[a] * lx + M[4 + a] * ly + M[8 + a] * lz for a in range(3)])
+    d = mi.Vector3d(M[8], M[9], M[10])
+    return o, dr.normalize(d)
+
+
 # ------------------------------------------------------------------ shading
 _R2 = (0.7548776662466927, 0.5698402909980532)
 
@@ -423,7 +592,9 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
     """Shadowed environment lighting at ``si`` (see the module doc): returns
     ``(radiance, visibility AOV)``."""
     from .filters import Lookup
+    from .pages import VirtualShadowMap
     view = smap.view
+    virtual = isinstance(smap, VirtualShadowMap)
     t = view._region_tables
     K = view.n_views
     record = opts.record
@@ -483,12 +654,18 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         ds.dist = bsphere
         ds.pdf = dr.rcp(dr.maximum(omega, 1e-30))
         ds.emitter = mi.EmitterPtr(emitter)
-        sub = dataclasses.replace(smap, view=view.region_view(k))
         lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
-        if record.whole_light:
+        if virtual:
+            # region k's face of the virtual map; walked (per_tap lookups check their
+            # reads outside symbolic loops only, and this is one)
+            sub = smap.with_view(view.region_view(k))
+            vis = dr.select(lit, sub.visibility(vis_fn, lk, opts, lit, per_tap=False), 0.0)
+        elif record.whole_light:
+            sub = dataclasses.replace(smap, view=view.region_view(k))
             whole, above = vis_fn(sub, lk, opts, lit)
             vis = dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
         else:
+            sub = dataclasses.replace(smap, view=view.region_view(k))
             vis = dr.select(lit, vis_fn(sub, lk, opts, lit), 0.0)
         w = dr.gather(mi.Float, t["share"], k)
         return (k + 1, result + dr.select(lit, contrib * vis, 0.0), wsum + w,

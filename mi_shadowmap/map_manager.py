@@ -162,7 +162,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     if sensor is not None and any(v.needs_camera_points(opts) for v in live):
         visible = camera_visible_points(scene, sensor)
     film_size = sensor.film().crop_size() if sensor is not None else (512, 512)
-    # full maps (also those of a virtual render's environment regions) build the full
+    # full maps (also those of a virtual render's views without virtual support) build the full
     # maps' layers: a method's layers_for may leave them out for its virtual maps
     full_opts = opts.replace(virtual=False) if getattr(opts, "virtual", False) else opts
     layer_names = record.layer_names(full_opts)
@@ -359,7 +359,8 @@ def _differentiated(scene: mi.Scene, params=None) -> bool:
 
 def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMaps:
     """``virtual=true``: virtual maps (:mod:`mi_shadowmap.pages`) for the emitters whose
-    view supports them; the others (environment regions) get full maps as usual."""
+    view supports them; the others (an environment cut into more than 32 regions) get
+    full maps as usual."""
     from .pages import prepare_virtual
     if "virtual" in opts.given and maps_need_gradients(scene, params):
         # virtual pages are built detached: shadows would pass no gradient, silently

@@ -144,8 +144,9 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          choices=("shadowed", "unshadowed", "error")),
     Prop("env_lights", "int", 16,
          "environment='shadowed', map methods: number K of median-cut regions of an "
-         "environment/constant emitter, each with its own orthographic map (all in one "
-         "tensor: K x resolution^2 texels).", lo=1, hi=1024),
+         "environment/constant emitter, each with its own orthographic map (virtual maps: "
+         "the K faces of one virtual map, for K <= 32; full maps: all in one tensor, K x "
+         "resolution^2 texels).", lo=1, hi=1024),
     Prop("max_tan_slope", "float", 20.0,
          "Clamp of tan(angle between normal and light) in the slope bias.", lo=0.0,
          lo_open=True),

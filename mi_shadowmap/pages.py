@@ -58,6 +58,12 @@ the pages' depths at lookup time instead (see those modules); the prefiltered me
 normalise depths by the layout's ``depth_range`` (the scene's bounding box as the light
 sees it), which does not change as pages are built.
 
+**Environment lights**: an :class:`~mi_shadowmap.environment.EnvironmentView`'s K
+median-cut regions are the K faces of one virtual map (orthographic faces, like a
+directional light's), marked per region for the points it can light
+(:func:`_mark_views`) and read through the region of the shading loop
+(:meth:`VirtualShadowMap.with_view`); see :mod:`mi_shadowmap.environment`.
+
 **Cascades** (``virtual=true`` with ``cascades`` > 1): a directional light's view is
 its :class:`~mi_shadowmap.light_views.CascadedView`, fitted to the camera as for full
 maps, and each cascade is a virtual face, plus one face for the whole rectangle, read by
@@ -102,6 +108,7 @@ Deviations from UE5, and why:
 from __future__ import annotations
 
 import collections
+import copy
 import dataclasses
 import math
 import time
@@ -131,7 +138,8 @@ TILE_SIZE = 8
 ANISO = 2.0
 
 _INVALID = 0xFFFFFFFF
-#: Never a page key (keys have face < 8): an empty slot of the mark pass's hash table.
+#: Never a page key (its level, 31, is beyond any layout's): an empty slot of the mark
+#: pass's hash table.
 _NO_KEY = 0xFFFFFFFFFFFFFFFF
 #: Largest page grid of one (face, level) in the page table (entries of 4 slots).
 MAX_TABLE = 1 << 22
@@ -149,7 +157,8 @@ def _array(cls, values):
 
 
 def page_key(face, level, px, py):
-    """64-bit key of a page: face (3 bits), level (5 bits), px and py (27 bits each);
+    """64-bit key of a page: face (5 bits: at most 32 faces), level (5 bits), px and py
+    (27 bits each);
     numpy or Dr.Jit integers."""
     if isinstance(px, np.ndarray) or isinstance(face, (int, np.integer)):
         return ((np.uint64(face) << np.uint64(59)) | (np.uint64(level) << np.uint64(54))
@@ -239,7 +248,7 @@ def layout_for(view, scene, opts) -> VirtualLayout:
     pos = np.array([float(c) for c in view.position])
     dist = float(np.linalg.norm(np.maximum(np.maximum(lo - pos, 0.0), pos - hi)))
     centre = 0.5 * (lo + hi)
-    if view.kind == "directional":
+    if view.kind in ("directional", "environment"):    # orthographic faces
         t0 = 0.0
     else:
         # rays start near the scene only for a light far from it, one box diagonal before
@@ -263,7 +272,8 @@ def layout_for(view, scene, opts) -> VirtualLayout:
     if opts.resolution is not None:
         res0 = int(opts.resolution)
     else:
-        width = 2.0 * max(view.half_extent) if view.kind == "directional" else face_width(view)
+        width = (2.0 * max(view.half_extent) if view.kind in ("directional", "environment")
+                 else face_width(view))
         want = max(SCENE_TEXELS * width / diam, SCENE_TEXELS)
         res0 = 1 << max(int(math.ceil(math.log2(want))), 0)
         res0 = min(max(res0, P), MAX_VIRTUAL_RES)
@@ -278,7 +288,10 @@ def _depth_range(view, lo, hi, dist) -> tuple:
     (a directional map's along its direction from its near plane; the others' at most
     the distance from the light), d_hi > d_lo >= 0."""
     corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)])
-    if view.kind == "directional":
+    if view.kind == "environment":     # every region's orthographic face
+        d_lo, d_hi = view.depth_range64(corners)
+        d_lo = max(d_lo, 0.0)
+    elif view.kind == "directional":
         # from lists: Dr.Jit copies them into its own (aligned) memory, while numpy
         # arrays may be read in place, and their alignment would enter the kernel's hash
         # (a kernel compiled per layout: with cascades, per camera move)
@@ -696,6 +709,13 @@ class VirtualShadowMap:
         e = (mi.UInt32(w1 >> 32) + mi.UInt32(ly * W + lx)) * 4
         return e, ok
 
+    def with_view(self, view) -> "VirtualShadowMap":
+        """This map read through ``view``, a view of some of its faces with the same
+        float64 interface (an environment's region ``k``, per lane: its shading loop)."""
+        out = copy.copy(self)
+        out.view = view
+        return out
+
     def bind(self, lk, active=True, per_tap: bool = False,
              walk: bool = True) -> "BoundVirtualMap":
         """The map as one batch of lookups reads it (see the module doc). With
@@ -930,6 +950,7 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     # UVs, shading frames and their derivatives: about half the pass)
     si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
     valid = si.is_valid()
+    si.n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)    # facing the camera
     if frame is not None:       # as the render takes them (integrator._footprint)
         dp_dx, dp_dy = pinhole_footprint(si.p, si.n, frame)
         if evaluate:
@@ -949,14 +970,17 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     return si, dp_dx, dp_dy, valid
 
 
-def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> tuple:
+def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
+                    active=None) -> tuple:
     """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
     (unevaluated): the tiles the lookups at ``si`` read (see the module doc): at each
     point's level, the tiles (:attr:`VirtualLayout.tile_size` texels wide; keys as
     :func:`page_key` in tile units) overlapping ``margin + 1`` texels around it (the
     method's kernel, plus one texel for camera samples off the pixel centre), capped at
     ``page_size / 2`` texels (what :meth:`VirtualShadowMap.bind`'s 2 x 2 pages serve):
-    ``ceil(2 m / tile_size) + 1`` tiles per axis at most (2 x 2 for ``hard``'s kernel)."""
+    ``ceil(2 m / tile_size) + 1`` tiles per axis at most (2 x 2 for ``hard``'s kernel).
+    ``active(p, n)``: which points to mark (``n`` the normal facing the camera), or
+    None: every point the view sees."""
     lay, view, P = vmap_like.layout, vmap_like.view, vmap_like.layout.page_size
     T = lay.tile_size
     m = min(float(margin) + 1.0, 0.5 * P)
@@ -966,6 +990,8 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0) -> 
     act = valid & inside
     if view.light_normal is not None:   # behind a one-sided planar light: no light
         act &= dr.dot(si.p - mi.Point3f(view.position), mi.Vector3f(*view.light_normal)) > 0
+    if active is not None:
+        act &= active(si.p, si.n)
     level = vmap_like.level_for(face, p64, dp_dx, dp_dy)
     res = mi.Float64(mi.UInt32(lay.res0) >> level)
     xy = uv64 * res
@@ -1250,10 +1276,17 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
              if all(stores[j] is not stores[i] for j in stale[:k])]
     if stale:
         hits = camera_hits(scene, sensor, evaluate=False)
-        found = _dedupe_many([mark_candidates(_Marker(stores[i].layout, opts.lod_bias),
-                                              *hits, margin=margin) for i in stale])
-        for i, keys in zip(stale, found):
-            stores[i].last_mark = (mark_key, _sorted_unique(keys))
+        groups, owners = [], []
+        for i in stale:     # one group per face set (an environment's: one per region)
+            for mark_view, mark_active in _mark_views(stores[i].layout):
+                groups.append(mark_candidates(
+                    _Marker(stores[i].layout, opts.lod_bias, mark_view), *hits,
+                    margin=margin, active=mark_active))
+                owners.append(i)
+        found = _dedupe_many(groups)
+        for i in stale:
+            keys = [k for o, k in zip(owners, found) if o == i]
+            stores[i].last_mark = (mark_key, _sorted_unique(np.concatenate(keys)))
     out = []
     for i, view in enumerate(views):
         if i not in stores:
@@ -1406,11 +1439,20 @@ def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
 
 
 class _Marker:
-    """The level choice of a :class:`VirtualShadowMap` without a store (mark pass)."""
+    """The level choice of a :class:`VirtualShadowMap` without a store (mark pass);
+    ``view``: the faces marked (default: the layout's view)."""
 
-    def __init__(self, layout, lod_bias: float):
+    def __init__(self, layout, lod_bias: float, view=None):
         self.layout = layout
-        self.view = layout.view
+        self.view = layout.view if view is None else view
         self.lod_bias = float(lod_bias)
 
     level_for = VirtualShadowMap.level_for
+
+
+def _mark_views(layout) -> list:
+    """``(view, active)`` pairs the mark pass projects the camera's points into:
+    the layout's view (``active`` None), or what its ``mark_views()`` gives (an
+    environment's regions, each with the points it can light: ``active(p, n)``)."""
+    views = getattr(layout.view, "mark_views", None)
+    return views() if views is not None else [(layout.view, None)]

@@ -196,10 +196,117 @@ def test_other_variants(variant):
         mi.set_variant(variant)
         scene = _scene(size=16)
         ref = _render(scene, DIRECT, 256, seed=2)
-        img = _render(scene, {"type": "shadowmap", "resolution": 256}, 16)
+        img = _render(scene, {"type": "shadowmap"}, 16)     # defaults: virtual regions
         rt = _render(scene, {"type": "shadowmap", "method": "raytraced"}, 8, seed=4)
         assert np.isfinite(img).all()
         assert _rel(img, ref) < 0.15
         assert _rel(rt, _render(scene, DIRECT, 8, seed=4)) < 2e-3
     finally:
         mi.set_variant(old)
+
+
+# ------------------------------------------------------- virtual region maps
+def _virtual_render(scene, spp=4, **props):
+    integ = mi.load_dict({"type": "shadowmap", **props})
+    img = np.asarray(mi.render(scene, integrator=integ, spp=spp, seed=0))
+    return img, integ
+
+
+def test_region_views_project_and_cast_as_their_orthographic_maps():
+    """Face k of the virtual environment map is region k's orthographic map: float64
+    projection equal to the region map's own (float32) one, and the texel ray through a
+    point's ``uv`` passes through the point at its depth -- for the per-lane region view
+    the lookups read and the per-texel face the page build casts."""
+    from mi_shadowmap.pages import VirtualShadowMap
+    scene = _scene()
+    view = env.environment_view(scene.emitters()[0], scene, "sky", 16)
+    assert view.supports_virtual and view.n_faces == 16
+    rng = np.random.default_rng(3)
+    lo, hi = (np.array(scene.bbox().min), np.array(scene.bbox().max))
+    p = lo + rng.random((64, 3)) * (hi - lo)
+    P = mi.Point3f(*[mi.Float(p[:, a]) for a in range(3)])
+    for k in (0, 5, 15):
+        rv = view.region_view(mi.UInt32(np.full(64, k, np.uint32)))
+        face, uv64, depth64, inside = rv.project_f64(mi.Point3d(P))
+        _, uv32, depth32, _ = rv.inner.project(P)
+        assert np.all(face.numpy() == k) and inside.numpy().all()
+        assert np.allclose(uv64.numpy(), uv32.numpy(), atol=1e-5)
+        assert np.allclose(depth64.numpy(), depth32.numpy(), rtol=1e-5, atol=1e-4)
+        for o, d in (rv.ray_through_f64(face, uv64),
+                     view.ray_through_f64(mi.UInt32(face), uv64)):
+            q = np.asarray((o + d * depth64).numpy()).T
+            assert np.allclose(q, np.asarray(P.numpy()).T, rtol=0.0,
+                               atol=1e-9 * np.abs(hi - lo).max())
+        # the float32 differentials are the float64 projection's
+        dp = mi.Vector3f(1e-3, -2e-3, 5e-4)
+        duv = rv.uv_differential(face, P, dp).numpy()
+        uv2 = rv.project_f64(mi.Point3d(P) + mi.Vector3d(dp))[1].numpy()
+        assert np.allclose(duv, uv2 - uv64.numpy(), atol=1e-7)
+    assert VirtualShadowMap.with_view     # the lookups read through region views
+
+
+def test_virtual_regions_build_a_tenth_of_the_full_maps_and_match_them():
+    """At defaults an environment's K regions are the K faces of one virtual map: pages
+    where the camera's points read each region, at their pixels' density. On sky_sun at
+    64^2 they cast about a tenth of the full maps' texels, and the visibility AOV is
+    the full maps' (both against 256 shadow rays per camera sample). A still camera
+    casts nothing again."""
+    from mi_shadowmap.pages import VirtualShadowMap
+    scene = _scene(size=64)
+    ref = _render(scene, {"type": "shadowmap", "method": "raytraced", "shadow_rays": 256},
+                  16, seed=1)
+    full, integ_f = _virtual_render(scene, 16, method="hard", virtual=False)
+    virt, integ_v = _virtual_render(scene, 16, method="hard")
+    vmap = integ_v.maps[0]
+    assert isinstance(vmap, VirtualShadowMap) and isinstance(vmap.view, env.EnvironmentView)
+    texels_v, texels_f = integ_v.stats.texels_built, integ_f.stats.texels_built
+    print("texels per pixel: virtual", texels_v / 64 ** 2, "full", texels_f / 64 ** 2)
+    assert 0 < texels_v < texels_f / 6
+    assert set(vmap.page_records()["face"].tolist()) == set(range(16))
+    n = 1 if mi.is_monochromatic else 3
+    err_v = np.abs(virt[..., n] - ref[..., n]).mean()
+    err_f = np.abs(full[..., n] - ref[..., n]).mean()
+    print("mean |AOV - 256-ray AOV|: virtual", err_v, "full", err_f)
+    assert err_v < 1.15 * err_f + 1e-3
+    assert abs(virt[..., :n].mean() / full[..., :n].mean() - 1.0) < 0.01
+    _virtual_render(scene, 16, method="hard")     # a still camera: every page cached
+    again, integ_2 = _virtual_render(scene, 16, method="hard")
+    assert integ_2.stats.texels_built == 0
+    assert np.allclose(again, virt)
+
+
+def test_mark_pass_skips_regions_below_a_points_horizon():
+    """A region that cannot reach above a point's horizon (its extent plus
+    ``MARK_SLACK``) is never read there, so the mark pass builds it no page: a flat
+    ground seen from above under a constant sky gets fine pages in the regions of the
+    upper hemisphere, none in those well below its horizon (they keep their coarsest
+    page)."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at([0, 6, 0.01], [0, 0, 0],
+                                                              [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+        "ground": {"type": "rectangle",
+                   "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3)},
+        "sky": {"type": "constant", "radiance": 1.0}})
+    img, integ = _virtual_render(scene, 4, method="hard")
+    assert np.isfinite(img).all()
+    vmap = integ.maps[0]
+    view = vmap.view
+    rec = vmap.page_records()
+    fine = set(rec["face"][rec["level"] < vmap.layout.coarsest].tolist())
+    up = view.centroids[:, 1]
+    reach = np.sin(np.minimum(view.region_radii + env.MARK_SLACK, 0.5 * np.pi))
+    below = set(np.flatnonzero(up < -reach).tolist())
+    above = set(np.flatnonzero(up > 0).tolist())
+    assert below and above
+    assert not (fine & below)
+    assert above <= fine
+
+
+def test_more_regions_than_a_virtual_map_has_faces_keep_full_maps():
+    from mi_shadowmap.depth_maps import ShadowMap
+    scene = _scene(size=16)
+    img, integ = _virtual_render(scene, 1, method="hard", env_lights=env.MAX_VIRTUAL_REGIONS + 1)
+    assert np.isfinite(img).all() and isinstance(integ.maps[0], ShadowMap)

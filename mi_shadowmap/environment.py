@@ -656,10 +656,12 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         ds.emitter = mi.EmitterPtr(emitter)
         lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
         if virtual:
-            # region k's face of the virtual map; walked (per_tap lookups check their
-            # reads outside symbolic loops only, and this is one)
+            # region k's face of the virtual map, bound walked (VirtualShadowMap.visibility's
+            # unwalked first try needs a dr.if_stmt outside symbolic loops, and this is
+            # one); a per-tap lookup (hard) still gathers each read's own slot
             sub = smap.with_view(view.region_view(k))
-            vis = dr.select(lit, sub.visibility(vis_fn, lk, opts, lit, per_tap=False), 0.0)
+            bound = sub.bind(lk, lit, per_tap=record.virtual_per_tap)
+            vis = dr.select(lit, vis_fn(bound, lk, opts, lit), 0.0)
         elif record.whole_light:
             sub = dataclasses.replace(smap, view=view.region_view(k))
             whole, above = vis_fn(sub, lk, opts, lit)

@@ -356,6 +356,7 @@ class RegionView(SubView):
     K-face virtual map, one orthographic face per region."""
     spread: object = 0.0
     rows64: tuple = ()
+    axes32: tuple = ()     # rows64's rotation rows in float32 (made once per lookup)
 
     def light_width(self, light_size=None, angular_diameter: float = 0.0):
         return self.spread, True
@@ -383,9 +384,7 @@ class RegionView(SubView):
 
     def _axes(self):
         """The region's light axes x, y, z as world vectors (float32, per lane)."""
-        M = self.rows64
-        return [mi.Vector3f(mi.Float(M[4 * r]), mi.Float(M[4 * r + 1]), mi.Float(M[4 * r + 2]))
-                for r in range(3)]
+        return self.axes32
 
     def ray_through_f64(self, face, uv_light):
         return _region_ray64(self.rows64, self._half, uv_light)
@@ -449,10 +448,12 @@ class EnvironmentView(MultiView):
         k = mi.UInt32(k)
         s = dr.gather(mi.Float, self._region_tables["spread"], k)
         rows = tuple(dr.gather(mi.Float64, c, k) for c in self._rows64)
+        axes = tuple(mi.Vector3f(*(mi.Float(rows[4 * r + a]) for a in range(3)))
+                     for r in range(3))
         return RegionView(self.kind, self.position, self.light_from_world, self.light_size,
                           self.ignore_shape, self.light_normal, self.label,
                           inner=self.lane(k), offset=k * self.sub.n_faces, spread=s,
-                          rows64=rows)
+                          rows64=rows, axes32=axes)
 
     # ---------------------------------------------------- virtual maps
     # With ``virtual`` (the default), the K regions are the K faces of one virtual map
@@ -528,9 +529,10 @@ class EnvironmentView(MultiView):
         (shading normals), so that a lookup finds its pages."""
         out = []
         for k, (c, r) in enumerate(zip(self.centroids, self.region_radii)):
-            lim = -math.sin(min(r + MARK_SLACK, 0.5 * math.pi))
-            cv = mi.Vector3f(*c.tolist())
-            out.append((self.region_view(k),
+            # opaque: every region's mark kernel is the same code (one compile)
+            lim = dr.opaque(mi.Float, -math.sin(min(r + MARK_SLACK, 0.5 * math.pi)))
+            cv = dr.opaque(mi.Vector3f, c.tolist())
+            out.append((self.region_view(dr.opaque(mi.UInt32, k)),
                         lambda p, n, cv=cv, lim=lim: dr.dot(n, cv) > lim))
         return out
 

@@ -61,7 +61,7 @@ sees it), which does not change as pages are built.
 **Environment lights**: an :class:`~mi_shadowmap.environment.EnvironmentView`'s K
 median-cut regions are the K faces of one virtual map (orthographic faces, like a
 directional light's), marked per region for the points it can light
-(:func:`_mark_views`) and read through the region of the shading loop
+(``mark_views``) and read through the region of the shading loop
 (:meth:`VirtualShadowMap.with_view`); see :mod:`mi_shadowmap.environment`.
 
 **Cascades** (``virtual=true`` with ``cascades`` > 1): a directional light's view is
@@ -1275,17 +1275,21 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
              if all(stores[j] is not stores[i] for j in stale[:k])]
     if stale:
-        hits = camera_hits(scene, sensor, evaluate=False)
-        groups, owners = [], []
-        for i in stale:     # one group per face set (an environment's: one per region)
-            for mark_view, mark_active in _mark_views(stores[i].layout):
-                groups.append(mark_candidates(
-                    _Marker(stores[i].layout, opts.lod_bias, mark_view), *hits,
-                    margin=margin, active=mark_active))
-                owners.append(i)
-        found = _dedupe_many(groups)
-        for i in stale:
-            keys = [k for o, k in zip(owners, found) if o == i]
+        # lights marked from their own view: all in one kernel; an environment's regions
+        # (mark_views): one kernel per region, the same code for every region (their
+        # values are opaque), from hits evaluated once
+        plain = [i for i in stale if not hasattr(stores[i].layout.view, "mark_views")]
+        multi = [i for i in stale if i not in plain]
+        hits = camera_hits(scene, sensor, evaluate=bool(multi))
+        found = _dedupe_many([mark_candidates(_Marker(stores[i].layout, opts.lod_bias),
+                                              *hits, margin=margin) for i in plain])
+        for i, keys in zip(plain, found):
+            stores[i].last_mark = (mark_key, _sorted_unique(keys))
+        for i in multi:
+            keys = [_dedupe_many([mark_candidates(
+                _Marker(stores[i].layout, opts.lod_bias, mark_view), *hits, margin=margin,
+                active=mark_active)])[0]
+                for mark_view, mark_active in stores[i].layout.view.mark_views()]
             stores[i].last_mark = (mark_key, _sorted_unique(np.concatenate(keys)))
     out = []
     for i, view in enumerate(views):
@@ -1448,11 +1452,3 @@ class _Marker:
         self.lod_bias = float(lod_bias)
 
     level_for = VirtualShadowMap.level_for
-
-
-def _mark_views(layout) -> list:
-    """``(view, active)`` pairs the mark pass projects the camera's points into:
-    the layout's view (``active`` None), or what its ``mark_views()`` gives (an
-    environment's regions, each with the points it can light: ``active(p, n)``)."""
-    views = getattr(layout.view, "mark_views", None)
-    return views() if views is not None else [(layout.view, None)]

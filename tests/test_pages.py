@@ -1459,3 +1459,36 @@ def test_pinhole_footprints_are_the_ray_differentials_hits(camera):
         err = np.linalg.norm(g - w, axis=0) / np.linalg.norm(w, axis=0)
         assert np.percentile(err, 99) < 1e-4 and err.max() < 2e-4, (np.percentile(err, 99),
                                                                    err.max())
+
+
+def test_environment_regions_moves_compile_nothing_and_share_one_mark_kernel():
+    """An environment's 16 regions are marked by one kernel code (their values opaque:
+    a region's mark kernel with literals compiled per region, and a kernel marking all
+    16 at once held 6,400 operations and took 44 s to compile with ``pcss``'s margin);
+    camera moves rebuild at most a quarter of the first frame's texels and, after the
+    first, compile no kernel."""
+    from conftest import SCENE_FILES
+    pages.PAGE_CACHE.clear()
+    path = [p for p in SCENE_FILES if p.stem == "sky_sun"][0]
+    scene = mi.load_file(str(path), width=32, height=32)
+    integ = shadowmap(method="pcss")
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        vis_of(scene, integ, spp=1)
+        jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    first = integ.stats["texels_built"]
+    assert first > 0
+    # the first render's kernels: the 16 regions' marks share their code (measured: 72
+    # kernels, 20 distinct; 35 distinct with the regions' values as literals)
+    distinct = len({k["hash"] for k in jit})
+    print("kernels", len(jit), "distinct", distinct)
+    assert distinct <= 27
+    assert max(k["operation_count"] for k in jit) < 4000
+    built = []
+    compiled = _moves(scene, integ, 3, lambda: built.append(integ.stats["texels_built"]))
+    print(f"first frame {first} texels; moves: built {built}, kernels compiled {compiled}")
+    assert all(b <= 0.25 * first for b in built)
+    assert compiled[1:] == [0, 0], "moving the camera compiled a new kernel"

@@ -10,10 +10,15 @@ with a scaled transform or a blocker just in front of it, a point light on the f
 1e-4 or a very thin or very large area light, sphere and disk area lights), extreme
 scales (1e-3 with Mitsuba's default ``near_clip``, so the near plane is most of the way
 to the scene; 1e4), other sensors (orthographic, thin lens, a crop window), instancing,
-a point light inside a closed room, and three light types together.
+a point light inside a closed room, three light types together, and environment light
+(a constant sky, at scale 1 and 1e4; the repository's sky rotated and tilted; that sky
+with a sun).
 
-For each kind: ``raytraced`` (seed 0) is the reference, ``raytraced`` with seed 1 its
-own noise (misclassified against it), and every method at defaults (only ``method``
+For each kind: ``raytraced`` (seed 0) is the reference (with ``shadow_rays`` = 64 under an
+environment, whose map methods' visibility is the fraction of its light arriving, which
+one ray per sample gives only as binary noise), ``raytraced`` with seed 1 its
+own noise (under a uniform sky an open floor's visibility is about 0.5, the share of the
+sky above it, so threshold-0.5 misclassification means nothing there: read the RMSE) (misclassified against it), and every method at defaults (only ``method``
 given; virtual maps) is reported as misclassified (threshold 0.5) and visibility RMSE
 against it per light, texels built per film pixel in its frame (methods run in turn on
 one loaded scene, so a method whose pages an earlier one built shows 0), and whether its
@@ -22,6 +27,7 @@ output was finite. A method that raises is reported with its error.
 from __future__ import annotations
 
 import argparse
+import pathlib
 import time
 
 import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
@@ -31,6 +37,7 @@ import numpy as np
 from mi_shadowmap.metrics import misclassified
 
 T = mi.ScalarTransform4f
+SKY = pathlib.Path(__file__).resolve().parents[1] / "scenes_xml" / "textures" / "sky_sun.exr"
 METHODS = ["hard", "pcf", "pcss", "bilinear", "second_depth", "mdsm"]
 
 
@@ -102,6 +109,9 @@ def kinds(width: int, spp: int) -> dict:
                      "crop_offset_x": width // 8, "crop_offset_y": width // 16,
                      "crop_width": (width * 3) // 4, "crop_height": (width * 3) // 8}}
     ortho_at = T().look_at(origin=[6, 5, 8], target=[0, 0.5, 0], up=[0, 1, 0]) @ T().scale([6, 6, 1])
+    constant = {"type": "constant", "radiance": 1.0}
+    envmap = lambda to_world=T(): {"type": "envmap", "filename": str(SKY),  # noqa: E731
+                                   "to_world": to_world}
     return {
         "sun_straight_down": scene({"light": sun([0, -1, 0])}),
         "sun_3_degrees": scene({"light": sun([1, -0.05, 0.3])}),
@@ -136,11 +146,16 @@ def kinds(width: int, spp: int) -> dict:
             "point": point([-1, 4, 2]), "sun": {**sun([0.5, -1, -0.2]), "irradiance": 2.0},
             "rect": area("rectangle", T().look_at(origin=[2, 4, -2], target=[0, 0, 0],
                                                   up=[0, 1, 0]).scale(0.5), 10.0)}),
+        "constant_sky": scene({"sky": constant}),
+        "constant_sky_scale_1e4": scene({"sky": constant}, s=1e4, near_clip=1.0, far_clip=1e7),
+        "envmap_rotated_tilted": scene({"sky": envmap(T().rotate([1, 0, 0], 25.0)
+                                                      .rotate([0, 1, 0], 120.0))}),
+        "envmap_and_sun": scene({"sky": envmap(), "sun": sun([0.3, -1, 0.6])}),
     }
 
 
-def visibility(scene, method: str, seed: int):
-    integ = mi.load_dict({"type": "shadowmap", "method": method})
+def visibility(scene, method: str, seed: int, **props):
+    integ = mi.load_dict({"type": "shadowmap", "method": method, **props})
     img = np.asarray(mi.render(scene, integrator=integ, seed=seed))
     return img, integ
 
@@ -165,13 +180,14 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     for name in names:
         scene = mi.load_dict(all_kinds[name])
-        ref, _ = visibility(scene, "raytraced", 0)
+        env = {"shadow_rays": 64} if any(e.is_environment() for e in scene.emitters()) else {}
+        ref, _ = visibility(scene, "raytraced", 0, **env)
         n_lights = ref.shape[-1] - 3
         per_light = lambda f, img: " / ".join(f(ref[..., 3 + k], img[..., 3 + k])  # noqa: E731
                                               for k in range(n_lights))
         mis = lambda a, b: f"{100 * misclassified(a, b)['misclassified']:.2f}"  # noqa: E731
         rmse = lambda a, b: f"{float(np.sqrt(np.mean((a - b) ** 2))):.3f}"  # noqa: E731
-        noise, _ = visibility(scene, "raytraced", 1)
+        noise, _ = visibility(scene, "raytraced", 1, **env)
         print(f"| {name} | raytraced, seed 1 | {per_light(mis, noise)} | "
               f"{per_light(rmse, noise)} | - | {bool(np.all(np.isfinite(noise)))} |")
         for m in args.methods:

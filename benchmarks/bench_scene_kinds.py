@@ -17,12 +17,13 @@ with a sun).
 For each kind: ``raytraced`` (seed 0) is the reference (with ``shadow_rays`` = 64 under an
 environment, whose map methods' visibility is the fraction of its light arriving, which
 one ray per sample gives only as binary noise), ``raytraced`` with seed 1 its
-own noise (under a uniform sky an open floor's visibility is about 0.5, the share of the
-sky above it, so threshold-0.5 misclassification means nothing there: read the RMSE) (misclassified against it), and every method at defaults (only ``method``
+own noise (misclassified against it), and every method at defaults (only ``method``
 given; virtual maps) is reported as misclassified (threshold 0.5) and visibility RMSE
 against it per light, texels built per film pixel in its frame (methods run in turn on
 one loaded scene, so a method whose pages an earlier one built shows 0), and whether its
-output was finite. A method that raises is reported with its error.
+output was finite. A method that raises is reported with its error. Under a uniform sky
+an open floor's visibility is about 0.5 (the share of the sky above it), so
+misclassification at 0.5 means nothing there: read the RMSE.
 """
 from __future__ import annotations
 

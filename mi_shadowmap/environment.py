@@ -16,10 +16,11 @@ sub-views).
 mark pass projects every camera point into every region
 (:meth:`EnvironmentView.mark_views`) that can light it: whose directions reach
 above the point's horizon (its normal facing the camera; the region's largest angle
-from its centroid plus :data:`MARK_SLACK`), so a region behind a wall or below the
-ground builds no page there; each marks the pages of the point's pixel footprint as
-for a directional light. A region's lookup that finds its page missing (a shading
-normal beyond the slack) walks to a coarser level as every virtual lookup does. On
+from its centroid plus :data:`MARK_SLACK`; either side's horizon where the point's BSDF
+transmits light), so a region behind a wall or below the ground builds no page there;
+each marks the pages of the point's pixel footprint as for a directional light. A
+region's lookup that finds its page missing (a shading normal beyond the slack) walks
+to a coarser level as every virtual lookup does. On
 sky_sun (16 regions, 64^2 film) the first frame casts 76 texels per film pixel
 against the full maps' 484, with the same visibility against 256 shadow rays per
 camera sample (``tests/test_environment.py``). More than 32 regions keep full maps
@@ -523,17 +524,23 @@ class EnvironmentView(MultiView):
         return -self._matrices64[:, 2, :3]
 
     def mark_views(self) -> list:
-        """``(view, active(p, n))`` per region for the mark pass: the region's view and
-        which camera points it can light (``n`` their normal facing the camera): those
-        whose horizon the region reaches, with :data:`MARK_SLACK` radians to spare
-        (shading normals), so that a lookup finds its pages."""
+        """``(view, active(p, n, through))`` per region for the mark pass: the region's
+        view and which camera points it can light (``n`` their normal facing the camera,
+        ``through`` whether their BSDF transmits): those whose horizon the region
+        reaches, with :data:`MARK_SLACK` radians to spare (shading normals), or, for a
+        transmitting surface, the horizon of either side, so that a lookup finds its
+        pages."""
         out = []
         for k, (c, r) in enumerate(zip(self.centroids, self.region_radii)):
             # opaque: every region's mark kernel is the same code (one compile)
             lim = dr.opaque(mi.Float, -math.sin(min(r + MARK_SLACK, 0.5 * math.pi)))
             cv = dr.opaque(mi.Vector3f, c.tolist())
-            out.append((self.region_view(dr.opaque(mi.UInt32, k)),
-                        lambda p, n, cv=cv, lim=lim: dr.dot(n, cv) > lim))
+
+            def active(p, n, through, cv=cv, lim=lim):
+                c = dr.dot(n, cv)
+                return (c > lim) | (mi.Bool(through) & (-c > lim))
+
+            out.append((self.region_view(dr.opaque(mi.UInt32, k)), active))
         return out
 
     def describe(self) -> str:

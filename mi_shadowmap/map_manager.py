@@ -29,6 +29,7 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
                          build_layer)
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
+from .methods import OptionError
 from .light_views import camera_visible_points, emitter_kind, footprint_ratio, make_light_view
 
 
@@ -377,8 +378,9 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
         sensor = scene.sensors()[0]
     if opts.cascades > 1:
         views = _virtual_cascades(scene, sensor, opts, views)
-    full_views = [None if v is None or getattr(v, "supports_virtual", False) else v
-                  for v in views]
+    virtual_views = _within_budget(opts, [v if v is not None and getattr(
+        v, "supports_virtual", False) else None for v in views])
+    full_views = [v if w is None else None for v, w in zip(views, virtual_views)]
     stats = MapStats()
     maps = [None] * len(views)
     res = None
@@ -386,11 +388,41 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
         plan = plan_maps(scene, sensor, opts, full_views, params)
         maps, stats = build_maps(scene, plan)
         res = plan.resolution
-    virtual = prepare_virtual(scene, sensor, opts, views, stats, params)
+    virtual = prepare_virtual(scene, sensor, opts, virtual_views, stats, params)
     maps = [vm if vm is not None else m for vm, m in zip(virtual, maps)]
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
     return PreparedMaps(list(views), maps, res, stats)
+
+
+def _within_budget(opts, views: list) -> list:
+    """``views`` (those to get virtual maps), but None for a view whose coarsest level
+    (one page per face, always built) and the empty page do not fit its share of
+    ``memory_budget`` (split evenly over the virtual maps, as :func:`~mi_shadowmap.pages.
+    prepare_virtual` does): with ``virtual`` automatic it gets full maps, which the
+    budget sizes; ``virtual=true`` given raises, naming what it needs. (The options
+    check a cube map's 6 faces; an environment's regions are up to 32 faces.)"""
+    live = [v for v in views if v is not None]
+    if not live:
+        return views
+    layers = [n for n in opts.record.layer_names(opts) if n != "pcss_near"]
+    per_page = opts.page_size ** 2 * 4 * (1 + len(layers))
+    share = opts.budget_bytes / len(live)
+    out = []
+    for v in views:
+        if v is not None and (v.n_faces + 1) * per_page > share:
+            need = (v.n_faces + 1) * per_page * len(live) / 2 ** 20
+            if "virtual" in opts.given:
+                raise OptionError(
+                    f"shadowmap: property 'memory_budget' = {opts.memory_budget:g} MiB "
+                    f"cannot hold the coarsest level of emitter '{v.label}''s virtual map "
+                    f"({v.n_faces} faces of page_size^2 = {opts.page_size}^2 texels, "
+                    f"{1 + len(layers)} layer(s), shared by {len(live)} virtual map(s)): "
+                    f"at least {need:.3g} MiB; raise it, lower page_size, or set "
+                    "virtual=false")
+            v = None
+        out.append(v)
+    return out
 
 
 #: ``(id(view), camera state) -> CascadedView`` of the latest renders with ``virtual=true``

@@ -224,6 +224,10 @@ def _check_record(m: Method) -> None:
                           f"{', '.join(sorted(set(m.layers) - set(VIRTUAL_LAYERS)))} are "
                           "built on full maps only (set virtual=False, or give layers_for "
                           "returning only those layers when opts.virtual is true)")
+    if m.virtual and m.whole_light:
+        raise MethodError(f"register_method('{m.name}'): whole_light=True lookups read "
+                          "full maps only (their lookup averages the whole light over its "
+                          "views itself); set virtual=False")
     if not isinstance(m.virtual_per_tap, bool):
         raise MethodError(f"register_method('{m.name}'): virtual_per_tap must be True or "
                           f"False, got {m.virtual_per_tap!r}")

@@ -954,7 +954,7 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     if frame is not None:       # as the render takes them (integrator._footprint)
         dp_dx, dp_dy = pinhole_footprint(si.p, si.n, frame)
         if evaluate:
-            dr.eval(si.p, dp_dx, dp_dy, valid)
+            dr.eval(si.p, si.n, dp_dx, dp_dy, valid)
         return si, dp_dx, dp_dy, valid
     n = si.n
 
@@ -966,7 +966,7 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     dp_dx = mi.Vector3f(dr.select(ok, hit(ray.o_x, ray.d_x) - si.p, 0.0))
     dp_dy = mi.Vector3f(dr.select(ok, hit(ray.o_y, ray.d_y) - si.p, 0.0))
     if evaluate:
-        dr.eval(si.p, dp_dx, dp_dy, valid)
+        dr.eval(si.p, si.n, dp_dx, dp_dy, valid)
     return si, dp_dx, dp_dy, valid
 
 
@@ -1277,10 +1277,15 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     if stale:
         # lights marked from their own view: all in one kernel; an environment's regions
         # (mark_views): one kernel per region, the same code for every region (their
-        # values are opaque), from hits evaluated once
+        # values are opaque), from hits evaluated once (and whether each hit's BSDF
+        # transmits: light reaches it from behind too)
         plain = [i for i in stale if not hasattr(stores[i].layout.view, "mark_views")]
         multi = [i for i in stale if i not in plain]
         hits = camera_hits(scene, sensor, evaluate=bool(multi))
+        if multi:
+            si_m, valid_m = hits[0], hits[3]
+            through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
+            dr.eval(through)
         found = _dedupe_many([mark_candidates(_Marker(stores[i].layout, opts.lod_bias),
                                               *hits, margin=margin) for i in plain])
         for i, keys in zip(plain, found):
@@ -1288,7 +1293,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         for i in multi:
             keys = [_dedupe_many([mark_candidates(
                 _Marker(stores[i].layout, opts.lod_bias, mark_view), *hits, margin=margin,
-                active=mark_active)])[0]
+                active=lambda p, n, f=mark_active: f(p, n, through))])[0]
                 for mark_view, mark_active in stores[i].layout.view.mark_views()]
             stores[i].last_mark = (mark_key, _sorted_unique(np.concatenate(keys)))
     out = []

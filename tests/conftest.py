@@ -97,3 +97,10 @@ def delta_scene(bsdf, light: str):
     else:
         d["light"] = {"type": "constant", "radiance": 0.5}
     return mi.load_dict(d)
+
+
+def root_message(exc) -> str:
+    """mi.render wraps Python errors (dr.custom); the cause holds our message."""
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+    return str(exc)

@@ -25,13 +25,7 @@ from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.reference import converged_visibility
 from mi_shadowmap.scenes import default_scene
 
-from conftest import SCENE_FILES
-
-
-def root_message(exc) -> str:
-    while exc.__cause__ is not None:
-        exc = exc.__cause__
-    return str(exc)
+from conftest import SCENE_FILES, root_message
 
 
 # ----------------------------------------------------- automatic resolution

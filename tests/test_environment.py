@@ -8,6 +8,7 @@ input, and the mono / spectral variants.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import mitsuba as mi
@@ -197,9 +198,10 @@ def test_other_variants(variant):
         scene = _scene(size=16)
         ref = _render(scene, DIRECT, 256, seed=2)
         img = _render(scene, {"type": "shadowmap"}, 16)     # defaults: virtual regions
+        full = _render(scene, {"type": "shadowmap", "resolution": 256}, 16)
         rt = _render(scene, {"type": "shadowmap", "method": "raytraced"}, 8, seed=4)
-        assert np.isfinite(img).all()
-        assert _rel(img, ref) < 0.15
+        assert np.isfinite(img).all() and np.isfinite(full).all()
+        assert _rel(img, ref) < 0.15 and _rel(full, ref) < 0.15
         assert _rel(rt, _render(scene, DIRECT, 8, seed=4)) < 2e-3
     finally:
         mi.set_variant(old)
@@ -217,7 +219,6 @@ def test_region_views_project_and_cast_as_their_orthographic_maps():
     projection equal to the region map's own (float32) one, and the texel ray through a
     point's ``uv`` passes through the point at its depth -- for the per-lane region view
     the lookups read and the per-texel face the page build casts."""
-    from mi_shadowmap.pages import VirtualShadowMap
     scene = _scene()
     view = env.environment_view(scene.emitters()[0], scene, "sky", 16)
     assert view.supports_virtual and view.n_faces == 16
@@ -242,7 +243,6 @@ def test_region_views_project_and_cast_as_their_orthographic_maps():
         duv = rv.uv_differential(face, P, dp).numpy()
         uv2 = rv.project_f64(mi.Point3d(P) + mi.Vector3d(dp))[1].numpy()
         assert np.allclose(duv, uv2 - uv64.numpy(), atol=1e-7)
-    assert VirtualShadowMap.with_view     # the lookups read through region views
 
 
 def test_virtual_regions_build_a_tenth_of_the_full_maps_and_match_them():
@@ -296,10 +296,15 @@ def test_mark_pass_skips_regions_below_a_points_horizon():
     view = vmap.view
     rec = vmap.page_records()
     fine = set(rec["face"][rec["level"] < vmap.layout.coarsest].tolist())
-    up = view.centroids[:, 1]
-    reach = np.sin(np.minimum(view.region_radii + env.MARK_SLACK, 0.5 * np.pi))
-    below = set(np.flatnonzero(up < -reach).tolist())
-    above = set(np.flatnonzero(up > 0).tolist())
+    # each region's highest and lowest elevation, from its rectangle of directions on a
+    # fine grid (not from the view's own region_radii)
+    R = np.asarray(view.to_world_env).reshape(3, 3)
+    s = np.linspace(0.0, 1.0, 65)
+    top = np.array([(env._directions((v0 + s * (v1 - v0)) * np.pi, (u0 + s * (u1 - u0))
+                                     * 2.0 * np.pi).reshape(-1, 3) @ R.T)[:, 1].max()
+                    for u0, u1, v0, v1 in np.asarray(view.rects)])
+    below = set(np.flatnonzero(top < -math.sin(env.MARK_SLACK) - 0.02).tolist())
+    above = set(np.flatnonzero(top > 0.02).tolist())
     assert below and above
     assert not (fine & below)
     assert above <= fine
@@ -310,3 +315,78 @@ def test_more_regions_than_a_virtual_map_has_faces_keep_full_maps():
     scene = _scene(size=16)
     img, integ = _virtual_render(scene, 1, method="hard", env_lights=env.MAX_VIRTUAL_REGIONS + 1)
     assert np.isfinite(img).all() and isinstance(integ.maps[0], ShadowMap)
+
+
+def _glass_pane_from_above():
+    """A rough glass pane seen from above, a blocker below it: light reaches the pane
+    from below, through it."""
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at([0, 6, 0.01], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+        "pane": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2),
+                 "bsdf": {"type": "roughdielectric", "alpha": 0.3, "int_ior": 1.5}},
+        "blocker": {"type": "rectangle", "to_world": T().translate([0.7, -0.3, 0])
+                    .rotate([1, 0, 0], -90).scale(0.6),
+                    "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
+        "far": {"type": "sphere", "center": [60, 0, 0], "radius": 0.1},
+        "sky": {"type": "constant", "radiance": 1.0}})
+
+
+def _two_sided_ceiling_from_below():
+    """A two-sided ceiling seen from below (its normal faces away from the camera), a
+    blocker under one side."""
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 20,
+                   "to_world": T().look_at([0, -6, 0.01], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+        "ceiling": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2),
+                    "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
+        "blocker": {"type": "rectangle", "to_world": T().translate([1.6, -1.0, 0])
+                    .rotate([1, 0, 0], 90).scale(0.4)},
+        "far": {"type": "sphere", "center": [60, 0, 0], "radius": 0.1},
+        "sky": {"type": "constant", "radiance": 1.0}})
+
+
+@pytest.mark.parametrize("make", [_glass_pane_from_above, _two_sided_ceiling_from_below],
+                         ids=["transmitting", "two_sided_back"])
+def test_mark_pass_skips_no_region_a_lookup_reads(make, monkeypatch):
+    """The regions the mark pass skips are never read: the image equals the one where
+    every region marks every point (``MARK_SLACK`` beyond any horizon) -- for a surface
+    that transmits light (lit through from below: both sides' horizons count) and for
+    the back of a two-sided surface (the normal facing the camera). Skipping the first
+    lit the pane under the blocker from the coarsest page (mean 0.561 against 0.540)."""
+    from mi_shadowmap import pages
+    scene = make()
+    pages.PAGE_CACHE.clear()
+    img, _ = _virtual_render(scene, 4, method="hard")
+    monkeypatch.setattr(env, "MARK_SLACK", 10.0)
+    pages.PAGE_CACHE.clear()
+    every, _ = _virtual_render(scene, 4, method="hard")
+    pages.PAGE_CACHE.clear()
+    full, _ = _virtual_render(scene, 4, method="hard", virtual=False)
+    ref, _ = _virtual_render(scene, 16, method="raytraced", shadow_rays=16)
+    err = {name: abs(a[..., :3].mean() / ref[..., :3].mean() - 1.0)
+           for name, a in (("virtual", img), ("full maps", full))}
+    print("mean: virtual", img[..., :3].mean(), "every region marked", every[..., :3].mean(),
+          "relative error of the mean against raytraced:", err)
+    assert np.abs(img - every).max() < 1e-5
+    assert err["virtual"] < err["full maps"] + 0.01
+
+
+def test_a_budget_below_the_regions_coarsest_pages_gets_full_maps():
+    """``memory_budget`` too small for the K regions' coarsest pages: the automatic
+    ``virtual`` gives the environment full maps (which the budget sizes), an explicit
+    ``virtual=true`` is an error naming the property and what it needs."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    scene = _scene(size=16)
+    img, integ = _virtual_render(scene, 1, method="hard", memory_budget=0.05)
+    assert np.isfinite(img).all() and isinstance(integ.maps[0], ShadowMap)
+    from conftest import root_message
+    with pytest.raises(Exception) as e:
+        _virtual_render(scene, 1, method="hard", memory_budget=0.05, virtual=True)
+    assert re.search(r"memory_budget.*0\.05 MiB.*'sky'.*16 faces", root_message(e.value))

@@ -9,13 +9,8 @@ import pytest
 import mi_shadowmap.map_manager as mm_mod
 from mi_shadowmap.scenes import default_scene
 
-from conftest import DELTA_BSDFS, SCENE_FILES, delta_scene, relative_rmse, render_np, vis_stack
-
-def root_message(exc) -> str:
-    """mi.render wraps Python errors (dr.custom); the cause holds our message."""
-    while exc.__cause__ is not None:
-        exc = exc.__cause__
-    return str(exc)
+from conftest import (DELTA_BSDFS, SCENE_FILES, delta_scene, relative_rmse, render_np, root_message,
+                      vis_stack)
 
 
 DIRECT = {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
@@ -403,7 +398,6 @@ def test_projector_casts_shadows_for_every_method():
         mis = np.mean((vis["vis_proj"] >= 0.5) != (aovs["vis_proj"] >= 0.5))
         print(f"projector {method}: misclassified {mis:.2%}")
         assert np.isfinite(vis["vis_proj"]).all() and mis <= 0.02, method
-
 
 
 @pytest.mark.parametrize("method", ["raytraced", "hard", "pcss"])

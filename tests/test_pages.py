@@ -1137,6 +1137,9 @@ def test_virtual_per_tap_must_be_a_bool(value):
     """A string "false" would otherwise read as true: the record names the field."""
     from mi_shadowmap.filters.hard import hard
     from mi_shadowmap.methods import MethodError, register_method
+    with pytest.raises(MethodError, match=r"whole_light=True lookups read full maps only"):
+        register_method("whole_virtual", lambda smap, lk, opts, active: mi.Float(1.0),
+                        whole_light=True, virtual=True)
     with pytest.raises(MethodError, match=r"virtual_per_tap must be True or False, got"):
         register_method("my_per_tap", hard, virtual=True, virtual_per_tap=value)
 

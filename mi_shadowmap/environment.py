@@ -357,7 +357,8 @@ class RegionView(SubView):
     K-face virtual map, one orthographic face per region."""
     spread: object = 0.0
     rows64: tuple = ()
-    axes32: tuple = ()     # rows64's rotation rows in float32 (made once per lookup)
+    axes32: tuple = ()     # the light axes x, y, z in world space: rows64's rotation rows
+    #                        in float32 (made once per lookup)
 
     def light_width(self, light_size=None, angular_diameter: float = 0.0):
         return self.spread, True
@@ -383,26 +384,22 @@ class RegionView(SubView):
     def uv_on_face_f64(self, face, p_world):
         return self.project_f64(p_world)[1]
 
-    def _axes(self):
-        """The region's light axes x, y, z as world vectors (float32, per lane)."""
-        return self.axes32
-
     def ray_through_f64(self, face, uv_light):
         return _region_ray64(self.rows64, self._half, uv_light)
 
     def ray_frame_f64(self, face, uv_light):
-        ax, ay, az = self._axes()
+        ax, ay, az = self.axes32
         hx, hy = self._half
         return False, az, ax * (2.0 * hx), ay * (2.0 * hy)
 
     def uv_differential(self, face, p_world, dp_world):
-        ax, ay, _ = self._axes()
+        ax, ay, _ = self.axes32
         dp = mi.Vector3f(dp_world)
         hx, hy = self._half
         return mi.Point2f(0.5 * dr.dot(ax, dp) / hx, 0.5 * dr.dot(ay, dp) / hy)
 
     def depth_differential(self, p_world, dp_world):
-        return dr.dot(mi.Vector3f(dp_world), self._axes()[2])
+        return dr.dot(mi.Vector3f(dp_world), self.axes32[2])
 
 
 @dataclass(frozen=True)

@@ -402,11 +402,12 @@ def _within_budget(opts, views: list) -> list:
     prepare_virtual` does): with ``virtual`` automatic it gets full maps, which the
     budget sizes; ``virtual=true`` given raises, naming what it needs. (The options
     check a cube map's 6 faces; an environment's regions are up to 32 faces.)"""
+    from .pages import page_bytes, page_layers
     live = [v for v in views if v is not None]
     if not live:
         return views
-    layers = [n for n in opts.record.layer_names(opts) if n != "pcss_near"]
-    per_page = opts.page_size ** 2 * 4 * (1 + len(layers))
+    layers = page_layers(opts)
+    per_page = page_bytes(opts)
     share = opts.budget_bytes / len(live)
     out = []
     for v in views:

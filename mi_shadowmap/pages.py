@@ -1240,6 +1240,17 @@ class PageCache:
 PAGE_CACHE = PageCache()
 
 
+def page_layers(opts) -> tuple:
+    """The layers a virtual map's pages hold besides depth for ``opts``' method
+    (``pcss_near`` is derived from the page table, not stored per page)."""
+    return tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
+
+
+def page_bytes(opts) -> int:
+    """Bytes of one page in the pool: depth and :func:`page_layers`, float32 each."""
+    return opts.page_size ** 2 * 4 * (1 + len(page_layers(opts)))
+
+
 def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     """First pass with ``virtual=true``: mark, build missing pages, return one
     :class:`VirtualShadowMap` per emitter whose view supports it (None elsewhere).
@@ -1249,7 +1260,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     built, reused, the level histogram of the marked pages and ``texels_built``.
     """
     from .map_manager import MAP_CACHE
-    layer_names = tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
+    layer_names = page_layers(opts)
     state = MAP_CACHE.scene_state(scene, params) if opts.cache_maps else None
     cam = camera_state(sensor) if sensor is not None else None
     margin = (opts.record.virtual_margin(opts) if opts.record.virtual_margin is not None
@@ -1305,7 +1316,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         layout = store.layout
         mark = store.last_mark if cam is not None else None
         # memory: the whole budget split evenly over the virtual maps
-        per_page = store.texels_per_page * 4 * (1 + len(layer_names))
+        per_page = page_bytes(opts)
         view = layout.view      # the emitter's view, or one face aimed at a far scene
         if store.lit_faces is None:
             store.lit_faces = _lit_faces(view)

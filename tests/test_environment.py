@@ -208,6 +208,17 @@ def test_other_variants(variant):
 
 
 # ------------------------------------------------------- virtual region maps
+def _sky_scene(eye, fov, **shapes):
+    """``shapes`` under a constant sky, seen from ``eye`` towards the origin (32^2)."""
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": fov,
+                   "to_world": T().look_at(eye, [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+        **shapes, "sky": {"type": "constant", "radiance": 1.0}})
+
+
 def _virtual_render(scene, spp=4, **props):
     integ = mi.load_dict({"type": "shadowmap", **props})
     img = np.asarray(mi.render(scene, integrator=integ, spp=spp, seed=0))
@@ -281,15 +292,8 @@ def test_mark_pass_skips_regions_below_a_points_horizon():
     ground seen from above under a constant sky gets fine pages in the regions of the
     upper hemisphere, none in those well below its horizon (they keep their coarsest
     page)."""
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 30,
-                   "to_world": mi.ScalarTransform4f().look_at([0, 6, 0.01], [0, 0, 0],
-                                                              [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
-        "ground": {"type": "rectangle",
-                   "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3)},
-        "sky": {"type": "constant", "radiance": 1.0}})
+    scene = _sky_scene([0, 6, 0.01], 30, ground={
+        "type": "rectangle", "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3)})
     img, integ = _virtual_render(scene, 4, method="hard")
     assert np.isfinite(img).all()
     vmap = integ.maps[0]
@@ -321,35 +325,27 @@ def _glass_pane_from_above():
     """A rough glass pane seen from above, a blocker below it: light reaches the pane
     from below, through it."""
     T = mi.ScalarTransform4f
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": T().look_at([0, 6, 0.01], [0, 0, 0], [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
-        "pane": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2),
-                 "bsdf": {"type": "roughdielectric", "alpha": 0.3, "int_ior": 1.5}},
-        "blocker": {"type": "rectangle", "to_world": T().translate([0.7, -0.3, 0])
-                    .rotate([1, 0, 0], -90).scale(0.6),
-                    "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
-        "far": {"type": "sphere", "center": [60, 0, 0], "radius": 0.1},
-        "sky": {"type": "constant", "radiance": 1.0}})
+    return _sky_scene(
+        [0, 6, 0.01], 40,
+        pane={"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2),
+              "bsdf": {"type": "roughdielectric", "alpha": 0.3, "int_ior": 1.5}},
+        blocker={"type": "rectangle", "to_world": T().translate([0.7, -0.3, 0])
+                 .rotate([1, 0, 0], -90).scale(0.6),
+                 "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
+        far={"type": "sphere", "center": [60, 0, 0], "radius": 0.1})
 
 
 def _two_sided_ceiling_from_below():
     """A two-sided ceiling seen from below (its normal faces away from the camera), a
     blocker under one side."""
     T = mi.ScalarTransform4f
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 20,
-                   "to_world": T().look_at([0, -6, 0.01], [0, 0, 0], [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
-        "ceiling": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2),
-                    "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
-        "blocker": {"type": "rectangle", "to_world": T().translate([1.6, -1.0, 0])
-                    .rotate([1, 0, 0], 90).scale(0.4)},
-        "far": {"type": "sphere", "center": [60, 0, 0], "radius": 0.1},
-        "sky": {"type": "constant", "radiance": 1.0}})
+    return _sky_scene(
+        [0, -6, 0.01], 20,
+        ceiling={"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2),
+                 "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
+        blocker={"type": "rectangle", "to_world": T().translate([1.6, -1.0, 0])
+                 .rotate([1, 0, 0], 90).scale(0.4)},
+        far={"type": "sphere", "center": [60, 0, 0], "radius": 0.1})
 
 
 @pytest.mark.parametrize("make", [_glass_pane_from_above, _two_sided_ceiling_from_below],

@@ -13,7 +13,8 @@ built from and flat ``mi.Float`` arrays of ``n_faces * res * res`` texels
   depths (built in :mod:`mi_shadowmap.filters.mdsm` from the first depth).
 
 The first depth is one ray-query kernel (``scene.ray_intersect_preliminary``,
-coherent rays), evaluated once when built; the map manager
+with ``coherent=False``: Embree's coherent mode made the 1M-triangle mesh's builds
+slower here, ``benchmarks/RESULTS.md`` 2026-12-03), evaluated once when built; the map manager
 (:mod:`mi_shadowmap.map_manager`) decides which maps and layers a render
 needs and caches them.
 """
@@ -131,7 +132,7 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
         o_ad, d_ad = pose.ray(o, d)
         o, d = dr.detach(o_ad), dr.detach(d_ad)
     ray = mi.Ray3f(o, d)
-    pi = scene.ray_intersect_preliminary(ray, coherent=True)
+    pi = scene.ray_intersect_preliminary(ray, coherent=False)
     own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     t_acc = mi.Float(0.0)
@@ -154,7 +155,7 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
                 + 1e-6 * dr.max(dr.abs(mi.Vector3f(ray.o))))
         t_acc = t_acc + step
         ray = mi.Ray3f(ray.o + ray.d * step, ray.d)
-        pi = scene.ray_intersect_preliminary(ray, coherent=True)
+        pi = scene.ray_intersect_preliminary(ray, coherent=False)
         return ray, pi, t_acc, it + 1
 
     ray, pi, t_acc, it = dr.while_loop((ray, pi, t_acc, it), cond, body)

@@ -947,8 +947,10 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     else:
         ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
     # position and geometric normal are all marking needs (RayFlags.All also computes
-    # UVs, shading frames and their derivatives: about half the pass)
-    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
+    # UVs, shading frames and their derivatives: about half the pass). Not Embree's
+    # coherent mode: it traced these rays 1.2-1.8x slower (65,536 rays on the 1M-triangle
+    # mesh: 17.5 against 9.6 ms; room_two_points 5.1 against 4.1 ms)
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=False)
     valid = si.is_valid()
     si.n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)    # facing the camera
     if frame is not None:       # as the render takes them (integrator._footprint)

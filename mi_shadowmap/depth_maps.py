@@ -13,8 +13,7 @@ built from and flat ``mi.Float`` arrays of ``n_faces * res * res`` texels
   depths (built in :mod:`mi_shadowmap.filters.mdsm` from the first depth).
 
 The first depth is one ray-query kernel (``scene.ray_intersect_preliminary``,
-with ``coherent=False``: Embree's coherent mode made the 1M-triangle mesh's builds
-slower here, ``benchmarks/RESULTS.md`` 2026-12-03), evaluated once when built; the map manager
+:data:`COHERENT_RAYS`), evaluated once when built; the map manager
 (:mod:`mi_shadowmap.map_manager`) decides which maps and layers a render
 needs and caches them.
 """
@@ -28,6 +27,13 @@ import mitsuba as mi
 
 from .light_views import LightView
 from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
+
+
+#: ``coherent`` of the map builds' and the mark pass's ray queries. Embree's coherent
+#: mode traced them more slowly here (``benchmarks/RESULTS.md``, 2026-12-03): the mark
+#: pass's 65,536 camera rays on a 1M-triangle mesh 17.5 against 9.6 ms, room_two_points'
+#: 1024^2 cube maps 296 against 246 ms; only a sphere-and-box spot map was 5-8 % faster.
+COHERENT_RAYS = False
 
 
 def array_nbytes(x) -> int:
@@ -132,7 +138,7 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
         o_ad, d_ad = pose.ray(o, d)
         o, d = dr.detach(o_ad), dr.detach(d_ad)
     ray = mi.Ray3f(o, d)
-    pi = scene.ray_intersect_preliminary(ray, coherent=False)
+    pi = scene.ray_intersect_preliminary(ray, coherent=COHERENT_RAYS)
     own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     t_acc = mi.Float(0.0)
@@ -155,7 +161,7 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
                 + 1e-6 * dr.max(dr.abs(mi.Vector3f(ray.o))))
         t_acc = t_acc + step
         ray = mi.Ray3f(ray.o + ray.d * step, ray.d)
-        pi = scene.ray_intersect_preliminary(ray, coherent=False)
+        pi = scene.ray_intersect_preliminary(ray, coherent=COHERENT_RAYS)
         return ray, pi, t_acc, it + 1
 
     ray, pi, t_acc, it = dr.while_loop((ray, pi, t_acc, it), cond, body)

@@ -118,7 +118,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .depth_maps import first_hit, second_depth_along
+from .depth_maps import COHERENT_RAYS, first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS, MethodError  # noqa: F401  (VIRTUAL_LAYERS: built here)
 from .light_views import (pinhole_footprint, pinhole_frame, pixel_centres,
                           pixel_ray_differentials)
@@ -947,10 +947,8 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     else:
         ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
     # position and geometric normal are all marking needs (RayFlags.All also computes
-    # UVs, shading frames and their derivatives: about half the pass). Not Embree's
-    # coherent mode: it traced these rays 1.2-1.8x slower (65,536 rays on the 1M-triangle
-    # mesh: 17.5 against 9.6 ms; room_two_points 5.1 against 4.1 ms)
-    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=False)
+    # UVs, shading frames and their derivatives: about half the pass)
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=COHERENT_RAYS)
     valid = si.is_valid()
     si.n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)    # facing the camera
     if frame is not None:       # as the render takes them (integrator._footprint)

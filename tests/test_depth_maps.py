@@ -336,3 +336,34 @@ def test_summed_area_table_and_box_mean_against_numpy():
                    mi.Point2f([b[3] for b in boxes], [b[4] for b in boxes]))
     want = [covered_mean(*b) for b in boxes]
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5)
+
+
+def test_coherent_and_incoherent_ray_queries_give_the_same_maps(monkeypatch):
+    """``depth_maps.COHERENT_RAYS`` follows the CPU (Embree's coherent mode on
+    AVX-512): either way a full cube map and a render on virtual pages (the mark pass's
+    camera rays and the page casts) are bit-identical to the other mode's."""
+    from mi_shadowmap import depth_maps, pages
+    pos = [0.0, 0.0, 3.0]
+    scene = mi.load_dict({
+        "type": "scene", "ball": uv_sphere_mesh([0.4, 0.2, 1.5], 0.5, 16, 8),
+        "floor": FLOOR, "lamp": {"type": "point", "position": pos,
+                                 "intensity": {"type": "rgb", "value": 20.0}},
+        "cam": {"type": "perspective", "fov": 45.0,
+                "to_world": T().look_at(origin=[6, -6, 5], target=[0, 0, 0.5], up=[0, 0, 1]),
+                "film": {"type": "hdrfilm", "width": 48, "height": 48,
+                         "rfilter": {"type": "box"}}}})
+    view = make_light_view(scene.emitters()[0], scene, 0)
+
+    def maps_and_image(mode):
+        monkeypatch.setattr(depth_maps, "COHERENT_RAYS", mode)
+        monkeypatch.setattr(pages, "COHERENT_RAYS", mode)
+        depth = build_depth_map(scene, view, RES).to_numpy()
+        integ = mi.load_dict({"type": "shadowmap", "method": "hard", "cache_maps": False})
+        return depth, np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))
+
+    depth_a, img_a = maps_and_image(True)
+    depth_b, img_b = maps_and_image(False)
+    # a shadowed floor (the first AOV: the lamp's visibility) and lit pixels
+    assert np.isfinite(depth_a).any() and 0 < np.count_nonzero(img_a[..., 3] < 0.5) < 48 * 48 / 2
+    np.testing.assert_array_equal(depth_a, depth_b)
+    np.testing.assert_array_equal(img_a, img_b)

@@ -26,6 +26,7 @@ import mitsuba as mi  # noqa: E402
 from mi_shadowmap import metrics  # noqa: E402
 from mi_shadowmap.light_views import emitter_kind  # noqa: E402
 from mi_shadowmap.reference import converged_visibility  # noqa: E402
+from mi_shadowmap.timing import split_channels  # noqa: E402
 
 BIASES = {"no bias": {"slope_bias": 0.0, "normal_bias": 0.0},
           "(0.5, 0.25)": {"slope_bias": 0.5, "normal_bias": 0.25},
@@ -36,12 +37,11 @@ MAPS = {"virtual (default)": {},
 
 
 def aovs(scene, props, spp, seed):
+    """Per-light visibility AOVs of one render, stacked in label order."""
     integ = mi.load_dict(dict(props, type="shadowmap"))
-    img = np.asarray(mi.render(scene, integrator=integ, spp=spp, seed=seed))
-    names = integ.aov_names()
-    n_colour = img.shape[-1] - len(names)
-    return np.stack([img[..., n_colour + k] for k, n in sorted(enumerate(names),
-                                                                key=lambda kn: kn[1])])
+    _, vis = split_channels(mi.render(scene, integrator=integ, spp=spp, seed=seed),
+                            integ.aov_names())
+    return np.stack([vis[k] for k in sorted(vis)])
 
 
 def main(argv=None):

@@ -118,7 +118,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .depth_maps import COHERENT_RAYS, first_hit, second_depth_along
+from . import depth_maps
+from .depth_maps import first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS, MethodError  # noqa: F401  (VIRTUAL_LAYERS: built here)
 from .light_views import (pinhole_footprint, pinhole_frame, pixel_centres,
                           pixel_ray_differentials)
@@ -948,7 +949,8 @@ def camera_hits(scene, sensor, evaluate: bool = True):
         ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
     # position and geometric normal are all marking needs (RayFlags.All also computes
     # UVs, shading frames and their derivatives: about half the pass)
-    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=COHERENT_RAYS)
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal,
+                             coherent=depth_maps.COHERENT_RAYS)
     valid = si.is_valid()
     si.n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)    # facing the camera
     if frame is not None:       # as the render takes them (integrator._footprint)

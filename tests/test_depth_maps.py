@@ -342,7 +342,7 @@ def test_coherent_and_incoherent_ray_queries_give_the_same_maps(monkeypatch):
     """``depth_maps.COHERENT_RAYS`` follows the CPU (Embree's coherent mode on
     AVX-512): either way a full cube map and a render on virtual pages (the mark pass's
     camera rays and the page casts) are bit-identical to the other mode's."""
-    from mi_shadowmap import depth_maps, pages
+    from mi_shadowmap import depth_maps
     pos = [0.0, 0.0, 3.0]
     scene = mi.load_dict({
         "type": "scene", "ball": uv_sphere_mesh([0.4, 0.2, 1.5], 0.5, 16, 8),
@@ -356,7 +356,6 @@ def test_coherent_and_incoherent_ray_queries_give_the_same_maps(monkeypatch):
 
     def maps_and_image(mode):
         monkeypatch.setattr(depth_maps, "COHERENT_RAYS", mode)
-        monkeypatch.setattr(pages, "COHERENT_RAYS", mode)
         depth = build_depth_map(scene, view, RES).to_numpy()
         integ = mi.load_dict({"type": "shadowmap", "method": "hard", "cache_maps": False})
         return depth, np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))

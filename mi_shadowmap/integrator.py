@@ -23,8 +23,8 @@ from . import environment as env_mod
 from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
-from .light_views import (emitter_kind, emitter_label, is_pinhole, make_light_view,
-                          pinhole_footprint, pixel_step)
+from .light_views import (aims_by_film, emitter_kind, emitter_label, is_pinhole,
+                          make_light_view, pinhole_footprint, pixel_step)
 from .light_views.base import scene_bounds
 from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
                        variant_class)
@@ -299,11 +299,15 @@ screen is Mitsuba's projective integrators' job.
         return memo[1]
 
     def _sensor_pixel_step(self, sensor):
-        """None for a sensor whose rays carry ray differentials; else the per-pixel
+        """None for a sensor whose rays carry ray differentials or that does not aim its
+        pixels' rays by film position (:func:`~mi_shadowmap.light_views.aims_by_film`:
+        its pixel has no footprint, read as zero); else the per-pixel
         ``(angle, offset)`` of :func:`~mi_shadowmap.light_views.pixel_step` as opaque
         JIT scalars (a ``batch`` sensor: :meth:`_footprint` then takes a cone of that
         angle around each ray)."""
         if sensor is None or not (self.opts.record.needs_footprint or self.opts.uses_map):
+            return None
+        if not aims_by_film(sensor):     # irradiancemeter, distant: no pixel footprint
             return None
         memo = self._pixel_step_memo     # (sensor, its rays have differentials)
         if memo is None or memo[0] is not sensor:

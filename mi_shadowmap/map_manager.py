@@ -30,7 +30,8 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
 from .methods import OptionError
-from .light_views import camera_visible_points, emitter_kind, footprint_ratio, make_light_view
+from .light_views import (aims_by_film, camera_visible_points, emitter_kind, footprint_ratio,
+                          make_light_view)
 
 
 @dataclasses.dataclass
@@ -161,15 +162,24 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
         sensor = scene.sensors()[0]
     visible = None
     if sensor is not None and any(v.needs_camera_points(opts) for v in live):
+        if not aims_by_film(sensor):
+            raise OptionError(
+                "shadowmap: properties 'fit_frusta', 'cull_faces' and 'cascades' fit the "
+                "maps to the points the camera's pixels see, and sensor "
+                f"{_sensor_name(sensor)} spreads each pixel's rays over a surface or a "
+                "hemisphere; leave them at their defaults (false, false, 1) for it")
         visible = camera_visible_points(scene, sensor)
-    film_size = sensor.film().crop_size() if sensor is not None else (512, 512)
+    # a sensor that does not aim its pixels (irradiancemeter, distant: 1 x 1 films) sizes
+    # the automatic resolution as no sensor does: 2 x 512
+    film_size = (sensor.film().crop_size() if sensor is not None and aims_by_film(sensor)
+                 else (512, 512))
     # full maps (also those of a virtual render's views without virtual support) build the full
     # maps' layers: a method's layers_for may leave them out for its virtual maps
     full_opts = opts.replace(virtual=False) if getattr(opts, "virtual", False) else opts
     layer_names = record.layer_names(full_opts)
     n_faces = sum(v.planned_faces(opts, visible) for v in live)
     footprint = 1.0
-    if opts.resolution is None:
+    if opts.resolution is None and (sensor is None or aims_by_film(sensor)):
         footprint = footprint_ratio(scene, sensor, [
             v if v is None else v.refine_for_footprint(opts, scene, sensor, visible)
             for v in views])
@@ -296,6 +306,16 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     """
     t0 = time.perf_counter()
     params = _traverse(scene, opts)    # once per render: read by every check below
+    if sensor is None and len(scene.sensors()) > 0:
+        sensor = scene.sensors()[0]
+    if opts.uses_map and opts.virtual and sensor is not None and not aims_by_film(sensor):
+        if "virtual" in opts.given:
+            raise OptionError(
+                f"shadowmap: property 'virtual' = true marks the pages that the sensor's "
+                f"pixels see, and sensor {_sensor_name(sensor)} spreads each pixel's rays "
+                "over a surface or a hemisphere (it sees no set of points a pixel at a "
+                "time); set virtual=false (full maps) or leave 'virtual' out")
+        opts = opts.replace(virtual=False)     # automatic: full maps
     if opts.uses_map and opts.virtual and not (
             "virtual" not in opts.given and _differentiated(scene, params)):
         # the automatic virtual=true: a scene being differentiated gets full maps (in the
@@ -306,6 +326,12 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
     return PreparedMaps(plan.views, maps, plan.resolution, stats)
+
+
+def _sensor_name(sensor) -> str:
+    """``'id' (Class)`` of a sensor, for messages."""
+    cls = str(sensor).split("[", 1)[0].strip() or type(sensor).__name__
+    return f"'{sensor.id()}' ({cls})" if sensor.id() else f"({cls})"
 
 
 #: Shape/emitter parameters that never move a depth map: a gradient on them alone does

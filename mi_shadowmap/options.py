@@ -86,7 +86,10 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "virtual=True) unless a full-map property is set (resolution > 0, cascades > 1, "
          "fit_frusta, cull_faces, antialias='always') or memory_budget cannot hold a "
          "virtual cube map's coarsest level; a scene with shape or emitter gradients "
-         "enabled then gets full maps (built in the AD graph). virtual=true with "
+         "enabled then gets full maps (built in the AD graph), and so does a sensor that "
+         "spreads each pixel's rays over a surface or a hemisphere (irradiancemeter, "
+         "distant: no pixel footprint to mark pages by; 1024^2 automatic maps; "
+         "virtual=true is refused there). virtual=true with "
          "cascades > 1: one virtual face per cascade."),
     Prop("page_size", "int", 32,
          "Virtual maps: texels per side of a page, a power of two. Filter kernels up to "

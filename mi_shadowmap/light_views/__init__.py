@@ -45,7 +45,7 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
            "footprint_ratio", "pixel_centres", "pixel_ray_differentials", "pixel_step",
-           "is_pinhole", "pinhole", "differential_origins", "pinhole_frame",
+           "is_pinhole", "aims_by_film", "pinhole", "differential_origins", "pinhole_frame",
            "pinhole_footprint",
            "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
 
@@ -144,6 +144,18 @@ def pixel_ray_differentials(sensor, position: mi.Point2f, time=0.0):
     ray.o_y, ray.d_y = neighbour(mi.Vector2f(0.0, 1.0 / h))
     ray.has_differentials = True
     return ray
+
+
+def aims_by_film(sensor) -> bool:
+    """Whether ``sensor`` aims each pixel's rays by its film position: a camera
+    (``perspective``, ``thinlens``, ``orthographic``), a ``radiancemeter``, a ``batch`` of
+    cameras. False for a sensor that spreads a pixel's rays over a surface or a hemisphere
+    with its aperture sample: ``irradiancemeter`` (a shape's irradiance, from the whole
+    hemisphere above it) and ``distant`` (a direction's radiance over a target). Such a
+    pixel has no footprint and no set of points it sees, so the render takes no pixel
+    footprint, and the automatic maps are full maps (see the ``virtual`` property)."""
+    return sensor is not None and (isinstance(sensor, mi.ProjectiveCamera)
+                                   or not sensor.needs_aperture_sample())
 
 
 def is_pinhole(sensor) -> bool:

@@ -105,6 +105,7 @@ screen is Mitsuba's projective integrators' job.
         self._in_render = False
         self._nested = False        # sample() is called by another integrator (aov)
         self._names_given: list[str] = []   # aov_names() given outside a render
+        self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
         self._last_render = None    # the scene of the render in progress or just done
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
@@ -131,6 +132,7 @@ screen is Mitsuba's projective integrators' job.
                 sensor_obj = scene.sensors()[sensor]
             else:
                 sensor_obj = sensor
+            self._film_takes_aovs = _film_takes_aovs(sensor_obj.film())
             self._first_pass(scene, sensor_obj,
                              spp if spp > 0 else sensor_obj.sampler().sample_count())
             self._last_render = scene
@@ -246,12 +248,15 @@ screen is Mitsuba's projective integrators' job.
         return views
 
     def aov_names(self):
-        """``vis_<emitter>`` per emitter of the last scene rendered (none before one).
+        """``vis_<emitter>`` per emitter of the last scene rendered (none before one;
+        none in a render to a film that cannot take them, see :func:`_film_takes_aovs`).
         Outside a render the list given is remembered: an integrator nesting this one
         (Mitsuba's ``aov``) sizes its channels by it when it is built, so while nested
         ``sample()`` returns values for exactly those names (:meth:`sample`)."""
         if self._nested:
             return list(self._names_given)
+        if not self._film_takes_aovs:     # this render's (or the last one's) film
+            return []
         names = self._names()
         if not self._in_render:
             self._names_given = list(names)
@@ -397,7 +402,7 @@ screen is Mitsuba's projective integrators' job.
                         else dr.select(shade, whole, 0.0))
         if self._delta_term:
             result += _delta_lobe_term(scene, si, bsdf, sampler, valid)
-        return result, valid, aovs
+        return result, valid, aovs if (self._film_takes_aovs or self._nested) else []
 
     def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade):
         """``(visibility, whole)`` of one light sample (see :meth:`_visibility`); 1 and
@@ -594,6 +599,26 @@ def _tracks_gradients(scene) -> bool:
         return False
     params = MAP_CACHE.traverse(scene)
     return any(dr.grad_enabled(params[k]) for k in params.keys())
+
+
+def _film_takes_aovs(film) -> bool:
+    """Whether ``film`` can take an integrator's AOV channels. Mitsuba 3.9's sampling
+    integrators write them after an RGB film's R, G, B, [A], W channels whatever the
+    film, so a film with its own channel layout (``FilmFlags.Special``: ``specfilm``)
+    gets them at the wrong offsets: its own channels are left unset ("operands have
+    incompatible sizes") and writes run past its sample buffer (heap corruption;
+    Mitsuba's own ``aov`` integrator fails the same way, mitsuba3 issue #1189). Such a
+    render leaves the visibility AOVs out, with a warning: render to an ``hdrfilm`` to
+    get them."""
+    if not mi.has_flag(film.flags(), mi.FilmFlags.Special):
+        return True
+    cls = str(film).split("[", 1)[0].strip() or type(film).__name__
+    warnings.warn(
+        f"shadowmap: the sensor's film ({cls}) has its own channel layout, into which "
+        "Mitsuba 3.9 cannot write integrator AOVs (mitsuba3 issue #1189): this render "
+        "leaves out the visibility AOVs (vis_<emitter>); the image itself is complete. "
+        "Render to an 'hdrfilm' to get them", RuntimeWarning, stacklevel=4)
+    return False
 
 
 def _warn_if_enclosing(scene, view, method: str) -> None:

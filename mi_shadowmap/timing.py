@@ -64,6 +64,24 @@ class MethodResult:
         return r
 
 
+def check_film(scene, sensor: int = 0) -> None:
+    """Raise ValueError if the film of ``scene``'s sensor ``sensor`` cannot hold the
+    visibility AOVs the harness compares: a film with its own channel layout
+    (``specfilm``), into which Mitsuba 3.9 writes no integrator AOVs (see
+    :func:`mi_shadowmap.integrator._film_takes_aovs`)."""
+    sensors = scene.sensors()
+    if not 0 <= sensor < len(sensors):
+        return
+    film = sensors[sensor].film()
+    if mi.has_flag(film.flags(), mi.FilmFlags.Special):
+        cls = str(film).split("[", 1)[0].strip() or type(film).__name__
+        raise ValueError(
+            f"shadowmap: the scene's film ({cls}) has its own channel layout, into which "
+            "Mitsuba 3.9 writes no integrator AOVs (mitsuba3 issue #1189), and comparing "
+            "methods reads their visibility AOVs; give the sensor an 'hdrfilm' (a "
+            "spectral variant develops it to RGB)")
+
+
 def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
     """``(image (H, W, 3), {label: visibility (H, W)})`` of a render.
 
@@ -120,6 +138,7 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
         props["cache_maps"] = False
     integrator = mi.load_dict(to_mitsuba(props))
     integrator.check_scene(scene)   # clear error before rendering
+    check_film(scene)
     had_history = dr.flag(dr.JitFlag.KernelHistory)
     dr.kernel_history()             # drop older entries
     dr.set_flag(dr.JitFlag.KernelHistory, True)

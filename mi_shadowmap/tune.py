@@ -73,7 +73,7 @@ from .specs import (REFERENCE_METHOD, available_methods, check_shared_params, me
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
 from .sweep import SweepTable, analyse
 from .tables import jsonable
-from .timing import MethodResult, render_timed, run_method, split_channels
+from .timing import MethodResult, check_film, render_timed, run_method, split_channels
 
 #: Error metrics the tuner accepts (lower is better; the sweep's error columns).
 METRICS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
@@ -835,6 +835,7 @@ def _render_once(scene, method: str, spp: int, seed: int, **props) -> MethodResu
     validate_spec(spec)
     integrator = mi.load_dict(to_mitsuba({"type": "shadowmap", **spec}))
     integrator.check_scene(scene)
+    check_film(scene)
     img, seconds = render_timed(scene, integrator, spp, seed)
     image, vis = split_channels(img, integrator.aov_names())
     return MethodResult(name=spec_name(spec), method=method, params=dict(props), image=image,

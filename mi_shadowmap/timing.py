@@ -86,14 +86,22 @@ def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
     """``(image (H, W, 3), {label: visibility (H, W)})`` of a render.
 
     The film has 3 colour channels in rgb and spectral variants (spectral films
-    develop to RGB) and 1 in mono; a mono image is repeated into 3 grey channels so
-    that every metric and output treats all variants alike.
+    develop to RGB) and 1 in mono, and an alpha channel after them if its
+    ``pixel_format`` has one (``rgba``, ``ya``: dropped here); a mono image is
+    repeated into 3 grey channels so that every metric and output treats all
+    variants alike.
     """
     arr = np.asarray(result, dtype=np.float32)
-    n_colour = arr.shape[-1] - len(aov_names)
+    n_film = arr.shape[-1] - len(aov_names)
+    if n_film not in (1, 2, 3, 4):
+        raise ValueError(f"shadowmap: a render of {arr.shape[-1]} channels with "
+                         f"{len(aov_names)} AOVs leaves {n_film} film channels; expected "
+                         "1-4 (Y, YA, RGB, RGBA)")
+    mono = n_film == 1 or (n_film == 2 and mi.is_monochromatic)
+    n_colour = 1 if mono else 3
     image = arr[..., :n_colour]
     image = np.repeat(image, 3, axis=-1) if n_colour == 1 else image.copy()
-    vis = {name[len("vis_"):]: arr[..., n_colour + k].copy() for k, name in enumerate(aov_names)}
+    vis = {name[len("vis_"):]: arr[..., n_film + k].copy() for k, name in enumerate(aov_names)}
     return image, vis
 
 

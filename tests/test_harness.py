@@ -333,3 +333,23 @@ def test_prepare_maps_at_defaults_gives_full_maps_with_every_layer():
     assert isinstance(maps[0], ShadowMap) and "second_depth" in maps[0].layers()
     with pytest.raises(ValueError, match="second_depth"):
         harness.prepare_maps(scene, ["pcss", "second_depth"], virtual=True)
+
+
+@pytest.mark.parametrize("variant, fmt", [("llvm_ad_rgb", "rgba"), ("llvm_ad_mono", "ya")])
+def test_films_with_alpha_compare_as_without(variant, fmt):
+    """A film whose ``pixel_format`` has alpha (``rgba``, mono ``ya``) puts an alpha
+    channel before the AOVs; the harness took it for colour (4 channels, which FLIP
+    refused). Now it is dropped: the same records as the film without alpha."""
+    mi.set_variant(variant)
+    out = {}
+    for pf in (fmt, fmt[:-1] if fmt == "rgba" else "luminance"):
+        d = default_scene(**SMALL)
+        d["sensor"]["film"]["pixel_format"] = pf
+        res = harness.compare(mi.load_dict(d), methods=["hard"], spp=2)
+        out[pf] = res
+        assert res[1].image.shape == (32, 32, 3) and list(res[1].visibility) == ["spot"]
+    a, b = out.values()
+    for ra, rb in zip(a, b):
+        np.testing.assert_array_equal(ra.image, rb.image)
+        np.testing.assert_array_equal(ra.visibility["spot"], rb.visibility["spot"])
+        assert ra.metrics["vis_rmse"] == rb.metrics["vis_rmse"]

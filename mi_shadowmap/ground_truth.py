@@ -4,8 +4,8 @@
 
 * ``"auto"``: the ``raytraced`` method at the same spp and seed when every
   emitter is a delta light (so its visibility is the exact per-sample ground
-  truth and its own metrics are 0); when the scene has an area light
-  (:func:`has_area_lights`), the converged soft-shadow reference
+  truth and its own metrics are 0); when the scene has an area light or an
+  environment (:func:`has_soft_lights`), the converged soft-shadow reference
   (:func:`converged_reference`);
 * ``"converged"``: :func:`converged_reference` in any scene;
 * a method name or spec (rendered at the given spp), or an existing
@@ -41,6 +41,15 @@ def has_area_lights(scene: mi.Scene) -> bool:
     return False
 
 
+def has_soft_lights(scene: mi.Scene) -> bool:
+    """True if an emitter is an area light or an environment (``envmap``, ``constant``):
+    a light whose visibility is a fraction, not 0 or 1. One shadow ray per camera sample
+    gives it only as binary noise, so comparisons measure against the converged
+    reference there (an environment's ``vis_`` AOV is the share of its light that
+    arrives: on an open floor under a uniform sky about 0.5)."""
+    return has_area_lights(scene) or any(e.is_environment() for e in scene.emitters())
+
+
 def converged_reference(scene: mi.Scene, spp: int = 64, seed: int = 0,
                         shadow_rays: int = 64, n_light: int = 1024) -> MethodResult:
     """The converged soft-shadow reference for scenes with area lights.
@@ -71,7 +80,7 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
     """
     if isinstance(reference, MethodResult):
         ref = reference
-    elif reference == "converged" or (reference == "auto" and has_area_lights(scene)):
+    elif reference == "converged" or (reference == "auto" and has_soft_lights(scene)):
         ref = converged_reference(scene, spp=max(spp, ref_spp), seed=seed,
                                   shadow_rays=ref_shadow_rays)
     else:

@@ -31,7 +31,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-from .ground_truth import (converged_reference, has_area_lights,  # noqa: F401
+from .ground_truth import (converged_reference, has_area_lights, has_soft_lights,  # noqa: F401
                            make_reference, score)
 from . import map_manager
 from .options import OptionError
@@ -116,9 +116,9 @@ def render(scene, method="hard", spp: int = 16, seed: int = 0, **params):
 def remeasure(scene, reference_info: dict, spec: dict, metric: str, seed: int) -> float:
     """``spec``'s ``metric`` measured again independently of whoever measured it first
     (e.g. :func:`mi_shadowmap.tune`): a fresh reference of the kind and spp that
-    ``reference_info`` describes (the converged reference for area lights, else
-    ``raytraced``) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
-    if has_area_lights(scene):
+    ``reference_info`` describes (the converged reference for area lights or an
+    environment, else ``raytraced``) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
+    if has_soft_lights(scene):
         ref = converged_reference(scene, spp=reference_info["spp"], seed=seed + 1,
                                   shadow_rays=1, n_light=reference_info["light_samples"])
     else:

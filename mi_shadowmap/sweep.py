@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from . import metrics
-from .ground_truth import has_area_lights, make_reference, score
+from .ground_truth import has_soft_lights, make_reference, score
 from .options import OptionError, parse_options
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, map_methods,
@@ -218,7 +218,7 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     The reference is rendered once: ``"auto"`` is ``raytraced`` at
     ``max(ref_spp, every spp of the grid)`` spp for delta lights (so that no
     configuration is compared with a noisier version of itself), and the
-    converged reference for area lights (see
+    converged reference for area lights and environments (see
     :func:`~mi_shadowmap.ground_truth.make_reference`).
 
     ``time_key`` is the time axis: ``"time_warm"`` (a frame with the depth maps
@@ -231,7 +231,7 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     specs = expand_grid(default_grid() if grid is None else grid, default_spp=spp)
     scene = load_scene(scene, **(scene_params or {}))
     max_spp = max(s["spp"] for s in specs)
-    if reference == "auto" and not has_area_lights(scene):
+    if reference == "auto" and not has_soft_lights(scene):
         reference = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}
     ref = make_reference(scene, reference, spp=max(ref_spp, max_spp), seed=seed + 1,
                          ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)

@@ -9,8 +9,8 @@ pick is a point of that table's Pareto front.
 1. **Reference** (the policy of :func:`~mi_shadowmap.sweep.sweep`, built with
    :mod:`mi_shadowmap.ground_truth`): ``raytraced`` at many spp for delta
    lights, the converged soft-shadow reference
-   (:func:`~mi_shadowmap.ground_truth.converged_reference`) for area lights,
-   with a seed of its own. Its spp follow from the budget: two 4-spp
+   (:func:`~mi_shadowmap.ground_truth.converged_reference`) for area lights and
+   environments, with a seed of its own. Its spp follow from the budget: two 4-spp
    renders of the reference method measure its pixel-sampling noise, and
    the reference gets enough spp for its own noise to be <= a third of the
    budget (at most ``max_ref_spp``), so that a configuration is never
@@ -66,7 +66,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import metrics
-from .ground_truth import converged_reference, has_area_lights, make_reference, score
+from .ground_truth import converged_reference, has_soft_lights, make_reference, score
 from .options import OptionError
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, available_methods, check_shared_params, method_spec,
@@ -90,7 +90,7 @@ MAIN_PARAMETERS = {
     "pcss": {"filter_samples": (16, 64)},
 }
 #: (method, parameter) pairs that change nothing under delta lights (searched only
-#: when the scene has an area light).
+#: when the scene has an area light or an environment).
 AREA_ONLY = {("raytraced", "shadow_rays"), ("pcss", "filter_samples")}
 #: The spp at which every configuration is screened (the error/time model's two points).
 SCREEN_SPP = (1, 8)
@@ -340,7 +340,7 @@ class _Tuner:
         self.full = self.film.full
         self.small = reduced_size(self.full, search_size)
         self.k = max(self.small) / max(self.full)     # map resolutions scale with the film
-        self.area = has_area_lights(scene)
+        self.area = has_soft_lights(scene)   # area lights or an environment
         searched = {s["method"] for s in specs}
         grid = search_grid(specs, *self.full, self.area)
         if REFERENCE_METHOD not in searched:
@@ -884,7 +884,7 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
     max_ref_spp, ref_light_samples
         Cap on the reference's spp (a capped reference is noisier: the budget is then
         harder to meet, never easier); light samples of the converged reference of
-        area lights.
+        area lights and environments.
     **params
         Integrator properties kept fixed for every method that uses them (an unknown
         property, or one no method uses, is an error).

@@ -612,9 +612,8 @@ def _film_takes_aovs(film) -> bool:
     get them."""
     if not mi.has_flag(film.flags(), mi.FilmFlags.Special):
         return True
-    cls = str(film).split("[", 1)[0].strip() or type(film).__name__
     warnings.warn(
-        f"shadowmap: the sensor's film ({cls}) has its own channel layout, into which "
+        f"shadowmap: the sensor's film ({film.class_name()}) has its own channel layout, into which "
         "Mitsuba 3.9 cannot write integrator AOVs (mitsuba3 issue #1189): this render "
         "leaves out the visibility AOVs (vis_<emitter>); the image itself is complete. "
         "Render to an 'hdrfilm' to get them", RuntimeWarning, stacklevel=4)

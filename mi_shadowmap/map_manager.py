@@ -330,7 +330,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
 
 def _sensor_name(sensor) -> str:
     """``'id' (Class)`` of a sensor, for messages."""
-    cls = str(sensor).split("[", 1)[0].strip() or type(sensor).__name__
+    cls = sensor.class_name()     # not str(sensor): printing evaluates its JIT fields
     return f"'{sensor.id()}' ({cls})" if sensor.id() else f"({cls})"
 
 

@@ -74,9 +74,8 @@ def check_film(scene, sensor: int = 0) -> None:
         return
     film = sensors[sensor].film()
     if mi.has_flag(film.flags(), mi.FilmFlags.Special):
-        cls = str(film).split("[", 1)[0].strip() or type(film).__name__
         raise ValueError(
-            f"shadowmap: the scene's film ({cls}) has its own channel layout, into which "
+            f"shadowmap: the scene's film ({film.class_name()}) has its own channel layout, into which "
             "Mitsuba 3.9 writes no integrator AOVs (mitsuba3 issue #1189), and comparing "
             "methods reads their visibility AOVs; give the sensor an 'hdrfilm' (a "
             "spectral variant develops it to RGB)")

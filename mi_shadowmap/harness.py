@@ -116,9 +116,10 @@ def render(scene, method="hard", spp: int = 16, seed: int = 0, **params):
 def remeasure(scene, reference_info: dict, spec: dict, metric: str, seed: int) -> float:
     """``spec``'s ``metric`` measured again independently of whoever measured it first
     (e.g. :func:`mi_shadowmap.tune`): a fresh reference of the kind and spp that
-    ``reference_info`` describes (the converged reference for area lights or an
-    environment, else ``raytraced``) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
-    if has_soft_lights(scene):
+    ``reference_info`` describes (its ``method``: ``"converged"``, the converged
+    reference with its ``light_samples``, as for area lights and environments; else
+    ``raytraced``) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
+    if reference_info.get("method") == "converged":
         ref = converged_reference(scene, spp=reference_info["spp"], seed=seed + 1,
                                   shadow_rays=1, n_light=reference_info["light_samples"])
     else:

@@ -255,9 +255,10 @@ screen is Mitsuba's projective integrators' job.
         ``sample()`` returns values for exactly those names (:meth:`sample`)."""
         if self._nested:
             return list(self._names_given)
-        if not self._film_takes_aovs:     # this render's (or the last one's) film
-            return []
-        names = self._names()
+        # none for a render (or after one) to a film that cannot take them; remembered
+        # like any list given, so that an integrator nesting this one sizes its channels
+        # by what sample() will return
+        names = self._names() if self._film_takes_aovs else []
         if not self._in_render:
             self._names_given = list(names)
         return names

@@ -163,11 +163,15 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     visible = None
     if sensor is not None and any(v.needs_camera_points(opts) for v in live):
         if not aims_by_film(sensor):
+            given = [f"'{name}' = {value}" for name, value, on in (
+                ("fit_frusta", "true", opts.fit_frusta), ("cull_faces", "true", opts.cull_faces),
+                ("cascades", opts.cascades, opts.cascades > 1)) if on]
             raise OptionError(
-                "shadowmap: properties 'fit_frusta', 'cull_faces' and 'cascades' fit the "
-                "maps to the points the camera's pixels see, and sensor "
-                f"{_sensor_name(sensor)} spreads each pixel's rays over a surface or a "
-                "hemisphere; leave them at their defaults (false, false, 1) for it")
+                f"shadowmap: property {' and '.join(given)} fits the maps to the points the "
+                f"camera's pixels see, and sensor {_sensor_name(sensor)} has no such "
+                "points (it spreads each pixel's rays over a surface or a hemisphere, or "
+                "over a target); leave fit_frusta, cull_faces and cascades at their "
+                "defaults (false, false, 1) for it")
         visible = camera_visible_points(scene, sensor)
     # a sensor that does not aim its pixels (irradiancemeter, distant: 1 x 1 films) sizes
     # the automatic resolution as no sensor does: 2 x 512
@@ -313,8 +317,9 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
             raise OptionError(
                 f"shadowmap: property 'virtual' = true marks the pages that the sensor's "
                 f"pixels see, and sensor {_sensor_name(sensor)} spreads each pixel's rays "
-                "over a surface or a hemisphere (it sees no set of points a pixel at a "
-                "time); set virtual=false (full maps) or leave 'virtual' out")
+                "over a surface or a hemisphere, or over a target (it sees no set of "
+                "points a pixel at a time); set virtual=false (full maps) or leave "
+                "'virtual' out")
         opts = opts.replace(virtual=False)     # automatic: full maps
     if opts.uses_map and opts.virtual and not (
             "virtual" not in opts.given and _differentiated(scene, params)):

@@ -64,9 +64,9 @@ class MethodResult:
         return r
 
 
-def check_film(scene, sensor: int = 0) -> None:
+def check_film(scene, sensor: int = 0, what: str = "comparing methods") -> None:
     """Raise ValueError if the film of ``scene``'s sensor ``sensor`` cannot hold the
-    visibility AOVs the harness compares: a film with its own channel layout
+    visibility AOVs that ``what`` reads: a film with its own channel layout
     (``specfilm``), into which Mitsuba 3.9 writes no integrator AOVs (see
     :func:`mi_shadowmap.integrator._film_takes_aovs`)."""
     sensors = scene.sensors()
@@ -76,19 +76,20 @@ def check_film(scene, sensor: int = 0) -> None:
     if mi.has_flag(film.flags(), mi.FilmFlags.Special):
         raise ValueError(
             f"shadowmap: the scene's film ({film.class_name()}) has its own channel layout, into which "
-            "Mitsuba 3.9 writes no integrator AOVs (mitsuba3 issue #1189), and comparing "
-            "methods reads their visibility AOVs; give the sensor an 'hdrfilm' (a "
-            "spectral variant develops it to RGB)")
+            f"Mitsuba 3.9 writes no integrator AOVs (mitsuba3 issue #1189), and {what} "
+            "reads visibility AOVs; give the sensor an 'hdrfilm' (a spectral variant "
+            "develops it to RGB)")
 
 
 def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
     """``(image (H, W, 3), {label: visibility (H, W)})`` of a render.
 
     The film has 3 colour channels in rgb and spectral variants (spectral films
-    develop to RGB) and 1 in mono, and an alpha channel after them if its
-    ``pixel_format`` has one (``rgba``, ``ya``: dropped here); a mono image is
-    repeated into 3 grey channels so that every metric and output treats all
-    variants alike.
+    develop to RGB) and 1 in mono or with ``pixel_format`` ``luminance``, and an
+    alpha channel after them if the format has one (``rgba``, ``luminance_alpha``,
+    ``xyza``: dropped here; no format has two colour channels); a one-channel image
+    is repeated into 3 grey channels so that every metric and output treats all
+    variants and formats alike.
     """
     arr = np.asarray(result, dtype=np.float32)
     n_film = arr.shape[-1] - len(aov_names)
@@ -96,8 +97,7 @@ def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
         raise ValueError(f"shadowmap: a render of {arr.shape[-1]} channels with "
                          f"{len(aov_names)} AOVs leaves {n_film} film channels; expected "
                          "1-4 (Y, YA, RGB, RGBA)")
-    mono = n_film == 1 or (n_film == 2 and mi.is_monochromatic)
-    n_colour = 1 if mono else 3
+    n_colour = 1 if n_film in (1, 2) else 3
     image = arr[..., :n_colour]
     image = np.repeat(image, 3, axis=-1) if n_colour == 1 else image.copy()
     vis = {name[len("vis_"):]: arr[..., n_film + k].copy() for k, name in enumerate(aov_names)}

@@ -120,12 +120,13 @@ def test_has_area_lights():
 
 
 def test_environment_light_is_measured_against_the_converged_reference():
-    """An environment's visibility AOV is the share of its light that arrives (about 0.5
-    on an open floor under a uniform sky). The automatic reference was ``raytraced`` with
-    one shadow ray per sample, whose AOV is then binary noise: here ``pcss`` misclassified
-    42 % of the sky's pixels against it (RMSE 0.21) and ``unshadowed`` looked better
-    (11 %, 0.15). Now an environment gets the converged reference: ``pcss`` 1.95 % /
-    0.029, ``unshadowed`` 54 % / 0.24 (measured, 32^2, 4 spp)."""
+    """An environment's visibility AOV is the share of its light that arrives (about 0.45
+    on an open floor under a uniform sky: the horizon hides half of it). The automatic
+    reference was ``raytraced`` with one shadow ray per sample, whose AOV is then binary
+    noise: here ``pcss``'s visibility RMSE against it was 0.21 and ``unshadowed`` looked
+    better (0.15). Now an environment gets the converged reference: ``pcss`` 0.029,
+    ``unshadowed`` 0.24 (measured, 32^2, 4 spp). (Misclassification at 0.5 means little
+    here: the floor's true visibility sits just under it.)"""
     d = default_scene(**SMALL)
     d["sky"] = {"type": "constant", "radiance": 0.05}
     scene = mi.load_dict(d)
@@ -138,26 +139,11 @@ def test_environment_light_is_measured_against_the_converged_reference():
     assert 0.2 < float(np.mean(ref[ref > 0])) < 0.8            # a fraction, not 0 or 1
     assert np.mean((ref > 0.02) & (ref < 0.98)) > 0.5
     pcss, unshadowed = (r.metrics["per_emitter"][sky[0]] for r in res[1:])
-    print(f"sky: pcss {pcss['misclassified']:.2%} / RMSE {pcss['rmse']:.4f}, "
-          f"unshadowed {unshadowed['misclassified']:.2%} / {unshadowed['rmse']:.4f}")
-    assert pcss["misclassified"] <= 0.04 and pcss["rmse"] <= 0.05
-    assert unshadowed["misclassified"] >= 0.3 and unshadowed["rmse"] >= 4 * pcss["rmse"]
+    print(f"sky: pcss RMSE {pcss['rmse']:.4f}, unshadowed {unshadowed['rmse']:.4f}")
+    assert pcss["rmse"] <= 0.05
+    assert unshadowed["rmse"] >= 4 * pcss["rmse"]
 
 
-def test_area_light_reference_is_converged():
-    """With an area light the reference is not the same-spp ray tracing: ray tracing
-    at 1 spp has noise against it, which more shadow rays reduce."""
-    scene = mi.load_dict(default_scene(light="area", **SMALL))
-    res = harness.compare(scene, methods=["raytraced", "raytraced:shadow_rays=16"], spp=1,
-                          ref_spp=16, ref_shadow_rays=16)
-    ref, rt1, rt16 = res
-    assert ref.is_reference and ref.spp == 16
-    assert "converged" in ref.name and "converged" in ref.times
-    assert 0 < rt16.metrics["vis_rmse"] < rt1.metrics["vis_rmse"]
-    assert rt1.metrics["vis_penumbra_rmse"] is not None   # soft shadows have a penumbra
-
-
-# --------------------------------------------------------------------------- sweeps
 def test_expand_grid():
     specs = harness.expand_grid([{"method": ["hard", "raytraced"], "resolution": [64, 128],
                                   "shadow_rays": [1, 4]},
@@ -360,17 +346,25 @@ def test_prepare_maps_at_defaults_gives_full_maps_with_every_layer():
         harness.prepare_maps(scene, ["pcss", "second_depth"], virtual=True)
 
 
-@pytest.mark.parametrize("variant, fmt", [("llvm_ad_rgb", "rgba"), ("llvm_ad_mono", "ya")])
-def test_films_with_alpha_compare_as_without(variant, fmt):
-    """A film whose ``pixel_format`` has alpha (``rgba``, mono ``ya``) puts an alpha
-    channel before the AOVs; the harness took it for colour (4 channels, which FLIP
-    refused). Now it is dropped: the same records as the film without alpha."""
+@pytest.mark.parametrize("variant, fmt, plain", [
+    ("llvm_ad_rgb", "rgba", "rgb"), ("llvm_ad_rgb", "luminance_alpha", "luminance"),
+    ("llvm_ad_mono", "luminance_alpha", "luminance"),
+    ("llvm_ad_spectral", "luminance_alpha", "luminance")])
+def test_films_with_alpha_compare_as_without(variant, fmt, plain):
+    """A film whose ``pixel_format`` has alpha (``rgba``, ``luminance_alpha``) puts an
+    alpha channel before the AOVs; the harness took it for colour (4 channels, which
+    FLIP refused, or luminance and alpha as two colours). Now it is dropped: the same
+    records as the film without alpha."""
     mi.set_variant(variant)
     out = {}
-    for pf in (fmt, fmt[:-1] if fmt == "rgba" else "luminance"):
+    for pf in (fmt, plain):
         d = default_scene(**SMALL)
         d["sensor"]["film"]["pixel_format"] = pf
-        res = harness.compare(mi.load_dict(d), methods=["hard"], spp=2)
+        scene = mi.load_dict(d)
+        n = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "shadowmap"}),
+                                 spp=1)).shape[-1]
+        assert n == {"rgba": 5, "rgb": 4, "luminance_alpha": 3, "luminance": 2}[pf]
+        res = harness.compare(scene, methods=["hard"], spp=2)
         out[pf] = res
         assert res[1].image.shape == (32, 32, 3) and list(res[1].visibility) == ["spot"]
     a, b = out.values()

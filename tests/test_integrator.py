@@ -492,16 +492,45 @@ def test_sensors_that_spread_a_pixel_get_full_maps_and_the_truth(sensor, light):
         assert integ.stats.pages_built == 0 and integ.stats.texels_built >= 1024 ** 2
 
 
-@pytest.mark.parametrize("props, named", [({"virtual": True}, "'virtual'"),
-                                          ({"fit_frusta": True}, "'fit_frusta'"),
-                                          ({"cascades": 2}, "'cascades'")])
-def test_sensors_that_spread_a_pixel_refuse_camera_fitted_maps(props, named):
-    """``virtual=true``, ``fit_frusta`` and ``cascades`` fit maps to the points the
-    camera's pixels see; with an ``irradiancemeter`` they are refused, naming the
-    property and the sensor."""
-    scene = _meter_scene("irradiancemeter", "directional")
+@pytest.mark.parametrize("props, light, named", [
+    ({"virtual": True}, "directional", "property 'virtual' = true"),
+    ({"fit_frusta": True}, "directional", "property 'fit_frusta' = true"),
+    ({"cascades": 2}, "directional", "property 'cascades' = 2"),
+    ({"cull_faces": True}, "point", "property 'cull_faces' = true")])
+def test_sensors_that_spread_a_pixel_refuse_camera_fitted_maps(props, light, named):
+    """``virtual=true``, ``fit_frusta``, ``cascades`` and ``cull_faces`` fit maps to the
+    points the camera's pixels see; with an ``irradiancemeter`` they are refused, naming
+    the property given and the sensor."""
+    scene = _meter_scene("irradiancemeter", light)
     integ = mi.load_dict({"type": "shadowmap", "method": "hard", **props})
     with pytest.raises(RuntimeError) as info:
         mi.render(scene, integrator=integ, spp=4)
     msg = root_message(info.value)
     assert named in msg and "IrradianceMeter" in msg, msg
+
+
+def test_which_sensors_aim_their_pixels_by_film():
+    """Cameras, a ``radiancemeter`` and a ``batch`` of cameras (with a ``thinlens`` too,
+    which needs aperture samples) aim each pixel's rays by film position; an
+    ``irradiancemeter`` and a ``distant`` sensor do not. A batch holding a thin lens
+    was first classed with the latter, and lost its virtual maps."""
+    from mi_shadowmap.light_views import aims_by_film
+    film = {"type": "hdrfilm", "width": 8, "height": 4}
+    one = {"type": "hdrfilm", "width": 1, "height": 1}
+    thin = {"type": "thinlens", "aperture_radius": 0.1, "focus_distance": 3.0}
+    sensors = {
+        "perspective": ({"type": "perspective", "film": film}, True),
+        "thinlens": ({**thin, "film": film}, True),
+        "orthographic": ({"type": "orthographic", "film": film}, True),
+        "radiancemeter": ({"type": "radiancemeter", "film": one}, True),
+        "batch": ({"type": "batch", "film": film, "a": {"type": "perspective"},
+                   "b": {"type": "orthographic"}}, True),
+        "batch_thinlens": ({"type": "batch", "film": film, "a": {"type": "perspective"},
+                            "b": dict(thin)}, True),
+        "distant": ({"type": "distant", "film": one}, False),
+    }
+    for name, (d, aims) in sensors.items():
+        assert aims_by_film(mi.load_dict(d)) is aims, name
+    meter = mi.load_dict({"type": "rectangle", "sensor": {"type": "irradiancemeter",
+                                                          "film": one}})
+    assert aims_by_film(meter.sensor()) is False

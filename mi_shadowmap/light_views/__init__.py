@@ -153,15 +153,42 @@ def aims_by_film(sensor) -> bool:
     with its aperture sample: ``irradiancemeter`` (a shape's irradiance, from the whole
     hemisphere above it) and ``distant`` (a direction's radiance over a target). Such a
     pixel has no footprint and no set of points it sees, so the render takes no pixel
-    footprint, and the automatic maps are full maps (see the ``virtual`` property)."""
-    return sensor is not None and (isinstance(sensor, mi.ProjectiveCamera)
-                                   or not sensor.needs_aperture_sample())
+    footprint, and the automatic maps are full maps (see the ``virtual`` property). A
+    ``batch`` aims by film when each of its sensors does (one with a ``thinlens`` needs
+    aperture samples, and still aims by film)."""
+    if sensor is None:
+        return False
+    if isinstance(sensor, mi.ProjectiveCamera) or not sensor.needs_aperture_sample():
+        return True
+    if sensor.class_name() == "BatchSensor":
+        return all(aims_by_film(s) for s in _child_sensors(sensor))
+    return False
+
+
+class _SensorCollector(mi.TraversalCallback):
+    """Collects the sensors among an object's traversed children."""
+
+    def __init__(self):
+        super().__init__()
+        self.found = []
+
+    def put(self, name, value, *flags):
+        if isinstance(value, mi.Sensor):
+            self.found.append(value)
+
+
+def _child_sensors(sensor) -> list:
+    """The sensors a ``batch`` sensor holds (from its traversal)."""
+    cb = _SensorCollector()
+    sensor.traverse(cb)
+    return cb.found
 
 
 def is_pinhole(sensor) -> bool:
     """A ``perspective`` camera (``sample_direction`` gives a point's film position)."""
+    # class_name(), not str(sensor): printing a sensor evaluates its JIT fields
     return (isinstance(sensor, mi.ProjectiveCamera) and not sensor.needs_aperture_sample()
-            and str(sensor).startswith("PerspectiveCamera"))
+            and sensor.class_name() == "PerspectiveCamera")
 
 
 def pinhole(sensor):

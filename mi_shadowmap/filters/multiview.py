@@ -31,13 +31,17 @@ receiver biases of that view; their defaults differ from ``hard``'s
 a light without extent is bit-identical to ``hard``.
 
 **Visibility** is defined exactly as by the converged reference
-(:mod:`mi_shadowmap.reference`): a light point counts only where it emits
-towards the receiver (front side of an area light; the spot's cone, from the
-emitter's own sample), and it is *shadowed* when it lies below the receiver's
-horizon (the BSDF towards it is 0: evaluated once towards the light's centre,
-and again only for views on the other side of the shading plane -- BSDFs are
-zero or not per hemisphere) or is occluded. The lookup returns
-``(visible, above)``, the fractions of the emitting points that are lit and
+(:mod:`mi_shadowmap.reference`): a light point is lit where it emits towards the
+receiver (front side of an area light, radiance > 0 there for a textured one; the
+spot's cone, from the emitter's own sample), lies above the receiver's horizon (the
+BSDF towards it is not 0: evaluated once towards the light's centre, and again only
+for views on the other side of the shading plane -- BSDFs are zero or not per
+hemisphere) and is not occluded. The fraction is over the points the reference's
+light samples could be: all K for lights Mitsuba samples by area (a point on the back
+of a cube or a cylinder light, or on a black texel, counts as shadowed, as a light
+sample drawn there does), the emitting ones for a sphere, which Mitsuba samples in the
+cone it subtends (:attr:`~mi_shadowmap.light_views.multi.MultiView.count_all`). The
+lookup returns ``(visible, above)``, the fractions of those points that are lit and
 that are above the horizon (the record's ``whole_light``): the integrator
 reports ``visible`` as the AOV at every shaded point, and weights its one
 light sample's radiance by ``visible / above``. (A one-sample AOV would be
@@ -134,7 +138,10 @@ def multiview(smap, lk: Lookup, opts, active=True):
 
     z = mi.Float(0.0)
     _, n_emit, n_above, n_lit = dr.while_loop((mi.UInt32(0), z, z, z), cond, body)
-    inv = dr.select(n_emit > 0, dr.rcp(dr.maximum(n_emit, 1.0)), 0.0)
+    # the reference's denominator: every point looked up for a light sampled by area,
+    # the emitting ones for a sphere (see MultiView.count_all)
+    total = mi.Float(L) if view.count_all else n_emit
+    inv = dr.select(n_emit > 0, dr.rcp(dr.maximum(total, 1.0)), 0.0)
     return n_lit * inv, n_above * inv
 
 

@@ -43,6 +43,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..variants import unpolarized
 from .base import LightView, look_along_np, position_np, unit_grid
 
 #: Seed of the light points' jitter: fixed, so the views (and maps) are cacheable.
@@ -105,13 +106,22 @@ class MultiView(LightView):
       rotation about its position (cube maps ignore it: world axes);
     * ``normals`` -- ``K`` emitting normals (one, shared, for a planar light), or ``()``
       (light points emit everywhere);
-    * ``samples`` -- the ``K`` samples ``u_k`` the points were made from.
+    * ``samples`` -- the ``K`` samples ``u_k`` the points were made from;
+    * ``radiant`` -- per point, whether it emits at all (an area light's radiance there
+      is > 0: a textured light can be black in places), or ``()``: all do;
+    * ``count_all`` -- the visibility's denominator is all the points looked up (a
+      point that does not emit towards the receiver counts as shadowed, as the
+      reference counts a light sample Mitsuba draws there: lights sampled by area),
+      else only the points that emit towards it (a sphere, which Mitsuba samples in the
+      cone it subtends, so that no sample lies on its back).
     """
     sub: LightView | None = None
     positions: tuple = ()
     rotations: tuple = ()
     normals: tuple = ()
     samples: tuple = ()
+    radiant: tuple = ()
+    count_all: bool = False
 
     projection = "multi-view"
 
@@ -140,6 +150,8 @@ class MultiView(LightView):
         else:
             R = np.array(self.sub.light_from_world.matrix, dtype=np.float64)[:3, :3]
             t["rot"] = [float(x) for x in R.ravel()]
+        if self.radiant and not all(self.radiant):
+            t["radiant"] = mi.Bool(list(self.radiant))
         if len(self.normals) == 1:
             t["normal"] = mi.Vector3f(*self.normals[0])
         elif self.normals:
@@ -172,13 +184,16 @@ class MultiView(LightView):
 
     def emits_towards(self, k, p_world: mi.Point3f) -> mi.Bool:
         """Whether light point ``k`` emits towards ``p_world``: in front of its normal
-        (always True for points without one)."""
+        (always True for points without one) and with radiance there (``radiant``)."""
         t = self._tables
-        if "normal" not in t:
-            return mi.Bool(True)
         k = mi.UInt32(k)
+        out = mi.Bool(True)
+        if self.radiant and not all(self.radiant):
+            out = dr.gather(mi.Bool, t["radiant"], k)
+        if "normal" not in t:
+            return out
         n = t["normal"] if len(self.normals) == 1 else dr.gather(mi.Vector3f, t["normal"], k)
-        return dr.dot(n, mi.Point3f(p_world) - dr.gather(mi.Point3f, t["pos"], k)) > 0
+        return out & (dr.dot(n, mi.Point3f(p_world) - dr.gather(mi.Point3f, t["pos"], k)) > 0)
 
     def _split(self, face):
         face = mi.UInt32(face)
@@ -385,6 +400,24 @@ def _frustum_tan(scene, own_shape, light_from_world, points: np.ndarray):
     return tan
 
 
+def _radiant(emitter, ps) -> tuple:
+    """Per light point of ``ps`` (positions on an area emitter's shape): whether its
+    front side emits (radiance > 0 at some of a few wavelengths)."""
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ps.p))
+    si.p, si.n, si.uv, si.time = ps.p, ps.n, ps.uv, ps.time
+    si.sh_frame = mi.Frame3f(ps.n)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)            # leaving the front side
+    lit = np.zeros(dr.width(ps.p), bool)
+    waves = [(450.0, 550.0, 650.0, 750.0), (400.0, 500.0, 600.0, 700.0)] \
+        if mi.is_spectral else [None]
+    for w in waves:
+        if w is not None:
+            si.wavelengths = type(si.wavelengths)(*w)
+        value = unpolarized(emitter.eval(si))
+        lit |= (dr.max(value) > 0).numpy() if dr.width(value) else False
+    return tuple(bool(x) for x in lit)
+
+
 def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                angular_diameter: float = 0.0) -> MultiView | None:
     """The :class:`MultiView` of ``views`` light points of an emitter whose ordinary
@@ -413,7 +446,9 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                 sub = dataclasses.replace(PerspectiveView(**base, tan_half=tan),
                                           light_from_world=lfw)
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
-                         normals=_normals(n), samples=samples)
+                         normals=_normals(n), samples=samples,
+                         radiant=_radiant(emitter, ps),
+                         count_all=emitter.get_shape().class_name() != "Sphere")
     if view.kind in ("point", "spot", "projector"):
         size = float(light_size or 0.0)
         if size <= 0.0:

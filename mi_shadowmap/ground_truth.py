@@ -78,6 +78,10 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
     (rendered at ``spp`` unless it has its own), or an existing
     :class:`~mi_shadowmap.timing.MethodResult`.
     """
+    if len(scene.emitters()) == 0:
+        raise ValueError("shadowmap: the scene has no emitter, so there is no shadow to "
+                         "compare; add a light (point, spot, directional, area, projector "
+                         "or an environment)")
     if isinstance(reference, MethodResult):
         ref = reference
     elif reference == "converged" or (reference == "auto" and has_soft_lights(scene)):

@@ -38,7 +38,7 @@ from .options import OptionError
 from .pages import VirtualShadowMap
 from .scenes import load_scene
 from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F401
-                    check_shared_params, default_methods, map_methods, method_spec,
+                    check_run_args, check_shared_params, default_methods, map_methods, method_spec,
                     parse_method_string, parse_value, spec_name, users_of, uses_property,
                     to_mitsuba, validate_property, validate_spec)
 from .sweep import (SweepTable, analyse, default_grid, expand_grid,  # noqa: F401
@@ -73,7 +73,12 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
 
     Everything is validated before the first render.
     """
-    specs = [method_spec(m, params) for m in (methods or default_methods())]
+    if isinstance(methods, (str, dict)):      # one method
+        methods = [methods]
+    check_run_args(methods=methods, spp=spp, seed=seed, repeats=repeats, ref_spp=ref_spp,
+                   ref_shadow_rays=ref_shadow_rays)
+    specs = [method_spec(m, params) for m in (methods if methods is not None
+                                              else default_methods())]
     check_shared_params(specs, params)
     if not isinstance(reference, MethodResult) and reference not in ("auto", "converged"):
         method_spec(reference)   # a bad reference spec fails before anything loads
@@ -103,13 +108,24 @@ def render(scene, method="hard", spp: int = 16, seed: int = 0, **params):
     ``views``, ``stats``) and the image as a numpy array (colour channels, then one
     visibility AOV per emitter). Validated before anything loads.
     """
+    check_run_args(spp=spp, seed=seed)
     spec = method_spec(method, params)
+    check_shared_params([spec], params)
     validate_spec(spec)
     spec = dict(spec)
     spp = spec.pop("spp", spp)
     scene = load_scene(scene)
     integ = mi.load_dict({"type": "shadowmap", **to_mitsuba(spec)})
-    img = mi.render(scene, integrator=integ, spp=spp, seed=seed)
+    integ.check_scene(scene)      # clear error before rendering
+    try:
+        img = mi.render(scene, integrator=integ, spp=spp, seed=seed)
+    except RuntimeError as e:     # mi.render wraps a Python integrator's errors
+        root = e
+        while root.__cause__ is not None:
+            root = root.__cause__
+        if root is not e and isinstance(root, (ValueError, TypeError)):
+            raise root from None
+        raise
     return integ, np.asarray(img)
 
 

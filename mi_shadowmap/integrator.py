@@ -26,6 +26,7 @@ from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import (aims_by_film, emitter_kind, emitter_label, is_pinhole,
                           make_light_view, pinhole_footprint, pixel_step)
 from .light_views.base import scene_bounds
+from .methods import MethodError
 from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
                        variant_class)
 from .pages import VirtualShadowMap, camera_frame
@@ -106,6 +107,8 @@ screen is Mitsuba's projective integrators' job.
         self._nested = False        # sample() is called by another integrator (aov)
         self._names_given: list[str] = []   # aov_names() given outside a render
         self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
+        # a user method's render: a one-element counter of lookups outside [0, 1] or NaN
+        self._out_of_range = None
         self._last_render = None    # the scene of the render in progress or just done
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
@@ -136,9 +139,20 @@ screen is Mitsuba's projective integrators' job.
             self._first_pass(scene, sensor_obj,
                              spp if spp > 0 else sensor_obj.sampler().sample_count())
             self._last_render = scene
-            return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
+            record = self.opts.record
+            self._out_of_range = None if record.builtin else dr.zeros(mi.UInt32, 1)
+            image = self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
+            if self._out_of_range is not None:
+                bad = int(self._out_of_range.numpy()[0])     # evaluates the render
+                if bad:
+                    raise MethodError(
+                        f"shadowmap: method '{record.name}' returned {bad} visibility "
+                        "value(s) outside [0, 1] or NaN in this render; a lookup must "
+                        "return the lit fraction, in [0, 1]")
+            return image
         finally:
             self._in_render = False
+            self._out_of_range = None
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
     #: (``pcf``'s, ``bilinear``'s and ``pcss``'s taps, ``max_iterations=-1``; ``pcss``
@@ -504,13 +518,27 @@ screen is Mitsuba's projective integrators' job.
         vis_fn, opts = self.opts.record.lookup, self.opts
         if self.opts.record.whole_light:
             whole, above = vis_fn(smap, lk, opts, shade)
+            self._count_out_of_range((whole, above), shade)
             return dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0), whole
         if isinstance(smap, VirtualShadowMap):
             vis = smap.visibility(vis_fn, lk, opts, lit,
                                   per_tap=self.opts.record.virtual_per_tap)
         else:
             vis = vis_fn(smap, lk, opts, lit)
+        self._count_out_of_range((vis,), lit)
         return dr.select(lit, vis, 0.0), None
+
+    def _count_out_of_range(self, values, active):
+        """A user method's render (:meth:`render` raises after it): count the lanes where
+        a lookup returned a value outside [0, 1] or NaN. Built-in methods skip it."""
+        if self._out_of_range is None:
+            return
+        bad = mi.Bool(False)
+        for v in values:
+            v = mi.Float(v)
+            bad |= ~((v >= 0.0) & (v <= 1.0))
+        dr.scatter_reduce(dr.ReduceOp.Add, self._out_of_range, mi.UInt32(1), mi.UInt32(0),
+                          mi.Bool(active) & bad)
 
     def _gradient_render(self) -> bool:
         """Whether this render's maps are in the AD graph (a gradient render) and

@@ -669,6 +669,43 @@ class VirtualShadowMap:
         data = self.store.pools[layer].numpy().reshape(-1, P, P)
         return data[self.store._index()[1]]
 
+    def to_numpy(self, layer: str = "depth", level: int | None = None) -> np.ndarray:
+        """Level ``level`` of layer ``layer`` as a dense ``(n_faces, res, res)`` float32
+        array (row j, column i; ``res`` the level's resolution), like a full map's
+        :meth:`~mi_shadowmap.depth_maps.ShadowMap.to_numpy`: the ray-cast tiles of the
+        built pages in place, NaN where none was cast at that level (lookups read another
+        level there).
+        Default ``level``: the coarsest, one page per face, always built. A level of
+        more than 2^26 texels is refused: read :meth:`pages_numpy` and
+        :meth:`page_records` (or render with ``virtual=false`` for a full map)."""
+        lay, P = self.layout, self.layout.page_size
+        level = lay.coarsest if level is None else int(level)
+        if not 0 <= level <= lay.coarsest:
+            raise ValueError(f"shadowmap: virtual map '{lay.view.label}': level {level} "
+                             f"does not exist; levels are 0 to {lay.coarsest}")
+        if layer not in self.store.pools:
+            raise KeyError(f"layer '{layer}' was not built for emitter '{lay.view.label}'; "
+                           f"built: {', '.join(self.layers())}")
+        res = lay.res0 >> level
+        n_faces = lay.view.n_faces
+        if n_faces * res * res > 2 ** 26:
+            raise ValueError(
+                f"shadowmap: virtual map '{lay.view.label}': level {level} is {n_faces} x "
+                f"{res}^2 texels, more than 2^26 as one array; pick a coarser level (up to "
+                f"{lay.coarsest}), or read pages_numpy() and page_records()")
+        out = np.full((n_faces, res, res), np.nan, np.float32)
+        rec = self.page_records()
+        pages = self.pages_numpy(layer)
+        T, S = lay.tile_size, lay.tiles_per_side
+        for k in np.flatnonzero(rec["level"] == level):
+            f, x, y = int(rec["face"][k]), int(rec["px"][k]) * P, int(rec["py"][k]) * P
+            mask = int(self.store.slot_mask[rec["slot"][k]])
+            for t in range(S * S):
+                if (mask >> t) & 1:
+                    i, j = (t % S) * T, (t // S) * T
+                    out[f, y + j:y + j + T, x + i:x + i + T] = pages[k][j:j + T, i:i + T]
+        return out
+
     # ----------------------------------------------------------- levels
     def level_for(self, face, p64, dp_dx, dp_dy) -> mi.UInt32:
         """Level whose texel matches the pixel footprint ``dp_dx``, ``dp_dy`` at

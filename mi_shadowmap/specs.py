@@ -161,6 +161,28 @@ def validate_spec(spec: dict) -> options.Options:
     return options.parse_options({"type": "shadowmap", **props})
 
 
+def check_run_args(**args) -> None:
+    """Validate a run's own arguments, named as given: ``spp``, ``repeats``, ``ref_spp``
+    and ``ref_shadow_rays`` integers >= 1, ``seed`` an integer in [0, 2^32) (Mitsuba's
+    sampler seed), ``methods`` not empty. ``None`` values are skipped."""
+    lows = {"spp": 1, "repeats": 1, "ref_spp": 1, "ref_shadow_rays": 1, "seed": 0}
+    for name, value in args.items():
+        if value is None:
+            continue
+        if name == "methods":
+            if len(list(value)) == 0:
+                raise OptionError("shadowmap: 'methods' is empty; leave it out (None) for "
+                                  "every registered method, or name some: "
+                                  + ", ".join(default_methods()))
+            continue
+        lo = lows[name]
+        hi = 2 ** 32 if name == "seed" else None
+        if isinstance(value, bool) or not isinstance(value, int) or value < lo \
+                or (hi is not None and value >= hi):
+            rng = "in [0, 2^32)" if hi is not None else f">= {lo}"
+            raise OptionError(f"shadowmap: '{name}' must be an integer {rng}, got {value!r}")
+
+
 def validate_property(name: str, value) -> None:
     """Validate one property name and value, whichever method uses it.
 

@@ -24,7 +24,8 @@ from . import metrics
 from .ground_truth import has_soft_lights, make_reference, score
 from .options import OptionError, parse_options
 from .scenes import load_scene
-from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, map_methods,
+from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_args,
+                    map_methods,
                     property_record, spec_name, users_of, uses_property, validate_property,
                     validate_spec)
 from .tables import columns, format_sweep, write_csv, write_json
@@ -227,6 +228,8 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     every ``time_*`` column, so :func:`analyse` can re-rank a copy of the rows
     on another one.
     """
+    check_run_args(spp=spp, seed=seed, repeats=repeats, ref_spp=ref_spp,
+                   ref_shadow_rays=ref_shadow_rays)
     measure_cached = measure_cached or time_key == "time_cached"
     specs = expand_grid(default_grid() if grid is None else grid, default_spp=spp)
     scene = load_scene(scene, **(scene_params or {}))

@@ -69,7 +69,8 @@ from . import metrics
 from .ground_truth import converged_reference, has_soft_lights, make_reference, score
 from .options import OptionError
 from .scenes import load_scene
-from .specs import (REFERENCE_METHOD, available_methods, check_shared_params, method_spec,
+from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_shared_params,
+                    method_spec,
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
 from .sweep import SweepTable, analyse
 from .tables import jsonable
@@ -911,6 +912,9 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
     if isinstance(max_ref_spp, bool) or not isinstance(max_ref_spp, int) or max_ref_spp < 1:
         raise TuneError(f"shadowmap: tune: max_ref_spp must be an integer >= 1, "
                         f"got {max_ref_spp!r}")
+    check_run_args(seed=seed, repeats=repeats)
+    if spp is not None and spp > max_spp:
+        raise TuneError(f"shadowmap: tune: spp = {spp} is more than max_spp = {max_spp}")
     scene = load_scene(scene, **(scene_params or {}))
     tuner = _Tuner(scene, max_error, metric, specs, rt_spec, time_limit, search_size, margin,
                    seed, repeats, max_spp, max_ref_spp, ref_light_samples, spp, progress)

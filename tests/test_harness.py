@@ -372,3 +372,46 @@ def test_films_with_alpha_compare_as_without(variant, fmt, plain):
         np.testing.assert_array_equal(ra.image, rb.image)
         np.testing.assert_array_equal(ra.visibility["spot"], rb.visibility["spot"])
         assert ra.metrics["vis_rmse"] == rb.metrics["vis_rmse"]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(spp=0), r"'spp' must be an integer >= 1, got 0"),
+    (dict(spp=2.5), r"'spp' must be an integer >= 1"),
+    (dict(seed=-1), r"'seed' must be an integer in \[0, 2\^32\)"),
+    (dict(repeats=0), r"'repeats' must be an integer >= 1"),
+    (dict(ref_spp=-2), r"'ref_spp' must be an integer >= 1"),
+    (dict(methods=[]), r"'methods' is empty"),
+])
+def test_run_arguments_are_checked_before_rendering(kwargs, match):
+    """``spp`` 0 rendered at the sampler's count while the records said 0; a negative
+    seed failed inside Mitsuba without naming it; ``repeats`` and ``ref_spp`` took any
+    value; ``methods=[]`` ran every method."""
+    scene = mi.load_dict(default_scene(**SMALL))
+    with pytest.raises(OptionError, match=match):
+        harness.compare(scene, **kwargs)
+
+
+def test_render_checks_its_properties_and_a_string_is_one_method():
+    """``harness.render`` ignored unknown and unused properties; ``compare(methods=
+    'hard')`` iterated the string's letters."""
+    scene = mi.load_dict(default_scene(**SMALL))
+    with pytest.raises(OptionError, match="unknown property 'bogus'"):
+        harness.render(scene, "hard", bogus=5)
+    with pytest.raises(OptionError, match="'num_samples' = 99999 is out of range"):
+        harness.render(scene, "pcf", num_samples=99999)
+    with pytest.raises(OptionError, match="'resolution' is not used by any of the methods"):
+        harness.render(scene, "raytraced", resolution=256)
+    with pytest.raises(OptionError, match="'spp' must be an integer >= 1"):
+        harness.render(scene, "hard", spp=0)
+    res = harness.compare(scene, methods="hard", spp=1, repeats=1, measure_cached=False)
+    assert [r.method for r in res] == ["raytraced", "hard"]
+
+
+def test_a_scene_without_emitters_is_refused_by_name():
+    """``compare`` on a scene without lights failed after rendering with numpy's "need
+    at least one array to stack"."""
+    d = default_scene(**SMALL)
+    for k in [k for k, v in d.items() if isinstance(v, dict) and v.get("type") == "spot"]:
+        d.pop(k)
+    with pytest.raises(ValueError, match="no emitter"):
+        harness.compare(mi.load_dict(d), methods=["hard"], spp=1)

@@ -215,3 +215,25 @@ def test_cli_plugin_fresh_process(tmp_path):
                         str(path), "--methods", "my_filter:spred=2"],
                        capture_output=True, text=True, timeout=600)
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "spred" in p.stderr
+
+
+@pytest.mark.parametrize("value", [float("nan"), 2.0, -1.0])
+def test_a_lookup_outside_zero_one_is_an_error_naming_the_method(value):
+    """A user lookup returning NaN (the film dropped those samples: a black image, AOV
+    0), more than 1 (the image brighter) or less than 0 rendered without a word. The
+    integrator now counts such values in a user method's render and raises after it,
+    naming the method; a valid lookup renders as before. Built-in methods skip the
+    count (their kernels are unchanged)."""
+    name = "constant_visibility"
+    mi_shadowmap.register_method(name, lambda smap, lk, opts, active, v=value: mi.Float(v))
+    try:
+        scene = mi.load_dict(default_scene(**SMALL))
+        with pytest.raises(methods.MethodError,
+                           match=rf"'{name}' returned \d+ visibility value\(s\) outside \[0, 1\]"):
+            harness.render(scene, name, spp=1)
+        mi_shadowmap.register_method(name, lambda smap, lk, opts, active: mi.Float(0.25),
+                                     replace=True)
+        _, img = harness.render(scene, name, spp=1)
+        assert np.isfinite(img).all() and img[..., 3].max() == pytest.approx(0.25)
+    finally:
+        mi_shadowmap.unregister_method(name)

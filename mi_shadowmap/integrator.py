@@ -295,6 +295,15 @@ screen is Mitsuba's projective integrators' job.
             sensors = scene.sensors()
             sensor = sensors[0] if len(sensors) > 0 else None
         self._first_pass(scene, sensor, max(sampler.sample_count(), 1))
+        missing = [n for n in self._names() if n not in self._names_given]
+        if missing:
+            warnings.warn(
+                f"shadowmap: nested in another integrator (Mitsuba's aov), whose channels "
+                f"were sized when it was built, with this integrator's AOV names then "
+                f"({', '.join(self._names_given) or 'none: it had not rendered a scene'}): "
+                f"{', '.join(missing)} are left out of its image. Render the scene once "
+                "with this integrator before building the nesting one to get them",
+                RuntimeWarning, stacklevel=2)
 
     def _first_pass(self, scene, sensor, spp: int):
         """What ``sample()`` reads of a render, set before it is traced: the maps for

@@ -1,6 +1,7 @@
 """The shadowmap integrator: ground truth vs Mitsuba's direct, hard vs raytraced,
 scale invariance, AOVs, one build per render, and bad scenes/variants."""
 import re
+import warnings
 
 import mitsuba as mi
 import numpy as np
@@ -408,7 +409,10 @@ def test_nested_in_mitsubas_aov_integrator(method):
     visibility AOVs written past channels sized for none), and, with an instance rendered
     before (its names known when ``aov`` was built), failed with a JIT size error. Now
     both render; the image's colour (our render) and the film's own colour (our
-    ``sample()`` called by ``aov``) equal the direct render's, beside ``aov``'s depth."""
+    ``sample()`` called by ``aov``) equal the direct render's, beside ``aov``'s depth.
+    The visibility AOV is among ``aov``'s channels only when the instance had rendered
+    the scene before ``aov`` was built; otherwise a warning says it is left out (it was
+    left out silently)."""
     scene = mi.load_dict(default_scene(width=32, height=32))
     alone = np.asarray(mi.render(scene, integrator=mi.load_dict(
         {"type": "shadowmap", "method": method}), spp=4, seed=1))
@@ -417,7 +421,12 @@ def test_nested_in_mitsubas_aov_integrator(method):
         if rendered_before:
             mi.render(scene, integrator=inner, spp=1)
         nested = mi.load_dict({"type": "aov", "aovs": "dd:depth", "inner": inner})
-        img = np.asarray(mi.render(scene, integrator=nested, spp=4, seed=1))
+        assert ("inner.vis_spot" in nested.aov_names()) == rendered_before
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            img = np.asarray(mi.render(scene, integrator=nested, spp=4, seed=1))
+        left_out = [w for w in caught if "vis_spot are left out" in str(w.message)]
+        assert bool(left_out) != rendered_before
         assert np.isfinite(img).all()
         np.testing.assert_allclose(img[..., :3], alone[..., :3], rtol=1e-5, atol=1e-6)
         assert img[..., -1].max() > 0                  # aov's depth channel

@@ -229,6 +229,9 @@ def parse_grid(text: str):
         if "=" not in item:
             raise ValueError(f"--grid expects name=v1,v2 items, got {item!r}")
         k, v = item.split("=", 1)
+        if k.strip() in sub:    # ';' does not start another sub-grid: repeat --grid
+            raise ValueError(f"--grid: {k.strip()!r} is given twice in {text!r} (one "
+                             "sub-grid per --grid; repeat --grid for another)")
         sub[k.strip()] = [parse_value(x.strip()) for x in v.split(",") if x.strip()]
     if not sub:
         raise ValueError("--grid is empty")
@@ -259,6 +262,9 @@ def cmd_compare(args) -> int:
     methods = [harness.method_spec(m, params) for m in (args.methods or
                                                         harness.default_methods())]
     harness.check_shared_params(methods, params)
+    harness.check_run_args(spp=args.spp, seed=args.seed, repeats=args.repeats,
+                           ref_spp=args.ref_spp, ref_shadow_rays=args.ref_shadow_rays)
+    harness.check_unique(methods)
     reference = args.reference
     if reference not in ("auto", "converged"):
         reference = harness.method_spec(reference)
@@ -289,6 +295,7 @@ def cmd_sweep(args) -> int:
     if params:   # --set values are fixed axes of every sub-grid with a method using them
         grid = harness.with_shared(grid, params)
     harness.expand_grid(grid, default_spp=args.spp)   # reject bad entries before rendering
+    harness.check_run_args(spp=args.spp, seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
     report.check_out_dir(out)
     table = harness.sweep(scene, grid, spp=args.spp, seed=args.seed, repeats=args.repeats,

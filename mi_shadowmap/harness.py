@@ -38,7 +38,7 @@ from .options import OptionError
 from .pages import VirtualShadowMap
 from .scenes import load_scene
 from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F401
-                    check_run_args, check_shared_params, default_methods, map_methods, method_spec,
+                    check_run_args, check_shared_params, check_unique, default_methods, map_methods, method_spec,
                     parse_method_string, parse_value, spec_name, users_of, uses_property,
                     to_mitsuba, validate_property, validate_spec)
 from .sweep import (SweepTable, analyse, default_grid, expand_grid,  # noqa: F401
@@ -80,6 +80,7 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
     specs = [method_spec(m, params) for m in (methods if methods is not None
                                               else default_methods())]
     check_shared_params(specs, params)
+    check_unique(specs)
     if not isinstance(reference, MethodResult) and reference not in ("auto", "converged"):
         method_spec(reference)   # a bad reference spec fails before anything loads
     scene = load_scene(scene, **(scene_params or {}))

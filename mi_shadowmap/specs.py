@@ -91,26 +91,40 @@ def parse_value(text: str):
 
 
 def parse_method_string(text: str) -> dict:
-    """``"pcf:num_samples=4,res_factor=2"`` -> ``{"method": "pcf", ...}``."""
+    """``"pcf:num_samples=4,res_factor=2"`` -> ``{"method": "pcf", ...}``. A pair value
+    is written with its comma (``"pcf:bias_range=0,0.01"``, as :func:`spec_name` prints
+    it): an item without ``=`` continues the previous value. A name given twice is an
+    error."""
     name, _, rest = text.partition(":")
     spec = {"method": name.strip()}
+    items = []
     for item in filter(None, (s.strip() for s in rest.split(","))):
         if "=" not in item:
-            raise OptionError(f"shadowmap: expected name=value in method spec {text!r}, "
-                              f"got {item!r}")
-        k, v = item.split("=", 1)
-        spec[k.strip()] = parse_value(v.strip())
+            if not items:
+                raise OptionError(f"shadowmap: expected name=value in method spec "
+                                  f"{text!r}, got {item!r}")
+            items[-1] += "," + item
+            continue
+        items.append(item)
+    for item in items:
+        k, v = (x.strip() for x in item.split("=", 1))
+        if k in spec:
+            raise OptionError(f"shadowmap: {k!r} is given twice in method spec {text!r}")
+        spec[k] = parse_value(v)
     return spec
 
 
 def parse_assignments(items, what: str = "--set") -> dict:
-    """``["a=1", "b=x"]`` -> ``{"a": 1, "b": "x"}`` (values by :func:`parse_value`)."""
+    """``["a=1", "b=x"]`` -> ``{"a": 1, "b": "x"}`` (values by :func:`parse_value`); a
+    name given twice is an error."""
     out = {}
     for item in items or []:
         if "=" not in item:
             raise ValueError(f"{what} expects name=value, got {item!r}")
-        k, v = item.split("=", 1)
-        out[k.strip()] = parse_value(v.strip())
+        k, v = (x.strip() for x in item.split("=", 1))
+        if k in out:
+            raise ValueError(f"{what}: {k!r} is given twice")
+        out[k] = parse_value(v)
     return out
 
 
@@ -181,6 +195,16 @@ def check_run_args(**args) -> None:
                 or (hi is not None and value >= hi):
             rng = "in [0, 2^32)" if hi is not None else f">= {lo}"
             raise OptionError(f"shadowmap: '{name}' must be an integer {rng}, got {value!r}")
+
+
+def check_unique(specs: list[dict]) -> None:
+    """Two specs with one name (:func:`spec_name`) are an error: their records and output
+    files would share it."""
+    names = [spec_name(s) for s in specs]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise OptionError(f"shadowmap: method {', '.join(repr(n) for n in twice)} is listed "
+                          "more than once")
 
 
 def validate_property(name: str, value) -> None:

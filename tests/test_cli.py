@@ -74,6 +74,16 @@ def test_no_command_runs_compare_on_xml(tmp_path, capsys):
     (["sweep", "--grid", "[1, 2]"], "dict"),
     (["sweep", "--error", "img_psnr"], "img_psnr"),        # higher-is-better: not a choice
     (["compare", "--spp", "many"], "spp"),               # argparse error, one line too
+    # rendered at the sampler's count / failed in Mitsuba / accepted, before:
+    (["compare", "--spp", "0"], "'spp' must be an integer >= 1"),
+    (["compare", "--seed", "-1"], "'seed' must be an integer in [0, 2^32)"),
+    (["compare", "--repeats", "0"], "'repeats' must be an integer >= 1"),
+    (["compare", "--ref-spp", "-2"], "'ref_spp' must be an integer >= 1"),
+    # duplicates overwrote each other's files / the last one won, before:
+    (["compare", "--methods", "hard", "pcf:num_samples=4", "pcf: num_samples = 4"],
+     "'pcf num_samples=4' is listed more than once"),
+    (["compare", "--methods", "pcf:num_samples=4,num_samples=8"], "given twice"),
+    (["sweep", "--grid", "method=hard resolution=256 resolution=512"], "given twice"),
 ])
 def test_bad_input_one_line_error(argv, match, tmp_path, capsys):
     out_dir = tmp_path / "never"

@@ -415,3 +415,15 @@ def test_a_scene_without_emitters_is_refused_by_name():
         d.pop(k)
     with pytest.raises(ValueError, match="no emitter"):
         harness.compare(mi.load_dict(d), methods=["hard"], spp=1)
+
+
+def test_a_pair_property_in_the_method_string_form():
+    """``pcf:bias_range=0,0.01`` (a pair, written with its comma, as ``spec_name`` prints
+    it) was cut at the comma: "expected name=value ... got '0.01'"."""
+    spec = harness.method_spec("pcf:bias_range=0,0.01,num_samples=4")
+    assert spec["num_samples"] == 4
+    assert harness.spec_name(spec) == "pcf bias_range=0,0.01 num_samples=4"
+    scene = mi.load_dict(default_scene(**SMALL))
+    res = harness.compare(scene, methods=["pcf:bias_range=0,0.01"], spp=1, repeats=1,
+                          measure_cached=False)
+    assert res[1].params["bias_range"] in ("0,0.01", (0.0, 0.01), [0.0, 0.01])

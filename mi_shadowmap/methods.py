@@ -281,6 +281,15 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     Returns the :class:`Method` record. Raises :class:`MethodError` for a bad
     record or a name already taken (``replace=True`` replaces a user method).
     """
+    from .options import OptionError as _OptionError, _convert
+    for prop in properties or ():
+        if isinstance(prop, Prop) and prop.default is not None:
+            try:       # the default must be a value the property accepts
+                _convert(prop, prop.default)
+            except _OptionError as e:
+                raise MethodError(f"register_method: method '{name}': the default "
+                                  f"{prop.default!r} of property '{prop.name}' is not one of "
+                                  f"its own valid values ({e})") from None
     record = Method(name=name, lookup=lookup, summary=summary,
                     properties=tuple(properties or ()), layers=dict(layers or {}),
                     layers_for=layers_for, layer_cost=dict(layer_cost or {}),

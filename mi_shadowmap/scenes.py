@@ -43,10 +43,11 @@ def load_scene(scene, **xml_params) -> mi.Scene:
     ``xml_params`` fill the file's ``$name`` parameters (e.g. ``width=64``);
     a parameter the file does not declare is an error naming it.
     """
+    if isinstance(scene, (mi.Scene, dict)) and xml_params:
+        raise ValueError("scene parameters (" + ", ".join(xml_params) + ") apply to XML "
+                         "files only, not to a " + ("loaded scene" if isinstance(
+                             scene, mi.Scene) else "scene dict (set them in the dict)"))
     if isinstance(scene, mi.Scene):
-        if xml_params:
-            raise ValueError("scene parameters (" + ", ".join(xml_params)
-                             + ") apply to XML files only, not to a loaded scene")
         return scene
     if isinstance(scene, dict):
         return mi.load_dict(scene)

@@ -427,3 +427,10 @@ def test_a_pair_property_in_the_method_string_form():
     res = harness.compare(scene, methods=["pcf:bias_range=0,0.01"], spp=1, repeats=1,
                           measure_cached=False)
     assert res[1].params["bias_range"] in ("0,0.01", (0.0, 0.01), [0.0, 0.01])
+
+
+def test_scene_parameters_of_a_scene_dict_are_refused():
+    """``scene_params`` fill an XML file's ``$`` parameters; given with a scene dict they
+    were dropped silently (the dict's own size rendered)."""
+    with pytest.raises(ValueError, match="XML files only, not to a scene dict"):
+        harness.compare(default_scene(**SMALL), methods=["hard"], scene_params={"width": 16})

@@ -237,3 +237,17 @@ def test_a_lookup_outside_zero_one_is_an_error_naming_the_method(value):
         assert np.isfinite(img).all() and img[..., 3].max() == pytest.approx(0.25)
     finally:
         mi_shadowmap.unregister_method(name)
+
+
+@pytest.mark.parametrize("prop", [
+    mi_shadowmap.Prop("taps", "int", 100, "Taps.", lo=1, hi=10),
+    mi_shadowmap.Prop("taps", "int", "abc", "Taps."),
+    mi_shadowmap.Prop("mode", "str", "z", "Mode.", choices=("a", "b")),
+])
+def test_a_property_whose_default_breaks_its_own_rules_is_refused(prop):
+    """``register_method`` took a Prop whose default was out of its own range, of the
+    wrong type or not among its choices; every spec then validated with it."""
+    with pytest.raises(methods.MethodError, match=f"default .* of property '{prop.name}'"):
+        mi_shadowmap.register_method("bad_default", lambda smap, lk, opts, active: 1.0,
+                                     properties=[prop])
+    assert "bad_default" not in [m.name for m in methods.records()]

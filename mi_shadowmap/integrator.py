@@ -380,12 +380,15 @@ screen is Mitsuba's projective integrators' job.
         aovs = []
         n_light = getattr(opts, record.shadow_rays) if record.shadow_rays else 1
         for k, emitter in enumerate(scene.emitters()):
+            # an emitter with sampling_weight 0 is never sampled by Mitsuba's direct (nor
+            # path): it lights nothing; its visibility AOV is still reported
+            sampled = emitter.sampling_weight() > 0
             if (opts.uses_map and k < len(self.maps)
                     and isinstance(getattr(self.maps[k], "view", None), env_mod.EnvironmentView)):
                 # environment='shadowed': K median-cut regions, one while loop
                 c, vis = env_mod.shade(self.maps[k], emitter, si, bsdf, shade, sampler,
                                        dp_dx, dp_dy, opts)
-                result += c
+                result += c if sampled else 0.0
                 aovs.append(dr.select(shade, vis, 0.0))
                 continue
             if k < len(self._unshadowed) and self._unshadowed[k]:
@@ -399,14 +402,14 @@ screen is Mitsuba's projective integrators' job.
             if p_centre is not None and smap is not None and n_light == 1:
                 c, vis, whole = self._gradient_light_term(
                     smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy, p_centre, k)
-                result += c
+                result += c if sampled else 0.0
                 aovs.append(vis if whole is None else dr.select(shade, whole, 0.0))
                 continue
             if n_light > 1 and not record.whole_light:
                 c, vis_sum, contributes = self._light_samples(
                     scene, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx, dp_dy,
                     n_light)
-                result += c
+                result += c if sampled else 0.0
                 aovs.append(dr.select(contributes, vis_sum / n_light, 0.0))
                 continue
             for s in range(n_light):
@@ -419,7 +422,8 @@ screen is Mitsuba's projective integrators' job.
                 ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx, u, shade)
                 vis, whole = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit,
                                                      shade)
-                result += dr.select(lit, unshadowed * vis, 0.0) / n_light
+                if sampled:
+                    result += dr.select(lit, unshadowed * vis, 0.0) / n_light
                 vis_sum += vis
                 contributes |= lit
             aovs.append(dr.select(contributes, vis_sum / n_light, 0.0) if whole is None

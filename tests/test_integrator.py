@@ -543,3 +543,25 @@ def test_which_sensors_aim_their_pixels_by_film():
     meter = mi.load_dict({"type": "rectangle", "sensor": {"type": "irradiancemeter",
                                                           "film": one}})
     assert aims_by_film(meter.sensor()) is False
+
+
+def test_an_emitter_with_sampling_weight_zero_lights_nothing_as_in_direct():
+    """Mitsuba's ``direct`` never samples an emitter whose ``sampling_weight`` is 0, so it
+    lights nothing there; the integrator lit with it (image 0.176 against direct's
+    0.091). Now it contributes nothing, in every method, and its visibility AOV is still
+    reported."""
+    d = default_scene(width=32, height=32)
+    d["lamp"] = {"type": "point", "position": [-2.0, 4.0, 1.0], "intensity": 20.0,
+                 "sampling_weight": 0.0}
+    scene = mi.load_dict(d)
+    direct = np.asarray(mi.render(scene, integrator=mi.load_dict(DIRECT), spp=256, seed=3))
+    for method in ("raytraced", "hard"):
+        rgb, aovs = render_np(scene, {"type": "shadowmap", "method": method}, spp=256, seed=3)
+        err = relative_rmse(direct, rgb)
+        print(f"{method}: relative RMSE against direct {err:.2e}")
+        assert err <= (0.05 if method == "raytraced" else 0.1)
+        assert aovs["vis_lamp"].mean() > 0.2          # still measured
+    d["lamp"]["sampling_weight"] = 1.0
+    lit = np.asarray(mi.render(mi.load_dict(d), integrator=mi.load_dict(
+        {"type": "shadowmap", "method": "raytraced"}), spp=64, seed=3))[..., :3]
+    assert lit.mean() > 1.5 * direct.mean()           # the lamp does light when sampled

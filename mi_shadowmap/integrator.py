@@ -298,8 +298,9 @@ screen is Mitsuba's projective integrators' job.
         missing = [n for n in self._names() if n not in self._names_given]
         if missing:
             warnings.warn(
-                f"shadowmap: nested in another integrator (Mitsuba's aov), whose channels "
-                f"were sized when it was built, with this integrator's AOV names then "
+                f"shadowmap: nested in another integrator (Mitsuba's aov, stokes, ...), "
+                f"whose channels were sized when it was built, with this integrator's AOV "
+                f"names then "
                 f"({', '.join(self._names_given) or 'none: it had not rendered a scene'}): "
                 f"{', '.join(missing)} are left out of its image. Render the scene once "
                 "with this integrator before building the nesting one to get them",

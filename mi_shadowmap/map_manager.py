@@ -43,7 +43,10 @@ class MapStats:
     counts every texel ray-cast or computed this render (depth and layers);
     ``naive_build_seconds`` is what building every layer from scratch took
     when it was built, so ``naive_build_seconds - build_seconds`` is the
-    time the cache saved. Reads like a dict too (``stats["maps_built"]``).
+    time the cache saved (virtual maps: the ray casting of every page the render
+    reads, reused pages at their store's mean time a page; ``build_seconds`` also
+    holds the mark pass and the page table, so on a first frame the difference is
+    below 0: their cost). Reads like a dict too (``stats["maps_built"]``).
     """
     maps_built: int = 0
     maps_reused: int = 0

@@ -331,6 +331,8 @@ class PageStore:
         self.slot_frame = np.zeros(0, np.int64)      # frame each slot was last read
         self.slot_mask = np.zeros(0, np.int64)       # tiles built per slot (bit per tile)
         self.pages_cast = 0                          # pages the last build cast tiles of
+        self.cast_seconds = 0.0                      # all builds' ray casting ...
+        self.cast_pages = 0                          # ... and the pages they cast
         self.frame = 0
         self.version = 0                             # changes whenever pages do
         self._sorted = None
@@ -1391,6 +1393,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page
             dr.sync_thread()
             dt = time.perf_counter() - t0
+            store.cast_seconds += dt
+            store.cast_pages += n_cast
             present, slots = store.lookup(needed)    # (all of them, once built)
             slots = slots[present]
             store.slot_frame[slots] = store.frame
@@ -1409,7 +1413,10 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         stats.level_histogram = _add_hist(stats.level_histogram, hist)
         stats.maps_built += int(n_cast > 0)
         stats.maps_reused += int(n_cast == 0)
-        stats.naive_build_seconds += dt
+        # casting every page read from scratch: this frame's casts, and the reused pages
+        # at the store's mean time a page
+        stats.naive_build_seconds += dt + (len(needed) - n_cast) * (
+            store.cast_seconds / max(store.cast_pages, 1))
         out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
                                     opts.lod_bias))
     return out

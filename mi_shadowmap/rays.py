@@ -31,18 +31,22 @@ The offset used here
 --------------------
 For a hit on shape ``S`` at ``p``, at distance ``t`` along the camera ray::
 
-    M     = max( max|p|, max|coordinate of bbox(S)|, [S not a mesh] * t )
+    M     = max( max|p|, sum_j |n_j| max|coordinate j of bbox(S)|, [S not a mesh] * t )
     delta = ORIGIN_ULPS * u * M                 (ORIGIN_ULPS = 64)
     o     = p + delta * n                       (n: geometric normal, turned
                                                  towards the target)
     maxt  = |target - o| - max( SHADOW_EPSILON * |target - o|,
                                 TARGET_ULPS * u * max|target| )
 
-* ``max|coordinate of bbox(S)|`` bounds the vertex coordinates a mesh point is
-  interpolated from, and a sphere's ``|centre| + radius``. It is looked up per
-  hit in a small table indexed by the shape's registry id (built from
-  ``scene.shapes()`` at each call; shapes not in the table, e.g. those inside
-  an ``instance``, use the scene's bounding box).
+* ``max|coordinate j of bbox(S)|`` bounds coordinate j of the vertices a mesh point
+  is interpolated from (and a sphere's ``|centre| + radius``); weighted by the
+  normal's components it bounds the rounding *off the surface*, the only one that
+  makes a ray re-hit it. (The largest coordinate alone, used before, put a shadow ray
+  on a flat ground 1e6 wide about 4 units above it, over 1-unit posts: their shadows
+  vanished; the ground's height is exact to far better than its width.) It is looked
+  up per hit in a small table indexed by the shape's registry id (built from
+  ``scene.shapes()`` at each call; shapes not in the table, e.g. those inside an
+  ``instance``, use the scene's bounding box).
 * ``t``: in the AD variants Mitsuba's non-mesh shapes (sphere, disk, cylinder,
   curves) return ``si.p = ray(t)``, whose error is relative to the camera
   ray's origin and length, not to the shape. Meshes (``rectangle`` and ``cube``
@@ -105,6 +109,14 @@ def _magnitude(bbox) -> float:
     return float(np.max(np.abs([list(bbox.min), list(bbox.max)])))
 
 
+def _axis_magnitudes(bbox) -> np.ndarray:
+    """Largest absolute coordinate of a scalar bounding box per axis (3 values; 0 if
+    invalid)."""
+    if not bbox.valid():
+        return np.zeros(3)
+    return np.max(np.abs([list(bbox.min), list(bbox.max)]), axis=0).astype(np.float64)
+
+
 def spawn_shadow_ray(si, p_target, scene) -> "mi.Ray3f":
     """A shadow ray from the surface interaction ``si`` towards ``p_target``.
 
@@ -122,28 +134,33 @@ def spawn_shadow_ray(si, p_target, scene) -> "mi.Ray3f":
     # Coordinate magnitude of every shape, indexed by its registry id; ids not
     # listed (shapes inside instances, invalid hits) get the scene's.
     shapes = scene.shapes()
-    fallback = _magnitude(scene.bbox())
+    fallback = _axis_magnitudes(scene.bbox())
     ids = (dr.reinterpret_array(UInt32, scene.shapes_dr()).numpy().astype(np.int64)
            if shapes else np.zeros(0, np.int64))
     size = int(ids.max()) + 1 if ids.size else 1
-    mag_table = np.full(size, fallback, np.float32)
+    mag_table = np.tile(fallback.astype(np.float32), (size, 1))   # per axis
     along_table = np.ones(size, np.float32)      # hit point computed as ray(t)?
     for i, s in zip(ids, shapes):
-        mag_table[i] = _magnitude(s.bbox()) or fallback
+        m = _axis_magnitudes(s.bbox())
+        mag_table[i] = m if m.any() else fallback
         along_table[i] = 0.0 if s.is_mesh() else 1.0
     idx = dr.reinterpret_array(UInt32, si.shape)
     idx = dr.select(idx < size, idx, 0)
-    m_shape = dr.gather(Float, Float(mag_table), idx)
+    m_axes = dr.gather(mi.Vector3f, Float(mag_table.ravel()), idx)
     along = dr.gather(Float, Float(along_table), idx)
 
     p = si.p
     p_d = dr.detach(p)
+    n = dr.detach(si.n)
     t_cam = dr.detach(si.t)
     t_cam = dr.select(dr.isfinite(t_cam), t_cam, 0.0)
+    # the shape's coordinates weighted by the normal: the rounding of an interpolated
+    # point off its plane is that of its coordinates along the normal (a flat ground
+    # 1e6 wide is exact in its height, not to 1e6 u)
+    m_shape = dr.dot(dr.abs(n), m_axes)
     mag = dr.maximum(dr.maximum(dr.max(dr.abs(p_d)), m_shape), along * t_cam)
     delta = (ORIGIN_ULPS * UNIT_ROUNDOFF) * mag
 
-    n = dr.detach(si.n)
     n = dr.select(dr.dot(n, dr.detach(p_target) - p_d) < 0, -n, n)   # towards the target
     o = dr.fma(n, delta, p)
 

@@ -138,3 +138,37 @@ def test_gradients_flow_through_the_origin():
     ray = spawn_shadow_ray(si, target, scene)
     dr.forward_from(p, dr.ADFlag.ClearNone)
     assert np.allclose(np.asarray(dr.grad(ray.o)), 1.0)
+
+
+@pytest.mark.parametrize("ground", [1e3, 1e6])
+def test_a_huge_flat_ground_keeps_the_shadows_of_small_posts(ground):
+    """The origin offset was 64 roundoffs of the shape's largest coordinate: on a
+    ``rectangle`` ground 1e6 wide a shadow ray started about 4 units above it, over
+    posts 1 unit tall, and ``raytraced`` rendered the unshadowed image (relative error
+    0.26 against ``direct``; 0.16 at 1e5). The rounding of an interpolated point off its
+    plane is that of the shape's coordinates along the normal: the ground's height is
+    exact to far better than its width. Now ``raytraced`` equals ``direct`` at every
+    size (measured: relative error < 1e-3 at 1e3-1e6)."""
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "fov": 60,
+                    "to_world": T().look_at(origin=[0, 1, 0], target=[0, 0.8, -10],
+                                            up=[0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": 48, "height": 48}},
+         "ground": {"type": "rectangle", "to_world": T().scale(ground).rotate([1, 0, 0], -90)},
+         "sun": {"type": "directional", "direction": [1, -0.25, 0.3], "irradiance": 3.0}}
+    for i in range(5):
+        d[f"post{i}"] = {"type": "cube", "to_world": T().translate([-2 + i, 0.5, -3 - 2 * i])
+                         @ T().scale([0.1, 0.5, 0.1])}
+    scene = mi.load_dict(d)
+
+    def render(integ):
+        return np.asarray(mi.render(scene, integrator=mi.load_dict(integ), spp=16,
+                                    seed=3))[..., :3]
+
+    direct = render({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
+    ours = render({"type": "shadowmap", "method": "raytraced"})
+    unshadowed = render({"type": "shadowmap", "method": "unshadowed"})
+    err = float(np.sqrt(np.mean((ours - direct) ** 2)) / np.sqrt(np.mean(direct ** 2)))
+    gap = float(np.sqrt(np.mean((unshadowed - direct) ** 2)) / np.sqrt(np.mean(direct ** 2)))
+    print(f"ground {ground:g}: raytraced against direct {err:.2e}; the shadows {gap:.3f}")
+    assert gap > 0.1 and err <= 1e-3

@@ -77,12 +77,17 @@ of its extent (``hard``, ``pcf``, ... ignore light widths: hard shadows per
 region direction). ``multiview`` looks each region up as one view.
 
 **The visibility AOV** of an environment emitter is the mean of the regions'
-visibilities weighted by their energy shares (a region's sampled direction
-below the receiver's horizon counts as 0): an estimate of the fraction of the
-emitter's light -- directions weighted by luminance, as the emitter samples
-them -- that arrives above the horizon unoccluded, which is the expectation of
-``raytraced``'s AOV (one shadow ray towards ``sample_direction``'s sample,
-0 below the horizon), so both can be compared.
+visibilities, each region's sampled direction weighted by its luminance over its
+pdf (an estimate of the region's energy; a direction below the receiver's horizon
+counts as 0): the fraction of the emitter's light -- directions weighted by
+luminance, as the emitter samples them -- that arrives above the horizon
+unoccluded, which is the expectation of ``raytraced``'s AOV (one shadow ray
+towards ``sample_direction``'s sample, 0 below the horizon), so both can be
+compared. (Weighting each region by its energy share alone counted a sampled dark
+direction -- a black texel beside the sun, drawn by the uniform share -- as
+shadowed: an open ground under a black sky with a sun read 0.90, not 1; now 1.0000.
+Where every region's direction is dark the shares weigh them, as before: with
+``env_lights=1`` that ground still reads 0.86.)
 
 ``raytraced`` does not use the cut: it traces real shadow rays towards the
 emitter's own ``sample_direction`` samples, so it equals ``direct``.
@@ -611,10 +616,10 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
     act = mi.Bool(active)
     bsphere = 1e3 * (dr.norm(si.p) + 1.0)
 
-    def cond(k, result, wsum, vsum, sampler):
+    def cond(k, result, wsum, vsum, ssum, svsum, sampler):
         return act & (k < K)
 
-    def body(k, result, wsum, vsum, sampler):
+    def body(k, result, wsum, vsum, ssum, svsum, sampler):
         kf = mi.Float(k)
         xi = shift + mi.Point2f(kf * _R2[0], kf * _R2[1])
         xi = xi - dr.floor(xi)
@@ -675,12 +680,23 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         else:
             sub = dataclasses.replace(smap, view=view.region_view(k))
             vis = dr.select(lit, vis_fn(sub, lk, opts, lit), 0.0)
-        w = dr.gather(mi.Float, t["share"], k)
+        # the AOV's weight: the sample's luminance over its pdf, an estimate of the
+        # region's energy, so a dark direction (a black texel of the sun's region, or the
+        # uniform share's) weighs nothing instead of counting as shadowed
+        Lu = unpolarized(L)
+        if mi.is_rgb:
+            lum = 0.212671 * Lu[0] + 0.715160 * Lu[1] + 0.072169 * Lu[2]
+        else:
+            n_ch = dr.size_v(mi.UnpolarizedSpectrum)
+            lum = sum(Lu[c] for c in range(n_ch)) * (1.0 / n_ch)
+        w = dr.select(act, dr.maximum(lum, 0.0) * omega, 0.0)
+        share = dr.gather(mi.Float, t["share"], k)     # where every direction was dark
         return (k + 1, result + dr.select(lit, contrib * vis, 0.0), wsum + w,
-                vsum + w * vis, sampler)
+                vsum + w * vis, ssum + share, svsum + share * vis, sampler)
 
     z = mi.Float(0.0)
-    _, result, wsum, vsum, _ = dr.while_loop(
-        (mi.UInt32(0), mi.Spectrum(0.0), z, z, sampler), cond, body)
-    aov = dr.select(act, vsum / dr.maximum(wsum, 1e-30), 0.0)
-    return result, aov
+    _, result, wsum, vsum, ssum, svsum, _ = dr.while_loop(
+        (mi.UInt32(0), mi.Spectrum(0.0), z, z, z, z, sampler), cond, body)
+    aov = dr.select(wsum > 0, vsum / dr.maximum(wsum, 1e-30),
+                    svsum / dr.maximum(ssum, 1e-30))
+    return result, dr.select(act, aov, 0.0)

@@ -386,3 +386,31 @@ def test_a_budget_below_the_regions_coarsest_pages_gets_full_maps():
     with pytest.raises(Exception) as e:
         _virtual_render(scene, 1, method="hard", memory_budget=0.05, virtual=True)
     assert re.search(r"memory_budget.*0\.05 MiB.*'sky'.*16 faces", root_message(e.value))
+
+
+def test_the_aov_under_a_black_sky_with_a_sun_is_one_where_nothing_occludes(tmp_path):
+    """Each region's visibility counted a sampled dark direction (a black texel of the
+    sun's region, drawn by the uniform share) as shadowed, with the region's whole energy
+    share: an open ground under a black sky with a 2 x 2-texel sun read 0.90 for every
+    map method (0.86 with one region, 0.965 with 256), where ``raytraced`` reads 1. Now
+    each direction weighs its luminance over its pdf: 1.0000."""
+    img = np.zeros((64, 128, 3), np.float32)
+    img[20:22, 90:92] = [1000.0, 900.0, 800.0]
+    path = tmp_path / "sun.exr"
+    mi.Bitmap(img).write(str(path))
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at(origin=[0.2, 3.5, 4.9], target=[0.25, 0.25, 0],
+                                           up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+        "ground": {"type": "rectangle", "to_world": T().scale(4).rotate([1, 0, 0], -90)},
+        "sky": {"type": "envmap", "filename": str(path)}})
+    for props in ({"method": "raytraced"}, {"method": "hard"}, {"method": "pcf"},
+                  {"method": "hard", "virtual": False, "resolution": 128}):
+        img = np.asarray(mi.render(scene, integrator=mi.load_dict(
+            {"type": "shadowmap", **props}), spp=16, seed=5))
+        ground = img[20:, :, 3]
+        print(props, f"ground AOV {ground.mean():.4f}")
+        assert ground.mean() >= 0.99, props

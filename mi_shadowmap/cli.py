@@ -432,8 +432,8 @@ def set_variant(name: str) -> None:
 
 def one_line(exc: BaseException) -> str:
     """The most informative line of a (possibly wrapped Mitsuba) error."""
-    while exc.__cause__ is not None:   # mi.render wraps errors of a Python integrator
-        exc = exc.__cause__
+    from .timing import root_error
+    exc = root_error(exc)              # mi.render wraps errors of a Python integrator
     lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
     for line in lines:
         if "shadowmap:" in line:

@@ -174,15 +174,19 @@ def _eval_luminance(emitter, d_local: np.ndarray) -> np.ndarray:
     si.wi = mi.Vector3f(*[mi.Float(-d[:, a].astype(np.float32)) for a in range(3)])
     if mi.is_spectral:
         si.wavelengths = type(si.wavelengths)(*_WAVELENGTHS)
-    val = unpolarized(emitter.eval(si))
-    chans = np.stack([np.asarray(val[c].numpy(), dtype=np.float64).reshape(-1)
-                      for c in range(dr.size_v(mi.UnpolarizedSpectrum))], axis=1)
-    if mi.is_rgb:
-        lum = chans @ np.array([0.212671, 0.715160, 0.072169])
-    else:
-        lum = chans.mean(axis=1)
+    lum = np.asarray(_luminance(emitter.eval(si)).numpy(), dtype=np.float64).reshape(-1)
     lum = np.broadcast_to(lum, (len(d),))   # a constant emitter answers with one value
     return np.maximum(lum, 0.0).reshape(shape)
+
+
+def _luminance(value) -> mi.Float:
+    """One luminance-like value of a radiance (rgb: luminance; mono: the value;
+    spectral: the mean over its wavelengths)."""
+    v = unpolarized(value)
+    if mi.is_rgb:
+        return 0.212671 * v[0] + 0.715160 * v[1] + 0.072169 * v[2]
+    n = dr.size_v(mi.UnpolarizedSpectrum)
+    return sum(v[c] for c in range(n)) * (1.0 / n)
 
 
 def _directions(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
@@ -683,13 +687,7 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         # the AOV's weight: the sample's luminance over its pdf, an estimate of the
         # region's energy, so a dark direction (a black texel of the sun's region, or the
         # uniform share's) weighs nothing instead of counting as shadowed
-        Lu = unpolarized(L)
-        if mi.is_rgb:
-            lum = 0.212671 * Lu[0] + 0.715160 * Lu[1] + 0.072169 * Lu[2]
-        else:
-            n_ch = dr.size_v(mi.UnpolarizedSpectrum)
-            lum = sum(Lu[c] for c in range(n_ch)) * (1.0 / n_ch)
-        w = dr.select(act, dr.maximum(lum, 0.0) * omega, 0.0)
+        w = dr.select(act, dr.maximum(_luminance(L), 0.0) * omega, 0.0)
         share = dr.gather(mi.Float, t["share"], k)     # where every direction was dark
         return (k + 1, result + dr.select(lit, contrib * vis, 0.0), wsum + w,
                 vsum + w * vis, ssum + share, svsum + share * vis, sampler)

@@ -38,13 +38,13 @@ from .options import OptionError
 from .pages import VirtualShadowMap
 from .scenes import load_scene
 from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F401
-                    check_run_args, check_shared_params, check_unique, default_methods, map_methods, method_spec,
-                    parse_method_string, parse_value, spec_name, users_of, uses_property,
-                    to_mitsuba, validate_property, validate_spec)
+                    check_run_args, check_shared_params, check_unique, default_methods,
+                    map_methods, method_spec, parse_method_string, parse_value, spec_name,
+                    users_of, uses_property, to_mitsuba, validate_property, validate_spec)
 from .sweep import (SweepTable, analyse, default_grid, expand_grid,  # noqa: F401
                     grid_values, sweep, with_shared)
 from .tables import format_table, jsonable, safe_name  # noqa: F401
-from .timing import MethodResult, run_method  # noqa: F401
+from .timing import MethodResult, root_error, run_method  # noqa: F401
 
 
 def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
@@ -121,9 +121,7 @@ def render(scene, method="hard", spp: int = 16, seed: int = 0, **params):
     try:
         img = mi.render(scene, integrator=integ, spp=spp, seed=seed)
     except RuntimeError as e:     # mi.render wraps a Python integrator's errors
-        root = e
-        while root.__cause__ is not None:
-            root = root.__cause__
+        root = root_error(e)
         if root is not e and isinstance(root, (ValueError, TypeError)):
             raise root from None
         raise

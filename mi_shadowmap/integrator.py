@@ -656,8 +656,8 @@ def _film_takes_aovs(film) -> bool:
     if not mi.has_flag(film.flags(), mi.FilmFlags.Special):
         return True
     warnings.warn(
-        f"shadowmap: the sensor's film ({film.class_name()}) has its own channel layout, into which "
-        "Mitsuba 3.9 cannot write integrator AOVs (mitsuba3 issue #1189): this render "
+        f"shadowmap: the sensor's film ({film.class_name()}) has its own channel layout, "
+        "into which Mitsuba 3.9 cannot write integrator AOVs (mitsuba3 issue #1189): this render "
         "leaves out the visibility AOVs (vis_<emitter>); the image itself is complete. "
         "Render to an 'hdrfilm' to get them", RuntimeWarning, stacklevel=4)
     return False

@@ -104,6 +104,14 @@ def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
     return image, vis
 
 
+def root_error(exc: BaseException) -> BaseException:
+    """The error ``exc`` wraps: ``mi.render`` re-raises a Python integrator's errors as
+    a RuntimeError whose ``__cause__`` (chain) holds them."""
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+    return exc
+
+
 def render_timed(scene, integrator, spp, seed):
     """``(image, seconds)`` of one synchronised ``mi.render``."""
     t0 = time.perf_counter()

@@ -185,12 +185,28 @@ screen is Mitsuba's projective integrators' job.
         dr.eval()
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        """Forward mode (``dr.forward``): the derivative image, as :meth:`render_backward`."""
-        if not self._symbolic_backward(scene):
-            return self._mi_base.render_forward(self, scene, params, sensor, seed, spp)
-        with dr.resume_grad():
+        """Forward mode (``dr.forward``): the derivative image, as :meth:`render_backward`
+        (the methods outside :data:`SYMBOLIC_BACKWARD` with evaluated loops, as Mitsuba's
+        default ``render_forward``).
+
+        The maps built in the AD graph are targets of the traversal too: a method whose
+        visibility reads them only through steps (``hard``, ``pcf`` without
+        ``soft_compare``, ``second_depth``, ...) leaves them outside the image's graph,
+        and Dr.Jit refuses to push derivatives from a scene parameter into variables of
+        ``mi.render``'s ``dr.isolate_grad()`` scope that the image does not read (it
+        raised "tried to forward-propagate derivatives across edge ... outside of the
+        current dr.isolate_grad() scope"). Their derivatives are computed and dropped:
+        about one more map build's work."""
+        import contextlib
+        loops = (contextlib.nullcontext() if self._symbolic_backward(scene)
+                 else dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False))
+        with dr.resume_grad(), loops:
             image = self.render(scene, sensor, seed, spp, develop=True, evaluate=False)
-            dr.forward_to(image)
+            extra = _attached_arrays((self.maps, self.views)) if dr.grad_enabled(image) else []
+            if extra:
+                dr.forward_to(image, *extra, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+            else:
+                dr.forward_to(image)
             return dr.grad(image)
 
     def prepare_maps(self, scene: mi.Scene, sensor=None) -> list[ShadowMap]:
@@ -851,3 +867,31 @@ def __getattr__(name):
     if name == "ShadowMapIntegrator":
         return integrator_class()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _attached_arrays(obj, out=None, seen=None) -> list:
+    """Every Dr.Jit array with gradients enabled held by ``obj`` (lists, tuples, dicts,
+    dataclasses and plain objects' attributes, walked once each): the maps' depths and
+    layers, their poses and views, for :meth:`ShadowMapIntegratorMixin.render_forward`."""
+    out = [] if out is None else out
+    seen = set() if seen is None else seen
+    if obj is None or isinstance(obj, (str, bytes, int, float, bool)) or id(obj) in seen:
+        return out
+    seen.add(id(obj))
+    if dr.is_array_v(obj):
+        if dr.grad_enabled(obj):
+            out.append(obj)
+        return out
+    if isinstance(obj, dict):
+        items = obj.values()
+    elif isinstance(obj, (list, tuple)):
+        items = obj
+    elif hasattr(obj, "__dict__") and type(obj).__module__.startswith("mi_shadowmap"):
+        items = vars(obj).values()
+    elif hasattr(obj, "__dataclass_fields__"):
+        items = [getattr(obj, f) for f in obj.__dataclass_fields__]
+    else:
+        return out
+    for item in items:
+        _attached_arrays(item, out, seen)
+    return out

@@ -411,7 +411,7 @@ screen is Mitsuba's projective integrators' job.
             if k < len(self._unshadowed) and self._unshadowed[k]:
                 smap = None   # environment='unshadowed': no shadows for any method
             else:
-                smap = self.maps[k] if opts.uses_map else RayTracedLight(scene)
+                smap = self.maps[k] if opts.uses_map else RayTracedLight(scene, emitter)
             vis_sum = mi.Float(0.0)
             contributes = mi.Bool(False)
             shift = None

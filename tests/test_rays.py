@@ -172,3 +172,66 @@ def test_a_huge_flat_ground_keeps_the_shadows_of_small_posts(ground):
     gap = float(np.sqrt(np.mean((unshadowed - direct) ** 2)) / np.sqrt(np.mean(direct ** 2)))
     print(f"ground {ground:g}: raytraced against direct {err:.2e}; the shadows {gap:.3f}")
     assert gap > 0.1 and err <= 1e-3
+
+
+# ------------------------------------------------ meshes Mitsuba merges (one BSDF)
+def _billboard_scene(merged: bool):
+    """A ground, a 1-unit post and a 20-unit billboard 40 units away under a 20-degree
+    sun. With one BSDF for all three Mitsuba 3.9 merges them into one mesh whose bbox is
+    the post's (the rectangles are left out), and so is ``scene.bbox()``; with another
+    reflectance for the billboard it stays a shape of its own (the box then holds it)."""
+    el = math.radians(20.0)
+
+    def bsdf(v):
+        return {"type": "diffuse", "reflectance": {"type": "rgb", "value": v}}
+    from mi_shadowmap.scenes import camera
+    return mi.load_dict({
+        "type": "scene", "sensor": camera([0, 30, 60], [0, 0, -20], 48, 48, 4),
+        "a_ground": {"type": "rectangle", "bsdf": bsdf(0.5),
+                     "to_world": T().rotate([1, 0, 0], -90).scale(100)},
+        "b_board": {"type": "rectangle", "bsdf": bsdf(0.5 if merged else 0.51),
+                    "to_world": T().translate([0, 10, -40]).scale([10, 10, 1])},
+        "c_post": {"type": "cube", "bsdf": bsdf(0.5),
+                   "to_world": T().translate([0, 0.5, 0]).scale(0.5)},
+        "sun": {"type": "directional", "direction": [0, -math.sin(el), math.cos(el)],
+                "irradiance": {"type": "rgb", "value": 3.0}}})
+
+
+def test_scene_bounds_hold_merged_meshes():
+    """``scene_bounds`` holds every part of a merged mesh (its vertices), whatever its
+    ``bbox()`` says."""
+    from mi_shadowmap.light_views.base import scene_bounds
+    scene = _billboard_scene(merged=True)
+    lo, hi = scene_bounds(scene)
+    print(f"merged: {len(scene.shapes())} shape(s), Mitsuba's bbox {scene.bbox().min} "
+          f"{scene.bbox().max}, scene_bounds {lo} {hi}")
+    assert np.allclose(lo, [-100, -0.01, -100], atol=0.02)
+    assert np.allclose(hi, [100, 20, 100], atol=0.02)
+
+
+@pytest.mark.parametrize("method", ["raytraced", "hard"])
+def test_an_infinite_lights_rays_cross_the_whole_scene_with_merged_meshes(method):
+    """The billboard's shadow under the sun is the same whether Mitsuba merged the
+    meshes or not: ``raytraced``'s shadow rays toward an infinite emitter reach past
+    the scene's real bounds (Mitsuba's ``direct`` stops them ``2 R`` away, ``R`` from
+    ``scene.bbox()``: 0.34 of the image shadowed merged, 0.46 apart), and the
+    directional map is fitted to the real bounds (``hard``)."""
+    vis = {}
+    for merged in (True, False):
+        scene = _billboard_scene(merged)
+        integ = mi.load_dict({"type": "shadowmap", "method": method})
+        vis[merged] = np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))[..., -1]
+    shadowed = {k: float(np.mean(v < 0.5)) for k, v in vis.items()}
+    print(f"{method}: shadowed merged {shadowed[True]:.4f}, apart {shadowed[False]:.4f}")
+    assert shadowed[False] > 0.4
+    assert abs(shadowed[True] - shadowed[False]) < 0.003
+
+
+def test_converged_reference_crosses_the_whole_scene_with_merged_meshes():
+    from mi_shadowmap.reference import converged_visibility
+    vis = {m: converged_visibility(_billboard_scene(m), n_light=4, spp=2)
+           for m in (True, False)}
+    shadowed = {k: float(np.mean(next(iter(v.values())) < 0.5)) for k, v in vis.items()}
+    print(f"converged: shadowed merged {shadowed[True]:.4f}, apart {shadowed[False]:.4f}")
+    assert shadowed[False] > 0.4
+    assert abs(shadowed[True] - shadowed[False]) < 0.003

@@ -57,8 +57,10 @@ class Lookup:
 
 @dataclass
 class RayTracedLight:
-    """The 'map' of the ray-traced reference: the scene itself."""
+    """The 'map' of the ray-traced reference: the scene itself, and the emitter shaded
+    (None: unknown; it says whether its samples are at infinity)."""
     scene: mi.Scene
+    emitter: object = None
 
 
 @dataclass

@@ -5,7 +5,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from ..rays import spawn_shadow_ray
+from ..rays import is_infinite, spawn_shadow_ray
 from .common import Lookup, RayTracedLight
 
 
@@ -31,7 +31,7 @@ def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
     target = lk.ds.p
     if opts.light_sample == "independent":
         target = _independent_target(lk, active)
-    ray = spawn_shadow_ray(lk.si, target, smap.scene)
+    ray = spawn_shadow_ray(lk.si, target, smap.scene, is_infinite(smap.emitter))
     occluded = smap.scene.ray_test(ray, active)
     return dr.select(occluded, 0.0, 1.0)
 

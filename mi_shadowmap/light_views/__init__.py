@@ -33,7 +33,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import LightView
+from .base import LightView, scene_bounds
 from .cascaded import CascadedView, cascaded_view, split_depths
 from .cube import CubeView, area_light_size, area_view, point_view, projector_view
 from .ortho import OrthoView, directional_view
@@ -306,10 +306,10 @@ def footprint_ratio(scene, sensor, views) -> float:
     by the automatic ``resolution``
     (:meth:`~mi_shadowmap.options.Options.map_resolution`).
     """
-    bbox = scene.bbox()
-    if sensor is None or not bbox.valid():
+    bounds = scene_bounds(scene)     # not scene.bbox(): merged meshes (base.shape_bounds)
+    if sensor is None or bounds is None:
         return 1.0
-    centre = np.array([float(c) for c in bbox.center()])
+    centre = 0.5 * (bounds[0] + bounds[1])
     params = mi.traverse(sensor)
     key = next((k for k in params.keys() if k.endswith("x_fov")), None)
     if key is None:

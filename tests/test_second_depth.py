@@ -401,3 +401,40 @@ def test_virtual_samples_use_the_geometric_normal(tmp_path, virtual):
     mis = misclassified(ref_vis, vis)["misclassified"]
     print(f"tilted vertex normals, virtual={virtual}: misclassified {mis:.2%}")
     assert mis <= 0.01
+
+
+@pytest.mark.parametrize("width", [1e4, 1e6])
+@pytest.mark.parametrize("light", ["point", "spot"])
+def test_a_huge_open_ground_does_not_shadow_itself(width, light):
+    """A ground ``width`` units wide (a non-solid: its own second surface) with a post,
+    a light 4 units above: the ray-traced depth of so large a plane rounds by up to
+    2.9e-4 at depths of 4-11 (1e4 wide), above the lookup's relative tolerance, and
+    ``second_depth`` shadowed 27 % of the image there (39 % at 1e6) before the layer
+    stored a non-solid's depth raised by its rounding. Full and virtual maps."""
+    from mi_shadowmap.scenes import camera
+    T = mi.ScalarTransform4f
+    d = {"type": "scene", "sensor": camera([0, 3, 8], [0, 0.3, 0], 64, 64, 4),
+         "ground": {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                    "to_world": T().rotate([1, 0, 0], -90).scale(width / 2)},
+         "post": {"type": "cube", "to_world": T().translate([0, 0.5, 0]).scale([0.3, 0.5, 0.3]),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.3}}}}
+    if light == "point":
+        d["light"] = {"type": "point", "position": [1, 4, 1],
+                      "intensity": {"type": "rgb", "value": 30.0}}
+    else:
+        d["light"] = {"type": "spot", "to_world": T().look_at([1, 4, 1], [0, 0, 0], [0, 1, 0]),
+                      "cutoff_angle": 50, "intensity": {"type": "rgb", "value": 30.0}}
+    scene = mi.load_dict(d)
+
+    def vis(**kw):
+        integ = mi.load_dict({"type": "shadowmap", **kw})
+        return np.asarray(mi.render(scene, integrator=integ, spp=4, seed=1))[..., -1]
+    ref = vis(method="raytraced")
+    assert np.mean(ref < 0.5) > 0.03          # the post's shadow is in view
+    for virtual in (True, False):
+        v = vis(method="second_depth", virtual=virtual)
+        false_shadow = float(np.mean((ref >= 0.5) & (v < 0.5)))
+        false_lit = float(np.mean((ref < 0.5) & (v >= 0.5)))
+        print(f"{light} {width:g} virtual={virtual}: false shadow {false_shadow:.4f}, "
+              f"false lit {false_lit:.4f}")
+        assert false_shadow <= 0.002 and false_lit <= 0.002

@@ -86,8 +86,10 @@ towards ``sample_direction``'s sample, 0 below the horizon), so both can be
 compared. (Weighting each region by its energy share alone counted a sampled dark
 direction -- a black texel beside the sun, drawn by the uniform share -- as
 shadowed: an open ground under a black sky with a sun read 0.90, not 1; now 1.0000.
-Where every region's direction is dark the shares weigh them, as before: with
-``env_lights=1`` that ground still reads 0.86.)
+Where every region's direction is dark the shares weigh the regions' visibilities,
+each 0 where the region's own direction is below the receiver's horizon: with
+``env_lights=1`` that ground read 0.86 (the sampled direction's horizon, and a lookup
+that ran only where it was bright), 1.0000 now.)
 
 ``raytraced`` does not use the cut: it traces real shadow rays towards the
 emitter's own ``sample_direction`` samples, so it equals ``direct``.
@@ -663,6 +665,14 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         f = bsdf_to_world(si, bsdf.eval(ctx, si, wo, act), wo)
         contrib = f * L * omega
         lit = act & (dr.max(unpolarized(contrib)) > 0)
+        # the lookup runs wherever the direction is above the horizon, dark or not (the
+        # region's visibility, its map's, does not depend on the direction's radiance),
+        # and wherever the region's own direction is on the viewer's side: the AOV's
+        # fallback, where every region's direction was dark, reads the regions there
+        seen = act & (dr.max(unpolarized(f)) > 0)
+        rv = view.region_view(k)
+        region_up = act & (si.to_local(-rv.axes32[2]).z * si.wi.z > 0)
+        ask = seen | region_up
         ds = dr.zeros(mi.DirectionSample3f)
         ds.p = si.p + d * bsphere
         ds.d = d
@@ -674,23 +684,25 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
             # region k's face of the virtual map, bound walked (VirtualShadowMap.visibility's
             # unwalked first try needs a dr.if_stmt outside symbolic loops, and this is
             # one); a per-tap lookup (hard) still gathers each read's own slot
-            sub = smap.with_view(view.region_view(k))
-            bound = sub.bind(lk, lit, per_tap=record.virtual_per_tap)
-            vis = dr.select(lit, vis_fn(bound, lk, opts, lit), 0.0)
+            sub = smap.with_view(rv)
+            bound = sub.bind(lk, ask, per_tap=record.virtual_per_tap)
+            vis = dr.select(ask, vis_fn(bound, lk, opts, ask), 0.0)
         elif record.whole_light:
-            sub = dataclasses.replace(smap, view=view.region_view(k))
-            whole, above = vis_fn(sub, lk, opts, lit)
-            vis = dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
+            sub = dataclasses.replace(smap, view=rv)
+            whole, above = vis_fn(sub, lk, opts, ask)
+            vis = dr.select(ask & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
         else:
-            sub = dataclasses.replace(smap, view=view.region_view(k))
-            vis = dr.select(lit, vis_fn(sub, lk, opts, lit), 0.0)
+            sub = dataclasses.replace(smap, view=rv)
+            vis = dr.select(ask, vis_fn(sub, lk, opts, ask), 0.0)
+        vis_region = dr.select(region_up, vis, 0.0)     # the fallback's
+        vis = dr.select(seen, vis, 0.0)
         # the AOV's weight: the sample's luminance over its pdf, an estimate of the
         # region's energy, so a dark direction (a black texel of the sun's region, or the
         # uniform share's) weighs nothing instead of counting as shadowed
         w = dr.select(act, dr.maximum(_luminance(L), 0.0) * omega, 0.0)
         share = dr.gather(mi.Float, t["share"], k)     # where every direction was dark
         return (k + 1, result + dr.select(lit, contrib * vis, 0.0), wsum + w,
-                vsum + w * vis, ssum + share, svsum + share * vis, sampler)
+                vsum + w * vis, ssum + share, svsum + share * vis_region, sampler)
 
     z = mi.Float(0.0)
     _, result, wsum, vsum, ssum, svsum, _ = dr.while_loop(

@@ -393,7 +393,10 @@ def test_the_aov_under_a_black_sky_with_a_sun_is_one_where_nothing_occludes(tmp_
     sun's region, drawn by the uniform share) as shadowed, with the region's whole energy
     share: an open ground under a black sky with a 2 x 2-texel sun read 0.90 for every
     map method (0.86 with one region, 0.965 with 256), where ``raytraced`` reads 1. Now
-    each direction weighs its luminance over its pdf: 1.0000."""
+    each direction weighs its luminance over its pdf: 1.0000. With one region
+    (``env_lights=1``) every camera sample whose one direction was dark fell back to the
+    regions' shares with a visibility of 0 (the lookup ran only on bright directions):
+    0.86; the lookup now runs wherever the direction is above the horizon: 1.0000."""
     img = np.zeros((64, 128, 3), np.float32)
     img[20:22, 90:92] = [1000.0, 900.0, 800.0]
     path = tmp_path / "sun.exr"
@@ -408,7 +411,9 @@ def test_the_aov_under_a_black_sky_with_a_sun_is_one_where_nothing_occludes(tmp_
         "ground": {"type": "rectangle", "to_world": T().scale(4).rotate([1, 0, 0], -90)},
         "sky": {"type": "envmap", "filename": str(path)}})
     for props in ({"method": "raytraced"}, {"method": "hard"}, {"method": "pcf"},
-                  {"method": "hard", "virtual": False, "resolution": 128}):
+                  {"method": "hard", "virtual": False, "resolution": 128},
+                  {"method": "hard", "env_lights": 1}, {"method": "pcf", "env_lights": 1},
+                  {"method": "multiview", "env_lights": 1}):
         img = np.asarray(mi.render(scene, integrator=mi.load_dict(
             {"type": "shadowmap", **props}), spp=16, seed=5))
         ground = img[20:, :, 3]

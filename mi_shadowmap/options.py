@@ -47,7 +47,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "in memory_budget (see Options.map_resolution). Accepted and ignored by "
          "'raytraced' and 'unshadowed', so that one scene file renders with any method. "
          "With virtual maps: the virtual resolution of the finest level per face, a power "
-         "of two from page_size to 2^30 (default: automatic, 2^20 texels across the "
+         "of two from page_size to 2^30 (default: automatic, 2^24 texels across the "
          "scene's extent as the light sees it, see mi_shadowmap.pages); full maps take at "
          "most 65536. 0 means automatic too (for scene files whose $resolution default "
          "should leave the choice to the integrator).",

@@ -343,9 +343,9 @@ def test_far_point_light_beyond_the_issue(method, distance):
 
 def test_a_far_light_gets_one_face_aimed_at_the_scene():
     """At 1e5 and 1e9 the layout's view is a perspective face whose frustum holds the
-    scene's box (its corners project inside), 2^20 to 2^24 texels across it (the face's
-    axis is float32: 6e-8 rad off the box's centre at 1e9 is 60 units, which the
-    frustum covers: 2^23 there), and a first frame builds at most 8 texels per pixel;
+    scene's box (its corners project inside), ``SCENE_TEXELS`` to 16 times that across it
+    (the face's axis is float32: 6e-8 rad off the box's centre at 1e9 is 60 units, which
+    the frustum covers: 8 times there), and a first frame builds at most 8 texels per pixel;
     at 10 units (a light next to the scene) the cube stays."""
     from mi_shadowmap.light_views import make_light_view
     from mi_shadowmap.light_views.base import scene_bounds
@@ -358,7 +358,7 @@ def test_a_far_light_gets_one_face_aimed_at_the_scene():
         assert (lay.view.projection == "cube") == cube, distance
         if cube:
             continue
-        assert lay.view.n_faces == 1 and 2 ** 20 <= lay.res0 <= 2 ** 24
+        assert lay.view.n_faces == 1 and pages.SCENE_TEXELS <= lay.res0 <= 16 * pages.SCENE_TEXELS
         lo, hi = scene_bounds(scene)
         corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)])
         p = mi.Point3d(*(mi.Float64(corners[:, a].tolist()) for a in range(3)))
@@ -1525,3 +1525,33 @@ def test_to_numpy_of_a_level_equals_a_full_map_of_its_resolution(light):
         np.testing.assert_allclose(got[fin], want[fin], rtol=1e-5)
     with pytest.raises(ValueError, match="more than 2\\^26"):
         vmap.to_numpy(level=0)
+
+
+@pytest.mark.parametrize("width", [1e4, 1e6])
+def test_a_world_a_million_units_wide_keeps_one_unit_shadows(width):
+    """Posts 2 units tall on a ground ``width`` units wide under a 14-degree sun, at
+    defaults: the virtual map's finest level is ``SCENE_TEXELS`` texels across the
+    scene, so the posts' shadows keep their shape at 1e6 (with 2^20 texels, about 1 unit
+    a texel there: 0.96 % misclassified at 128^2; 0.34 % with 2^24, as with any finer
+    level); the texels built stay within the issue's 8 per pixel."""
+    from mi_shadowmap.scenes import camera
+    T = mi.ScalarTransform4f
+    el = math.radians(14.0)
+    d = {"type": "scene", "sensor": camera([0, 1.7, 12], [0, 0.3, 0], 128, 128, 4),
+         "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(width / 2),
+                    "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}},
+         "sun": {"type": "directional", "irradiance": {"type": "rgb", "value": 3.0},
+                 "direction": [math.cos(el) * 0.6, -math.sin(el), -math.cos(el) * 0.8]}}
+    for i, x in enumerate([-3, 0, 3]):
+        d[f"post{i}"] = {"type": "cube", "bsdf": {"type": "diffuse"},
+                         "to_world": T().translate([x, 1.0, -2 * i]).scale([0.3, 1.0, 0.3])}
+    scene = mi.load_dict(d)
+    ref = vis_of(scene, shadowmap(method="raytraced"))
+    integ = shadowmap(method="hard")
+    v = vis_of(scene, integ)
+    mis = float(np.mean((v < 0.5) != (ref < 0.5)))
+    print(f"{width:g}: misclassified {mis:.3%}, {integ.stats['texels_built'] / 128 ** 2:.1f} "
+          f"texels per pixel, res0 {integ.maps[0].resolution}")
+    assert np.mean(ref < 0.5) > 0.2
+    assert mis <= 0.005
+    assert integ.stats["texels_built"] <= 8 * 128 * 128

@@ -215,8 +215,12 @@ def shape_is_solid(shape) -> bool:
     are welded, with a positive signed volume
     (:func:`mi_shadowmap.procedural.check_closed`); Mitsuba's ``sphere``:
     yes; every other shape (rectangle, disk, open cylinder, instances, ...):
-    no -- it is a two-sided non-solid for :func:`second_depth_layer`.
+    no -- it is a two-sided non-solid for :func:`second_depth_layer`. A shape with
+    ``flip_normals`` has inward normals, so it is no solid either (its hits' normals,
+    which tell a back face, point inwards).
     """
+    if shape.has_flipped_normals():
+        return False
     if shape.is_mesh():
         from .procedural import check_closed
         v = shape.vertex_positions_buffer().numpy().reshape(-1, 3)
@@ -240,10 +244,10 @@ def _solid_table(scene: mi.Scene) -> mi.Bool:
     return mi.Bool(table)
 
 
-#: A non-solid's second depth (itself) is raised by this many units in the last place
-#: (2^-24, float32's unit roundoff) of the shape's largest coordinate: 16, about five
-#: times the largest rounding measured (see :func:`second_depth_layer`).
-NON_SOLID_ULPS = 16.0
+#: A second depth is raised by this many units in the last place (2^-24, float32's unit
+#: roundoff) of the hit shape's largest coordinate: 16, about five times the largest
+#: rounding measured (see :func:`second_depth_layer`).
+ROUNDING_ULPS = 16.0
 
 
 def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
@@ -262,13 +266,16 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
       infinitesimal thickness -- the first and second surface are the
       same" (sec. 3.3) and renders a two-sided surface's side facing away
       from the light in Pass 1, so the surface itself is stored;
-    * a non-solid's stored depth is raised by its rounding, :data:`NON_SOLID_ULPS`
-      units in the last place of the shape's largest coordinate (or the ray origin's):
-      a plane that is its own second surface is compared with its own depth, and the
-      ray-traced depth of a plane 1e4 units wide, seen from a light 4 units above it,
-      is off by up to 3.4 such units (2.9e-4) where the depth is 4-11 (measured; the
-      lookup's relative tolerance, 1e-5 of the depth, is ten times smaller there, and
-      ``second_depth`` shadowed 27 % of such a ground, 39 % at 1e6 wide);
+    * every stored depth is raised by its rounding, :data:`ROUNDING_ULPS` units in
+      the last place of the hit shape's largest coordinate (or the ray origin's): a
+      surface that is its own second surface (a non-solid, or a solid's inside lit by
+      a light within it) is compared with its own depth, and the ray-traced depth of a
+      plane 1e4 units wide, seen from a light 4 units above it, is off by up to 3.4
+      such units (2.9e-4) where the depth is 4-11 (measured; the lookup's relative
+      tolerance, 1e-5 of the depth, is ten times smaller there, and ``second_depth``
+      shadowed 27 % of such a ground, 39 % at 1e6 wide; a point light inside a
+      sphere room shadowed 41 % of its walls). A solid's back face lit from outside is
+      never a lit receiver, so the margin changes nothing there;
     * ``+inf`` where the ray escapes without either (no hit at all); a ray
       that escapes after entering a solid without leaving it (a broken
       solid) stores its first hit, like a non-solid.
@@ -297,8 +304,8 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     mag_table, _ = shape_tables(scene)
     mag = mi.Float(mag_table.max(axis=1))      # per shape: its largest |coordinate|
-    # a non-solid's rounding (see second_depth_layer), at least the ray origins'
-    round_o = (NON_SOLID_ULPS * 2.0 ** -24) * dr.max(dr.abs(mi.Vector3f(o)))
+    # a stored depth's rounding (see second_depth_layer), at least the ray origins'
+    round_o = (ROUNDING_ULPS * 2.0 ** -24) * dr.max(dr.abs(mi.Vector3f(o)))
     ray = mi.Ray3f(o, d)
     n = dr.width(d)
     z_first = dr.full(mi.Float, dr.inf, n)
@@ -321,10 +328,10 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
         back = dr.dot(si.n, d) > 0
         store = counted & (back | ~is_solid)
         m_hit = dr.gather(mi.Float, mag, shape_index(si.shape, dr.width(mag)), counted)
-        rounding = dr.maximum((NON_SOLID_ULPS * 2.0 ** -24) * m_hit, round_o)
-        z_second = dr.select(store, dr.select(is_solid, z, z + rounding), z_second)
+        rounding = dr.maximum((ROUNDING_ULPS * 2.0 ** -24) * m_hit, round_o)
+        z_second = dr.select(store, z + rounding, z_second)
         z_second = dr.select(active & ~hit, z_first, z_second)   # escaped
-        z_first = dr.select(counted & dr.isinf(z_first), z, z_first)
+        z_first = dr.select(counted & dr.isinf(z_first), z + rounding, z_first)
         it = it + 1
         active = active & hit & ~store & (it < 64)
         # Continue a relative step past the hit (not si.spawn_ray: its offset has an

@@ -379,7 +379,10 @@ screen is Mitsuba's projective integrators' job.
         opts = self.opts
         if not isinstance(ray, mi.RayDifferential3f):   # copying drops the differentials
             ray = mi.RayDifferential3f(ray)
-        si = scene.ray_intersect(ray, active)
+        flags = mi.RayFlags.All
+        if opts.record.needs_curvature:
+            flags = flags | mi.RayFlags.dNSdUV
+        si = scene.ray_intersect(ray, flags, False, active)
         valid = active & si.is_valid()
         result = mi.Spectrum(0.0)
         if not opts.hide_emitters:

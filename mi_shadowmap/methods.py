@@ -108,6 +108,9 @@ class Method:
       per face 0), used to check ``memory_budget`` before anything is built;
     * ``needs_footprint`` -- the lookup reads the camera pixel's footprint
       (``lk.dp_dx``/``dp_dy``), which the integrator then computes;
+    * ``needs_curvature`` -- the lookup reads the receiver's shading-normal derivatives
+      (``lk.si.dn_du``/``dn_dv``), which the integrator then asks of the camera rays'
+      intersections (``mi.RayFlags.dNSdUV``; ``second_depth``'s curved tangent planes);
     * ``uses_map`` -- False for methods that read no depth map (``raytraced``,
       ``unshadowed``): no map is built and map-only properties are refused;
     * ``bias_defaults`` -- defaults of the shared texel biases for this method,
@@ -156,6 +159,7 @@ class Method:
     layers_for: Callable | None = None
     layer_cost: dict = field(default_factory=dict)
     needs_footprint: bool = False
+    needs_curvature: bool = False
     uses_map: bool = True
     bias_defaults: dict = field(default_factory=dict)
     finalize: Callable | None = None

@@ -238,6 +238,12 @@ def parse_grid(text: str):
     return sub
 
 
+def check_scored_film(scene) -> None:
+    """:func:`mi_shadowmap.timing.check_scored_film`, before the output folder is made."""
+    from .timing import check_scored_film as check
+    check(scene)
+
+
 def load_scene_arg(args, sizes=True):
     """The scene of ``args``: the XML file, or the built-in scene."""
     from . import scenes
@@ -265,10 +271,15 @@ def cmd_compare(args) -> int:
     harness.check_run_args(spp=args.spp, seed=args.seed, repeats=args.repeats,
                            ref_spp=args.ref_spp, ref_shadow_rays=args.ref_shadow_rays)
     harness.check_unique(methods)
+    if "spp" in params:
+        raise ValueError(f"--set spp={params['spp']}: compare's samples per pixel are "
+                         "--spp (the reference shares them); give a method its own with "
+                         "'<method>:spp=N'")
     reference = args.reference
     if reference not in ("auto", "converged"):
         reference = harness.method_spec(reference)
     scene = load_scene_arg(args)
+    check_scored_film(scene)
     report.check_out_dir(out)
     results = harness.compare(scene, methods=methods, reference=reference, spp=args.spp,
                               seed=args.seed, repeats=args.repeats, progress=True,
@@ -297,6 +308,7 @@ def cmd_sweep(args) -> int:
     harness.expand_grid(grid, default_spp=args.spp)   # reject bad entries before rendering
     harness.check_run_args(spp=args.spp, seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
+    check_scored_film(scene)
     report.check_out_dir(out)
     table = harness.sweep(scene, grid, spp=args.spp, seed=args.seed, repeats=args.repeats,
                           error_key=args.error, progress=True)
@@ -332,7 +344,10 @@ def cmd_tune(args) -> int:
                   search_size=args.search_size, margin=args.margin, spp=args.spp,
                   max_spp=args.max_spp)
     check_inputs(args.max_error, params=params, **kwargs)   # before anything renders
+    from .specs import check_run_args
+    check_run_args(seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
+    check_scored_film(scene)
     report.check_out_dir(out)
     res = tune(scene, args.max_error, seed=args.seed, repeats=args.repeats, progress=True,
                **kwargs, **params)

@@ -44,7 +44,7 @@ from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F
 from .sweep import (SweepTable, analyse, default_grid, expand_grid,  # noqa: F401
                     grid_values, sweep, with_shared)
 from .tables import format_table, jsonable, safe_name  # noqa: F401
-from .timing import MethodResult, root_error, run_method  # noqa: F401
+from .timing import MethodResult, check_scored_film, root_error, run_method  # noqa: F401
 
 
 def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
@@ -84,20 +84,41 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
     if not isinstance(reference, MethodResult) and reference not in ("auto", "converged"):
         method_spec(reference)   # a bad reference spec fails before anything loads
     scene = load_scene(scene, **(scene_params or {}))
+    check_scored_film(scene)
     iterator = specs
     if progress:
         from tqdm import tqdm
         iterator = tqdm(specs, desc="methods", unit="method", leave=False)
     ref = make_reference(scene, reference, spp=spp, seed=seed, ref_spp=ref_spp,
                          ref_shadow_rays=ref_shadow_rays)
-    results = [ref]
+    # a reference rendered at compare's spp and seed (the automatic one under delta
+    # lights, or a method without its own spp) shares the methods' camera samples, so
+    # their errors hold no camera noise; a method with its own spp gets one at its spp
+    per_spp = {spp: ref}
+    matched = not isinstance(reference, MethodResult) and reference != "converged" and not (
+        reference == "auto" and has_soft_lights(scene)) and not (
+        reference != "auto" and "spp" in method_spec(reference))
+    results, scored = [ref], [(ref, ref)]
     for spec in iterator:
         spec = dict(spec)
+        own_spp = "spp" in spec
         m_spp = spec.pop("spp", spp)
-        results.append(run_method(scene, spec.pop("method"), spp=m_spp, seed=seed,
-                                  repeats=repeats, measure_cached=measure_cached, **spec))
-    for r in results:
-        r.metrics = score(r, ref)
+        r = run_method(scene, spec.pop("method"), spp=m_spp, seed=seed, repeats=repeats,
+                       measure_cached=measure_cached, **spec)
+        if own_spp:         # told apart from the same method at compare's spp
+            r.name = spec_name({"method": r.method, **r.params, "spp": m_spp})
+        r_ref = ref
+        if matched and m_spp not in per_spp:
+            per_spp[m_spp] = make_reference(scene, reference, spp=m_spp, seed=seed,
+                                            ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
+        if matched:
+            r_ref = per_spp[m_spp]
+        results.append(r)
+        scored.append((r, r_ref))
+    for r, r_ref in scored:
+        r.metrics = score(r, r_ref)
+        if r_ref is not ref:
+            r.metrics["reference_spp"] = r_ref.spp
     return results
 
 

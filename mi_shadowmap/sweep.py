@@ -29,7 +29,7 @@ from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_
                     property_record, spec_name, users_of, uses_property, validate_property,
                     validate_spec)
 from .tables import columns, format_sweep, write_csv, write_json
-from .timing import MethodResult, run_method
+from .timing import MethodResult, check_scored_film, run_method
 
 
 # --------------------------------------------------------------------------- grids
@@ -233,6 +233,7 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     measure_cached = measure_cached or time_key == "time_cached"
     specs = expand_grid(default_grid() if grid is None else grid, default_spp=spp)
     scene = load_scene(scene, **(scene_params or {}))
+    check_scored_film(scene)
     max_spp = max(s["spp"] for s in specs)
     if reference == "auto" and not has_soft_lights(scene):
         reference = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}

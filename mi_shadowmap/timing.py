@@ -81,6 +81,24 @@ def check_film(scene, sensor: int = 0, what: str = "comparing methods") -> None:
             "develops it to RGB)")
 
 
+#: The smallest film side the metrics take (SSIM's 7 x 7 window, :func:`metrics.ssim`).
+MIN_SCORED_SIDE = 7
+
+
+def check_scored_film(scene, sensor: int = 0) -> None:
+    """Raise ValueError, before anything renders, if the film of ``scene``'s sensor is
+    too small for the metrics every comparison computes (SSIM needs 7 x 7 pixels): a
+    6 x 6 comparison used to render every method and then fail, writing nothing."""
+    sensors = scene.sensors()
+    if not 0 <= sensor < len(sensors):
+        return
+    w, h = (int(c) for c in sensors[sensor].film().crop_size())
+    if min(w, h) < MIN_SCORED_SIDE:
+        raise ValueError(f"the film is {w} x {h} pixels; comparing methods needs at least "
+                         f"{MIN_SCORED_SIDE} x {MIN_SCORED_SIDE} (SSIM's window): set the "
+                         "film's width and height (the CLI's --width, --height) to 7 or more")
+
+
 def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
     """``(image (H, W, 3), {label: visibility (H, W)})`` of a render.
 

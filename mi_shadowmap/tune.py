@@ -74,7 +74,8 @@ from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_s
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
 from .sweep import SweepTable, analyse
 from .tables import jsonable
-from .timing import MethodResult, check_film, render_timed, run_method, split_channels
+from .timing import (MethodResult, check_film, check_scored_film, render_timed, run_method,
+                     split_channels)
 
 #: Error metrics the tuner accepts (lower is better; the sweep's error columns).
 METRICS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
@@ -916,6 +917,7 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
     if spp is not None and spp > max_spp:
         raise TuneError(f"shadowmap: tune: spp = {spp} is more than max_spp = {max_spp}")
     scene = load_scene(scene, **(scene_params or {}))
+    check_scored_film(scene)
     tuner = _Tuner(scene, max_error, metric, specs, rt_spec, time_limit, search_size, margin,
                    seed, repeats, max_spp, max_ref_spp, ref_light_samples, spp, progress)
     return tuner.run()

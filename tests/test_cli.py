@@ -84,6 +84,13 @@ def test_no_command_runs_compare_on_xml(tmp_path, capsys):
      "'pcf num_samples=4' is listed more than once"),
     (["compare", "--methods", "pcf:num_samples=4,num_samples=8"], "given twice"),
     (["sweep", "--grid", "method=hard resolution=256 resolution=512"], "given twice"),
+    # failed with "got multiple values for keyword argument 'spp'" / after rendering
+    # everything (SSIM) / after making the output folder, before:
+    (["compare", "--set", "spp=4"], "--set spp=4: compare's samples per pixel are --spp"),
+    (["compare", "--width", "6", "--height", "6"], "the film is 6 x 6 pixels"),
+    (["sweep", "--width", "8", "--height", "5"], "the film is 8 x 5 pixels"),
+    (["tune", "--max-error", "0.02", "--repeats", "0"], "'repeats' must be an integer >= 1"),
+    (["tune", "--max-error", "0.02", "--seed", "-1"], "'seed' must be an integer in [0, 2^32)"),
 ])
 def test_bad_input_one_line_error(argv, match, tmp_path, capsys):
     out_dir = tmp_path / "never"
@@ -216,3 +223,16 @@ def test_plugin_in_help():
     assert p.returncode == 0 and "--plugin" in p.stdout
     for name in harness.available_methods():   # the choices come from the registry
         assert name in p.stdout
+
+
+def test_reused_out_dir_warns_about_an_earlier_runs_images(tmp_path, capsys):
+    """A second compare into the same folder with other methods: the first run's images
+    stay (nothing is deleted), and a warning names them (they were left silently next to
+    a metrics.csv that no longer lists them)."""
+    out = tmp_path / "out"
+    base = ["compare", "--width", "16", "--height", "16", "--spp", "1", "--out", str(out)]
+    code, _, _ = run(base + ["--methods", "hard"], capsys)
+    assert code == 0
+    with pytest.warns(UserWarning, match=r"did not write.*hard\.exr"):
+        code, _, _ = run(base + ["--methods", "pcf"], capsys)
+    assert code == 0 and (out / "hard.exr").exists() and (out / "pcf.exr").exists()

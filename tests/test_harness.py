@@ -94,6 +94,21 @@ def test_per_method_parameters():
     assert res[1].metrics["vis_misclassified"] >= res[2].metrics["vis_misclassified"]
 
 
+def test_a_methods_own_spp_names_it_and_gets_a_reference_at_that_spp():
+    """``hard`` at compare's 8 spp and at its own 4: the second is named with its spp
+    (both were named ``hard``, and the second's files overwrote the first's), and it is
+    scored against a reference at 4 spp with the same seed, as a compare at 4 spp scores
+    it (it was scored against the 8-spp reference, its camera noise counted as error)."""
+    scene = mi.load_dict(default_scene(**SMALL))
+    res = harness.compare(scene, methods=["hard", "hard:spp=4"], spp=8)
+    assert [r.name for r in res[1:]] == ["hard", "hard spp=4"]
+    assert res[2].spp == 4 and res[2].metrics["reference_spp"] == 4
+    assert "reference_spp" not in res[1].metrics
+    alone = harness.compare(scene, methods=["hard"], spp=4)[1]
+    for key in ("vis_rmse", "vis_misclassified", "img_rmse"):
+        assert res[2].metrics[key] == pytest.approx(alone.metrics[key], rel=1e-6), key
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"methods": ["hard", "nope"]}, "nope"),
     ({"methods": ["hard"], "resolutoin": 64}, "resolutoin"),
@@ -434,3 +449,14 @@ def test_scene_parameters_of_a_scene_dict_are_refused():
     were dropped silently (the dict's own size rendered)."""
     with pytest.raises(ValueError, match="XML files only, not to a scene dict"):
         harness.compare(default_scene(**SMALL), methods=["hard"], scene_params={"width": 16})
+
+
+def test_contact_sheet_error_keeps_each_lights_error():
+    """Two lights with opposite errors at a pixel, and a whole error of one light at
+    another: the heat map shows the larger error with its sign (the mean over emitters
+    showed 0 and 0.5)."""
+    from mi_shadowmap.report import largest_error
+    diff = np.zeros((2, 1, 2))
+    diff[:, 0, 0] = [1.0, -0.6]
+    diff[:, 0, 1] = [0.0, -1.0]
+    assert largest_error(diff).tolist() == [[1.0, -1.0]]

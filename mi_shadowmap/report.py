@@ -118,12 +118,37 @@ def write_results(results, out_dir: str) -> dict:
                 title="compare: warm frame time vs visibility RMSE")
     written["png"].append(pareto)
     written["table"] += write_tables(rows, out_dir, "metrics")
+    warn_stale(out_dir, [p for paths in written.values() for p in paths])
     return written
+
+
+def warn_stale(out_dir: str, written) -> list:
+    """Warn about EXR and PNG files in ``out_dir`` that this run did not write (an earlier
+    run's methods, which ``metrics.csv`` no longer lists); returns their names."""
+    mine = {os.path.basename(p) for p in written}
+    stale = sorted(f for f in os.listdir(out_dir)
+                   if f.endswith((".exr", ".png")) and f not in mine)
+    if stale:
+        import warnings
+        shown = ", ".join(stale[:6]) + (f" and {len(stale) - 6} more" if len(stale) > 6 else "")
+        warnings.warn(f"{out_dir} holds {len(stale)} image file(s) this run did not write "
+                      f"(an earlier run's, not in its metrics.csv): {shown}", stacklevel=2)
+    return stale
+
+
+def largest_error(diff) -> np.ndarray:
+    """Per pixel, the emitters' visibility error (``diff``: ``(n_emitters, H, W)``)
+    largest in magnitude, with its sign: a mean over emitters let opposite errors of two
+    lights cancel and halved a whole error of one of two."""
+    diff = np.asarray(diff)
+    k = np.abs(diff).argmax(axis=0)[None]
+    return np.take_along_axis(diff, k, axis=0)[0]
 
 
 def contact_sheet(results, path: str | None = None, max_cols: int = 6):
     """Images (top row) over visibility-error heat maps against the reference
-    (bottom row; blue = too dark, red = too bright); wraps after ``max_cols``.
+    (bottom row; blue = too dark, red = too bright; per pixel the emitter whose error
+    is largest); wraps after ``max_cols``.
 
     Saves to ``path`` if given; returns the figure (closed when saved).
     """
@@ -141,7 +166,7 @@ def contact_sheet(results, path: str | None = None, max_cols: int = 6):
         if r.image is not None:
             top.imshow(tonemap(r.image))
         top.set_title(_wrap(r.name), fontsize=7)
-        err = (r.vis_stack() - ref.vis_stack()).mean(axis=0)
+        err = largest_error(r.vis_stack() - ref.vis_stack())
         im = bot.imshow(err, cmap="RdBu_r", vmin=-1, vmax=1)
         rmse = r.metrics.get("vis_rmse")
         bot.set_title("vis error" + (f" (RMSE {rmse:.3f})" if rmse is not None else ""),

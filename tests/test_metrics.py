@@ -246,7 +246,33 @@ def test_image_metrics(rng):
     assert r["rmse"] == pytest.approx(0.05)
     tm = lambda x: np.clip(x, 0, 1) ** (1 / 2.2)  # noqa: E731
     assert r["flip"] == pytest.approx(M.flip(tm(ref), tm(test))[0])
+    assert r["psnr"] == pytest.approx(M.psnr(tm(ref), tm(test), data_range=1.0))
+    assert r["ssim"] == pytest.approx(M.ssim(tm(ref), tm(test), data_range=1.0))
     assert all(isinstance(v, float) for v in r.values())
+
+
+def test_image_metrics_are_not_set_by_a_bright_light(rng):
+    """A visible light (one pixel at 1000 in both images) does not change PSNR, SSIM or
+    FLIP: on linear values their range was the light's, and PSNR went from 20.2 to
+    86.2 dB and SSIM from 0.944 to 1.000 with the same errors elsewhere."""
+    ref = rng.random((32, 32, 3)) * 0.5
+    test = ref + rng.normal(0.0, 0.05, ref.shape)
+    lit_ref, lit_test = ref.copy(), test.copy()
+    lit_ref[0, 0] = lit_test[0, 0] = 1000.0
+    a, b = M.image_metrics(ref, test), M.image_metrics(lit_ref, lit_test)
+    assert b["psnr"] == pytest.approx(a["psnr"], abs=0.1)
+    assert b["ssim"] == pytest.approx(a["ssim"], abs=0.01)
+    assert b["flip"] == pytest.approx(a["flip"], abs=0.01)
+
+
+def test_image_metrics_use_hdr_flip_on_bright_references(rng):
+    """A reference with more than 1 % of its values above 1: FLIP is HDR-FLIP on the
+    linear values (LDR-FLIP would see them clipped to white)."""
+    ref = rng.random((32, 32, 3)) * 4.0
+    test = ref * 0.8
+    r = M.image_metrics(ref, test)
+    assert r["flip"] == pytest.approx(M.flip(ref, test, "HDR")[0])
+    assert r["flip"] > 0.01
 
 
 # --------------------------------------------------------------------------- #

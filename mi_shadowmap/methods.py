@@ -268,7 +268,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     uses_map: bool = True, layer_cost=None, view_for: Callable | None = None,
                     whole_light: bool = False, virtual: bool = False,
                     virtual_margin: Callable | None = None, virtual_per_tap: bool = False,
-                    replace: bool = False) -> Method:
+                    needs_curvature: bool = False, replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
     ``lookup(smap, lk, opts, active) -> mi.Float`` has the built-ins' signature
@@ -279,7 +279,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     'method': name}`` (and XML), :func:`~mi_shadowmap.harness.compare`,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
-    ``virtual``, ``virtual_margin`` and ``virtual_per_tap``: see :class:`Method` (a
+    ``needs_curvature``, ``virtual``, ``virtual_margin`` and ``virtual_per_tap``: see
+    :class:`Method` (a
     lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
     Returns the :class:`Method` record. Raises :class:`MethodError` for a bad
@@ -298,6 +299,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     properties=tuple(properties or ()), layers=dict(layers or {}),
                     layers_for=layers_for, layer_cost=dict(layer_cost or {}),
                     needs_footprint=bool(needs_footprint),
+                    needs_curvature=bool(needs_curvature),
                     uses_map=bool(uses_map), bias_defaults=dict(bias_defaults or {}),
                     finalize=finalize, view_for=view_for, whole_light=bool(whole_light),
                     virtual=bool(virtual), virtual_margin=virtual_margin,

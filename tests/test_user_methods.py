@@ -251,3 +251,31 @@ def test_a_property_whose_default_breaks_its_own_rules_is_refused(prop):
         mi_shadowmap.register_method("bad_default", lambda smap, lk, opts, active: 1.0,
                                      properties=[prop])
     assert "bad_default" not in [m.name for m in methods.records()]
+
+
+def test_needs_curvature_gives_the_lookup_the_normals_derivatives():
+    """A user lookup registered with ``needs_curvature`` reads ``lk.si.dn_du`` (the
+    camera hits are intersected with ``mi.RayFlags.dNSdUV``): 1 / r on a sphere of
+    radius 2, seen as the visibility AOV; without it the derivatives are 0."""
+    def curv(smap, lk, opts, active):
+        k = dr.norm(lk.si.dn_du) / dr.maximum(dr.norm(lk.si.dp_du), 1e-30)
+        return dr.clip(k, 0.0, 1.0)
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 20, "film": {"type": "hdrfilm", "width": 8,
+                                                              "height": 8},
+                   "to_world": T().look_at(origin=[0, 0, 10], target=[0, 0, 0], up=[0, 1, 0])},
+        "ball": {"type": "sphere", "radius": 2.0},
+        "light": {"type": "point", "position": [0, 0, 5]}})
+    got = {}
+    for flag in (True, False):
+        name = f"curv_{str(flag).lower()}"
+        methods.register_method(name, curv, needs_curvature=flag, replace=True)
+        try:
+            img = np.asarray(mi.render(scene, integrator=mi.load_dict(
+                {"type": "shadowmap", "method": name, "resolution": 64}), spp=1))
+        finally:
+            mi_shadowmap.unregister_method(name)
+        got[flag] = img[2:6, 2:6, -1]
+    assert np.allclose(got[True], 0.5, atol=1e-3) and np.all(got[False] == 0.0)

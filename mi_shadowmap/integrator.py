@@ -271,9 +271,7 @@ screen is Mitsuba's projective integrators' job.
         if self.opts.uses_map and not self.opts.record.whole_light:
             for view in views:
                 _warn_if_enclosing(scene, view, self.opts.method)
-        # AOV names must be unique: fall back to indices for duplicate ids.
-        self._emitter_labels = [
-            lab if labels.count(lab) == 1 else str(i) for i, lab in enumerate(labels)]
+        self._emitter_labels = unique_labels(labels)
         self._unshadowed = unshadowed
         return views
 
@@ -305,21 +303,25 @@ screen is Mitsuba's projective integrators' job.
         the sensor of our render of this scene that just ran (its maps come from the
         cache), else for the scene's first sensor; footprints take the spp from the
         render's sampler."""
-        if self._last_render is scene and self._sensor is not None:
+        rendered = self._last_render is scene     # aov: our render() just ran
+        if rendered and self._sensor is not None:
             sensor = self._sensor
         else:
             sensors = scene.sensors()
             sensor = sensors[0] if len(sensors) > 0 else None
         self._first_pass(scene, sensor, max(sampler.sample_count(), 1))
         missing = [n for n in self._names() if n not in self._names_given]
-        if missing:
+        # after our own render() of this scene (Mitsuba's aov merges that image, whose
+        # visibility AOVs are all there) nothing is missing; stokes only calls sample()
+        if missing and not rendered:
             warnings.warn(
                 f"shadowmap: nested in another integrator (Mitsuba's aov, stokes, ...), "
                 f"whose channels were sized when it was built, with this integrator's AOV "
                 f"names then "
                 f"({', '.join(self._names_given) or 'none: it had not rendered a scene'}): "
                 f"{', '.join(missing)} are left out of its image. Render the scene once "
-                "with this integrator before building the nesting one to get them",
+                "with this integrator before building the nesting one to get them (not "
+                "needed under Mitsuba's aov, which adds this integrator's own render)",
                 RuntimeWarning, stacklevel=2)
 
     def _first_pass(self, scene, sensor, spp: int):
@@ -897,4 +899,23 @@ def _attached_arrays(obj, out=None, seen=None) -> list:
         return out
     for item in items:
         _attached_arrays(item, out, seen)
+    return out
+
+
+def unique_labels(labels: list) -> list:
+    """AOV labels must be unique: an id that several emitters share falls back to the
+    emitter's index, and to ``<index>_<n>`` where that index is another emitter's id
+    (ids ``['1', 'emitter', 'emitter']`` gave ``vis_1`` twice, and Mitsuba's film
+    failed with "duplicate channel name")."""
+    taken = {lab for lab in labels if labels.count(lab) == 1}
+    out = []
+    for i, lab in enumerate(labels):
+        if labels.count(lab) == 1:
+            out.append(lab)
+            continue
+        cand, n = str(i), 1
+        while cand in taken:
+            cand, n = f"{i}_{n}", n + 1
+        taken.add(cand)
+        out.append(cand)
     return out

@@ -127,6 +127,24 @@ def test_unsupported_emitter_is_named():
         mi.load_dict({"type": "shadowmap"}).check_scene(scene)
 
 
+@pytest.mark.parametrize("light, match", [
+    ({"type": "directional", "direction": [0, 0, 0]}, "'bad'.*direction is zero"),
+    ({"type": "point", "position": [float("nan"), 1.0, 0.0]}, "'bad'.*position is not finite"),
+])
+@pytest.mark.parametrize("virtual", [True, False])
+def test_a_degenerate_light_is_named(light, match, virtual):
+    """A directional light with a zero direction (Mitsuba loads it and ``direct`` renders
+    it black) crashed the process inside a kernel with virtual maps; a point light at
+    NaN failed with "cannot convert float NaN to integer". Both are named now."""
+    d = default_scene(width=16, height=16)
+    d["bad"] = light
+    scene = mi.load_dict(d)
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard", "virtual": virtual})
+    with pytest.raises(RuntimeError) as e:
+        mi.render(scene, integrator=integ, spp=1)
+    assert re.search(match, root_message(e.value)), root_message(e.value)
+
+
 def test_scalar_variant_is_refused():
     mi.set_variant("scalar_rgb")
     with pytest.raises(RuntimeError, match="scalar_rgb.*not supported"):
@@ -410,9 +428,10 @@ def test_nested_in_mitsubas_aov_integrator(method):
     before (its names known when ``aov`` was built), failed with a JIT size error. Now
     both render; the image's colour (our render) and the film's own colour (our
     ``sample()`` called by ``aov``) equal the direct render's, beside ``aov``'s depth.
-    The visibility AOV is among ``aov``'s channels only when the instance had rendered
-    the scene before ``aov`` was built; otherwise a warning says it is left out (it was
-    left out silently)."""
+    The visibility AOV comes through ``aov``'s merge of our render, right after the colour,
+    either way (a warning said it was left out when ``aov`` was built first, wrongly); it
+    is among ``aov``'s own channels too when the instance had rendered the scene before
+    ``aov`` was built."""
     scene = mi.load_dict(default_scene(width=32, height=32))
     alone = np.asarray(mi.render(scene, integrator=mi.load_dict(
         {"type": "shadowmap", "method": method}), spp=4, seed=1))
@@ -426,8 +445,9 @@ def test_nested_in_mitsubas_aov_integrator(method):
             warnings.simplefilter("always")
             img = np.asarray(mi.render(scene, integrator=nested, spp=4, seed=1))
         left_out = [w for w in caught if "vis_spot are left out" in str(w.message)]
-        assert bool(left_out) != rendered_before
+        assert not left_out
         assert np.isfinite(img).all()
+        np.testing.assert_allclose(img[..., 3], alone[..., 3], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(img[..., :3], alone[..., :3], rtol=1e-5, atol=1e-6)
         assert img[..., -1].max() > 0                  # aov's depth channel
         film = np.asarray(scene.sensors()[0].film().bitmap())
@@ -565,3 +585,13 @@ def test_an_emitter_with_sampling_weight_zero_lights_nothing_as_in_direct():
     lit = np.asarray(mi.render(mi.load_dict(d), integrator=mi.load_dict(
         {"type": "shadowmap", "method": "raytraced"}), spp=64, seed=3))[..., :3]
     assert lit.mean() > 1.5 * direct.mean()           # the lamp does light when sampled
+
+
+def test_aov_labels_stay_unique_when_an_index_is_another_emitters_id():
+    """A point light keyed '1' and two area lights whose shapes share the id
+    'emitter' (Mitsuba gives both that id): the fallback indices must not collide with
+    '1' ('vis_1' twice made the film fail with "duplicate channel name")."""
+    from mi_shadowmap.integrator import unique_labels
+    assert unique_labels(["1", "emitter", "emitter"]) == ["1", "1_1", "2"]
+    assert unique_labels(["a", "b"]) == ["a", "b"]
+    assert unique_labels(["x", "x", "0", "1"]) == ["0_1", "1_1", "0", "1"]

@@ -443,3 +443,26 @@ def test_shadow_gradients_in_every_variant(variant):
         assert np.linalg.norm(fd) > 1e-3 and cos >= 0.95
         # 32^2 pixels, 4 spp, an outline ~10 texels wide: measured |AD| / |FD| 1.29 and 1.21
         assert 0.7 <= np.linalg.norm(g) / np.linalg.norm(fd) <= 1.4
+
+
+def test_nested_in_stokes_warns_only_where_the_visibility_is_left_out():
+    """Mitsuba's ``stokes`` calls its inner integrator's ``sample()`` alone, with
+    channels sized when it was built: built before the inner integrator rendered the
+    scene, it holds no visibility AOV and a warning names it; built after, it holds it
+    (equal to a plain render's) and nothing is said."""
+    import warnings
+    mi.set_variant("llvm_ad_mono_polarized")
+    scene = mi.load_dict(default_scene(width=16, height=16))
+    for rendered_before in (False, True):
+        inner = mi.load_dict({"type": "shadowmap", "method": "hard"})
+        if rendered_before:
+            plain = np.asarray(mi.render(scene, integrator=inner, spp=4, seed=0))
+        nested = mi.load_dict({"type": "stokes", "integrator": inner})
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            img = np.asarray(mi.render(scene, integrator=nested, spp=4, seed=0))
+        left_out = [w for w in caught if "vis_spot are left out" in str(w.message)]
+        assert bool(left_out) != rendered_before
+        assert ("vis_spot" in nested.aov_names()) == rendered_before
+        if rendered_before:
+            np.testing.assert_allclose(img[..., -1], plain[..., -1], atol=1e-6)

@@ -88,21 +88,43 @@ def make_light_view(emitter, scene, index: int) -> LightView:
     """Build the :class:`LightView` of one emitter, or raise naming it."""
     label = emitter_label(emitter, index)
     kind = emitter_kind(emitter)
+    view = None
     if kind == "spot":
-        return spot_view(emitter, label)
-    if kind == "point":
-        return point_view(emitter, label)
-    if kind == "directional":
-        return directional_view(emitter, scene, label)
-    if kind == "area":
-        return area_view(emitter, scene, label)
-    if kind == "projector":
-        return projector_view(emitter, label)
+        view = spot_view(emitter, label)
+    elif kind == "point":
+        view = point_view(emitter, label)
+    elif kind == "directional":
+        view = directional_view(emitter, scene, label)
+    elif kind == "area":
+        view = area_view(emitter, scene, label)
+    elif kind == "projector":
+        view = projector_view(emitter, label)
+    if view is not None:
+        _check_frame(view, emitter, kind)
+        return view
     raise UnsupportedEmitterError(
         f"shadowmap: emitter '{label}' ({emitter_class(emitter)}) is not supported; "
         f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}"
         + ("; for environment/constant emitters set environment='unshadowed' to light "
            "them without shadows" if kind == "environment" else ""))
+
+
+def _check_frame(view, emitter, kind: str) -> None:
+    """Raise naming the emitter when its frame is degenerate: a position or a transform
+    that is not finite (a point light at NaN), or a directional light's zero direction
+    (Mitsuba loads it, and its frame is NaN: virtual maps crashed the process inside a
+    kernel, full maps rendered black)."""
+    m = np.array(view.light_from_world.matrix, dtype=np.float64)
+    pos = np.array([float(c) for c in view.position])
+    if np.all(np.isfinite(m)) and np.all(np.isfinite(pos)) and abs(np.linalg.det(m[:3, :3])) > 0:
+        return
+    what = {"directional": "its direction is zero or not finite",
+            "point": "its position is not finite",
+            "area": "its shape's position or transform is not finite"}.get(
+        kind, "its position or to_world transform is not finite or degenerate")
+    raise UnsupportedEmitterError(
+        f"shadowmap: emitter '{view.label}' ({emitter_class(emitter)}) has no valid frame: "
+        f"{what}; give it a finite position and a non-zero direction")
 
 
 def pixel_centres(sensor) -> mi.Point2f:

@@ -123,7 +123,7 @@ from .depth_maps import first_hit, second_depth_along
 from .methods import VIRTUAL_LAYERS, MethodError  # noqa: F401  (VIRTUAL_LAYERS: built here)
 from .light_views import (pinhole_footprint, pinhole_frame, pixel_centres,
                           pixel_ray_differentials)
-from .light_views.base import TEXEL_SAMPLE, scene_bounds
+from .light_views.base import TEXEL_SAMPLE, opaque_point, scene_bounds
 from .light_views.local import LocalView
 from .light_views import box_view
 
@@ -1034,7 +1034,7 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     face, uv64, _, inside = view.project_f64(p64)
     act = valid & inside
     if view.light_normal is not None:   # behind a one-sided planar light: no light
-        act &= dr.dot(si.p - mi.Point3f(view.position), mi.Vector3f(*view.light_normal)) > 0
+        act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
     if active is not None:
         act &= active(si.p, si.n)
     level = vmap_like.level_for(face, p64, dp_dx, dp_dy)

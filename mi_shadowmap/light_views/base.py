@@ -95,7 +95,7 @@ class LightView:
 
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
         """Map depth of ``p_world`` (:meth:`project`'s, without the uv)."""
-        return dr.norm(p_world - mi.Point3f(self.position))
+        return dr.norm(p_world - opaque_point(self.position))
 
     def texel_world_size(self, res: int, depth, p_world=None):
         """World width of one texel at ``depth`` (perpendicular to the ray);
@@ -110,7 +110,7 @@ class LightView:
 
     def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
         """Unit vector from ``p_world`` towards the light (its centre)."""
-        return dr.normalize(mi.Point3f(self.position) - p_world)
+        return dr.normalize(opaque_point(self.position) - p_world)
 
     def tap_texel(self, face, xy_texel: mi.Point2f, res: int, cross_seams: bool = True):
         """Texel hit by a filter tap at continuous texel coordinates ``xy_texel``
@@ -283,11 +283,13 @@ def axial_texel_size(view, res: int, face, p_world):
 
 def transform_f64(m: np.ndarray, p, point: bool = True):
     """``m @ p`` for a float64 numpy 4x4 ``m`` and a ``mi.Point3d``/``mi.Vector3d`` ``p``
-    (the affine part only; rigid and affine light transforms need no division)."""
+    (the affine part only; rigid and affine light transforms need no division). The
+    matrix enters kernels as opaque values (:func:`opaque_matrix64`)."""
+    e = opaque_matrix64(m)
     out = []
     for r in range(3):
-        v = p[0] * float(m[r, 0]) + p[1] * float(m[r, 1]) + p[2] * float(m[r, 2])
-        out.append(v + float(m[r, 3]) if point else v)
+        v = p[0] * e[r][0] + p[1] * e[r][1] + p[2] * e[r][2]
+        out.append(v + e[r][3] if point else v)
     return (mi.Point3d if point else mi.Vector3d)(*out)
 
 
@@ -356,6 +358,70 @@ def light_matrix(view) -> np.ndarray:
 
 def position_np(view) -> np.ndarray:
     return np.array([float(c) for c in view.position])
+
+
+#: :func:`opaque_point`, :func:`opaque_scalar`, :func:`opaque_transform` and
+#: :func:`opaque_matrix64` per (variant, kind, value): at most this many kept.
+_OPAQUE: dict = {}
+_OPAQUE_SIZE = 256
+
+
+def _memo(key, make):
+    hit = _OPAQUE.get(key)
+    if hit is None:
+        if len(_OPAQUE) >= _OPAQUE_SIZE:
+            del _OPAQUE[next(iter(_OPAQUE))]
+        hit = _OPAQUE[key] = make()
+    return hit
+
+
+def opaque_scalar(value: float, double: bool = False):
+    """``value`` as an opaque ``mi.Float`` (``mi.Float64`` with ``double``), as
+    :func:`opaque_point` (a view's half extent or field of view)."""
+    v = float(value)
+    return _memo((mi.variant(), "s", bool(double), v),
+                 lambda: dr.opaque(mi.Float64 if double else mi.Float, v))
+
+
+def opaque_transform(t):
+    """A scalar transform (``mi.ScalarTransform4f``) as a ``mi.Transform4f`` whose matrix
+    and inverse transpose are opaque (the same values as ``mi.Transform4f(t)``, which
+    bakes them into the kernels), as :func:`opaque_point`. A JIT transform (a view's
+    per-lane frame) is returned as it is, converted."""
+    if not isinstance(t, mi.ScalarTransform4f):
+        return mi.Transform4f(t)
+    M = np.array(t.matrix, dtype=np.float64)
+    IT = np.array(t.inverse_transpose, dtype=np.float64)
+
+    def make():
+        m, it = (mi.Matrix4f(*[[float(A[r, c]) for c in range(4)] for r in range(4)])
+                 for A in (M, IT))
+        dr.make_opaque(m, it)
+        return mi.Transform4f(m, it)
+    return _memo((mi.variant(), "t", M.tobytes(), IT.tobytes()), make)
+
+
+def opaque_matrix64(m: np.ndarray):
+    """The first three rows of a float64 4x4 matrix as opaque ``mi.Float64`` values
+    (``[row][column]``), as :func:`opaque_point`."""
+    m = np.asarray(m, dtype=np.float64)
+    return _memo((mi.variant(), "m64", m[:3].tobytes()),
+                 lambda: [[dr.opaque(mi.Float64, float(m[r, c])) for c in range(4)]
+                          for r in range(3)])
+
+
+def opaque_point(value, double: bool = False):
+    """``value`` (3 numbers) as an opaque ``mi.Point3f`` (``mi.Point3d`` with
+    ``double``): a JIT input of the kernels that read it, not a literal in their code,
+    so a light moved through ``params.update()`` compiles no new kernel. The same
+    variable serves every call with the same value (the last 64 values are kept). A
+    JIT ``value`` (a view's per-lane position, e.g. a multi-view's light points) is
+    returned as it is, converted."""
+    if dr.is_jit_v(type(value)):
+        return (mi.Point3d if double else mi.Point3f)(value)
+    v = tuple(float(c) for c in value)
+    return _memo((mi.variant(), "p", bool(double), v),
+                 lambda: dr.opaque(mi.Point3d if double else mi.Point3f, v))
 
 
 #: Where each depth-map ray crosses its texel, in texels from the texel's corner: the

@@ -16,7 +16,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import LightView, axial_texel_size, emitter_frame, position_np, scalar3, unit_grid
+from .base import (LightView, axial_texel_size, emitter_frame, opaque_point, position_np, scalar3,
+                   unit_grid)
 
 
 def cube_dir(face, s, t) -> mi.Vector3f:
@@ -107,15 +108,15 @@ class CubeView(LightView):
 
     def texel_rays(self, res: int):
         face, s, t = unit_grid(6, res)
-        return mi.Point3f(self.position), dr.normalize(cube_dir(face, s, t))
+        return opaque_point(self.position), dr.normalize(cube_dir(face, s, t))
 
     def ray_through(self, face, uv_light: mi.Point2f):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
-        return mi.Point3f(self.position), dr.normalize(cube_dir(mi.UInt32(face), s, t))
+        return opaque_point(self.position), dr.normalize(cube_dir(mi.UInt32(face), s, t))
 
     def project(self, p_world: mi.Point3f):
-        d = mi.Point3f(p_world) - mi.Point3f(self.position)
+        d = mi.Point3f(p_world) - opaque_point(self.position)
         face, s, t, major = cube_face(d)
         uv = mi.Point2f(0.5 * (s + 1.0), 0.5 * (t + 1.0))
         depth = dr.norm(d)
@@ -123,7 +124,7 @@ class CubeView(LightView):
 
     def uv_on_face(self, face, p_world: mi.Point3f) -> mi.Point2f:
         return mi.Point2f(face_uv(mi.UInt32(face),
-                                  mi.Point3f(p_world) - mi.Point3f(self.position)))
+                                  mi.Point3f(p_world) - opaque_point(self.position)))
 
     def texel_world_size(self, res: int, depth, p_world=None):
         return depth * (2.0 * self.tan_half / res)
@@ -145,25 +146,25 @@ class CubeView(LightView):
     supports_virtual = True
 
     def uv_on_face_f64(self, face, p_world):
-        d = mi.Point3d(p_world) - mi.Point3d(*(float(c) for c in position_np(self)))
+        d = mi.Point3d(p_world) - opaque_point(self.position, True)
         return face_uv(mi.UInt32(face), d)
 
     def uv_differential(self, face, p_world, dp_world):
         face = mi.UInt32(face)
-        m, u, w = face_split(face, mi.Point3f(p_world) - mi.Point3f(self.position))
+        m, u, w = face_split(face, mi.Point3f(p_world) - opaque_point(self.position))
         dm, du, dw = face_split(face, mi.Vector3f(dp_world))
         inv = dr.rcp(dr.maximum(m, 1e-30))
         return mi.Point2f(0.5 * (du - u * dm * inv) * inv, 0.5 * (dw - w * dm * inv) * inv)
 
     def project_f64(self, p_world):
-        d = mi.Point3d(p_world) - mi.Point3d(*(float(c) for c in position_np(self)))
+        d = mi.Point3d(p_world) - opaque_point(self.position, True)
         face, s, t, major = cube_face(mi.Vector3d(d))
         return face, mi.Point2d(0.5 * (s + 1.0), 0.5 * (t + 1.0)), dr.norm(d), major > 0
 
     def ray_through_f64(self, face, uv_light):
         s = mi.Float64(uv_light.x * 2.0 - 1.0)
         t = mi.Float64(uv_light.y * 2.0 - 1.0)
-        return mi.Point3d(*(float(c) for c in position_np(self))), dr.normalize(cube_dir(mi.UInt32(face), s, t))
+        return opaque_point(self.position, True), dr.normalize(cube_dir(mi.UInt32(face), s, t))
 
     def ray_frame_f64(self, face, uv_light):
         """(:attr:`~.base.LightView.ray_frame_f64`) Central rays: the unnormalised

@@ -34,6 +34,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .base import opaque_point
+
 #: Receiver depths are lowered by this many float32 roundoffs (2^-24 relative) of
 #: themselves: the map's and the receiver's float32 roundings together, with margin.
 DEPTH_ULPS = 4.0
@@ -161,7 +163,7 @@ class LocalView:
             return self._ray_through_f64(face, uv_light)
         _, base, a, b, uv0 = self._frame[:5]
         duv = mi.Point2f(uv_light) - uv0
-        o, d = mi.Point3f(self.inner.position), dr.normalize(base + a * duv.x + b * duv.y)
+        o, d = opaque_point(self.inner.position), dr.normalize(base + a * duv.x + b * duv.y)
         if self.inner.n_faces == 1:
             return o, d
         return dr.if_stmt((mi.UInt32(face), mi.Point2f(uv_light), o, d),

@@ -141,19 +141,26 @@ class MultiView(LightView):
     @functools.cached_property
     def _tables(self) -> dict:
         """The per-view data as JIT arrays (built once per view object)."""
+        # every table is opaque: a one-view table (a delta light's, as_multi_view) would
+        # otherwise be a literal, and a moved light would compile new kernels
         def cols(rows, n):
             a = np.asarray(rows, dtype=np.float64).reshape(len(rows), n)
-            return [mi.Float(a[:, c]) for c in range(n)]
+            if len(a) == 1:
+                return [dr.opaque(mi.Float, float(a[0, c])) for c in range(n)]
+            out = [mi.Float(np.ascontiguousarray(a[:, c], dtype=np.float32)) for c in range(n)]
+            dr.make_opaque(*out)
+            return out
         t = {"pos": mi.Point3f(*cols(self.positions, 3))}
         if self.rotations:
             t["rot"] = cols(self.rotations, 9)
-        else:
+        else:       # shared by every view
             R = np.array(self.sub.light_from_world.matrix, dtype=np.float64)[:3, :3]
-            t["rot"] = [float(x) for x in R.ravel()]
+            t["rot_shared"] = cols([R.ravel()], 9)
         if self.radiant and not all(self.radiant):
             t["radiant"] = mi.Bool(list(self.radiant))
+            dr.make_opaque(t["radiant"])
         if len(self.normals) == 1:
-            t["normal"] = mi.Vector3f(*self.normals[0])
+            t["normal"] = mi.Vector3f(*cols([self.normals[0]], 3))
         elif self.normals:
             t["normal"] = mi.Vector3f(*cols(self.normals, 3))
         return t
@@ -164,7 +171,8 @@ class MultiView(LightView):
         t = self._tables
         k = mi.UInt32(k)
         p = dr.gather(mi.Point3f, t["pos"], k)
-        R = [c if isinstance(c, float) else dr.gather(mi.Float, c, k) for c in t["rot"]]
+        R = (t["rot_shared"] if "rot_shared" in t
+             else [dr.gather(mi.Float, c, k) for c in t["rot"]])
         # light_from_world = [R | -R p]; Transform4f also stores its inverse transpose,
         # [[R, 0], [p^T, 1]] (the inverse of a rigid [R | -R p] is [R^T | p]).
         tr = [-(R[3 * i] * p.x + R[3 * i + 1] * p.y + R[3 * i + 2] * p.z) for i in range(3)]

@@ -17,7 +17,8 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, light_matrix, look_along, look_along_np, position_np, scalar3,
-                   scene_bounds, transform_f64, unit_grid)
+                   opaque_point, opaque_scalar, opaque_transform, scene_bounds, transform_f64,
+                   unit_grid)
 
 
 @dataclass(frozen=True)
@@ -32,30 +33,37 @@ class OrthoView(LightView):
     def n_faces(self) -> int:
         return 1
 
+    def _half(self, double: bool = False):
+        """``half_extent`` as opaque JIT scalars (a directional light turned or the
+        scene's bounds changed compile no new kernel)."""
+        return tuple(opaque_scalar(h, double) for h in self.half_extent)
+
     def _world_from_light(self):
-        return mi.Transform4f(self.light_from_world.inverse())
+        return opaque_transform(self.light_from_world.inverse())
 
     def _forward(self):
         return self._world_from_light() @ mi.Vector3f(0, 0, 1)
 
     def texel_rays(self, res: int):
         _, s, t = unit_grid(1, res)
-        o_light = mi.Point3f(s * self.half_extent[0], t * self.half_extent[1], 0.0)
+        hx, hy = self._half()
+        o_light = mi.Point3f(s * hx, t * hy, 0.0)
         w = self._world_from_light()
         return w @ o_light, w @ mi.Vector3f(0, 0, 1)
 
     def ray_through(self, face, uv_light: mi.Point2f):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
-        o_light = mi.Point3f(s * self.half_extent[0], t * self.half_extent[1], 0.0)
+        hx, hy = self._half()
+        o_light = mi.Point3f(s * hx, t * hy, 0.0)
         w = self._world_from_light()
         return mi.Point3f(w @ o_light), dr.normalize(w @ mi.Vector3f(0, 0, 1))
 
     def project(self, p_world: mi.Point3f):
         p_world = mi.Point3f(p_world)
-        p_light = mi.Transform4f(self.light_from_world) @ p_world
-        uv = mi.Point2f(0.5 * (p_light.x / self.half_extent[0] + 1.0),
-                        0.5 * (p_light.y / self.half_extent[1] + 1.0))
+        p_light = opaque_transform(self.light_from_world) @ p_world
+        hx, hy = self._half()
+        uv = mi.Point2f(0.5 * (p_light.x / hx + 1.0), 0.5 * (p_light.y / hy + 1.0))
         z = mi.Float(1.0)
         depth = p_light.z
         inside = (z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
@@ -68,20 +76,21 @@ class OrthoView(LightView):
 
     def uv_on_face_f64(self, face, p_world):
         p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
-        return mi.Point2d(0.5 * (p_light.x / self.half_extent[0] + 1.0),
-                          0.5 * (p_light.y / self.half_extent[1] + 1.0))
+        hx, hy = self._half(True)
+        return mi.Point2d(0.5 * (p_light.x / hx + 1.0), 0.5 * (p_light.y / hy + 1.0))
 
     def uv_differential(self, face, p_world, dp_world):
-        dp = mi.Transform4f(self.light_from_world) @ mi.Vector3f(dp_world)
-        return mi.Point2f(0.5 * dp.x / self.half_extent[0], 0.5 * dp.y / self.half_extent[1])
+        dp = opaque_transform(self.light_from_world) @ mi.Vector3f(dp_world)
+        hx, hy = self._half()
+        return mi.Point2f(0.5 * dp.x / hx, 0.5 * dp.y / hy)
 
     def depth_differential(self, p_world, dp_world):
         return dr.dot(mi.Vector3f(dp_world), dr.normalize(self._forward()))
 
     def project_f64(self, p_world):
         p_light = transform_f64(light_matrix(self), mi.Point3d(p_world))
-        uv = mi.Point2d(0.5 * (p_light.x / self.half_extent[0] + 1.0),
-                        0.5 * (p_light.y / self.half_extent[1] + 1.0))
+        hx, hy = self._half(True)
+        uv = mi.Point2d(0.5 * (p_light.x / hx + 1.0), 0.5 * (p_light.y / hy + 1.0))
         inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
         return mi.UInt32(0), uv, p_light.z, inside
 
@@ -89,29 +98,31 @@ class OrthoView(LightView):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
         W = np.linalg.inv(light_matrix(self))
-        o = transform_f64(W, mi.Point3d(s * self.half_extent[0], t * self.half_extent[1], 0.0))
+        hx, hy = self._half(True)
+        o = transform_f64(W, mi.Point3d(s * hx, t * hy, 0.0))
         d = transform_f64(W, mi.Vector3d(0.0, 0.0, 1.0), point=False)
         return o, dr.normalize(d)
 
     def ray_frame_f64(self, face, uv_light):
         """(:attr:`~.base.LightView.ray_frame_f64`) Parallel rays: the origin moves by
         ``2 half_extent`` along the light's x and y per unit of ``uv``."""
-        return self._parallel_frame(*self.half_extent)
+        return self._parallel_frame(*self._half())
 
     def _parallel_frame(self, hx, hy):
         """The parallel ray frame of a rectangle of half sizes ``hx``, ``hy`` (floats or
         per-lane ``mi.Float``) in the light's plane."""
         R = np.linalg.inv(light_matrix(self))[:3, :3]
         d = R[:, 2] / np.linalg.norm(R[:, 2])
-        return (False, mi.Vector3f(*d.tolist()), mi.Vector3f(*(2.0 * R[:, 0]).tolist()) * hx,
-                mi.Vector3f(*(2.0 * R[:, 1]).tolist()) * hy)
+        # opaque (opaque_point): a turned light compiles no new kernel
+        return (False, mi.Vector3f(opaque_point(d)), mi.Vector3f(opaque_point(2.0 * R[:, 0])) * hx,
+                mi.Vector3f(opaque_point(2.0 * R[:, 1])) * hy)
 
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
-        return dr.dot(p_world - mi.Point3f(self.position), self._forward())
+        return dr.dot(p_world - opaque_point(self.position), self._forward())
 
     def texel_world_size(self, res: int, depth, p_world=None):
         # ``res`` may be per lane (virtual maps' levels)
-        return dr.zeros(mi.Float, dr.width(depth)) + 2.0 * max(self.half_extent) / res
+        return dr.zeros(mi.Float, dr.width(depth)) + 2.0 * opaque_scalar(max(self.half_extent)) / res
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
         return texel_world

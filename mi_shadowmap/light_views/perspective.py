@@ -16,7 +16,8 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, axial_texel_size, emitter_frame, light_matrix, look_along_np,
-                   position_np, scalar3, transform_f64, unit_grid)
+                   opaque_point, opaque_transform, position_np, scalar3, transform_f64,
+                   unit_grid)
 
 
 @dataclass(frozen=True)
@@ -31,22 +32,22 @@ class PerspectiveView(LightView):
         return 1
 
     def _world_from_light(self):
-        return mi.Transform4f(self.light_from_world.inverse())
+        return opaque_transform(self.light_from_world.inverse())
 
     def texel_rays(self, res: int):
         _, s, t = unit_grid(1, res)
         d_light = mi.Vector3f(s * self.tan_half, t * self.tan_half, 1.0)
-        return mi.Point3f(self.position), dr.normalize(self._world_from_light() @ d_light)
+        return opaque_point(self.position), dr.normalize(self._world_from_light() @ d_light)
 
     def ray_through(self, face, uv_light: mi.Point2f):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
         d_light = mi.Vector3f(s * self.tan_half, t * self.tan_half, 1.0)
-        return mi.Point3f(self.position), dr.normalize(self._world_from_light() @ d_light)
+        return opaque_point(self.position), dr.normalize(self._world_from_light() @ d_light)
 
     def project(self, p_world: mi.Point3f):
         p_world = mi.Point3f(p_world)   # Point + Vector arithmetic may yield a Vector3f
-        p_light = mi.Transform4f(self.light_from_world) @ p_world
+        p_light = opaque_transform(self.light_from_world) @ p_world
         z = p_light.z
         # relative clamp (as cube.face_uv): reverse mode's partials stay finite for
         # points at or behind the light's plane
@@ -54,7 +55,7 @@ class PerspectiveView(LightView):
                                                 1e-30)))
         uv = mi.Point2f(0.5 * (p_light.x * inv_z / self.tan_half + 1.0),
                         0.5 * (p_light.y * inv_z / self.tan_half + 1.0))
-        depth = dr.norm(p_world - mi.Point3f(self.position))
+        depth = dr.norm(p_world - opaque_point(self.position))
         inside = (z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
         return mi.UInt32(0), uv, depth, inside
 
@@ -66,7 +67,7 @@ class PerspectiveView(LightView):
         the matrix's own translation is float32, ``-R position`` rounded to 2^-24 of the
         light's distance (64 units at 1e9), which a view fitted to a far scene
         (:func:`box_view`, a face a few units wide there) cannot afford."""
-        rel = mi.Point3d(p_world) - mi.Point3d(*(float(c) for c in position_np(self)))
+        rel = mi.Point3d(p_world) - opaque_point(self.position, True)
         return transform_f64(light_matrix(self), rel, point=False)
 
     def uv_on_face_f64(self, face, p_world):
@@ -76,7 +77,7 @@ class PerspectiveView(LightView):
                           0.5 * (p_light.y * inv_z / self.tan_half + 1.0))
 
     def uv_differential(self, face, p_world, dp_world):
-        L = mi.Transform4f(self.light_from_world)
+        L = opaque_transform(self.light_from_world)
         p = L @ mi.Point3f(p_world)
         dp = L @ mi.Vector3f(dp_world)
         inv_z = dr.rcp(dr.maximum(p.z, 1e-30))
@@ -88,7 +89,7 @@ class PerspectiveView(LightView):
         p_world = mi.Point3d(p_world)
         p_light = self._light_f64(p_world)
         uv = self.uv_on_face_f64(0, p_world)
-        depth = dr.norm(p_world - mi.Point3d(*(float(c) for c in position_np(self))))
+        depth = dr.norm(p_world - opaque_point(self.position, True))
         inside = (p_light.z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
         return mi.UInt32(0), uv, depth, inside
 
@@ -97,7 +98,7 @@ class PerspectiveView(LightView):
         t = uv_light.y * 2.0 - 1.0
         d_light = mi.Vector3d(s * self.tan_half, t * self.tan_half, 1.0)
         d = transform_f64(np.linalg.inv(light_matrix(self)), d_light, point=False)
-        return mi.Point3d(*(float(c) for c in position_np(self))), dr.normalize(d)
+        return opaque_point(self.position, True), dr.normalize(d)
 
     def ray_frame_f64(self, face, uv_light):
         """(:attr:`~.base.LightView.ray_frame_f64`) Central rays: the unnormalised
@@ -109,8 +110,9 @@ class PerspectiveView(LightView):
                              point=False)
         R = W[:3, :3]
         k = 2.0 * self.tan_half
-        return (True, mi.Vector3f(base), mi.Vector3f(*(k * R[:, 0]).tolist()),
-                mi.Vector3f(*(k * R[:, 1]).tolist()))
+        # opaque (opaque_point): a turned light compiles no new kernel
+        return (True, mi.Vector3f(base), mi.Vector3f(opaque_point(k * R[:, 0])),
+                mi.Vector3f(opaque_point(k * R[:, 1])))
 
     def texel_world_size(self, res: int, depth, p_world=None):
         return depth * (2.0 * self.tan_half / res)

@@ -27,7 +27,6 @@ import mitsuba as mi
 
 from .light_views import LightView
 from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
-from .rays import shape_index, shape_tables
 
 
 def _coherent_rays_default() -> bool:
@@ -250,6 +249,38 @@ def _solid_table(scene: mi.Scene) -> mi.Bool:
 ROUNDING_ULPS = 16.0
 
 
+_UNLISTED = -1000000
+
+
+def _face_magnitudes(scene: mi.Scene) -> tuple:
+    """``(offset, magnitude)`` tables for the rounding of :func:`second_depth_along`'s
+    hits: ``offset[id]`` (``mi.Int32``, by shape registry id) is a mesh's first row in
+    ``magnitude`` (its faces' :func:`~mi_shadowmap.light_views.base.triangle_magnitudes`,
+    indexed by the hit's ``prim_index``), ``-2 - row`` for another shape (its one row: its
+    largest coordinate), or :data:`_UNLISTED` for an id the scene does not list (an instance's
+    shape: the hit point's own coordinates are used). A triangle's own vertices, not its
+    mesh's: a mesh Mitsuba merged (one BSDF) spans a 1e5-wide ground and a small plate
+    above it, and the ground's rounding (0.1 at 1e5) let the plate's shadow leak."""
+    from .light_views.base import shape_bounds, triangle_magnitudes
+    shapes = scene.shapes()
+    ids = (dr.reinterpret_array(mi.UInt32, scene.shapes_dr()).numpy().astype(np.int64)
+           if shapes else np.zeros(0, np.int64))
+    offset = np.full(int(ids.max()) + 1 if ids.size else 1, _UNLISTED, np.int64)
+    parts, n = [], 0
+    for i, shape in zip(ids, shapes):
+        if shape.is_mesh() and hasattr(shape, "faces_buffer"):
+            m = triangle_magnitudes(shape)
+            offset[i] = n
+        else:
+            b = shape_bounds(shape)
+            m = np.array([np.abs(np.stack(b)).max() if b is not None else 0.0], np.float32)
+            offset[i] = -2 - n
+        parts.append(m)
+        n += len(m)
+    mag = np.concatenate(parts) if parts else np.zeros(1, np.float32)
+    return mi.Int32(offset.astype(np.int32)), mi.Float(np.maximum(mag, 0.0).astype(np.float32))
+
+
 def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     """Wang & Molnar (1994) second-depth layer: the second surface from the light.
 
@@ -302,8 +333,7 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
     own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
     solid = _solid_table(scene)
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
-    mag_table, _ = shape_tables(scene)
-    mag = mi.Float(mag_table.max(axis=1))      # per shape: its largest |coordinate|
+    face_offset, face_mag = _face_magnitudes(scene)
     # a stored depth's rounding (see second_depth_layer), at least the ray origins'
     round_o = (ROUNDING_ULPS * 2.0 ** -24) * dr.max(dr.abs(mi.Vector3f(o)))
     ray = mi.Ray3f(o, d)
@@ -327,7 +357,16 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
         is_solid = dr.gather(mi.Bool, solid, shape_id, counted)
         back = dr.dot(si.n, d) > 0
         store = counted & (back | ~is_solid)
-        m_hit = dr.gather(mi.Float, mag, shape_index(si.shape, dr.width(mag)), counted)
+        # the hit triangle's largest |coordinate| (a shape's, if not a scene mesh's;
+        # the hit point's for shapes the scene does not list: instances' own)
+        raw = dr.reinterpret_array(mi.UInt32, si.shape)
+        listed = counted & (raw < dr.width(face_offset))
+        off = dr.gather(mi.Int32, face_offset, dr.select(listed, raw, 0), listed)
+        known = listed & (off != _UNLISTED)
+        row = dr.select(off >= 0, off + mi.Int32(si.prim_index), -off - 2)
+        m_hit = dr.select(known, dr.gather(mi.Float, face_mag, mi.UInt32(dr.maximum(row, 0)),
+                                           known),
+                          dr.max(dr.abs(mi.Vector3f(si.p))))
         rounding = dr.maximum((ROUNDING_ULPS * 2.0 ** -24) * m_hit, round_o)
         z_second = dr.select(store, z + rounding, z_second)
         z_second = dr.select(active & ~hit, z_first, z_second)   # escaped

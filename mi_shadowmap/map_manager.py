@@ -751,8 +751,9 @@ def clear_caches() -> None:
     """Empty every cache the package keeps across renders: depth maps
     (:data:`MAP_CACHE`), virtual pages and camera digests (:data:`~mi_shadowmap.pages.
     PAGE_CACHE`), cascades of virtual maps, light-pose references
-    (:mod:`~mi_shadowmap.light_views.pose`) and meshes' edge topologies
-    (:mod:`~mi_shadowmap.antialias`).
+    (:mod:`~mi_shadowmap.light_views.pose`), meshes' edge topologies
+    (:mod:`~mi_shadowmap.antialias`) and their bounds
+    (:func:`~mi_shadowmap.light_views.base.shape_bounds`).
 
     Each of them holds references to the scenes, emitters or meshes it describes (so
     that a freed object's ``id`` never aliases a live one), and so keeps them alive
@@ -765,7 +766,8 @@ def clear_caches() -> None:
     scenes go) when switching between scenes in one process, e.g. between tests.
     """
     from . import antialias, pages
-    from .light_views import pose
+    from .light_views import base, pose
+    base.clear_mesh_memo()
     MAP_CACHE.clear()
     pages.PAGE_CACHE.clear()
     _VIRTUAL_CASCADES.clear()

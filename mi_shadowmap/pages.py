@@ -266,7 +266,7 @@ def layout_for(view, scene, opts) -> VirtualLayout:
         def face_width(view):
             return 2.0 * float(getattr(view, "tan_half", 1.0)) * max(
                 float(np.linalg.norm(centre - pos)), 1e-30)
-        # a light so far that the finest level would be capped (about 500 box diagonals
+        # a light so far that the finest level would be capped (about 32 box diagonals
         # away for a cube): one face aimed at the box instead (box_view), whose texels
         # all fall on the scene; the layout's view is then that face
         if (opts.resolution is None and bounds is not None

@@ -74,9 +74,12 @@ Deviations from the paper, and why:
   it. Instead of a bias, each virtual sample's compare allows the plane's bend,
   ``kappa d^2 / 2`` along the normal at distance ``d`` from the shading point
   (divided by ``|cos|`` of the texel's ray to the normal), ``kappa`` the largest
-  curvature of the shading normal (``si.dn_du``, ``si.dn_dv``; the integrator
-  asks for them, ``needs_curvature``): 0 on planes, so planar receivers keep
-  the paper's exact compare. Measured: a point light inside a sphere room
+  curvature with which the surface rises off the plane towards the light, from the
+  shading normal's derivatives (``si.dn_du``, ``si.dn_dv``; the integrator asks for
+  them, ``needs_curvature``): 0 on planes and where the surface falls away from the
+  light (a convex receiver's virtual samples lie in front of it anyway), so those
+  keep the paper's exact compare (an unsigned allowance let thin plates over a
+  sphere leak light: 0.8 against 0.4 % at a 64^2 map). Measured: a point light inside a sphere room
   shadowed 39-46 % of the pixels, 0.05 % now. A flat-shaded tessellation has no
   curvature to read (0 between its facets): a light inside a flat-faced
   icosphere room still falsely shadows 1.8 % (8.6 % with full maps), as do the
@@ -119,17 +122,22 @@ def plane_normal(lk: Lookup) -> mi.Vector3f:
     return mi.Vector3f(lk.n_world)
 
 
-def curvature(lk: Lookup) -> mi.Float:
-    """The receiver's largest normal curvature (1 / world units) from the shading
-    normal's derivatives (``si.dn_du``, ``si.dn_dv`` over ``si.dp_du``, ``si.dp_dv``):
-    1 / r on a sphere of radius r, an estimate of the bend between facets on a mesh with
-    vertex normals, 0 on planes, flat-shaded meshes, or without a surface interaction."""
+def concavity(lk: Lookup, to_light) -> mi.Float:
+    """How fast the receiver bends towards the light (1 / world units): the largest
+    normal curvature of the shading normal (``si.dn_du``, ``si.dn_dv`` against
+    ``si.dp_du``, ``si.dp_dv``) with which the surface rises off its tangent plane on
+    the light's side, 0 where it only falls away from it. The inside of a sphere of
+    radius r lit from within: 1 / r; its outside, a plane, a flat-shaded mesh, or no
+    surface interaction: 0. Only the rise puts the surface in front of its tangent plane
+    as the light sees it, i.e. virtual samples behind it."""
     si = lk.si
     if si is None or not hasattr(si, "dn_du"):
         return mi.Float(0.0)
-    ku = dr.norm(si.dn_du) / dr.maximum(dr.norm(si.dp_du), 1e-30)
-    kv = dr.norm(si.dn_dv) / dr.maximum(dr.norm(si.dp_dv), 1e-30)
-    k = dr.detach(dr.maximum(ku, kv))
+    toward = dr.select(dr.dot(si.sh_frame.n, to_light) >= 0, 1.0, -1.0)
+    # dot(dn, dp) / |dp|^2 > 0: the normal turns outwards, the surface falls away from it
+    ku = dr.dot(si.dn_du, si.dp_du) / dr.maximum(dr.squared_norm(si.dp_du), 1e-30)
+    kv = dr.dot(si.dn_dv, si.dp_dv) / dr.maximum(dr.squared_norm(si.dp_dv), 1e-30)
+    k = dr.detach(dr.maximum(dr.maximum(-toward * ku, -toward * kv), 0.0))
     return dr.select(dr.isfinite(k), k, 0.0)
 
 
@@ -162,7 +170,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
     p = mi.Point3f(lk.p_world)
     n = dr.normalize(plane_normal(lk))
     offset = view.depth_of(p) - r.depth          # the configured biases (0 by default)
-    kappa = curvature(lk)
+    kappa = concavity(lk, view.direction_to_light(p))
 
     def virt_body(tap, n_virt):
         ij, z_second = fetch(tap_texel(tap), mixed)

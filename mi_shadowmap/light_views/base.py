@@ -20,6 +20,7 @@ Conventions shared by every view
 """
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass
 
 import drjit as dr
@@ -293,11 +294,45 @@ def transform_f64(m: np.ndarray, p, point: bool = True):
     return (mi.Point3d if point else mi.Vector3d)(*out)
 
 
-#: :func:`shape_bounds` of meshes: ``{(id(shape), buffer index): (buffer, lo, hi)}``.
-#: The vertex buffer is held, so its JIT index cannot be reused by another array while
-#: the entry lives; at most :data:`_BOUNDS_MEMO_SIZE` entries (oldest dropped).
-_BOUNDS_MEMO: dict = {}
-_BOUNDS_MEMO_SIZE = 64
+#: Per mesh state, for :func:`shape_bounds` and :func:`triangle_magnitudes`:
+#: ``{(id(shape), vertex buffer index, face buffer index): [buffers, bounds, per-face]}``.
+#: The buffers are held, so their JIT indices cannot be reused by other arrays while
+#: the entry lives. Least recently used entries go first beyond
+#: :data:`_MESH_MEMO_SIZE` (a scene's every mesh fits: with 64 entries, a scene of 100
+#: meshes read every vertex buffer on each call, 70 times slower); emptied by
+#: :func:`~mi_shadowmap.map_manager.clear_caches`.
+_MESH_MEMO = collections.OrderedDict()
+_MESH_MEMO_SIZE = 4096
+
+
+def _mesh_entry(shape) -> list:
+    vbuf, fbuf = shape.vertex_positions_buffer(), shape.faces_buffer()
+    key = (id(shape), vbuf.index, fbuf.index)
+    hit = _MESH_MEMO.get(key)
+    if hit is None:
+        while len(_MESH_MEMO) >= _MESH_MEMO_SIZE:
+            _MESH_MEMO.popitem(last=False)
+        hit = _MESH_MEMO[key] = [(vbuf, fbuf), False, None]
+    else:
+        _MESH_MEMO.move_to_end(key)
+    return hit
+
+
+def clear_mesh_memo() -> None:
+    """Forget every mesh's remembered bounds and per-face magnitudes."""
+    _MESH_MEMO.clear()
+
+
+def triangle_magnitudes(shape) -> np.ndarray:
+    """Per face of a mesh, the largest absolute coordinate of its three vertices
+    (float32): the scale of a ray-triangle intersection's rounding there (remembered
+    as :func:`shape_bounds`)."""
+    entry = _mesh_entry(shape)
+    if entry[2] is None:
+        v = np.abs(entry[0][0].numpy().reshape(-1, 3)).max(axis=1)
+        f = entry[0][1].numpy().reshape(-1, 3)
+        entry[2] = (v[f].max(axis=1) if len(f) else np.zeros(0)).astype(np.float32)
+    return entry[2]
 
 
 def shape_bounds(shape):
@@ -313,17 +348,12 @@ def shape_bounds(shape):
     unchanged mesh costs a dict lookup; a changed one (``params.update()``) one pass over
     its vertices."""
     if shape.is_mesh() and hasattr(shape, "vertex_positions_buffer"):
-        buf = shape.vertex_positions_buffer()
-        key = (id(shape), buf.index)
-        hit = _BOUNDS_MEMO.get(key)
-        if hit is None:
-            v = buf.numpy().reshape(-1, 3)
-            bounds = ((v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64))
-                      if len(v) else None)
-            if len(_BOUNDS_MEMO) >= _BOUNDS_MEMO_SIZE:
-                del _BOUNDS_MEMO[next(iter(_BOUNDS_MEMO))]
-            hit = _BOUNDS_MEMO[key] = (buf, bounds)
-        return hit[1]
+        entry = _mesh_entry(shape)
+        if entry[1] is False:
+            v = entry[0][0].numpy().reshape(-1, 3)
+            entry[1] = ((v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64))
+                        if len(v) else None)
+        return entry[1]
     b = shape.bbox()
     if not b.valid():
         return None

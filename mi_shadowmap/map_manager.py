@@ -767,7 +767,7 @@ def clear_caches() -> None:
     """
     from . import antialias, pages
     from .light_views import base, pose
-    base.clear_mesh_memo()
+    base.clear_memos()
     MAP_CACHE.clear()
     pages.PAGE_CACHE.clear()
     _VIRTUAL_CASCADES.clear()

@@ -318,9 +318,11 @@ def _mesh_entry(shape) -> list:
     return hit
 
 
-def clear_mesh_memo() -> None:
-    """Forget every mesh's remembered bounds and per-face magnitudes."""
+def clear_memos() -> None:
+    """Forget every mesh's remembered bounds and per-face magnitudes, and the opaque
+    values of light positions and frames (:func:`opaque_point`, ...)."""
     _MESH_MEMO.clear()
+    _OPAQUE.clear()
 
 
 def triangle_magnitudes(shape) -> np.ndarray:

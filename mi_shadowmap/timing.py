@@ -99,7 +99,28 @@ def check_scored_film(scene, sensor: int = 0) -> None:
                          "film's width and height (the CLI's --width, --height) to 7 or more")
 
 
-def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
+#: CIE XYZ to linear sRGB (D65), for films with ``pixel_format`` ``xyz``/``xyza``.
+XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
+                        [-0.9692660, 1.8760108, 0.0415560],
+                        [0.0556434, -0.2040259, 1.0572252]], np.float32)
+
+
+def film_is_xyz(scene, sensor: int = 0) -> bool:
+    """Whether the film of ``scene``'s sensor develops to CIE XYZ (``pixel_format``
+    ``xyz``/``xyza``); read from its developed bitmap's channel names, so after a
+    render."""
+    sensors = scene.sensors()
+    if not 0 <= sensor < len(sensors):
+        return False
+    try:
+        b = sensors[sensor].film().bitmap()
+    except Exception:     # nothing developed yet
+        return False
+    names = [b.struct_()[i].name for i in range(min(b.channel_count(), 3))]
+    return names == ["X", "Y", "Z"]
+
+
+def split_channels(result, aov_names, xyz: bool = False) -> tuple[np.ndarray, dict]:
     """``(image (H, W, 3), {label: visibility (H, W)})`` of a render.
 
     The film has 3 colour channels in rgb and spectral variants (spectral films
@@ -107,7 +128,9 @@ def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
     alpha channel after them if the format has one (``rgba``, ``luminance_alpha``,
     ``xyza``: dropped here; no format has two colour channels); a one-channel image
     is repeated into 3 grey channels so that every metric and output treats all
-    variants and formats alike.
+    variants and formats alike. ``xyz`` (:func:`film_is_xyz`): the 3 colour channels
+    are CIE XYZ and become linear sRGB (PNGs and FLIP read sRGB; they were read as X,
+    Y, Z).
     """
     arr = np.asarray(result, dtype=np.float32)
     n_film = arr.shape[-1] - len(aov_names)
@@ -118,6 +141,8 @@ def split_channels(result, aov_names) -> tuple[np.ndarray, dict]:
     n_colour = 1 if n_film in (1, 2) else 3
     image = arr[..., :n_colour]
     image = np.repeat(image, 3, axis=-1) if n_colour == 1 else image.copy()
+    if xyz and n_colour == 3:
+        image = image @ XYZ_TO_SRGB.T
     vis = {name[len("vis_"):]: arr[..., n_film + k].copy() for k, name in enumerate(aov_names)}
     return image, vis
 
@@ -187,7 +212,7 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
         build.append(integrator.build_seconds)
     warm_t = float(np.median(warm))
     build_t = float(np.median(build))
-    image, vis = split_channels(img, integrator.aov_names())
+    image, vis = split_channels(img, integrator.aov_names(), xyz=film_is_xyz(scene))
     maps = [m for m in integrator.maps if m is not None]
     times = {"cold": cold, "warm": warm_t, "build": build_t,
              "shading": max(warm_t - build_t, 0.0), "jit": max(cold - warm_t, 0.0),

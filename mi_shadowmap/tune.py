@@ -74,8 +74,8 @@ from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_s
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
 from .sweep import SweepTable, analyse
 from .tables import jsonable
-from .timing import (MethodResult, check_film, check_scored_film, render_timed, run_method,
-                     split_channels)
+from .timing import (MethodResult, check_film, check_scored_film, film_is_xyz, render_timed,
+                     run_method, split_channels)
 
 #: Error metrics the tuner accepts (lower is better; the sweep's error columns).
 METRICS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
@@ -839,7 +839,7 @@ def _render_once(scene, method: str, spp: int, seed: int, **props) -> MethodResu
     integrator.check_scene(scene)
     check_film(scene)
     img, seconds = render_timed(scene, integrator, spp, seed)
-    image, vis = split_channels(img, integrator.aov_names())
+    image, vis = split_channels(img, integrator.aov_names(), xyz=film_is_xyz(scene))
     return MethodResult(name=spec_name(spec), method=method, params=dict(props), image=image,
                         visibility=vis, times={"warm": seconds}, spp=spp)
 

@@ -460,3 +460,15 @@ def test_contact_sheet_error_keeps_each_lights_error():
     diff[:, 0, 0] = [1.0, -0.6]
     diff[:, 0, 1] = [0.0, -1.0]
     assert largest_error(diff).tolist() == [[1.0, -1.0]]
+
+
+def test_an_xyz_film_is_compared_in_srgb():
+    """A film with ``pixel_format='xyz'`` develops to CIE XYZ: its channels become linear
+    sRGB before PNGs and metrics read them (they were read as R, G, B), so the image
+    equals an ``rgb`` film's."""
+    images = {}
+    for fmt in ("rgb", "xyz"):
+        d = default_scene(**SMALL)
+        d["sensor"]["film"]["pixel_format"] = fmt
+        images[fmt] = harness.compare(mi.load_dict(d), methods=["hard"], spp=2)[1].image
+    assert np.abs(images["xyz"] - images["rgb"]).max() < 1e-3

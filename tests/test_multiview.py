@@ -307,3 +307,26 @@ def test_visibility_counts_the_light_points_as_the_reference_does(shape):
     mae = float(np.abs(got - ref).mean())
     print(f"{shape}: multiview mean {got.mean():.4f}, reference {ref.mean():.4f}, MAE {mae:.2e}")
     assert mae <= 0.01
+
+
+def test_a_sphere_light_with_flipped_normals_lights_nothing_outside_it():
+    """A sphere light with ``flip_normals`` emits inwards only, so a ground outside it
+    gets no light and ``raytraced``'s visibility AOV is 0 there; ``multiview`` counted
+    its far cap's points, whose inward normals face the ground (their light would cross
+    the sphere, which the maps skip as the light's own shape): 0.835."""
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 50,
+                   "to_world": T().look_at(origin=[0, 4, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+        "bulb": {"type": "sphere", "center": [0, 1.5, 0], "radius": 0.4, "flip_normals": True,
+                 "emitter": {"type": "area", "radiance": 10.0}}})
+    vis = {}
+    for method in ("raytraced", "multiview"):
+        img = np.asarray(mi.render(scene, integrator=mi.load_dict(
+            {"type": "shadowmap", "method": method}), spp=4))
+        vis[method] = img[..., -1]
+        assert np.abs(img[..., :3]).max() == 0.0        # no light reaches the ground
+    assert vis["raytraced"].max() == 0.0 and vis["multiview"].max() == 0.0

@@ -113,7 +113,11 @@ class MultiView(LightView):
       point that does not emit towards the receiver counts as shadowed, as the
       reference counts a light sample Mitsuba draws there: lights sampled by area),
       else only the points that emit towards it (a sphere, which Mitsuba samples in the
-      cone it subtends, so that no sample lies on its back).
+      cone it subtends, so that no sample lies on its back);
+    * ``inside_only`` -- ``(centre, radius)`` of a sphere light with ``flip_normals``,
+      which emits inwards only: a receiver outside it sees none of its points (their
+      light would cross the sphere itself, which the maps skip as the light's own
+      shape), else None.
     """
     sub: LightView | None = None
     positions: tuple = ()
@@ -122,6 +126,7 @@ class MultiView(LightView):
     samples: tuple = ()
     radiant: tuple = ()
     count_all: bool = False
+    inside_only: tuple | None = None
 
     projection = "multi-view"
 
@@ -198,6 +203,9 @@ class MultiView(LightView):
         out = mi.Bool(True)
         if self.radiant and not all(self.radiant):
             out = dr.gather(mi.Bool, t["radiant"], k)
+        if self.inside_only is not None:
+            c, r = self.inside_only
+            out &= dr.squared_norm(mi.Point3f(p_world) - mi.Point3f(*c)) < r * r
         if "normal" not in t:
             return out
         n = t["normal"] if len(self.normals) == 1 else dr.gather(mi.Vector3f, t["normal"], k)
@@ -453,10 +461,16 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                 from .perspective import PerspectiveView
                 sub = dataclasses.replace(PerspectiveView(**base, tan_half=tan),
                                           light_from_world=lfw)
+        shape = emitter.get_shape()
+        inside = None
+        if shape.class_name() == "Sphere" and shape.has_flipped_normals():
+            b = shape.bbox()
+            inside = (tuple(float(c) for c in b.center()),
+                      0.5 * float(b.max[0] - b.min[0]))
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
                          normals=_normals(n), samples=samples,
                          radiant=_radiant(emitter, ps),
-                         count_all=emitter.get_shape().class_name() != "Sphere")
+                         count_all=shape.class_name() != "Sphere", inside_only=inside)
     if view.kind in ("point", "spot", "projector"):
         size = float(light_size or 0.0)
         if size <= 0.0:

@@ -517,3 +517,23 @@ def test_a_small_plate_over_a_huge_ground_keeps_its_shadow(how):
         got = _false_lit(_plate_scene(how), virtual)
         print(f"{how} virtual={virtual}: false lit {got:.4f} (apart {apart:.4f})")
         assert got <= apart + 0.0005
+
+
+def test_solidity_per_part_of_a_merged_mesh():
+    """Mitsuba 3.9 merges a closed cube and an open rectangle that share a BSDF into one
+    mesh, which as a whole is open: each connected part is classified on its own (the
+    cube's faces solid, the rectangle's not); with flipped normals nothing is."""
+    from mi_shadowmap.depth_maps import face_solidity
+    T = mi.ScalarTransform4f
+    for flip in (False, True):
+        scene = mi.load_dict({
+            "type": "scene", "A": {"type": "diffuse"},
+            "floor": {"type": "rectangle", "bsdf": {"type": "ref", "id": "A"},
+                      "to_world": T().rotate([1, 0, 0], -90).scale(3), "flip_normals": flip},
+            "box": {"type": "cube", "bsdf": {"type": "ref", "id": "A"}, "flip_normals": flip,
+                    "to_world": T().translate([0, 1, 0]).scale(0.5)}})
+        (mesh,) = scene.shapes()                      # merged
+        assert not shape_is_solid(mesh)
+        solid = face_solidity(mesh)
+        assert len(solid) == 14                       # 12 cube faces, 2 rectangle faces
+        assert solid.sum() == (0 if flip else 12)

@@ -765,9 +765,10 @@ def clear_caches() -> None:
     with one other small scene alive, and none without). Call this (then let the old
     scenes go) when switching between scenes in one process, e.g. between tests.
     """
-    from . import antialias, pages
+    from . import antialias, depth_maps, pages
     from .light_views import base, pose
     base.clear_memos()
+    depth_maps.clear_memos()
     MAP_CACHE.clear()
     pages.PAGE_CACHE.clear()
     _VIRTUAL_CASCADES.clear()

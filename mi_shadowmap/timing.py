@@ -99,10 +99,13 @@ def check_scored_film(scene, sensor: int = 0) -> None:
                          "film's width and height (the CLI's --width, --height) to 7 or more")
 
 
-#: CIE XYZ to linear sRGB (D65), for films with ``pixel_format`` ``xyz``/``xyza``.
-XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
-                        [-0.9692660, 1.8760108, 0.0415560],
-                        [0.0556434, -0.2040259, 1.0572252]], np.float32)
+def xyz_to_srgb_matrix() -> np.ndarray:
+    """Mitsuba's own CIE XYZ to linear sRGB matrix (``mi.xyz_to_srgb`` of the unit
+    vectors), for films with ``pixel_format`` ``xyz``/``xyza``: the exact inverse of the
+    conversion Mitsuba's film applied."""
+    cols = [np.array(mi.xyz_to_srgb(mi.ScalarColor3f(*np.eye(3)[j])), np.float64).ravel()
+            for j in range(3)]
+    return np.stack(cols, axis=1).astype(np.float32)
 
 
 def film_is_xyz(scene, sensor: int = 0) -> bool:
@@ -142,7 +145,7 @@ def split_channels(result, aov_names, xyz: bool = False) -> tuple[np.ndarray, di
     image = arr[..., :n_colour]
     image = np.repeat(image, 3, axis=-1) if n_colour == 1 else image.copy()
     if xyz and n_colour == 3:
-        image = image @ XYZ_TO_SRGB.T
+        image = image @ xyz_to_srgb_matrix().T
     vis = {name[len("vis_"):]: arr[..., n_film + k].copy() for k, name in enumerate(aov_names)}
     return image, vis
 

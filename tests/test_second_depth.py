@@ -537,3 +537,42 @@ def test_solidity_per_part_of_a_merged_mesh():
         solid = face_solidity(mesh)
         assert len(solid) == 14                       # 12 cube faces, 2 rectangle faces
         assert solid.sum() == (0 if flip else 12)
+
+
+def _mesh(parts):
+    """One ``mi.Mesh`` of several ``(vertices, faces)`` parts."""
+    vs, fs, k = [], [], 0
+    for v, f in parts:
+        vs.append(np.asarray(v, np.float32))
+        fs.append(np.asarray(f, np.int64) + k)
+        k += len(v)
+    v, f = np.concatenate(vs), np.concatenate(fs)
+    m = mi.Mesh("parts", len(v), len(f))
+    p = mi.traverse(m)
+    p["vertex_positions"] = mi.Float(v.ravel())
+    p["faces"] = mi.UInt32(f.ravel().astype(np.uint32))
+    p.update()
+    return m
+
+
+def test_solidity_of_parts_hollow_inverted_and_open():
+    """Per connected part: a closed outward box is solid, the same box turned inwards or
+    with a face missing is not; a hollow solid (an outward shell around an inward one,
+    one mesh) is solid as a whole, its inner shell included (classified alone, the inner
+    shell's negative volume made it open to a light inside the cavity)."""
+    from mi_shadowmap.depth_maps import face_solidity
+    from mi_shadowmap.procedural import box
+    v, f, _ = box((0.5, 0.5, 0.5))
+    v = np.asarray(v)
+    inverted = f[:, [0, 2, 1]]
+    mesh = _mesh([(v, f), (v + 3.0, inverted), (v + 6.0, f[2:])])
+    got = face_solidity(mesh)
+    n = len(f)
+    assert got[:n].all() and not got[n:].any()
+    hollow = _mesh([(2.0 * v, f), (v, inverted)])
+    assert face_solidity(hollow).all()
+    import mi_shadowmap
+    from mi_shadowmap import depth_maps
+    assert depth_maps._SOLID_MEMO
+    mi_shadowmap.clear_caches()             # holds no freed mesh's buffers after it
+    assert not depth_maps._SOLID_MEMO

@@ -446,7 +446,7 @@ def opaque_point(value, double: bool = False):
     """``value`` (3 numbers) as an opaque ``mi.Point3f`` (``mi.Point3d`` with
     ``double``): a JIT input of the kernels that read it, not a literal in their code,
     so a light moved through ``params.update()`` compiles no new kernel. The same
-    variable serves every call with the same value (the last 64 values are kept). A
+    variable serves every call with the same value (the last 256 values are kept). A
     JIT ``value`` (a view's per-lane position, e.g. a multi-view's light points) is
     returned as it is, converted."""
     if dr.is_jit_v(type(value)):

@@ -44,7 +44,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..variants import unpolarized
-from .base import LightView, look_along_np, position_np, unit_grid
+from .base import LightView, look_along_np, opaque_point, opaque_scalar, position_np, unit_grid
 
 #: Seed of the light points' jitter: fixed, so the views (and maps) are cacheable.
 SEED = 0
@@ -204,8 +204,9 @@ class MultiView(LightView):
         if self.radiant and not all(self.radiant):
             out = dr.gather(mi.Bool, t["radiant"], k)
         if self.inside_only is not None:
-            c, r = self.inside_only
-            out &= dr.squared_norm(mi.Point3f(p_world) - mi.Point3f(*c)) < r * r
+            c, r = self.inside_only        # opaque: a moved light compiles nothing
+            out &= (dr.squared_norm(mi.Point3f(p_world) - opaque_point(c))
+                    < opaque_scalar(r * r))
         if "normal" not in t:
             return out
         n = t["normal"] if len(self.normals) == 1 else dr.gather(mi.Vector3f, t["normal"], k)

@@ -222,18 +222,13 @@ def shape_is_solid(shape) -> bool:
     if shape.has_flipped_normals():
         return False
     if shape.is_mesh():
-        from .procedural import check_closed
-        v = shape.vertex_positions_buffer().numpy().reshape(-1, 3)
-        f = shape.faces_buffer().numpy().reshape(-1, 3)
-        if len(f) == 0:
-            return False
-        closed, volume = check_closed(v, f)
-        return bool(closed and volume > 0)
+        solid = face_solidity(shape)      # all its parts solid: the whole mesh is
+        return bool(len(solid) and solid.all())
     return shape.class_name() == "Sphere"
 
 
 #: A second depth is raised by this many units in the last place (2^-24, float32's unit
-#: roundoff) of the hit shape's largest coordinate: 16, about five times the largest
+#: roundoff) of the hit triangle's largest coordinate: 16, about five times the largest
 #: rounding measured (see :func:`second_depth_layer`).
 ROUNDING_ULPS = 16.0
 
@@ -241,7 +236,25 @@ ROUNDING_ULPS = 16.0
 _UNLISTED = -1000000
 
 
+#: The last :func:`_face_magnitudes` answer: ``[key, tables]`` (the key holds the meshes'
+#: buffers, so their JIT indices are not reused while it lives).
+_FACE_MEMO: list = [None, None]
+
+
 def _face_magnitudes(scene: mi.Scene) -> tuple:
+    """:func:`_face_tables`, remembered while the scene's shapes and their buffers are
+    the same: a virtual map builds pages every camera move, and the tables of a
+    1M-triangle mesh are 5 MB to upload."""
+    key = tuple((id(sh), sh.vertex_positions_buffer(), sh.faces_buffer())
+                if sh.is_mesh() and hasattr(sh, "faces_buffer") else (id(sh), repr(sh.bbox()))
+                for sh in scene.shapes())
+    idx = tuple(tuple(x.index if hasattr(x, "index") else x for x in k) for k in key)
+    if _FACE_MEMO[0] is None or _FACE_MEMO[0][0] != idx:
+        _FACE_MEMO[:] = [(idx, key), _face_tables(scene)]
+    return _FACE_MEMO[1]
+
+
+def _face_tables(scene: mi.Scene) -> tuple:
     """``(offset, magnitude, solid)`` tables for :func:`second_depth_along`'s hits (the
     rounding of their depth, and whether they bound a solid, :func:`face_solidity`): ``offset[id]`` (``mi.Int32``, by shape registry id) is a mesh's first row in
     ``magnitude`` (its faces' :func:`~mi_shadowmap.light_views.base.triangle_magnitudes`,
@@ -314,8 +327,10 @@ def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> np.ndarray:
 
 
 def clear_memos() -> None:
-    """Forget every mesh's remembered per-face solidity (:func:`face_solidity`)."""
+    """Forget every mesh's remembered per-face solidity (:func:`face_solidity`) and the
+    last face tables (:func:`_face_magnitudes`)."""
     _SOLID_MEMO.clear()
+    _FACE_MEMO[:] = [None, None]
 
 
 def face_solidity(shape) -> np.ndarray:
@@ -357,7 +372,7 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
       same" (sec. 3.3) and renders a two-sided surface's side facing away
       from the light in Pass 1, so the surface itself is stored;
     * every stored depth is raised by its rounding, :data:`ROUNDING_ULPS` units in
-      the last place of the hit shape's largest coordinate (or the ray origin's): a
+      the last place of the hit triangle's largest coordinate (or the ray origin's): a
       surface that is its own second surface (a non-solid, or a solid's inside lit by
       a light within it) is compared with its own depth, and the ray-traced depth of a
       plane 1e4 units wide, seen from a light 4 units above it, is off by up to 3.4

@@ -69,6 +69,18 @@ def converged_reference(scene: mi.Scene, spp: int = 64, seed: int = 0,
     return res
 
 
+def reference_follows_spp(scene, reference="auto") -> bool:
+    """Whether :func:`make_reference` renders ``reference`` at the ``spp`` (and seed) it is
+    given, so that it shares a method's camera samples at that spp: the automatic one
+    under delta lights and a method without its own ``spp``; not the converged one (at
+    ``max(spp, ref_spp)``), a spec with its own ``spp``, or a given result."""
+    if isinstance(reference, MethodResult) or reference == "converged":
+        return False
+    if reference == "auto":
+        return not has_soft_lights(scene)
+    return "spp" not in method_spec(reference)
+
+
 def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_spp: int = 64,
                    ref_shadow_rays: int = 64) -> MethodResult:
     """Render the reference (see the module docstring).

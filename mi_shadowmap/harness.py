@@ -32,6 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from .ground_truth import (converged_reference, has_area_lights, has_soft_lights,  # noqa: F401
+                           reference_follows_spp,
                            make_reference, score)
 from . import map_manager
 from .options import OptionError
@@ -91,13 +92,10 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         iterator = tqdm(specs, desc="methods", unit="method", leave=False)
     ref = make_reference(scene, reference, spp=spp, seed=seed, ref_spp=ref_spp,
                          ref_shadow_rays=ref_shadow_rays)
-    # a reference rendered at compare's spp and seed (the automatic one under delta
-    # lights, or a method without its own spp) shares the methods' camera samples, so
-    # their errors hold no camera noise; a method with its own spp gets one at its spp
+    # a reference that shares the methods' camera samples (reference_follows_spp) holds
+    # no camera noise in their errors; a method with its own spp gets one at its spp
     per_spp = {spp: ref}
-    matched = not isinstance(reference, MethodResult) and reference != "converged" and not (
-        reference == "auto" and has_soft_lights(scene)) and not (
-        reference != "auto" and "spp" in method_spec(reference))
+    matched = reference_follows_spp(scene, reference)
     results, scored = [ref], [(ref, ref)]
     for spec in iterator:
         spec = dict(spec)

@@ -12,6 +12,7 @@ parameters.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 
@@ -197,7 +198,6 @@ screen is Mitsuba's projective integrators' job.
         raised "tried to forward-propagate derivatives across edge ... outside of the
         current dr.isolate_grad() scope"). Their derivatives are computed and dropped:
         about one more map build's work."""
-        import contextlib
         loops = (contextlib.nullcontext() if self._symbolic_backward(scene)
                  else dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False))
         with dr.resume_grad(), loops:

@@ -87,7 +87,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .light_views.base import scene_bounds, shape_bounds
+from .light_views.base import opaque_point, opaque_scalar, scene_bounds, shape_bounds
 
 #: Unit roundoff of float32, 2^-24. Mitsuba's ray tracing (Embree, OptiX and its
 #: own shapes in the AD variants) runs in float32.
@@ -207,7 +207,8 @@ def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
         bounds = scene_bounds(scene)
         if bounds is not None:
             lo, hi = bounds
-            centre = mi.Point3f(*[float(c) for c in 0.5 * (lo + hi)])
-            radius = 0.5 * float(np.linalg.norm(hi - lo))
+            # opaque: moving geometry changes them, and must compile nothing
+            centre = opaque_point(0.5 * (lo + hi))
+            radius = opaque_scalar(0.5 * float(np.linalg.norm(hi - lo)))
             maxt = dr.maximum(maxt, 2.0 * (dr.norm(p_d - centre) + radius))
     return mi.Ray3f(o, d, maxt, si.time, si.wavelengths)

@@ -57,7 +57,7 @@ Deviations from the paper, and why:
   depth's rounding also grows with the plane's own coordinates (a ground 1e4
   wide under a light 4 units above it: up to 2.9e-4 at depths of 4-11), so
   the layer stores every depth raised by 16 units in the last place of the hit
-  shape's largest coordinate (:data:`~mi_shadowmap.depth_maps.ROUNDING_ULPS`;
+  triangle's largest coordinate (:data:`~mi_shadowmap.depth_maps.ROUNDING_ULPS`;
   such a ground was 27 % shadowed by itself, 39 % at 1e6 wide, 0.01 % now; the
   walls of a sphere room lit from inside, whose back faces are their own second
   surface, 41 %).
@@ -79,8 +79,8 @@ Deviations from the paper, and why:
   them, ``needs_curvature``): 0 on planes and where the surface falls away from the
   light (a convex receiver's virtual samples lie in front of it anyway), so those
   keep the paper's exact compare (an unsigned allowance let thin plates over a
-  sphere leak light: 0.8 against 0.4 % at a 64^2 map). Measured: a point light inside a sphere room
-  shadowed 39-46 % of the pixels, 0.05 % now. A flat-shaded tessellation has no
+  sphere leak light: 0.8 against 0.4 % at a 64^2 map). Measured: a point light
+  inside a sphere room shadowed 39-46 % of the pixels, 0.05 % now. A flat-shaded tessellation has no
   curvature to read (0 between its facets): a light inside a flat-faced
   icosphere room still falsely shadows 1.8 % (8.6 % with full maps), as do the
   corners of a box room lit from inside (0.4 %), where one wall's plane runs

@@ -334,11 +334,16 @@ def _convert(prop: Prop, value: Any) -> Any:
         if len(parts) != 2:
             raise OptionError(f"{where} must be two numbers 'a, b' with a <= b, got {value!r}")
         try:
+            if any(isinstance(x, bool) or not isinstance(x, (int, float, str)) for x in parts):
+                raise TypeError
             a, b = (float(x) for x in parts)
         except (TypeError, ValueError):
             raise OptionError(f"{where} must be two numbers 'a, b' with a <= b, "
                               f"got {value!r}") from None
         for x in (a, b):
+            if not math.isfinite(x):
+                raise OptionError(f"{where} must be two finite numbers 'a, b' with a <= b, "
+                                  f"got {value!r}")
             _check_range(prop, x)
         if a > b:
             raise OptionError(f"{where}: first value {a} must be <= second value {b}")

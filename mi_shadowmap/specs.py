@@ -242,6 +242,11 @@ def check_shared_params(specs: list[dict], params: dict) -> None:
 
 
 def to_mitsuba(props: dict) -> dict:
-    """Property values Mitsuba's dict loader accepts ('pair' values as "a, b" strings)."""
+    """Property values Mitsuba's dict loader accepts ('pair' values as "a, b" strings).
+
+    A value of None (a Python caller's "automatic", see
+    :func:`~mi_shadowmap.options.parse_options`) is left out: Mitsuba 3.9's
+    ``load_dict`` crashes the interpreter on a None value (segmentation fault, its
+    own ``direct`` integrator too)."""
     return {k: (", ".join(repr(float(x)) for x in v) if isinstance(v, (tuple, list)) else v)
-            for k, v in props.items()}
+            for k, v in props.items() if v is not None}

@@ -94,6 +94,16 @@ def test_per_method_parameters():
     assert res[1].metrics["vis_misclassified"] >= res[2].metrics["vis_misclassified"]
 
 
+def test_none_means_automatic_in_specs_and_shared_keywords():
+    """None (a Python caller's "automatic") reached Mitsuba's dict loader, which crashes
+    the interpreter on a None value (a segmentation fault, no message)."""
+    scene = mi.load_dict(default_scene(**SMALL))
+    res = harness.compare(scene, methods=["hard", {"method": "hard", "resolution": None}],
+                          spp=1, bias=None)
+    assert res[1].texels == res[2].texels
+    assert np.array_equal(res[1].vis_stack(), res[2].vis_stack())
+
+
 def test_a_methods_own_spp_names_it_and_gets_a_reference_at_that_spp():
     """``hard`` at compare's 8 spp and at its own 4: the second is named with its spp
     (both were named ``hard``, and the second's files overwrote the first's), and it is

@@ -42,6 +42,10 @@ def test_integer_accepted_for_float():
     ({"method": "raytraced", "slope_bias": 2.0}, "slope_bias"),
     ({"method": "unshadowed", "normal_bias": 1.0}, "normal_bias"),
     ({"method": "pcf", "num_samples": 4, "min_samples": 8}, "min_samples.*num_samples"),
+    ({"method": "pcf", "bias_range": "nan, nan"}, "bias_range.*finite"),
+    ({"method": "pcf", "bias_range": "0, nan"}, "bias_range.*finite"),
+    ({"method": "pcf", "bias_range": "0, inf"}, "bias_range.*finite"),
+    ({"method": "pcf", "bias_range": "0, 1e400"}, "bias_range.*finite"),
 ])
 def test_bad_values_name_the_property(props, needle):
     with pytest.raises(OptionError, match=needle):
@@ -77,6 +81,14 @@ def test_none_only_where_a_default_is_automatic():
         with pytest.raises(OptionError, match=f"'{name}' has no automatic value"):
             parse_options({"method": "raytraced", name: None} if name != "method"
                           else {name: None})
+
+
+def test_a_pair_takes_numbers_only():
+    assert parse_options({"method": "pcf", "bias_range": "0, 0.5"}).bias_range == (0.0, 0.5)
+    assert parse_options({"method": "pcf", "bias_range": (0, 1)}).bias_range == (0.0, 1.0)
+    for bad in [(True, True), (0.0, float("inf")), (None, 1.0), ([0], 1)]:
+        with pytest.raises(OptionError, match="bias_range"):
+            parse_options({"method": "pcf", "bias_range": bad})
 
 
 def test_resolution_is_accepted_by_every_method():

@@ -24,14 +24,16 @@ from . import environment as env_mod
 from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
-from .light_views import (aims_by_film, emitter_kind, emitter_label, is_pinhole,
-                          make_light_view, pinhole_footprint, pixel_step)
+from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys, emitter_kind,
+                          emitter_label, is_pinhole, make_light_view, pinhole_footprint,
+                          pixel_step)
 from .light_views.base import scene_bounds
 from .methods import MethodError
 from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
                        variant_class)
 from .pages import VirtualShadowMap, camera_frame
-from .map_manager import MAP_CACHE, MapCache, MapStats, prepare_maps  # noqa: F401  (re-exported)
+from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
+                          hold, prepare_maps)
 
 
 class ShadowMapIntegratorMixin:
@@ -114,6 +116,7 @@ screen is Mitsuba's projective integrators' job.
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
         self._views_memo = None     # (scene, scene state, views, labels, unshadowed)
+        self._value_watch = None    # [scene, watches, token checked, values held]
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale = dr.opaque(mi.Float, 1.0)
         self._sensor = None
@@ -233,6 +236,7 @@ screen is Mitsuba's projective integrators' job.
         state = MAP_CACHE.scene_state(scene) if opts.uses_map and opts.cache_maps else None
         memo = self._views_memo
         if state is not None and memo is not None and memo[0] is scene and memo[1] == state:
+            self._check_emitter_values(scene)
             self._emitter_labels, self._unshadowed = list(memo[3]), list(memo[4])
             return list(memo[2])
         views = self.check_scene(scene)
@@ -253,6 +257,7 @@ screen is Mitsuba's projective integrators' job.
         views are built once per render.
         """
         labels, views, unshadowed = [], [], []
+        self._check_emitter_values(scene)
         for i, e in enumerate(scene.emitters()):
             is_env = emitter_kind(e) == "environment"
             if is_env and self.opts.environment == "error":
@@ -274,6 +279,33 @@ screen is Mitsuba's projective integrators' job.
         self._emitter_labels = unique_labels(labels)
         self._unshadowed = unshadowed
         return views
+
+    def _check_emitter_values(self, scene) -> None:
+        """:func:`~mi_shadowmap.light_views.check_emitter_values` of every emitter, when
+        a value changed since the last check: each render reads the values' JIT variable
+        indices (:class:`~mi_shadowmap.map_manager.ParamWatch`; new references to the
+        values are held (:func:`~mi_shadowmap.map_manager.hold`), so an index can be
+        neither recycled nor written in place), and checks them on the host when they
+        differ.
+        Emitted values are not part of the map cache's scene state (maps do not depend
+        on them), so a ``params.update()`` of an intensity alone reaches only this."""
+        memo = self._value_watch
+        if memo is None or memo[0] is not scene:
+            watches = []
+            for i, e in enumerate(scene.emitters()):
+                params = mi.traverse(e)
+                watches.append((e, emitter_label(e, i),
+                                ParamWatch(params, emitted_value_keys(params))))
+            memo = self._value_watch = [scene, watches, None, None]
+        reads = [watch.read() for _, _, watch in memo[1]]
+        token = tuple(r[0] for r in reads)
+        if token == memo[2]:
+            return
+        for (e, label, watch), (_, values) in zip(memo[1], reads):
+            check_emitter_values(e, label, dict(zip(watch.names, values)))
+        memo[2] = token
+        memo[3] = [[hold(v) if j else v for v, j in zip(values, watch.jit)]
+                   for (_, _, watch), (_, values) in zip(memo[1], reads)]
 
     def aov_names(self):
         """``vis_<emitter>`` per emitter of the last scene rendered (none before one;

@@ -419,3 +419,25 @@ def test_the_aov_under_a_black_sky_with_a_sun_is_one_where_nothing_occludes(tmp_
         ground = img[20:, :, 3]
         print(props, f"ground AOV {ground.mean():.4f}")
         assert ground.mean() >= 0.99, props
+
+
+@pytest.mark.parametrize("virtual", [True, False])
+def test_a_sky_that_emits_nothing_has_visibility_zero_as_raytraced(virtual):
+    """An environment of zero radiance lights nothing: its visibility AOV is 0, as
+    ``raytraced``'s and the converged reference's are (and a delta light's of zero
+    intensity). Map methods gave the geometric visibility (shares by solid angle):
+    84 % of the pixels "false lit" against the reference."""
+    from mi_shadowmap import harness
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at([0, 4, 4], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+        "ground": {"type": "rectangle",
+                   "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3)},
+        "sky": {"type": "constant", "radiance": 0.0}})
+    res = harness.compare(scene, methods=[{"method": "hard", "virtual": virtual},
+                                          "raytraced"], spp=1, repeats=1)
+    for r in res:
+        assert np.all(r.vis_stack() == 0.0), r.name
+        assert r.metrics["vis_misclassified"] == 0.0

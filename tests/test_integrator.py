@@ -121,7 +121,8 @@ def test_unsupported_emitter_is_named():
     scene = mi.load_dict(d)
     with pytest.raises(RuntimeError) as e:
         mi.render(scene, integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
-    assert re.search("'proj'.*not supported.*point, spot, directional, area, projector",
+    assert re.search("'proj'.*not supported.*point, spot, directional, area, projector, "
+                     "and envmap and constant",
                      root_message(e.value))
     with pytest.raises(ValueError, match="'proj'.*not supported"):   # direct check, unwrapped
         mi.load_dict({"type": "shadowmap"}).check_scene(scene)
@@ -143,6 +144,71 @@ def test_a_degenerate_light_is_named(light, match, virtual):
     with pytest.raises(RuntimeError) as e:
         mi.render(scene, integrator=integ, spp=1)
     assert re.search(match, root_message(e.value)), root_message(e.value)
+
+
+def _env_with_nan():
+    data = np.ones((8, 16, 3), np.float32)
+    data[3, 4, 1] = np.nan
+    return {"type": "envmap", "bitmap": mi.Bitmap(data)}
+
+
+@pytest.mark.parametrize("light, match", [
+    ({"type": "point", "position": [0, 3, 0], "intensity": float("nan")},
+     "'bad'.*'intensity.value'.*not finite"),
+    ({"type": "point", "position": [0, 3, 0], "intensity": float("inf")},
+     "'bad'.*'intensity.value'.*not finite"),
+    ({"type": "spot", "intensity": -5.0}, "'bad'.*'intensity.value'.*negative"),
+    ({"type": "constant", "radiance": float("nan")}, "'bad'.*'radiance.value'.*not finite"),
+    ("env_nan", "'bad'.*'data': 1 of its .* not finite"),
+])
+@pytest.mark.parametrize("method", ["hard", "raytraced"])
+def test_an_emitted_value_that_is_not_finite_or_negative_is_named(light, match, method):
+    """Mitsuba loads them: a NaN or infinite intensity made NaN and infinite pixels, a
+    NaN texel of an environment failed in numpy ("SVD did not converge") and a negative
+    intensity rendered black in every method."""
+    d = default_scene(width=16, height=16)
+    d["bad"] = _env_with_nan() if light == "env_nan" else light
+    scene = mi.load_dict(d)
+    with pytest.raises(RuntimeError) as e:
+        mi.render(scene, integrator=mi.load_dict({"type": "shadowmap", "method": method}),
+                  spp=1)
+    assert re.search(match, root_message(e.value)), root_message(e.value)
+
+
+@pytest.mark.parametrize("method", ["hard", "raytraced"])
+def test_an_emitted_value_made_bad_by_an_update_is_named(method):
+    """Through ``params.update()`` after a render: Mitsuba writes a uniform intensity in
+    place (its JIT variables keep their indices unless a second reference is held)."""
+    d = default_scene(width=16, height=16)
+    scene = mi.load_dict(d)
+    integ = mi.load_dict({"type": "shadowmap", "method": method})
+    mi.render(scene, integrator=integ, spp=1)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("intensity.value"))
+    for bad in (float("nan"), -1.0):
+        params[key] = mi.Color3f(bad)
+        params.update()
+        with pytest.raises(RuntimeError) as e:
+            mi.render(scene, integrator=integ, spp=1)
+        assert re.search(f"'{key.split('.')[0]}'.*'intensity.value'", root_message(e.value))
+    params[key] = mi.Color3f(20.0)
+    params.update()
+    rgb, aovs = render_np(scene, integ, spp=1)
+    assert np.isfinite(rgb).all() and rgb.max() > 0
+
+
+def test_a_spot_with_a_zero_to_world_is_named_without_numpy_warnings():
+    d = default_scene(width=16, height=16)
+    scene = mi.load_dict(d)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world") and "spot" in k)
+    params[key] = mi.Transform4f().scale(0.0)
+    params.update()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(RuntimeError) as e:
+            mi.render(scene, integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
+    assert re.search("no valid frame", root_message(e.value)), root_message(e.value)
 
 
 def test_scalar_variant_is_refused():

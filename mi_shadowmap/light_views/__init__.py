@@ -47,7 +47,8 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "footprint_ratio", "pixel_centres", "pixel_ray_differentials", "pixel_step",
            "is_pinhole", "aims_by_film", "pinhole", "differential_origins", "pinhole_frame",
            "pinhole_footprint",
-           "UnsupportedEmitterError", "SUPPORTED_EMITTERS"]
+           "UnsupportedEmitterError", "SUPPORTED_EMITTERS", "check_emitter_values",
+           "emitted_value_keys"]
 
 SUPPORTED_EMITTERS = ("point", "spot", "directional", "area", "projector")
 _CLASS_TO_KIND = {
@@ -104,9 +105,53 @@ def make_light_view(emitter, scene, index: int) -> LightView:
         return view
     raise UnsupportedEmitterError(
         f"shadowmap: emitter '{label}' ({emitter_class(emitter)}) is not supported; "
-        f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}"
+        f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}, and envmap and "
+        "constant (environment='shadowed' or 'unshadowed')"
         + ("; for environment/constant emitters set environment='unshadowed' to light "
            "them without shadows" if kind == "environment" else ""))
+
+
+#: The parameters of an emitter that hold its emitted values (Mitsuba 3.9's names:
+#: ``intensity.value``, ``irradiance.d65.values``, ``radiance.data``, an envmap's
+#: ``data`` and ``scale``, a spot's ``texture...``); ``*.range`` (a spectrum's wavelengths)
+#: and ``*.to_uv`` are not values.
+_VALUE_ROOTS = ("intensity", "irradiance", "radiance", "texture", "data", "scale")
+
+
+def emitted_value_keys(params) -> list:
+    """The keys of ``mi.traverse(emitter)`` that hold its emitted values."""
+    return [k for k in params.keys() if k.split(".")[0] in _VALUE_ROOTS
+            and k.split(".")[-1] not in ("range", "to_uv")]
+
+
+def check_emitter_values(emitter, label: str, values: dict | None = None) -> None:
+    """Raise naming the emitter and the parameter when an emitted value is not finite or
+    is negative. Mitsuba loads both: a NaN or infinite intensity made NaN and infinite
+    pixels, a NaN texel of an environment map failed deep in its median cut (numpy's
+    "SVD did not converge"), and a negative intensity rendered black (Mitsuba's
+    ``direct`` renders negative light; checked in RGB and monochrome variants, whose
+    values are radiances, not a spectral variant's upsampling coefficients).
+    ``values``: ``{key: value}`` of
+    :func:`emitted_value_keys` (default: read from the emitter). Reads evaluated values
+    on the host (no kernel)."""
+    if values is None:
+        params = mi.traverse(emitter)
+        values = {k: params[k] for k in emitted_value_keys(params)}
+    for key, value in values.items():
+        try:
+            a = np.asarray(value.array if hasattr(value, "array") else value, np.float32)
+        except (TypeError, ValueError):
+            continue
+        bad = int(np.count_nonzero(~np.isfinite(a)))
+        # spectral variants store RGB textures as spectral upsampling coefficients,
+        # negative ones included: only the RGB and monochrome values are radiances
+        neg = 0 if mi.is_spectral else int(np.count_nonzero(a < 0))
+        if bad or neg:
+            what = (f"{bad} of its {a.size} values are not finite (NaN or inf)" if bad
+                    else f"{neg} of its {a.size} values are negative (min {float(a.min()):g})")
+            raise UnsupportedEmitterError(
+                f"shadowmap: emitter '{label}' ({emitter_class(emitter)}): parameter "
+                f"'{key}': {what}; emitted values must be finite and >= 0")
 
 
 def _check_frame(view, emitter, kind: str) -> None:

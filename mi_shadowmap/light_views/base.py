@@ -257,6 +257,8 @@ def emitter_frame(T, origin) -> mi.ScalarTransform4f:
     z = np.array([float(c) for c in scalar3(T @ mi.Vector3f(0, 0, 1))])
     x = np.array([float(c) for c in scalar3(T @ mi.Vector3f(1, 0, 0))])
     y = np.array([float(c) for c in scalar3(T @ mi.Vector3f(0, 1, 0))])
+    if not np.linalg.norm(z) > 0:   # a zero or NaN direction: a NaN frame, which the
+        return mi.ScalarTransform4f(np.full((4, 4), np.nan))  # caller refuses by name
     z /= np.linalg.norm(z)
     x -= (x @ z) * z
     if np.linalg.norm(x) < 1e-9:   # degenerate to_world: any x orthogonal to z

@@ -428,8 +428,20 @@ def main(argv=None) -> int:
     except Exception as e:  # one line, no traceback, unless --debug
         if debug:
             raise
+        _close_progress_bars()
         print(f"mi-shadowmap: error: {one_line(e)}", file=sys.stderr)
         return 2
+
+
+def _close_progress_bars() -> None:
+    """End the progress bars an error interrupted, so that the error's line starts a
+    line of its own (it was appended to the unfinished bar)."""
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()
 
 
 def set_variant(name: str) -> None:

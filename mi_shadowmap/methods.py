@@ -31,6 +31,9 @@ it) and ``active`` the lanes to evaluate.
 from __future__ import annotations
 
 import collections.abc
+import functools
+import inspect
+import math
 import re
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -44,6 +47,10 @@ class OptionError(ValueError):
     """A property of the ``shadowmap`` integrator was rejected (re-exported by
     :mod:`~mi_shadowmap.options`, which raises it for every bad property)."""
 
+
+#: Names no method property may take: Mitsuba's plugin ``type``, the render's ``spp``
+#: (a method spec's ``spp`` is the render's, :data:`~mi_shadowmap.specs.RENDER_KEYS`).
+RESERVED_PROPERTY_NAMES = frozenset({"type", "id", "spp"})
 
 #: Names of the integrator's shared properties, which a method cannot redeclare
 #: (filled by :mod:`~mi_shadowmap.options`, the module that declares them).
@@ -75,6 +82,19 @@ class Prop:
         if not re.fullmatch(r"[a-z][a-z0-9_]*", self.name):
             raise MethodError(f"property name {self.name!r} must be snake_case "
                               "(lower-case letters, digits and '_')")
+        if self.name in RESERVED_PROPERTY_NAMES:
+            raise MethodError(f"property '{self.name}': the name is reserved ('type' is "
+                              "the plugin's, 'spp' the render's in specs such as "
+                              "'pcf:spp=4'); choose another")
+        for bound in ("lo", "hi"):
+            v = getattr(self, bound)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
+                                  or not math.isfinite(v)):
+                raise MethodError(f"property '{self.name}': {bound} must be a finite number "
+                                  f"or None, got {v!r}")
+        if self.lo is not None and self.hi is not None and self.lo > self.hi:
+            raise MethodError(f"property '{self.name}': lo = {self.lo!r} > hi = {self.hi!r}: "
+                              "no value could be set")
 
     def describe_range(self) -> str:
         if self.choices is not None:
@@ -137,10 +157,14 @@ class Method:
       layers are among :data:`VIRTUAL_LAYERS` (with ``layers_for``: the layers it
       returns for options with ``virtual`` true, checked when options are parsed): it
       can read virtual maps (``virtual=true``, :mod:`mi_shadowmap.pages`);
-    * ``virtual_margin`` -- ``fn(opts) -> texels``: how far from the receiver's texel
-      the lookup's taps reach (its kernel's half-width), so that the mark pass of
-      virtual maps builds the pages they read (default 2: a nearest-texel lookup,
-      its normal offset and the camera samples' spread within a pixel);
+    * ``virtual_margin`` -- ``fn(opts) -> texels`` or ``fn(opts, view) -> texels``
+      (``view``: the light's :class:`~mi_shadowmap.light_views.base.LightView`): how far
+      from the receiver's texel the lookup's taps reach (its kernel's half-width), so
+      that the mark pass of virtual maps builds the pages they read (default 2: a
+      nearest-texel lookup, its normal offset and the camera samples' spread within a
+      pixel; capped at ``page_size / 2``: taps beyond the 2 x 2 pages a lookup binds
+      read their own pages where neighbouring points had them built, else the coarsest
+      level);
     * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
       slot from the page table (cheapest for a lookup that reads a texel or two, as
       ``hard`` does) instead of the 2 x 2 pages' four slots once per lookup (default:
@@ -219,7 +243,8 @@ def _check_record(m: Method) -> None:
         raise MethodError(f"register_method('{m.name}'): layers must be a dict "
                           "{name: builder(scene, smap) -> mi.Float}")
     if not isinstance(m.layer_cost, dict) or set(m.layer_cost) - set(m.layers) or not all(
-            isinstance(c, (int, float)) and c >= 0 for c in m.layer_cost.values()):
+            isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c)
+            and c >= 0 for c in m.layer_cost.values()):
         raise MethodError(f"register_method('{m.name}'): layer_cost must map names of its "
                           "layers to numbers >= 0 (float32 arrays of a face's size)")
     if m.virtual and m.layers_for is None and set(m.layers) - set(VIRTUAL_LAYERS):
@@ -232,19 +257,34 @@ def _check_record(m: Method) -> None:
         raise MethodError(f"register_method('{m.name}'): whole_light=True lookups read "
                           "full maps only (their lookup averages the whole light over its "
                           "views itself); set virtual=False")
-    if not isinstance(m.virtual_per_tap, bool):
-        raise MethodError(f"register_method('{m.name}'): virtual_per_tap must be True or "
-                          f"False, got {m.virtual_per_tap!r}")
+    for flag in ("virtual_per_tap", "virtual", "needs_footprint", "needs_curvature",
+                 "uses_map", "whole_light"):
+        if not isinstance(getattr(m, flag), bool):
+            raise MethodError(f"register_method('{m.name}'): {flag} must be True or "
+                              f"False, got {getattr(m, flag)!r}")
+    for name, sig in (("finalize", "fn(values, given) -> None"),
+                      ("layers_for", "fn(opts) -> layer names")):
+        if getattr(m, name) is not None and not callable(getattr(m, name)):
+            raise MethodError(f"register_method('{m.name}'): {name} must be callable "
+                              f"{sig} or None, got {getattr(m, name)!r}")
     if m.virtual_margin is not None and not callable(m.virtual_margin):
         raise MethodError(f"register_method('{m.name}'): virtual_margin must be callable "
                           "fn(opts) -> texels")
     if m.view_for is not None and not callable(m.view_for):
         raise MethodError(f"register_method('{m.name}'): view_for must be callable "
                           "fn(view, emitter, scene, opts) -> LightView | None")
-    bad = sorted(set(m.bias_defaults) - set(_BIAS_KEYS))
+    if not isinstance(m.bias_defaults, dict):
+        raise MethodError(f"register_method('{m.name}'): bias_defaults must be a dict "
+                          f"{{name: texels}} with names among {', '.join(_BIAS_KEYS)}")
+    bad = sorted(map(str, set(m.bias_defaults) - set(_BIAS_KEYS)))
     if bad:
         raise MethodError(f"register_method('{m.name}'): bias_defaults keys must be among "
                           f"{', '.join(_BIAS_KEYS)}, got {', '.join(bad)}")
+    for k, v in m.bias_defaults.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or v < 0:
+            raise MethodError(f"register_method('{m.name}'): bias_defaults['{k}'] must be a "
+                              f"finite number >= 0 (texels), got {v!r}")
 
 
 def add(method: Method, replace: bool = False) -> Method:
@@ -260,6 +300,50 @@ def add(method: Method, replace: bool = False) -> Method:
                           "cannot be replaced; choose another name")
     _REGISTRY[method.name] = method
     return method
+
+
+def virtual_margin_of(record, opts, view) -> float:
+    """The mark pass's margin (texels) of ``record``'s lookups on ``view``'s map: its
+    ``virtual_margin`` called with ``(opts, view)`` when it takes two arguments, else
+    ``(opts)``; 2 without one."""
+    fn = record.virtual_margin
+    if fn is None:
+        return 2.0
+    try:
+        two = len(inspect.signature(fn).parameters) >= 2
+    except (TypeError, ValueError):
+        two = False
+    return float(fn(opts, view) if two else fn(opts))
+
+
+def _checked_lookup(name: str, lookup: Callable, whole_light) -> Callable:
+    """``lookup`` raising a :class:`MethodError` naming the method when it returns
+    something other than one visibility per lane (an ``mi.Float`` or a number; a pair
+    of them for ``whole_light``): a ``mi.Vector3f`` failed inside Dr.Jit with "Could
+    not construct from sequence", naming nothing."""
+    if not callable(lookup):
+        return lookup              # refused by name in _check_record
+
+    def ok(v) -> bool:
+        import drjit as dr
+        if isinstance(v, bool):
+            return False
+        return isinstance(v, (int, float)) or (dr.is_array_v(v) and dr.depth_v(v) == 1
+                                               and not dr.is_mask_v(v))
+
+    @functools.wraps(lookup)
+    def checked(*args, **kwargs):
+        out = lookup(*args, **kwargs)
+        values = out if whole_light is True and isinstance(out, tuple) and len(out) == 2 \
+            else (out,)
+        if not all(ok(v) for v in values):
+            what = ", ".join(type(v).__name__ for v in values)
+            raise MethodError(
+                f"shadowmap: method '{name}': its lookup returned {what}; a lookup returns "
+                + ("a pair (visible, above) of mi.Float" if whole_light is True
+                   else "one visibility per lane, an mi.Float in [0, 1]"))
+        return out
+    return checked
 
 
 def register_method(name: str, lookup: Callable, properties=None, layers=None,
@@ -287,6 +371,14 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     record or a name already taken (``replace=True`` replaces a user method).
     """
     from .options import OptionError as _OptionError, _convert
+    for arg, value in (("layers", layers), ("layer_cost", layer_cost),
+                       ("bias_defaults", bias_defaults)):
+        if value is not None and not isinstance(value, dict):
+            raise MethodError(f"register_method: method '{name}': {arg} must be a dict or "
+                              f"None, got {type(value).__name__} {value!r}")
+    if properties is not None and not isinstance(properties, (list, tuple)):
+        raise MethodError(f"register_method: method '{name}': properties must be a list of "
+                          f"Prop records, got {type(properties).__name__}")
     for prop in properties or ():
         if isinstance(prop, Prop) and prop.default is not None:
             try:       # the default must be a value the property accepts
@@ -295,14 +387,15 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                 raise MethodError(f"register_method: method '{name}': the default "
                                   f"{prop.default!r} of property '{prop.name}' is not one of "
                                   f"its own valid values ({e})") from None
-    record = Method(name=name, lookup=lookup, summary=summary,
+    record = Method(name=name, lookup=_checked_lookup(name, lookup, whole_light),
+                    summary=summary,
                     properties=tuple(properties or ()), layers=dict(layers or {}),
                     layers_for=layers_for, layer_cost=dict(layer_cost or {}),
-                    needs_footprint=bool(needs_footprint),
-                    needs_curvature=bool(needs_curvature),
-                    uses_map=bool(uses_map), bias_defaults=dict(bias_defaults or {}),
-                    finalize=finalize, view_for=view_for, whole_light=bool(whole_light),
-                    virtual=bool(virtual), virtual_margin=virtual_margin,
+                    needs_footprint=needs_footprint,
+                    needs_curvature=needs_curvature,
+                    uses_map=uses_map, bias_defaults=dict(bias_defaults or {}),
+                    finalize=finalize, view_for=view_for, whole_light=whole_light,
+                    virtual=virtual, virtual_margin=virtual_margin,
                     virtual_per_tap=virtual_per_tap)
     return add(record, replace=replace)
 

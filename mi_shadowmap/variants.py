@@ -29,7 +29,7 @@ def check_variant(variant: str | None = None) -> str:
     Scalar variants run a Python integrator once per ray (see :func:`unpolarized` for
     the polarized ones).
     """
-    variant = variant or mi.variant()
+    variant = mi.variant() if variant is None else variant   # '': named, not the current
     if variant in SUPPORTED_VARIANTS:
         return variant
     if variant is None:

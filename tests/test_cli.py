@@ -236,3 +236,19 @@ def test_reused_out_dir_warns_about_an_earlier_runs_images(tmp_path, capsys):
     with pytest.warns(UserWarning, match=r"did not write.*hard\.exr"):
         code, _, _ = run(base + ["--methods", "pcf"], capsys)
     assert code == 0 and (out / "hard.exr").exists() and (out / "pcf.exr").exists()
+
+
+def test_an_error_during_rendering_starts_its_own_line(tmp_path, capsys):
+    """An unsupported emitter found while the methods' progress bar runs: the error's
+    line was appended to the unfinished bar."""
+    scene = tmp_path / "darea.xml"
+    scene.write_text("""<scene version="3.0.0">
+      <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="16"/>
+        <integer name="height" value="16"/></film></sensor>
+      <shape type="rectangle"><emitter type="directionalarea"/></shape>
+      <shape type="sphere"/></scene>""")
+    code, out, err = run(["compare", scene, "--spp", "1", "--methods", "hard",
+                          "--out", tmp_path / "out"], capsys)
+    assert code == 2
+    line = next(s for s in err.splitlines() if "error:" in s)
+    assert line.startswith("mi-shadowmap: error:") and "not supported" in line, err

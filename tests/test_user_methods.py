@@ -239,6 +239,58 @@ def test_a_lookup_outside_zero_one_is_an_error_naming_the_method(value):
         mi_shadowmap.unregister_method(name)
 
 
+def test_a_lookup_returning_another_type_is_an_error_naming_the_method():
+    """A lookup returning a ``mi.Vector3f`` failed inside Dr.Jit ("Could not construct
+    from sequence"), naming nothing; a plain number is accepted."""
+    name = "colour_visibility"
+    mi_shadowmap.register_method(name, lambda smap, lk, opts, active: mi.Vector3f(1.0),
+                                 virtual=True)
+    try:
+        scene = mi.load_dict(default_scene(**SMALL))
+        for virtual in (True, False):
+            with pytest.raises(methods.MethodError,
+                               match=rf"'{name}': its lookup returned Vector3f"):
+                harness.render(scene, {"method": name, "virtual": virtual}, spp=1)
+        mi_shadowmap.register_method(name, lambda smap, lk, opts, active: 0.5, replace=True)
+        _, img = harness.render(scene, name, spp=1)
+        assert img[..., 3].max() == pytest.approx(0.5)
+    finally:
+        mi_shadowmap.unregister_method(name)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"virtual": "no"}, "virtual must be True or False"),
+    ({"uses_map": "false"}, "uses_map must be True or False"),
+    ({"finalize": 5}, "finalize must be callable"),
+    ({"layers_for": 5}, "layers_for must be callable"),
+    ({"bias_defaults": {"slope_bias": "x"}}, r"bias_defaults\['slope_bias'\] must be a finite"),
+    ({"bias_defaults": {"normal_bias": float("nan")}}, "normal_bias.*finite"),
+    ({"bias_defaults": {"slope_bias": -1.0}}, "slope_bias.*>= 0"),
+    ({"bias_defaults": [1]}, "bias_defaults must be a dict"),
+    ({"layers": ["a"]}, "layers must be a dict"),
+    ({"layers": {"a": lambda scene, smap: None}, "layer_cost": {"a": float("inf")}},
+     "layer_cost must map"),
+])
+def test_a_bad_record_is_refused_when_registered(kwargs, match):
+    """Each was accepted and failed at render (an int called, a string multiplied inside
+    a kernel, an overflow), rendered black (NaN biases), or was read as True ("no")."""
+    with pytest.raises(methods.MethodError, match=match):
+        mi_shadowmap.register_method("bad_record", lambda smap, lk, opts, active: 1.0,
+                                     **kwargs)
+    assert "bad_record" not in [m.name for m in methods.records()]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"name": "type"}, "reserved"),
+    ({"name": "spp"}, "reserved"),
+    ({"name": "taps", "lo": 5, "hi": 1}, "no value could be set"),
+    ({"name": "taps", "lo": float("nan")}, "lo must be a finite number"),
+])
+def test_a_property_that_could_never_be_set_is_refused(kwargs, match):
+    with pytest.raises(methods.MethodError, match=match):
+        mi_shadowmap.Prop(kind="float", default=None, doc="Taps.", **kwargs)
+
+
 @pytest.mark.parametrize("prop", [
     mi_shadowmap.Prop("taps", "int", 100, "Taps.", lo=1, hi=10),
     mi_shadowmap.Prop("taps", "int", "abc", "Taps."),

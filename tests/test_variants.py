@@ -466,3 +466,12 @@ def test_nested_in_stokes_warns_only_where_the_visibility_is_left_out():
         assert ("vis_spot" in nested.aov_names()) == rendered_before
         if rendered_before:
             np.testing.assert_allclose(img[..., -1], plain[..., -1], atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["", "llvm_foo"])
+def test_a_variant_name_that_is_not_one_is_named(name):
+    """An empty name was taken for the current variant, then failed in Mitsuba with
+    "cannot be set on this machine"."""
+    from mi_shadowmap.variants import check_variant
+    with pytest.raises(UnsupportedVariantError, match=f"'{name}' is not supported.*llvm_ad_rgb"):
+        check_variant(name)

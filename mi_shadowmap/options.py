@@ -92,9 +92,10 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "virtual=true is refused there). virtual=true with "
          "cascades > 1: one virtual face per cascade."),
     Prop("page_size", "int", 32,
-         "Virtual maps: texels per side of a page, a power of two. Filter kernels up to "
-         "page_size / 2 texels wide read the lookup's own pages; wider taps read the "
-         "coarsest level. Pages are ray-cast in tiles of max(8, page_size / 4) texels "
+         "Virtual maps: texels per side of a page, a power of two. Filter taps within "
+         "page_size / 2 texels read the 2 x 2 pages a lookup binds; wider taps read "
+         "their own pages where neighbouring points had them built, else the coarsest "
+         "level. Pages are ray-cast in tiles of max(8, page_size / 4) texels "
          "per side, only those the lookups read.", lo=8, hi=1024),
     Prop("lod_bias", "float", -0.5,
          "Virtual maps: each lookup reads level floor(log2(w) + lod_bias), w its pixel "

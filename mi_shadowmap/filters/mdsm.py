@@ -60,8 +60,8 @@ Deviations from the paper, and why:
   union once, ``(side + search - 1)^2`` depths (25 at the defaults, against 9 depths
   and 9 stored maxima of a full map); near the face's border it visits each tap's
   clamped windows (9 depths a window). The mark pass builds the pages within the taps' windows
-  (``virtual_margin``); a window beyond the lookup's 2 x 2 pages reads the coarsest
-  level, as every virtual tap does.
+  (``virtual_margin``); a window beyond the lookup's 2 x 2 pages reads its own pages
+  through the page table, as every virtual tap does.
 * **Stored window.** The layer builders
   (:data:`mi_shadowmap.depth_maps.LAYER_BUILDERS`, ``mdsm_min`` /
   ``mdsm_max``) always store the 3 x 3 (q = 9, the paper's default)

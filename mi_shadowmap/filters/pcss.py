@@ -339,6 +339,14 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     return dr.select(active & has_blocker, vis, 1.0)
 
 
+def _size_zero(view, opts) -> bool:
+    """A light PCSS reads as hard shadows (size 0: a point or spot light without
+    ``light_size``, a directional one without ``angular_diameter``): its lookups read
+    one texel, so the mark pass builds ``hard``'s margin, not the kernel's."""
+    w_light, _ = view.light_width(opts.light_size, opts.angular_diameter)
+    return isinstance(w_light, (int, float)) and w_light <= 0.0
+
+
 METHOD = Method(
     name="pcss",
     lookup=pcss,
@@ -369,6 +377,6 @@ METHOD = Method(
     #: ``pcss_near``: one value per face (not a per-texel layer), see face_near_depth.
     layers={"pcss_near": face_near_layer},
     layer_cost={"pcss_near": 0.0},
-    virtual_margin=lambda o: 2.0 + 0.5 * o.max_kernel,
+    virtual_margin=lambda o, view: (2.0 if _size_zero(view, o) else 2.0 + 0.5 * o.max_kernel),
     virtual=True, builtin=True,
 )

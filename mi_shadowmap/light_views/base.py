@@ -50,6 +50,11 @@ class LightView:
 
     #: A short name of the projection, for messages and file names only.
     projection = "abstract"
+    #: Every texel's ray leaves one point, the light's position (perspective and cube
+    #: maps): a plane that a ray meets at a distance <= 0 lies behind the light along
+    #: it, and the ray never reaches it. Parallel rays (orthographic maps) start on a
+    #: plane before the scene: a negative depth is a real one there.
+    rays_from_point = False
 
     # ----------------------------------------------------------- the interface
     @property

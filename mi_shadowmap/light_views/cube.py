@@ -100,6 +100,7 @@ class CubeView(LightView):
     """Six 90-degree faces around ``position`` in world axes."""
 
     projection = "cube"
+    rays_from_point = True
     tan_half = 1.0
 
     @property

@@ -131,6 +131,10 @@ class MultiView(LightView):
     projection = "multi-view"
 
     @property
+    def rays_from_point(self) -> bool:
+        return self.sub.rays_from_point
+
+    @property
     def n_views(self) -> int:
         return len(self.positions)
 
@@ -282,6 +286,10 @@ class SubView(LightView):
     offset: object = 0
 
     projection = "sub-view"
+
+    @property
+    def rays_from_point(self) -> bool:
+        return self.inner.rays_from_point
 
     @property
     def n_faces(self) -> int:

@@ -26,6 +26,7 @@ class PerspectiveView(LightView):
     tan_half: float = 1.0
 
     projection = "perspective"
+    rays_from_point = True
 
     @property
     def n_faces(self) -> int:

@@ -12,7 +12,8 @@ those only the *tiles* (:data:`TILE_SIZE`^2 texels, at most 4 x 4 a page) the po
 read are ray-cast.
 
 **Mark pass** (:func:`mark_candidates`): one camera ray through every pixel centre
-(with its ray differentials, one pixel wide). Each hit that can receive the
+(with its ray differentials, one pixel wide; a camera with a lens: :data:`LENS_GRID`^2
+rays through points of its lens). Each hit that can receive the
 light picks the level whose texel matches its pixel footprint projected into
 the light (:meth:`VirtualShadowMap.level_for`: ``floor(log2(w) + lod_bias)``
 for a footprint ``w`` level-0 texels wide; at the default ``lod_bias = -0.5``
@@ -998,6 +999,27 @@ class BoundVirtualMap:
 
 
 # ------------------------------------------------------------------- mark pass
+#: The mark pass of a camera with a lens (``thinlens``, ``aperture_radius`` > 0) traces
+#: each pixel through ``LENS_GRID``^2 points of its lens (cell centres of a square grid,
+#: mapped to the disk as the camera maps its aperture samples). From the lens centre
+#: alone, a blurred post 0.8 in front of an aperture of radius 0.8 hid a strip of ground
+#: that the rest of the lens sees: its lookups fell to coarse levels (``hard``
+#: misclassified 1.49 %, full maps 0.04 %; 4 x 4 points: 0.18 %).
+LENS_GRID = 3
+
+
+def _has_aperture(sensor) -> bool:
+    """Whether ``sensor`` has a lens of positive radius (read from the traversal that
+    :func:`camera_state` keeps per sensor)."""
+    if "ThinLens" not in sensor.class_name():
+        return False
+    slot = _CAMERAS.get(id(sensor))
+    params = slot[1].params if slot is not None and slot[0] is sensor else mi.traverse(sensor)
+    if "aperture_radius" not in params.keys():
+        return False
+    return float(np.max(np.asarray(params["aperture_radius"]))) > 0.0
+
+
 def camera_hits(scene, sensor, evaluate: bool = True):
     """Camera hits at every pixel centre with their one-pixel footprints (where the next
     pixel's rays meet the tangent plane: a perspective camera's from its pinhole, as the
@@ -1008,7 +1030,19 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     if frame is not None:    # plain rays: the footprints come from the frame, not differentials
         ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
     else:
-        ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
+        centres = pixel_centres(sensor)
+        k = LENS_GRID if _has_aperture(sensor) else 1
+        if k == 1:
+            ray = pixel_ray_differentials(sensor, centres)
+        else:
+            # a lens: every pixel through k x k points of it (the render's samples spread
+            # over the whole lens, and a near occluder hides different points from each)
+            n = dr.width(centres)
+            idx = dr.arange(mi.UInt32, n * k * k)
+            a = idx // n
+            lens = mi.Point2f((mi.Float(a % k) + 0.5) / k, (mi.Float(a // k) + 0.5) / k)
+            ray = pixel_ray_differentials(sensor, dr.gather(mi.Point2f, centres, idx % n),
+                                          aperture=lens)
     # position and geometric normal are all marking needs (RayFlags.All also computes
     # UVs, shading frames and their derivatives: about half the pass)
     si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal,

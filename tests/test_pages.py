@@ -1555,3 +1555,41 @@ def test_a_world_a_million_units_wide_keeps_one_unit_shadows(width):
     assert np.mean(ref < 0.5) > 0.2
     assert mis <= 0.005
     assert integ.stats["texels_built"] <= 8 * 128 * 128
+
+
+def test_a_thin_lens_marks_what_its_whole_lens_sees():
+    """A blurred post 0.8 in front of a thin lens of radius 0.8 hides a strip of ground
+    from the lens centre, which the rest of the lens sees. Marked from the lens centre
+    alone, that strip's lookups fell to coarse levels: ``hard`` misclassified 1.49 %
+    (RMSE 0.060) against 0.04 % (0.0046) with 2048^2 full maps (96^2, 16 spp); marked
+    through 3 x 3 points of the lens, 0.18 % (0.0117)."""
+    o, t = np.array([0.2, 3.5, 4.9]), np.array([0.25, 0.25, 0.0])
+    d = (t - o) / np.linalg.norm(t - o)
+    up = np.array([0.0, 1.0, 0.0]) - d * d[1]
+    up /= np.linalg.norm(up)
+    c = o + 0.8 * d
+    diffuse = {"type": "diffuse"}
+    scene = mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "thinlens", "fov": 40.0, "aperture_radius": 0.8,
+                "focus_distance": 5.9,
+                "to_world": T().look_at(origin=list(o), target=list(t), up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": 64, "height": 64,
+                         "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": T().scale(4).rotate([1, 0, 0], -90),
+                   "bsdf": diffuse},
+        "ball": {"type": "sphere", "center": [-0.85, 0.65, -0.6], "radius": 0.65,
+                 "bsdf": diffuse},
+        "box": {"type": "cube", "bsdf": diffuse, "to_world":
+                T().translate([0.85, 0.5, -0.5]).rotate([0, 1, 0], 30).scale(0.5)},
+        "post": {"type": "cylinder", "p0": list(c - up), "p1": list(c + up), "radius": 0.2,
+                 "bsdf": diffuse},
+        "light": {"type": "spot", "intensity": 120.0, "cutoff_angle": 35.0, "beam_width": 28.0,
+                  "to_world": T().look_at(origin=[-2.4, 4.0, -3.4], target=[0.2, 0, 0.3],
+                                          up=[0, 1, 0])}})
+    ref = vis_of(scene, shadowmap(method="raytraced"), spp=8)
+    virt = vis_of(scene, shadowmap(method="hard"), spp=8)
+    full = vis_of(scene, shadowmap(method="hard", virtual=False, resolution=2048), spp=8)
+    rmse = lambda a: float(np.sqrt(np.mean((a - ref) ** 2)))   # noqa: E731
+    print(rmse(virt), rmse(full))
+    assert rmse(virt) < 3.5 * rmse(full)

@@ -181,14 +181,16 @@ def pixel_centres(sensor) -> mi.Point2f:
     return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
 
 
-def pixel_ray_differentials(sensor, position: mi.Point2f, time=0.0):
+def pixel_ray_differentials(sensor, position: mi.Point2f, time=0.0, aperture=None):
     """The ray of ``sensor`` through film ``position`` (in [0, 1]^2 over its crop) with
     one-pixel ray differentials: the sensor's own, or, for a sensor that gives none
     (Mitsuba's ``batch`` sensor, ``radiancemeter``), its rays through the next pixel
     in x and y, from ``sample_ray`` -- forward or, where the forward ray turns more than
     twice as far as the backward one (the last column of a batch's sub-camera, whose
-    next pixel is another camera's), backward, mirrored."""
-    ray, _ = sensor.sample_ray_differential(time, 0.5, position, mi.Point2f(0.5))
+    next pixel is another camera's), backward, mirrored. ``aperture``: the lens samples
+    (``mi.Point2f``, default its centre, 0.5)."""
+    aperture = mi.Point2f(0.5) if aperture is None else aperture
+    ray, _ = sensor.sample_ray_differential(time, 0.5, position, aperture)
     if ray.has_differentials:
         pin = pinhole(sensor)
         if pin is not None:
@@ -198,8 +200,8 @@ def pixel_ray_differentials(sensor, position: mi.Point2f, time=0.0):
     w, h = (int(x) for x in sensor.film().crop_size())
 
     def neighbour(step):
-        fwd, _ = sensor.sample_ray(time, 0.5, position + step, mi.Point2f(0.5))
-        bwd, _ = sensor.sample_ray(time, 0.5, position - step, mi.Point2f(0.5))
+        fwd, _ = sensor.sample_ray(time, 0.5, position + step, aperture)
+        bwd, _ = sensor.sample_ray(time, 0.5, position - step, aperture)
         turn_f = 1.0 - dr.dot(fwd.d, ray.d)      # ~ angle^2 / 2
         turn_b = 1.0 - dr.dot(bwd.d, ray.d)
         shift_f, shift_b = dr.squared_norm(fwd.o - ray.o), dr.squared_norm(bwd.o - ray.o)

@@ -117,6 +117,7 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         r.metrics = score(r, r_ref)
         if r_ref is not ref:
             r.metrics["reference_spp"] = r_ref.spp
+            r.scored_against = r_ref     # its error layers and heat map too
     return results
 
 

@@ -91,8 +91,8 @@ def write_results(results, out_dir: str) -> dict:
     """
     check_out_dir(out_dir)
     written = {"exr": [], "png": [], "table": []}
-    ref = results[0]
     for r in results:
+        ref = r.reference_in(results)   # the one its metrics are against (its own spp's)
         base = os.path.join(out_dir, safe_name(r.name))
         ch = {}
         if r.image is not None:
@@ -153,7 +153,6 @@ def contact_sheet(results, path: str | None = None, max_cols: int = 6):
     Saves to ``path`` if given; returns the figure (closed when saved).
     """
     plt = _pyplot()
-    ref = results[0]
     n = len(results)
     ncol = min(n, max_cols)
     nblk = math.ceil(n / ncol)
@@ -166,7 +165,7 @@ def contact_sheet(results, path: str | None = None, max_cols: int = 6):
         if r.image is not None:
             top.imshow(tonemap(r.image))
         top.set_title(_wrap(r.name), fontsize=7)
-        err = largest_error(r.vis_stack() - ref.vis_stack())
+        err = largest_error(r.vis_stack() - r.reference_in(results).vis_stack())
         im = bot.imshow(err, cmap="RdBu_r", vmin=-1, vmax=1)
         rmse = r.metrics.get("vis_rmse")
         bot.set_title("vis error" + (f" (RMSE {rmse:.3f})" if rmse is not None else ""),

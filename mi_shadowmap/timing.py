@@ -44,6 +44,13 @@ class MethodResult:
     kernels_compiled: int = 0       # kernels compiled (not cache hits) in the cold render
     metrics: dict = field(default_factory=dict)
     is_reference: bool = False
+    #: the reference this result was scored against, where it is not the compare's
+    #: first one (a method with its own spp: one at that spp); None: that one
+    scored_against: "MethodResult | None" = field(default=None, repr=False, compare=False)
+
+    def reference_in(self, results) -> "MethodResult":
+        """The reference this result's metrics, error layers and heat map are against."""
+        return self.scored_against if self.scored_against is not None else results[0]
 
     def vis_stack(self) -> np.ndarray:
         """Visibility AOVs as an (n_emitters, H, W) array, emitters sorted by label."""

@@ -119,6 +119,22 @@ def test_a_methods_own_spp_names_it_and_gets_a_reference_at_that_spp():
         assert res[2].metrics[key] == pytest.approx(alone.metrics[key], rel=1e-6), key
 
 
+def test_written_error_layers_are_against_the_reference_a_method_is_scored_against(tmp_path):
+    """A method with its own spp is scored against a reference at that spp; its EXR's
+    ``err_*`` and ``img_err`` layers and its heat map were against compare's reference
+    (``raytraced:spp=2``: the table said RMSE 0, the layers held 0.0999)."""
+    from mi_shadowmap import report
+    scene = mi.load_dict(default_scene(**SMALL))
+    res = harness.compare(scene, methods=["raytraced:spp=2", "hard"], spp=4)
+    report.write_results(res, str(tmp_path))
+    for r in res[1:]:
+        layers = report.read_exr(str(tmp_path / f"{report.safe_name(r.name)}.exr"))
+        err = np.stack([layers[f"err_{k}.Y"] for k in sorted(r.visibility)])
+        assert float(np.sqrt(np.mean(err ** 2))) == pytest.approx(r.metrics["vis_rmse"],
+                                                                  abs=1e-6), r.name
+    assert res[1].metrics["vis_rmse"] == 0.0     # the same renders as its reference
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"methods": ["hard", "nope"]}, "nope"),
     ({"methods": ["hard"], "resolutoin": 64}, "resolutoin"),

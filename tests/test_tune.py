@@ -204,3 +204,23 @@ def test_cli_bad_input_one_line(argv, match, tmp_path, capsys):
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and match in lines[0], err
     assert not out.exists()
+
+
+def test_the_spp_search_bisects_where_the_error_model_predicts_no_spp():
+    """Misclassified pixels do not follow ``bias^2 + noise^2 / spp``: fitted to 1 and 8
+    spp they predicted a floor above the threshold, and the search went from 8 straight
+    to the 1024 a probe measured (a pick 7x slower than the 32-64 spp that met it). With
+    a measured spp meeting the threshold, the spp between are now bisected."""
+    from mi_shadowmap.tune import _Config, spp_ladder
+    c = _Config({"method": "raytraced"}, True)
+    c.points = {1: (0.060, 0.001), 8: (0.030, 0.002), 1024: (0.004, 0.09)}
+    ladder = spp_ladder(1024)
+    assert c.predict_error(64) > 0.011            # the model sees no spp before 1024
+    seen = []
+    truth = {s: 0.09 / s ** 0.5 for s in ladder}  # an error meeting 0.011 from 67 spp on
+    while (s := c.next_spp(0.011, ladder)) is not None:
+        seen.append(s)
+        c.points[s] = (truth[s], 1e-4 * s)
+    assert len(seen) <= 6
+    met = min(s for s, (e, _) in c.points.items() if e <= 0.011)
+    assert met == min(s for s in ladder if truth[s] <= 0.011 and s > 8)

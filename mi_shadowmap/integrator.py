@@ -24,9 +24,9 @@ from . import environment as env_mod
 from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
-from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys, emitter_kind,
-                          emitter_label, is_pinhole, make_light_view, pinhole_footprint,
-                          pixel_step)
+from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys,
+                          emitted_value_owners, emitter_kind, emitter_label, is_pinhole,
+                          make_light_view, pinhole_footprint, pixel_step)
 from .light_views.base import scene_bounds
 from .methods import MethodError
 from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
@@ -295,17 +295,18 @@ screen is Mitsuba's projective integrators' job.
             for i, e in enumerate(scene.emitters()):
                 params = mi.traverse(e)
                 watches.append((e, emitter_label(e, i),
-                                ParamWatch(params, emitted_value_keys(params))))
+                                ParamWatch(params, emitted_value_keys(params)),
+                                emitted_value_owners(params)))
             memo = self._value_watch = [scene, watches, None, None]
-        reads = [watch.read() for _, _, watch in memo[1]]
+        reads = [watch.read() for _, _, watch, _ in memo[1]]
         token = tuple(r[0] for r in reads)
         if token == memo[2]:
             return
-        for (e, label, watch), (_, values) in zip(memo[1], reads):
-            check_emitter_values(e, label, dict(zip(watch.names, values)))
+        for (e, label, watch, owners), (_, values) in zip(memo[1], reads):
+            check_emitter_values(e, label, dict(zip(watch.names, values)), owners)
         memo[2] = token
         memo[3] = [[hold(v) if j else v for v, j in zip(values, watch.jit)]
-                   for (_, _, watch), (_, values) in zip(memo[1], reads)]
+                   for (_, _, watch, _), (_, values) in zip(memo[1], reads)]
 
     def aov_names(self):
         """``vis_<emitter>`` per emitter of the last scene rendered (none before one;

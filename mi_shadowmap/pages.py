@@ -20,8 +20,8 @@ for a footprint ``w`` level-0 texels wide; at the default ``lod_bias = -0.5``
 a texel is 0.35-0.7 footprint wide) and marks the tiles its lookup reads: those
 within the method's ``virtual_margin`` (its kernel's half-width) plus one texel
 (camera samples off the pixel centre) of it. Kernels up to ``page_size / 2``
-texels stay inside the 2 x 2 pages a lookup binds (below); wider taps read their own
-pages through the page table. A render whose camera
+texels stay inside the 2 x 2 pages a lookup binds (below); the taps of a wider kernel
+read their own pages through the page table (:attr:`VirtualShadowMap.far_taps`). A render whose camera
 state (:func:`camera_state`) equals the previous one's reuses its marks.
 
 **Tiles**: a page is the unit of the pool and the page table; a tile is the unit of

@@ -8,6 +8,8 @@ scenes against ``raytraced``, the converged reference, the harness, and
 reflectance / intensity gradients against finite differences. CUDA tests run
 where a CUDA variant can be set and are skipped (with the reason) elsewhere.
 """
+import re
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -20,7 +22,7 @@ from mi_shadowmap.reference import converged_visibility
 from mi_shadowmap.scenes import default_scene
 from mi_shadowmap.variants import SUPPORTED_VARIANTS, UnsupportedVariantError
 
-from conftest import SCENES, delta_scene, relative_rmse, render_np
+from conftest import SCENES, delta_scene, relative_rmse, render_np, root_message
 
 LLVM = ("llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral")
 OTHER = ("llvm_ad_mono", "llvm_ad_spectral")
@@ -475,3 +477,34 @@ def test_a_variant_name_that_is_not_one_is_named(name):
     from mi_shadowmap.variants import check_variant
     with pytest.raises(UnsupportedVariantError, match=f"'{name}' is not supported.*llvm_ad_rgb"):
         check_variant(name)
+
+
+@pytest.mark.parametrize("variant", ["llvm_ad_mono", "llvm_ad_spectral",
+                                     "llvm_ad_spectral_polarized"])
+def test_emitted_values_are_checked_in_every_variant(variant):
+    """A negative uniform intensity renders black (every method) in a spectral variant
+    too; an RGB colour (upsampling coefficients, some negative), a bitmap area light, an
+    envmap and a sampled spectrum are no error."""
+    mi.set_variant(variant)
+    rng = np.random.default_rng(0)
+    good = [{"type": "point", "position": [0, 3, 0],
+             "intensity": {"type": "rgb", "value": [1.0, 0.2, 0.05]}},
+            {"type": "envmap", "bitmap": mi.Bitmap(rng.random((8, 16, 3)).astype(np.float32))},
+            {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 3, 0])
+             .rotate([1, 0, 0], 90),
+             "emitter": {"type": "area", "radiance": {"type": "bitmap", "bitmap": mi.Bitmap(
+                 rng.random((4, 4, 3)).astype(np.float32))}}}]
+    if "spectral" in variant:
+        good.append({"type": "point", "position": [0, 3, 0],
+                     "intensity": {"type": "spectrum", "value": [[400, 1.0], [700, 2.0]]}})
+    for light in good:
+        d = default_scene(width=16, height=16)
+        d["extra"] = light
+        rgb, _ = render_np(mi.load_dict(d), {"type": "shadowmap", "method": "hard"}, spp=1)
+        assert np.isfinite(rgb).all()
+    d = default_scene(width=16, height=16)
+    d["bad"] = {"type": "point", "position": [0, 3, 0],
+                "intensity": {"type": "uniform", "value": -2.0}}
+    with pytest.raises(RuntimeError) as e:
+        mi.render(mi.load_dict(d), integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
+    assert re.search("'bad'.*'intensity.value'.*negative", root_message(e.value))

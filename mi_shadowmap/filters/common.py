@@ -190,18 +190,22 @@ def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, later
     distance from the receiver, in world units at the receiver), so that
     grazing planes stay finite; minus ``plane.offset``. A ray from a point light
     (:attr:`~mi_shadowmap.light_views.base.LightView.rays_from_point`) that meets the
-    plane behind the light never reaches it: the plane is infinitely far along it (the
-    clamp's far end), so whatever the texel holds is nearer. (It came out negative: a
-    receiver a light grazes, 0.15 above the ground and 5 away, read every tap ray
-    pointing above the ground's horizon, blockers included, as lit. PCSS's search
-    regions reach there on virtual maps, whose texels follow the pixel: 14 % of such a
-    scene's pixels lit in the umbrae of a sphere light.)
+    plane behind the light never reaches it: the plane says nothing there, and the tap
+    is compared with the receiver's own depth (PCSS's plain compare). (It came out
+    negative: a receiver a light grazes, 0.15 above the ground and 5 away, read every
+    tap ray pointing above the ground's horizon, blockers included, as lit; PCSS's
+    search regions reach there on virtual maps, whose texels follow the pixel: 14 % of
+    such a scene's pixels lit in the umbrae of a sphere light. Reading the plane as
+    infinitely far there made walls behind the receiver blockers.)
     """
     t, _ = smap.view.ray_plane(face, uv_light, plane.p_world, plane.n_world, 1e-12)
-    if smap.view.rays_from_point:
-        t = dr.select(t + smap.view.depth_origin > 0.0, t, dr.inf)
     lim = lateral_world * plane.max_tan
+    ahead = None
+    if smap.view.rays_from_point:
+        ahead = t + smap.view.depth_origin > 0.0
     t = dr.clip(t, plane.depth0 - lim, plane.depth0 + lim)
+    if ahead is not None:
+        t = dr.select(ahead, t, plane.depth0)
     if plane.light_front is not None:   # behind a one-sided light: cannot occlude it
         d = smap.view.ray_through(face, uv_light)[1]
         t = dr.select(dr.dot(d, mi.Vector3f(*plane.light_front)) > 0, t, -dr.inf)

@@ -48,7 +48,7 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "is_pinhole", "aims_by_film", "pinhole", "differential_origins", "pinhole_frame",
            "pinhole_footprint",
            "UnsupportedEmitterError", "SUPPORTED_EMITTERS", "check_emitter_values",
-           "emitted_value_keys"]
+           "emitted_value_keys", "emitted_value_owners"]
 
 SUPPORTED_EMITTERS = ("point", "spot", "directional", "area", "projector")
 _CLASS_TO_KIND = {
@@ -124,28 +124,43 @@ def emitted_value_keys(params) -> list:
             and k.split(".")[-1] not in ("range", "to_uv")]
 
 
-def check_emitter_values(emitter, label: str, values: dict | None = None) -> None:
+def emitted_value_owners(params) -> dict:
+    """``{key: class name}`` of the objects holding :func:`emitted_value_keys`."""
+    return {k: params.properties[k][2].class_name() for k in emitted_value_keys(params)}
+
+
+def _coefficients(key: str, owner: str) -> bool:
+    """Whether parameter ``key`` of an object of class ``owner`` holds a spectral
+    variant's RGB upsampling coefficients (negative ones included), not radiances: an
+    RGB colour's ``value`` (``D65Spectrum``, ``SRGB*Spectrum``), a bitmap's or an
+    envmap's ``data``."""
+    return mi.is_spectral and (key.endswith("data") or owner.startswith(("D65", "SRGB")))
+
+
+def check_emitter_values(emitter, label: str, values: dict | None = None,
+                         owners: dict | None = None) -> None:
     """Raise naming the emitter and the parameter when an emitted value is not finite or
     is negative. Mitsuba loads both: a NaN or infinite intensity made NaN and infinite
     pixels, a NaN texel of an environment map failed deep in its median cut (numpy's
     "SVD did not converge"), and a negative intensity rendered black (Mitsuba's
-    ``direct`` renders negative light; checked in RGB and monochrome variants, whose
-    values are radiances, not a spectral variant's upsampling coefficients).
-    ``values``: ``{key: value}`` of
-    :func:`emitted_value_keys` (default: read from the emitter). Reads evaluated values
-    on the host (no kernel)."""
+    ``direct`` renders negative light; in a spectral variant, where an RGB colour or a
+    bitmap holds upsampling coefficients, negative ones included, only the values that
+    are radiances: uniform and sampled spectra, an envmap's ``scale``). ``values``:
+    ``{key: value}`` of :func:`emitted_value_keys`, ``owners``: ``{key: class name of
+    the object holding it}`` (default: both read from the emitter). Reads evaluated
+    values on the host (no kernel)."""
     if values is None:
         params = mi.traverse(emitter)
         values = {k: params[k] for k in emitted_value_keys(params)}
+        owners = emitted_value_owners(params)
     for key, value in values.items():
         try:
             a = np.asarray(value.array if hasattr(value, "array") else value, np.float32)
         except (TypeError, ValueError):
             continue
         bad = int(np.count_nonzero(~np.isfinite(a)))
-        # spectral variants store RGB textures as spectral upsampling coefficients,
-        # negative ones included: only the RGB and monochrome values are radiances
-        neg = 0 if mi.is_spectral else int(np.count_nonzero(a < 0))
+        coeff = _coefficients(key, (owners or {}).get(key, "D65" if mi.is_spectral else ""))
+        neg = 0 if coeff else int(np.count_nonzero(a < 0))
         if bad or neg:
             what = (f"{bad} of its {a.size} values are not finite (NaN or inf)" if bad
                     else f"{neg} of its {a.size} values are negative (min {float(a.min()):g})")

@@ -1010,7 +1010,11 @@ LENS_GRID = 3
 
 def _has_aperture(sensor) -> bool:
     """Whether ``sensor`` has a lens of positive radius (read from the traversal that
-    :func:`camera_state` keeps per sensor)."""
+    :func:`camera_state` keeps per sensor); a ``batch`` sensor: whether one of its
+    cameras has (its ``sample_ray`` passes the lens sample on to them)."""
+    if "Batch" in sensor.class_name():
+        from .light_views import _child_sensors
+        return any(_has_aperture(s) for s in _child_sensors(sensor))
     if "ThinLens" not in sensor.class_name():
         return False
     slot = _CAMERAS.get(id(sensor))

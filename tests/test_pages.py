@@ -1557,25 +1557,28 @@ def test_a_world_a_million_units_wide_keeps_one_unit_shadows(width):
     assert integ.stats["texels_built"] <= 8 * 128 * 128
 
 
-def test_a_thin_lens_marks_what_its_whole_lens_sees():
+@pytest.mark.parametrize("batch", [False, True])
+def test_a_thin_lens_marks_what_its_whole_lens_sees(batch):
     """A blurred post 0.8 in front of a thin lens of radius 0.8 hides a strip of ground
     from the lens centre, which the rest of the lens sees. Marked from the lens centre
     alone, that strip's lookups fell to coarse levels: ``hard`` misclassified 1.49 %
     (RMSE 0.060) against 0.04 % (0.0046) with 2048^2 full maps (96^2, 16 spp); marked
-    through 3 x 3 points of the lens, 0.18 % (0.0117)."""
+    through 3 x 3 points of the lens, 0.18 % (0.0117). The same for a ``batch`` of two
+    such lenses (RMSE 0.060 before, 0.020 now)."""
     o, t = np.array([0.2, 3.5, 4.9]), np.array([0.25, 0.25, 0.0])
     d = (t - o) / np.linalg.norm(t - o)
     up = np.array([0.0, 1.0, 0.0]) - d * d[1]
     up /= np.linalg.norm(up)
     c = o + 0.8 * d
     diffuse = {"type": "diffuse"}
+    lens = {"type": "thinlens", "fov": 40.0, "aperture_radius": 0.8, "focus_distance": 5.9,
+            "to_world": T().look_at(origin=list(o), target=list(t), up=[0, 1, 0])}
+    film = {"type": "hdrfilm", "width": 64, "height": 64, "rfilter": {"type": "box"}}
+    cam = {**lens, "film": film} if not batch else {
+        "type": "batch", "a": lens, "b": dict(lens), "film": {**film, "width": 96, "height": 48}}
     scene = mi.load_dict({
         "type": "scene",
-        "cam": {"type": "thinlens", "fov": 40.0, "aperture_radius": 0.8,
-                "focus_distance": 5.9,
-                "to_world": T().look_at(origin=list(o), target=list(t), up=[0, 1, 0]),
-                "film": {"type": "hdrfilm", "width": 64, "height": 64,
-                         "rfilter": {"type": "box"}}},
+        "cam": cam,
         "ground": {"type": "rectangle", "to_world": T().scale(4).rotate([1, 0, 0], -90),
                    "bsdf": diffuse},
         "ball": {"type": "sphere", "center": [-0.85, 0.65, -0.6], "radius": 0.65,

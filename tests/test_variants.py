@@ -482,9 +482,10 @@ def test_a_variant_name_that_is_not_one_is_named(name):
 @pytest.mark.parametrize("variant", ["llvm_ad_mono", "llvm_ad_spectral",
                                      "llvm_ad_spectral_polarized"])
 def test_emitted_values_are_checked_in_every_variant(variant):
-    """A negative uniform intensity renders black (every method) in a spectral variant
-    too; an RGB colour (upsampling coefficients, some negative), a bitmap area light, an
-    envmap and a sampled spectrum are no error."""
+    """A negative uniform intensity, or a one-channel bitmap of negative values, renders
+    black (every method) in a spectral variant too; an RGB colour (upsampling
+    coefficients, some negative), a bitmap area light, an envmap and a sampled spectrum
+    are no error."""
     mi.set_variant(variant)
     rng = np.random.default_rng(0)
     good = [{"type": "point", "position": [0, 3, 0],
@@ -502,9 +503,16 @@ def test_emitted_values_are_checked_in_every_variant(variant):
         d["extra"] = light
         rgb, _ = render_np(mi.load_dict(d), {"type": "shadowmap", "method": "hard"}, spp=1)
         assert np.isfinite(rgb).all()
-    d = default_scene(width=16, height=16)
-    d["bad"] = {"type": "point", "position": [0, 3, 0],
-                "intensity": {"type": "uniform", "value": -2.0}}
-    with pytest.raises(RuntimeError) as e:
-        mi.render(mi.load_dict(d), integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
-    assert re.search("'bad'.*'intensity.value'.*negative", root_message(e.value))
+    one_channel = {"type": "bitmap", "raw": True,   # plain values, not RGB coefficients
+                   "bitmap": mi.Bitmap(np.full((4, 4, 1), -1.0, np.float32))}
+    for bad, key in [({"type": "point", "position": [0, 3, 0],
+                       "intensity": {"type": "uniform", "value": -2.0}}, "intensity.value"),
+                     ({"type": "spot", "to_world": mi.ScalarTransform4f().look_at(
+                         [0, 3, 0], [0, 0, 0], [0, 0, 1]), "texture": one_channel},
+                      "texture.data")]:
+        d = default_scene(width=16, height=16)
+        d["bad"] = bad
+        with pytest.raises(RuntimeError) as e:
+            mi.render(mi.load_dict(d), integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
+        assert re.search(f"'bad'.*'{key}'.*negative", root_message(e.value)), \
+            root_message(e.value)

@@ -129,12 +129,18 @@ def emitted_value_owners(params) -> dict:
     return {k: params.properties[k][2].class_name() for k in emitted_value_keys(params)}
 
 
-def _coefficients(key: str, owner: str) -> bool:
-    """Whether parameter ``key`` of an object of class ``owner`` holds a spectral
-    variant's RGB upsampling coefficients (negative ones included), not radiances: an
-    RGB colour's ``value`` (``D65Spectrum``, ``SRGB*Spectrum``), a bitmap's or an
-    envmap's ``data``."""
-    return mi.is_spectral and (key.endswith("data") or owner.startswith(("D65", "SRGB")))
+def _coefficients(key: str, owner: str, value) -> bool:
+    """Whether parameter ``key`` (``value``) of an object of class ``owner`` holds a
+    spectral variant's RGB upsampling coefficients (negative ones included), not
+    radiances: an RGB colour's ``value`` (``D65Spectrum``, ``SRGB*Spectrum``), the
+    ``data`` of an RGB bitmap or an envmap (3 or 4 channels; a one-channel bitmap holds
+    plain values)."""
+    if not mi.is_spectral:
+        return False
+    if key.endswith("data"):
+        shape = getattr(value, "shape", ())
+        return len(shape) > 0 and shape[-1] >= 3
+    return owner.startswith(("D65", "SRGB"))
 
 
 def check_emitter_values(emitter, label: str, values: dict | None = None,
@@ -159,7 +165,8 @@ def check_emitter_values(emitter, label: str, values: dict | None = None,
         except (TypeError, ValueError):
             continue
         bad = int(np.count_nonzero(~np.isfinite(a)))
-        coeff = _coefficients(key, (owners or {}).get(key, "D65" if mi.is_spectral else ""))
+        coeff = _coefficients(key, (owners or {}).get(key, "D65" if mi.is_spectral else ""),
+                              value)
         neg = 0 if coeff else int(np.count_nonzero(a < 0))
         if bad or neg:
             what = (f"{bad} of its {a.size} values are not finite (NaN or inf)" if bad

@@ -33,7 +33,7 @@ from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolar
                        variant_class)
 from .pages import VirtualShadowMap, camera_frame
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
-                          hold, prepare_maps)
+                          prepare_maps)
 
 
 class ShadowMapIntegratorMixin:
@@ -283,10 +283,8 @@ screen is Mitsuba's projective integrators' job.
     def _check_emitter_values(self, scene) -> None:
         """:func:`~mi_shadowmap.light_views.check_emitter_values` of every emitter, when
         a value changed since the last check: each render reads the values' JIT variable
-        indices (:class:`~mi_shadowmap.map_manager.ParamWatch`; new references to the
-        values are held (:func:`~mi_shadowmap.map_manager.hold`), so an index can be
-        neither recycled nor written in place), and checks them on the host when they
-        differ.
+        indices (:class:`~mi_shadowmap.map_manager.ParamWatch`, its values held), and
+        checks them on the host when they differ.
         Emitted values are not part of the map cache's scene state (maps do not depend
         on them), so a ``params.update()`` of an intensity alone reaches only this."""
         memo = self._value_watch
@@ -305,8 +303,7 @@ screen is Mitsuba's projective integrators' job.
         for (e, label, watch, owners), (_, values) in zip(memo[1], reads):
             check_emitter_values(e, label, dict(zip(watch.names, values)), owners)
         memo[2] = token
-        memo[3] = [[hold(v) if j else v for v, j in zip(values, watch.jit)]
-                   for (_, _, watch, _), (_, values) in zip(memo[1], reads)]
+        memo[3] = [watch.held(values) for (_, _, watch, _), (_, values) in zip(memo[1], reads)]
 
     def aov_names(self):
         """``vis_<emitter>`` per emitter of the last scene rendered (none before one;

@@ -568,6 +568,12 @@ class ParamWatch:
         get = mi.get_property
         return [v if t is None else get(v, t, node) for v, t, node in self._getters]
 
+    def held(self, values) -> list:
+        """New references to the JIT values of ``values`` (a :meth:`read`'s): holding
+        them keeps their indices from being recycled or written in place
+        (:func:`hold`), so a later equal token means unchanged values."""
+        return [hold(v) for v, j in zip(values, self.jit) if j]
+
     def read(self) -> tuple:
         values = self._values()
         jit = [v for v, j in zip(values, self.jit) if j]

@@ -269,7 +269,7 @@ def _check_record(m: Method) -> None:
                               f"{sig} or None, got {getattr(m, name)!r}")
     if m.virtual_margin is not None and not callable(m.virtual_margin):
         raise MethodError(f"register_method('{m.name}'): virtual_margin must be callable "
-                          "fn(opts) -> texels")
+                          "fn(opts) -> texels or fn(opts, view) -> texels")
     if m.view_for is not None and not callable(m.view_for):
         raise MethodError(f"register_method('{m.name}'): view_for must be callable "
                           "fn(view, emitter, scene, opts) -> LightView | None")
@@ -309,11 +309,17 @@ def virtual_margin_of(record, opts, view) -> float:
     fn = record.virtual_margin
     if fn is None:
         return 2.0
+    return float(fn(opts, view) if _takes_view(fn) else fn(opts))
+
+
+@functools.lru_cache(maxsize=256)
+def _takes_view(fn) -> bool:
+    """Whether a ``virtual_margin`` takes ``(opts, view)`` (read once per function:
+    the mark pass asks every frame)."""
     try:
-        two = len(inspect.signature(fn).parameters) >= 2
+        return len(inspect.signature(fn).parameters) >= 2
     except (TypeError, ValueError):
-        two = False
-    return float(fn(opts, view) if two else fn(opts))
+        return False
 
 
 def _checked_lookup(name: str, lookup: Callable, whole_light) -> Callable:

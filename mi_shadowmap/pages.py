@@ -1234,7 +1234,7 @@ def camera_state(sensor) -> CameraState:
     the mark pass is skipped (a still camera re-rendering, e.g. more spp or another
     seed). Costs a read of each parameter's variable indices (the traversal is kept per
     sensor)."""
-    from .map_manager import ParamWatch, hold
+    from .map_manager import ParamWatch
     slot = _CAMERAS.get(id(sensor))
     if slot is None or slot[0] is not sensor:
         params = mi.traverse(sensor)
@@ -1248,7 +1248,7 @@ def camera_state(sensor) -> CameraState:
     film = sensor.film()
     token += (tuple(film.crop_size()), tuple(film.crop_offset()))
     if last is None or last.token != token:
-        last = slot[2] = CameraState(token, [hold(v) for v, j in zip(values, watch.jit) if j])
+        last = slot[2] = CameraState(token, watch.held(values))
     return last
 
 

@@ -198,14 +198,11 @@ def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, later
     such a scene's pixels lit in the umbrae of a sphere light. Reading the plane as
     infinitely far there made walls behind the receiver blockers.)
     """
-    t, _ = smap.view.ray_plane(face, uv_light, plane.p_world, plane.n_world, 1e-12)
+    t_hit, _ = smap.view.ray_plane(face, uv_light, plane.p_world, plane.n_world, 1e-12)
     lim = lateral_world * plane.max_tan
-    ahead = None
-    if smap.view.rays_from_point:
-        ahead = t + smap.view.depth_origin > 0.0
-    t = dr.clip(t, plane.depth0 - lim, plane.depth0 + lim)
-    if ahead is not None:
-        t = dr.select(ahead, t, plane.depth0)
+    t = dr.clip(t_hit, plane.depth0 - lim, plane.depth0 + lim)
+    if smap.view.rays_from_point:        # the plane behind the light along this ray
+        t = dr.select(t_hit + smap.view.depth_origin > 0.0, t, plane.depth0)
     if plane.light_front is not None:   # behind a one-sided light: cannot occlude it
         d = smap.view.ray_through(face, uv_light)[1]
         t = dr.select(dr.dot(d, mi.Vector3f(*plane.light_front)) > 0, t, -dr.inf)

@@ -143,8 +143,7 @@ def _coefficients(key: str, owner: str, value) -> bool:
     return owner.startswith(("D65", "SRGB"))
 
 
-def check_emitter_values(emitter, label: str, values: dict | None = None,
-                         owners: dict | None = None) -> None:
+def check_emitter_values(emitter, label: str, values: dict, owners: dict) -> None:
     """Raise naming the emitter and the parameter when an emitted value is not finite or
     is negative. Mitsuba loads both: a NaN or infinite intensity made NaN and infinite
     pixels, a NaN texel of an environment map failed deep in its median cut (numpy's
@@ -153,21 +152,15 @@ def check_emitter_values(emitter, label: str, values: dict | None = None,
     bitmap holds upsampling coefficients, negative ones included, only the values that
     are radiances: uniform and sampled spectra, an envmap's ``scale``). ``values``:
     ``{key: value}`` of :func:`emitted_value_keys`, ``owners``: ``{key: class name of
-    the object holding it}`` (default: both read from the emitter). Reads evaluated
-    values on the host (no kernel)."""
-    if values is None:
-        params = mi.traverse(emitter)
-        values = {k: params[k] for k in emitted_value_keys(params)}
-        owners = emitted_value_owners(params)
+    the object holding it}`` (:func:`emitted_value_owners`). Reads evaluated values on
+    the host (no kernel)."""
     for key, value in values.items():
         try:
             a = np.asarray(value.array if hasattr(value, "array") else value, np.float32)
         except (TypeError, ValueError):
             continue
         bad = int(np.count_nonzero(~np.isfinite(a)))
-        coeff = _coefficients(key, (owners or {}).get(key, "D65" if mi.is_spectral else ""),
-                              value)
-        neg = 0 if coeff else int(np.count_nonzero(a < 0))
+        neg = 0 if _coefficients(key, owners[key], value) else int(np.count_nonzero(a < 0))
         if bad or neg:
             what = (f"{bad} of its {a.size} values are not finite (NaN or inf)" if bad
                     else f"{neg} of its {a.size} values are negative (min {float(a.min()):g})")

@@ -583,10 +583,11 @@ def environment_view(emitter, scene, label: str, K: int) -> EnvironmentView:
 def light_view(emitter, scene, index: int, opts):
     """The view of an environment emitter for a render with ``opts``: an
     :class:`EnvironmentView` with ``environment='shadowed'`` and a map method, else None."""
-    from .light_views import emitter_label
+    from .light_views import emitter_labels
     if opts.environment != "shadowed" or not opts.uses_map:
         return None
-    return environment_view(emitter, scene, emitter_label(emitter, index), opts.env_lights)
+    return environment_view(emitter, scene, emitter_labels(scene.emitters())[index],
+                            opts.env_lights)
 
 
 def _region_ray64(rows, half, uv_light):

@@ -25,8 +25,9 @@ from . import options as opt_mod
 from .depth_maps import ShadowMap
 from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys,
-                          emitted_value_owners, emitter_kind, emitter_label, is_pinhole,
-                          make_light_view, pinhole_footprint, pixel_step)
+                          emitted_value_owners, emitter_kind, emitter_labels, is_pinhole,
+                          make_light_view, pinhole_footprint, pixel_step,
+                          unique_labels)  # noqa: F401  (re-exported)
 from .light_views.base import scene_bounds
 from .methods import MethodError
 from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
@@ -256,13 +257,14 @@ screen is Mitsuba's projective integrators' job.
         (None for environment emitters), which ``prepare_maps`` reuses, so
         views are built once per render.
         """
-        labels, views, unshadowed = [], [], []
+        views, unshadowed = [], []
         self._check_emitter_values(scene)
+        labels = emitter_labels(scene.emitters())
         for i, e in enumerate(scene.emitters()):
             is_env = emitter_kind(e) == "environment"
             if is_env and self.opts.environment == "error":
                 raise ValueError(
-                    f"shadowmap: emitter '{emitter_label(e, i)}' is an environment/constant "
+                    f"shadowmap: emitter '{labels[i]}' is an environment/constant "
                     "emitter and environment='error'; set the property "
                     "environment='shadowed' (median-cut maps) or 'unshadowed' (no shadows), "
                     "or remove it")
@@ -272,11 +274,10 @@ screen is Mitsuba's projective integrators' job.
                          else make_light_view(e, scene, i))
             # environment='unshadowed': visibility 1, every method
             unshadowed.append(is_env and self.opts.environment == "unshadowed")
-            labels.append(emitter_label(e, i))
         if self.opts.uses_map and not self.opts.record.whole_light:
             for view in views:
                 _warn_if_enclosing(scene, view, self.opts.method)
-        self._emitter_labels = unique_labels(labels)
+        self._emitter_labels = labels
         self._unshadowed = unshadowed
         return views
 
@@ -290,9 +291,10 @@ screen is Mitsuba's projective integrators' job.
         memo = self._value_watch
         if memo is None or memo[0] is not scene:
             watches = []
+            labels = emitter_labels(scene.emitters())
             for i, e in enumerate(scene.emitters()):
                 params = mi.traverse(e)
-                watches.append((e, emitter_label(e, i),
+                watches.append((e, labels[i],
                                 ParamWatch(params, emitted_value_keys(params)),
                                 emitted_value_owners(params)))
             memo = self._value_watch = [scene, watches, None, None]
@@ -929,23 +931,4 @@ def _attached_arrays(obj, out=None, seen=None) -> list:
         return out
     for item in items:
         _attached_arrays(item, out, seen)
-    return out
-
-
-def unique_labels(labels: list) -> list:
-    """AOV labels must be unique: an id that several emitters share falls back to the
-    emitter's index, and to ``<index>_<n>`` where that index is another emitter's id
-    (ids ``['1', 'emitter', 'emitter']`` gave ``vis_1`` twice, and Mitsuba's film
-    failed with "duplicate channel name")."""
-    taken = {lab for lab in labels if labels.count(lab) == 1}
-    out = []
-    for i, lab in enumerate(labels):
-        if labels.count(lab) == 1:
-            out.append(lab)
-            continue
-        cand, n = str(i), 1
-        while cand in taken:
-            cand, n = f"{i}_{n}", n + 1
-        taken.add(cand)
-        out.append(cand)
     return out

@@ -661,3 +661,36 @@ def test_aov_labels_stay_unique_when_an_index_is_another_emitters_id():
     assert unique_labels(["1", "emitter", "emitter"]) == ["1", "1_1", "2"]
     assert unique_labels(["a", "b"]) == ["a", "b"]
     assert unique_labels(["x", "x", "0", "1"]) == ["0_1", "1_1", "0", "1"]
+
+
+def test_a_named_emitter_keeps_its_id_beside_an_unnamed_one_at_that_index():
+    """An emitter with id '1' and an unnamed one at index 1: the named one is vis_1
+    (it was vis_0, and vis_1 held the unnamed light's shadow); an area emitter without
+    an id of its own is named by its shape's id (XML), and so are dict-loaded ones,
+    which Mitsuba all ids 'emitter'."""
+    xml = UNNAMED_XML.replace('<emitter type="point">', '<emitter type="point" id="1">', 1)
+    xml = xml.replace('<emitter type="point" id="key">', '<emitter type="point">')
+    scene = mi.load_string(xml)
+    assert [e.id() for e in scene.emitters()] == ["1", ""]
+    integ = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
+    _, aovs = render_np(scene, integ, spp=1)
+    assert integ.aov_names() == ["vis_1", "vis_1_1"]
+    alone = mi.load_string(UNNAMED_XML.replace(
+        UNNAMED_XML[UNNAMED_XML.index('  <emitter type="point" id="key">'):
+                    UNNAMED_XML.index("</scene>")], ""))
+    _, one = render_np(alone, {"type": "shadowmap", "method": "raytraced"}, spp=1)
+    np.testing.assert_array_equal(aovs["vis_1"], one["vis_0"])    # the light at x = -1.5
+
+    from mi_shadowmap.light_views import emitter_labels
+    lamps = mi.load_string("""<scene version="3.0.0">
+  <shape type="sphere" id="lamp"><emitter type="area"/></shape>
+  <shape type="sphere"><point name="center" x="3" y="0" z="0"/><emitter type="area"/></shape>
+  <emitter type="point" id="lamp_2"/></scene>""")
+    assert emitter_labels(lamps.emitters()) == ["lamp", "1", "lamp_2"]
+    d = mi.load_dict({"type": "scene", "a": {"type": "sphere", "emitter": {"type": "area"}},
+                      "b": {"type": "sphere", "center": [3, 0, 0],
+                            "emitter": {"type": "area"}}})
+    assert emitter_labels(d.emitters()) == ["a", "b"]
+    assert unique_labels(["1", None], [None, None]) == ["1", "1_1"]
+    # a shape id that is another emitter's own id, or shared by two shapes, is not taken
+    assert unique_labels([None, "s", None, None], ["s", None, "t", "t"]) == ["0", "s", "2", "3"]

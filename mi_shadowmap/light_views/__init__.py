@@ -42,6 +42,7 @@ from .multi import MultiView, multi_view
 
 __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeView", "box_view",
            "MultiView", "multi_view", "make_light_view", "emitter_kind", "emitter_label",
+           "emitter_labels", "unique_labels",
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
            "footprint_ratio", "pixel_centres", "pixel_ray_differentials", "pixel_step",
@@ -80,14 +81,61 @@ def emitter_kind(emitter) -> str:
 
 
 def emitter_label(emitter, index: int) -> str:
-    """A readable name: the emitter's id if it has one, else its index."""
+    """A readable name: the emitter's id if it has one, else its index (not unique:
+    :func:`emitter_labels` gives a scene's)."""
     eid = emitter.id()
     return eid if eid else str(index)
 
 
+def emitter_labels(emitters) -> list:
+    """Each emitter's name, unique in the scene: the ``<label>`` of its ``vis_<label>``
+    AOV, and the name errors and statistics give it. An emitter's own id where no
+    other emitter has it; else, for an area emitter, its shape's id (an XML
+    ``<shape id="lamp"><emitter type="area"/>`` gives the emitter no id, and Mitsuba's
+    ``load_dict`` ids every nested one ``emitter``) where unique; else the emitter's
+    index, or ``<index>_<n>`` where that is another emitter's name (see
+    :func:`unique_labels`)."""
+    own = [e.id() or None for e in emitters]
+    shapes = []
+    for e in emitters:
+        shape = e.get_shape() if hasattr(e, "get_shape") else None
+        shapes.append((shape.id() or None) if shape is not None else None)
+    return unique_labels(own, shapes)
+
+
+def unique_labels(labels: list, second=None) -> list:
+    """Unique names for emitters whose own names are ``labels`` (None: none), with
+    ``second`` their fallback names (None: none). A name held by one emitter alone is
+    kept; the others take their fallback name where it is unique and not another's own
+    name; the rest their index, or ``<index>_<n>`` where the index is taken. (An
+    unnamed emitter at index 1 beside one whose id is ``'1'`` took ``vis_1`` and sent
+    the named one to ``vis_0``; ids ``['1', 'emitter', 'emitter']`` once gave ``vis_1``
+    twice, and Mitsuba's film failed with "duplicate channel name".)"""
+    second = list(second) if second is not None else [None] * len(labels)
+    own = [lab if lab else None for lab in labels]
+    out = [lab if lab is not None and own.count(lab) == 1 else None for lab in own]
+    taken = {lab for lab in out if lab is not None}
+    for i, alt in enumerate(second):
+        if out[i] is None and alt and alt not in taken and second.count(alt) == 1 \
+                and alt not in own:
+            out[i] = alt
+            taken.add(alt)
+    for i in range(len(out)):
+        if out[i] is None:
+            cand, n = str(i), 1
+            while cand in taken:
+                cand, n = f"{i}_{n}", n + 1
+            out[i] = cand
+            taken.add(cand)
+    return out
+
+
 def make_light_view(emitter, scene, index: int) -> LightView:
-    """Build the :class:`LightView` of one emitter, or raise naming it."""
-    label = emitter_label(emitter, index)
+    """Build the :class:`LightView` of one emitter (the ``index``-th of ``scene``'s,
+    named as :func:`emitter_labels` names it), or raise naming it."""
+    emitters = scene.emitters()
+    label = (emitter_labels(emitters)[index] if index < len(emitters)
+             else emitter_label(emitter, index))
     kind = emitter_kind(emitter)
     view = None
     if kind == "spot":

@@ -681,7 +681,7 @@ def test_a_named_emitter_keeps_its_id_beside_an_unnamed_one_at_that_index():
     _, one = render_np(alone, {"type": "shadowmap", "method": "raytraced"}, spp=1)
     np.testing.assert_array_equal(aovs["vis_1"], one["vis_0"])    # the light at x = -1.5
 
-    from mi_shadowmap.light_views import emitter_labels
+    from mi_shadowmap.light_views import emitter_labels, unique_labels
     lamps = mi.load_string("""<scene version="3.0.0">
   <shape type="sphere" id="lamp"><emitter type="area"/></shape>
   <shape type="sphere"><point name="center" x="3" y="0" z="0"/><emitter type="area"/></shape>

@@ -77,8 +77,8 @@ class _Parser(argparse.ArgumentParser):
 def _add_scene_args(p, sizes=True, out="out"):
     p.add_argument("scene", nargs="?",
                    help="scene XML file (default: the built-in sphere-and-box scene)")
-    p.add_argument("--light", default="spot", choices=("spot", "point", "directional", "area"),
-                   help="light of the built-in scene (default: spot)")
+    p.add_argument("--light", default=None, choices=("spot", "point", "directional", "area"),
+                   help="light of the built-in scene (default: spot); not with a scene file")
     if sizes:
         p.add_argument("--width", type=int, default=None,
                        help="image width (built-in scene, or an XML file with $width)")
@@ -239,8 +239,11 @@ def parse_grid(text: str):
 
 
 def check_scored_film(scene) -> None:
-    """:func:`mi_shadowmap.timing.check_scored_film`, before the output folder is made."""
+    """:func:`mi_shadowmap.timing.check_scored_film` and
+    :func:`mi_shadowmap.ground_truth.check_emitters`, before the output folder is made."""
+    from .ground_truth import check_emitters
     from .timing import check_scored_film as check
+    check_emitters(scene)
     check(scene)
 
 
@@ -256,7 +259,10 @@ def load_scene_arg(args, sizes=True):
                     raise ValueError(f"--{k} must be >= 1, got {v}")
                 size[k] = v
     if args.scene is None:
-        return scenes.load_scene(scenes.default_scene(light=args.light, **size))
+        return scenes.load_scene(scenes.default_scene(light=args.light or "spot", **size))
+    if args.light is not None:
+        raise ValueError(f"--light {args.light} picks the built-in scene's light; the scene "
+                         f"file {args.scene} brings its own (leave --light out, or the file)")
     return scenes.load_scene(args.scene, **size)
 
 
@@ -324,8 +330,13 @@ def cmd_maps(args) -> int:
     params = parse_sets(args.set)
     specs = harness.map_specs(args.methods, params)   # validated before anything loads
     scene = load_scene_arg(args, sizes=False)
-    report.check_out_dir(out)
+    from .ground_truth import check_emitters
+    check_emitters(scene, "depth map to write")
     maps = [m for m in harness.prepare_maps(scene, specs) if m is not None]
+    if not maps:      # environment emitters only, and no method of --methods maps them
+        raise ValueError("shadowmap: no emitter of the scene has a depth map (an "
+                         "environment emitter has one only with environment='shadowed')")
+    report.check_out_dir(out)
     paths = report.write_maps(maps, out)
     for smap, path in zip(maps, paths):
         print(f"{path}: {smap.view.label} ({type(smap.view).__name__}, {smap.view.n_faces} "

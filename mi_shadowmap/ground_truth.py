@@ -81,19 +81,29 @@ def reference_follows_spp(scene, reference="auto") -> bool:
     return "spp" not in method_spec(reference)
 
 
+def check_emitters(scene, what: str = "shadow to measure") -> None:
+    """Raise ValueError if ``scene`` has no emitter (``compare``, ``sweep``, ``tune`` and
+    the CLI's ``maps`` call it before they render or make an output folder)."""
+    if len(scene.emitters()) == 0:
+        raise ValueError(f"shadowmap: the scene has no emitter, so there is no {what}; "
+                         "add a light (point, spot, directional, area, projector or an "
+                         "environment)")
+
+
 def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_spp: int = 64,
-                   ref_shadow_rays: int = 64) -> MethodResult:
+                   ref_shadow_rays: int = 64, repeats: int = 1,
+                   measure_cached: bool = True) -> MethodResult:
     """Render the reference (see the module docstring).
 
     ``reference`` is ``"auto"``, ``"converged"`` (rendered at ``max(spp,
     ref_spp)`` spp with ``ref_shadow_rays``), a method name / spec dict
     (rendered at ``spp`` unless it has its own), or an existing
-    :class:`~mi_shadowmap.timing.MethodResult`.
+    :class:`~mi_shadowmap.timing.MethodResult`. A method's render is timed as
+    :func:`~mi_shadowmap.timing.run_method` times it (``repeats``, ``measure_cached``),
+    so the reference's row of :func:`~mi_shadowmap.harness.compare`'s table is timed as
+    its methods' are.
     """
-    if len(scene.emitters()) == 0:
-        raise ValueError("shadowmap: the scene has no emitter, so there is no shadow to "
-                         "compare; add a light (point, spot, directional, area, projector "
-                         "or an environment)")
+    check_emitters(scene)
     if isinstance(reference, MethodResult):
         ref = reference
     elif reference == "converged" or (reference == "auto" and has_soft_lights(scene)):
@@ -102,7 +112,8 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
     else:
         spec = dict(method_spec(REFERENCE_METHOD if reference == "auto" else reference))
         r_spp = spec.pop("spp", spp)
-        ref = run_method(scene, spec.pop("method"), spp=r_spp, seed=seed, **spec)
+        ref = run_method(scene, spec.pop("method"), spp=r_spp, seed=seed, repeats=repeats,
+                         measure_cached=measure_cached, **spec)
         ref.name = "reference (" + ref.name + ")"
     ref.is_reference = True
     return ref

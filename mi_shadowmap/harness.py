@@ -91,7 +91,8 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         from tqdm import tqdm
         iterator = tqdm(specs, desc="methods", unit="method", leave=False)
     ref = make_reference(scene, reference, spp=spp, seed=seed, ref_spp=ref_spp,
-                         ref_shadow_rays=ref_shadow_rays)
+                         ref_shadow_rays=ref_shadow_rays, repeats=repeats,
+                         measure_cached=measure_cached)
     # a reference that shares the methods' camera samples (reference_follows_spp) holds
     # no camera noise in their errors; a method with its own spp gets one at its spp
     per_spp = {spp: ref}
@@ -108,7 +109,8 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         r_ref = ref
         if matched and m_spp not in per_spp:
             per_spp[m_spp] = make_reference(scene, reference, spp=m_spp, seed=seed,
-                                            ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
+                                            ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays,
+                                            repeats=repeats, measure_cached=measure_cached)
         if matched:
             r_ref = per_spp[m_spp]
         results.append(r)

@@ -146,14 +146,22 @@ def analyse(rows: list[dict], time_key="time_warm", error_key="vis_rmse") -> lis
             continue
         within = [q["error"] for q in rt if q["time"] <= r["time"]]
         r["rt_error_equal_time"] = min(within) if within else None
-        r["error_ratio_equal_time"] = (
-            r["rt_error_equal_time"] / r["error"]
-            if within and r["error"] > 0 else (math.inf if within else None))
+        r["error_ratio_equal_time"] = _ratio(r["rt_error_equal_time"], r["error"]) \
+            if within else None
         better = [q["time"] for q in rt if q["error"] <= r["error"]]
         r["rt_time_equal_error"] = min(better) if better else None
         r["speedup_equal_error"] = (r["rt_time_equal_error"] / r["time"]
                                     if better and r["time"] > 0 else None)
     return rows
+
+
+def _ratio(rt_error: float, error: float) -> float:
+    """Ray tracing's error over a row's: 1 where both are 0 (a tie: a row that ties
+    with ray tracing at 0 read as infinitely more accurate), inf where only the row's
+    is."""
+    if error > 0:
+        return rt_error / error
+    return 1.0 if rt_error == 0 else math.inf
 
 
 class SweepTable:

@@ -66,7 +66,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import metrics
-from .ground_truth import converged_reference, has_soft_lights, make_reference, score
+from .ground_truth import (check_emitters, converged_reference, has_soft_lights,
+                           make_reference, score)
 from .options import OptionError
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_shared_params,
@@ -924,6 +925,7 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
     if spp is not None and spp > max_spp:
         raise TuneError(f"shadowmap: tune: spp = {spp} is more than max_spp = {max_spp}")
     scene = load_scene(scene, **(scene_params or {}))
+    check_emitters(scene)
     check_scored_film(scene)
     tuner = _Tuner(scene, max_error, metric, specs, rt_spec, time_limit, search_size, margin,
                    seed, repeats, max_spp, max_ref_spp, ref_light_samples, spp, progress)

@@ -67,6 +67,8 @@ def test_no_command_runs_compare_on_xml(tmp_path, capsys):
     (["sweep", "--grid", "missing.json"], "not found"),
     (["maps", "--methods", "nope"], "nope"),
     (["maps", "--methods", "raytraced"], "no depth map"),
+    # a scene file brings its own lights (--light was ignored)
+    (["compare", str(SCENES / "far_point.xml"), "--light", "area"], "--light area"),
     (["compare", "--plugin", "/no/such/plugin.py"], "plugin file not found"),
     (["--plugin", "/no/such/plugin.py", "sweep"], "/no/such/plugin.py"),
     (["maps", "--plugin"], "--plugin"),
@@ -252,3 +254,27 @@ def test_an_error_during_rendering_starts_its_own_line(tmp_path, capsys):
     assert code == 2
     line = next(s for s in err.splitlines() if "error:" in s)
     assert line.startswith("mi-shadowmap: error:") and "not supported" in line, err
+
+
+NO_EMITTER_XML = """<scene version="3.0.0">
+  <sensor type="perspective"><transform name="to_world">
+    <lookat origin="0, 2, 5" target="0, 0.5, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
+    </film></sensor>
+  <shape type="sphere"/>
+</scene>"""
+
+
+@pytest.mark.parametrize("command", [["compare"], ["sweep"], ["tune", "--max-error", "0.05"],
+                                     ["maps"]])
+def test_a_scene_without_emitters_is_one_line_and_no_output_folder(tmp_path, capsys,
+                                                                   command):
+    """``tune`` said numpy's "need at least one array to stack" and ``maps`` wrote
+    nothing and exited 0; every command now names the missing light before it makes
+    ``--out``."""
+    scene = tmp_path / "dark.xml"
+    scene.write_text(NO_EMITTER_XML)
+    code, out, err = run([command[0], scene, *command[1:], "--out", tmp_path / "o"], capsys)
+    assert code == 2
+    assert "the scene has no emitter" in err and "add a light" in err
+    assert not (tmp_path / "o").exists()

@@ -227,6 +227,19 @@ def test_analyse_known_answers():
     assert by["rt2"]["speedup_equal_error"] is None          # no self-comparison
 
 
+def test_analyse_reads_a_tie_at_zero_error_as_a_tie():
+    """A row and ray tracing both at error 0 (misclassified on an easy scene) was an
+    error ratio of inf, "infinitely more accurate"; 0 against a positive error is."""
+    rows = [{"name": n, "method": m, "time_warm": t, "vis_misclassified": e}
+            for n, m, t, e in [("rt1", "raytraced", 0.005, 0.0), ("hard", "hard", 0.01, 0.0),
+                               ("rt_bad", "raytraced", 0.001, 0.2), ("pcf", "pcf", 0.002, 0.0),
+                               ("bad", "hard", 0.002, 0.1)]]
+    by = {r["name"]: r for r in harness.analyse(rows, error_key="vis_misclassified")}
+    assert by["hard"]["error_ratio_equal_time"] == 1.0
+    assert by["pcf"]["error_ratio_equal_time"] == math.inf     # ray tracing's 0.2 in time
+    assert by["bad"]["error_ratio_equal_time"] == pytest.approx(2.0)
+
+
 def test_sweep_table(tmp_path):
     scene = mi.load_dict(default_scene(**SMALL))
     table = harness.sweep(scene, [{"method": "hard", "resolution": [64, 256]},
@@ -446,6 +459,21 @@ def test_render_checks_its_properties_and_a_string_is_one_method():
         harness.render(scene, "hard", spp=0)
     res = harness.compare(scene, methods="hard", spp=1, repeats=1, measure_cached=False)
     assert [r.method for r in res] == ["raytraced", "hard"]
+
+
+def test_the_reference_row_is_timed_with_the_methods_repeats(monkeypatch):
+    """``compare(repeats=3)``'s reference row came from one warm render beside the
+    methods' medians of three."""
+    from mi_shadowmap import timing
+    counts, real = {}, timing.render_timed
+
+    def counted(scene, integrator, spp, seed):
+        counts[integrator.opts.method] = counts.get(integrator.opts.method, 0) + 1
+        return real(scene, integrator, spp, seed)
+    monkeypatch.setattr(timing, "render_timed", counted)
+    harness.compare(mi.load_dict(default_scene(**SMALL)), methods=["unshadowed"], spp=1,
+                    repeats=3, measure_cached=False)
+    assert counts == {"raytraced": 4, "unshadowed": 4}     # one cold, three warm each
 
 
 def test_a_scene_without_emitters_is_refused_by_name():

@@ -224,3 +224,12 @@ def test_the_spp_search_bisects_where_the_error_model_predicts_no_spp():
     assert len(seen) <= 6
     met = min(s for s, (e, _) in c.points.items() if e <= 0.011)
     assert met == min(s for s in ladder if truth[s] <= 0.011 and s > 8)
+
+
+def test_tune_refuses_a_scene_without_emitters_by_name():
+    """It failed in its pilot renders with numpy's "need at least one array to stack"."""
+    d = default_scene(width=8, height=8)
+    for k in [k for k, v in d.items() if isinstance(v, dict) and v.get("type") == "spot"]:
+        d.pop(k)
+    with pytest.raises(ValueError, match="the scene has no emitter"):
+        mi_shadowmap.tune(mi.load_dict(d), max_error=0.05, methods=["hard"], progress=False)

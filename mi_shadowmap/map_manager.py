@@ -229,9 +229,9 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
 def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose=None,
               antialias=False) -> MapPlan:
     """One emitter's plan. A culled depth (``faces``) is cached under
-    ``("depth", faces)`` and its layers under ``(name, faces)`` -- the face set of the
-    depth they were built from -- so a layer is never taken from a depth of another
-    face set; a full cached depth, or a culled one with a superset of the faces,
+    ``("depth", faces)`` and its layers under ``("layer", name, builder, faces)`` --
+    the face set of the depth they were built from -- so a layer is never taken from a
+    depth of another face set, nor from another builder of the same name; a full cached depth, or a culled one with a superset of the faces,
     serves any face set. ``differentiable`` plans come with ``state`` None: no cache;
     ``pose``: the light's pose delta (gradients); ``antialias``: silhouette
     antialiasing (all faces are built, culling skipped; comes with ``state`` None)."""
@@ -288,7 +288,9 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
         if state is not None:
             MAP_CACHE.put(scene, state, p.key, p.depth_key, smap.depth, dt)
     for name, builder in p.layers.items():
-        layer_key = name if p.faces is None else (name, p.faces)
+        # keyed by the builder too: two methods' layers of one name (a user's 'vsm_m1',
+        # a method registered again with replace=True) are different data
+        layer_key = ("layer", name, builder, p.faces)
         entry = MAP_CACHE.get(scene, state, p.key, layer_key) if state is not None else None
         if entry is None:
             t0 = time.perf_counter()

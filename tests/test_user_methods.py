@@ -331,3 +331,48 @@ def test_needs_curvature_gives_the_lookup_the_normals_derivatives():
             mi_shadowmap.unregister_method(name)
         got[flag] = img[2:6, 2:6, -1]
     assert np.allclose(got[True], 0.5, atol=1e-3) and np.all(got[False] == 0.0)
+
+
+def test_layers_of_one_name_from_two_builders_are_not_shared_in_the_cache():
+    """The map cache kept layers by name: a user method whose layer is also called
+    'extra' read another's cached 'extra' (0.25 instead of 0.75), a method registered
+    again with replace=True kept its first builder's layer, and a user layer named
+    'vsm_m1' turned the built-in vsm black on that scene."""
+    def const(value):
+        return lambda scene, smap: dr.full(mi.Float, value, dr.width(smap.depth))
+
+    def read_extra(smap, lk, opts, active):
+        return dr.gather(mi.Float, smap.extra["extra"], 0, active)
+
+    def read_m1(smap, lk, opts, active):
+        return dr.gather(mi.Float, smap.extra["vsm_m1"], 0, active)
+
+    scene = mi.load_dict(default_scene(width=8, height=8))
+    integ = {"method": "vsm", "resolution": 64}
+    ref = np.asarray(mi.render(scene, integrator=mi.load_dict(
+        {"type": "shadowmap", **integ}), spp=1))
+    names = []
+    try:
+        for name, value in (("quarter", 0.25), ("three_quarters", 0.75)):
+            names.append(mi_shadowmap.register_method(name, read_extra,
+                                                      layers={"extra": const(value)}).name)
+        names.append(mi_shadowmap.register_method(
+            "moment_copy", read_m1, layers={"vsm_m1": const(0.0)}).name)
+
+        def lit(method):
+            img = np.asarray(mi.render(scene, integrator=mi.load_dict(
+                {"type": "shadowmap", "method": method, "resolution": 64}), spp=1))
+            return img[..., 3][img[..., 3] > 0]      # the points the spot lights
+
+        assert np.allclose(lit("quarter"), 0.25) and np.allclose(lit("three_quarters"), 0.75)
+        mi_shadowmap.register_method("quarter", read_extra, layers={"extra": const(0.5)},
+                                     replace=True)
+        assert np.allclose(lit("quarter"), 0.5)
+        mi.render(scene, integrator=mi.load_dict(      # caches its own 'vsm_m1'
+            {"type": "shadowmap", "method": "moment_copy", "resolution": 64}), spp=1)
+        after = np.asarray(mi.render(scene, integrator=mi.load_dict(
+            {"type": "shadowmap", **integ}), spp=1))
+        np.testing.assert_array_equal(after, ref)
+    finally:
+        for n in names:
+            mi_shadowmap.unregister_method(n)

@@ -153,6 +153,7 @@ Deviations from the paper, and why:
 """
 from __future__ import annotations
 
+import functools
 import re
 
 import drjit as dr
@@ -238,7 +239,9 @@ def moment_layer(smap, positive: bool, power: int, c: float):
                              smap.view.n_faces, smap.resolution)
 
 
+@functools.lru_cache(maxsize=None)
 def _moment_builder(positive: bool, power: int, c: float):
+    """One builder per layer (the map cache keys layers by their builder too)."""
     def build(scene, smap):
         return moment_layer(smap, positive, power, c)
     build.__name__ = build.__qualname__ = "evsm_moment_layer"

@@ -103,9 +103,12 @@ class LightView:
         """Map depth of ``p_world`` (:meth:`project`'s, without the uv)."""
         return dr.norm(p_world - opaque_point(self.position))
 
-    def texel_world_size(self, res: int, depth, p_world=None):
+    def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
         """World width of one texel at ``depth`` (perpendicular to the ray);
-        ``p_world`` selects the face where faces differ in size (cascades)."""
+        ``p_world`` selects the face where faces differ in size (cascades). Where a
+        face's texels are not square (an orthographic rectangle), ``n_world`` (the
+        receiver's normal) picks the width along the receiver's depth gradient (see
+        :func:`texel_width_along`); without it, the longer side."""
         raise NotImplementedError
 
     def texel_parallel_size(self, res: int, face, p_world: mi.Point3f, texel_world):
@@ -499,4 +502,20 @@ def unit_grid(face_count: int, res: int):
     s = (mi.Float(i) + TEXEL_SAMPLE[0]) * (2.0 * inv) - 1.0   # [-1, 1] across the face
     t = (mi.Float(j) + TEXEL_SAMPLE[1]) * (2.0 * inv) - 1.0
     return face, s, t
+
+
+def texel_width_along(w_x, w_y, axis_x, axis_y, n_world):
+    """The width of a ``w_x`` x ``w_y`` texel (world units; the face's image-plane axes
+    ``axis_x``, ``axis_y``, unit world vectors) along the depth gradient of a receiver
+    of normal ``n_world``: the normal's part in the image plane, the direction in which
+    a receiver plane's depth changes, ``sqrt((w_x t_x)^2 + (w_y t_y)^2)`` for the unit
+    direction ``t`` (``w`` for square texels, as before); the shorter side where the
+    normal is along the rays (the depth does not change across the texel). With the
+    longer side, a sun 0.5 degrees above a ground 80 wide (a 45:1 rectangle) sized the
+    biases at 45 texels across the short axis: 21 % of the pixels misclassified."""
+    tx = dr.abs(dr.dot(n_world, axis_x))
+    ty = dr.abs(dr.dot(n_world, axis_y))
+    norm2 = tx * tx + ty * ty
+    along = dr.sqrt((w_x * tx) ** 2 + (w_y * ty) ** 2) / dr.sqrt(dr.maximum(norm2, 1e-30))
+    return dr.select(norm2 > 1e-12, along, dr.minimum(w_x, w_y))
 

@@ -162,15 +162,18 @@ class CascadedView(OrthoView):
         _, _, hx, hy = self._rect(mi.UInt32(face))
         return self._parallel_frame(hx, hy)
 
-    def texel_world_size(self, res: int, depth, p_world=None):
+    def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
         """Needs ``p_world`` (its cascade sets the texel size); without it, the
-        coarsest cascade's texel (a conservative bias)."""
+        coarsest cascade's texel (a conservative bias). ``n_world``: the width along
+        the receiver's depth gradient (:meth:`OrthoView.texel_world_size`)."""
         if p_world is None:
             w = max(max(r[2], r[3]) for r in self.rects)
             return dr.full(mi.Float, 2.0 * w / res, dr.width(depth))
         face = self.project(p_world)[0] if self.catch_all else self.cascade_of(p_world)
         _, _, hx, hy = self._rect(face)
-        return 2.0 * dr.maximum(hx, hy) / res
+        if n_world is None:
+            return 2.0 * dr.maximum(hx, hy) / res
+        return self._texel_along(2.0 * hx / res, 2.0 * hy / res, n_world)
 
     def map_width(self, p_world: np.ndarray) -> float:
         return 2.0 * max(max(r[2], r[3]) for r in self.rects)

@@ -127,7 +127,7 @@ class CubeView(LightView):
         return mi.Point2f(face_uv(mi.UInt32(face),
                                   mi.Point3f(p_world) - opaque_point(self.position)))
 
-    def texel_world_size(self, res: int, depth, p_world=None):
+    def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
         return depth * (2.0 * self.tan_half / res)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):

@@ -234,11 +234,11 @@ class LocalView:
             dt = -dr.dot(n, e) / cc
         return self._lowered(t0_local + dt), c
 
-    def texel_world_size(self, res, depth, p_world=None):
+    def texel_world_size(self, res, depth, p_world=None, n_world=None):
         """``depth`` as this view measures it (from :attr:`depth_origin`)."""
         if self._depth_origin is not None:
             depth = depth + self.depth_origin
-        return self.inner.texel_world_size(res, depth, p_world)
+        return self.inner.texel_world_size(res, depth, p_world, n_world)
 
     def texel_parallel_size(self, res, face, p_world, texel_world):
         return self.inner.texel_parallel_size(res, face, p_world, texel_world)

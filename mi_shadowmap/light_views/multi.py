@@ -244,8 +244,8 @@ class MultiView(LightView):
         """Towards the template's light (the centre; a directional light's axis)."""
         return self.sub.direction_to_light(p_world)
 
-    def texel_world_size(self, res: int, depth, p_world=None):
-        return self.sub.texel_world_size(res, depth, p_world)
+    def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
+        return self.sub.texel_world_size(res, depth, p_world, n_world)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
         k, f = self._split(face)
@@ -311,8 +311,8 @@ class SubView(LightView):
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
         return self.inner.depth_of(p_world)
 
-    def texel_world_size(self, res: int, depth, p_world=None):
-        return self.inner.texel_world_size(res, depth, p_world)
+    def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
+        return self.inner.texel_world_size(res, depth, p_world, n_world)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
         return self.inner.texel_parallel_size(res, mi.UInt32(face) - self.offset, p_world,

@@ -17,8 +17,8 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, light_matrix, look_along, look_along_np, position_np, scalar3,
-                   opaque_point, opaque_scalar, opaque_transform, scene_bounds, transform_f64,
-                   unit_grid)
+                   opaque_point, opaque_scalar, opaque_transform, scene_bounds,
+                   texel_width_along, transform_f64, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -120,9 +120,19 @@ class OrthoView(LightView):
     def depth_of(self, p_world: mi.Point3f) -> mi.Float:
         return dr.dot(p_world - opaque_point(self.position), self._forward())
 
-    def texel_world_size(self, res: int, depth, p_world=None):
+    def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
         # ``res`` may be per lane (virtual maps' levels)
-        return dr.zeros(mi.Float, dr.width(depth)) + 2.0 * opaque_scalar(max(self.half_extent)) / res
+        zero = dr.zeros(mi.Float, dr.width(depth))
+        if n_world is None or self.half_extent[0] == self.half_extent[1]:
+            return zero + 2.0 * opaque_scalar(max(self.half_extent)) / res
+        hx, hy = self._half()
+        return zero + self._texel_along(2.0 * hx / res, 2.0 * hy / res, n_world)
+
+    def _texel_along(self, w_x, w_y, n_world):
+        """:func:`~.base.texel_width_along` in this light's image plane."""
+        w = self._world_from_light()
+        return texel_width_along(w_x, w_y, dr.normalize(w @ mi.Vector3f(1, 0, 0)),
+                                 dr.normalize(w @ mi.Vector3f(0, 1, 0)), mi.Vector3f(n_world))
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
         return texel_world

@@ -115,7 +115,7 @@ class PerspectiveView(LightView):
         return (True, mi.Vector3f(base), mi.Vector3f(opaque_point(k * R[:, 0])),
                 mi.Vector3f(opaque_point(k * R[:, 1])))
 
-    def texel_world_size(self, res: int, depth, p_world=None):
+    def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
         return depth * (2.0 * self.tan_half / res)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):

@@ -392,7 +392,7 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     ray leaves the first solid it entered at its back face). The emitter's
     own shape (area lights) and hits numerically at the light (as in
     :func:`first_hit`) are skipped. Continuation rays start a relative step
-    (``1e-6 max|p| + 1e-5 z``) past the hit (Mitsuba's ``spawn_ray`` offset has an
+    (``1e-6 (max|p| + z)``) past the hit (Mitsuba's ``spawn_ray`` offset has an
     absolute floor that broke scale invariance); at most 64 hits per texel:
     a ray that has not stored a second surface after 64 hits keeps ``+inf``
     (lit), which only a texel ray crossing more than 64 surfaces (e.g. 32
@@ -448,8 +448,11 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
         it = it + 1
         active = active & hit & ~store & (it < 64)
         # Continue a relative step past the hit (not si.spawn_ray: its offset has an
-        # absolute floor, (1 + max|p|) * eps, which broke scale invariance, issue 6).
-        step = 1e-6 * dr.max(dr.abs(mi.Vector3f(si.p))) + 1e-5 * dr.abs(z)
+        # absolute floor, (1 + max|p|) * eps, which broke scale invariance, issue 6):
+        # about 8 float32 ulps of the hit's coordinates and of its depth. (1e-5 of the
+        # depth, before: a directional map's rays start a scene radius away, and over a
+        # ground 1e5 wide the step, 1.4 units, passed through unit boxes' back faces.)
+        step = 1e-6 * (dr.max(dr.abs(mi.Vector3f(si.p))) + dr.abs(z))
         ray = dr.select(active, mi.Ray3f(si.p + d * step, d), ray)
         return ray, z_first, z_second, it, active
 

@@ -576,3 +576,25 @@ def test_solidity_of_parts_hollow_inverted_and_open():
     assert depth_maps._SOLID_MEMO
     mi_shadowmap.clear_caches()             # holds no freed mesh's buffers after it
     assert not depth_maps._SOLID_MEMO
+
+
+def test_second_depths_over_a_ground_1e5_wide_keep_unit_boxes_back_faces():
+    """A directional map's texel rays start a scene radius away (1.4e5 here): the
+    continuation step past each hit, 1e-5 of that depth (1.4 units), passed through the
+    unit box's and sphere's back faces and stored the ground, so their shadows went
+    missing (7.9 % of pixels false lit, hard 0.4 %). Now about 8 ulps of the hit's
+    coordinates and depth."""
+    from mi_shadowmap.scenes import default_scene
+    d = default_scene(light="directional", width=48, height=48, spp=4)
+    d["ground"]["to_world"] = mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(1e5)
+    scene = mi.load_dict(d)
+
+    def vis(method):
+        img = np.asarray(mi.render(scene, integrator=mi.load_dict(
+            {"type": "shadowmap", "method": method}), spp=4, seed=2))
+        return img[..., 3]
+    ref = vis("raytraced")
+    assert 0.05 < np.mean(ref < 0.5) < 0.5
+    false_lit = np.mean((ref < 0.5) & (vis("second_depth") >= 0.5))
+    print(f"second_depth false lit {false_lit:.2%}")
+    assert false_lit <= 0.035

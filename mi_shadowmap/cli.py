@@ -134,7 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--reference", default="auto",
                    help="'auto' (default), 'converged', or a method spec like 'raytraced'")
     c.add_argument("--ref-spp", type=int, default=64,
-                   help="spp of the converged area-light reference (default 64)")
+                   help="spp of --reference converged (default 64); the automatic reference "
+                        "renders at --spp, with the methods' camera samples")
     c.add_argument("--ref-shadow-rays", type=int, default=64,
                    help="shadow rays of the converged area-light reference (default 64)")
 

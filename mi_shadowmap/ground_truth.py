@@ -6,8 +6,12 @@
   emitter is a delta light (so its visibility is the exact per-sample ground
   truth and its own metrics are 0); when the scene has an area light or an
   environment (:func:`has_soft_lights`), the converged soft-shadow reference
-  (:func:`converged_reference`);
-* ``"converged"``: :func:`converged_reference` in any scene;
+  (:func:`converged_reference`), also at the same spp and seed: the methods' camera
+  samples, so that their errors hold no camera noise (at ``max(spp, ref_spp)``, before,
+  ``raytraced`` with 256 shadow rays scored a visibility RMSE of 0.044 on a 48^2
+  ``cbox_area`` at 16 spp, 0.0025 against a reference with its camera samples);
+* ``"converged"``: :func:`converged_reference` in any scene, at ``max(spp, ref_spp)``
+  spp (its own camera samples: a reference independent of the methods');
 * a method name or spec (rendered at the given spp), or an existing
   :class:`~mi_shadowmap.timing.MethodResult`.
 
@@ -72,12 +76,12 @@ def converged_reference(scene: mi.Scene, spp: int = 64, seed: int = 0,
 def reference_follows_spp(scene, reference="auto") -> bool:
     """Whether :func:`make_reference` renders ``reference`` at the ``spp`` (and seed) it is
     given, so that it shares a method's camera samples at that spp: the automatic one
-    under delta lights and a method without its own ``spp``; not the converged one (at
-    ``max(spp, ref_spp)``), a spec with its own ``spp``, or a given result."""
+    and a method without its own ``spp``; not ``"converged"`` (at ``max(spp, ref_spp)``),
+    a spec with its own ``spp``, or a given result."""
     if isinstance(reference, MethodResult) or reference == "converged":
         return False
     if reference == "auto":
-        return not has_soft_lights(scene)
+        return True
     return "spp" not in method_spec(reference)
 
 
@@ -95,7 +99,7 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
                    measure_cached: bool = True) -> MethodResult:
     """Render the reference (see the module docstring).
 
-    ``reference`` is ``"auto"``, ``"converged"`` (rendered at ``max(spp,
+    ``reference`` is ``"auto"`` (at ``spp``), ``"converged"`` (rendered at ``max(spp,
     ref_spp)`` spp with ``ref_shadow_rays``), a method name / spec dict
     (rendered at ``spp`` unless it has its own), or an existing
     :class:`~mi_shadowmap.timing.MethodResult`. A method's render is timed as
@@ -107,8 +111,8 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
     if isinstance(reference, MethodResult):
         ref = reference
     elif reference == "converged" or (reference == "auto" and has_soft_lights(scene)):
-        ref = converged_reference(scene, spp=max(spp, ref_spp), seed=seed,
-                                  shadow_rays=ref_shadow_rays)
+        ref = converged_reference(scene, spp=spp if reference == "auto" else max(spp, ref_spp),
+                                  seed=seed, shadow_rays=ref_shadow_rays)
     else:
         spec = dict(method_spec(REFERENCE_METHOD if reference == "auto" else reference))
         r_spp = spec.pop("spp", spp)

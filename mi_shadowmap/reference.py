@@ -36,20 +36,30 @@ from .variants import unpolarized, variant_class
 
 
 def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
-    """``(n_light, 2)`` stratified (jittered-grid) points in ``[0, 1)^2``.
+    """``(n_light, 2)`` stratified (jittered-grid) points in ``[0, 1)^2``, one per
+    equal-area cell for any ``n``.
 
-    ``cols = ceil(sqrt(n))`` columns and ``ceil(n / cols)`` rows; the first
-    ``n`` cells (row-major) get one uniformly jittered point each. For
-    ``n = 1024``: a 32 x 32 jittered grid. Deterministic given ``seed``.
+    ``rows = round(sqrt(n))`` rows, row ``r`` of ``n_r`` cells (``n // rows`` or one
+    more) of width ``1 / n_r`` and height ``n_r / n``; one uniformly jittered point per
+    cell, row-major. For ``n = 1024``: a 32 x 32 jittered grid. Deterministic given
+    ``seed``. (A ``ceil(sqrt(n))``-column grid, before, filled only the first ``n``
+    cells: part of the light was never sampled for a non-square ``n``, each point still
+    weighing ``1 / n``; ``n = 1000`` was off by up to 0.026 on contact_hardening, 1024
+    and 992 by 0.001.)
     """
     if not isinstance(n_light, int) or n_light < 1:
         raise ValueError(f"converged_visibility: n_light must be an integer >= 1, got {n_light!r}")
-    cols = math.ceil(math.sqrt(n_light))
-    rows = math.ceil(n_light / cols)
-    k = np.arange(n_light)
+    rows = max(1, int(round(math.sqrt(n_light))))
     jitter = np.random.default_rng(seed).random((n_light, 2))
-    return np.stack([((k % cols) + jitter[:, 0]) / cols,
-                     ((k // cols) + jitter[:, 1]) / rows], axis=1).astype(np.float32)
+    xs, ys, start = [], [], 0
+    for r in range(rows):
+        n_r = n_light // rows + (1 if r < n_light % rows else 0)
+        j = jitter[start:start + n_r]
+        xs.append((np.arange(n_r) + j[:, 0]) / n_r)
+        ys.append((start + j[:, 1] * n_r) / n_light)
+        start += n_r
+    pts = np.stack([np.concatenate(xs), np.concatenate(ys)], axis=1)
+    return np.clip(pts, 0.0, np.nextafter(1.0, 0.0)).astype(np.float32)
 
 
 class _ConvergedVisibilityMixin:

@@ -5,11 +5,12 @@ the ``shadowmap`` integrator would produce with infinitely many light
 samples: at every camera sample, the average of ``n_light`` hard shadows
 cast from *fixed* positions on the light (the protocol of Guennebaud et al.
 2006 and Forest et al. 2006: "the average of 1024 hard shadows"). The
-positions are a jittered ``ceil(sqrt(n))``-column grid over the emitter's
-sample square, jittered by a ``numpy`` generator seeded with ``seed`` and
+positions are a jittered grid of ``n`` equal-area cells over the emitter's
+sample square (:func:`light_sample_pattern`), jittered by a ``numpy`` generator seeded with ``seed`` and
 identical for every pixel, mapped to the light by
 ``emitter.sample_direction`` (uniform on the area for rectangles and meshes;
-on the visible cone for spheres). Every sample is a real shadow ray
+on the visible cone for spheres; through the texture's importance sampling for a
+textured radiance). Every sample is a real shadow ray
 (``scene.ray_test``), inside one ``dr.while_loop`` per emitter, so 1024 light
 samples cost one kernel.
 

@@ -4,6 +4,7 @@ caching, the lookup subsets, point/spot/directional lights with extent, bad inpu
 and spectral variants. Small sizes: 64^2 images, maps of at most 256^2."""
 import re
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -294,7 +295,11 @@ def test_visibility_counts_the_light_points_as_the_reference_does(shape):
     visibility was about twice the reference's there (cube 0.71 against 0.32, MAE 0.39;
     cylinder 0.69 / 0.34; a checkerboard with black squares 0.71 / 0.36). With as many
     views as reference samples it now equals the reference (measured MAE 2-3e-4); a
-    sphere, which Mitsuba samples in the cone it subtends, keeps counting its front."""
+    sphere, which Mitsuba samples in the cone it subtends, counts its front, each point
+    weighted by its solid angle (test_a_sphere_light_is_averaged_over_its_cone).
+    Mitsuba's ``checkerboard`` texture samples positions uniformly (the default
+    ``sample_position``), so its light samples do land on black squares; a bitmap's
+    do not (test_a_textured_light_is_sampled_like_mitsuba_samples_it)."""
     d = default_scene(width=32, height=32, spp=4)
     for k in [k for k, v in d.items() if isinstance(v, dict) and v.get("type") == "spot"]:
         d.pop(k)
@@ -330,3 +335,91 @@ def test_a_sphere_light_with_flipped_normals_lights_nothing_outside_it():
         vis[method] = img[..., -1]
         assert np.abs(img[..., :3]).max() == 0.0        # no light reaches the ground
     assert vis["raytraced"].max() == 0.0 and vis["multiview"].max() == 0.0
+
+
+def _area_light_scene(light, size=32):
+    d = default_scene(width=size, height=size, spp=4)
+    for k in [k for k, v in d.items() if isinstance(v, dict) and v.get("type") == "spot"]:
+        d.pop(k)
+    d["light"] = light
+    return mi.load_dict(d)
+
+
+_CHECKER = np.zeros((8, 8, 3), np.float32)
+_CHECKER[::2, ::2] = _CHECKER[1::2, 1::2] = 8.0
+_HALVES = np.ones((8, 8, 3), np.float32)
+_HALVES[:, :4] = 20.0
+
+
+@pytest.mark.parametrize("texture", ["checker", "halves"])
+def test_a_textured_light_is_sampled_like_mitsuba_samples_it(texture):
+    """A light whose radiance is a bitmap: Mitsuba draws its samples through the
+    texture's importance sampling (never on a black texel, 20 times as many per texel
+    on a texel 20 times as bright), and the reference counts those. ``multiview``
+    spread its points by area and counted the ones on black texels as shadowed: RMSE
+    0.43 (black-and-white checker: mean visibility about half the reference's) and
+    0.060 (bright / dim halves) at K = 64, not falling with K; its points are now the
+    emitter's own ``sample_position`` (measured 0.0096 / 0.0102)."""
+    tex = {"checker": _CHECKER, "halves": _HALVES}[texture]
+    scene = _area_light_scene({
+        "type": "rectangle",
+        "to_world": _T().look_at(origin=[1, 4, 1], target=[0, 0, 0], up=[0, 1, 0]).scale(0.5),
+        "emitter": {"type": "area", "radiance": {
+            "type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True,
+            "filter_type": "nearest"}}})
+    e = scene.emitters()[0]
+    K = 64
+    view = multi_view(make_light_view(e, scene, 0), e, scene, K)
+    assert view.count_all and len(view.normals) == 1
+    # the points are where Mitsuba samples the light: the radiance there is never 0; on
+    # the halves, 20 : 1 per area
+    ps, _ = e.sample_position(0.0, mi.Point2f(*[mi.Float(c) for c in
+                                                 np.array(view.samples).T]))
+    np.testing.assert_array_equal(np.array(view.positions, dtype=np.float32),
+                                  np.stack([c.numpy() for c in ps.p], axis=1))
+    si = dr.zeros(mi.SurfaceInteraction3f, K)
+    si.p, si.n, si.uv = ps.p, ps.n, ps.uv
+    si.sh_frame = mi.Frame3f(ps.n)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    radiance = np.asarray(e.eval(si))[0]
+    assert np.all(radiance > 0)
+    if texture == "halves":
+        bright = int(np.sum(radiance > 10))
+        print(f"halves: {bright} of {K} points on the bright half")
+        assert abs(bright - K * 20 / 21) <= 3
+    ref = next(iter(converged_visibility(scene, n_light=1024, spp=4).values()))
+    got = vis(scene, method="multiview", views=K, resolution=128)
+    err = rmse(got, ref)
+    print(f"{texture}: multiview K = {K} RMSE {err:.4f}, mean {got.mean():.3f} "
+          f"(reference {ref.mean():.3f})")
+    assert err < 0.02
+    assert abs(got.mean() - ref.mean()) < 0.005
+
+
+def test_a_sphere_light_is_averaged_over_its_cone():
+    """Mitsuba samples a sphere light uniformly in the cone it subtends from the
+    receiver; ``multiview``'s points are uniform over the sphere's area and were averaged
+    over the ones facing the receiver, i.e. uniformly over the visible cap's area,
+    which over-weights its rim (penumbrae too wide): RMSE 0.054 / 0.021 / 0.022 at
+    K = 16 / 64 / 256, a floor more views did not lower. Weighted by the solid angle
+    each point stands for (cos theta / d^2) they converge: measured 0.050 / 0.025 /
+    0.0065. A point light given ``light_size`` (a sphere of that diameter) is averaged
+    the same way, so it casts the sphere area light's shadows."""
+    centre, radius = [0.5, 2.5, 0.5], 0.6
+    scene = _area_light_scene({"type": "sphere", "center": centre, "radius": radius,
+                               "emitter": {"type": "area", "radiance": 8.0}})
+    ref = next(iter(converged_visibility(scene, n_light=1024, spp=4).values()))
+    got = vis(scene, method="multiview", views=256, resolution=128)
+    err = rmse(got, ref)
+    print(f"sphere: multiview K = 256 RMSE {err:.4f}")
+    assert err < 0.012
+    e = scene.emitters()[0]
+    view = multi_view(make_light_view(e, scene, 0), e, scene, 8)
+    assert view.cone and not view.count_all
+    # the point light of that size: the same visibility but where the camera sees the
+    # sphere itself
+    point = vis(_area_light_scene({"type": "point", "position": centre, "intensity": 8.0}),
+                method="multiview", views=256, resolution=128, light_size=2 * radius)
+    same = np.abs(point - got) < 0.02
+    print(f"point light of the sphere's size: {same.mean():.1%} of pixels within 0.02")
+    assert same.mean() > 0.9

@@ -5,9 +5,10 @@ Guennebaud et al. 2006): a soft shadow is the fraction of the light's points
 that see the receiver. The map manager builds, through the record's
 ``view_for`` hook, one :class:`~mi_shadowmap.light_views.multi.MultiView` per
 emitter: ``views`` (K) depth maps rendered from K stratified, fixed points of
-the light (area lights: their shape's own position sampling; point and spot
-lights: a sphere / square of side ``light_size``; directional lights: K
-directions inside ``angular_diameter``), all in one tensor, built in one pass
+the light (area lights: the emitter's own position sampling -- by area, or through
+the texture's importance sampling for a textured radiance, as Mitsuba samples it;
+point and spot lights: a sphere / square of side ``light_size``; directional lights:
+K directions inside ``angular_diameter``), all in one tensor, built in one pass
 of ray queries and cached like every map. Each view covers what it must: cube
 maps, one perspective face per view for a planar light whose scene fits a
 frustum, the spot's cone, or the scene's bounds (directional). A light without
@@ -32,15 +33,21 @@ a light without extent is bit-identical to ``hard``.
 
 **Visibility** is defined exactly as by the converged reference
 (:mod:`mi_shadowmap.reference`): a light point is lit where it emits towards the
-receiver (front side of an area light, radiance > 0 there for a textured one; the
-spot's cone, from the emitter's own sample), lies above the receiver's horizon (the
-BSDF towards it is not 0: evaluated once towards the light's centre, and again only
-for views on the other side of the shading plane -- BSDFs are zero or not per
-hemisphere) and is not occluded. The fraction is over the points the reference's
-light samples could be: all K for lights Mitsuba samples by area (a point on the back
-of a cube or a cylinder light, or on a black texel, counts as shadowed, as a light
-sample drawn there does), the emitting ones for a sphere, which Mitsuba samples in the
-cone it subtends (:attr:`~mi_shadowmap.light_views.multi.MultiView.count_all`). The
+receiver (front side of an area light, radiance > 0 there; the spot's cone, from
+the emitter's own sample), lies above the receiver's horizon (the BSDF towards it is
+not 0: evaluated once towards the light's centre, and again only for views on the
+other side of the shading plane -- BSDFs are zero or not per hemisphere) and is not
+occluded. The points are distributed as the reference's light samples are, and the
+fraction is over the points those samples could be: all K for lights Mitsuba samples
+by area or through their texture (a point on the back of a cube or a cylinder light,
+or on a black square of a ``checkerboard`` radiance, which samples uniformly, counts as
+shadowed, as a light sample drawn there does; a ``bitmap`` radiance puts its points
+only on its bright texels, as many as their share of its brightness), the emitting
+ones for a uniform sphere, which Mitsuba samples uniformly in the cone it subtends
+(:attr:`~mi_shadowmap.light_views.multi.MultiView.count_all`) -- each of them counted
+for the solid angle it stands for, ``cos(theta) / d^2`` at the receiver
+(:attr:`~mi_shadowmap.light_views.multi.MultiView.cone`; an unweighted average over
+the sphere's facing cap over-weights its rim). The
 lookup returns ``(visible, above)``, the fractions of those points that are lit and
 that are above the horizon (the record's ``whole_light``): the integrator
 reports ``visible`` as the AOV at every shaded point, and weights its one
@@ -95,9 +102,10 @@ def multiview(smap, lk: Lookup, opts, active=True):
     """Accumulated multi-view visibility; see the module docstring.
 
     Returns ``(visible, above)`` (``mi.Float`` each): over the looked-up light
-    points that emit towards the shading point, the fraction that is above its
-    horizon and unoccluded, and the fraction that is above its horizon (both 0
-    where no point emits towards it).
+    points (all of them, or those that emit towards the shading point: ``count_all``),
+    the fraction that is above its horizon and unoccluded, and the fraction that is
+    above its horizon (both 0 where no point emits towards it); a sphere's points are
+    weighted by their solid angle (``MultiView.cone``).
     """
     view = as_multi_view(smap.view)
     K = view.n_views
@@ -133,15 +141,23 @@ def multiview(smap, lk: Lookup, opts, active=True):
         f = unpolarized(bsdf.eval(ctx, si, wo, across))
         above = emits & dr.select(across, dr.max(f) > 0, above_c)
         vis = dr.select(above, test(sub, lk, opts, above), 0.0)
-        return (j + 1, dr.select(emits, n_emit + 1.0, n_emit),
-                dr.select(above, n_above + 1.0, n_above), n_lit + vis)
+        if not view.cone:
+            return (j + 1, dr.select(emits, n_emit + 1.0, n_emit),
+                    dr.select(above, n_above + 1.0, n_above), n_lit + vis)
+        # a sphere sampled in its cone: each point counts for its solid angle
+        w = dr.select(emits, view.weight(k, p), 0.0)
+        return (j + 1, n_emit + w, dr.select(above, n_above + w, n_above), n_lit + w * vis)
 
     z = mi.Float(0.0)
     _, n_emit, n_above, n_lit = dr.while_loop((mi.UInt32(0), z, z, z), cond, body)
-    # the reference's denominator: every point looked up for a light sampled by area,
-    # the emitting ones for a sphere (see MultiView.count_all)
+    # the reference's denominator: every point looked up for a light sampled by area
+    # (or by its texture), the emitting ones -- weighted by their solid angle -- for a
+    # sphere sampled in its cone (see MultiView.count_all, MultiView.cone)
     total = mi.Float(L) if view.count_all else n_emit
-    inv = dr.select(n_emit > 0, dr.rcp(dr.maximum(total, 1.0)), 0.0)
+    if view.cone:
+        inv = dr.select(n_emit > 0, dr.rcp(total), 0.0)
+    else:
+        inv = dr.select(n_emit > 0, dr.rcp(dr.maximum(total, 1.0)), 0.0)
     return n_lit * inv, n_above * inv
 
 

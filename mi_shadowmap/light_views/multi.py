@@ -12,8 +12,10 @@ others:
 ===============  =====================================================  ================
 emitter          light points (``K`` stratified samples ``u_k``)         sub-views
 ===============  =====================================================  ================
-area             the shape's own ``sample_position(u_k)`` (the points    cube maps
-                 the converged reference samples), with their normals
+area             the emitter's own ``sample_position(u_k)``, with their  cube maps
+                 normals: the shape's, uniform by area, or for a
+                 textured radiance the texture's importance sampling
+                 (where the converged reference's samples lie)
 point            ``light_size`` > 0: uniform on the sphere of diameter   cube maps
                  ``light_size`` (a sphere light), with their normals
 spot,            ``light_size`` > 0: a square of side ``light_size``     the light's own
@@ -25,7 +27,10 @@ directional      ``angular_diameter`` > 0: ``K`` directions in the       orthogr
 ===============  =====================================================  ================
 
 A light point with a normal (area lights, sized point lights) emits only
-into its front half-space (:meth:`MultiView.emits_towards`). Per-view
+into its front half-space (:meth:`MultiView.emits_towards`). A sphere light that
+Mitsuba samples in the cone it subtends (uniform radiance; a sized point light
+likewise) weights its points, which are uniform by area, per receiver by the solid
+angle each stands for, ``cos(theta_k) / d_k^2`` (:meth:`MultiView.weight`). Per-view
 positions, rotations and normals live in small JIT tables gathered by the view
 index, so one kernel serves every ``k`` (:meth:`MultiView.sub_view`). The
 samples ``u_k`` (:func:`stratified_points`) are equal-area jittered strata
@@ -111,9 +116,16 @@ class MultiView(LightView):
       is > 0: a textured light can be black in places), or ``()``: all do;
     * ``count_all`` -- the visibility's denominator is all the points looked up (a
       point that does not emit towards the receiver counts as shadowed, as the
-      reference counts a light sample Mitsuba draws there: lights sampled by area),
-      else only the points that emit towards it (a sphere, which Mitsuba samples in the
-      cone it subtends, so that no sample lies on its back);
+      reference counts a light sample Mitsuba draws there: lights sampled by area, or
+      by their texture), else only the points that emit towards it (a sphere, which
+      Mitsuba samples in the cone it subtends, so that no sample lies on its back);
+    * ``cone`` -- True for a sphere light sampled in the cone it subtends (a uniform
+      sphere area light, a point light with ``light_size``): its points, uniform by
+      area, are weighted per receiver by the solid angle each stands for,
+      ``cos(theta_k) / d_k^2`` (:meth:`weight`; ``theta_k`` the angle at the light
+      between its normal and the receiver, ``d_k`` the distance), so that the average
+      over the facing ones is the average over the cone (unweighted it is the average
+      over the visible cap's area, which over-weights its rim);
     * ``inside_only`` -- ``(centre, radius)`` of a sphere light with ``flip_normals``,
       which emits inwards only: a receiver outside it sees none of its points (their
       light would cross the sphere itself, which the maps skip as the light's own
@@ -126,6 +138,7 @@ class MultiView(LightView):
     samples: tuple = ()
     radiant: tuple = ()
     count_all: bool = False
+    cone: bool = False
     inside_only: tuple | None = None
 
     projection = "multi-view"
@@ -215,6 +228,20 @@ class MultiView(LightView):
             return out
         n = t["normal"] if len(self.normals) == 1 else dr.gather(mi.Vector3f, t["normal"], k)
         return out & (dr.dot(n, mi.Point3f(p_world) - dr.gather(mi.Point3f, t["pos"], k)) > 0)
+
+    def weight(self, k, p_world: mi.Point3f) -> mi.Float:
+        """Weight of light point ``k`` at ``p_world`` where it emits towards it (see
+        ``cone``): ``cos(theta_k) / d_k^2``, the solid angle per unit area of the light
+        at the receiver (the density of Mitsuba's cone sampling over the sphere's area,
+        up to a factor shared by all the points), or 1 for lights without ``cone``."""
+        if not self.cone:
+            return mi.Float(1.0)
+        t = self._tables
+        k = mi.UInt32(k)
+        d = mi.Point3f(p_world) - dr.gather(mi.Point3f, t["pos"], k)
+        n = t["normal"] if len(self.normals) == 1 else dr.gather(mi.Vector3f, t["normal"], k)
+        d2 = dr.squared_norm(d)
+        return dr.maximum(dr.dot(n, d), 0.0) * dr.rsqrt(d2) / d2
 
     def _split(self, face):
         face = mi.UInt32(face)
@@ -427,7 +454,8 @@ def _frustum_tan(scene, own_shape, light_from_world, points: np.ndarray):
 
 def _radiant(emitter, ps) -> tuple:
     """Per light point of ``ps`` (positions on an area emitter's shape): whether its
-    front side emits (radiance > 0 at some of a few wavelengths)."""
+    front side emits (a valid sample, ``pdf`` > 0, with radiance > 0 at some of a few
+    wavelengths)."""
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ps.p))
     si.p, si.n, si.uv, si.time = ps.p, ps.n, ps.uv, ps.time
     si.sh_frame = mi.Frame3f(ps.n)
@@ -440,6 +468,7 @@ def _radiant(emitter, ps) -> tuple:
             si.wavelengths = type(si.wavelengths)(*w)
         value = unpolarized(emitter.eval(si))
         lit |= (dr.max(value) > 0).numpy() if dr.width(value) else False
+    lit &= np.broadcast_to(ps.pdf.numpy() > 0, lit.shape)
     return tuple(bool(x) for x in lit)
 
 
@@ -458,8 +487,13 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                 label=view.label)
     samples = tuple(tuple(float(c) for c in s) for s in u)
     if view.kind == "area":
-        ps = emitter.get_shape().sample_position(0.0, mi.Point2f(mi.Float(u[:, 0]),
-                                                                 mi.Float(u[:, 1])))
+        # The emitter's own position sampling: the shape's by area, or, for a textured
+        # (spatially varying) radiance, the texture's importance sampling mapped onto the
+        # shape -- exactly where Mitsuba's sample_direction puts such a light's samples
+        # (never on a black texel, more on bright ones).
+        ps, _ = emitter.sample_position(0.0, mi.Point2f(mi.Float(u[:, 0]),
+                                                        mi.Float(u[:, 1])))
+        textured = mi.has_flag(emitter.flags(), mi.EmitterFlags.SpatiallyVarying)
         p = np.stack([c.numpy() for c in ps.p], axis=1).astype(np.float64)
         n = np.stack([c.numpy() for c in ps.n], axis=1).astype(np.float64)
         sub = view
@@ -471,15 +505,21 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                 sub = dataclasses.replace(PerspectiveView(**base, tan_half=tan),
                                           light_from_world=lfw)
         shape = emitter.get_shape()
+        sphere = shape.class_name() == "Sphere"
         inside = None
-        if shape.class_name() == "Sphere" and shape.has_flipped_normals():
+        if sphere and shape.has_flipped_normals():
             b = shape.bbox()
             inside = (tuple(float(c) for c in b.center()),
                       0.5 * float(b.max[0] - b.min[0]))
+        # Mitsuba samples a uniform sphere light in the cone it subtends from a receiver
+        # outside it (uniformly by area from inside: a flipped sphere's receivers, which
+        # are all inside, keep equal weights); a textured one through its texture.
+        cone_sampled = sphere and not textured
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
                          normals=_normals(n), samples=samples,
                          radiant=_radiant(emitter, ps),
-                         count_all=shape.class_name() != "Sphere", inside_only=inside)
+                         count_all=not cone_sampled,
+                         cone=cone_sampled and inside is None, inside_only=inside)
     if view.kind in ("point", "spot", "projector"):
         size = float(light_size or 0.0)
         if size <= 0.0:
@@ -491,7 +531,8 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
             n = np.stack([c.numpy() for c in w], axis=1).astype(np.float64)
             p = centre + 0.5 * size * n
             return MultiView(**base, sub=view, positions=tuple(map(tuple, p.tolist())),
-                             normals=tuple(map(tuple, n.tolist())), samples=samples)
+                             normals=tuple(map(tuple, n.tolist())), samples=samples,
+                             cone=True)
         # spot, projector: a square of side `size` across the axis, same frame otherwise
         R = np.array(view.light_from_world.matrix, dtype=np.float64)[:3, :3]
         offsets = np.stack([u[:, 0] - 0.5, u[:, 1] - 0.5, np.zeros(K)], axis=1) * size

@@ -138,7 +138,9 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Offset of the lookup point along the surface normal (turned towards the light), "
          "in texels, times cos(theta), theta the angle between the normal and the light "
          "(so the offset does not shift shadows sideways on surfaces the light grazes; "
-         "the full offset where tan(theta) > max_tan_slope clamps the slope bias). "
+         "the full offset where tan(theta) > max_tan_slope clamps the slope bias, at "
+         "least 0.5 texel there when slope_bias > 0). A texel's width is taken along the "
+         "receiver's slope (a low sun's stretched map: its short side on the ground). "
          "Default: 0.5 (0 for second_depth).", lo=0.0),
     Prop("hide_emitters", "bool", False, "Hide directly visible emitters."),
     Prop("environment", "str", "shadowed",

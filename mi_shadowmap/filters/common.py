@@ -82,12 +82,13 @@ class Receiver:
 DEPTH_ULPS = 4.0 * 2.0 ** -23
 
 
-#: Texels of normal offset a receiver with a slope bias and ``normal_bias`` 0 gets where
-#: its slope bias is clamped (``tan(theta) > max_tan_slope``): ``hard``'s default offset,
-#: the margin the clamp takes away. Without it ``multiview`` (its defaults) shadowed 25 %
-#: of a plane 89.9 degrees from a sun. (Without a slope bias, as ``second_depth``'s
-#: defaults, nothing is clamped: an offset there moved grazing lookups onto their
-#: neighbours' depths.)
+#: Texels of normal offset a receiver with a slope bias gets at least where its slope
+#: bias is clamped (``tan(theta) > max_tan_slope``), whatever ``normal_bias`` is: half a
+#: texel's depth change there, the margin the clamp takes away. Without it a small or
+#: zero ``normal_bias`` shadowed a plane 89.9 degrees from a sun (``multiview``'s
+#: defaults 25 %, ``hard`` with ``normal_bias`` 0.01 27 %). (Without a slope bias, as
+#: ``second_depth``'s defaults, nothing is clamped: an offset there moved grazing
+#: lookups onto their neighbours' depths.)
 GRAZING_OFFSET = 0.5
 
 
@@ -118,9 +119,9 @@ def receiver(smap, lk: Lookup, opts) -> Receiver:
     sideways shift is ``d sin(theta) cos(theta) <= d / 2`` and vanishes at grazing
     light, while on a plane the offset still adds a depth margin of ``d`` along the
     light ray to the slope bias's. Where the slope bias is clamped the full offset
-    makes up for it (a plane's margin ``d / cos(theta)``); with a slope bias and
-    ``normal_bias`` 0, :data:`GRAZING_OFFSET` texels do there (at ``tan(theta) > 20``,
-    by default: a receiver the light grazes). Measured against the
+    makes up for it (a plane's margin ``d / cos(theta)``), at least
+    :data:`GRAZING_OFFSET` texels with a slope bias (at ``tan(theta) > 20``, by default:
+    a receiver the light grazes). Measured against the
     unscaled offset (``benchmarks/RESULTS.md``, 2026-12-02): random large worlds at
     256^2 misclassify at most 0.40 % instead of 0.75 % (``hard``); on the repository's
     nine scenes at their own films 43 of 45 (scene, method) pairs of ``hard``, ``pcf``,
@@ -138,13 +139,14 @@ def receiver(smap, lk: Lookup, opts) -> Receiver:
     # p: cascaded maps; the normal: the width along its depth gradient on stretched faces
     texel = view.texel_world_size(res, view.depth_of(p), p, lk.n_world)
     clamped = sin_nl > opts.max_tan_slope * cos_nl
-    if opts.normal_bias_texels > 0:
-        # times cos(theta) (see above); the full offset where the slope bias is clamped
-        scale = dr.select(clamped, 1.0, cos_nl)
-        p = p + n_towards * (opts.normal_bias_texels * texel * scale)
-    elif opts.slope_bias_texels > 0:
-        # no normal offset: GRAZING_OFFSET texels where the slope bias is clamped
-        p = p + n_towards * dr.select(clamped, GRAZING_OFFSET * texel, 0.0)
+    nb = opts.normal_bias_texels
+    # where the slope bias is clamped: the full offset, and with a slope bias at least
+    # GRAZING_OFFSET texels (the margin the clamp takes away)
+    full = max(nb, GRAZING_OFFSET) if opts.slope_bias_texels > 0 else nb
+    if full > 0:
+        # times cos(theta) elsewhere (see above)
+        scale = dr.select(clamped, full, nb * cos_nl)
+        p = p + n_towards * (texel * scale)
     face, uv, depth, inside = view.project(p)
     z = depth - opts.bias_world - opts.slope_bias_texels * texel * tan_theta \
         - DEPTH_ULPS * dr.abs(depth)

@@ -333,11 +333,14 @@ def cmd_maps(args) -> int:
     scene = load_scene_arg(args, sizes=False)
     from .ground_truth import check_emitters
     check_emitters(scene, "depth map to write")
+    made = not os.path.isdir(out)
+    report.check_out_dir(out)                  # before the maps are built
     maps = [m for m in harness.prepare_maps(scene, specs) if m is not None]
     if not maps:      # environment emitters only, and no method of --methods maps them
+        if made:
+            os.rmdir(out)
         raise ValueError("shadowmap: no emitter of the scene has a depth map (an "
                          "environment emitter has one only with environment='shadowed')")
-    report.check_out_dir(out)
     paths = report.write_maps(maps, out)
     for smap, path in zip(maps, paths):
         print(f"{path}: {smap.view.label} ({type(smap.view).__name__}, {smap.view.n_faces} "

@@ -55,16 +55,18 @@ def has_soft_lights(scene: mi.Scene) -> bool:
 
 
 def converged_reference(scene: mi.Scene, spp: int = 64, seed: int = 0,
-                        shadow_rays: int = 64, n_light: int = 1024) -> MethodResult:
+                        shadow_rays: int = 64, n_light: int = 1024, repeats: int = 1,
+                        measure_cached: bool = False) -> MethodResult:
     """The converged soft-shadow reference for scenes with area lights.
 
     The image is ``raytraced`` with ``shadow_rays`` stratified shadow rays per
-    camera sample; the visibility is
+    camera sample (timed as :func:`~mi_shadowmap.timing.run_method` times a method:
+    ``repeats``, ``measure_cached``); the visibility is
     :func:`mi_shadowmap.reference.converged_visibility` (the average of
     ``n_light`` hard shadows from fixed stratified light positions).
     """
     res = run_method(scene, REFERENCE_METHOD, spp=spp, seed=seed, shadow_rays=shadow_rays,
-                     measure_cached=False)
+                     repeats=repeats, measure_cached=measure_cached)
     t0 = time.perf_counter()
     vis = converged_visibility(scene, n_light=n_light, seed=seed, spp=spp)
     res.visibility = {k[len("vis_"):]: np.asarray(v, dtype=np.float32) for k, v in vis.items()}
@@ -112,7 +114,8 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
         ref = reference
     elif reference == "converged" or (reference == "auto" and has_soft_lights(scene)):
         ref = converged_reference(scene, spp=spp if reference == "auto" else max(spp, ref_spp),
-                                  seed=seed, shadow_rays=ref_shadow_rays)
+                                  seed=seed, shadow_rays=ref_shadow_rays, repeats=repeats,
+                                  measure_cached=measure_cached)
     else:
         spec = dict(method_spec(REFERENCE_METHOD if reference == "auto" else reference))
         r_spp = spec.pop("spp", spp)

@@ -59,8 +59,8 @@ def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
         xs.append((np.arange(n_r) + j[:, 0]) / n_r)
         ys.append((start + j[:, 1] * n_r) / n_light)
         start += n_r
-    pts = np.stack([np.concatenate(xs), np.concatenate(ys)], axis=1)
-    return np.clip(pts, 0.0, np.nextafter(1.0, 0.0)).astype(np.float32)
+    pts = np.stack([np.concatenate(xs), np.concatenate(ys)], axis=1).astype(np.float32)
+    return np.clip(pts, np.float32(0.0), np.nextafter(np.float32(1.0), np.float32(0.0)))
 
 
 class _ConvergedVisibilityMixin:

@@ -491,6 +491,10 @@ def test_the_reference_row_is_timed_with_the_methods_repeats(monkeypatch):
     harness.compare(mi.load_dict(default_scene(**SMALL)), methods=["unshadowed"], spp=1,
                     repeats=3, measure_cached=False)
     assert counts == {"raytraced": 4, "unshadowed": 4}     # one cold, three warm each
+    counts.clear()       # under an area light: the converged reference's image render
+    harness.compare(mi.load_dict(default_scene(width=8, height=8, light="area")),
+                    methods=["unshadowed"], spp=1, repeats=3, measure_cached=False)
+    assert counts == {"raytraced": 4, "unshadowed": 4}
 
 
 def test_a_scene_without_emitters_is_refused_by_name():

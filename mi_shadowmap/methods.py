@@ -165,6 +165,14 @@ class Method:
       pixel; capped at ``page_size / 2``: taps beyond the 2 x 2 pages a lookup binds
       read their own pages where neighbouring points had them built, else the coarsest
       level);
+    * ``virtual_coarse_res`` -- ``fn(opts, view) -> int or None``: the lookup may also
+      read levels coarser than its pixel footprint's (a kernel wider than it reads
+      well at that level filters a coarser one, through
+      :meth:`~mi_shadowmap.pages.VirtualShadowMap.bind`'s ``level``), down to those of
+      this many texels per face side; the mark pass then builds, around each point, the
+      tiles within ``virtual_margin`` of it on those levels too (at most
+      :data:`~mi_shadowmap.pages.MAX_COARSER` of them; ``pcss``). None (default): its
+      own level only;
     * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
       slot from the page table (cheapest for a lookup that reads a texel or two, as
       ``hard`` does) instead of the 2 x 2 pages' four slots once per lookup (default:
@@ -192,6 +200,7 @@ class Method:
     whole_light: bool = False
     virtual: bool = False
     virtual_margin: Callable | None = None
+    virtual_coarse_res: Callable | None = None
     virtual_per_tap: bool = False
     builtin: bool = False
 
@@ -267,6 +276,10 @@ def _check_record(m: Method) -> None:
         if getattr(m, name) is not None and not callable(getattr(m, name)):
             raise MethodError(f"register_method('{m.name}'): {name} must be callable "
                               f"{sig} or None, got {getattr(m, name)!r}")
+    if m.virtual_coarse_res is not None and not callable(m.virtual_coarse_res):
+        raise MethodError(f"register_method('{m.name}'): virtual_coarse_res must be "
+                          f"callable (opts, view) -> int or None, got "
+                          f"{type(m.virtual_coarse_res).__name__}")
     if m.virtual_margin is not None and not callable(m.virtual_margin):
         raise MethodError(f"register_method('{m.name}'): virtual_margin must be callable "
                           "fn(opts) -> texels or fn(opts, view) -> texels")
@@ -310,6 +323,16 @@ def virtual_margin_of(record, opts, view) -> float:
     if fn is None:
         return 2.0
     return float(fn(opts, view) if _takes_view(fn) else fn(opts))
+
+
+def virtual_coarse_res_of(record, opts, view):
+    """``record``'s ``virtual_coarse_res(opts, view)`` as an int, or None (its lookups
+    read their own level only)."""
+    fn = getattr(record, "virtual_coarse_res", None)
+    if fn is None:
+        return None
+    res = fn(opts, view)
+    return None if res is None else int(res)
 
 
 @functools.lru_cache(maxsize=256)
@@ -358,6 +381,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     uses_map: bool = True, layer_cost=None, view_for: Callable | None = None,
                     whole_light: bool = False, virtual: bool = False,
                     virtual_margin: Callable | None = None, virtual_per_tap: bool = False,
+                    virtual_coarse_res: Callable | None = None,
                     needs_curvature: bool = False, replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
@@ -369,7 +393,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     'method': name}`` (and XML), :func:`~mi_shadowmap.harness.compare`,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
-    ``needs_curvature``, ``virtual``, ``virtual_margin`` and ``virtual_per_tap``: see
+    ``needs_curvature``, ``virtual``, ``virtual_margin``, ``virtual_coarse_res`` and
+    ``virtual_per_tap``: see
     :class:`Method` (a
     lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
@@ -402,6 +427,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     uses_map=uses_map, bias_defaults=dict(bias_defaults or {}),
                     finalize=finalize, view_for=view_for, whole_light=whole_light,
                     virtual=virtual, virtual_margin=virtual_margin,
+                    virtual_coarse_res=virtual_coarse_res,
                     virtual_per_tap=virtual_per_tap)
     return add(record, replace=replace)
 

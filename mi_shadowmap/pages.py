@@ -21,7 +21,11 @@ a texel is 0.35-0.7 footprint wide) and marks the tiles its lookup reads: those
 within the method's ``virtual_margin`` (its kernel's half-width) plus one texel
 (camera samples off the pixel centre) of it. Kernels up to ``page_size / 2``
 texels stay inside the 2 x 2 pages a lookup binds (below); the taps of a wider kernel
-read their own pages through the page table (:attr:`VirtualShadowMap.far_taps`). A render whose camera
+read their own pages through the page table (:attr:`VirtualShadowMap.far_taps`). A
+method whose kernels may filter coarser levels (``virtual_coarse_res``: a PCSS penumbra
+wider than ``max_kernel`` texels) also marks, on each of those levels, the tile under
+the point (:func:`mark_coarser`) and, on the host, the tiles within its margin of those
+(:func:`dilate_tiles`; not capped at ``page_size / 2``: such levels hold few tiles). A render whose camera
 state (:func:`camera_state`) equals the previous one's reuses its marks.
 
 **Tiles**: a page is the unit of the pool and the page table; a tile is the unit of
@@ -123,7 +127,7 @@ import numpy as np
 from . import depth_maps
 from .depth_maps import first_hit, second_depth_along
 from .methods import (VIRTUAL_LAYERS, MethodError,  # noqa: F401  (VIRTUAL_LAYERS: built here)
-                      virtual_margin_of)
+                      virtual_coarse_res_of, virtual_margin_of)
 from .light_views import (pinhole_footprint, pinhole_frame, pixel_centres,
                           pixel_ray_differentials)
 from .light_views.base import TEXEL_SAMPLE, opaque_point, scene_bounds
@@ -153,6 +157,10 @@ _NO_KEY = 0xFFFFFFFFFFFFFFFF
 MAX_TABLE = 1 << 22
 #: Largest page grid side (the header packs width and height into 32 bits of one uint64).
 MAX_TABLE_SIDE = (1 << 15) - 1
+#: Coarser levels the mark pass builds at most, beyond a point's own, for a method whose
+#: kernel may filter a coarser level (``virtual_coarse_res``: PCSS's kernels wider than
+#: ``max_kernel`` texels): up to 2^8 times its footprint level's texel.
+MAX_COARSER = 8
 
 
 def _array(cls, values):
@@ -769,20 +777,24 @@ class VirtualShadowMap:
         return out
 
     def bind(self, lk, active=True, per_tap: bool = False,
-             walk: bool = True) -> "BoundVirtualMap":
+             walk: bool = True, level=None) -> "BoundVirtualMap":
         """The map as one batch of lookups reads it (see the module doc). With
         ``per_tap`` every read gathers its own page's slot (cheapest for lookups that
         read a texel or two: ``hard``); else the 2 x 2 pages' four slots are gathered
         here, once per lookup (wide kernels). With ``walk`` False (``per_tap`` only) every
         lane stays at its wanted level and each read checks that its own page and tile
         are built there, collecting the lanes where one is not in the result's
-        ``missed`` (:meth:`visibility` runs those again, walked)."""
+        ``missed`` (:meth:`visibility` runs those again, walked). ``level`` (per lane,
+        clamped to the coarsest): the level wanted instead of the pixel footprint's (a
+        PCSS kernel wider than ``max_kernel`` texels filters a coarser level); the walk
+        is the same."""
         lay, P = self.layout, self.layout.page_size
         T, S = lay.tile_size, lay.tiles_per_side
         p64 = mi.Point3d(lk.p_world)
         face, uv64, depth64, inside = self.view.project_f64(p64)
         active = mi.Bool(active) & inside
-        want = self.level_for(face, p64, lk.dp_dx, lk.dp_dy)
+        want = (self.level_for(face, p64, lk.dp_dx, lk.dp_dy) if level is None
+                else dr.minimum(mi.UInt32(level), mi.UInt32(lay.coarsest)))
 
         def block(level, act):
             """The 2 x 2 pages around the point at ``level`` (their table entry), and
@@ -1117,6 +1129,68 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     return keys, oks
 
 
+def coarser_levels(layout, level, coarse_res: int):
+    """Per point, how many levels coarser than its own ``level`` (``mi.UInt32``) its
+    lookups may read for a method with ``virtual_coarse_res = coarse_res``: those of
+    resolution ``coarse_res`` or more (down to the coarsest, at most
+    :data:`MAX_COARSER`)."""
+    log_res = mi.Int32(int(math.log2(layout.res0))) - mi.Int32(level)
+    k = log_res - int(math.ceil(math.log2(max(int(coarse_res), 1))))
+    k = dr.minimum(k, mi.Int32(layout.coarsest) - mi.Int32(level))
+    return mi.UInt32(dr.clip(k, 0, MAX_COARSER))
+
+
+def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
+                 active=None) -> tuple:
+    """``(keys, oks)`` like :func:`mark_candidates` for the coarser levels a method
+    with ``virtual_coarse_res`` may read (:func:`coarser_levels`): at each of them, the
+    tile under the point only (one candidate per level: neighbouring points mark the
+    same few tiles there); the mark pass then adds the tiles within the method's margin
+    of those on the host (:func:`dilate_tiles`)."""
+    lay, view = vmap_like.layout, vmap_like.view
+    T = lay.tile_size
+    p64 = mi.Point3d(si.p)
+    face, uv64, _, inside = view.project_f64(p64)
+    act = valid & inside
+    if view.light_normal is not None:
+        act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
+    if active is not None:
+        act &= active(si.p, si.n)
+    level = vmap_like.level_for(face, p64, dp_dx, dp_dy)
+    k_max = coarser_levels(lay, level, coarse_res)
+    keys, oks = [], []
+    for k in range(1, min(MAX_COARSER, lay.coarsest) + 1):
+        lev = dr.minimum(level + k, lay.coarsest)
+        res = mi.Float64(mi.UInt32(lay.res0) >> lev)
+        t = mi.Point2i(dr.floor(uv64 * res / T))
+        n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(lev), 1) \
+            * lay.tiles_per_side
+        oks.append(act & (k <= k_max) & (t.x >= 0) & (t.y >= 0) & (t.x < n_tiles)
+                   & (t.y < n_tiles))
+        keys.append(page_key(face, lev, dr.maximum(t.x, 0), dr.maximum(t.y, 0)))
+    return keys, oks
+
+
+def dilate_tiles(keys: np.ndarray, layout, margin: float) -> np.ndarray:
+    """Tile keys ``keys`` and those within ``margin + 1`` texels of them on their level,
+    sorted, distinct."""
+    keys = _sorted_unique(keys)
+    if len(keys) == 0:
+        return keys
+    T = layout.tile_size
+    r = int(math.ceil((float(margin) + 1.0) / T))
+    face, level, tx, ty = (f.astype(np.int64) for f in key_fields(keys))
+    n = np.maximum(layout.pages_per_side(0) >> level, 1) * layout.tiles_per_side
+    out = []
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            x, y = tx + dx, ty + dy
+            ok = (x >= 0) & (y >= 0) & (x < n) & (y < n)
+            out.append(page_key(face[ok].astype(np.uint64), level[ok].astype(np.uint64),
+                                x[ok].astype(np.uint64), y[ok].astype(np.uint64)))
+    return _sorted_unique(np.concatenate(out).astype(np.uint64))
+
+
 def morton_xy(local, T: int) -> tuple:
     """``(i, j)`` of texel ``local`` (``mi.UInt32``) of a ``T`` x ``T`` tile (``T`` a
     power of two) in Morton (Z) order: its even bits are ``i``'s, its odd bits
@@ -1370,7 +1444,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     layer_names = page_layers(opts)
     state = MAP_CACHE.scene_state(scene, params) if opts.cache_maps else None
     cam = camera_state(sensor) if sensor is not None else None
-    margins, stores = {}, {}
+    margins, coarse, stores = {}, {}, {}
     for i, view in enumerate(views):
         if view is None or not getattr(view, "supports_virtual", False):
             continue
@@ -1384,7 +1458,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         store.frame += 1
         stores[i] = store
         margins[i] = virtual_margin_of(opts.record, opts, view)
-    mark_key = {i: (cam, margins[i], opts.lod_bias) for i in stores}
+        coarse[i] = virtual_coarse_res_of(opts.record, opts, view)
+    mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias) for i in stores}
     # the mark pass: every light whose marks are stale, from one set of camera hits traced
     # in the same kernel as all their marks (a still camera reuses its marks)
     stale = [i for i, st in stores.items() if cam is not None
@@ -1403,15 +1478,31 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
             dr.eval(through)
-        found = _dedupe_many([mark_candidates(_Marker(stores[i].layout, opts.lod_bias),
-                                              *hits, margin=margins[i]) for i in plain])
-        for i, keys in zip(plain, found):
-            stores[i].last_mark = (mark_key[i], _sorted_unique(keys))
+        def marks(i, marker, active=None):
+            """The candidate lists of light ``i`` (its own levels', then the coarser
+            levels' its kernels may filter, :func:`mark_coarser`)."""
+            out = [mark_candidates(marker, *hits, margin=margins[i], active=active)]
+            if coarse[i]:
+                out.append(mark_coarser(marker, *hits, coarse_res=coarse[i], active=active))
+            return out
+
+        def tiles(i, found):
+            """Light ``i``'s tile keys from its :func:`marks` lists' keys."""
+            if coarse[i]:
+                found = [found[0], dilate_tiles(found[1], stores[i].layout, margins[i])]
+            return np.concatenate(found)
+
+        groups = [marks(i, _Marker(stores[i].layout, opts.lod_bias)) for i in plain]
+        found = _dedupe_many([g for gs in groups for g in gs])
+        for i, gs in zip(plain, groups):
+            mine, found = found[:len(gs)], found[len(gs):]
+            stores[i].last_mark = (mark_key[i], _sorted_unique(tiles(i, mine)))
         for i in multi:
-            keys = [_dedupe_many([mark_candidates(
-                _Marker(stores[i].layout, opts.lod_bias, mark_view), *hits,
-                margin=margins[i], active=lambda p, n, f=mark_active: f(p, n, through))])[0]
-                for mark_view, mark_active in stores[i].layout.view.mark_views()]
+            keys = []
+            for mark_view, mark_active in stores[i].layout.view.mark_views():
+                gs = marks(i, _Marker(stores[i].layout, opts.lod_bias, mark_view),
+                           active=lambda p, n, f=mark_active: f(p, n, through))
+                keys.append(tiles(i, _dedupe_many(gs)))
             stores[i].last_mark = (mark_key[i], _sorted_unique(np.concatenate(keys)))
     out = []
     for i, view in enumerate(views):

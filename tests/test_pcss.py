@@ -327,6 +327,30 @@ def test_wide_taps_read_their_own_pages_as_a_full_map_does():
     assert virtual["vis_rmse"] <= 1.05 * full["vis_rmse"]
 
 
+def test_a_penumbra_wider_than_max_kernel_keeps_its_width():
+    """A kernel wider than ``max_kernel`` texels filters a coarser level (virtual maps)
+    or spreads its taps (full maps) instead of being clamped: the cap is at least
+    ``max_kernel / 512`` of the face, so it does not shrink as the map gets denser.
+    contact_hardening's camera zoomed 8x onto plate B's 0.64-wide penumbra (32^2 film,
+    the pixel footprint of a 256^2 film): clamped at 64 texels of the footprint's level
+    (virtual) or of a 4096^2 map, PCSS was ``hard`` there (every pixel 0, RMSE 0.093
+    against the converged reference, 4 spp); now 0.046 and 0.044, as a 512^2 map
+    (0.046), whose 64 texels hold the penumbra."""
+    xml = (CONTACT.read_text()
+           .replace('<scale x="0.8" y="0.8" z="1"/>', '<scale x="0.1" y="0.1" z="1"/>')
+           .replace('origin="0.5, 3, 0" target="0.5, 0, 0"',
+                    'origin="0.35, 3, 0.6" target="0.35, 0, 0.6"'))
+    scene = mi.load_string(xml, width=32, height=32)
+    ref = converged_visibility(scene, n_light=1024, seed=0, spp=4)["vis_light"]
+    err = {}
+    for props in ({}, {"resolution": 4096}, {"resolution": 512}):
+        _, aovs = render_np(scene, {"type": "shadowmap", "method": "pcss", **props}, spp=4)
+        vis = aovs["vis_light"]
+        assert vis.mean() > 0.7 * ref.mean(), props
+        err[props.get("resolution")] = np.sqrt(np.mean((vis - ref) ** 2))
+    assert err[None] < 1.15 * err[512] and err[4096] < 1.15 * err[512], err
+
+
 def test_a_light_of_size_zero_marks_hards_pages():
     """PCSS under a point or spot light without ``light_size`` is one compare: the mark
     pass builds ``hard``'s pages (its margin takes the light's view), not the pages of

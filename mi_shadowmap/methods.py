@@ -262,6 +262,17 @@ def _check_record(m: Method) -> None:
                           f"{', '.join(sorted(set(m.layers) - set(VIRTUAL_LAYERS)))} are "
                           "built on full maps only (set virtual=False, or give layers_for "
                           "returning only those layers when opts.virtual is true)")
+    if m.virtual and not m.builtin:
+        # virtual maps build these layers with the built-in builders, whatever the record
+        builtin = {n: f for r in _REGISTRY.values() if r.builtin
+                   for n, f in r.layers.items() if n in VIRTUAL_LAYERS}
+        own = sorted(n for n, f in m.layers.items() if n in builtin and f is not builtin[n])
+        if own:
+            raise MethodError(f"register_method('{m.name}'): virtual maps build the layer(s) "
+                              f"{', '.join(own)} themselves, as the built-in methods do; "
+                              "give the built-in builder (e.g. mi_shadowmap.depth_maps."
+                              "second_depth_layer), name your layer otherwise, or set "
+                              "virtual=False")
     if m.virtual and m.whole_light:
         raise MethodError(f"register_method('{m.name}'): whole_light=True lookups read "
                           "full maps only (their lookup averages the whole light over its "

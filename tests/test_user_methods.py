@@ -376,3 +376,25 @@ def test_layers_of_one_name_from_two_builders_are_not_shared_in_the_cache():
     finally:
         for n in names:
             mi_shadowmap.unregister_method(n)
+
+
+def test_a_virtual_method_cannot_give_its_own_builder_for_a_layer_virtual_maps_build():
+    """Virtual maps build 'second_depth' and 'pcss_near' themselves: a user's own
+    builder of that name was silently replaced by the built-in one on virtual maps
+    (and used on full maps)."""
+    from mi_shadowmap.depth_maps import second_depth_layer
+
+    def look(smap, lk, opts, active=True):
+        return mi.Float(1.0)
+    with pytest.raises(methods.MethodError, match="second_depth.*themselves"):
+        mi_shadowmap.register_method("own_second", look, virtual=True,
+                                     layers={"second_depth": lambda scene, smap: smap.depth})
+    rec = mi_shadowmap.register_method("builtin_second", look, virtual=True,
+                                       layers={"second_depth": second_depth_layer})
+    try:
+        assert rec.layers["second_depth"] is second_depth_layer
+    finally:
+        mi_shadowmap.unregister_method("builtin_second")
+    mi_shadowmap.register_method("own_second_full", look, virtual=False,
+                                 layers={"second_depth": lambda scene, smap: smap.depth})
+    mi_shadowmap.unregister_method("own_second_full")

@@ -628,8 +628,11 @@ class VirtualShadowMap:
     """
 
     def __init__(self, store: PageStore, stats: dict, lod_bias: float = -0.5,
-                 margin: float = 2.0):
+                 margin: float = 2.0, coarse_res: int | None = None):
         self.lod_bias = float(lod_bias)
+        # the method's virtual_coarse_res: the coarser levels its marks built, which its
+        # wide kernels may filter (None: its own level only)
+        self.coarse_res = coarse_res
         # the lookups' taps reach beyond the 2 x 2 pages they bind (margin: the method's
         # kernel half-width, texels): those taps read their own pages through the table
         # (BoundVirtualMap._index); narrower kernels skip that code
@@ -1574,7 +1577,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         stats.naive_build_seconds += dt + (len(needed) - n_cast) * (
             store.cast_seconds / max(store.cast_pages, 1))
         out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
-                                    opts.lod_bias, margins[i]))
+                                    opts.lod_bias, margins[i], coarse.get(i)))
     return out
 
 

@@ -358,7 +358,9 @@ class PageStore:
         # face f's coarsest page (always built where the light shines; empty where a
         # one-sided light does not), so a lookup finds it without a gather
         self.next_slot = 1 + layout.view.n_faces
-        self.last_mark = None     # (camera state, margin, lod_bias), marked page keys
+        # ((camera state, margin, coarse_res, lod_bias), marked tile keys, those of them
+        # only coarser-level kernels read)
+        self.last_mark = None
         # the last render's (last_mark, budget, version, needed keys, their slots, level
         # histogram, pages degraded): a render with the same three reuses the rest
         self.settled = None
@@ -1490,23 +1492,32 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             return out
 
         def tiles(i, found):
-            """Light ``i``'s tile keys from its :func:`marks` lists' keys."""
-            if coarse[i]:
-                found = [found[0], dilate_tiles(found[1], stores[i].layout, margins[i])]
-            return np.concatenate(found)
+            """Light ``i``'s tile keys from its :func:`marks` lists' keys: ``(own levels',
+            coarser levels')`` (the latter empty without ``virtual_coarse_res``)."""
+            extra = (dilate_tiles(found[1], stores[i].layout, margins[i]) if coarse[i]
+                     else np.zeros(0, np.uint64))
+            return found[0], extra
+
+        def settle(i, parts):
+            """Light ``i``'s mark: every tile, and those only the coarser levels' kernels
+            read (a full budget drops them first)."""
+            own = _sorted_unique(np.concatenate([p[0] for p in parts]))
+            extra = _sorted_unique(np.concatenate([p[1] for p in parts]))
+            optional = np.setdiff1d(extra, own, assume_unique=True)
+            stores[i].last_mark = (mark_key[i], _with_keys(own, optional), optional)
 
         groups = [marks(i, _Marker(stores[i].layout, opts.lod_bias)) for i in plain]
         found = _dedupe_many([g for gs in groups for g in gs])
         for i, gs in zip(plain, groups):
             mine, found = found[:len(gs)], found[len(gs):]
-            stores[i].last_mark = (mark_key[i], _sorted_unique(tiles(i, mine)))
+            settle(i, [tiles(i, mine)])
         for i in multi:
-            keys = []
+            parts = []
             for mark_view, mark_active in stores[i].layout.view.mark_views():
                 gs = marks(i, _Marker(stores[i].layout, opts.lod_bias, mark_view),
                            active=lambda p, n, f=mark_active: f(p, n, through))
-                keys.append(tiles(i, _dedupe_many(gs)))
-            stores[i].last_mark = (mark_key[i], _sorted_unique(np.concatenate(keys)))
+                parts.append(tiles(i, _dedupe_many(gs)))
+            settle(i, parts)
     out = []
     for i, view in enumerate(views):
         if i not in stores:
@@ -1540,7 +1551,16 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         else:
             marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
             tiles = _with_keys(marked, store.coarse_keys)
+            dropped = 0
+            if mark is not None and len(mark[2]) and _n_pages(tiles, layout) > budget_pages:
+                # over budget: first the tiles only coarser-level kernels read (their
+                # lookups walk to a coarser level built), then the finest levels
+                kept = _with_keys(np.setdiff1d(marked, mark[2], assume_unique=True),
+                                  store.coarse_keys)
+                dropped = _n_pages(tiles, layout) - _n_pages(kept, layout)
+                tiles = kept
             tiles, degraded = _fit_budget(tiles, budget_pages, layout)
+            degraded += dropped
             needed, masks = tile_pages(tiles, layout)
             have, _ = store.lookup(needed)
             over = store.n_pages + int((~have).sum()) - budget_pages
@@ -1636,6 +1656,13 @@ def _with_keys(keys: np.ndarray, more: np.ndarray) -> np.ndarray:
     pos = np.searchsorted(keys, more)
     there = (pos < len(keys)) & (keys[np.minimum(pos, len(keys) - 1)] == more)
     return np.insert(keys, pos[~there], more[~there])
+
+
+def _n_pages(tiles: np.ndarray, layout) -> int:
+    """How many pages hold ``tiles`` (sorted tile keys)."""
+    S = np.uint64(layout.tiles_per_side)
+    face, level, tx, ty = key_fields(tiles)
+    return len(_sorted_unique(page_key(face, level, tx // S, ty // S)))
 
 
 def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:

@@ -2,6 +2,7 @@
 quality against the converged reference, no-blocker shortcut, point/spot light_size,
 sample patterns, bad input."""
 import re
+import warnings
 
 import drjit as dr
 import mitsuba as mi
@@ -369,3 +370,24 @@ def test_a_light_of_size_zero_marks_hards_pages():
         texels[method] = integ.stats.texels_built
     assert texels["pcss"] == texels["hard"]
     assert texels["pcss:light_size=0.5"] > texels["hard"]
+
+
+def test_a_full_budget_drops_the_coarser_levels_tiles_before_the_footprints():
+    """PCSS marks tiles on coarser levels for its wide kernels; under a small
+    ``memory_budget`` they counted like the pixel footprint's, and the budget replaced
+    the finest pages (large_world with the sun's angular diameter, 96^2, 1 MiB: no page
+    left on the two finest levels, 73 of them replaced). They go first now: the finest
+    level keeps every page it has without a budget."""
+    scene = mi.load_file(str(CONTACT.parent / "large_world.xml"), width=96, height=96)
+    hists = {}
+    for budget in (1024, 1):
+        integ = mi.load_dict({"type": "shadowmap", "method": "pcss",
+                              "angular_diameter": 0.53, "memory_budget": budget})
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mi.render(scene, integrator=integ, spp=1)
+        hists[budget] = np.asarray(integ.stats["level_histogram"])
+    finest = int(np.nonzero(hists[1024])[0][0])
+    assert hists[1024][finest] > 0
+    assert hists[1][finest] == hists[1024][finest], (hists[1], hists[1024])
+    assert hists[1].sum() < hists[1024].sum()

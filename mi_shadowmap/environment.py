@@ -580,14 +580,16 @@ def environment_view(emitter, scene, label: str, K: int) -> EnvironmentView:
         to_world_env=tuple(float(x) for x in _to_world(emitter).ravel()), regions_key=key)
 
 
-def light_view(emitter, scene, index: int, opts):
+def light_view(emitter, scene, index: int, opts, label: str | None = None):
     """The view of an environment emitter for a render with ``opts``: an
-    :class:`EnvironmentView` with ``environment='shadowed'`` and a map method, else None."""
+    :class:`EnvironmentView` with ``environment='shadowed'`` and a map method, else None.
+    ``label``: its name (default: from :func:`~mi_shadowmap.light_views.emitter_labels`)."""
     from .light_views import emitter_labels
     if opts.environment != "shadowed" or not opts.uses_map:
         return None
-    return environment_view(emitter, scene, emitter_labels(scene.emitters())[index],
-                            opts.env_lights)
+    if label is None:
+        label = emitter_labels(scene.emitters())[index]
+    return environment_view(emitter, scene, label, opts.env_lights)
 
 
 def _region_ray64(rows, half, uv_light):

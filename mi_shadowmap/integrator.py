@@ -270,8 +270,8 @@ screen is Mitsuba's projective integrators' job.
                     "or remove it")
             # raises for unsupported emitters; environment='shadowed' with a map method:
             # K median-cut regions in one map (mi_shadowmap.environment)
-            views.append(env_mod.light_view(e, scene, i, self.opts) if is_env
-                         else make_light_view(e, scene, i))
+            views.append(env_mod.light_view(e, scene, i, self.opts, labels[i]) if is_env
+                         else make_light_view(e, scene, i, labels[i]))
             # environment='unshadowed': visibility 1, every method
             unshadowed.append(is_env and self.opts.environment == "unshadowed")
         if self.opts.uses_map and not self.opts.record.whole_light:

@@ -30,8 +30,8 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
 from .methods import OptionError
-from .light_views import (aims_by_film, camera_visible_points, emitter_kind, footprint_ratio,
-                          make_light_view)
+from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
+                          footprint_ratio, make_light_view)
 
 
 @dataclasses.dataclass
@@ -117,6 +117,17 @@ class PreparedMaps:
     stats: MapStats
 
 
+def scene_views(scene, opts) -> list:
+    """Every emitter's :class:`~mi_shadowmap.light_views.LightView` for a render with
+    ``opts`` (an environment's: :func:`mi_shadowmap.environment.light_view`, None
+    unless shadowed by maps), named by :func:`~mi_shadowmap.light_views.emitter_labels`."""
+    from .environment import light_view as environment_view
+    emitters = scene.emitters()
+    labels = emitter_labels(emitters)
+    return [environment_view(e, scene, i, opts, labels[i]) if emitter_kind(e) == "environment"
+            else make_light_view(e, scene, i, labels[i]) for i, e in enumerate(emitters)]
+
+
 def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderPlan:
     """Decide one render's maps; nothing is built (the camera-visible points may be
     traced, one ray per pixel, when a view's refinement needs them).
@@ -150,9 +161,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     if not opts.uses_map:
         views = [None] * len(scene.emitters())
     elif views is None:
-        from .environment import light_view as environment_view
-        views = [environment_view(e, scene, i, opts) if emitter_kind(e) == "environment"
-                 else make_light_view(e, scene, i) for i, e in enumerate(scene.emitters())]
+        views = scene_views(scene, opts)
     else:
         views = list(views)
     if record.view_for is not None and opts.uses_map:   # e.g. multiview: K views in one map
@@ -231,8 +240,9 @@ def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose
     """One emitter's plan. A culled depth (``faces``) is cached under
     ``("depth", faces)`` and its layers under ``("layer", name, builder, faces)`` --
     the face set of the depth they were built from -- so a layer is never taken from a
-    depth of another face set, nor from another builder of the same name; a full cached depth, or a culled one with a superset of the faces,
-    serves any face set. ``differentiable`` plans come with ``state`` None: no cache;
+    depth of another face set, nor from another builder of the same name; a full cached
+    depth, or a culled one with a superset of the faces, serves any face set.
+    ``differentiable`` plans come with ``state`` None: no cache;
     ``pose``: the light's pose delta (gradients); ``antialias``: silhouette
     antialiasing (all faces are built, culling skipped; comes with ``state`` None)."""
     key = (view_fingerprint(view), res)
@@ -407,9 +417,7 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
                          "gradients enabled; set virtual=false (full maps are built in "
                          "the AD graph) or disable those gradients")
     if views is None:
-        from .environment import light_view as environment_view
-        views = [environment_view(e, scene, i, opts) if emitter_kind(e) == "environment"
-                 else make_light_view(e, scene, i) for i, e in enumerate(scene.emitters())]
+        views = scene_views(scene, opts)
     if sensor is None and len(scene.sensors()) > 0:
         sensor = scene.sensors()[0]
     if opts.cascades > 1:

@@ -283,14 +283,11 @@ def _check_record(m: Method) -> None:
             raise MethodError(f"register_method('{m.name}'): {flag} must be True or "
                               f"False, got {getattr(m, flag)!r}")
     for name, sig in (("finalize", "fn(values, given) -> None"),
-                      ("layers_for", "fn(opts) -> layer names")):
+                      ("layers_for", "fn(opts) -> layer names"),
+                      ("virtual_coarse_res", "fn(opts, view) -> int or None")):
         if getattr(m, name) is not None and not callable(getattr(m, name)):
             raise MethodError(f"register_method('{m.name}'): {name} must be callable "
                               f"{sig} or None, got {getattr(m, name)!r}")
-    if m.virtual_coarse_res is not None and not callable(m.virtual_coarse_res):
-        raise MethodError(f"register_method('{m.name}'): virtual_coarse_res must be "
-                          f"callable (opts, view) -> int or None, got "
-                          f"{type(m.virtual_coarse_res).__name__}")
     if m.virtual_margin is not None and not callable(m.virtual_margin):
         raise MethodError(f"register_method('{m.name}'): virtual_margin must be callable "
                           "fn(opts) -> texels or fn(opts, view) -> texels")

@@ -25,8 +25,9 @@ read their own pages through the page table (:attr:`VirtualShadowMap.far_taps`).
 method whose kernels may filter coarser levels (``virtual_coarse_res``: a PCSS penumbra
 wider than ``max_kernel`` texels) also marks, on each of those levels, the tile under
 the point (:func:`mark_coarser`) and, on the host, the tiles within its margin of those
-(:func:`dilate_tiles`; not capped at ``page_size / 2``: such levels hold few tiles). A render whose camera
-state (:func:`camera_state`) equals the previous one's reuses its marks.
+(:func:`dilate_tiles`; not capped at ``page_size / 2``: such levels hold few tiles). A
+render whose camera state (:func:`camera_state`) equals the previous one's reuses its
+marks.
 
 **Tiles**: a page is the unit of the pool and the page table; a tile is the unit of
 ray casting. A page's marked tiles are ray-cast, its others hold the coarsest level's
@@ -1089,6 +1090,21 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     return si, dp_dx, dp_dy, valid
 
 
+def _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
+    """``(face, uv64, act, level)`` of the camera hits ``si`` a mark reads: their face and
+    float64 uv, which of them mark (valid, on a face, in front of a one-sided planar
+    light, and ``active(p, n)`` if given) and their footprint's level."""
+    view = vmap_like.view
+    p64 = mi.Point3d(si.p)
+    face, uv64, _, inside = view.project_f64(p64)
+    act = valid & inside
+    if view.light_normal is not None:   # behind a one-sided planar light: no light
+        act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
+    if active is not None:
+        act &= active(si.p, si.n)
+    return face, uv64, act, vmap_like.level_for(face, p64, dp_dx, dp_dy)
+
+
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
                     active=None) -> tuple:
     """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
@@ -1105,18 +1121,11 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     frame for the same error on the soft-shadow scenes.)
     ``active(p, n)``: which points to mark (``n`` the normal facing the camera), or
     None: every point the view sees."""
-    lay, view, P = vmap_like.layout, vmap_like.view, vmap_like.layout.page_size
+    lay, P = vmap_like.layout, vmap_like.layout.page_size
     T = lay.tile_size
     m = min(float(margin) + 1.0, 0.5 * P)
     per_axis = min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
-    p64 = mi.Point3d(si.p)
-    face, uv64, _, inside = view.project_f64(p64)
-    act = valid & inside
-    if view.light_normal is not None:   # behind a one-sided planar light: no light
-        act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
-    if active is not None:
-        act &= active(si.p, si.n)
-    level = vmap_like.level_for(face, p64, dp_dx, dp_dy)
+    face, uv64, act, level = _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
     res = mi.Float64(mi.UInt32(lay.res0) >> level)
     xy = uv64 * res
     n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1) \
@@ -1152,16 +1161,9 @@ def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
     tile under the point only (one candidate per level: neighbouring points mark the
     same few tiles there); the mark pass then adds the tiles within the method's margin
     of those on the host (:func:`dilate_tiles`)."""
-    lay, view = vmap_like.layout, vmap_like.view
+    lay = vmap_like.layout
     T = lay.tile_size
-    p64 = mi.Point3d(si.p)
-    face, uv64, _, inside = view.project_f64(p64)
-    act = valid & inside
-    if view.light_normal is not None:
-        act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
-    if active is not None:
-        act &= active(si.p, si.n)
-    level = vmap_like.level_for(face, p64, dp_dx, dp_dy)
+    face, uv64, act, level = _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
     k_max = coarser_levels(lay, level, coarse_res)
     keys, oks = [], []
     for k in range(1, min(MAX_COARSER, lay.coarsest) + 1):

@@ -130,12 +130,14 @@ def unique_labels(labels: list, second=None) -> list:
     return out
 
 
-def make_light_view(emitter, scene, index: int) -> LightView:
-    """Build the :class:`LightView` of one emitter (the ``index``-th of ``scene``'s,
-    named as :func:`emitter_labels` names it), or raise naming it."""
-    emitters = scene.emitters()
-    label = (emitter_labels(emitters)[index] if index < len(emitters)
-             else emitter_label(emitter, index))
+def make_light_view(emitter, scene, index: int, label: str | None = None) -> LightView:
+    """Build the :class:`LightView` of one emitter (the ``index``-th of ``scene``'s), or
+    raise naming it. ``label``: its name from :func:`emitter_labels` (computed here if
+    not given: callers building every emitter's view pass the scene's once)."""
+    if label is None:
+        emitters = scene.emitters()
+        label = (emitter_labels(emitters)[index] if index < len(emitters)
+                 else emitter_label(emitter, index))
     kind = emitter_kind(emitter)
     view = None
     if kind == "spot":

@@ -123,7 +123,7 @@ class OrthoView(LightView):
     def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
         # ``res`` may be per lane (virtual maps' levels)
         zero = dr.zeros(mi.Float, dr.width(depth))
-        if n_world is None or self.half_extent[0] == self.half_extent[1]:
+        if n_world is None:
             return zero + 2.0 * opaque_scalar(max(self.half_extent)) / res
         hx, hy = self._half()
         return zero + self._texel_along(2.0 * hx / res, 2.0 * hy / res, n_world)

@@ -9,7 +9,7 @@
 visibility is on the other side of 0.5 from ``raytraced``'s (one shadow ray, the same
 seed and spp), the texels the first frame ray-casts per film pixel, the layout's view
 (``cube``, or ``perspective`` where the light is so far that a virtual layout aims one
-face at the scene, ``pages.layout_for``) and its finest texel's width at the scene's
+face at the scene, ``virtual.layout_for``) and its finest texel's width at the scene's
 centre, and
 the frame times: the first frame (maps built: a new integrator, the map and page caches
 emptied; kernels warm) and a still-camera frame (maps cached), beside the unshadowed
@@ -30,7 +30,7 @@ import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
 import drjit as dr
 import mitsuba as mi
 from mi_shadowmap.map_manager import MAP_CACHE
-from mi_shadowmap.pages import PAGE_CACHE
+from mi_shadowmap.virtual import PAGE_CACHE
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenes_xml" / "far_point.xml"

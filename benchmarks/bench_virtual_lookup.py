@@ -36,7 +36,7 @@ import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
 import drjit as dr
 import mitsuba as mi
 
-from mi_shadowmap import harness, pages
+from mi_shadowmap import harness, virtual
 from mi_shadowmap.filters.common import Lookup, receiver
 from mi_shadowmap.filters.hard import hard
 from mi_shadowmap.light_views import pixel_ray_differentials
@@ -57,12 +57,12 @@ def kernel_ms(fn, repeats: int) -> float:
 
 
 def camera_samples(scene, spp: int):
-    """``pages.camera_hits`` at the pixel centres (``spp`` 1), else ``spp`` uniformly
+    """``virtual.camera_hits`` at the pixel centres (``spp`` 1), else ``spp`` uniformly
     jittered camera samples per pixel, a pixel's samples in adjacent lanes as Mitsuba's
     ``render()`` orders them, with one-pixel ray differentials."""
     sensor = scene.sensors()[0]
     if spp <= 1:
-        return pages.camera_hits(scene, sensor)
+        return virtual.camera_hits(scene, sensor)
     w, h = (int(x) for x in sensor.film().crop_size())
     pixel = dr.arange(mi.UInt32, w * h * spp) // spp
     y = pixel // w
@@ -87,7 +87,7 @@ def bench_scene(name: str, args) -> list:
     full = mi.load_dict({"type": "shadowmap", "method": "hard", "virtual": False})
     mi.render(scene, integrator=virt, spp=1)
     mi.render(scene, integrator=full, spp=1)
-    vm = next(m for m in virt.maps if isinstance(m, pages.VirtualShadowMap))
+    vm = next(m for m in virt.maps if isinstance(m, virtual.VirtualShadowMap))
     fm = full.maps[virt.maps.index(vm)]
     si, dp_dx, dp_dy, valid = camera_samples(scene, args.spp)
     p = dr.select(valid, si.p, 0.0)

@@ -10,7 +10,7 @@ sub-views).
 
 **Virtual maps** (``virtual`` true or automatic, the default, for K <=
 :data:`MAX_VIRTUAL_REGIONS`): region ``k`` is face ``k`` of one virtual map
-(:mod:`mi_shadowmap.pages`), with the float64 interface of a virtual map's view
+(:mod:`mi_shadowmap.virtual`), with the float64 interface of a virtual map's view
 (:meth:`EnvironmentView.ray_through_f64` for the page build, per texel's face;
 :class:`RegionView`'s for the lookups, per lane's region: the shading loop's). The
 mark pass projects every camera point into every region
@@ -364,7 +364,7 @@ class RegionView(SubView):
 
     With ``rows64`` (the region's ``light_from_world`` rows in float64, gathered per
     lane, :meth:`EnvironmentView.region_view`) it also has the float64 interface of a
-    virtual map's view (:mod:`mi_shadowmap.pages`): face ``k`` of the environment's
+    virtual map's view (:mod:`mi_shadowmap.virtual`): face ``k`` of the environment's
     K-face virtual map, one orthographic face per region."""
     spread: object = 0.0
     rows64: tuple = ()
@@ -468,7 +468,7 @@ class EnvironmentView(MultiView):
 
     # ---------------------------------------------------- virtual maps
     # With ``virtual`` (the default), the K regions are the K faces of one virtual map
-    # (:mod:`mi_shadowmap.pages`): face k is region k's orthographic face, pages are
+    # (:mod:`mi_shadowmap.virtual`): face k is region k's orthographic face, pages are
     # built where the camera's points read region k, at the density their pixels need.
     # A lookup reads through :meth:`region_view` (``k`` per lane: the shading loop's
     # region), the page build through :meth:`ray_through_f64` (the face per texel).
@@ -614,7 +614,7 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
     """Shadowed environment lighting at ``si`` (see the module doc): returns
     ``(radiance, visibility AOV)``."""
     from .filters import Lookup
-    from .pages import VirtualShadowMap
+    from .virtual import VirtualShadowMap
     view = smap.view
     virtual = isinstance(smap, VirtualShadowMap)
     t = view._region_tables

@@ -36,7 +36,7 @@ from .ground_truth import (converged_reference, has_area_lights, has_soft_lights
                            make_reference, score)
 from . import map_manager
 from .options import OptionError
-from .pages import VirtualShadowMap
+from .virtual import VirtualShadowMap
 from .scenes import load_scene
 from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F401
                     check_run_args, check_shared_params, check_unique, default_methods,
@@ -185,7 +185,7 @@ def prepare_maps(scene, methods=None, sensor=None, **params) -> list:
     :class:`~mi_shadowmap.depth_maps.ShadowMap` per emitter, None for environment
     emitters), holding every layer that one of ``methods`` uses (default: every
     method that reads a map; items as in :func:`compare`). Full maps, unless
-    ``virtual=true`` is given (then one method's :class:`~mi_shadowmap.pages.VirtualShadowMap`;
+    ``virtual=true`` is given (then one method's :class:`~mi_shadowmap.virtual.VirtualShadowMap`;
     several methods whose layers differ are refused).
 
     Each method's maps come from :func:`mi_shadowmap.map_manager.prepare_maps`

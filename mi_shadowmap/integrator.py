@@ -32,7 +32,7 @@ from .light_views.base import scene_bounds
 from .methods import MethodError
 from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
                        variant_class)
-from .pages import VirtualShadowMap, camera_frame
+from .virtual import VirtualShadowMap, camera_frame
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
                           prepare_maps)
 
@@ -82,7 +82,7 @@ By default (``virtual`` left out) the methods that read virtual maps (``hard``,
 ``pcf``, ``bilinear``, ``pcss``, ``second_depth``, ``mdsm``, ``vsm``, ``evsm``,
 ``msm``) build only the pages that
 camera-visible points read, at the density their pixel footprint needs
-(:mod:`mi_shadowmap.pages`); ``resolution``, ``cascades``, ``fit_frusta``,
+(:mod:`mi_shadowmap.virtual`); ``resolution``, ``cascades``, ``fit_frusta``,
 ``cull_faces``, ``antialias='always'`` or ``virtual=false`` select full maps, and so
 does a scene whose shape or emitter parameters have gradients enabled
 (``virtual=true`` with ``cascades``: one virtual face per cascade).

@@ -57,7 +57,7 @@ class MapStats:
     build_seconds: float = 0.0
     naive_build_seconds: float = 0.0
     texel_density_gain: list | None = None
-    # virtual maps (mi_shadowmap.pages): pages the camera reads, ray-cast, from the cache;
+    # virtual maps (mi_shadowmap.virtual): pages the camera reads, ray-cast, from the cache;
     # level_histogram[l]: marked pages of level l (0 finest)
     pages_marked: int = 0
     pages_built: int = 0
@@ -405,10 +405,10 @@ def _differentiated(scene: mi.Scene, params=None) -> bool:
 
 
 def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMaps:
-    """``virtual=true``: virtual maps (:mod:`mi_shadowmap.pages`) for the emitters whose
+    """``virtual=true``: virtual maps (:mod:`mi_shadowmap.virtual`) for the emitters whose
     view supports them; the others (an environment cut into more than 32 regions) get
     full maps as usual."""
-    from .pages import prepare_virtual
+    from .virtual import prepare_virtual
     if "virtual" in opts.given and maps_need_gradients(scene, params):
         # virtual pages are built detached: shadows would pass no gradient, silently
         # (an automatic virtual=true never gets here with gradients: prepare_maps checked)
@@ -442,11 +442,11 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
 def _within_budget(opts, views: list) -> list:
     """``views`` (those to get virtual maps), but None for a view whose coarsest level
     (one page per face, always built) and the empty page do not fit its share of
-    ``memory_budget`` (split evenly over the virtual maps, as :func:`~mi_shadowmap.pages.
+    ``memory_budget`` (split evenly over the virtual maps, as :func:`~mi_shadowmap.virtual.
     prepare_virtual` does): with ``virtual`` automatic it gets full maps, which the
     budget sizes; ``virtual=true`` given raises, naming what it needs. (The options
     check a cube map's 6 faces; an environment's regions are up to 32 faces.)"""
-    from .pages import page_bytes, page_layers
+    from .virtual import page_bytes, page_layers
     live = [v for v in views if v is not None]
     if not live:
         return views
@@ -489,7 +489,7 @@ def _virtual_cascades(scene, sensor, opts, views) -> list:
     do not)."""
     from .light_views import CascadedView, cascaded_view
     from .light_views.cascaded import with_catch_all
-    from .pages import camera_state
+    from .virtual import camera_state
     if sensor is None:
         return views
     cam = camera_state(sensor)
@@ -617,7 +617,7 @@ def scene_slot(scenes: collections.OrderedDict, scene, state, max_scenes: int) -
     """The ``[scene, state, {key: entry}]`` slot of ``scene`` in ``scenes`` (by
     ``id``), emptied when the scene's state changed; at most ``max_scenes`` kept, least
     recently used out first. Shared by :class:`MapCache` and the virtual maps' page
-    cache (:class:`mi_shadowmap.pages.PageCache`)."""
+    cache (:class:`mi_shadowmap.virtual.PageCache`)."""
     slot = scenes.get(id(scene))
     if slot is None or slot[0] is not scene or slot[1] != state:
         slot = [scene, state, {}]
@@ -765,7 +765,7 @@ MAP_CACHE = MapCache()
 
 def clear_caches() -> None:
     """Empty every cache the package keeps across renders: depth maps
-    (:data:`MAP_CACHE`), virtual pages and camera digests (:data:`~mi_shadowmap.pages.
+    (:data:`MAP_CACHE`), virtual pages and camera digests (:data:`~mi_shadowmap.virtual.
     PAGE_CACHE`), cascades of virtual maps, light-pose references
     (:mod:`~mi_shadowmap.light_views.pose`), meshes' edge topologies
     (:mod:`~mi_shadowmap.antialias`) and their bounds
@@ -781,12 +781,12 @@ def clear_caches() -> None:
     with one other small scene alive, and none without). Call this (then let the old
     scenes go) when switching between scenes in one process, e.g. between tests.
     """
-    from . import antialias, depth_maps, pages
+    from . import antialias, depth_maps, virtual
     from .light_views import base, pose
     base.clear_memos()
     depth_maps.clear_memos()
     MAP_CACHE.clear()
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     _VIRTUAL_CASCADES.clear()
     pose.clear_references()
     antialias.clear_meshes()

@@ -156,7 +156,7 @@ class Method:
       ``smap.view``, with ``smap.resolution`` possibly a per-lane ``mi.Int32``, and its
       layers are among :data:`VIRTUAL_LAYERS` (with ``layers_for``: the layers it
       returns for options with ``virtual`` true, checked when options are parsed): it
-      can read virtual maps (``virtual=true``, :mod:`mi_shadowmap.pages`);
+      can read virtual maps (``virtual=true``, :mod:`mi_shadowmap.virtual`);
     * ``virtual_margin`` -- ``fn(opts) -> texels`` or ``fn(opts, view) -> texels``
       (``view``: the light's :class:`~mi_shadowmap.light_views.base.LightView`): how far
       from the receiver's texel the lookup's taps reach (its kernel's half-width), so
@@ -168,10 +168,10 @@ class Method:
     * ``virtual_coarse_res`` -- ``fn(opts, view) -> int or None``: the lookup may also
       read levels coarser than its pixel footprint's (a kernel wider than it reads
       well at that level filters a coarser one, through
-      :meth:`~mi_shadowmap.pages.VirtualShadowMap.bind`'s ``level``), down to those of
+      :meth:`~mi_shadowmap.virtual.VirtualShadowMap.bind`'s ``level``), down to those of
       this many texels per face side; the mark pass then builds, around each point, the
       tiles within ``virtual_margin`` of it on those levels too (at most
-      :data:`~mi_shadowmap.pages.MAX_COARSER` of them; ``pcss``). None (default): its
+      :data:`~mi_shadowmap.virtual.MAX_COARSER` of them; ``pcss``). None (default): its
       own level only;
     * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
       slot from the page table (cheapest for a lookup that reads a texel or two, as
@@ -179,7 +179,7 @@ class Method:
       cheapest for wide kernels). Results are the same either way. Such a lookup runs at
       each lane's wanted level first and again for the lanes whose read found its page
       missing, so it must read the map outside symbolic loops and conditionals and must
-      not draw random numbers (:meth:`~mi_shadowmap.pages.VirtualShadowMap.visibility`;
+      not draw random numbers (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.visibility`;
       either raises a :class:`MethodError` at the first render);
     * ``builtin`` -- shipped with the package.
     """
@@ -214,7 +214,7 @@ class Method:
         return next((p for p in self.properties if p.name == name), None)
 
 
-#: The layers virtual maps (:mod:`mi_shadowmap.pages`) can build: per page, ray-cast
+#: The layers virtual maps (:mod:`mi_shadowmap.virtual`) can build: per page, ray-cast
 #: (``second_depth``), or per face, from the built pages (``pcss_near``).
 VIRTUAL_LAYERS = ("second_depth", "pcss_near")
 

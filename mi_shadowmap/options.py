@@ -48,7 +48,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "'raytraced' and 'unshadowed', so that one scene file renders with any method. "
          "With virtual maps: the virtual resolution of the finest level per face, a power "
          "of two from page_size to 2^30 (default: automatic, 2^24 texels across the "
-         "scene's extent as the light sees it, see mi_shadowmap.pages); full maps take at "
+         "scene's extent as the light sees it, see mi_shadowmap.virtual); full maps take at "
          "most 65536. 0 means automatic too (for scene files whose $resolution default "
          "should leave the choice to the integrator).",
          lo=0, hi=2**30),
@@ -75,7 +75,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "density where the camera sees a small part of the scene; the maps then depend on "
          "the camera (a camera change rebuilds them)."),
     Prop("virtual", "bool", None,
-         "Virtual shadow maps (after UE5; mi_shadowmap.pages): each face is a huge map "
+         "Virtual shadow maps (after UE5; mi_shadowmap.virtual): each face is a huge map "
          "split into pages; a mark pass (one camera ray per pixel) builds only the pages "
          "visible points read, at the mip level matching their pixel footprint, and keeps "
          "them across camera moves. Methods: hard, pcf, bilinear, pcss, second_depth, "

@@ -289,7 +289,7 @@ def write_maps(maps, out_dir: str) -> list[str]:
     (``depth.Y``, ``second_depth.Y``, ``<extra>.Y``), faces stacked vertically
     (see :func:`map_layer_image`); a layer that is no image (a few values per map)
     as a float-vector attribute of the header named after it (:func:`read_exr_header`).
-    A virtual map (:mod:`mi_shadowmap.pages`) writes its built pages stacked vertically
+    A virtual map (:mod:`mi_shadowmap.virtual`) writes its built pages stacked vertically
     (``page_size`` wide) and their face, level and page coordinates as the attributes
     ``page_face``, ``page_level``, ``page_px``, ``page_py``."""
     check_out_dir(out_dir)
@@ -338,7 +338,7 @@ def tune_plot(result: dict, path: str | None = None, ax=None):
 
 
 def page_map_plot(vmap, path: str | None = None, faces=None, zoom_levels: int | None = 3):
-    """Which pages of a virtual map (:class:`mi_shadowmap.pages.VirtualShadowMap`) exist
+    """Which pages of a virtual map (:class:`mi_shadowmap.virtual.VirtualShadowMap`) exist
     at which level: per face that has pages finer than the coarsest level, a panel of
     its pages -- each a rectangle of the face's ``uv``, coloured by its level (0:
     finest) -- and, with ``zoom_levels``, a second panel zoomed onto the pages of the

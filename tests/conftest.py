@@ -20,7 +20,7 @@ SCENE_FILES = sorted(SCENES.glob("*.xml"))
 #: point light 1e5 units away. With one full map per face their shadows fall into a few
 #: texels (measured at the tests' sizes: 3.1-3.9 % misclassified, nearly all of it false
 #: lit), so tests written for full maps hold them to their measured values or expect
-#: the miss; tests/test_pages.py checks them with virtual maps (<= 1 % / 0.3 %).
+#: the miss; tests/test_virtual.py checks them with virtual maps (<= 1 % / 0.3 %).
 VIRTUAL_SCENES = {"large_world", "far_point"}
 
 
@@ -48,7 +48,7 @@ def _fresh_caches():
     alive in the caches change every kernel that dispatches over shapes or BSDFs, so a
     module's kernels depended on the modules run before it and were compiled anew
     whenever those changed. Per module, not per test: tests of one module share scenes
-    and cached maps (clearing after every test made test_pages.py and test_stability.py
+    and cached maps (clearing after every test made test_virtual.py and test_stability.py
     330 -> 445 s). ``tests/test_differentiable.py``, whose tests each build their own
     scenes, clears after every test."""
     yield

@@ -360,7 +360,7 @@ def test_clear_caches_frees_the_scenes_and_their_kernels_repeat():
     import sys
 
     import mi_shadowmap
-    from mi_shadowmap import antialias, pages
+    from mi_shadowmap import antialias, virtual
 
     def render_hashes(scene, props):
         dr.kernel_history()   # clear
@@ -379,12 +379,12 @@ def test_clear_caches_frees_the_scenes_and_their_kernels_repeat():
         scene = mi.load_dict(default_scene(width=32, height=32))
         unheld = sys.getrefcount(scene)
         first = render_hashes(scene, props)
-        assert MAP_CACHE._scenes or pages.PAGE_CACHE._scenes   # the scene is held
+        assert MAP_CACHE._scenes or virtual.PAGE_CACHE._scenes   # the scene is held
         assert sys.getrefcount(scene) > unheld
         mi_shadowmap.clear_caches()
         gc.collect()
         assert not MAP_CACHE._scenes and not MAP_CACHE._memo
-        assert not pages.PAGE_CACHE._scenes and not antialias._EDGES
+        assert not virtual.PAGE_CACHE._scenes and not antialias._EDGES
         assert sys.getrefcount(scene) == unheld                # nothing holds it now
         del scene
         gc.collect()

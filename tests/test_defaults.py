@@ -31,7 +31,7 @@ from conftest import SCENE_FILES, root_message
 # ----------------------------------------------------- automatic resolution
 def test_resolution_is_automatic_and_follows_the_film():
     """Full maps (virtual=false; the default is virtual maps, whose automatic virtual
-    resolution tests/test_pages.py checks)."""
+    resolution tests/test_virtual.py checks)."""
     assert parse_options({}).resolution is None
     res = {}
     for w in (32, 64):

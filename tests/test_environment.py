@@ -262,7 +262,7 @@ def test_virtual_regions_build_a_tenth_of_the_full_maps_and_match_them():
     64^2 they cast about a tenth of the full maps' texels, and the visibility AOV is
     the full maps' (both against 256 shadow rays per camera sample). A still camera
     casts nothing again."""
-    from mi_shadowmap.pages import VirtualShadowMap
+    from mi_shadowmap.virtual import VirtualShadowMap
     scene = _scene(size=64)
     ref = _render(scene, {"type": "shadowmap", "method": "raytraced", "shadow_rays": 256},
                   16, seed=1)
@@ -356,14 +356,14 @@ def test_mark_pass_skips_no_region_a_lookup_reads(make, monkeypatch):
     that transmits light (lit through from below: both sides' horizons count) and for
     the back of a two-sided surface (the normal facing the camera). Skipping the first
     lit the pane under the blocker from the coarsest page (mean 0.561 against 0.540)."""
-    from mi_shadowmap import pages
+    from mi_shadowmap import virtual
     scene = make()
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     img, _ = _virtual_render(scene, 4, method="hard")
     monkeypatch.setattr(env, "MARK_SLACK", 10.0)
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     every, _ = _virtual_render(scene, 4, method="hard")
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     full, _ = _virtual_render(scene, 4, method="hard", virtual=False)
     ref, _ = _virtual_render(scene, 16, method="raytraced", shadow_rays=16)
     err = {name: abs(a[..., :3].mean() / ref[..., :3].mean() - 1.0)

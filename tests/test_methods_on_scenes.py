@@ -52,7 +52,7 @@ MEASURED = {
         "hard-virtualTrue": .0076, "pcss-virtualTrue": .0076, "pcf-virtualTrue": .0154,
         "bilinear-kernel2-virtualTrue": .0107, "second_depth-virtualTrue": .0088},
     # far_point's virtual cases re-measured on 2026-12-01, after its layout became one
-    # face aimed at the scene (pages.layout_for, box_view): 0.24 -> 0.42 % for pcf, 0.32
+    # face aimed at the scene (virtual.layout_for, box_view): 0.24 -> 0.42 % for pcf, 0.32
     # -> 0.37 % for hard, 0.49 -> 0.37 % for second_depth, 0.29 -> 0.24 % for bilinear,
     # all within 7 pixels of 4096; at 128^2 and 256^2 equal or lower (pcf 0.20 -> 0.19 %,
     # 0.08 -> 0.08 %; hard 0.23 -> 0.16 %, 0.09 -> 0.07 %)

@@ -598,7 +598,7 @@ def virtual_depth_scale(smap):
     """``(d_lo, scale)`` (``mi.Float64``, per lane): how the prefiltered methods
     normalise the depths of a map without their layers (virtual maps), ``z = (depth -
     d_lo) scale`` with ``scale = 1 / (2 (d_hi - d_lo))``: the scene's depth span as the
-    light sees it (:attr:`mi_shadowmap.pages.VirtualLayout.depth_range`) maps to
+    light sees it (:attr:`mi_shadowmap.virtual.VirtualLayout.depth_range`) maps to
     ``[0, 1/2]``, as a full map's ``depth / far`` maps its depths to ``[0, 1/2]``
     (``far`` twice its largest depth). Unlike ``far`` the span does not grow with the
     light's distance, so ``min_variance`` stays relative to the scene's depths for a

@@ -51,7 +51,7 @@ Deviations from the paper, and why:
 * Only the layers the options read are built (:data:`LAYERS_FOR`, via
   :func:`mi_shadowmap.filters.layers_for`): none for ``depths = 1`` or
   ``search = 1``, ``mdsm_max`` for ``depths = 2``, both for ``depths = 3``.
-* **Virtual maps** (``virtual=true``, :mod:`mi_shadowmap.pages`) store no extra
+* **Virtual maps** (``virtual=true``, :mod:`mi_shadowmap.virtual`) store no extra
   depths: their pages hold the base depth only, and a page's 3 x 3 extremes at its
   border would need its neighbours' texels, which may not be built. The lookup
   computes each stored value it would read from the base depths instead (the same

@@ -330,15 +330,15 @@ def _kernel_cap(smap, half_max):
     """Largest kernel half-width, in texels of ``smap`` (per lane on a virtual map):
     ``half_max``, or ``half_max`` texels of a :data:`KERNEL_REF_RES`-texel face on a
     denser map. On a virtual map, that many texels of the coarsest level it may read
-    (:func:`~mi_shadowmap.pages.coarser_levels`: at most
-    :data:`~mi_shadowmap.pages.MAX_COARSER` levels coarser, never beyond the coarsest),
+    (:func:`~mi_shadowmap.virtual.coarser_levels`: at most
+    :data:`~mi_shadowmap.virtual.MAX_COARSER` levels coarser, never beyond the coarsest),
     the levels the mark pass builds."""
     vmap = getattr(smap, "vmap", None)
     if vmap is None:
         return half_max * max(smap.resolution / KERNEL_REF_RES, 1.0)
     if vmap.coarse_res is None:     # no coarser level marked (an environment's regions)
         return half_max
-    from ..pages import coarser_levels
+    from ..virtual import coarser_levels
     k = coarser_levels(vmap.layout, smap.level, vmap.coarse_res)
     return half_max * mi.Float(mi.UInt32(1) << k)
 
@@ -368,7 +368,7 @@ def _level_for_kernel(smap, lk: Lookup, opts, r, plane, texel, half, half_max, a
     vmap = getattr(smap, "vmap", None)
     if vmap is None or vmap.coarse_res is None:
         return smap, r, plane, texel
-    from ..pages import coarser_levels
+    from ..virtual import coarser_levels
     # the level's own marks reach page_size / 2 texels around the point
     fits = min(half_max, 0.5 * vmap.layout.page_size)
     k = mi.UInt32(dr.maximum(dr.ceil(dr.log2(dr.maximum(half / fits, 1.0))), 0.0))

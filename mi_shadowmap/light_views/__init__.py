@@ -16,7 +16,7 @@ projector              CubeView         :mod:`.cube` (kind ``'projector'``)
 any (``multiview``)    MultiView        :mod:`.multi` (K views in one map)
 =====================  ===============  ====================================
 
-A virtual map of a light far from the scene (:func:`mi_shadowmap.pages.layout_for`)
+A virtual map of a light far from the scene (:func:`mi_shadowmap.virtual.layout_for`)
 replaces the emitter's view by :func:`~.perspective.box_view`: one perspective face
 from the same light, aimed at the scene's box.
 

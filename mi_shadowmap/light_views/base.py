@@ -148,7 +148,7 @@ class LightView:
         raise NotImplementedError
 
     # ------------------------------------------------- float64 (virtual maps)
-    # Virtual maps (:mod:`mi_shadowmap.pages`) address up to 2^31 texels per face side,
+    # Virtual maps (:mod:`mi_shadowmap.virtual`) address up to 2^31 texels per face side,
     # beyond float32's 24 bits: they project and build their texel rays through these
     # float64 forms of project / uv_on_face / ray_through. Views that do not provide
     # them cannot be virtual (``supports_virtual`` False).

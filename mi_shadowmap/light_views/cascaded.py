@@ -7,7 +7,7 @@ depth (:meth:`CascadedView.cascade_of`).
 
 The cascades' camera-dependent values (rectangles, split depths, the camera's
 origin and axis) enter kernels as data, never as literals. With ``virtual=true``
-each cascade is a virtual face (:mod:`mi_shadowmap.pages`, the float64 methods
+each cascade is a virtual face (:mod:`mi_shadowmap.virtual`, the float64 methods
 below): pages of it are built where lookups read them, at their pixel
 footprint's level, and, as the cascades follow the camera, rebuilt when it
 moves, with no new kernel. (Full-map cascades still compile kernels after a move

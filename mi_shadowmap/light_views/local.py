@@ -1,6 +1,6 @@
 """A view of a virtual map's level, in coordinates local to each lookup (:class:`LocalView`).
 
-Virtual maps (:mod:`mi_shadowmap.pages`) address up to ``2^30`` texels per face
+Virtual maps (:mod:`mi_shadowmap.virtual`) address up to ``2^30`` texels per face
 side. Continuous texel coordinates that large do not fit a float32 (24 bits),
 so every lookup is *bound* to a local frame: its face, its level's resolution
 ``res_level`` (per lane) and an integer ``origin`` (the first texel of the
@@ -12,7 +12,7 @@ computes every projection in float64 through the wrapped view's
 ``*_f64`` methods and knows nothing of any projection itself.
 
 Depths: a far light's pages hold depths measured from ``depth_origin``
-along each texel's ray (:attr:`mi_shadowmap.pages.VirtualLayout.t0`, a box
+along each texel's ray (:attr:`mi_shadowmap.virtual.VirtualLayout.t0`, a box
 diagonal before the scene), so every depth a :class:`LocalView` returns
 (:meth:`~LocalView.project`, :meth:`~LocalView.depth_of`,
 :meth:`~LocalView.ray_plane`) is the float64 distance from the light minus

@@ -197,7 +197,7 @@ def box_view(view: LightView, lo, hi, margin: float = 0.05):
 
     For a light far from the scene: a cube face (90 degrees) or a wide spot cone then
     spends its texels on directions where nothing is, and a virtual map's finest level
-    (``pages.MAX_VIRTUAL_RES`` texels a side) is wider than the scene's details (a
+    (``virtual.MAX_VIRTUAL_RES`` texels a side) is wider than the scene's details (a
     point light 1e9 from a 12-unit scene: 1.9-unit texels). Aimed at the box, the
     face's texels all fall on the scene, whatever its distance."""
     pos = position_np(view)

@@ -1,4 +1,4 @@
-"""Virtual shadow maps (issue 11, :mod:`mi_shadowmap.pages`).
+"""Virtual shadow maps (issue 11, :mod:`mi_shadowmap.virtual`).
 
 Analytic page depths, the mark pass and the level choice, agreement with the
 ray-traced reference for every virtual method and light type, the large-world
@@ -15,7 +15,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowmap import pages
+from mi_shadowmap import virtual
+from mi_shadowmap.light_views.base import scene_bounds
+from mi_shadowmap.virtual import layout, marks, planner, store as page_store
 from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import default_scene
@@ -158,7 +160,7 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
     vis_of(scene, integ, spp=1)
     vmap = integ.maps[0]
     store, lay = vmap.store, vmap.layout
-    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
     lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
     p64 = mi.Point3d(lk.p_world)
     face, uv64, _, inside = vmap.view.project_f64(p64)
@@ -171,17 +173,17 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
     res = (lay.res0 >> want).astype(np.float64)
     gx = np.floor(uv64.x.numpy() * res).astype(np.int64)
     gy = np.floor(uv64.y.numpy() * res).astype(np.int64)
-    tile = pages.page_key(face.numpy().astype(np.uint64), want.astype(np.uint64),
+    tile = virtual.page_key(face.numpy().astype(np.uint64), want.astype(np.uint64),
                           gx // T, gy // T)
     keys, counts = np.unique(tile[lit & (want < lay.coarsest)], return_counts=True)
     k = int(keys[np.argmax(counts)])
     tx, ty = (k >> 27) & ((1 << 27) - 1), k & ((1 << 27) - 1)
-    page = pages.page_key(k >> 59, (k >> 54) & 31, tx // S, ty // S)
+    page = virtual.page_key(k >> 59, (k >> 54) & 31, tx // S, ty // S)
     present, slot = store.lookup(np.array([page], np.uint64))
     assert present[0]
     store.slot_mask[slot[0]] &= ~(1 << (tx % S + (ty % S) * S))
     store.version += 1
-    after = pages.VirtualShadowMap(store, {}, vmap.lod_bias).bind(lk, valid, per_tap=True)
+    after = virtual.VirtualShadowMap(store, {}, vmap.lod_bias).bind(lk, valid, per_tap=True)
     moved = after.level.numpy() != want
     inside_tile = lit & (tile == np.uint64(k))
     assert inside_tile.sum() == counts.max() > 0
@@ -200,7 +202,7 @@ def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
     vis_of(scene, integ, spp=1)
     vmap, opts = integ.maps[0], integ.opts
     store, lay = vmap.store, vmap.layout
-    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
     lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
     first = vmap.bind(lk, valid, per_tap=True, walk=False)
     hard(first, lk, opts, valid)
@@ -217,7 +219,7 @@ def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
     t = int(tiles[np.argmax(counts)])
     store.slot_mask[t // (S * S)] &= ~(1 << (t % (S * S)))
     store.version += 1
-    vmap2 = pages.VirtualShadowMap(store, {}, vmap.lod_bias)
+    vmap2 = virtual.VirtualShadowMap(store, {}, vmap.lod_bias)
     first = vmap2.bind(lk, valid, per_tap=True, walk=False)
     hard(first, lk, opts, valid)
     missed = (valid & first.inside & first.missed).numpy()
@@ -354,11 +356,11 @@ def test_a_far_light_gets_one_face_aimed_at_the_scene():
         scene = mi.load_file(str(SCENES / "far_point.xml"), width=64, height=64,
                              light_distance=distance, light_intensity=intensity)
         view = make_light_view(scene.emitters()[0], scene, 0)
-        lay = pages.layout_for(view, scene, parse_options(mi.Properties()))
+        lay = virtual.layout_for(view, scene, parse_options(mi.Properties()))
         assert (lay.view.projection == "cube") == cube, distance
         if cube:
             continue
-        assert lay.view.n_faces == 1 and pages.SCENE_TEXELS <= lay.res0 <= 16 * pages.SCENE_TEXELS
+        assert lay.view.n_faces == 1 and virtual.SCENE_TEXELS <= lay.res0 <= 16 * virtual.SCENE_TEXELS
         lo, hi = scene_bounds(scene)
         corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)])
         p = mi.Point3d(*(mi.Float64(corners[:, a].tolist()) for a in range(3)))
@@ -455,7 +457,7 @@ def test_camera_move_reuses_pages_and_compiles_nothing():
     holds its first ``to_world`` as a kernel literal; the first ``params.update()``
     turns it into a variable, so the first move recompiles for full maps too: the
     check is on the moves after it.)"""
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     scene = mi.load_dict(default_scene(width=64, height=64, spp=2))
     integ = shadowmap(method="pcf", virtual=True)
     params = mi.traverse(scene)
@@ -490,7 +492,7 @@ def test_camera_moves_in_a_large_world_compile_nothing():
     levels, the page table growing): after the first move, every render reuses the
     kernels already traced. (A page table read with packet gathers once made the render
     kernel depend on the table's size.)"""
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     scene = mi.load_file(str(SCENES / "large_world.xml"), width=128, height=128)
     integ = shadowmap(method="hard")
     built = []
@@ -501,7 +503,7 @@ def test_camera_moves_in_a_large_world_compile_nothing():
 
 
 def test_geometry_change_drops_the_pages():
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
     integ = shadowmap(method="hard", virtual=True)
     vis_of(scene, integ, spp=1)
@@ -524,10 +526,10 @@ def test_still_camera_reuses_its_marks_and_a_moved_one_marks_again(monkeypatch):
     same image); a camera move marks again, and so does moving it back through new
     variables (a camera state compares JIT variables, not values): the image is then
     the first one again."""
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     traced = []
-    real = pages.camera_hits
-    monkeypatch.setattr(pages, "camera_hits", lambda *a, **k: traced.append(1) or real(*a, **k))
+    real = virtual.camera_hits
+    monkeypatch.setattr(planner, "camera_hits", lambda *a, **k: traced.append(1) or real(*a, **k))
     scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
     integ = shadowmap(method="pcf", virtual=True)
     first = vis_of(scene, integ, spp=1)
@@ -551,7 +553,7 @@ def test_light_views_follow_an_emitter_edit():
     """The integrator keeps its light views while the scene's state is unchanged; a
     light moved through ``params.update()`` gets new views, and its render equals a
     new integrator's."""
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
     integ = shadowmap(method="hard", virtual=True)
     before = vis_of(scene, integ, spp=1)
@@ -608,9 +610,9 @@ def test_a_small_budget_degrades_to_coarser_pages_never_lit():
 
 @pytest.mark.parametrize("T", [1, 2, 8, 16])
 def test_morton_order_visits_every_texel_of_a_tile_once(T):
-    """The page build's texel order (:func:`pages.morton_xy`) is a permutation of the
+    """The page build's texel order (:func:`~mi_shadowmap.virtual.store.morton_xy`) is a permutation of the
     tile's texels, whose first 8 are a 4 x 2 block (one vector of neighbours)."""
-    i, j = pages.morton_xy(dr.arange(mi.UInt32, T * T), T)
+    i, j = page_store.morton_xy(dr.arange(mi.UInt32, T * T), T)
     i, j = i.numpy().astype(int), j.numpy().astype(int)
     assert sorted(zip(i, j)) == [(a, b) for a in range(T) for b in range(T)]
     if T >= 4:
@@ -619,7 +621,7 @@ def test_morton_order_visits_every_texel_of_a_tile_once(T):
 
 @pytest.mark.parametrize("bits", [4, 14])
 def test_mark_dedupe_returns_every_distinct_key(bits):
-    """The mark pass's hash-table dedupe (:func:`pages._dedupe_many`) returns, per light,
+    """The mark pass's hash-table dedupe (:func:`~mi_shadowmap.virtual.marks.dedupe_many`) returns, per light,
     exactly the distinct keys of its valid candidates (repeats allowed, none missed):
     with tables of 2^14 slots (the default) and of 16 slots, where most keys lose their
     slot in both rounds and come back as candidates. Then the sort-based helpers give
@@ -637,19 +639,19 @@ def test_mark_dedupe_returns_every_distinct_key(bits):
             valid.append(k[ok])
         groups.append((keys, oks))
         want.append(np.unique(np.concatenate(valid)))
-    found = pages._dedupe_many(groups, bits=bits)
+    found = marks.dedupe_many(groups, bits=bits)
     assert len(found) == 3
     for got, w in zip(found, want):
         assert np.array_equal(np.unique(got), w)
         if bits == 14 and len(w):
             assert len(got) < 2 * len(w)        # few repeats
     for a in (found[0], found[1], np.zeros(0, np.uint64), np.array([5], np.uint64)):
-        assert np.array_equal(pages._sorted_unique(a), np.unique(a))
+        assert np.array_equal(layout.sorted_unique(a), np.unique(a))
     base = np.unique(found[0])
     more = np.sort(np.concatenate([base[:3], rng.integers(0, 2 ** 62, 4, dtype=np.uint64)]))
-    assert np.array_equal(pages._with_keys(base, more),
+    assert np.array_equal(layout.with_keys(base, more),
                           np.unique(np.concatenate([base, more])))
-    assert np.array_equal(pages._with_keys(np.zeros(0, np.uint64), more), more)
+    assert np.array_equal(layout.with_keys(np.zeros(0, np.uint64), more), more)
 
 
 def test_page_minima_on_the_host_and_on_the_device_agree():
@@ -662,8 +664,8 @@ def test_page_minima_on_the_host_and_on_the_device_agree():
     d[2 * tpp:3 * tpp] = np.inf                 # an empty page
     depth = mi.Float(d)
     dr.eval(depth)
-    host = pages.page_minima(depth, tpp, on_host=True)
-    device = pages.page_minima(depth, tpp, on_host=False)
+    host = virtual.page_minima(depth, tpp, on_host=True)
+    device = virtual.page_minima(depth, tpp, on_host=False)
     want = np.where(np.isfinite(d), d, np.inf).reshape(7, tpp).min(axis=1)
     assert np.array_equal(host, want) and np.array_equal(device, want)
     assert np.isinf(host[2])
@@ -674,7 +676,7 @@ def test_camera_moves_under_a_budget_evict_and_reuse_slots(monkeypatch):
     first view's pages (least recently used) into free slots, and moving back builds
     them again in recycled slots. Every frame equals a fresh integrator's render at that
     camera, and the store's sorted index and page table agree with its pages."""
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     scene = mi.load_dict(default_scene(width=64, height=64, spp=2))
     params = mi.traverse(scene)
     cams = [T().look_at(origin=o, target=[0.3, 0.25, 0.0], up=[0, 1, 0])
@@ -685,8 +687,8 @@ def test_camera_moves_under_a_budget_evict_and_reuse_slots(monkeypatch):
     budget = (int(store.n_pages * 1.2) + 2) * store.texels_per_page * 4 / 2**20
     integ = shadowmap(method="hard", virtual=True, memory_budget=budget)
     evicted = []
-    evict = pages.PageStore.evict
-    monkeypatch.setattr(pages.PageStore, "evict",
+    evict = virtual.PageStore.evict
+    monkeypatch.setattr(virtual.PageStore, "evict",
                         lambda self, keep, n: evicted.append(evict(self, keep, n)) or evicted[-1])
     for cam in cams:
         params["sensor.to_world"] = cam
@@ -703,7 +705,7 @@ def test_camera_moves_under_a_budget_evict_and_reuse_slots(monkeypatch):
         assert np.all(keys[1:] > keys[:-1])          # sorted, no repeats
         assert len(set(store.slots.values())) == len(store.slots)   # one page per slot
         header, dense, *_ = store.table()
-        assert set(np.unique(dense.numpy())) - {pages._INVALID} <= set(slots.tolist())
+        assert set(np.unique(dense.numpy())) - {layout.INVALID_SLOT} <= set(slots.tolist())
     print(f"{store.n_pages} pages, {store.n_slots} slots, evicted {evicted}")
     assert sum(evicted) > 0, "the budget never made the store evict"
 
@@ -731,7 +733,7 @@ def test_virtual_cascades_at_the_same_density_match_full_cascades():
     full = vis_of(scene, shadowmap(method="hard", cascades=4, resolution=256), spp=2)
     integ = shadowmap(method="hard", cascades=4, resolution=256, virtual=True, lod_bias=-8.0)
     virt = vis_of(scene, integ, spp=2)
-    assert isinstance(integ.maps[0], pages.VirtualShadowMap)
+    assert isinstance(integ.maps[0], virtual.VirtualShadowMap)
     # 4 cascades and the catch-all face (the whole rectangle, for points outside theirs)
     assert integ.views[0].n_faces == 5 and integ.maps[0].layout.res0 == 256
     assert {0, 1, 2, 3} <= set(integ.maps[0].page_records()["face"])
@@ -755,7 +757,7 @@ def test_points_outside_their_cascade_read_the_catch_all_face():
     view = _virtual_cascades(scene, scene.sensors()[0], opts, [base])[0]
     assert view.catch_all and view.n_faces == 5 and view.rects[-1][:2] == (0.0, 0.0)
     rng = np.random.default_rng(3)
-    lo, hi = pages.scene_bounds(scene)
+    lo, hi = scene_bounds(scene)
     p = rng.uniform(lo, hi, (20000, 3))
     p[:, 1] = 0.0                                # on the ground
     p64 = mi.Point3d(*(p[:, a].copy() for a in range(3)))
@@ -796,7 +798,7 @@ def test_virtual_cascades_follow_the_camera_and_compile_nothing():
     nothing, the page cache keeps one set of cascades per light (no pile-up along a
     camera path), and moves after the first compile no kernel (the cascades' values are
     data)."""
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     scene = mi.load_file(str(SCENES / "large_world.xml"), width=64, height=64)
     integ = shadowmap(method="hard", virtual=True, cascades=4)
     vis_of(scene, integ, spp=2)
@@ -807,7 +809,7 @@ def test_virtual_cascades_follow_the_camera_and_compile_nothing():
 
     def each():
         built.append(integ.stats["texels_built"])
-        entries.append(len(next(iter(pages.PAGE_CACHE._scenes.values()))[2]))
+        entries.append(len(next(iter(virtual.PAGE_CACHE._scenes.values()))[2]))
 
     compiled = _moves(scene, integ, 4, each)
     print(f"first {first} texels; moves: built {built}, compiled {compiled}, cache "
@@ -864,7 +866,7 @@ def test_coarsest_pages_sit_in_fixed_slots():
     lay, P = store.layout, store.layout.page_size
     pool = store.pools["depth"].numpy().reshape(-1, P * P)
     for f in range(lay.view.n_faces):
-        slot = store.slots.get(np.uint64(pages.page_key(f, lay.coarsest, 0, 0)))
+        slot = store.slots.get(np.uint64(virtual.page_key(f, lay.coarsest, 0, 0)))
         if f == 2:                       # +y: behind the downward-emitting light
             assert slot is None and np.all(np.isinf(pool[f + 1]))
         else:
@@ -966,7 +968,7 @@ def test_reading_slots_per_tap_or_per_block_gives_the_same_image(light):
         unregister_method("hard_block_reads")
     # the two ways of reading slots give the same pool index for every texel around the
     # receiver: its 2 x 2 pages, the pages beyond them, and a neighbouring face
-    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
     lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
     vmap = integ.maps[0]
     per_tap, block = vmap.bind(lk, valid, per_tap=True), vmap.bind(lk, valid, per_tap=False)
@@ -1040,7 +1042,7 @@ def test_prefiltered_same_density_matches_the_full_map(light, method):
     virt_integ = shadowmap(method=method, virtual=True, resolution=256, lod_bias=-8.0,
                            page_size=32)
     virt = vis_of(scene, virt_integ, spp=2)
-    assert isinstance(virt_integ.maps[0], pages.VirtualShadowMap)
+    assert isinstance(virt_integ.maps[0], virtual.VirtualShadowMap)
     assert not any(k.startswith(method) for k in virt_integ.maps[0].extra)
     partial = float(np.mean((full > 0.01) & (full < 0.99)))
     assert partial > 0.02, "no pixel reads a filtered value"
@@ -1203,7 +1205,7 @@ def test_the_automatic_default_gives_gradient_renders_full_maps():
     dr.disable_grad(params[key])
     params.update()
     mi.render(scene, integrator=integ, spp=1)
-    assert isinstance(integ.maps[0], pages.VirtualShadowMap)
+    assert isinstance(integ.maps[0], virtual.VirtualShadowMap)
 
 
 @pytest.mark.parametrize("props, virtual", [
@@ -1249,7 +1251,7 @@ def test_environment_regions_are_virtual_faces_for_derived_layer_methods(method)
                                 spp=4))
     assert np.isfinite(img).all()
     vmap = integ.maps[0]
-    assert isinstance(vmap, pages.VirtualShadowMap) and isinstance(vmap.view, EnvironmentView)
+    assert isinstance(vmap, virtual.VirtualShadowMap) and isinstance(vmap.view, EnvironmentView)
     assert vmap.layers() == ["depth"]
     vis = img[..., -1]
     assert vis.min() >= 0.0 and vis.max() <= 1.0 + 1e-6
@@ -1344,7 +1346,7 @@ def test_receiver_plane_depths_in_float32_match_float64(light):
     vmap = integ.maps[0]
     if light == "cascades":
         assert vmap.view.n_faces >= 3     # the cascades (and a catch-all face)
-    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, scene.sensors()[0])
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
     lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
     bound = vmap.bind(lk, valid)
     local = bound.view
@@ -1414,7 +1416,7 @@ def test_footprints_start_at_the_pinhole_whatever_the_near_clip(near):
         "light": {"type": "point", "position": [1, 2, 2]}})
     sensor = scene.sensors()[0]
     want = 2.0 * D * math.tan(math.radians(fov / 2)) / W
-    si, dp_dx, dp_dy, valid = pages.camera_hits(scene, sensor)
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, sensor)
     assert np.all(valid.numpy())
     for dp in (dp_dx, dp_dy):
         np.testing.assert_allclose(np.linalg.norm(np.array(dp), axis=0), want, rtol=1e-3)
@@ -1471,7 +1473,7 @@ def test_environment_regions_moves_compile_nothing_and_share_one_mark_kernel():
     camera moves rebuild at most a quarter of the first frame's texels and, after the
     first, compile no kernel."""
     from conftest import SCENE_FILES
-    pages.PAGE_CACHE.clear()
+    virtual.PAGE_CACHE.clear()
     path = [p for p in SCENE_FILES if p.stem == "sky_sun"][0]
     scene = mi.load_file(str(path), width=32, height=32)
     integ = shadowmap(method="pcss")
@@ -1508,7 +1510,7 @@ def test_to_numpy_of_a_level_equals_a_full_map_of_its_resolution(light):
     integ = shadowmap(method="hard")
     vis_of(scene, integ)
     vmap = integ.maps[0]
-    assert isinstance(vmap, pages.VirtualShadowMap)
+    assert isinstance(vmap, virtual.VirtualShadowMap)
     levels = np.unique(vmap.page_records()["level"])
     coarsest = vmap.to_numpy()
     assert not np.isnan(coarsest).any()

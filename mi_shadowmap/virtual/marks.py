@@ -1,0 +1,268 @@
+"""The mark pass: the pages and tiles the camera's visible points read, from one camera
+ray per pixel centre.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .. import depth_maps
+from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
+from ..light_views.base import opaque_point
+from .camera import camera_frame, has_aperture
+from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
+from .lookup import VirtualShadowMap
+
+
+#: The mark pass of a camera with a lens (``thinlens``, ``aperture_radius`` > 0) traces
+#: each pixel through ``LENS_GRID``^2 points of its lens (cell centres of a square grid,
+#: mapped to the disk as the camera maps its aperture samples). From the lens centre
+#: alone, a blurred post 0.8 in front of an aperture of radius 0.8 hid a strip of ground
+#: that the rest of the lens sees: its lookups fell to coarse levels (``hard``
+#: misclassified 1.49 %, full maps 0.04 %; 4 x 4 points: 0.18 %).
+LENS_GRID = 3
+
+
+def camera_hits(scene, sensor, evaluate: bool = True):
+    """Camera hits at every pixel centre with their one-pixel footprints (where the next
+    pixel's rays meet the tangent plane: a perspective camera's from its pinhole, as the
+    render takes them, :func:`~mi_shadowmap.light_views.pinhole_footprint`; other
+    sensors' from their ray differentials): ``(si, dp_dx, dp_dy, valid)``; unevaluated
+    with ``evaluate=False`` (the mark pass traces them in its own kernel)."""
+    frame = camera_frame(sensor)
+    if frame is not None:    # plain rays: the footprints come from the frame, not differentials
+        ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
+    else:
+        centres = pixel_centres(sensor)
+        k = LENS_GRID if has_aperture(sensor) else 1
+        if k == 1:
+            ray = pixel_ray_differentials(sensor, centres)
+        else:
+            # a lens: every pixel through k x k points of it (the render's samples spread
+            # over the whole lens, and a near occluder hides different points from each)
+            n = dr.width(centres)
+            idx = dr.arange(mi.UInt32, n * k * k)
+            a = idx // n
+            lens = mi.Point2f((mi.Float(a % k) + 0.5) / k, (mi.Float(a // k) + 0.5) / k)
+            ray = pixel_ray_differentials(sensor, dr.gather(mi.Point2f, centres, idx % n),
+                                          aperture=lens)
+    # position and geometric normal are all marking needs (RayFlags.All also computes
+    # UVs, shading frames and their derivatives: about half the pass)
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal,
+                             coherent=depth_maps.COHERENT_RAYS)
+    valid = si.is_valid()
+    si.n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)    # facing the camera
+    if frame is not None:       # as the render takes them (integrator._footprint)
+        dp_dx, dp_dy = pinhole_footprint(si.p, si.n, frame)
+        if evaluate:
+            dr.eval(si.p, si.n, dp_dx, dp_dy, valid)
+        return si, dp_dx, dp_dy, valid
+    n = si.n
+
+    def hit(o, d):
+        t = dr.dot(n, si.p - o) / dr.select(dr.abs(dr.dot(n, d)) > 1e-12, dr.dot(n, d), 1e-12)
+        return o + d * t
+
+    ok = ray.has_differentials
+    dp_dx = mi.Vector3f(dr.select(ok, hit(ray.o_x, ray.d_x) - si.p, 0.0))
+    dp_dy = mi.Vector3f(dr.select(ok, hit(ray.o_y, ray.d_y) - si.p, 0.0))
+    if evaluate:
+        dr.eval(si.p, si.n, dp_dx, dp_dy, valid)
+    return si, dp_dx, dp_dy, valid
+
+
+def _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
+    """``(face, uv64, act, level)`` of the camera hits ``si`` a mark reads: their face and
+    float64 uv, which of them mark (valid, on a face, in front of a one-sided planar
+    light, and ``active(p, n)`` if given) and their footprint's level."""
+    view = vmap_like.view
+    p64 = mi.Point3d(si.p)
+    face, uv64, _, inside = view.project_f64(p64)
+    act = valid & inside
+    if view.light_normal is not None:   # behind a one-sided planar light: no light
+        act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
+    if active is not None:
+        act &= active(si.p, si.n)
+    return face, uv64, act, vmap_like.level_for(face, p64, dp_dx, dp_dy)
+
+
+def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
+                    active=None) -> tuple:
+    """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
+    (unevaluated): the tiles the lookups at ``si`` read (see the module doc): at each
+    point's level, the tiles (:attr:`VirtualLayout.tile_size` texels wide; keys as
+    :func:`page_key` in tile units) overlapping ``margin + 1`` texels around it (the
+    method's kernel, plus one texel for camera samples off the pixel centre), capped at
+    ``page_size / 2`` texels (what :meth:`VirtualShadowMap.bind`'s 2 x 2 pages serve):
+    ``ceil(2 m / tile_size) + 1`` tiles per axis at most (2 x 2 for ``hard``'s kernel).
+    A wider tap (PCSS's kernel up to ``max_kernel / 2``) reads its own page through the
+    page table (:meth:`BoundVirtualMap._index`), which the neighbouring points marked
+    where the surface goes on, else the coarsest level. (Marking the whole kernel
+    instead, 64 texels wide, cast 1.5-1.9x the texels and doubled a camera move's PCSS
+    frame for the same error on the soft-shadow scenes.)
+    ``active(p, n)``: which points to mark (``n`` the normal facing the camera), or
+    None: every point the view sees."""
+    lay, P = vmap_like.layout, vmap_like.layout.page_size
+    T = lay.tile_size
+    m = min(float(margin) + 1.0, 0.5 * P)
+    per_axis = min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
+    face, uv64, act, level = _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
+    res = mi.Float64(mi.UInt32(lay.res0) >> level)
+    xy = uv64 * res
+    n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1) \
+        * lay.tiles_per_side
+    lo = mi.Point2i(dr.floor((xy - m) / T))
+    hi = mi.Point2i(dr.floor((xy + m) / T))
+    # per_axis^2 candidates per point, all in one kernel; only the valid ones leave
+    # Dr.Jit (most points read one tile or two)
+    keys, oks = [], []
+    for k in range(per_axis * per_axis):
+        tx, ty = lo.x + (k % per_axis), lo.y + (k // per_axis)
+        oks.append(act & (tx <= hi.x) & (ty <= hi.y) & (tx >= 0) & (ty >= 0)
+                   & (tx < n_tiles) & (ty < n_tiles))
+        keys.append(page_key(face, level, dr.maximum(tx, 0), dr.maximum(ty, 0)))
+    return keys, oks
+
+
+def coarser_levels(layout, level, coarse_res: int):
+    """Per point, how many levels coarser than its own ``level`` (``mi.UInt32``) its
+    lookups may read for a method with ``virtual_coarse_res = coarse_res``: those of
+    resolution ``coarse_res`` or more (down to the coarsest, at most
+    :data:`MAX_COARSER`)."""
+    log_res = mi.Int32(int(math.log2(layout.res0))) - mi.Int32(level)
+    k = log_res - int(math.ceil(math.log2(max(int(coarse_res), 1))))
+    k = dr.minimum(k, mi.Int32(layout.coarsest) - mi.Int32(level))
+    return mi.UInt32(dr.clip(k, 0, MAX_COARSER))
+
+
+def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
+                 active=None) -> tuple:
+    """``(keys, oks)`` like :func:`mark_candidates` for the coarser levels a method
+    with ``virtual_coarse_res`` may read (:func:`coarser_levels`): at each of them, the
+    tile under the point only (one candidate per level: neighbouring points mark the
+    same few tiles there); the mark pass then adds the tiles within the method's margin
+    of those on the host (:func:`dilate_tiles`)."""
+    lay = vmap_like.layout
+    T = lay.tile_size
+    face, uv64, act, level = _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
+    k_max = coarser_levels(lay, level, coarse_res)
+    keys, oks = [], []
+    for k in range(1, min(MAX_COARSER, lay.coarsest) + 1):
+        lev = dr.minimum(level + k, lay.coarsest)
+        res = mi.Float64(mi.UInt32(lay.res0) >> lev)
+        t = mi.Point2i(dr.floor(uv64 * res / T))
+        n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(lev), 1) \
+            * lay.tiles_per_side
+        oks.append(act & (k <= k_max) & (t.x >= 0) & (t.y >= 0) & (t.x < n_tiles)
+                   & (t.y < n_tiles))
+        keys.append(page_key(face, lev, dr.maximum(t.x, 0), dr.maximum(t.y, 0)))
+    return keys, oks
+
+
+def dilate_tiles(keys: np.ndarray, layout, margin: float) -> np.ndarray:
+    """Tile keys ``keys`` and those within ``margin + 1`` texels of them on their level,
+    sorted, distinct."""
+    keys = sorted_unique(keys)
+    if len(keys) == 0:
+        return keys
+    T = layout.tile_size
+    r = int(math.ceil((float(margin) + 1.0) / T))
+    face, level, tx, ty = (f.astype(np.int64) for f in key_fields(keys))
+    n = np.maximum(layout.pages_per_side(0) >> level, 1) * layout.tiles_per_side
+    out = []
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            x, y = tx + dx, ty + dy
+            ok = (x >= 0) & (y >= 0) & (x < n) & (y < n)
+            out.append(page_key(face[ok].astype(np.uint64), level[ok].astype(np.uint64),
+                                x[ok].astype(np.uint64), y[ok].astype(np.uint64)))
+    return sorted_unique(np.concatenate(out).astype(np.uint64))
+
+
+def tile_pages(tiles: np.ndarray, layout) -> tuple:
+    """``(pages, masks)``: the distinct page keys of tile keys ``tiles`` (sorted) and
+    each page's tile mask (bit ``tx + ty * tiles_per_side`` for tile ``(tx, ty)`` of
+    the page)."""
+    S = np.uint64(layout.tiles_per_side)
+    face, level, tx, ty = key_fields(np.asarray(tiles, np.uint64))
+    pk = page_key(face, level, tx // S, ty // S)
+    pages, inv = np.unique(pk, return_inverse=True)
+    masks = np.zeros(len(pages), np.int64)
+    np.bitwise_or.at(masks, inv.reshape(-1), np.int64(1) << (tx % S + (ty % S) * S)
+                     .astype(np.int64))
+    return pages, masks
+
+
+def dedupe_many(groups: list, bits: int = 14) -> list:
+    """For each ``(keys, oks)`` of ``groups`` (one per light), most of the keys
+    ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
+    65 k candidates hold a few thousand keys), so that the host sorts a few thousand keys
+    (:func:`sorted_unique`) instead of all candidates: one kernel computes every light's keys (and the
+    camera hits they come from) and scatters each list into its hash table of
+    ``2^bits`` slots; a second finds the candidates whose key lost its slot to another
+    key and scatters them into a second table (another hash); a third finds those that
+    lost there too. Per group, both tables' keys plus the twice-lost candidates are
+    returned (a superset of the distinct keys, with few repeats: with one table, about
+    a seventh of 5 k keys lost their slot, and with them 40 k of the 260 k candidates,
+    whose ``np.unique`` was a tenth of a camera move's frame). Which key wins a slot
+    does not matter: the returned set is the same. The selection is done on the host
+    with numpy, so every frame runs the same kernels (a compress and gather would trace
+    new ones whenever a frame first has 0, 1 or more lost keys)."""
+    # one table per candidate list: Dr.Jit puts scatters into different arrays in one
+    # kernel (a second scatter into the same array would start a new kernel)
+    flat = [(k, ok) for keys, oks in groups for k, ok in zip(keys, oks)]
+
+    def slots_of(k, mult):
+        return mi.UInt32((k * mi.UInt64(mult)) >> (64 - bits))
+
+    tables = [dr.full(mi.UInt64, NO_KEY, 1 << bits) for _ in flat]
+    slot = [slots_of(k, 0x9E3779B97F4A7C15) for k, _ in flat]
+    for t, (k, ok), s in zip(tables, flat, slot):
+        dr.scatter(t, k, s, ok)
+    dr.eval(*tables, *(k for k, _ in flat), *(ok for _, ok in flat))
+    # the second round, in one kernel with the first round's losers
+    tables2 = [dr.full(mi.UInt64, NO_KEY, 1 << bits) for _ in flat]
+    slot2 = [slots_of(k, 0xC2B2AE3D27D4EB4F) for k, _ in flat]
+    lost = [ok & (dr.gather(mi.UInt64, t, s, ok) != k)
+            for t, (k, ok), s in zip(tables, flat, slot)]
+    for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost):
+        dr.scatter(t2, k, s2, lo)
+    dr.eval(*tables2, *lost)
+    lost2 = [lo & (dr.gather(mi.UInt64, t2, s2, lo) != k)
+             for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost)]
+    dr.eval(*lost2)
+    out, start = [], 0
+    for keys, _ in groups:
+        idx = range(start, start + len(keys))
+        start += len(keys)
+        parts = []
+        for tabs in (tables, tables2):
+            # a group's tables share their hash: a key sits in the same slot in each, so
+            # a slot's entries repeat across tables unless different keys won it
+            rows = [tabs[i].numpy() for i in idx]
+            for j, row in enumerate(rows):
+                keep = row != np.uint64(NO_KEY)
+                for earlier in rows[:j]:
+                    keep &= row != earlier
+                parts.append(row[keep])
+        for i in idx:
+            lo = lost2[i].numpy()
+            if lo.any():
+                parts.append(flat[i][0].numpy()[lo])
+        out.append(np.concatenate(parts) if parts else np.zeros(0, np.uint64))
+    return out
+
+
+class Marker:
+    """The level choice of a :class:`VirtualShadowMap` without a store (mark pass);
+    ``view``: the faces marked (default: the layout's view)."""
+
+    def __init__(self, layout, lod_bias: float, view=None):
+        self.layout = layout
+        self.view = layout.view if view is None else view
+        self.lod_bias = float(lod_bias)
+
+    level_for = VirtualShadowMap.level_for

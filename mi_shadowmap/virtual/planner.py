@@ -1,0 +1,307 @@
+"""The first pass with ``virtual=true``: for every emitter, plan the pages (marks, memory
+budget) and build those missing; the page cache that keeps them across renders.
+"""
+from __future__ import annotations
+
+import collections
+import time
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..methods import virtual_coarse_res_of, virtual_margin_of
+from .camera import camera_state, clear_camera_states
+from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_unique,
+                     with_keys)
+from .lookup import VirtualShadowMap
+from .marks import (Marker, camera_hits, dedupe_many, dilate_tiles, mark_candidates,
+                    mark_coarser, tile_pages)
+from .store import PageStore, page_bytes, page_layers
+
+
+# ----------------------------------------------------------------------- the cache
+class PageCache:
+    """Page stores kept across renders: per scene (latest state only) and emitter view."""
+
+    def __init__(self, max_scenes: int = 4):
+        self.max_scenes = max_scenes
+        # id(scene) -> [scene, state, {key: store, ("layout", ...): layout}]
+        self._scenes = collections.OrderedDict()
+        self._fingerprints = collections.OrderedDict()   # id(view) -> (view, fingerprint)
+
+    def store(self, scene, state, key, make):
+        from ..map_manager import scene_slot
+        slot = scene_slot(self._scenes, scene, state, self.max_scenes)
+        if key not in slot[2]:
+            slot[2][key] = make()
+        return slot[2][key]
+
+    def fingerprint(self, view) -> tuple:
+        """:func:`~mi_shadowmap.map_manager.view_fingerprint` of ``view``, kept per view
+        object (views are frozen, and the integrator keeps its views while the scene's
+        state is unchanged)."""
+        hit = self._fingerprints.get(id(view))
+        if hit is None or hit[0] is not view:
+            from ..map_manager import view_fingerprint
+            hit = self._fingerprints[id(view)] = (view, view_fingerprint(view))
+            while len(self._fingerprints) > 64:
+                self._fingerprints.popitem(last=False)
+        return hit[1]
+
+    def layout(self, scene, state, view, fingerprint, opts) -> "VirtualLayout":
+        """:func:`layout_for`, kept with the scene's stores (``state`` None: computed)."""
+        if state is None:
+            return layout_for(view, scene, opts)
+        from ..map_manager import scene_slot
+        slot = scene_slot(self._scenes, scene, state, self.max_scenes)
+        key = ("layout", fingerprint, opts.page_size, opts.resolution)
+        if key not in slot[2]:
+            slot[2][key] = layout_for(view, scene, opts)
+        return slot[2][key]
+
+    def retire(self, scene, state, label: str, fingerprint) -> None:
+        """Keep one fingerprint's store and layout for ``label``'s camera-following view
+        (cascades): when it changes, the stores and layouts of the previous one are
+        dropped, so a camera path does not pile up page pools."""
+        if state is None:
+            return
+        from ..map_manager import scene_slot
+        entries = scene_slot(self._scenes, scene, state, self.max_scenes)[2]
+        group = ("follows camera", label)
+        old = entries.get(group)
+        if old is not None and old != fingerprint:
+            for k in [k for k in entries if k != group and (
+                    k[0] == old or k[0] == "layout" and k[1] == old)]:
+                del entries[k]
+        entries[group] = fingerprint
+
+    def clear(self):
+        self._scenes.clear()
+        self._fingerprints.clear()
+        clear_camera_states()
+
+
+#: The page cache of every ``shadowmap`` integrator (``PAGE_CACHE.clear()`` empties it).
+PAGE_CACHE = PageCache()
+
+
+def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
+    """First pass with ``virtual=true``: mark, build missing pages, return one
+    :class:`VirtualShadowMap` per emitter whose view supports it (None elsewhere).
+
+    ``params``: the scene's ``mi.traverse`` where the caller has it (else traversed
+    here). Updates ``stats`` (a :class:`~mi_shadowmap.map_manager.MapStats`): pages marked,
+    built, reused, the level histogram of the marked pages and ``texels_built``.
+    """
+    from ..map_manager import MAP_CACHE
+    layer_names = page_layers(opts)
+    state = MAP_CACHE.scene_state(scene, params) if opts.cache_maps else None
+    cam = camera_state(sensor) if sensor is not None else None
+    margins, coarse, stores = {}, {}, {}
+    for i, view in enumerate(views):
+        if view is None or not getattr(view, "supports_virtual", False):
+            continue
+        fingerprint = PAGE_CACHE.fingerprint(view)
+        if getattr(view, "follows_camera", False):
+            PAGE_CACHE.retire(scene, state, view.label, fingerprint)
+        layout = PAGE_CACHE.layout(scene, state, view, fingerprint, opts)
+        key = (fingerprint, layout.res0, layout.page_size, layer_names)
+        store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))
+                 if state is not None else PageStore(layout, layer_names))
+        store.frame += 1
+        stores[i] = store
+        margins[i] = virtual_margin_of(opts.record, opts, view)
+        coarse[i] = virtual_coarse_res_of(opts.record, opts, view)
+    mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias) for i in stores}
+    # the mark pass: every light whose marks are stale, from one set of camera hits traced
+    # in the same kernel as all their marks (a still camera reuses its marks)
+    stale = [i for i, st in stores.items() if cam is not None
+             and (st.last_mark is None or st.last_mark[0] != mark_key[i])]
+    stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
+             if all(stores[j] is not stores[i] for j in stale[:k])]
+    if stale:
+        # lights marked from their own view: all in one kernel; an environment's regions
+        # (mark_views): one kernel per region, the same code for every region (their
+        # values are opaque), from hits evaluated once (and whether each hit's BSDF
+        # transmits: light reaches it from behind too)
+        plain = [i for i in stale if not hasattr(stores[i].layout.view, "mark_views")]
+        multi = [i for i in stale if i not in plain]
+        hits = camera_hits(scene, sensor, evaluate=bool(multi))
+        if multi:
+            si_m, valid_m = hits[0], hits[3]
+            through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
+            dr.eval(through)
+        def marks(i, marker, active=None):
+            """The candidate lists of light ``i`` (its own levels', then the coarser
+            levels' its kernels may filter, :func:`mark_coarser`)."""
+            out = [mark_candidates(marker, *hits, margin=margins[i], active=active)]
+            if coarse[i]:
+                out.append(mark_coarser(marker, *hits, coarse_res=coarse[i], active=active))
+            return out
+
+        def tiles(i, found):
+            """Light ``i``'s tile keys from its :func:`marks` lists' keys: ``(own levels',
+            coarser levels')`` (the latter empty without ``virtual_coarse_res``)."""
+            extra = (dilate_tiles(found[1], stores[i].layout, margins[i]) if coarse[i]
+                     else np.zeros(0, np.uint64))
+            return found[0], extra
+
+        def settle(i, parts):
+            """Light ``i``'s mark: every tile, and those only the coarser levels' kernels
+            read (a full budget drops them first)."""
+            own = sorted_unique(np.concatenate([p[0] for p in parts]))
+            extra = sorted_unique(np.concatenate([p[1] for p in parts]))
+            optional = np.setdiff1d(extra, own, assume_unique=True)
+            stores[i].last_mark = (mark_key[i], with_keys(own, optional), optional)
+
+        groups = [marks(i, Marker(stores[i].layout, opts.lod_bias)) for i in plain]
+        found = dedupe_many([g for gs in groups for g in gs])
+        for i, gs in zip(plain, groups):
+            mine, found = found[:len(gs)], found[len(gs):]
+            settle(i, [tiles(i, mine)])
+        for i in multi:
+            parts = []
+            for mark_view, mark_active in stores[i].layout.view.mark_views():
+                gs = marks(i, Marker(stores[i].layout, opts.lod_bias, mark_view),
+                           active=lambda p, n, f=mark_active: f(p, n, through))
+                parts.append(tiles(i, dedupe_many(gs)))
+            settle(i, parts)
+    out = []
+    for i, view in enumerate(views):
+        if i not in stores:
+            out.append(None)
+            continue
+        store = stores[i]
+        layout = store.layout
+        mark = store.last_mark if cam is not None else None
+        # memory: the whole budget split evenly over the virtual maps
+        per_page = page_bytes(opts)
+        view = layout.view      # the emitter's view, or one face aimed at a far scene
+        if store.lit_faces is None:
+            store.lit_faces = _lit_faces(view)
+            store.coarse_keys = np.sort(np.array([page_key(f, layout.coarsest, 0, 0)
+                                                  for f in store.lit_faces],
+                                                 np.uint64).reshape(-1))
+        unlit = view.n_faces - len(store.lit_faces)
+        budget_pages = max(int(opts.budget_bytes // len(stores) // per_page) - 1 - unlit,
+                           view.n_faces)       # - 1: the empty page (slot 0); unlit faces'
+        #                                        reserved coarsest slots stay empty pages
+        store.max_pages = budget_pages + 1 + unlit
+        settled = store.settled
+        if (settled is not None and settled[0] is mark and settled[1] == budget_pages
+                and settled[2] == store.version):
+            # the same marks, budget and pages as the last render (a still camera): every
+            # needed page is built; only their last use is recorded
+            needed, slots, hist, degraded = settled[3:]
+            n_cast = 0
+            dt = 0.0
+            store.slot_frame[slots] = store.frame
+        else:
+            marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
+            tiles = with_keys(marked, store.coarse_keys)
+            dropped = 0
+            if mark is not None and len(mark[2]) and _n_pages(tiles, layout) > budget_pages:
+                # over budget: first the tiles only coarser-level kernels read (their
+                # lookups walk to a coarser level built), then the finest levels
+                kept = with_keys(np.setdiff1d(marked, mark[2], assume_unique=True),
+                                  store.coarse_keys)
+                dropped = _n_pages(tiles, layout) - _n_pages(kept, layout)
+                tiles = kept
+            tiles, degraded = _fit_budget(tiles, budget_pages, layout)
+            degraded += dropped
+            needed, masks = tile_pages(tiles, layout)
+            have, _ = store.lookup(needed)
+            over = store.n_pages + int((~have).sum()) - budget_pages
+            if over > 0:
+                store.evict(needed, over)
+            t0 = time.perf_counter()
+            stats.texels_built += store.build(scene, needed, masks)
+            n_cast = store.pages_cast
+            store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page
+            dr.sync_thread()
+            dt = time.perf_counter() - t0
+            store.cast_seconds += dt
+            store.cast_pages += n_cast
+            present, slots = store.lookup(needed)    # (all of them, once built)
+            slots = slots[present]
+            store.slot_frame[slots] = store.frame
+            levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
+            hist = np.bincount(levels, minlength=layout.n_levels)
+            store.settled = (mark, budget_pages, store.version, needed, slots, hist,
+                             degraded)
+        if degraded:
+            warnings.warn(f"shadowmap: emitter '{view.label}': memory_budget = "
+                          f"{opts.memory_budget:g} MiB holds {budget_pages} pages of "
+                          f"{layout.page_size}^2; {degraded} marked pages were replaced by "
+                          "coarser ones", RuntimeWarning, stacklevel=3)
+        stats.pages_marked += int(len(needed))
+        stats.pages_built += int(n_cast)
+        stats.pages_reused += int(len(needed) - n_cast)
+        stats.level_histogram = _add_hist(stats.level_histogram, hist)
+        stats.maps_built += int(n_cast > 0)
+        stats.maps_reused += int(n_cast == 0)
+        # casting every page read from scratch: this frame's casts, and the reused pages
+        # at the store's mean time a page
+        stats.naive_build_seconds += dt + (len(needed) - n_cast) * (
+            store.cast_seconds / max(store.cast_pages, 1))
+        out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
+                                    opts.lod_bias, margins[i], coarse.get(i)))
+    return out
+
+
+def _lit_faces(view) -> list:
+    """The faces a light can shine through: all, but for a one-sided planar area light
+    only those with a corner ray in front of its emitting plane (a face's directions
+    form a convex cone, so its corners bound ``dot(d, n)``)."""
+    if view.light_normal is None:
+        return list(range(view.n_faces))
+    n = np.array(view.light_normal, np.float64)
+    out = []
+    for f in range(view.n_faces):
+        uv = mi.Point2d([0.0, 1.0, 0.0, 1.0], [0.0, 0.0, 1.0, 1.0])
+        _, d = view.ray_through_f64(mi.UInt32(f), uv)
+        dots = d.x.numpy() * n[0] + d.y.numpy() * n[1] + d.z.numpy() * n[2]
+        if np.any(dots > 1e-9):
+            out.append(f)
+    return out
+
+
+def _add_hist(old, hist):
+    old = list(old or [])
+    n = max(len(old), len(hist))
+    old += [0] * (n - len(old))
+    return [int(a + (hist[i] if i < len(hist) else 0)) for i, a in enumerate(old)]
+
+
+def _n_pages(tiles: np.ndarray, layout) -> int:
+    """How many pages hold ``tiles`` (sorted tile keys)."""
+    S = np.uint64(layout.tiles_per_side)
+    face, level, tx, ty = key_fields(tiles)
+    return len(sorted_unique(page_key(face, level, tx // S, ty // S)))
+
+
+def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
+    """Replace the finest level's tiles by their parents (the tiles under them one level
+    coarser) until the pages of ``tiles`` fit the budget; ``(tiles, pages replaced)``."""
+    degraded = 0
+    if len(tiles) <= budget_pages:      # never more pages than tiles
+        return tiles, degraded
+    S = np.uint64(layout.tiles_per_side)
+    while True:
+        face, level, tx, ty = key_fields(tiles)
+        pages = page_key(face, level, tx // S, ty // S)
+        if len(sorted_unique(pages)) <= budget_pages:
+            break
+        levels = level.astype(int)
+        finest = levels.min()
+        if finest >= layout.coarsest:
+            break
+        sel = levels == finest
+        k = tiles[sel]
+        parents = page_key(face[sel], finest + 1, tx[sel] >> np.uint64(1),
+                           ty[sel] >> np.uint64(1)) if len(k) else k
+        degraded += len(sorted_unique(pages[sel]))
+        tiles = sorted_unique(np.concatenate([tiles[~sel], parents.astype(np.uint64)]))
+    return tiles, degraded

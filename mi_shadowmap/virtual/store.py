@@ -1,0 +1,353 @@
+"""The physical pages of one emitter's virtual map: the page pool (one array per layer),
+the page table lookups read, and the ray casts that fill pages.
+"""
+from __future__ import annotations
+
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..depth_maps import first_hit, second_depth_along
+from ..light_views.base import TEXEL_SAMPLE
+from .layout import (MAX_TABLE, MAX_TABLE_SIDE, INVALID_SLOT, VirtualLayout, key_fields,
+                     padded_array, page_key)
+
+
+class PageStore:
+    """The physical pages of one emitter's virtual map, kept across renders.
+
+    ``slots``: page key -> slot (a view of the built pages, kept as two arrays); the
+    pool of each layer holds ``capacity``
+    pages of ``page_size^2`` float32 texels; ``slot_frame``: the frame each slot was
+    last read in (least recently used pages are evicted first).
+    """
+
+    def __init__(self, layout: VirtualLayout, layers: tuple):
+        self.layout = layout
+        self.layers = tuple(layers)
+        # the built pages: key and slot, in the order they were built
+        self._keys = np.zeros(0, np.uint64)
+        self._slot_of = np.zeros(0, np.int64)
+        self.free: list = []
+        self.capacity = 0
+        self.pools = {name: mi.Float() for name in ("depth",) + self.layers}
+        self.page_min = np.zeros(0, np.float64)     # nearest finite depth per slot
+        self.page_face = np.zeros(0, np.int64)
+        self.slot_frame = np.zeros(0, np.int64)      # frame each slot was last read
+        self.slot_mask = np.zeros(0, np.int64)       # tiles built per slot (bit per tile)
+        self.pages_cast = 0                          # pages the last build cast tiles of
+        self.cast_seconds = 0.0                      # all builds' ray casting ...
+        self.cast_pages = 0                          # ... and the pages they cast
+        self.frame = 0
+        self.version = 0                             # changes whenever pages do
+        self._sorted = None
+        self._table = None
+        self.lit_faces = None                        # faces a one-sided light shines through
+        self.coarse_keys = None                      # their coarsest pages' keys
+        # slot 0 is never allocated: an empty page (+inf, lit). Slot f + 1 is reserved for
+        # face f's coarsest page (always built where the light shines; empty where a
+        # one-sided light does not), so a lookup finds it without a gather
+        self.next_slot = 1 + layout.view.n_faces
+        # ((camera state, margin, coarse_res, lod_bias), marked tile keys, those of them
+        # only coarser-level kernels read)
+        self.last_mark = None
+        # the last render's (last_mark, budget, version, needed keys, their slots, level
+        # histogram, pages degraded): a render with the same three reuses the rest
+        self.settled = None
+        self.max_pages = 1 << 62      # the memory budget's pages (set per render)
+
+    @property
+    def n_pages(self) -> int:
+        return len(self._keys)
+
+    @property
+    def slots(self) -> dict:
+        """Page key -> slot of every built page."""
+        return dict(zip(self._keys.tolist(), self._slot_of.tolist()))
+
+    @property
+    def texels_per_page(self) -> int:
+        return self.layout.page_size ** 2
+
+    @property
+    def nbytes(self) -> int:
+        return self.capacity * self.texels_per_page * 4 * len(self.pools)
+
+    @property
+    def n_slots(self) -> int:
+        """Slots in use or reserved (the pages, the freed slots, the empty page and the
+        coarsest page's slot of every face, built or not)."""
+        return self.next_slot
+
+    def _grow(self, need: int) -> None:
+        if need <= self.capacity:
+            return
+        cap = max(2 * need, 2 * self.capacity, 16)   # growth is rare (and compiles once)
+        cap = max(min(cap, self.max_pages), need)
+        n_old = self.capacity * self.texels_per_page
+        for name, pool in self.pools.items():
+            new = dr.full(mi.Float, dr.inf, cap * self.texels_per_page)
+            if n_old:
+                dr.scatter(new, pool, dr.arange(mi.UInt32, n_old))
+            self.pools[name] = new
+        self.page_min = np.concatenate([self.page_min, np.full(cap - self.capacity, np.inf)])
+        self.page_face = np.concatenate([self.page_face, np.zeros(cap - self.capacity, np.int64)])
+        self.slot_frame = np.concatenate([self.slot_frame, np.zeros(cap - self.capacity, np.int64)])
+        self.slot_mask = np.concatenate([self.slot_mask, np.zeros(cap - self.capacity, np.int64)])
+        self.capacity = cap
+        dr.eval(*self.pools.values())
+
+    def _index(self):
+        """``(keys, slots)`` sorted by key, rebuilt when the pages change."""
+        if self._sorted is None or self._sorted[0] != self.version:
+            order = np.argsort(self._keys)
+            self._sorted = (self.version, self._keys[order], self._slot_of[order])
+        return self._sorted[1], self._sorted[2]
+
+    def lookup(self, keys: np.ndarray):
+        """``(present, slot)`` of each of ``keys`` (slot -1 where absent)."""
+        k, sl = self._index()
+        if len(k) == 0:
+            return np.zeros(len(keys), bool), np.full(len(keys), -1, np.int64)
+        pos = np.clip(np.searchsorted(k, keys), 0, len(k) - 1)
+        present = k[pos] == keys
+        return present, np.where(present, sl[pos], -1)
+
+    def evict(self, keep: np.ndarray, n: int) -> int:
+        """Free up to ``n`` slots of pages not in ``keep`` and not of the coarsest level
+        (least recently used first)."""
+        k, sl = self._index()
+        coarse = ((k >> np.uint64(54)) & np.uint64(31)) == np.uint64(self.layout.coarsest)
+        cand = ~np.isin(k, keep) & ~coarse
+        order = np.argsort(self.slot_frame[sl[cand]], kind="stable")[:n]
+        victims = k[cand][order]
+        self.free.extend(sl[cand][order].tolist())
+        kept = ~np.isin(self._keys, victims)
+        self._keys, self._slot_of = self._keys[kept], self._slot_of[kept]
+        self.version += 1
+        return len(victims)
+
+    def build(self, scene, keys: np.ndarray, masks: np.ndarray | None = None) -> int:
+        """Ray-cast the tiles ``masks`` (a bit per tile, :attr:`VirtualLayout.tile_size`;
+        default: every tile) of the pages ``keys`` that are not built yet; pages not in
+        the store get free slots, and their other tiles the coarsest level's depths (what
+        a tap beyond the lookup's 2 x 2 pages reads). Returns the texels ray-cast."""
+        self.pages_cast = 0
+        if len(keys) == 0:
+            return 0
+        lay = self.layout
+        P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
+        keys = np.asarray(keys, np.uint64)
+        masks = (np.full(len(keys), lay.full_mask, np.int64) if masks is None
+                 else np.asarray(masks, np.int64))
+        coarse = ((keys >> np.uint64(54)) & np.uint64(31)) == np.uint64(lay.coarsest)
+        masks = np.where(coarse, lay.full_mask, masks)     # the coarsest pages: whole
+        present, slot_ids = self.lookup(keys)
+        new = ~present
+        new_fine = new & ~coarse
+        n_fine = int(new_fine.sum())
+        reuse = [self.free.pop() for _ in range(min(n_fine, len(self.free)))]
+        first = self.next_slot
+        fresh = list(range(first, first + n_fine - len(reuse)))
+        self.next_slot += len(fresh)
+        self._grow(self.next_slot)
+        slot_ids[new & coarse] = (keys[new & coarse] >> np.uint64(59)).astype(np.int64) + 1
+        slot_ids[new_fine] = np.array(reuse + fresh, dtype=np.int64)
+        if new.any():
+            self._keys = np.concatenate([self._keys, keys[new]])
+            self._slot_of = np.concatenate([self._slot_of, slot_ids[new]])
+            self.slot_mask[slot_ids[new]] = 0
+            self.page_min[slot_ids[new]] = np.inf
+            self.page_face[slot_ids[new]] = (keys[new] >> np.uint64(59)).astype(np.int64)
+        cast = masks & ~self.slot_mask[slot_ids]
+        # the tiles to cast: tile keys (page_key in tile units) and their slots
+        bit = np.arange(S * S)
+        sel = (cast[:, None] >> bit[None, :]) & 1 == 1
+        page_i, tile_b = np.nonzero(sel)
+        n_tiles = len(page_i)
+        self.pages_cast = int(sel.any(axis=1).sum())
+        if n_tiles == 0 and not new_fine.any():
+            return 0
+        self.version += 1
+        built = 0
+        second = "second_depth" in self.pools
+        if n_tiles:
+            f, lv, px, py = key_fields(keys[page_i])
+            tkeys = page_key(f, lv, px * np.uint64(S) + (tile_b % S).astype(np.uint64),
+                             py * np.uint64(S) + (tile_b // S).astype(np.uint64))
+            tslots = slot_ids[page_i]
+            tpt = T * T
+            idx = dr.arange(mi.UInt32, n_tiles * tpt)
+            tile = idx // tpt
+            local = idx - tile * tpt
+            ti, tj = morton_xy(local, T)   # 4 x 2 blocks of neighbours per vector
+            # one upload of the tile keys (decoded in the kernel) and one of the slots
+            f_l, lev, tx, ty = key_fields(dr.gather(mi.UInt64, padded_array(mi.UInt64, tkeys), tile))
+            gx, gy = tx * T + ti, ty * T + tj
+            res = mi.Float64(mi.UInt32(lay.res0) >> lev)
+            uv = mi.Point2d((mi.Float64(gx) + TEXEL_SAMPLE[0]) / res,
+                            (mi.Float64(gy) + TEXEL_SAMPLE[1]) / res)
+            o64, d64 = lay.view.ray_through_f64(f_l, uv)
+            o = mi.Point3f(o64 + d64 * lay.t0)     # start near the scene: float32 stays exact
+            d = dr.normalize(mi.Vector3f(d64))
+            slot = dr.gather(mi.UInt32, padded_array(mi.UInt32, tslots.astype(np.uint32)), tile)
+            dst = slot * (P * P) + (gy & (P - 1)) * P + (gx & (P - 1))
+            # depths from the rays' start (t0 along them, VirtualLayout.t0)
+            depth = first_hit(scene, lay.view, o, d)
+            dr.scatter(self.pools["depth"], depth, dst)
+            if second:
+                sd = second_depth_along(scene, lay.view, o, d)
+                dr.scatter(self.pools["second_depth"], sd, dst)
+            # one kernel: the depths (kept: the tile minima read them) and the scatters
+            dr.eval(depth)
+            np.minimum.at(self.page_min, tslots, page_minima(depth, tpt))
+            built = n_tiles * tpt * (1 + second)
+        self.slot_mask[slot_ids] |= masks
+        if new_fine.any():
+            self._fill_from_coarsest(keys[new_fine], slot_ids[new_fine], masks[new_fine])
+        return built
+
+    def _fill_from_coarsest(self, keys, slots, masks) -> None:
+        """The tiles of new pages that were not cast: the coarsest level's texel over
+        each (its page of face ``f`` is in slot ``f + 1``), as :meth:`BoundVirtualMap.
+        fetch` reads beyond a lookup's 2 x 2 pages."""
+        lay = self.layout
+        P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
+        if S == 1:
+            return
+        tpp = P * P
+        idx = dr.arange(mi.UInt32, len(keys) * tpp)
+        page = idx // tpp
+        local = idx - page * tpp
+        ti, tj = local % P, local // P
+        face, lev, px, py = key_fields(dr.gather(mi.UInt64, padded_array(mi.UInt64, keys), page))
+        mask = dr.gather(mi.UInt32, padded_array(mi.UInt32, masks.astype(np.uint32)), page)
+        slot = dr.gather(mi.UInt32, padded_array(mi.UInt32, slots.astype(np.uint32)), page)
+        gx, gy = px * P + ti, py * P + tj
+        shift = mi.UInt32(lay.coarsest) - lev
+        src = (face + 1) * tpp + (gy >> shift) * P + (gx >> shift)
+        b = (ti // T) + (tj // T) * S
+        empty = ((mask >> b) & 1) == 0
+        values = {name: dr.gather(mi.Float, pool, src, empty)
+                  for name, pool in self.pools.items()}
+        dr.eval(*values.values())     # read before the scatters write the same pools
+        for name, v in values.items():
+            dr.scatter(self.pools[name], v, slot * tpp + local, empty)
+        dr.eval(*self.pools.values())
+
+    def table(self):
+        """The page table as Dr.Jit arrays ``(header, dense, face_near, tile_masks,
+        dense_tiles)``,
+        rebuilt when pages change (``face_near``: the nearest depth per face, PCSS's
+        blocker-search bound; ``tile_masks``: which tiles of each slot are ray-cast).
+
+        Per (face, level) -- entry ``face * n_levels + level`` -- ``header`` holds
+        two 64-bit words, ``(x0 - 1) | (y0 - 1) << 32`` and ``W | H << 16 | base << 32``
+        (32-bit fields, the first two signed): the grid of 2 x 2 blocks
+        whose lower-left page is in ``[x0 - 1, x0 + w - 1] x [y0 - 1, y0 + h - 1]``,
+        ``(x0, y0, w, h)`` the bounding rectangle of that level's built pages (in
+        pages), ``W = w + 1``, ``H = h + 1``, and where its ``W x H`` entries start
+        in ``dense``. Each entry of ``dense`` holds the block's 4 slots (pages
+        ``(bx, by)``, ``(bx + 1, by)``, ``(bx, by + 1)``, ``(bx + 1, by + 1)``;
+        ``INVALID_SLOT`` where none is built), so a lookup reads its block with no loop.
+        A level whose grid would exceed :data:`MAX_TABLE` entries or
+        :data:`MAX_TABLE_SIDE` per side keeps its pages out of the table (lookups
+        there walk to another level). The coarsest page of face ``f`` is in slot
+        ``f + 1`` (:class:`PageStore`), so it needs no table. The fourth array holds
+        each slot's tile mask (which of its tiles are ray-cast), the fifth the tile mask
+        of each entry of ``dense`` (0 where none is built): read with its slot, not after.
+        """
+        if self._table is not None and self._table[0] == self.version:
+            return self._table[1]
+        lay = self.layout
+        L = lay.n_levels
+        keys, slots = self._index()
+        face, level, px, py = (f.astype(np.int64) for f in key_fields(keys))
+        group = face * L + level
+        header = np.zeros((lay.view.n_faces * L, 4), np.int64)   # W = H = 0: no block
+        # keys are sorted, so each (face, level) group is one run: its bounding rectangle
+        # by reduceat, then every page is one of the 4 corners of 4 blocks (vectorised)
+        starts = (np.flatnonzero(np.concatenate([[True], group[1:] != group[:-1]]))
+                  if len(keys) else np.zeros(0, np.int64))
+        groups = group[starts]
+        x0 = np.minimum.reduceat(px, starts) if len(keys) else starts
+        y0 = np.minimum.reduceat(py, starts) if len(keys) else starts
+        w = np.maximum.reduceat(px, starts) - x0 + 1 if len(keys) else starts
+        h = np.maximum.reduceat(py, starts) - y0 + 1 if len(keys) else starts
+        W, H = w + 1, h + 1
+        fits = (W * H <= MAX_TABLE) & (np.maximum(W, H) <= MAX_TABLE_SIDE)
+        for g, ww, hh in zip(groups[~fits], w[~fits], h[~fits]):
+            warnings.warn(f"shadowmap: virtual map '{lay.view.label}': level "
+                          f"{g % L} spans {ww} x {hh} pages, more than the page table "
+                          "holds; its lookups use other levels", RuntimeWarning)
+        base = np.cumsum(np.where(fits, W * H, 0)) - np.where(fits, W * H, 0)
+        header[groups[fits]] = np.stack([x0 - 1, y0 - 1, W | (H << 16), base], -1)[fits]
+        total = int(np.where(fits, W * H, 0).sum())
+        dense = np.full(4 * total + 4, INVALID_SLOT, np.int64)   # + 4: one empty entry
+        run = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(keys))))
+        keep = fits[run]
+        px, py, slots, run = px[keep], py[keep], slots[keep], run[keep]
+        lx0, ly0, e0, Wr = px - (x0[run] - 1), py - (y0[run] - 1), 4 * base[run], 4 * W[run]
+        for k in range(4):     # page (px, py) is corner k of block (px - k & 1, py - k >> 1)
+            dense[e0 + (ly0 - (k >> 1)) * Wr + 4 * (lx0 - (k & 1)) + k] = slots
+        u32 = lambda a: a.astype(np.int64).astype(np.uint32).astype(np.uint64)  # noqa: E731
+        words = np.stack([u32(header[:, 0]) | (u32(header[:, 1]) << np.uint64(32)),
+                          u32(header[:, 2]) | (u32(header[:, 3]) << np.uint64(32))], -1)
+        table = (padded_array(mi.UInt64, words.reshape(-1)),
+                 padded_array(mi.UInt32, dense.astype(np.uint32)),
+                 padded_array(mi.Float, self.face_near(lay.view.n_faces)),
+                 padded_array(mi.UInt32, self.slot_mask[:max(self.next_slot, 1)].astype(np.uint32)),
+                 padded_array(mi.UInt32, np.where(dense == INVALID_SLOT, 0, self.slot_mask[
+                     np.where(dense == INVALID_SLOT, 0, dense)]).astype(np.uint32)))
+        self._table = (self.version, table)
+        return table
+
+    def face_near(self, n_faces: int) -> np.ndarray:
+        """Nearest finite depth per face over the built pages (+inf for none)."""
+        out = np.full(n_faces, np.inf)
+        used = self._index()[1]
+        if len(used):
+            np.minimum.at(out, self.page_face[used], self.page_min[used])
+        return out.astype(np.float32)
+
+
+def page_layers(opts) -> tuple:
+    """The layers a virtual map's pages hold besides depth for ``opts``' method
+    (``pcss_near`` is derived from the page table, not stored per page)."""
+    return tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
+
+
+def page_bytes(opts) -> int:
+    """Bytes of one page in the pool: depth and :func:`page_layers`, float32 each."""
+    return opts.page_size ** 2 * 4 * (1 + len(page_layers(opts)))
+
+
+def page_minima(depth, tpp: int, on_host: bool | None = None) -> np.ndarray:
+    """Nearest finite depth of each page of ``depth`` (evaluated, ``tpp`` texels a page;
+    +inf for a page with none), as numpy. ``on_host`` (default: on the CPU backend, which
+    reads the depths in place): numpy; else a block reduction on the device, so that a
+    GPU copies one value a page instead of the pages."""
+    if on_host is None:
+        on_host = dr.backend_v(depth) == dr.JitBackend.LLVM
+    if on_host:
+        d = depth.numpy().reshape(-1, tpp)
+        return np.where(np.isfinite(d), d, np.inf).min(axis=1)
+    finite = dr.select(dr.isfinite(depth), depth, dr.inf)
+    return dr.block_reduce(dr.ReduceOp.Min, finite, tpp).numpy()
+
+
+def morton_xy(local, T: int) -> tuple:
+    """``(i, j)`` of texel ``local`` (``mi.UInt32``) of a ``T`` x ``T`` tile (``T`` a
+    power of two) in Morton (Z) order: its even bits are ``i``'s, its odd bits
+    ``j``'s. A page build casts each tile's rays in this order, so an 8-wide vector holds
+    a 4 x 2 block of texels rather than a row of 8, which a BVH traverses together
+    (the build's ray casts 12 % faster on a 1M-triangle mesh than in rows)."""
+    i, j = mi.UInt32(0), mi.UInt32(0)
+    b = 0
+    while (1 << b) < T:
+        i |= ((local >> (2 * b)) & 1) << b
+        j |= ((local >> (2 * b + 1)) & 1) << b
+        b += 1
+    return i, j

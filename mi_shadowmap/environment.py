@@ -432,9 +432,6 @@ class EnvironmentView(MultiView):
 
     @functools.cached_property
     def _region_tables(self) -> dict:
-        r = np.asarray(self.rects, dtype=np.float64).reshape(-1, 4)
-        cos0 = np.cos(r[:, 2] * np.pi)
-        cos1 = np.cos(r[:, 3] * np.pi)
         diam = np.minimum(np.asarray(self.angular_diameters), MAX_ANGULAR_DIAMETER)
         reg = self.regions
         H, W = reg.grid

@@ -22,7 +22,7 @@ never the other way round, and booleans are never numbers.
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable
+from typing import Any
 
 from . import methods as _methods
 from .methods import METHODS, MAP_METHODS, OptionError, Prop  # noqa: F401  (re-exported)

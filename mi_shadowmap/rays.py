@@ -175,7 +175,7 @@ def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
     against 0.0880 with the meshes kept apart). A ray that long still stops short of
     the target it is given when that is farther.
     """
-    Float, UInt32 = mi.Float, mi.UInt32
+    Float = mi.Float
 
     mag_table, along_table = shape_tables(scene)
     idx = shape_index(si.shape, len(along_table))

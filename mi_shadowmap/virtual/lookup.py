@@ -21,10 +21,13 @@ class VirtualShadowMap:
 
     What a filter reads is :meth:`bind`'s :class:`BoundVirtualMap`; this object is
     what ``integrator.maps`` holds (``view``, ``layout``, ``store``, ``stats``).
+    ``frame``: the render's own pages (:meth:`PageStore.table`); default: every page
+    the store holds.
     """
 
     def __init__(self, store: PageStore, stats: dict, lod_bias: float = -0.5,
-                 margin: float = 2.0, coarse_res: int | None = None):
+                 margin: float = 2.0, coarse_res: int | None = None,
+                 frame: tuple | None = None):
         self.lod_bias = float(lod_bias)
         # the method's virtual_coarse_res: the coarser levels its marks built, which its
         # wide kernels may filter (None: its own level only)
@@ -37,7 +40,7 @@ class VirtualShadowMap:
         self.layout = store.layout
         self.view = store.layout.view
         self.header, self.dense, self.face_near, self.tile_masks, self.dense_tiles = \
-            store.table()
+            store.table(frame)
         self.depth_bounds = padded_array(mi.Float64, self.layout.depth_range)
         # where the pages' depths start (a far light's, VirtualLayout.t0): an opaque
         # variable, not a kernel literal (a moved light would compile a new lookup)

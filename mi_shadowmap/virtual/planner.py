@@ -194,7 +194,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
                 and settled[2] == store.version):
             # the same marks, budget and pages as the last render (a still camera): every
             # needed page is built; only their last use is recorded
-            needed, slots, hist, degraded = settled[3:]
+            needed, slots, masks, hist, degraded = settled[3:]
             n_cast = 0
             dt = 0.0
             store.slot_frame[slots] = store.frame
@@ -225,12 +225,12 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             store.cast_seconds += dt
             store.cast_pages += n_cast
             present, slots = store.lookup(needed)    # (all of them, once built)
-            slots = slots[present]
+            needed, slots, masks = needed[present], slots[present], masks[present]
             store.slot_frame[slots] = store.frame
             levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
             hist = np.bincount(levels, minlength=layout.n_levels)
-            store.settled = (mark, budget_pages, store.version, needed, slots, hist,
-                             degraded)
+            store.settled = (mark, budget_pages, store.version, needed, slots, masks,
+                             hist, degraded)
         if degraded:
             warnings.warn(f"shadowmap: emitter '{view.label}': memory_budget = "
                           f"{opts.memory_budget:g} MiB holds {budget_pages} pages of "
@@ -247,7 +247,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         stats.naive_build_seconds += dt + (len(needed) - n_cast) * (
             store.cast_seconds / max(store.cast_pages, 1))
         out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
-                                    opts.lod_bias, margins[i], coarse.get(i)))
+                                    opts.lod_bias, margins[i], coarse.get(i),
+                                    frame=(needed, slots, masks)))
     return out
 
 

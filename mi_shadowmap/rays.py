@@ -32,7 +32,8 @@ The offset used here
 For a hit on shape ``S`` at ``p``, at distance ``t`` along the camera ray::
 
     M     = max( max|p|, sum_j |n_j| max|coordinate j of bbox(S)|, [S not a mesh] * t )
-    delta = ORIGIN_ULPS * u * M                 (ORIGIN_ULPS = 64)
+    delta = k * u * M           (k = ORIGIN_ULPS = 16: meshes, spheres;
+                                 k = ORIGIN_ULPS_OTHER = 64: disks, cylinders, ...)
     o     = p + delta * n                       (n: geometric normal, turned
                                                  towards the target)
     maxt  = |target - o| - max( SHADOW_EPSILON * |target - o|,
@@ -51,10 +52,17 @@ For a hit on shape ``S`` at ``p``, at distance ``t`` along the camera ray::
   curves) return ``si.p = ray(t)``, whose error is relative to the camera
   ray's origin and length, not to the shape. Meshes (``rectangle`` and ``cube``
   are meshes in Mitsuba 3.9) are not affected.
-* ``ORIGIN_ULPS = 64``: in a stress test (random orientations, shapes of size
+* ``k``: in a stress test (random orientations, shapes of size
   1e-4..1e4 at 0..1e6 from the origin, cameras at 0.5..100 shape sizes,
   targets down to grazing) meshes, rectangles and spheres never
-  self-intersected from 4 ulps up, disks from 16; 64 leaves a factor 4. Cylinders seen
+  self-intersected from 4 ulps up, disks from 16. 16 leaves a factor 4 for meshes and
+  spheres, 64 the same for the other shapes. (64 for every shape, used before, cost
+  the reference its accuracy where a scene sits far from the origin: a unit-sized
+  scene 1e5 away had its shadow rays start 0.38 units above the surface, and
+  misclassified 2.15 % of the pixels of its own image at the origin, 0.59 % with 16,
+  against 0.2-0.3 % for the shadow maps; and a sphere 1.5e-4 wide 94 units from the
+  origin was hit by 94 of 4096 of its own shadow rays, whose origins overshot it;
+  ``benchmarks/RESULTS.md``, thirty-fourth session.) Cylinders seen
   from afar are the exception: Mitsuba's float32 cylinder intersection is off
   by ~1e-4 of ``t``, beyond any offset (Mitsuba's own fails there too).
 * End of the ray: ``SHADOW_EPSILON`` is Mitsuba's ``ShadowEpsilon`` (8.9e-4,
@@ -67,15 +75,15 @@ changes the rounding (measured: <= 0.01 % of visibility pixels change by more
 than 0.05 from scale 1e-4 to 1e4, against 7-31 % with Mitsuba's ray).
 
 Where it deviates from Mitsuba's epsilon, and why: at scale 1 the origin
-offset is ~10x smaller than Mitsuba's (6e-6..2.3e-5 against 9e-5..4.5e-4 world
+offset is ~40x smaller than Mitsuba's (1.5e-6..5.8e-6 against 9e-5..4.5e-4 world
 units on the built-in scene), because its floor is the hit's own rounding
 error, not 1e-4 world units. Samples whose shadow ray grazes an occluder's
 silhouette within that difference flip, so ``raytraced`` differs from
 Mitsuba's ``direct`` (same samples) by 1e-5..1e-3 relative RMSE, 20-1000x
-below the Monte Carlo noise at 64-1024 spp; offsets of 16 or 4 ulps move it
-4x less than that, i.e. the difference is Mitsuba's larger offset. Offsets
+below the Monte Carlo noise at 64-1024 spp (measured with 64 ulps; 16 or 4 ulps
+moved it 4x less than that, i.e. the difference is Mitsuba's larger offset). Offsets
 are large where the geometry is: a point of a 1e4-unit mesh is offset by
-~0.04 units (64 roundoffs of its coordinates).
+~0.01 units (16 roundoffs of its coordinates).
 
 The offset and the normal are detached (as in Mitsuba); ``si.p`` and the target
 are not, so gradients of continuous parameters flow through the ray (a
@@ -93,8 +101,10 @@ from .light_views.base import opaque_point, opaque_scalar, scene_bounds, shape_b
 #: own shapes in the AD variants) runs in float32.
 UNIT_ROUNDOFF = 2.0 ** -24
 
-#: Origin offset, in unit roundoffs of the hit's coordinate magnitude ``M``.
-ORIGIN_ULPS = 64.0
+#: Origin offset, in unit roundoffs of the hit's coordinate magnitude ``M``: meshes and
+#: spheres (:data:`ORIGIN_ULPS`), other analytic shapes (:data:`ORIGIN_ULPS_OTHER`).
+ORIGIN_ULPS = 16.0
+ORIGIN_ULPS_OTHER = 64.0
 
 #: Shortening before the target, in unit roundoffs of ``max|target|``.
 TARGET_ULPS = 64.0
@@ -123,8 +133,9 @@ def shape_tables(scene):
     """Per shape, indexed by its registry id (``scene.shapes_dr()``): the largest
     absolute coordinate along each axis (a ``(size, 3)`` float32 array) and whether its
     hit points are computed along the ray (1, analytic shapes) or interpolated (0,
-    meshes). Ids not listed (shapes inside instances, invalid hits) get the scene's
-    magnitudes. Bounds come from :func:`~mi_shadowmap.light_views.base.shape_bounds`
+    meshes), and the origin offset's ulps (:data:`ORIGIN_ULPS` for meshes and spheres,
+    else :data:`ORIGIN_ULPS_OTHER`). Ids not listed (shapes inside instances, invalid
+    hits) get the scene's magnitudes and the larger offset. Bounds come from :func:`~mi_shadowmap.light_views.base.shape_bounds`
     (not ``bbox()``: Mitsuba 3.9's merged meshes report wrong boxes)."""
     shapes = scene.shapes()
     fallback = _axis_magnitudes(scene_bounds(scene))
@@ -133,11 +144,14 @@ def shape_tables(scene):
     size = int(ids.max()) + 1 if ids.size else 1
     mag_table = np.tile(fallback.astype(np.float32), (size, 1))   # per axis
     along_table = np.ones(size, np.float32)      # hit point computed as ray(t)?
+    ulps_table = np.full(size, ORIGIN_ULPS_OTHER, np.float32)
     for i, s in zip(ids, shapes):
         m = _axis_magnitudes(shape_bounds(s))
         mag_table[i] = m if m.any() else fallback
         along_table[i] = 0.0 if s.is_mesh() else 1.0
-    return mag_table, along_table
+        if s.is_mesh() or s.class_name() == "Sphere":
+            ulps_table[i] = ORIGIN_ULPS
+    return mag_table, along_table, ulps_table
 
 
 def shape_index(shape_ptr, size: int):
@@ -177,10 +191,11 @@ def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
     """
     Float = mi.Float
 
-    mag_table, along_table = shape_tables(scene)
+    mag_table, along_table, ulps_table = shape_tables(scene)
     idx = shape_index(si.shape, len(along_table))
     m_axes = dr.gather(mi.Vector3f, Float(mag_table.ravel()), idx)
     along = dr.gather(Float, Float(along_table), idx)
+    ulps = dr.gather(Float, Float(ulps_table), idx)
 
     p = si.p
     p_d = dr.detach(p)
@@ -192,7 +207,7 @@ def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
     # 1e6 wide is exact in its height, not to 1e6 u)
     m_shape = dr.dot(dr.abs(n), m_axes)
     mag = dr.maximum(dr.maximum(dr.max(dr.abs(p_d)), m_shape), along * t_cam)
-    delta = (ORIGIN_ULPS * UNIT_ROUNDOFF) * mag
+    delta = ulps * UNIT_ROUNDOFF * mag
 
     n = dr.select(dr.dot(n, dr.detach(p_target) - p_d) < 0, -n, n)   # towards the target
     o = dr.fma(n, delta, p)

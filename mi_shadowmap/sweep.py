@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import warnings
 
 import numpy as np
 
@@ -29,7 +30,7 @@ from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_
                     property_record, spec_name, users_of, uses_property, validate_property,
                     validate_spec)
 from .tables import columns, format_sweep, write_csv, write_json
-from .timing import MethodResult, check_scored_film, run_method
+from .timing import MethodResult, check_scored_film, rendered_spp, run_method
 
 
 # --------------------------------------------------------------------------- grids
@@ -216,6 +217,41 @@ class SweepTable:
 
 
 # --------------------------------------------------------------------------- sweep
+def rendered_specs(scene, specs: list[dict]) -> tuple[list[dict], list[list[int]]]:
+    """``specs`` with their ``spp`` replaced by the count the scene's sampler renders
+    (:func:`~mi_shadowmap.timing.rendered_spp`), those that then repeat an earlier one
+    merged into it; and, per spec kept, the spp asked for that it renders. A merge is
+    warned about: a sweep over spp 2, 3, 4, 5 under a ``stratified`` sampler rendered
+    4, 4, 4 and 9 spp, and showed three rows of equal error at "different" spp (one of
+    them on the Pareto front by timing noise alone)."""
+    out, asked, index = [], [], {}
+    cache: dict = {}
+    for spec in specs:
+        s_spp = spec["spp"]
+        if s_spp not in cache:
+            cache[s_spp] = rendered_spp(scene, s_spp)
+        done = {**spec, "spp": cache[s_spp]}
+        key = json.dumps(done, sort_keys=True, default=str)
+        if key in index:
+            asked[index[key]].append(s_spp)
+            continue
+        index[key] = len(out)
+        out.append(done)
+        asked.append([s_spp])
+    merged = [(spec, a) for spec, a in zip(out, asked) if len(a) > 1 or a[0] != spec["spp"]]
+    if merged:
+        sensors = scene.sensors()
+        sampler = sensors[0].sampler().class_name() if len(sensors) else "sampler"
+        what = "; ".join(f"spp={', '.join(map(str, a))} as {spec['spp']} "
+                         f"({spec_name({k: v for k, v in spec.items() if k != 'spp'})})"
+                         for spec, a in merged)
+        warnings.warn(f"shadowmap: the scene's sampler ({sampler}) rounds the sample count: "
+                      f"it renders {what}; rows give the spp rendered (column spp) and the "
+                      "spp asked for (spp_requested), one row per spp rendered",
+                      stacklevel=3)
+    return out, asked
+
+
 def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
           reference="auto", progress: bool = True, scene_params: dict | None = None,
           ref_spp: int = 64, ref_shadow_rays: int = 64, time_key: str = "time_warm",
@@ -235,6 +271,12 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     the camera or materials changed; implies ``measure_cached``). Rows keep
     every ``time_*`` column, so :func:`analyse` can re-rank a copy of the rows
     on another one.
+
+    Rows are named by, and their ``spp`` is, the count the scene's sampler renders
+    (:func:`~mi_shadowmap.timing.rendered_spp`); configurations that differ only in an
+    spp the sampler rounds to the same count (a ``stratified`` sampler renders 2, 3
+    and 4 as 4) are rendered once, as one row, whose ``spp_requested`` lists the
+    counts asked for (a warning names them).
     """
     check_run_args(spp=spp, seed=seed, repeats=repeats, ref_spp=ref_spp,
                    ref_shadow_rays=ref_shadow_rays)
@@ -242,6 +284,7 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     specs = expand_grid(default_grid() if grid is None else grid, default_spp=spp)
     scene = load_scene(scene, **(scene_params or {}))
     check_scored_film(scene)
+    specs, asked = rendered_specs(scene, specs)
     max_spp = max(s["spp"] for s in specs)
     if reference == "auto" and not has_soft_lights(scene):
         reference = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}
@@ -249,14 +292,17 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
                          ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
     from tqdm import tqdm
     rows, results = [], []
-    for spec in tqdm(specs, desc="sweep", unit="config", disable=not progress):
+    for spec, spp_asked in tqdm(list(zip(specs, asked)), desc="sweep", unit="config",
+                                disable=not progress):
         spec = dict(spec)
         s_spp = spec.pop("spp")
         r = run_method(scene, spec.pop("method"), spp=s_spp, seed=seed, repeats=repeats,
                        measure_cached=measure_cached, **spec)
-        r.name = spec_name({"method": r.method, **r.params, "spp": s_spp})
+        r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
         r.metrics = score(r, ref)
-        rows.append(r.row())
+        row = r.row()
+        row["spp_requested"] = spp_asked
+        rows.append(row)
         if not keep_images:
             r.image, r.visibility = None, {}
         results.append(r)

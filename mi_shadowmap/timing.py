@@ -38,7 +38,7 @@ class MethodResult:
     image: np.ndarray | None        # (H, W, 3) linear RGB (None: reference without image)
     visibility: dict                # emitter label -> (H, W) visibility
     times: dict                     # seconds: cold, warm, build, shading, jit, compile
-    spp: int = 0
+    spp: int = 0                    # samples per pixel rendered (the sampler's count)
     map_bytes: int = 0
     texels: int = 0
     kernels_compiled: int = 0       # kernels compiled (not cache hits) in the cold render
@@ -47,6 +47,9 @@ class MethodResult:
     #: the reference this result was scored against, where it is not the compare's
     #: first one (a method with its own spp: one at that spp); None: that one
     scored_against: "MethodResult | None" = field(default=None, repr=False, compare=False)
+    #: the spp asked for, where the sampler rendered another count (``spp``): a
+    #: ``stratified`` sampler renders 2 or 3 as 4; 0: the same as ``spp``
+    spp_requested: int = 0
 
     def reference_in(self, results) -> "MethodResult":
         """The reference this result's metrics, error layers and heat map are against."""
@@ -59,7 +62,7 @@ class MethodResult:
     def row(self) -> dict:
         """A flat dict for tables and CSV (pooled metrics, per-emitter RMSE)."""
         r = {"name": self.name, "method": self.method, "spp": self.spp,
-             "reference": self.is_reference}
+             "spp_requested": self.spp_requested or self.spp, "reference": self.is_reference}
         r.update({k: list(v) if isinstance(v, tuple) else v for k, v in self.params.items()})
         r.update({f"time_{k}": v for k, v in self.times.items()})
         r.update({"map_bytes": self.map_bytes, "texels": self.texels,
@@ -165,6 +168,38 @@ def root_error(exc: BaseException) -> BaseException:
     return exc
 
 
+def sampler_spp(scene, sensor: int = 0) -> int:
+    """The sample count of ``scene``'s sensor's sampler: after a render, the spp that
+    render took (``mi.render(..., spp=N)`` sets it, and the sampler rounds it)."""
+    sensors = scene.sensors()
+    if not 0 <= sensor < len(sensors):
+        return 0
+    return int(sensors[sensor].sampler().sample_count())
+
+
+def rendered_spp(scene, spp: int, sensor: int = 0) -> int:
+    """The spp that ``mi.render(scene, spp=spp)`` renders: samplers round the count
+    they are given (``stratified`` and ``multijitter`` up to a square or a product of
+    two near factors, ``ldsampler`` to a power of four, ``orthogonal`` to the square of
+    a prime: a ``stratified`` sampler renders 2, 3 and 4 as 4 and 5 to 9 as 9), so a
+    requested spp is not what is measured. Found without rendering, on a fork of the
+    sensor's sampler (the scene's sampler is left alone), its rounding warning muted."""
+    sensors = scene.sensors()
+    if not 0 <= sensor < len(sensors):
+        return int(spp)
+    sampler = sensors[sensor].sampler().fork()
+    logger = mi.logger()
+    level = logger.log_level() if logger is not None else None
+    try:
+        if logger is not None:
+            logger.set_log_level(mi.LogLevel.Error)
+        sampler.set_sample_count(int(spp))
+    finally:
+        if logger is not None:
+            logger.set_log_level(level)
+    return int(sampler.sample_count())
+
+
 def render_timed(scene, integrator, spp, seed):
     """``(image, seconds)`` of one synchronised ``mi.render``."""
     t0 = time.perf_counter()
@@ -191,7 +226,9 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
 
     Frames are timed with the depth maps rebuilt in every render
     (``cache_maps=False`` unless given), so ``warm`` = ``build`` + ``shading``
-    is the cost of a frame whose geometry or lights changed. With
+    is the cost of a frame whose geometry or lights changed. The result's ``spp`` is
+    the count the sampler rendered (:func:`rendered_spp`: it may round ``spp`` up;
+    ``spp_requested`` keeps ``spp``). With
     ``measure_cached`` a second integrator re-renders with the map cache on
     (one priming render, then the median of ``repeats``): ``times["cached"]``
     is a re-render with maps and kernels both cached.
@@ -213,6 +250,7 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
     try:
         img, cold = render_timed(scene, integrator, spp, seed)
         compile_s, n_compiled = compile_stats(dr.kernel_history())
+        spp_done = sampler_spp(scene) or spp   # the sampler may round spp
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, had_history)
     warm, build = [], []
@@ -237,6 +275,7 @@ def run_method(scene: mi.Scene, method: str, spp: int = 16, seed: int = 0,
                                            for _ in range(max(1, repeats))]))
     return MethodResult(
         name=spec_name(spec), method=method, params=dict(params), image=image, visibility=vis,
-        times=times, spp=spp, map_bytes=sum(m.nbytes for m in maps),
-        texels=int(integrator.stats["texels_built"]), kernels_compiled=n_compiled)
+        times=times, spp=spp_done, map_bytes=sum(m.nbytes for m in maps),
+        texels=int(integrator.stats["texels_built"]), kernels_compiled=n_compiled,
+        spp_requested=spp)
 

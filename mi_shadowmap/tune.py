@@ -76,7 +76,7 @@ from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_s
 from .sweep import SweepTable, analyse
 from .tables import jsonable
 from .timing import (MethodResult, check_film, check_scored_film, film_is_xyz, render_timed,
-                     run_method, split_channels)
+                     rendered_spp, run_method, sampler_spp, split_channels)
 
 #: Error metrics the tuner accepts (lower is better; the sweep's error columns).
 METRICS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
@@ -163,6 +163,30 @@ def spp_ladder(max_spp: int) -> list[int]:
     up to ``max_spp`` (and ``max_spp`` itself)."""
     out = {2 ** j for j in range(0, 31)} | {3 * 2 ** j for j in range(0, 30)}
     return sorted(s for s in out if s <= max_spp) + ([max_spp] if max_spp not in out else [])
+
+
+def rendered_ladder(scene, max_spp: int, spp: int | None = None):
+    """``(ladder, screening spp)`` in counts the scene's sampler renders
+    (:func:`~mi_shadowmap.timing.rendered_spp`): samplers round the spp they are given
+    (a ``stratified`` one renders 2, 3 and 4 as 4, 6 and 8 as 9), so the ladder of
+    :func:`spp_ladder` holds the distinct counts rendered, those above ``max_spp``
+    dropped (unless none is left); with ``spp`` fixed, the count it renders. Every
+    spp the tuner measures, reports and writes into ``integrator.xml`` is one of them:
+    before, a pick of "spp=3" rendered 4 and two rows of equal error stood at 3 and 4."""
+    if spp is not None:
+        s = rendered_spp(scene, spp)
+        return [s], (s,)
+    done = sorted({rendered_spp(scene, s) for s in spp_ladder(max_spp)})
+    ladder = [s for s in done if s <= max_spp] or done[:1]
+    screen = []
+    for s in SCREEN_SPP:
+        if s > max_spp:
+            continue
+        r = rendered_spp(scene, s)
+        r = max([x for x in ladder if x <= r], default=ladder[0])   # r itself if kept
+        if r not in screen:
+            screen.append(r)
+    return ladder, tuple(screen) or (ladder[0],)
 
 
 # --------------------------------------------------------------------------- input
@@ -337,9 +361,7 @@ class _Tuner:
         self.B, self.metric = float(max_error), metric
         self.margin, self.seed, self.repeats = margin, seed, repeats
         self.max_ref_spp, self.n_light = max_ref_spp, ref_light_samples
-        self.ladder = [spp] if spp is not None else spp_ladder(max_spp)
-        self.screen_spp = (spp,) if spp is not None else tuple(
-            s for s in SCREEN_SPP if s <= max_spp) or (1,)
+        self.ladder, self.screen_spp = rendered_ladder(scene, max_spp, spp)
         self.t0 = time.perf_counter()
         self.deadline = math.inf if time_limit is None else self.t0 + time_limit
         self.search_deadline = (math.inf if time_limit is None
@@ -427,6 +449,8 @@ class _Tuner:
         seed = self.seed + (1 if which == "small" else 3)
         self.film.set(size)
         ref = make_reference(self.scene, self._ref_render(spp, seed))
+        capped = spp == self.max_ref_spp and need > spp
+        spp = ref.spp      # the count rendered (the sampler may round it)
         if not self.area:
             ref.name = f"reference (raytraced spp={spp})"
         self._tick(f"reference at {size[0]}x{size[1]}")
@@ -435,7 +459,7 @@ class _Tuner:
             "name": ref.name, "method": REFERENCE_METHOD if not self.area else "converged",
             "spp": spp, "seed": seed, "size": list(size),
             **({"light_samples": self.n_light} if self.area else {}),
-            "noise": noise, "capped": spp == self.max_ref_spp and need > spp}}
+            "noise": noise, "capped": capped}}
         return ref
 
     # ------------------------------------------------------------- measuring
@@ -849,7 +873,8 @@ def _render_once(scene, method: str, spp: int, seed: int, **props) -> MethodResu
     img, seconds = render_timed(scene, integrator, spp, seed)
     image, vis = split_channels(img, integrator.aov_names(), xyz=film_is_xyz(scene))
     return MethodResult(name=spec_name(spec), method=method, params=dict(props), image=image,
-                        visibility=vis, times={"warm": seconds}, spp=spp)
+                        visibility=vis, times={"warm": seconds},
+                        spp=sampler_spp(scene) or spp, spp_requested=spp)
 
 
 # --------------------------------------------------------------------------- API

@@ -547,3 +547,41 @@ def test_an_xyz_film_is_compared_in_srgb():
         d["sensor"]["film"]["pixel_format"] = fmt
         images[fmt] = harness.compare(mi.load_dict(d), methods=["hard"], spp=2)[1].image
     assert np.abs(images["xyz"] - images["rgb"]).max() < 1e-3
+
+
+# --------------------------------------------------------------------------- spp rendered
+def stratified_scene(**size):
+    """The spot scene under a ``stratified`` sampler, which rounds the spp it is given
+    up to a square (2, 3, 4 -> 4; 5..9 -> 9)."""
+    xml = (SCENES / "spot_sphere_box.xml").read_text().replace(
+        'type="independent"', 'type="stratified"')
+    return mi.load_string(xml, **{k: v for k, v in (size or SMALL).items()})
+
+
+def test_run_method_records_the_spp_the_sampler_renders():
+    scene = stratified_scene()
+    r = harness.run_method(scene, "raytraced", spp=3, measure_cached=False)
+    assert r.spp == 4 and r.row()["spp"] == 4
+    assert r.spp_requested == 3 and r.row()["spp_requested"] == 3
+    plain = harness.run_method(mi.load_dict(default_scene(**SMALL)), "raytraced", spp=3,
+                               measure_cached=False)
+    assert plain.spp == 3 and plain.row()["spp_requested"] == 3
+    from mi_shadowmap.timing import rendered_spp
+    scene = stratified_scene()
+    assert [rendered_spp(scene, s) for s in (1, 2, 3, 4, 5, 8, 10)] == \
+        [1, 4, 4, 4, 9, 9, 16]
+    assert scene.sensors()[0].sampler().sample_count() == 16   # left alone
+
+
+def test_sweep_rows_give_the_spp_rendered_and_merge_repeats():
+    """spp 2, 3, 4, 5 under a stratified sampler render 4, 4, 4, 9: two rows, not four
+    rows of which three had the same error at "different" spp."""
+    scene = stratified_scene()
+    with pytest.warns(UserWarning, match=r"StratifiedSampler.*spp=2, 3, 4 as 4"):
+        table = harness.sweep(scene, {"method": "raytraced", "spp": [2, 3, 4, 5]},
+                              repeats=1, ref_spp=16, progress=False)
+    assert [r["name"] for r in table] == ["raytraced spp=4", "raytraced spp=9"]
+    assert [r["spp"] for r in table] == [4, 9]
+    assert [r["spp_requested"] for r in table] == [[2, 3, 4], [5]]
+    assert [r.spp for r in table.results] == [4, 9]
+    assert table.reference.spp == 16

@@ -233,3 +233,31 @@ def test_tune_refuses_a_scene_without_emitters_by_name():
         d.pop(k)
     with pytest.raises(ValueError, match="the scene has no emitter"):
         mi_shadowmap.tune(mi.load_dict(d), max_error=0.05, methods=["hard"], progress=False)
+
+
+def stratified_scene(**size):
+    """The spot scene under a ``stratified`` sampler, which rounds the spp it is given
+    up to a square (2, 3, 4 -> 4; 6, 8 -> 9)."""
+    xml = open(SPOT).read().replace('type="independent"', 'type="stratified"')
+    return mi.load_string(xml, **{k: v for k, v in (size or FULL).items()})
+
+
+def test_every_spp_tune_reports_is_the_spp_rendered():
+    """Under a stratified sampler the ladder 1, 2, 3, 4, 6, 8, ... rendered 1, 4, 4, 4,
+    9, 9, ...: rows of equal error at "different" spp, and a pick (and integrator.xml)
+    of spp=3 that rendered 4."""
+    scene = stratified_scene()
+    res = tune(scene, 0.1, methods=["raytraced"], spp=3, max_spp=16, **FAST)
+    assert res["spp"] == 4 and res["name"] == "raytraced spp=4"
+    assert "spp=4" in integrator_xml(res) and "spp=3" not in integrator_xml(res)
+    assert {r["spp"] for r in res["sweep"].rows} == {4}
+    assert all(f"spp={r['spp']}" in r["name"] for r in res["sweep"].rows)
+    assert res["reference"]["spp"] in (64, 81, 100, 121, 144)    # squares
+    res = tune(scene, 0.1, methods=["raytraced"], max_spp=16, **FAST)
+    spps = [r["spp"] for r in res["sweep"].rows]
+    assert set(spps) <= {1, 4, 9, 16} and len(spps) == len(set(spps))
+    assert res["spp"] in (1, 4, 9, 16)
+    from mi_shadowmap.tune import rendered_ladder
+    assert rendered_ladder(scene, 64) == ([1, 4, 9, 16, 25, 36, 49, 64], (1, 9))
+    assert rendered_ladder(scene, 8) == ([1, 4], (1, 4))
+    assert rendered_ladder(scene, 64, spp=3) == ([4], (4,))

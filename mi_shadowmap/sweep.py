@@ -23,6 +23,7 @@ import numpy as np
 
 from . import metrics
 from .ground_truth import has_soft_lights, make_reference, score
+from .methods import MethodError
 from .options import OptionError, parse_options
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_args,
@@ -130,7 +131,8 @@ def analyse(rows: list[dict], time_key="time_warm", error_key="vis_rmse") -> lis
     """Add ``time``, ``error``, ``pareto`` and the equal-time/equal-error columns
     (see :class:`SweepTable`) to ``rows``, in place; returns them."""
     for r in rows:
-        r["time"] = float(r[time_key])
+        t = r.get(time_key)       # none: a configuration that failed (column 'failed')
+        r["time"] = float(t) if t is not None else math.nan
         e = r.get(error_key)
         r["error"] = float(e) if e is not None else math.nan
     ok = [i for i, r in enumerate(rows) if math.isfinite(r["error"])]
@@ -277,6 +279,14 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     spp the sampler rounds to the same count (a ``stratified`` sampler renders 2, 3
     and 4 as 4) are rendered once, as one row, whose ``spp_requested`` lists the
     counts asked for (a warning names them).
+
+    A configuration the scene cannot render -- an :class:`~mi_shadowmap.options.OptionError`
+    or :class:`~mi_shadowmap.methods.MethodError` at render time, e.g. a ``resolution``
+    over ``memory_budget`` -- does not end the sweep: it is a row with its error
+    (column ``failed``; no time, no error, never on the Pareto front), and a warning
+    names it; if every configuration fails, an ``OptionError`` names them all. Any
+    other error is raised with the rows rendered so far attached, as
+    ``exc.sweep_table`` (a :class:`SweepTable`), so that nothing rendered is lost.
     """
     check_run_args(spp=spp, seed=seed, repeats=repeats, ref_spp=ref_spp,
                    ref_shadow_rays=ref_shadow_rays)
@@ -291,19 +301,57 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     ref = make_reference(scene, reference, spp=max(ref_spp, max_spp), seed=seed + 1,
                          ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
     from tqdm import tqdm
-    rows, results = [], []
-    for spec, spp_asked in tqdm(list(zip(specs, asked)), desc="sweep", unit="config",
-                                disable=not progress):
-        spec = dict(spec)
-        s_spp = spec.pop("spp")
-        r = run_method(scene, spec.pop("method"), spp=s_spp, seed=seed, repeats=repeats,
-                       measure_cached=measure_cached, **spec)
-        r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
-        r.metrics = score(r, ref)
-        row = r.row()
-        row["spp_requested"] = spp_asked
-        rows.append(row)
-        if not keep_images:
-            r.image, r.visibility = None, {}
-        results.append(r)
+    rows, results, failed = [], [], []
+    try:
+        for spec, spp_asked in tqdm(list(zip(specs, asked)), desc="sweep", unit="config",
+                                    disable=not progress):
+            spec = dict(spec)
+            s_spp = spec.pop("spp")
+            method = spec.pop("method")
+            try:
+                r = run_method(scene, method, spp=s_spp, seed=seed, repeats=repeats,
+                               measure_cached=measure_cached, **spec)
+            except Exception as e:
+                message = config_error(e)
+                if message is None:
+                    raise
+                name = spec_name({"method": method, **spec, "spp": s_spp})
+                rows.append({"name": name, "method": method, "spp": s_spp,
+                             "spp_requested": spp_asked, "reference": False,
+                             **{k: list(v) if isinstance(v, tuple) else v
+                                for k, v in spec.items()}, "failed": message})
+                failed.append(f"{name}: {message}")
+                continue
+            r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
+            r.metrics = score(r, ref)
+            row = r.row()
+            row["spp_requested"] = spp_asked
+            rows.append(row)
+            if not keep_images:
+                r.image, r.visibility = None, {}
+            results.append(r)
+    except (Exception, KeyboardInterrupt) as e:   # the rows rendered so far are kept
+        e.sweep_table = SweepTable(analyse(rows, time_key, error_key), results, time_key,
+                                   error_key, ref)
+        raise
+    if failed and len(failed) == len(rows):
+        raise OptionError("shadowmap: every configuration of the sweep failed: "
+                          + "; ".join(failed))
+    if failed:
+        warnings.warn(f"shadowmap: {len(failed)} of {len(rows)} sweep configurations failed "
+                      "and are rows with their error (column 'failed'): " + "; ".join(failed),
+                      stacklevel=2)
     return SweepTable(analyse(rows, time_key, error_key), results, time_key, error_key, ref)
+
+
+def config_error(exc: BaseException) -> str | None:
+    """The message of the :class:`~mi_shadowmap.options.OptionError` or
+    :class:`~mi_shadowmap.methods.MethodError` that ``exc`` is or wraps (``mi.render``
+    wraps a Python integrator's errors): a configuration this scene cannot render
+    (e.g. a ``resolution`` over ``memory_budget``); None for any other error."""
+    e = exc
+    while e is not None:
+        if isinstance(e, (OptionError, MethodError)):
+            return str(e)
+        e = e.__cause__
+    return None

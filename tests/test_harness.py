@@ -585,3 +585,71 @@ def test_sweep_rows_give_the_spp_rendered_and_merge_repeats():
     assert [r["spp_requested"] for r in table] == [[2, 3, 4], [5]]
     assert [r.spp for r in table.results] == [4, 9]
     assert table.reference.spp == 16
+
+
+# --------------------------------------------------------------------------- failing configs
+#: Two point lights' cube maps at 8192^2: 3 GiB, over the default memory_budget (1 GiB);
+#: a face alone fits, so this fails only when the scene's lights are known (rendering).
+ROOM = str(SCENES / "room_two_points.xml")
+OVER_BUDGET = {"method": ["hard", "pcf"], "resolution": [64, 8192]}
+
+
+def test_a_configuration_that_fails_is_a_row_and_the_sweep_goes_on():
+    """resolution 8192 over memory_budget: the sweep raised at the first such
+    configuration and every row rendered before was lost."""
+    scene = harness.load_scene(ROOM, **SMALL)
+    with pytest.warns(UserWarning, match=r"2 of 4 sweep configurations failed"):
+        table = harness.sweep(scene, OVER_BUDGET, spp=2, repeats=1, ref_spp=4,
+                              progress=False)
+    assert [r["name"] for r in table] == [
+        "hard resolution=64 spp=2", "hard resolution=8192 spp=2",
+        "pcf resolution=64 spp=2", "pcf resolution=8192 spp=2"]
+    bad = [r for r in table if r.get("failed")]
+    assert [r["resolution"] for r in bad] == [8192, 8192]
+    assert all("memory_budget" in r["failed"] and not r["pareto"] for r in bad)
+    assert all(math.isnan(r["time"]) and math.isnan(r["error"]) for r in bad)
+    good = [r for r in table if not r.get("failed")]
+    assert len(good) == len(table.results) == 2
+    assert all(math.isfinite(r["error"]) and r["time"] > 0 for r in good)
+    assert any(r["pareto"] for r in good)
+    assert "-" in table.format()
+
+
+def test_every_configuration_failing_is_one_error():
+    scene = harness.load_scene(ROOM, **SMALL)
+    with pytest.raises(OptionError, match="every configuration of the sweep failed.*8192"):
+        harness.sweep(scene, {"method": "hard", "resolution": 8192},
+                      spp=2, repeats=1, ref_spp=4, progress=False)
+
+
+def test_another_error_keeps_the_rows_rendered(monkeypatch):
+    from mi_shadowmap import sweep as sweep_module
+    real, calls = sweep_module.run_method, []
+
+    def flaky(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("disk full")
+        return real(*a, **k)
+
+    monkeypatch.setattr(sweep_module, "run_method", flaky)
+    scene = mi.load_dict(default_scene(**SMALL))
+    with pytest.raises(RuntimeError, match="disk full") as e:
+        harness.sweep(scene, {"method": "hard", "resolution": [64, 128, 256]}, spp=2,
+                      repeats=1, ref_spp=4, progress=False)
+    table = e.value.sweep_table
+    assert [r["name"] for r in table] == ["hard resolution=64 spp=2"] and table.rows[0]["pareto"]
+
+
+def test_cli_sweep_writes_the_rows_despite_a_failing_configuration(tmp_path, capsys):
+    from mi_shadowmap import cli
+    out = tmp_path / "sweep"
+    code = cli.main(["sweep", ROOM, "--width", "32",
+                     "--height", "32", "--spp", "2", "--repeats", "1", "--grid",
+                     "method=hard,pcf resolution=64,8192",
+                     "--out", str(out)])
+    _, err = capsys.readouterr()
+    assert code == 0, err
+    rows = json.loads((out / "sweep.json").read_text())
+    assert len(rows) == 4 and sum(bool(r.get("failed")) for r in rows) == 2
+    assert (out / "pareto.png").stat().st_size > 0

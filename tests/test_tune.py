@@ -4,6 +4,7 @@ re-measurement meets the budget), the Pareto front, bad input, the time limit, t
 Tiny films (48^2 full size, searched at 32^2) and small method lists keep it fast.
 """
 import json
+import math
 import re
 import time
 
@@ -261,3 +262,31 @@ def test_every_spp_tune_reports_is_the_spp_rendered():
     assert rendered_ladder(scene, 64) == ([1, 4, 9, 16, 25, 36, 49, 64], (1, 9))
     assert rendered_ladder(scene, 8) == ([1, 4], (1, 4))
     assert rendered_ladder(scene, 64, spp=3) == ([4], (4,))
+
+
+def test_re_timed_rows_have_consistent_timing_columns():
+    """The contest re-times the contenders and set only time_warm: a row of 14.6 ms warm
+    kept a build + shading of 23.4 ms (its first measurement's)."""
+    from mi_shadowmap.tune import _Tuner, check_inputs
+    specs, rt = check_inputs(0.5, methods=["hard", "raytraced"], search_size=32, max_spp=4)
+    scene = harness.load_scene(SPOT, **FULL)
+    tuner = _Tuner(scene, 0.5, "vis_rmse", specs, rt, None, 32, 0.05, 0, 1, 4, 64, 256,
+                   None, False)
+    try:
+        hard = next(c for c in tuner.configs.values() if c.method == "hard")
+        ray = next(c for c in tuner.configs.values() if c.method == "raytraced")
+        rows = [tuner.measure(hard, 1), tuner.measure(ray, 1)]
+        for c in (hard, ray):            # both contenders, whatever their first times
+            c.points[1] = (0.0, 0.01)
+        for row in rows:                 # a first measurement unlike the re-timings
+            row.update(time_warm=0.01, time_build=0.008, time_shading=0.002)
+        tuner.contest(math.inf)
+    finally:
+        tuner.film.restore()
+    for row, c in zip(rows, (hard, ray)):
+        assert row["time_rounds"] == 4
+        assert row["time_warm"] == c.points[1][1]
+        assert row["time_build"] + row["time_shading"] == pytest.approx(row["time_warm"],
+                                                                        abs=1e-12)
+        assert 0 <= row["time_build"] <= row["time_warm"]
+        assert row["time_jit"] == pytest.approx(max(row["time_cold"] - row["time_warm"], 0))

@@ -98,15 +98,26 @@ MIN_SCORED_SIDE = 7
 def check_scored_film(scene, sensor: int = 0) -> None:
     """Raise ValueError, before anything renders, if the film of ``scene``'s sensor is
     too small for the metrics every comparison computes (SSIM needs 7 x 7 pixels): a
-    6 x 6 comparison used to render every method and then fail, writing nothing."""
+    6 x 6 comparison used to render every method and then fail, writing nothing. The
+    image is the film's crop window; a crop too small is named as such (its advice
+    was to enlarge a film that was large enough)."""
     sensors = scene.sensors()
     if not 0 <= sensor < len(sensors):
         return
-    w, h = (int(c) for c in sensors[sensor].film().crop_size())
-    if min(w, h) < MIN_SCORED_SIDE:
-        raise ValueError(f"the film is {w} x {h} pixels; comparing methods needs at least "
-                         f"{MIN_SCORED_SIDE} x {MIN_SCORED_SIDE} (SSIM's window): set the "
-                         "film's width and height (the CLI's --width, --height) to 7 or more")
+    film = sensors[sensor].film()
+    w, h = (int(c) for c in film.crop_size())
+    if min(w, h) >= MIN_SCORED_SIDE:
+        return
+    W, H = (int(c) for c in film.size())
+    if (w, h) != (W, H):     # a crop window: the film is not the problem
+        raise ValueError(f"the film's crop window is {w} x {h} pixels (of a {W} x {H} "
+                         f"film); comparing methods needs at least {MIN_SCORED_SIDE} x "
+                         f"{MIN_SCORED_SIDE} (SSIM's window): set the film's crop_width "
+                         f"and crop_height to {MIN_SCORED_SIDE} or more")
+    raise ValueError(f"the film is {w} x {h} pixels; comparing methods needs at least "
+                     f"{MIN_SCORED_SIDE} x {MIN_SCORED_SIDE} (SSIM's window): set the "
+                     f"film's width and height (the CLI's --width, --height) to "
+                     f"{MIN_SCORED_SIDE} or more")
 
 
 def xyz_to_srgb_matrix() -> np.ndarray:

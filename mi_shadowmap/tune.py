@@ -250,18 +250,29 @@ class _Film:
                      tuple(int(x) for x in self.params["film.crop_offset"]))
         self.current = self.full
 
+    def crop_at(self, size) -> tuple[tuple[int, int], tuple[int, int]]:
+        """``(crop size, crop offset)`` of the film at ``size``: the full film's crop
+        window scaled with it (the whole film where there is no crop)."""
+        w, h = (int(x) for x in size)
+        W, H = self.full
+        (cw, ch), (ox, oy) = self.crop
+        if (cw, ch) == (W, H):
+            return (w, h), (0, 0)
+        crop = (max(1, round(cw * w / W)), max(1, round(ch * h / H)))
+        off = (min(round(ox * w / W), w - crop[0]), min(round(oy * h / H), h - crop[1]))
+        return crop, off
+
+    def image_size(self, size) -> tuple[int, int]:
+        """The size of the image rendered -- and measured -- with the film at ``size``:
+        its crop window's."""
+        return self.crop_at(size)[0]
+
     def set(self, size):
         size = tuple(int(x) for x in size)
         if size == self.current:
             return
         w, h = size
-        W, H = self.full
-        (cw, ch), (ox, oy) = self.crop
-        if (cw, ch) == (W, H):
-            crop, off = (w, h), (0, 0)
-        else:   # a crop window scales with the film
-            crop = (max(1, round(cw * w / W)), max(1, round(ch * h / H)))
-            off = (min(round(ox * w / W), w - crop[0]), min(round(oy * h / H), h - crop[1]))
+        crop, off = self.crop_at(size)
         self.params["film.size"] = mi.ScalarVector2u(w, h)
         self.params["film.crop_size"] = mi.ScalarVector2u(*crop)
         self.params["film.crop_offset"] = mi.ScalarPoint2u(*off)
@@ -372,11 +383,15 @@ class _Tuner:
         self.full = self.film.full
         self.small = reduced_size(self.full, search_size)
         self.k = max(self.small) / max(self.full)     # map resolutions scale with the film
+        # the images rendered and measured: the film's crop window at each size
+        self.full_image = self.film.image_size(self.full)
+        self.small_image = self.film.image_size(self.small)
         self.area = has_soft_lights(scene)   # area lights or an environment
         searched = {s["method"] for s in specs}
-        grid = search_grid(specs, *self.full, self.area)
+        # the ladder follows the image's pixels, as the automatic resolution does
+        grid = search_grid(specs, *self.full_image, self.area)
         if REFERENCE_METHOD not in searched:
-            grid += search_grid([rt_spec], *self.full, self.area)
+            grid += search_grid([rt_spec], *self.full_image, self.area)
         self.configs = {}
         for s in grid:
             c = _Config(s, searched=s["method"] in searched)
@@ -427,7 +442,8 @@ class _Tuner:
         self.film.set(size)
         a = self._ref_render(4, self.seed + 100)
         b = self._ref_render(4, self.seed + 101)
-        self._tick(f"reference noise at {size[0]}x{size[1]}")
+        w, h = self.film.image_size(size)
+        self._tick(f"reference noise at {w}x{h}")
         m = score(b, a)
         v = m.get(self.metric)
         if v is None or not math.isfinite(v):
@@ -453,11 +469,12 @@ class _Tuner:
         spp = ref.spp      # the count rendered (the sampler may round it)
         if not self.area:
             ref.name = f"reference (raytraced spp={spp})"
-        self._tick(f"reference at {size[0]}x{size[1]}")
+        w, h = self.film.image_size(size)
+        self._tick(f"reference at {w}x{h}")
         noise = m4 * 2.0 / math.sqrt(2.0 * spp)
         self.refs[which] = {"result": ref, "pilot": m4, "info": {
             "name": ref.name, "method": REFERENCE_METHOD if not self.area else "converged",
-            "spp": spp, "seed": seed, "size": list(size),
+            "spp": spp, "seed": seed, "size": list(self.film.image_size(size)),
             **({"light_samples": self.n_light} if self.area else {}),
             "noise": noise, "capped": capped}}
         return ref
@@ -734,8 +751,9 @@ class _Tuner:
             "name": name,
             "integrator": {"type": "shadowmap", "method": c.method, **params},
             "reference": self.refs["full" if "full" in self.refs else "small"]["info"],
-            "size": list(self.full),
-            "search": {"size": list(self.small), "error": e, "seconds": t, "threshold": tau,
+            "size": list(self.full_image), "film_size": list(self.full),
+            "search": {"size": list(self.small_image), "film_size": list(self.small),
+                       "error": e, "seconds": t, "threshold": tau,
                        "initial_threshold": tau0, "noise_scale": scale,
                        "reference": self.refs["small"]["info"],
                        "configurations": len(self.configs), "renders": len(self.rows)},
@@ -803,13 +821,13 @@ class _Tuner:
         for (key, _), r in self.verified.items():
             e = self.error_of(r)
             if self.configs[key].searched and math.isfinite(e) and (best is None or e < best[0]):
-                best = (e, r.name, self.full)
+                best = (e, r.name, self.full_image)
         if best is None:
             for row in self.rows:
                 e = row.get(self.metric)
                 if self.configs[row["config"]].searched and e is not None and \
                         math.isfinite(e) and (best is None or e < best[0]):
-                    best = (float(e), row["name"], self.small)
+                    best = (float(e), row["name"], self.small_image)
         within = (f" within time_limit={self.time_limit:g} s" if self.time_limited else "")
         what = (f"; best reachable: {self.metric} {best[0]:.4g} with {best[1]} (measured at "
                 f"{best[2][0]}x{best[2][1]})" if best is not None
@@ -951,7 +969,9 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
         ``raytraced`` (the fastest verified ``raytraced`` configuration meeting the
         same budget: ``params``, ``spp``, ``error``, ``seconds``; None if none within
         ``max_spp``/time), ``speed_ratio`` (its seconds / the pick's), ``integrator``
-        (a dict for ``mi.load_dict``), ``search`` (reduced size, threshold, the
+        (a dict for ``mi.load_dict``), ``size`` (the image measured at full size: the
+        film's crop window; ``film_size`` the film's), ``search`` (reduced size --
+        the crop window's at the reduced film, ``film_size`` the film's -- threshold, the
         pick's error and seconds there), ``sweep`` (the search's
         :class:`~mi_shadowmap.sweep.SweepTable`), ``pareto`` (the pick is on the Pareto
         front of the searched methods' rows -- with ``methods=None``, of the whole sweep;

@@ -290,3 +290,38 @@ def test_re_timed_rows_have_consistent_timing_columns():
                                                                         abs=1e-12)
         assert 0 <= row["time_build"] <= row["time_warm"]
         assert row["time_jit"] == pytest.approx(max(row["time_cold"] - row["time_warm"], 0))
+
+
+def cropped_scene(width=96, height=64, crop=(50, 30), offset=(20, 16)):
+    """The spot scene on a ``width`` x ``height`` film with a crop window."""
+    film = (f'<integer name="crop_width" value="{crop[0]}"/>'
+            f'<integer name="crop_height" value="{crop[1]}"/>'
+            f'<integer name="crop_offset_x" value="{offset[0]}"/>'
+            f'<integer name="crop_offset_y" value="{offset[1]}"/><rfilter type="box"/>')
+    xml = open(SPOT).read().replace('<rfilter type="box"/>', film)
+    return mi.load_string(xml, width=str(width), height=str(height))
+
+
+def test_a_crop_window_is_the_size_measured_and_searched():
+    """A 50x30 crop of a 96x64 film was reported "at 96x64; searched at 48x32", and its
+    resolutions were searched from the film's long side (64..512, not 32..256)."""
+    from mi_shadowmap.tune import format_result
+    scene = cropped_scene()
+    res = tune(scene, 0.1, methods=["hard", "raytraced"], search_size=48, max_spp=4,
+               repeats=1, progress=False)
+    assert res["size"] == [50, 30] and res["film_size"] == [96, 64]
+    assert res["search"]["size"] == [25, 15] and res["search"]["film_size"] == [48, 32]
+    assert res["reference"]["size"] == [50, 30]
+    assert res["search"]["reference"]["size"] == [25, 15]
+    assert "at 50x30; searched at 25x15" in format_result(res)
+    assert "at 50x30," in integrator_xml(res)
+    assert {r["resolution"] for r in res["sweep"].rows if r["method"] == "hard"} == \
+        {32, 64, 128, 256}
+    assert list(scene.sensors()[0].film().crop_size()) == [50, 30]      # restored
+
+
+def test_a_crop_too_small_is_named_not_the_film():
+    with pytest.raises(ValueError, match=r"crop window is 5 x 5 pixels \(of a 96 x 64 film\)"
+                                         r".*crop_width") as e:
+        tune(cropped_scene(crop=(5, 5)), 0.1, methods=["hard"], progress=False)
+    assert "--width" not in str(e.value)

@@ -75,8 +75,9 @@ from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_s
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
 from .sweep import SweepTable, analyse
 from .tables import jsonable
-from .timing import (MethodResult, check_film, check_scored_film, film_is_xyz, render_timed,
-                     rendered_spp, run_method, sampler_spp, split_channels)
+from .timing import (MIN_SCORED_SIDE, MethodResult, check_film, check_scored_film,
+                     film_is_xyz, render_timed, rendered_spp, run_method, sampler_spp,
+                     split_channels)
 
 #: Error metrics the tuner accepts (lower is better; the sweep's error columns).
 METRICS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
@@ -253,14 +254,7 @@ class _Film:
     def crop_at(self, size) -> tuple[tuple[int, int], tuple[int, int]]:
         """``(crop size, crop offset)`` of the film at ``size``: the full film's crop
         window scaled with it (the whole film where there is no crop)."""
-        w, h = (int(x) for x in size)
-        W, H = self.full
-        (cw, ch), (ox, oy) = self.crop
-        if (cw, ch) == (W, H):
-            return (w, h), (0, 0)
-        crop = (max(1, round(cw * w / W)), max(1, round(ch * h / H)))
-        off = (min(round(ox * w / W), w - crop[0]), min(round(oy * h / H), h - crop[1]))
-        return crop, off
+        return scaled_crop(self.full, *self.crop, size)
 
     def image_size(self, size) -> tuple[int, int]:
         """The size of the image rendered -- and measured -- with the film at ``size``:
@@ -294,6 +288,54 @@ def reduced_size(size, search_size: int) -> tuple[int, int]:
     W, H = size
     k = min(1.0, search_size / max(W, H))
     return max(1, round(W * k)), max(1, round(H * k))
+
+
+def scaled_crop(full, crop_size, crop_offset, size) -> tuple[tuple[int, int], tuple[int, int]]:
+    """``(crop size, crop offset)`` of a ``full``-size film's crop window
+    (``crop_size`` at ``crop_offset``) when the film is resized to ``size``: the window
+    scales with the film (the whole film where the window is the whole film)."""
+    w, h = (int(x) for x in size)
+    W, H = (int(x) for x in full)
+    (cw, ch), (ox, oy) = crop_size, crop_offset
+    if (cw, ch) == (W, H):
+        return (w, h), (0, 0)
+    crop = (max(1, round(cw * w / W)), max(1, round(ch * h / H)))
+    off = (min(round(ox * w / W), w - crop[0]), min(round(oy * h / H), h - crop[1]))
+    return crop, off
+
+
+def check_search_size(scene, search_size: int) -> None:
+    """Raise :class:`TuneError`, before anything renders, if ``search_size`` shrinks
+    the image the search measures (the first sensor's film scaled by
+    :func:`reduced_size`, its crop window with it: :func:`scaled_crop`) below the
+    metrics' :data:`~mi_shadowmap.timing.MIN_SCORED_SIDE` pixels (SSIM's 7 x 7 window),
+    naming the smallest ``search_size`` that works. :func:`check_inputs` checks only
+    ``search_size >= 8``: a 96 x 64 film searched at 8 is 8 x 5, and the search failed
+    after its first renders ("ssim needs images of at least 7x7 pixels")."""
+    sensors = scene.sensors()
+    if not sensors:
+        return
+    film = sensors[0].film()
+    full = tuple(int(x) for x in film.size())
+    crop = (tuple(int(x) for x in film.crop_size()), tuple(int(x) for x in film.crop_offset()))
+
+    def image(s):
+        return scaled_crop(full, *crop, reduced_size(full, s))[0]
+
+    w, h = image(search_size)
+    if min(w, h) >= MIN_SCORED_SIDE:
+        return
+    ok = next((s for s in range(search_size + 1, max(full) + 1)
+               if min(image(s)) >= MIN_SCORED_SIDE), None)
+    if ok is None:       # the full-size image is too small: check_scored_film says so
+        return
+    fw, fh = reduced_size(full, search_size)
+    what = (f", and its {crop[0][0]}x{crop[0][1]} crop window to {w}x{h}"
+            if crop[0] != full else "")
+    raise TuneError(f"shadowmap: tune: search_size = {search_size} (--search-size) scales the "
+                    f"{full[0]}x{full[1]} film to {fw}x{fh} pixels for the search{what}; "
+                    f"the metrics need at least {MIN_SCORED_SIDE}x{MIN_SCORED_SIDE} "
+                    f"(SSIM's window): use search_size >= {ok} (--search-size {ok})")
 
 
 # --------------------------------------------------------------------------- model
@@ -990,6 +1032,7 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
     scene = load_scene(scene, **(scene_params or {}))
     check_emitters(scene)
     check_scored_film(scene)
+    check_search_size(scene, search_size)
     tuner = _Tuner(scene, max_error, metric, specs, rt_spec, time_limit, search_size, margin,
                    seed, repeats, max_spp, max_ref_spp, ref_light_samples, spp, progress)
     return tuner.run()

@@ -6,6 +6,7 @@ Tiny films (48^2 full size, searched at 32^2) and small method lists keep it fas
 import json
 import math
 import re
+import sys
 import time
 
 import mitsuba as mi
@@ -325,3 +326,31 @@ def test_a_crop_too_small_is_named_not_the_film():
                                          r".*crop_width") as e:
         tune(cropped_scene(crop=(5, 5)), 0.1, methods=["hard"], progress=False)
     assert "--width" not in str(e.value)
+
+
+@pytest.mark.parametrize("crop, search_size, match", [
+    (None, 8, r"search_size = 8 \(--search-size\) scales the 96x64 film to 8x5 pixels for "
+              r"the search; .* use search_size >= 10 \(--search-size 10\)"),
+    ((50, 30), 16, r"search_size = 16 \(--search-size\) scales the 96x64 film to 16x11 pixels "
+                   r"for the search, and its 50x30 crop window to 8x5; .* use search_size "
+                   r">= 21 "),
+])
+def test_a_search_size_too_small_for_the_metrics_is_refused_up_front(crop, search_size,
+                                                                      match, monkeypatch):
+    """check_inputs checks only search_size >= 8: a 96x64 film searched at 8 was 8x5 and
+    the search failed after rendering ("ssim needs images of at least 7x7 pixels")."""
+    tune_module = sys.modules["mi_shadowmap.tune"]
+
+    def no_render(*a, **k):
+        raise AssertionError("rendered before the check")
+
+    monkeypatch.setattr(tune_module, "run_method", no_render)
+    monkeypatch.setattr(tune_module, "_render_once", no_render)
+    scene = cropped_scene(crop=crop) if crop else harness.load_scene(SPOT, width=96, height=64)
+    with pytest.raises(TuneError, match=match):
+        tune(scene, 0.1, methods=["hard"], search_size=search_size, progress=False)
+    ok = int(re.search(r">= (\d+)", match).group(1))
+    from mi_shadowmap.tune import check_search_size
+    check_search_size(scene, ok)                      # the value named works
+    with pytest.raises(TuneError):
+        check_search_size(scene, ok - 1)              # and is the smallest

@@ -40,11 +40,13 @@ def check_out_dir(out_dir: str) -> str:
 
 def write_exr(path: str, channels: dict, attributes: dict | None = None) -> None:
     """Write float32 channels (``name -> (H, W)``) to one scanline EXR via OpenEXR;
-    ``attributes`` (``name -> float32 array``) go into its header as float vectors."""
+    ``attributes`` (``name -> float32 array``, or a string) go into its header as float
+    vectors (strings as strings)."""
     import OpenEXR
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    header.update({k: np.ascontiguousarray(v, dtype=np.float32).ravel()
+    header.update({k: v if isinstance(v, str) else
+                   np.ascontiguousarray(v, dtype=np.float32).ravel()
                    for k, v in (attributes or {}).items()})
     with OpenEXR.File(header, data) as f:
         f.write(path)
@@ -284,37 +286,67 @@ def map_layer_image(smap, layer: str) -> np.ndarray | None:
     return data.reshape(-1, res)
 
 
-def write_maps(maps, out_dir: str) -> list[str]:
+def unique_file_stems(names) -> list[str]:
+    """File-name-safe stems (:func:`~mi_shadowmap.tables.safe_name`) of ``names``, made
+    unique: names that differ only in characters a file name cannot hold (``"lamp a"``
+    and ``"lamp_a"``) or in case (one file on case-insensitive file systems) got one
+    file, the later one overwriting the earlier. A name that is its own safe stem keeps
+    it; the others take the first free ``<stem>_2``, ``<stem>_3``, ..."""
+    names = list(names)
+    stems = [safe_name(n) or "unnamed" for n in names]
+    out, taken = [None] * len(names), set()
+    for k, (name, stem) in enumerate(zip(names, stems)):   # names that are file names
+        if name == stem and stem.casefold() not in taken:
+            out[k] = stem
+            taken.add(stem.casefold())
+    for k, stem in enumerate(stems):                      # then the others, suffixed
+        if out[k] is None:
+            n = 1 if stem.casefold() not in taken else 2
+            while n > 1 and f"{stem}_{n}".casefold() in taken:
+                n += 1
+            out[k] = stem if n == 1 else f"{stem}_{n}"
+            taken.add(out[k].casefold())
+    return out
+
+
+def write_maps(maps, out_dir: str, names=None) -> list[str]:
     """One EXR per emitter: every layer of its :class:`ShadowMap` as a channel
     (``depth.Y``, ``second_depth.Y``, ``<extra>.Y``), faces stacked vertically
     (see :func:`map_layer_image`); a layer that is no image (a few values per map)
     as a float-vector attribute of the header named after it (:func:`read_exr_header`).
     A virtual map (:mod:`mi_shadowmap.virtual`) writes its built pages stacked vertically
     (``page_size`` wide) and their face, level and page coordinates as the attributes
-    ``page_face``, ``page_level``, ``page_px``, ``page_py``."""
+    ``page_face``, ``page_level``, ``page_px``, ``page_py``.
+
+    Files are named after the emitters' labels (``names``, one per map, if given),
+    made unique by :func:`unique_file_stems`; the header attribute ``emitter`` holds
+    the label. Returns the paths, one per map that is not None, in order."""
     check_out_dir(out_dir)
+    maps = list(maps)
+    names = [m.view.label if m is not None else None for m in maps] if names is None \
+        else list(names)
+    kept = [(m, n) for m, n in zip(maps, names) if m is not None]
+    stems = unique_file_stems(n for _, n in kept)
     paths = []
-    for smap in maps:
-        if smap is None:
-            continue
+    for (smap, _), stem in zip(kept, stems):
+        path = os.path.join(out_dir, f"{stem}.exr")
         if hasattr(smap, "page_records"):   # a virtual map: its pages, stacked
             rec = smap.page_records()
             ch = {f"{layer}.Y": smap.pages_numpy(layer).reshape(-1, smap.layout.page_size)
                   for layer in smap.layers()}
             attributes = {f"page_{k}": np.asarray(rec[k], np.float32)
                           for k in ("face", "level", "px", "py")}
-            path = os.path.join(out_dir, f"{safe_name(smap.view.label)}.exr")
+            attributes["emitter"] = smap.view.label
             write_exr(path, ch, attributes)
             paths.append(path)
             continue
-        ch, attributes = {}, {}
+        ch, attributes = {}, {"emitter": smap.view.label}
         for layer in smap.layers():
             image = map_layer_image(smap, layer)
             if image is not None:
                 ch[f"{layer}.Y"] = image
             else:
                 attributes[layer] = np.asarray(smap.extra[layer].numpy(), np.float32)
-        path = os.path.join(out_dir, f"{safe_name(smap.view.label)}.exr")
         write_exr(path, ch, attributes)
         paths.append(path)
     return paths

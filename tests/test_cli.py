@@ -278,3 +278,57 @@ def test_a_scene_without_emitters_is_one_line_and_no_output_folder(tmp_path, cap
     assert code == 2
     assert "the scene has no emitter" in err and "add a light" in err
     assert not (tmp_path / "o").exists()
+
+
+def _three_lights_xml(key="key", point_id=None):
+    """A ground, sphere and cube under a spot (id ``key``), a point light (id
+    ``point_id``, or none) and a directional light ``sun``; film $width x $height."""
+    point = f' id="{point_id}"' if point_id else ""
+    return f"""<scene version="3.0.0">
+  <default name="width" value="16"/><default name="height" value="16"/>
+  <sensor type="perspective"><transform name="to_world">
+    <lookat origin="0.2, 3.5, 4.9" target="0.25, 0.25, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="$width"/>
+      <integer name="height" value="$height"/></film></sensor>
+  <shape type="rectangle"><transform name="to_world"><scale value="4"/>
+    <rotate x="1" angle="-90"/></transform></shape>
+  <shape type="sphere"><point name="center" value="-0.85, 0.65, -0.6"/>
+    <float name="radius" value="0.65"/></shape>
+  <shape type="cube"><transform name="to_world"><scale value="0.5"/>
+    <translate value="0.85, 0.5, -0.5"/></transform></shape>
+  <emitter type="spot" id="{key}"><transform name="to_world">
+    <lookat origin="-2.4, 4.0, -3.4" target="0.2, 0.0, 0.3" up="0, 1, 0"/></transform>
+    <rgb name="intensity" value="120"/></emitter>
+  <emitter type="point"{point}><point name="position" value="2, 4, 2"/>
+    <rgb name="intensity" value="30"/></emitter>
+  <emitter type="directional" id="sun"><vector name="direction" value="1, -2, 0.5"/>
+    <rgb name="irradiance" value="1"/></emitter>
+</scene>"""
+
+
+def test_maps_of_emitters_whose_ids_differ_in_punctuation_get_their_own_files(tmp_path,
+                                                                              capsys):
+    """Ids "lamp a" (the spot) and "lamp_a" (the point light) both became lamp_a.exr:
+    the spot's map was overwritten, exit 0. Now the id that is a file name keeps it, the
+    other gets lamp_a_2.exr; the output lines and each file's ``emitter`` header say
+    which emitter a file holds."""
+    scene = tmp_path / "s.xml"
+    scene.write_text(_three_lights_xml(key="lamp a", point_id="lamp_a"))
+    code, out, err = run(["maps", scene, "--methods", "hard", "--set", "resolution=16",
+                          "--out", tmp_path / "m"], capsys)
+    assert code == 0, err
+    files = sorted(p.name for p in (tmp_path / "m").iterdir())
+    assert files == ["lamp_a.exr", "lamp_a_2.exr", "sun.exr"]
+    point, spot = (read_exr(str(tmp_path / "m" / f)) for f in ("lamp_a.exr", "lamp_a_2.exr"))
+    assert point["depth.Y"].shape == (6 * 16, 16) and spot["depth.Y"].shape == (16, 16)
+    assert read_exr_header(str(tmp_path / "m" / "lamp_a.exr"))["emitter"] == "lamp_a"
+    assert read_exr_header(str(tmp_path / "m" / "lamp_a_2.exr"))["emitter"] == "lamp a"
+    assert "lamp_a_2.exr: lamp a (" in out and "lamp_a.exr: lamp_a (" in out
+
+
+def test_unique_file_stems():
+    from mi_shadowmap.report import unique_file_stems
+    assert unique_file_stems(["lamp a", "lamp_a", "sun"]) == ["lamp_a_2", "lamp_a", "sun"]
+    # one file on case-insensitive file systems; a taken "_2" is skipped
+    assert unique_file_stems(["Key", "key", "key 2", "key_2"]) == ["Key", "key_3", "key_2_2",
+                                                                   "key_2"]

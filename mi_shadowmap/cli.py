@@ -160,8 +160,11 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("maps", help="export every depth map as float EXR",
                        description="Build the depth maps of every emitter (with the "
                                    "second/extra layers the chosen methods use) and write "
-                                   "one EXR per emitter: one channel per layer, cube faces "
-                                   "stacked vertically.")
+                                   "one EXR per emitter, <emitter>.exr: one channel per "
+                                   "layer, cube faces stacked vertically. Methods whose "
+                                   "maps of an emitter differ (multiview's views of an area "
+                                   "light beside a cube map; another resolution) get one "
+                                   "file per map, <emitter>_<method>.exr.")
     _add_scene_args(m, sizes=False, out="out/maps")
     m.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                    help=_methods_help("build the layers these methods use (default: every "
@@ -329,22 +332,30 @@ def cmd_maps(args) -> int:
     from . import harness, report
     out = args.out
     params = parse_sets(args.set)
-    specs = harness.map_specs(args.methods, params)   # validated before anything loads
+    harness.map_specs(args.methods, params)   # validated before anything loads
     scene = load_scene_arg(args, sizes=False)
     from .ground_truth import check_emitters
     check_emitters(scene, "depth map to write")
     made = not os.path.isdir(out)
     report.check_out_dir(out)                  # before the maps are built
-    maps = [m for m in harness.prepare_maps(scene, specs) if m is not None]
+    maps = harness.emitter_maps(scene, args.methods, **params)
     if not maps:      # environment emitters only, and no method of --methods maps them
         if made:
             os.rmdir(out)
         raise ValueError("shadowmap: no emitter of the scene has a depth map (an "
                          "environment emitter has one only with environment='shadowed')")
-    paths = report.write_maps(maps, out)
-    for smap, path in zip(maps, paths):
-        print(f"{path}: {smap.view.label} ({type(smap.view).__name__}, {smap.view.n_faces} "
-              f"face(s) of {smap.resolution}^2), layers {', '.join(smap.layers())}")
+    # an emitter with several maps (methods whose maps differ: multiview's K views
+    # beside a cube map) has one file per map, <label>_<its first method>.exr
+    count = {}
+    for m in maps:
+        count[m.index] = count.get(m.index, 0) + 1
+    names = [m.label if count[m.index] == 1 else f"{m.label} {m.methods[0].split()[0]}"
+             for m in maps]
+    paths = report.write_maps([m.map for m in maps], out, names=names)
+    for m, path in zip(maps, paths):
+        smap = m.map
+        print(f"{path}: {m.label} ({harness.describe_map(smap)}), layers "
+              f"{', '.join(smap.layers())}; read by {', '.join(m.methods)}")
     return 0
 
 

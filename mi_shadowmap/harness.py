@@ -6,7 +6,8 @@ first): image, per-emitter visibility AOVs, metrics against the reference
 (pooled over all emitters -- flat keys ``vis_rmse``, ``img_psnr``, ... -- and
 per emitter, ``metrics["per_emitter"][label]``), timings and depth-map memory.
 :func:`prepare_maps` gives the depth maps (with every layer) that the map
-manager builds for a list of methods (``mi-shadowmap maps``).
+manager builds for a list of methods, one per emitter; :func:`emitter_maps` every
+distinct map, where methods' maps of an emitter differ (``mi-shadowmap maps``).
 
 This module is the user-facing facade of the comparison code; each job lives
 in its own module, and every name below is importable from here too:
@@ -27,6 +28,8 @@ and swept like the built-ins. Every configuration is validated with
 :func:`~mi_shadowmap.options.parse_options` before anything renders.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import mitsuba as mi
 import numpy as np
@@ -192,31 +195,104 @@ def prepare_maps(scene, methods=None, sensor=None, **params) -> list:
     (the map cache shares the depth between them, unless ``cache_maps=False``);
     the method with the most layers goes first and its resolution (given, or
     automatic within ``memory_budget``) is used for all, so the layers line up.
+
+    Methods whose maps of one emitter differ (another view -- ``multiview``'s K views
+    of an area light against the cube map of ``hard`` --, another resolution or other
+    depths) cannot share one map per emitter: that is a ValueError naming them;
+    :func:`emitter_maps` gives every distinct map.
     """
-    opts = [validate_spec(s) for s in map_specs(methods, params)]
+    out = []
+    for groups in _map_groups(scene, methods, sensor, params):
+        if len(groups) > 1:
+            a, b = groups[0], groups[1]
+            raise ValueError(
+                f"prepare_maps: methods {', '.join(a.methods)} and {', '.join(b.methods)} "
+                f"build different maps of emitter '{a.map.view.label}' ({describe_map(a.map)}"
+                f" vs {describe_map(b.map)}); prepare them separately, or take every map "
+                "with harness.emitter_maps (the CLI's 'maps' writes each)")
+        out.append(groups[0].map if groups else None)
+    return out
+
+
+@dataclasses.dataclass
+class EmitterMap:
+    """One depth map of :func:`emitter_maps`: the emitter's ``index`` in
+    ``scene.emitters()`` and ``label``, the map, and the ``methods`` that read it
+    (names as listed, e.g. ``"pcf num_samples=4"``, in the order given)."""
+    index: int
+    label: str
+    map: object
+    methods: list
+
+
+def emitter_maps(scene, methods=None, sensor=None, **params) -> list[EmitterMap]:
+    """Every distinct depth map that ``methods`` read (arguments as in
+    :func:`prepare_maps`), in emitter order: one per emitter where the methods' maps
+    line up (their layers merged), more where they differ (``multiview``'s K views of
+    an area light beside the cube map of ``hard``; another resolution), each with the
+    methods that read it. Environment emitters without a map are left out."""
+    return [g for groups in _map_groups(scene, methods, sensor, params) for g in groups]
+
+
+def describe_map(smap) -> str:
+    """``"CubeView, 6 face(s) of 32^2"``: a map's view and size, for messages."""
+    res = getattr(smap, "resolution", None)
+    return (f"{type(smap.view).__name__}, {smap.view.n_faces} face(s)"
+            + (f" of {res}^2" if res is not None else ""))
+
+
+def _same_map(a, b) -> bool:
+    """Whether two methods' maps of one emitter are the same map (their layers can be
+    merged): the same view (every field), resolution and depths."""
+    if type(a) is not type(b) or getattr(a, "resolution", None) != getattr(
+            b, "resolution", None):
+        return False
+    if map_manager.view_fingerprint(a.view) != map_manager.view_fingerprint(b.view):
+        return False
+    if isinstance(a, VirtualShadowMap):
+        return True
+    return a.depth is b.depth or np.array_equal(np.asarray(a.depth.numpy()),
+                                                np.asarray(b.depth.numpy()))
+
+
+def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
+    """Per emitter, its distinct maps (see :func:`emitter_maps`)."""
+    specs = map_specs(methods, params)
+    opts = [validate_spec(s) for s in specs]
+    # named as listed, without the shared params
+    names = [spec_name(method_spec(m)) for m in (methods or map_methods())]
     scene = load_scene(scene)
     # full maps unless virtual=true is given (the automatic virtual would give each
     # method its own page pool, whose layers cannot be merged)
     opts = [o.replace(virtual=False) if o.uses_map and o.virtual and "virtual" not in o.given
             else o for o in opts]
-    opts.sort(key=lambda o: -len(o.record.layer_names(o)))
-    maps, res = None, None
-    for o in opts:
+    order = sorted(range(len(opts)), key=lambda k: -len(opts[k].record.layer_names(opts[k])))
+    groups, res = None, None
+    for k in order:
+        o = opts[k]
         if res is not None and o.resolution is None and not o.virtual:
             o = o.replace(resolution=res)
         prepared = map_manager.prepare_maps(scene, sensor, o)
-        if maps is None:
-            maps, res = prepared.maps, prepared.resolution
-            continue
-        for mine, theirs in zip(maps, prepared.maps):
-            if mine is None or theirs is None:
+        if groups is None:
+            groups, res = [[] for _ in prepared.maps], prepared.resolution
+        for i, theirs in enumerate(prepared.maps):
+            if theirs is None:
                 continue
-            missing = [n for n in theirs.extra if n not in mine.extra]
-            if missing and isinstance(mine, VirtualShadowMap):
-                raise ValueError(f"prepare_maps: the virtual map of '{mine.view.label}' holds "
+            mine = next((g for g in groups[i] if _same_map(g.map, theirs)), None)
+            if mine is None:       # the first map of the emitter, or another one
+                if not isinstance(theirs, VirtualShadowMap):   # merged into below: a copy
+                    theirs = dataclasses.replace(theirs, extra=dict(theirs.extra))
+                groups[i].append(EmitterMap(i, theirs.view.label, theirs, [names[k]]))
+                continue
+            mine.methods.append(names[k])
+            missing = [n for n in theirs.extra if n not in mine.map.extra]
+            if missing and isinstance(mine.map, VirtualShadowMap):
+                raise ValueError(f"prepare_maps: the virtual map of '{mine.label}' holds "
                                  f"only its own method's layers, not {', '.join(missing)} of "
                                  f"method '{o.method}'; prepare each method's virtual maps "
                                  "separately, or leave 'virtual' out (full maps)")
             for name in missing:
-                mine.extra[name] = theirs.extra[name]
-    return maps or []
+                mine.map.extra[name] = theirs.extra[name]
+    for g in (g for gs in groups or [] for g in gs):   # the methods in the order given
+        g.methods.sort(key=names.index)
+    return groups or []

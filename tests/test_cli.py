@@ -332,3 +332,18 @@ def test_unique_file_stems():
     # one file on case-insensitive file systems; a taken "_2" is skipped
     assert unique_file_stems(["Key", "key", "key 2", "key_2"]) == ["Key", "key_3", "key_2_2",
                                                                    "key_2"]
+
+
+@pytest.mark.parametrize("order", [["multiview", "hard"], ["hard", "multiview"]])
+def test_maps_writes_each_view_of_an_area_light(tmp_path, capsys, order):
+    """``--methods multiview hard`` wrote the 192-face multiview map and ``--methods hard
+    multiview`` the 6-face cube map, to the same light.exr, the other dropped without
+    notice. Now both are written, named after their methods, in either order."""
+    code, out, err = run(["maps", SCENES / "cbox_area.xml", "--methods", *order,
+                          "--set", "resolution=8", "--out", tmp_path], capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["light_hard.exr",
+                                                          "light_multiview.exr"]
+    assert read_exr(str(tmp_path / "light_hard.exr"))["depth.Y"].shape == (6 * 8, 8)
+    assert read_exr(str(tmp_path / "light_multiview.exr"))["depth.Y"].shape == (192 * 8, 8)
+    assert "MultiView, 192 face(s) of 8^2), layers depth; read by multiview" in out

@@ -388,6 +388,32 @@ def test_prepare_maps_every_layer():
         harness.prepare_maps(scene, ["hard", "raytraced"])
 
 
+def test_methods_with_different_maps_of_one_emitter_keep_both():
+    """``multiview`` (K views of an area light) and ``hard`` (a cube map) build different
+    maps of one emitter: prepare_maps kept the first method's (by layer count, then as
+    listed) and dropped the other's without notice, so the order of the methods chose
+    the map. Now prepare_maps refuses, naming both, and emitter_maps gives both, each
+    with the methods that read it, whatever the order."""
+    scene = mi.load_dict(default_scene(light="area", **SMALL))
+    with pytest.raises(ValueError, match=r"multiview and hard build different maps of "
+                                         r"emitter 'emitter' \(MultiView"):
+        harness.prepare_maps(scene, ["multiview", "hard"], resolution=8)
+    kinds = []
+    for order in (["multiview", "hard", "pcf"], ["pcf", "hard", "multiview"]):
+        maps = harness.emitter_maps(scene, order, resolution=8)
+        kinds.append({type(m.map.view).__name__: (m.map.view.n_faces, sorted(m.methods))
+                      for m in maps})
+        assert {m.label for m in maps} == {"emitter"}
+    assert kinds[0] == kinds[1] == {"MultiView": (192, ["multiview"]),
+                                    "CubeView": (6, ["hard", "pcf"])}
+    # maps at another resolution are other maps too (their layers were merged into the
+    # first method's map, of another size)
+    maps = harness.emitter_maps(scene, ["vsm:resolution=16", "hard:resolution=8"])
+    assert sorted((m.map.resolution, m.methods[0]) for m in maps) == [
+        (8, "hard resolution=8"), (16, "vsm resolution=16")]
+    assert [m.map.layers() for m in maps if m.map.resolution == 8] == [["depth"]]
+
+
 def test_prepare_maps_at_defaults_gives_full_maps_with_every_layer():
     """Without ``resolution`` (virtual maps by default in renders) the harness still
     prepares full maps, so several methods' layers line up in one map; virtual maps of

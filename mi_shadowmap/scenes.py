@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 
 import drjit as dr
 import mitsuba as mi
@@ -40,8 +41,9 @@ def camera(origin, target, width, height, spp, fov=40.0, scale=1.0) -> dict:
 def load_scene(scene, **xml_params) -> mi.Scene:
     """An ``mi.Scene`` from a loaded scene, a scene dict, or an XML path.
 
-    ``xml_params`` fill the file's ``$name`` parameters (e.g. ``width=64``);
-    a parameter the file does not declare is an error naming it.
+    ``xml_params`` fill the file's ``$name`` parameters (e.g. ``width=64``), in it and
+    in the files it ``<include>``s; a parameter that none of them uses is an error
+    naming it (Mitsuba's parser finds them).
     """
     if isinstance(scene, (mi.Scene, dict)) and xml_params:
         raise ValueError("scene parameters (" + ", ".join(xml_params) + ") apply to XML "
@@ -54,14 +56,21 @@ def load_scene(scene, **xml_params) -> mi.Scene:
     path = os.fspath(scene)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"scene file not found: {path}")
-    with open(path, encoding="utf-8", errors="replace") as f:
-        text = f.read()
-    missing = [k for k in xml_params if f"${k}" not in text]
-    if missing:
+    try:
+        return mi.load_file(path, **{k: str(v) for k, v in xml_params.items()})
+    except RuntimeError as e:
+        # Mitsuba's parser names the parameters no file of the scene (its <include>d
+        # files too, resolved as Mitsuba resolves them) refers to: "Found unused
+        # parameters:\n  - $width=64"
+        if "unused parameters" not in str(e):
+            raise
+        missing = [k for k in xml_params if re.search(rf"^\s*- \${re.escape(k)}=", str(e),
+                                                      re.MULTILINE)] or list(xml_params)
         raise ValueError(f"scene file {path} has no parameter "
                          + ", ".join(f"${k}" for k in missing)
-                         + " (declare <default name=... value=.../> to make it settable)")
-    return mi.load_file(path, **{k: str(v) for k, v in xml_params.items()})
+                         + " (neither it nor the files it includes use it; declare "
+                           "<default name=... value=.../> and use $name to make it "
+                           "settable)") from None
 
 
 def mesh(name: str, vertices, faces, to_world=None, bsdf: dict | None = None) -> mi.Mesh:

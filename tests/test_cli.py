@@ -347,3 +347,22 @@ def test_maps_writes_each_view_of_an_area_light(tmp_path, capsys, order):
     assert read_exr(str(tmp_path / "light_hard.exr"))["depth.Y"].shape == (6 * 8, 8)
     assert read_exr(str(tmp_path / "light_multiview.exr"))["depth.Y"].shape == (192 * 8, 8)
     assert "MultiView, 192 face(s) of 8^2), layers depth; read by multiview" in out
+
+
+def test_width_and_height_reach_a_sensor_in_an_included_file(tmp_path, capsys):
+    """--width/--height were refused ("has no parameter $width, $height") when the
+    sensor was in an <include>d file."""
+    (tmp_path / "sensor.xml").write_text(
+        '<scene version="3.0.0"><sensor type="perspective"><transform name="to_world">'
+        '<lookat origin="0.2, 3.5, 4.9" target="0.25, 0.25, 0" up="0, 1, 0"/></transform>'
+        '<film type="hdrfilm"><integer name="width" value="$width"/>'
+        '<integer name="height" value="$height"/></film></sensor></scene>')
+    text = _three_lights_xml()
+    start, end = text.index("  <sensor"), text.index("</sensor>") + len("</sensor>")
+    scene = tmp_path / "s.xml"
+    scene.write_text(text[:start] + '  <include filename="sensor.xml"/>' + text[end:])
+    code, out, err = run(["compare", scene, "--methods", "hard", "--spp", "1", "--width",
+                          "12", "--height", "9", "--repeats", "1", "--out", tmp_path / "o"],
+                         capsys)
+    assert code == 0, err
+    assert read_exr(str(tmp_path / "o" / "hard.exr"))["R"].shape == (9, 12)

@@ -78,3 +78,39 @@ def test_random_far_point_lights_meet_the_target_at_defaults(seed, distance):
         mis = misclassified(ref, visibility(d, method=method))["misclassified"]
         print(f"far point {distance:g} {seed} {method}: {mis:.3%}")
         assert mis <= 0.003, (seed, distance, method, mis)
+
+
+INCLUDING_XML = """<scene version="3.0.0">
+    <default name="width" value="32"/>
+    <default name="height" value="32"/>
+    <include filename="parts/sensor.xml"/>
+    <shape type="sphere"/>
+    <emitter type="point"><point name="position" value="2, 4, 2"/></emitter>
+</scene>"""
+
+
+def _scene_with_included_sensor(tmp_path):
+    """A scene whose sensor (with $width, $height) is in a file that an included file
+    includes, relative to its own folder, as Mitsuba resolves it."""
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "sensor.xml").write_text(
+        '<scene version="3.0.0"><include filename="film.xml"/></scene>')
+    (tmp_path / "parts" / "film.xml").write_text(
+        '<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm">'
+        '<integer name="width" value="$width"/><integer name="height" value="$height"/>'
+        '</film></sensor></scene>')
+    main = tmp_path / "main.xml"
+    main.write_text(INCLUDING_XML)
+    return main
+
+
+def test_load_scene_sets_parameters_of_included_files(tmp_path):
+    """load_scene looked for "$width" in the main file's text only: a sensor in an
+    included file gave "scene file ... has no parameter $width, $height"."""
+    from mi_shadowmap.scenes import load_scene
+    scene = load_scene(_scene_with_included_sensor(tmp_path), width=40, height=24)
+    assert list(scene.sensors()[0].film().size()) == [40, 24]
+    # a parameter that no file uses is still an error, naming only it
+    with pytest.raises(ValueError, match=r"has no parameter \$spp \(neither it nor the "
+                                         r"files it includes"):
+        load_scene(tmp_path / "main.xml", width=40, spp=4)

@@ -244,10 +244,14 @@ def parse_grid(text: str):
 
 def check_scored_film(scene) -> None:
     """:func:`mi_shadowmap.timing.check_scored_film` and
-    :func:`mi_shadowmap.ground_truth.check_emitters`, before the output folder is made."""
+    :func:`mi_shadowmap.ground_truth.check_emitters`, and that the scene has a sensor,
+    before anything renders."""
     from .ground_truth import check_emitters
     from .timing import check_scored_film as check
     check_emitters(scene)
+    if len(scene.sensors()) == 0:   # was Mitsuba's "No sensor specified!" mid-render
+        raise ValueError("the scene has no sensor: comparing methods renders its first "
+                         "sensor; add a <sensor> (with an hdrfilm)")
     check(scene)
 
 
@@ -290,7 +294,7 @@ def cmd_compare(args) -> int:
         reference = harness.method_spec(reference)
     scene = load_scene_arg(args)
     check_scored_film(scene)
-    report.check_out_dir(out)
+    report.check_out_dir(out, create=False)   # made when written: no empty folder
     results = harness.compare(scene, methods=methods, reference=reference, spp=args.spp,
                               seed=args.seed, repeats=args.repeats, progress=True,
                               ref_spp=args.ref_spp, ref_shadow_rays=args.ref_shadow_rays,
@@ -319,7 +323,7 @@ def cmd_sweep(args) -> int:
     harness.check_run_args(spp=args.spp, seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
     check_scored_film(scene)
-    report.check_out_dir(out)
+    report.check_out_dir(out, create=False)   # made when written: no empty folder
     table = harness.sweep(scene, grid, spp=args.spp, seed=args.seed, repeats=args.repeats,
                           error_key=args.error, progress=True)
     print(table.format())
@@ -336,12 +340,9 @@ def cmd_maps(args) -> int:
     scene = load_scene_arg(args, sizes=False)
     from .ground_truth import check_emitters
     check_emitters(scene, "depth map to write")
-    made = not os.path.isdir(out)
-    report.check_out_dir(out)                  # before the maps are built
+    report.check_out_dir(out, create=False)   # made when written: no empty folder
     maps = harness.emitter_maps(scene, args.methods, **params)
     if not maps:      # environment emitters only, and no method of --methods maps them
-        if made:
-            os.rmdir(out)
         raise ValueError("shadowmap: no emitter of the scene has a depth map (an "
                          "environment emitter has one only with environment='shadowed')")
     # an emitter with several maps (methods whose maps differ: multiview's K views
@@ -374,10 +375,11 @@ def cmd_tune(args) -> int:
     check_run_args(seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
     check_scored_film(scene)
-    report.check_out_dir(out)
+    report.check_out_dir(out, create=False)   # made when written: no empty folder
     res = tune(scene, args.max_error, seed=args.seed, repeats=args.repeats, progress=True,
                **kwargs, **params)
     print(format_result(res))
+    report.check_out_dir(out)
     plot(res, os.path.join(out, "tune_pareto.png"))
     with open(os.path.join(out, "tune.json"), "w") as f:
         json.dump(result_json(res), f, indent=2)

@@ -26,8 +26,28 @@ from .tables import safe_name, write_tables
 
 
 # --------------------------------------------------------------------------- files
-def check_out_dir(out_dir: str) -> str:
-    """Create ``out_dir`` if needed; raise PermissionError if it cannot be written."""
+def check_out_dir(out_dir: str, create: bool = True) -> str:
+    """Create ``out_dir`` if needed; raise PermissionError if it cannot be written.
+
+    ``create=False`` only checks, creating nothing: ``out_dir`` is a writable folder,
+    or its nearest existing parent is one (so that the writers, which create it, can);
+    the CLI checks so before it renders and leaves no empty folder behind an error."""
+    if not create:
+        path = os.path.abspath(out_dir)
+        if os.path.exists(path):
+            if not os.path.isdir(path) or not os.access(path, os.W_OK | os.X_OK):
+                raise PermissionError(f"output folder is not writable: {out_dir}")
+            return out_dir
+        parent = os.path.dirname(path)
+        while not os.path.exists(parent) and os.path.dirname(parent) != parent:
+            parent = os.path.dirname(parent)
+        if not os.path.isdir(parent):
+            raise PermissionError(f"cannot create output folder {out_dir}: {parent} is not "
+                                  "a folder")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise PermissionError(f"cannot create output folder {out_dir}: {parent} is not "
+                                  "writable")
+        return out_dir
     try:
         os.makedirs(out_dir, exist_ok=True)
     except OSError as e:

@@ -366,3 +366,29 @@ def test_width_and_height_reach_a_sensor_in_an_included_file(tmp_path, capsys):
                          capsys)
     assert code == 0, err
     assert read_exr(str(tmp_path / "o" / "hard.exr"))["R"].shape == (9, 12)
+
+
+@pytest.mark.parametrize("case", ["no_sensor", "tune_spp", "maps_resolution", "render_error"])
+def test_errors_after_validation_leave_no_output_folder(tmp_path, capsys, case):
+    """--out was created before these errors and left empty: a scene without a sensor
+    (Mitsuba's "No sensor specified!" mid-render; now named before rendering), tune's
+    --spp above --max-spp, a map resolution over the memory budget, an error while
+    rendering. The folder is now made only when something is written."""
+    scene = tmp_path / "s.xml"
+    text = _three_lights_xml()
+    if case == "no_sensor":
+        text = text[:text.index("  <sensor")] + text[text.index("</sensor>") + 9:]
+    if case == "render_error":    # found while rendering (see the test above)
+        text = text.replace("</scene>", '<shape type="rectangle"><emitter '
+                            'type="directionalarea"/></shape></scene>')
+    scene.write_text(text)
+    out = tmp_path / "deep" / "o"
+    argv = {"no_sensor": ["compare", scene, "--methods", "hard", "--spp", "1"],
+            "tune_spp": ["tune", scene, "--max-error", "0.05", "--spp", "2048"],
+            "maps_resolution": ["maps", scene, "--set", "resolution=9000"],
+            "render_error": ["compare", scene, "--methods", "hard", "--spp", "1"]}[case]
+    code, _, err = run(argv + ["--out", out], capsys)
+    assert code == 2 and "error:" in err
+    if case == "no_sensor":
+        assert "the scene has no sensor" in err
+    assert not (tmp_path / "deep").exists(), err

@@ -101,8 +101,12 @@ def _add_common_args(p):
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
 
 
-def _methods_help(what: str) -> str:
-    from .specs import available_methods
+def _methods_help(what: str, maps: bool = False) -> str:
+    """``what`` and the registered methods (``maps``: only those that read a depth map,
+    the ones ``maps`` accepts)."""
+    from .specs import available_methods, map_methods
+    if maps:
+        return f"{what}; with maps: {', '.join(map_methods())} (and --plugin ones)"
     return f"{what}; registered: {', '.join(available_methods())} (and --plugin ones)"
 
 
@@ -168,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scene_args(m, sizes=False, out="out/maps")
     m.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                    help=_methods_help("build the layers these methods use (default: every "
-                                      "method that reads a depth map)"))
+                                      "method that reads a depth map)", maps=True))
 
     t = sub.add_parser(
         "tune", help="the fastest method and settings that meet an error budget",

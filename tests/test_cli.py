@@ -392,3 +392,12 @@ def test_errors_after_validation_leave_no_output_folder(tmp_path, capsys, case):
     if case == "no_sensor":
         assert "the scene has no sensor" in err
     assert not (tmp_path / "deep").exists(), err
+
+
+def test_maps_help_lists_only_methods_with_maps(capsys):
+    """maps --help listed raytraced and unshadowed, which maps refuses."""
+    assert cli.main(["maps", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for name in harness.map_methods():
+        assert name in text
+    assert "raytraced" not in text and "unshadowed" not in text

@@ -408,6 +408,20 @@ def _pre_parse(argv):
     return known.plugin, known.debug, rest
 
 
+def _unknown_command(word: str) -> str | None:
+    """The error for a first argument that is neither a command, an option nor a scene
+    file (an existing file, or a name ending in .xml): a mistyped command
+    ('compar scene.xml' said "unrecognized arguments: scene.xml"). None otherwise."""
+    if (word in _COMMANDS or word.startswith("-") or os.path.exists(word)
+            or word.lower().endswith(".xml")):
+        return None
+    import difflib
+    close = difflib.get_close_matches(word, list(_COMMANDS), n=1)
+    hint = f" (did you mean '{close[0]}'?)" if close else ""
+    return (f"unknown command '{word}'{hint}; commands: {', '.join(_COMMANDS)}, or a scene "
+            "file (.xml) to compare")
+
+
 class PluginError(RuntimeError):
     """A ``--plugin`` file is missing or failed to run."""
 
@@ -441,6 +455,10 @@ def main(argv=None) -> int:
     except SystemExit as e:          # e.g. --plugin without a file name
         return e.code if isinstance(e.code, int) else 2
     parser = build_parser()
+    if rest and _unknown_command(rest[0]):
+        print(f"mi-shadowmap: error: {_unknown_command(rest[0])} (see --help)",
+              file=sys.stderr)
+        return 2
     if not rest or rest[0] not in tuple(_COMMANDS) + ("-h", "--help"):
         rest = ["compare"] + rest      # no command: compare (default scene unless given)
     try:

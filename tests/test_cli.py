@@ -401,3 +401,23 @@ def test_maps_help_lists_only_methods_with_maps(capsys):
     for name in harness.map_methods():
         assert name in text
     assert "raytraced" not in text and "unshadowed" not in text
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["compar", "scene.xml"], "unknown command 'compar' (did you mean 'compare'?); "
+                              "commands: compare, sweep, maps, tune"),
+    (["swep"], "unknown command 'swep' (did you mean 'sweep'?)"),
+    (["--plugin", "/no/such.py", "tunee", "--max-error", "1"], "unknown command 'tunee'"),
+    (["frobnicate"], "unknown command 'frobnicate'; commands:"),
+])
+def test_a_mistyped_command_is_named(argv, match, capsys):
+    """'mi-shadowmap compar scene.xml' ran compare on a scene 'compar' and said
+    "unrecognized arguments: scene.xml"."""
+    code, out, err = run(argv, capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert err.startswith("mi-shadowmap: error: ") and match in err, err
+
+
+def test_a_missing_scene_file_is_still_not_a_command(capsys):
+    code, out, err = run(["missing_scene.xml", "--out", "/nonexistent/x"], capsys)
+    assert code == 2 and "scene file not found: missing_scene.xml" in err

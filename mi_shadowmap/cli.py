@@ -12,11 +12,13 @@ path; it registers methods with :func:`mi_shadowmap.register_method`, which
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 import json
 import os
 import re
 import sys
+import warnings
 
 EPILOG_MAIN = """\
 commands:
@@ -466,12 +468,13 @@ def main(argv=None) -> int:
     except SystemExit as e:          # --help (0) or a usage error (2, one line printed)
         return e.code if isinstance(e.code, int) else 2
     try:
-        import mi_shadowmap  # noqa: F401  (LLVM set-up and registration)
-        if getattr(args, "variant", None) is not None:
-            set_variant(args.variant)
-        for path in plugins:
-            load_plugin(path)
-        return _COMMANDS[args.command](args)
+        with one_line_warnings():
+            import mi_shadowmap  # noqa: F401  (LLVM set-up and registration)
+            if getattr(args, "variant", None) is not None:
+                set_variant(args.variant)
+            for path in plugins:
+                load_plugin(path)
+            return _COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("mi-shadowmap: interrupted", file=sys.stderr)
         return 130
@@ -481,6 +484,25 @@ def main(argv=None) -> int:
         _close_progress_bars()
         print(f"mi-shadowmap: error: {one_line(e)}", file=sys.stderr)
         return 2
+
+
+@contextlib.contextmanager
+def one_line_warnings():
+    """Warnings shown while the command runs are one line on stderr, ``mi-shadowmap:
+    warning: <message>`` (Python's default format added the file and line that warned
+    and that line's source). Warnings recorded by a caller (``pytest.warns``,
+    ``warnings.catch_warnings(record=True)``) are recorded as before."""
+    previous = warnings.formatwarning
+
+    def formatwarning(message, category, filename, lineno, line=None):
+        kind = "" if category is UserWarning else f"{category.__name__}: "
+        return f"mi-shadowmap: warning: {kind}{' '.join(str(message).split())}\n"
+
+    warnings.formatwarning = formatwarning
+    try:
+        yield
+    finally:
+        warnings.formatwarning = previous
 
 
 def _close_progress_bars() -> None:

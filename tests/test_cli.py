@@ -421,3 +421,19 @@ def test_a_mistyped_command_is_named(argv, match, capsys):
 def test_a_missing_scene_file_is_still_not_a_command(capsys):
     code, out, err = run(["missing_scene.xml", "--out", "/nonexistent/x"], capsys)
     assert code == 2 and "scene file not found: missing_scene.xml" in err
+
+
+def test_the_stale_file_warning_is_one_clean_line(tmp_path):
+    """The warning about an earlier run's images printed Python's default format: the
+    file and line that warned, then that source line (``warnings.warn(f"{out_dir}
+    holds ...``) under the message."""
+    out = tmp_path / "out"
+    base = [sys.executable, "-m", "mi_shadowmap.cli", "compare", "--width", "8", "--height",
+            "8", "--spp", "1", "--repeats", "1", "--out", str(out), "--methods"]
+    assert subprocess.run(base + ["hard"], capture_output=True, timeout=300).returncode == 0
+    p = subprocess.run(base + ["pcf"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if "did not write" in ln or "warn" in ln]
+    assert len(lines) == 1, p.stderr
+    assert lines[0].startswith("mi-shadowmap: warning: ") and "hard.exr" in lines[0]
+    assert "report.py" not in p.stderr and "warnings.warn" not in p.stderr

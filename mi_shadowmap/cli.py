@@ -35,6 +35,14 @@ a spot light; --light picks another light) is used. 'mi-shadowmap COMMAND --help
 each command's options. Errors are one line on stderr with exit status 2; --debug shows
 the traceback.
 
+The scene file's own integrator: the properties of its <integrator type="shadowmap">
+(e.g. resolution, bias; not 'method', which --methods chooses, nor 'cache_maps') are the
+base of every method that uses them; --set overrides them, and 'method:prop=value' both
+(compare, sweep, maps; a sweep axis too). tune keeps the ones it does not search fixed
+and searches the others (resolution, its main parameters). A note on stderr names the
+properties taken and those no method uses; another integrator (path, aov, ...) is not
+used, with a note. --ignore-scene-integrator leaves them all out.
+
 examples:
   mi-shadowmap --out out
   mi-shadowmap compare scenes_xml/room_two_points.xml --methods hard pcf:num_samples=16
@@ -88,7 +96,12 @@ def _add_scene_args(p, sizes=True, out="out"):
                        help="image height (built-in scene, or an XML file with $height)")
     p.add_argument("--set", action="append", metavar="NAME=VALUE", default=[],
                    help="integrator property for every method that uses it (repeatable), "
-                        "e.g. --set resolution=512 --set bias=0.01")
+                        "e.g. --set resolution=512 --set bias=0.01; overrides the scene "
+                        "file's own <integrator type=\"shadowmap\"> properties")
+    p.add_argument("--ignore-scene-integrator", action="store_true",
+                   help="do not take the scene file's own <integrator type=\"shadowmap\"> "
+                        "properties as the base of every method's (see 'mi-shadowmap "
+                        "--help')")
     p.add_argument("--out", default=out, help=f"output folder (default: {out})")
     p.add_argument("--variant", default=None, metavar="NAME",
                    help="Mitsuba variant to render in: llvm_ad_rgb (default), llvm_ad_mono, "
@@ -280,6 +293,69 @@ def load_scene_arg(args, sizes=True):
     return scenes.load_scene(args.scene, **size)
 
 
+def note(text: str) -> None:
+    """One line on stderr: ``mi-shadowmap: note: <text>``."""
+    print(f"mi-shadowmap: note: {text}", file=sys.stderr)
+
+
+#: Properties of a scene's shadowmap integrator that the commands do not take: the
+#: method (--methods chooses), and cache_maps (frames are timed with maps rebuilt).
+NOT_INHERITED = ("method", "cache_maps")
+
+
+def _fmt(props: dict) -> str:
+    """``"bias=0.3, resolution=64"``."""
+    from .specs import spec_name
+    return ", ".join(spec_name({"method": "", k: v}).strip() for k, v in sorted(props.items()))
+
+
+def scene_integrator_params(args, scene, sets: dict, used) -> dict:
+    """``--set`` values over the properties of the scene file's own ``<integrator
+    type="shadowmap">`` (:func:`mi_shadowmap.scenes.integrator_properties`) that a
+    method of the command uses (``used(name)``); the shared properties of every method
+    (method strings and sweep axes override both). Notes on stderr name the scene's
+    properties taken and those left out; a scene integrator of another type is not
+    used, with a note. ``--ignore-scene-integrator``: ``sets`` alone."""
+    props = scene_integrator_base(args, scene)
+    taken = {k: v for k, v in props.items() if k not in sets and used(k)}
+    unused = {k: v for k, v in props.items() if k not in sets and not used(k)}
+    if taken:
+        note(f"the scene's shadowmap integrator gives {_fmt(taken)} to every method that "
+             "uses it (--set and 'method:prop=value' override; --ignore-scene-integrator "
+             "drops them)" + (f"; {_fmt(unused)}: used by none of the methods, ignored"
+                              if unused else ""))
+    elif unused:
+        note(f"the scene's shadowmap integrator sets {_fmt(unused)}, used by none of the "
+             "methods: ignored")
+    return {**taken, **sets}
+
+
+def scene_integrator_base(args, scene) -> dict:
+    """The scene's shadowmap integrator properties the commands take (none with
+    ``--ignore-scene-integrator``); notes on the ones not taken."""
+    from .scenes import integrator_properties
+    if getattr(args, "ignore_scene_integrator", False) or args.scene is None:
+        return {}
+    props, other = integrator_properties(scene)
+    if other is not None:
+        note(f"the scene's integrator ({other}) is not 'shadowmap' and is not used: every "
+             "method renders with the shadowmap integrator")
+        return {}
+    props = props or {}
+    dropped = {k: props[k] for k in NOT_INHERITED if k in props and k != "method"}
+    if dropped and args.command != "maps":
+        note(f"the scene's shadowmap integrator sets {_fmt(dropped)}, not taken (frames "
+             "are timed with the maps rebuilt; --set cache_maps=true caches them)")
+    return {k: v for k, v in props.items() if k not in NOT_INHERITED}
+
+
+def _used_by(specs_or_names):
+    """``used(name)``: whether one of the methods uses the shared property ``name``."""
+    from .specs import uses_property
+    names = [s["method"] if isinstance(s, dict) else s for s in specs_or_names]
+    return lambda k: any(uses_property(m, k) for m in names)
+
+
 # --------------------------------------------------------------------------- commands
 def cmd_compare(args) -> int:
     from . import harness, report
@@ -300,6 +376,9 @@ def cmd_compare(args) -> int:
         reference = harness.method_spec(reference)
     scene = load_scene_arg(args)
     check_scored_film(scene)
+    params = scene_integrator_params(args, scene, params, _used_by(methods))
+    methods = [harness.method_spec(m, params) for m in (args.methods or
+                                                        harness.default_methods())]
     report.check_out_dir(out, create=False)   # made when written: no empty folder
     results = harness.compare(scene, methods=methods, reference=reference, spp=args.spp,
                               seed=args.seed, repeats=args.repeats, progress=True,
@@ -323,12 +402,17 @@ def cmd_sweep(args) -> int:
             sub = parse_grid(g)
             grid += sub if isinstance(sub, list) else [sub]
     grid = grid if grid is not None else harness.default_grid()
-    if params:   # --set values are fixed axes of every sub-grid with a method using them
-        grid = harness.with_shared(grid, params)
-    harness.expand_grid(grid, default_spp=args.spp)   # reject bad entries before rendering
+    harness.expand_grid(harness.with_shared(grid, params) if params else grid,
+                        default_spp=args.spp)   # reject bad entries before rendering
     harness.check_run_args(spp=args.spp, seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
     check_scored_film(scene)
+    grid_methods = [m for g in ([grid] if isinstance(grid, dict) else grid)
+                    for m in ([g.get("method", [])] if isinstance(g.get("method"), str)
+                              else g.get("method", []))]
+    params = scene_integrator_params(args, scene, params, _used_by(grid_methods))
+    if params:   # fixed axes of every sub-grid with a method using them (its axes win)
+        grid = harness.with_shared(grid, params)
     report.check_out_dir(out, create=False)   # made when written: no empty folder
     table = harness.sweep(scene, grid, spp=args.spp, seed=args.seed, repeats=args.repeats,
                           error_key=args.error, progress=True)
@@ -346,6 +430,9 @@ def cmd_maps(args) -> int:
     scene = load_scene_arg(args, sizes=False)
     from .ground_truth import check_emitters
     check_emitters(scene, "depth map to write")
+    params = scene_integrator_params(args, scene, params,
+                                     _used_by(harness.map_specs(args.methods)))
+    harness.map_specs(args.methods, params)
     report.check_out_dir(out, create=False)   # made when written: no empty folder
     maps = harness.emitter_maps(scene, args.methods, **params)
     if not maps:      # environment emitters only, and no method of --methods maps them
@@ -366,6 +453,45 @@ def cmd_maps(args) -> int:
     return 0
 
 
+def tune_methods(args, scene, sets: dict):
+    """``--methods`` of tune with the scene file's own shadowmap integrator properties
+    (:func:`scene_integrator_params`) fixed in each method that uses them and does not
+    search them (tune searches ``resolution`` and :data:`mi_shadowmap.tune.MAIN_PARAMETERS`;
+    those start from the package defaults), below ``--set`` and the method strings.
+    ``args.methods`` as it is when the scene gives nothing to add."""
+    from .specs import available_methods, method_spec, uses_property
+    from .tune import MAIN_PARAMETERS
+    props = {k: v for k, v in scene_integrator_base(args, scene).items() if k not in sets}
+    if not props:
+        return args.methods
+    items = [method_spec(m) for m in (args.methods or available_methods())]
+    fixed, searched, unused = {}, {}, dict(props)
+    for spec in items:
+        m = spec["method"]
+        tuned = {"resolution", *MAIN_PARAMETERS.get(m, {})}
+        for k, v in props.items():
+            if not uses_property(m, k):
+                continue
+            unused.pop(k, None)
+            if k in spec:      # the method string's value
+                continue
+            if k in tuned:
+                searched[k] = v
+            else:
+                spec[k] = fixed[k] = v
+    if fixed:
+        note(f"the scene's shadowmap integrator gives {_fmt(fixed)} to every method that "
+             "uses it, fixed (--set and 'method:prop=value' override; "
+             "--ignore-scene-integrator drops them)")
+    if searched:
+        note(f"the scene's shadowmap integrator sets {_fmt(searched)}, which tune searches "
+             "(--set fixes a value)")
+    if unused:
+        note(f"the scene's shadowmap integrator sets {_fmt(unused)}, used by none of the "
+             "methods: ignored")
+    return items if fixed else args.methods
+
+
 def cmd_tune(args) -> int:
     from . import report
     from .report import tune_plot as plot
@@ -381,6 +507,7 @@ def cmd_tune(args) -> int:
     check_run_args(seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
     check_scored_film(scene)
+    kwargs["methods"] = tune_methods(args, scene, params)
     report.check_out_dir(out, create=False)   # made when written: no empty folder
     res = tune(scene, args.max_error, seed=args.seed, repeats=args.repeats, progress=True,
                **kwargs, **params)

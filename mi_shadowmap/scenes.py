@@ -73,6 +73,23 @@ def load_scene(scene, **xml_params) -> mi.Scene:
                            "settable)") from None
 
 
+def integrator_properties(scene) -> tuple[dict | None, str | None]:
+    """The properties given to ``scene``'s own integrator, if it is ``shadowmap`` (an
+    XML ``<integrator type="shadowmap">``): ``(properties, None)``, ``method``
+    included, values as validated (``resolution`` 0, automatic, left out). For a scene
+    whose integrator is another one: ``(None, its class name)``; without one:
+    ``(None, None)``. The CLI takes them as the base of every method's properties."""
+    integrator = scene.integrator() if isinstance(scene, mi.Scene) else None
+    if integrator is None:
+        return None, None
+    opts = getattr(integrator, "opts", None)
+    if opts is None or not hasattr(opts, "given"):
+        return None, integrator.class_name()
+    values = opts.as_dict()
+    return {k: values[k] for k in sorted(opts.given)
+            if k in values and values[k] is not None}, None
+
+
 def mesh(name: str, vertices, faces, to_world=None, bsdf: dict | None = None) -> mi.Mesh:
     """A ``mi.Mesh`` from numpy ``vertices`` ``(V, 3)`` and ``faces`` ``(F, 3)``
     (e.g. :func:`mi_shadowmap.procedural.box`), placed by ``to_world`` (a

@@ -414,8 +414,16 @@ def cmd_sweep(args) -> int:
     if params:   # fixed axes of every sub-grid with a method using them (its axes win)
         grid = harness.with_shared(grid, params)
     report.check_out_dir(out, create=False)   # made when written: no empty folder
-    table = harness.sweep(scene, grid, spp=args.spp, seed=args.seed, repeats=args.repeats,
-                          error_key=args.error, progress=True)
+    try:
+        table = harness.sweep(scene, grid, spp=args.spp, seed=args.seed,
+                              repeats=args.repeats, error_key=args.error, progress=True)
+    except BaseException as exc:    # a bug, Ctrl-C: the rows rendered so far are kept
+        done = getattr(exc, "sweep_table", None)
+        if done is not None and len(done):
+            report.write_sweep(done, out)
+            print(f"mi-shadowmap: the sweep stopped; the {len(done)} rows rendered are in "
+                  f"{os.path.abspath(out)}", file=sys.stderr)
+        raise
     print(table.format())
     written = report.write_sweep(table, out)
     print(f"\nwrote sweep.csv, sweep.json and pareto.png to {os.path.abspath(out)}")

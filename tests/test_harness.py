@@ -667,6 +667,31 @@ def test_another_error_keeps_the_rows_rendered(monkeypatch):
     assert [r["name"] for r in table] == ["hard resolution=64 spp=2"] and table.rows[0]["pareto"]
 
 
+def test_cli_sweep_writes_the_rows_rendered_before_another_error(tmp_path, capsys,
+                                                                 monkeypatch):
+    """An error that is not the configuration's (a bug, a full disk, Ctrl-C) stops the
+    sweep, but the CLI writes the rows rendered before it (exit 2, one line)."""
+    from mi_shadowmap import cli
+    from mi_shadowmap import sweep as sweep_module
+    real, calls = sweep_module.run_method, []
+
+    def flaky(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("disk full")
+        return real(*a, **k)
+
+    monkeypatch.setattr(sweep_module, "run_method", flaky)
+    out = tmp_path / "sweep"
+    code = cli.main(["sweep", ROOM, "--width", "32", "--height", "32", "--spp", "2",
+                     "--repeats", "1", "--grid", "method=hard resolution=64,128,256",
+                     "--out", str(out)])
+    _, err = capsys.readouterr()
+    assert code == 2 and "disk full" in err and "rows rendered" in err
+    rows = json.loads((out / "sweep.json").read_text())
+    assert [r["name"] for r in rows] == ["hard resolution=64 spp=2"]
+
+
 def test_cli_sweep_writes_the_rows_despite_a_failing_configuration(tmp_path, capsys):
     from mi_shadowmap import cli
     out = tmp_path / "sweep"

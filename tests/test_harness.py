@@ -648,7 +648,8 @@ def test_every_configuration_failing_is_one_error():
                       spp=2, repeats=1, ref_spp=4, progress=False)
 
 
-def test_another_error_keeps_the_rows_rendered(monkeypatch):
+def _disk_full_on_the_second_run(monkeypatch):
+    """The sweep's second ``run_method`` raises an error that is not a configuration's."""
     from mi_shadowmap import sweep as sweep_module
     real, calls = sweep_module.run_method, []
 
@@ -659,6 +660,10 @@ def test_another_error_keeps_the_rows_rendered(monkeypatch):
         return real(*a, **k)
 
     monkeypatch.setattr(sweep_module, "run_method", flaky)
+
+
+def test_another_error_keeps_the_rows_rendered(monkeypatch):
+    _disk_full_on_the_second_run(monkeypatch)
     scene = mi.load_dict(default_scene(**SMALL))
     with pytest.raises(RuntimeError, match="disk full") as e:
         harness.sweep(scene, {"method": "hard", "resolution": [64, 128, 256]}, spp=2,
@@ -672,16 +677,7 @@ def test_cli_sweep_writes_the_rows_rendered_before_another_error(tmp_path, capsy
     """An error that is not the configuration's (a bug, a full disk, Ctrl-C) stops the
     sweep, but the CLI writes the rows rendered before it (exit 2, one line)."""
     from mi_shadowmap import cli
-    from mi_shadowmap import sweep as sweep_module
-    real, calls = sweep_module.run_method, []
-
-    def flaky(*a, **k):
-        calls.append(1)
-        if len(calls) == 2:
-            raise RuntimeError("disk full")
-        return real(*a, **k)
-
-    monkeypatch.setattr(sweep_module, "run_method", flaky)
+    _disk_full_on_the_second_run(monkeypatch)
     out = tmp_path / "sweep"
     code = cli.main(["sweep", ROOM, "--width", "32", "--height", "32", "--spp", "2",
                      "--repeats", "1", "--grid", "method=hard resolution=64,128,256",

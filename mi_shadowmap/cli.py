@@ -317,7 +317,14 @@ def scene_integrator_params(args, scene, sets: dict, used) -> dict:
     properties taken and those left out; a scene integrator of another type is not
     used, with a note. ``--ignore-scene-integrator``: ``sets`` alone."""
     props = scene_integrator_base(args, scene)
-    taken = {k: v for k, v in props.items() if k not in sets and used(k)}
+    refused = {k: v for k, v in props.items() if k not in sets and used(k)
+               and _refusing(used.methods, k, v)}
+    for k, v in refused.items():
+        who = _refusing(used.methods, k, v)
+        note(f"the scene's shadowmap integrator sets {_fmt({k: v})}, which "
+             f"{', '.join(who)} cannot take: not taken for any method (give it per method, "
+             f"'<method>:{k}=...', or --set it)")
+    taken = {k: v for k, v in props.items() if k not in sets and used(k) and k not in refused}
     unused = {k: v for k, v in props.items() if k not in sets and not used(k)}
     if taken:
         note(f"the scene's shadowmap integrator gives {_fmt(taken)} to every method that "
@@ -350,10 +357,34 @@ def scene_integrator_base(args, scene) -> dict:
 
 
 def _used_by(specs_or_names):
-    """``used(name)``: whether one of the methods uses the shared property ``name``."""
+    """``used(name)``: whether one of the methods uses the shared property ``name``
+    (``used.methods``: their names)."""
     from .specs import uses_property
     names = [s["method"] if isinstance(s, dict) else s for s in specs_or_names]
-    return lambda k: any(uses_property(m, k) for m in names)
+
+    def used(k):
+        return any(uses_property(m, k) for m in names)
+    used.methods = names
+    return used
+
+
+def _accepts(method: str, name: str, value) -> bool:
+    """Whether ``method`` takes property ``name`` = ``value`` (some methods use a
+    property but refuse some values: ``virtual=true`` for ``multiview``)."""
+    from .options import OptionError
+    from .specs import validate_spec
+    try:
+        validate_spec({"method": method, name: value})
+    except OptionError:
+        return False
+    return True
+
+
+def _refusing(methods, name: str, value) -> list:
+    """The ``methods`` that use property ``name`` but refuse ``value``."""
+    from .specs import uses_property
+    return [m for m in dict.fromkeys(methods)
+            if uses_property(m, name) and not _accepts(m, name, value)]
 
 
 # --------------------------------------------------------------------------- commands
@@ -482,6 +513,10 @@ def tune_methods(args, scene, sets: dict):
                 continue
             unused.pop(k, None)
             if k in spec:      # the method string's value
+                continue
+            if not _accepts(m, k, v):
+                note(f"the scene's shadowmap integrator sets {_fmt({k: v})}, which {m} "
+                     "cannot take: not taken for it")
                 continue
             if k in tuned:
                 searched[k] = v

@@ -489,6 +489,24 @@ def test_compare_takes_the_scene_files_shadowmap_integrator_properties(tmp_path,
     assert rows["hard"]["vis_rmse"] == bare_rows["hard"]["vis_rmse"]
 
 
+def test_a_scene_property_some_method_refuses_is_not_taken_with_a_note(tmp_path, capsys):
+    """A scene integrator with ``virtual=true`` (Mitsuba renders it) made ``compare`` with
+    ``multiview`` among the methods fail: multiview uses ``virtual`` but refuses true. It
+    is now left out, with a note naming the method; tune leaves it out of that method."""
+    own = _with_integrator(tmp_path, '<integrator type="shadowmap">'
+                           '<boolean name="virtual" value="true"/></integrator>')
+    rows, err = _compare_rows([own, "--methods", "hard", "multiview"], tmp_path / "a", capsys)
+    assert set(rows) == {"reference (raytraced)", "hard", "multiview"}
+    assert "virtual=True, which multiview cannot take: not taken" in err
+    from mi_shadowmap.cli import build_parser, tune_methods
+    from mi_shadowmap.scenes import load_scene
+    args = build_parser().parse_args(["tune", str(own), "--max-error", "0.1",
+                                      "--methods", "hard", "multiview"])
+    items = tune_methods(args, load_scene(str(own)), {})
+    assert [i.get("virtual") for i in items] == [True, None]
+    assert "which multiview cannot take: not taken for it" in capsys.readouterr().err
+
+
 def test_another_scene_integrator_is_not_used_with_a_note(tmp_path, capsys):
     scene = _with_integrator(tmp_path, '<integrator type="path"/>')
     rows, err = _compare_rows([scene, "--methods", "hard"], tmp_path / "o", capsys)

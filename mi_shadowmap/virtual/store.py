@@ -33,7 +33,8 @@ class PageStore:
         self.free: list = []
         self.capacity = 0
         self.pools = {name: mi.Float() for name in ("depth",) + self.layers}
-        self.page_min = np.zeros(0, np.float64)     # nearest finite depth per slot
+        # nearest finite depth per slot and tile (its tiles ray-cast so far; +inf else)
+        self.tile_min = np.zeros((0, layout.tiles_per_side ** 2), np.float64)
         self.page_face = np.zeros(0, np.int64)
         self.slot_frame = np.zeros(0, np.int64)      # frame each slot was last read
         self.slot_mask = np.zeros(0, np.int64)       # tiles built per slot (bit per tile)
@@ -92,7 +93,8 @@ class PageStore:
             if n_old:
                 dr.scatter(new, pool, dr.arange(mi.UInt32, n_old))
             self.pools[name] = new
-        self.page_min = np.concatenate([self.page_min, np.full(cap - self.capacity, np.inf)])
+        self.tile_min = np.concatenate([self.tile_min, np.full(
+            (cap - self.capacity, self.tile_min.shape[1]), np.inf)])
         self.page_face = np.concatenate([self.page_face, np.zeros(cap - self.capacity, np.int64)])
         self.slot_frame = np.concatenate([self.slot_frame, np.zeros(cap - self.capacity, np.int64)])
         self.slot_mask = np.concatenate([self.slot_mask, np.zeros(cap - self.capacity, np.int64)])
@@ -159,7 +161,7 @@ class PageStore:
             self._keys = np.concatenate([self._keys, keys[new]])
             self._slot_of = np.concatenate([self._slot_of, slot_ids[new]])
             self.slot_mask[slot_ids[new]] = 0
-            self.page_min[slot_ids[new]] = np.inf
+            self.tile_min[slot_ids[new]] = np.inf
             self.page_face[slot_ids[new]] = (keys[new] >> np.uint64(59)).astype(np.int64)
         cast = masks & ~self.slot_mask[slot_ids]
         # the tiles to cast: tile keys (page_key in tile units) and their slots
@@ -202,7 +204,7 @@ class PageStore:
                 dr.scatter(self.pools["second_depth"], sd, dst)
             # one kernel: the depths (kept: the tile minima read them) and the scatters
             dr.eval(depth)
-            np.minimum.at(self.page_min, tslots, page_minima(depth, tpt))
+            np.minimum.at(self.tile_min, (tslots, tile_b), page_minima(depth, tpt))
             built = n_tiles * tpt * (1 + second)
         self.slot_mask[slot_ids] |= masks
         if new_fine.any():
@@ -245,12 +247,16 @@ class PageStore:
 
         ``frame``: ``(keys, slots, masks)`` of the pages one render reads (sorted keys,
         their slots, their marked tiles): the table then holds only those pages and
-        tiles, and ``face_near`` is over those pages, so a render reads what its own marks
+        tiles, and ``face_near`` is over those tiles, so a render reads what its own marks
         asked for, whatever earlier renders (other camera poses, another integrator
         sharing the store, pages a smaller ``memory_budget`` would not hold) left in the
         pool: the same image as a fresh integrator's. (Pages left by earlier renders made
         a pose rendered again differ from its first render on up to 4 % of pixels under
-        a small ``memory_budget``, 0.6 % with PCSS's wide kernels on pages of 8^2.)
+        a small ``memory_budget``, 0.6 % with PCSS's wide kernels on pages of 8^2, 7 %
+        through PCSS's near depth.) One exception is left: a filter tap of a method
+        without ``virtual_per_tap`` that reads a tile of a bound page outside the marks
+        (beyond the kernel margin of every pixel centre) reads whatever the pool holds
+        there, the coarsest level's copy or a depth an earlier render cast.
         Default: every built page, every cast tile.
 
         Per (face, level) -- entry ``face * n_levels + level`` -- ``header`` holds
@@ -316,20 +322,31 @@ class PageStore:
                           u32(header[:, 2]) | (u32(header[:, 3]) << np.uint64(32))], -1)
         table = (padded_array(mi.UInt64, words.reshape(-1)),
                  padded_array(mi.UInt32, dense.astype(np.uint32)),
-                 padded_array(mi.Float, self.face_near(lay.view.n_faces, slots)),
+                 padded_array(mi.Float, self.face_near(lay.view.n_faces, slots,
+                                                       slot_mask[slots])),
                  padded_array(mi.UInt32, slot_mask[:max(self.next_slot, 1)].astype(np.uint32)),
                  padded_array(mi.UInt32, np.where(dense == INVALID_SLOT, 0, slot_mask[
                      np.where(dense == INVALID_SLOT, 0, dense)]).astype(np.uint32)))
         self._table = (token, table)
         return table
 
-    def face_near(self, n_faces: int, slots: np.ndarray | None = None) -> np.ndarray:
-        """Nearest finite depth per face over the pages in ``slots`` (default: every
-        built page; +inf for a face with none)."""
+    def face_near(self, n_faces: int, slots: np.ndarray | None = None,
+                  masks: np.ndarray | None = None) -> np.ndarray:
+        """Nearest finite depth per face over the tiles ``masks`` of the pages in
+        ``slots`` (default: every built page, every tile ray-cast; +inf for a face with
+        none). Per tile, not per page: a tile an earlier render cast into a page this
+        render reads, but outside its marks, moved PCSS's blocker-search bound (7 % of
+        a re-rendered pose's pixels changed)."""
         out = np.full(n_faces, np.inf)
-        used = self._index()[1] if slots is None else np.asarray(slots, np.int64)
-        if len(used):
-            np.minimum.at(out, self.page_face[used], self.page_min[used])
+        if slots is None:
+            slots = self._index()[1]
+            masks = self.slot_mask[slots]
+        slots = np.asarray(slots, np.int64)
+        if len(slots):
+            bits = (np.asarray(masks, np.int64)[:, None]
+                    >> np.arange(self.tile_min.shape[1])[None, :]) & 1
+            near = np.where(bits == 1, self.tile_min[slots], np.inf).min(axis=1)
+            np.minimum.at(out, self.page_face[slots], near)
         return out.astype(np.float32)
 
 

@@ -75,14 +75,14 @@ def x_of_texel(c, res=RES):
 
 def numpy_bounds(depth, x, y, z_r, filter_size, cp, cn, min_variance):
     """Both Chebyshev bounds from the box moments, computed independently in numpy
-    (float32 normalisation as :func:`normalized_depth`, float64 moments)."""
+    (float64 normalisation over the map's finite depth span as :func:`normalized_depth`,
+    ``[d_lo, d_hi]`` to ``[0, 1/2]``, float64 moments)."""
     res = depth.shape[0]
     finite = np.isfinite(depth)
-    far = np.float32(2.0) * depth[finite].max().astype(np.float32)
-    z = np.where(finite, depth.astype(np.float32) / far, np.float32(1.0))
-    lo = z[finite].min()
-    hi = max(z[finite].max(), lo + np.float32(2.0 ** -10))
-    lo, hi = np.float64(lo), np.float64(hi)
+    d_lo, d_hi = np.float64(depth[finite].min()), np.float64(depth[finite].max())
+    scale = 0.5 / (d_hi - d_lo)
+    z = np.where(finite, (depth.astype(np.float64) - d_lo) * scale, 1.0)
+    lo, hi = 0.0, 0.5
 
     def u_of(zz):
         return np.clip(2.0 * (np.float64(zz) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
@@ -100,7 +100,7 @@ def numpy_bounds(depth, x, y, z_r, filter_size, cp, cn, min_variance):
         wy = np.clip(np.minimum(cy + hy, k + 1) - np.maximum(cy - hy, k), 0, None)
         wgt = wy[:, None] * wx[None, :]
         wgt /= wgt.sum()
-        u_r = u_of(np.float32(zi) / far)
+        u_r = u_of((np.float64(np.float32(zi)) - d_lo) * scale)
         res_k = []
         for c, sign in ((cp, 1.0), (cn, -1.0)):
             wv = sign * np.exp(sign * c * u)
@@ -255,16 +255,53 @@ def test_unresolvable_warps_read_lit_instead_of_noise(monkeypatch):
 
 
 def test_map_whose_surfaces_share_one_depth():
-    """All texels at one depth (up to rounding): the range is widened to MIN_SPAN instead
-    of stretching float32 rounding over [-1, 1]; deeper receivers are shadowed."""
-    d = np.full((RES, RES), 0.6, np.float32) * (1 + 1e-7 * np.random.default_rng(0)
-                                                 .standard_normal((RES, RES))).astype(np.float32)
-    v = vis(ortho_map(d), lookup([-0.5, 0.0, 0.5], 0.0, 0.9))
-    assert v.max() <= 1e-6
-    v = vis(ortho_map(d), lookup([-0.5, 0.0, 0.5], 0.0, 0.5))
-    assert v.min() >= 1.0 - 1e-6
+    """All texels at one depth (up to rounding): the span is widened to common.MIN_SPAN
+    of the depth (64 float32 ulps) instead of stretching float32 rounding over [-1, 1];
+    deeper receivers are shadowed, nearer ones and the surface itself lit. With a
+    rounding of 1 ulp (stdev) the negative warp sees the texels spread over ~1/16 of the
+    warp's range and the positive warp decides: ``min_variance (4 c e^c)^2`` over
+    ``e^(2c)``, 5.8e-5 (the old floor, 2^-10 of twice the largest depth, kept the
+    negative warp below 1e-6 here, and lost the shadows of a spot 1e4 away)."""
+    for noise, shadow in ((1e-7, 1e-4), (0.0, 1e-6)):
+        d = (np.float32(0.6) * (1 + noise * np.random.default_rng(0)
+                                .standard_normal((RES, RES)))).astype(np.float32)
+        v = vis(ortho_map(d), lookup([-0.5, 0.0, 0.5], 0.0, 0.9))
+        print(f"rounding {noise}: behind {v.max():.2e}")
+        assert v.max() <= shadow
+        v = vis(ortho_map(d), lookup([-0.5, 0.0, 0.5], 0.0, [0.5, 0.6, 0.6]))
+        assert v.min() >= 1.0 - 1e-6
     empty = ortho_map(np.full((RES, RES), np.inf, np.float32))
     assert vis(empty, lookup([0.0, 0.5], 0.0, 2.0)).tolist() == [1.0, 1.0]
+
+
+def test_normalisation_follows_the_depth_span_not_the_distance():
+    """The same map 1e4 farther from the light (every depth + 1e4) gives the same
+    visibility: min_variance is relative to the map's depth span. (Relative to twice the
+    largest depth, sigma_min grew with the distance and lit the occluder's shadow:
+    0.73-0.96 under it at + 1e4.)"""
+    d = np.full((RES, RES), 3.0, np.float32)
+    d[:, : RES // 2] = 1.0
+    x = np.array([-0.6, -0.3, 0.3, 0.6, -0.5])
+    z = np.array([3.0, 2.0, 3.0, 3.0, 0.9])
+    near = vis(ortho_map(d), lookup(x, 0.1, z))
+    far = vis(ortho_map(d + np.float32(1e4)), lookup(x, 0.1, z + 1e4))
+    print("near", near, "1e4 farther", far)
+    assert near[:2].max() <= 1e-6 and near[2:].min() >= 1.0 - 1e-6
+    np.testing.assert_allclose(far, near, atol=1e-4)
+
+
+@pytest.mark.parametrize("props", [{}, {"fit_frusta": True}])
+def test_full_maps_keep_the_shadows_of_a_spot_far_away(props):
+    """A spot 1e4 away, its cone fitted to an 8-unit scene (test_vsm.far_spot_scene):
+    full maps lost every shadow (1.90 % misclassified, all false lit; ``hard`` 0.20 %);
+    normalised over the map's own depth span 0.15 %."""
+    from test_vsm import far_spot_misclassified
+    hard = far_spot_misclassified("hard", **props)
+    m = far_spot_misclassified("evsm", **props)
+    print(f"evsm {props}: misclassified {m['misclassified']:.2%} (false lit "
+          f"{m['false_lit']:.2%}); hard {hard['misclassified']:.2%}")
+    assert m["misclassified"] <= hard["misclassified"] + 0.001
+    assert m["false_lit"] <= hard["false_lit"] + 0.001
 
 
 # --------------------------------------------------------- (4) exponent clamp
@@ -294,7 +331,7 @@ def test_in_range_extremes_render_finite_visibility(cp, cn):
 # --------------------------------------------------------- layers and caching
 def test_layers_are_named_after_their_exponents_and_cached():
     assert options().record.layer_names(options()) == (
-        "evsm_range", "evsm_p1_6p0", "evsm_p2_6p0", "evsm_n1_6p0", "evsm_n2_6p0")
+        "evsm_span", "evsm_p1_6p0", "evsm_p2_6p0", "evsm_n1_6p0", "evsm_n2_6p0")
     assert E.moment_layer_names(2.5, 1e-3) == (
         "evsm_p1_2p5", "evsm_p2_2p5", "evsm_n1_0p001", "evsm_n2_0p001")
     scene = mi.load_dict(default_scene(width=16, height=16, spp=1))

@@ -536,19 +536,76 @@ def taps_loop(k: int, body_fn, init, active):
 
 
 # ------------------------------------------- prefiltered moments (vsm, evsm, msm)
-def normalized_depth(smap):
-    """``(z, far)``: the map's depths divided by ``far``, per texel, in [0, 1].
+#: Narrowest depth span a full map is normalised over (:func:`normalized_depth`), relative
+#: to its largest depth: 16 times :data:`DEPTH_ULPS`, so that a map whose depths are all
+#: equal up to float32 rounding (a sun straight down on a flat ground) does not stretch
+#: that rounding over the whole normalised range, while any span a scene's surfaces have
+#: (a unit scene under a spot 1e5 away: a span of 1e-5 of the depth) is kept.
+MIN_SPAN = 16.0 * DEPTH_ULPS
 
-    ``far`` is twice the largest finite depth of the map (1 for an empty map);
-    empty texels (``+inf``: nothing along the ray) become 1, i.e. "far behind
-    every receiver", so they filter as unoccluded. Shared by the prefiltered
-    methods, whose moments (z, z^2, exp(c z), ...) need bounded depths.
-    """
+
+def normalized_depth(smap):
+    """``(z, d_lo, scale)``: a full map's depths normalised over the map's own finite
+    depth span, ``z = (depth - d_lo) scale`` per texel (``mi.Float64``), with ``d_lo``,
+    ``d_hi`` its smallest and largest finite depths and ``scale = 1 / (2 (d_hi -
+    d_lo))``: ``[d_lo, d_hi]`` maps to ``[0, 1/2]``, the convention of virtual maps
+    (:func:`virtual_depth_scale`). Empty texels (``+inf``: nothing along the ray) become
+    1, i.e. "far behind every receiver", so they filter as unoccluded. Shared by the
+    prefiltered methods, whose moments (z, z^2, exp(c z), ...) need bounded depths, and
+    whose ``min_variance`` / ``moment_bias`` are in these units: relative to the depths
+    the map holds, whatever the light's distance (dividing by twice the largest depth
+    instead put ``sigma_min`` at 6 world units for a spot 1e4 away over an 8-unit
+    scene, and every shadow was lost).
+
+    The span is at least :data:`MIN_SPAN` of the largest depth (a map whose depths are
+    all equal); an empty map gets ``d_lo = 0``, ``scale = 1/2``. A receiver is
+    normalised the same way (:func:`span_of`); one nearer than ``d_lo`` gets ``z < 0``,
+    in front of every texel. In a map attached to the AD graph ``d_lo`` and ``d_hi``
+    carry the mean derivative of the texels at that depth (:func:`_extreme`)."""
     depth = texel_depths(smap)
     finite = dr.isfinite(depth)
-    far = dr.max(dr.select(finite, depth, 0.0))
-    far = dr.select(far > 0, 2.0 * far, 1.0)
-    return dr.select(finite, depth / far, 1.0), far
+    d = mi.Float64(depth)
+    d_lo = _extreme(d, finite, lowest=True)
+    d_hi = _extreme(d, finite, lowest=False)
+    empty = ~(d_lo <= d_hi)
+    d_lo = dr.select(empty, 0.0, d_lo)
+    d_hi = dr.select(empty, 1.0, d_hi)
+    floor = dr.maximum(MIN_SPAN * dr.maximum(dr.abs(d_lo), dr.abs(d_hi)), 2.0 ** -100)
+    scale = 0.5 / dr.maximum(d_hi - d_lo, floor)
+    return dr.select(finite, (d - d_lo) * scale, 1.0), d_lo, scale
+
+
+def _extreme(d, finite, lowest: bool):
+    """The smallest (``lowest``) or largest finite value of ``d`` (one lane); attached to
+    the AD graph, its derivative is the mean of the texels holding that value (Dr.Jit's
+    ``min`` / ``max`` reductions hand every tied texel the whole derivative: an occluder
+    of 128 texels facing the light moved the span 128 times over, and ``msm``'s
+    derivative came out -15 against +4.5 by finite differences)."""
+    inf = dr.inf if lowest else -dr.inf
+    v = dr.detach(d)
+    ext = dr.min(dr.select(finite, v, inf)) if lowest else dr.max(dr.select(finite, v, inf))
+    if not dr.grad_enabled(d):
+        return ext
+    at = finite & (v == ext)
+    mean = dr.sum(dr.select(at, d, 0.0)) / dr.maximum(dr.sum(dr.select(at, 1.0, 0.0)), 1.0)
+    return dr.replace_grad(ext, mean)
+
+
+def span_layer(smap) -> mi.Float64:
+    """The layer a full map's prefiltered method keeps its normalisation in: two values,
+    ``(d_lo, scale)`` of :func:`normalized_depth` (``mi.Float64``)."""
+    _, d_lo, scale = normalized_depth(smap)
+    out = dr.zeros(mi.Float64, 2)
+    dr.scatter(out, d_lo, mi.UInt32(0))
+    dr.scatter(out, scale, mi.UInt32(1))
+    return out
+
+
+def span_of(layer, width) -> tuple:
+    """``(d_lo, scale)`` (``mi.Float64``, ``width`` lanes) from a :func:`span_layer`:
+    a receiver's depth normalises as ``(depth - d_lo) scale``."""
+    zero = dr.zeros(mi.UInt32, width)
+    return dr.gather(mi.Float64, layer, zero), dr.gather(mi.Float64, layer, zero + 1)
 
 
 def texel_depths(smap):
@@ -599,11 +656,11 @@ def virtual_depth_scale(smap):
     normalise the depths of a map without their layers (virtual maps), ``z = (depth -
     d_lo) scale`` with ``scale = 1 / (2 (d_hi - d_lo))``: the scene's depth span as the
     light sees it (:attr:`mi_shadowmap.virtual.VirtualLayout.depth_range`) maps to
-    ``[0, 1/2]``, as a full map's ``depth / far`` maps its depths to ``[0, 1/2]``
-    (``far`` twice its largest depth). Unlike ``far`` the span does not grow with the
-    light's distance, so ``min_variance`` stays relative to the scene's depths for a
-    light far away (a full map's ``far`` of a light 1e5 away puts ``sigma_min`` at 60
-    units), and it does not change as camera moves build pages."""
+    ``[0, 1/2]``, as a full map's own finite depth span does (:func:`normalized_depth`).
+    The span does not grow with the light's distance, so ``min_variance`` stays relative
+    to the scene's depths for a light far away (twice the largest depth instead would put
+    ``sigma_min`` at 60 units for a light 1e5 away), and it does not change as camera
+    moves build pages."""
     b = getattr(smap, "depth_bounds", None)
     if b is None:
         raise ValueError(f"shadowmap: the map of emitter '{smap.view.label}' has neither the "

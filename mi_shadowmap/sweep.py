@@ -23,7 +23,6 @@ import numpy as np
 
 from . import metrics
 from .ground_truth import has_soft_lights, make_reference, score
-from .methods import MethodError
 from .options import OptionError, parse_options
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_args,
@@ -31,7 +30,8 @@ from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_
                     property_record, spec_name, users_of, uses_property, validate_property,
                     validate_spec)
 from .tables import columns, format_sweep, write_csv, write_json
-from .timing import MethodResult, check_scored_film, rendered_spp, run_method
+from .timing import (MethodResult, check_scored_film, config_error, rendered_spp,
+                     run_method)
 
 
 # --------------------------------------------------------------------------- grids
@@ -343,15 +343,3 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
                       stacklevel=2)
     return SweepTable(analyse(rows, time_key, error_key), results, time_key, error_key, ref)
 
-
-def config_error(exc: BaseException) -> str | None:
-    """The message of the :class:`~mi_shadowmap.options.OptionError` or
-    :class:`~mi_shadowmap.methods.MethodError` that ``exc`` is or wraps (``mi.render``
-    wraps a Python integrator's errors): a configuration this scene cannot render
-    (e.g. a ``resolution`` over ``memory_budget``); None for any other error."""
-    e = exc
-    while e is not None:
-        if isinstance(e, (OptionError, MethodError)):
-            return str(e)
-        e = e.__cause__
-    return None

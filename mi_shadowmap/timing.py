@@ -179,6 +179,23 @@ def root_error(exc: BaseException) -> BaseException:
     return exc
 
 
+def config_error(exc: BaseException, kinds: tuple | None = None) -> str | None:
+    """The message of the error of one of ``kinds`` (default: ``OptionError`` and
+    ``MethodError``: a configuration the scene cannot render, e.g. a ``resolution`` over
+    ``memory_budget``) that ``exc`` is or wraps (``mi.render`` wraps a Python
+    integrator's errors); None for any other error."""
+    if kinds is None:
+        from .methods import MethodError
+        from .options import OptionError
+        kinds = (OptionError, MethodError)
+    e = exc
+    while e is not None:
+        if isinstance(e, kinds):
+            return str(e)
+        e = e.__cause__
+    return None
+
+
 def sampler_spp(scene, sensor: int = 0) -> int:
     """The sample count of ``scene``'s sensor's sampler: after a render, the spp that
     render took (``mi.render(..., spp=N)`` sets it, and the sampler rounds it)."""

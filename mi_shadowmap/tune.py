@@ -75,7 +75,7 @@ from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_s
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
 from .sweep import SweepTable, analyse
 from .tables import jsonable
-from .timing import (MIN_SCORED_SIDE, MethodResult, check_film, check_scored_film,
+from .timing import (MIN_SCORED_SIDE, MethodResult, check_film, check_scored_film, config_error,
                      film_is_xyz, render_timed, rendered_spp, run_method, sampler_spp,
                      split_channels)
 
@@ -933,12 +933,10 @@ def error_bound(result: MethodResult, reference: MethodResult, metric: str,
 def _option_error(exc: BaseException) -> str:
     """The message of the :class:`OptionError` that ``exc`` is or wraps (``mi.render``
     wraps the integrator's errors); re-raises ``exc`` if it is no option error."""
-    e = exc
-    while e is not None:
-        if isinstance(e, OptionError):
-            return str(e)
-        e = e.__cause__
-    raise exc
+    message = config_error(exc, (OptionError,))
+    if message is None:
+        raise exc
+    return message
 
 
 def _render_once(scene, method: str, spp: int, seed: int, **props) -> MethodResult:

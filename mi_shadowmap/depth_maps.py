@@ -27,6 +27,7 @@ import numpy as np
 import mitsuba as mi
 
 from .light_views import LightView
+from .map_scene import map_scene
 from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
 
 
@@ -163,6 +164,8 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
     ``(shape, prim_index)`` (null shape where nothing is hit), for
     :mod:`mi_shadowmap.antialias`.
     """
+    if not (differentiable or return_hit):
+        scene = map_scene(scene)       # cylinders as meshes (mi_shadowmap.map_scene)
     o_ad = d_ad = None
     if pose is not None:
         o_ad, d_ad = pose.ray(o, d)
@@ -327,10 +330,13 @@ def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> np.ndarray:
 
 
 def clear_memos() -> None:
-    """Forget every mesh's remembered per-face solidity (:func:`face_solidity`) and the
-    last face tables (:func:`_face_magnitudes`)."""
+    """Forget every mesh's remembered per-face solidity (:func:`face_solidity`), the
+    last face tables (:func:`_face_magnitudes`) and the scenes' copies with cylinders as
+    meshes (:mod:`~mi_shadowmap.map_scene`)."""
     _SOLID_MEMO.clear()
     _FACE_MEMO[:] = [None, None]
+    from . import map_scene as ms
+    ms.clear()
 
 
 def face_solidity(shape) -> np.ndarray:
@@ -405,6 +411,7 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
 def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
     """:func:`second_depth_layer` for given texel rays ``(o, d)`` (unit ``d``): the
     distance along each ray to its second surface (the virtual maps' pages use it)."""
+    scene = map_scene(scene)           # cylinders as meshes (mi_shadowmap.map_scene)
     own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     face_offset, face_mag, face_solid = _face_magnitudes(scene)

@@ -64,8 +64,8 @@ For a hit on shape ``S`` at ``p``, at distance ``t`` along the camera ray::
   origin was hit by 94 of 4096 of its own shadow rays, whose origins overshot it;
   ``benchmarks/RESULTS.md``, thirty-fourth session.) Cylinders seen
   from afar: Mitsuba's float32 cylinder intersection puts the hit about ``u t^2 / r``
-  off the surface, beyond this offset, so a cylinder's hit is first projected onto
-  it (:func:`_on_cylinders`).
+  off the surface, beyond this offset, so a cylinder's hit is first found again from
+  near it (:func:`_on_cylinders`).
 * End of the ray: ``SHADOW_EPSILON`` is Mitsuba's ``ShadowEpsilon`` (8.9e-4,
   relative to the distance), so the ray does not reach an area light's own
   surface; the ulp term covers targets far from the origin (the light point's
@@ -155,24 +155,26 @@ def shape_tables(scene):
     return mag_table, along_table, ulps_table
 
 
-def cylinder_tables(scene):
-    """For the scene's cylinders, by registry id (as :func:`shape_tables`): their frames
-    as a ``(size, 24)`` float32 array (``to_object`` then ``to_world``, each the rows of
-    its 3 x 4 affine part), or None if the scene has none."""
-    shapes = [s for s in scene.shapes() if s.shape_type() == mi.ShapeType.Cylinder]
-    if not shapes:
+def cylinder_flags(scene):
+    """Per shape, by registry id (as :func:`shape_tables`): 1 for a ``cylinder`` (a
+    ``mi.UInt32`` array), or None if the scene has none. Reads no JIT value (safe inside
+    symbolic loops)."""
+    shapes = list(scene.shapes())
+    if not any(s.shape_type() == mi.ShapeType.Cylinder for s in shapes):
         return None
     ids = dr.reinterpret_array(mi.UInt32, scene.shapes_dr()).numpy().astype(np.int64)
-    table = np.zeros((int(ids.max()) + 1, 24), np.float32)
-    for i, sh in zip(ids, scene.shapes()):
-        if sh.shape_type() == mi.ShapeType.Cylinder:
-            m = np.array(mi.traverse(sh)["to_world"].matrix, np.float64).reshape(4, 4)
-            table[i] = np.concatenate([np.linalg.inv(m)[:3].ravel(), m[:3].ravel()])
-    return table
+    flags = np.zeros(int(ids.max()) + 1, np.uint32)
+    for i, sh in zip(ids, shapes):
+        flags[i] = sh.shape_type() == mi.ShapeType.Cylinder
+    return flags
+
+
+#: A camera hit on a cylinder is found again from this fraction of its distance before it.
+CYLINDER_RETRACE = 1e-3
 
 
 def _on_cylinders(si, scene):
-    """``si.p``, moved radially onto the surface where it is a cylinder's.
+    """``si.p``, found again from near it where it is a cylinder's.
 
     Mitsuba 3.9's AD variants intersect a cylinder in float32 in its object space
     (radius 1): a camera ray from ``t`` away finds a point off the surface by about
@@ -180,30 +182,24 @@ def _on_cylinders(si, scene):
     +-0.017 for radius 7.8 from 1000), some hundred times this module's origin offset.
     Such hits inside the surface sent 29-37 % of the shadow rays from the sunlit side of
     such posts into the post itself (Mitsuba's ``direct``, with its larger offset: none).
-    The point is projected onto the cylinder (through its frame, relative to its axis:
-    about ``u |p|`` off it); only the value moves (the gradient stays ``si.p``'s).
+    The camera ray is traced again from :data:`CYLINDER_RETRACE` ``t`` before the hit
+    (nothing lies between: it was the first hit), where the test is exact to about
+    ``u (1e-3 t)^2 / r``; where it finds the same shape, its point is used. Only the
+    value moves (the gradient stays ``si.p``'s).
     """
-    table = cylinder_tables(scene)
-    if table is None:
+    flags = cylinder_flags(scene)
+    if flags is None:
         return si.p
     idx = dr.reinterpret_array(mi.UInt32, si.shape)
-    ok = si.is_valid() & (idx < table.shape[0])
-    idx = dr.select(ok, idx, 0)
-    flat = mi.Float(table.ravel())
-    row = [dr.gather(mi.Float, flat, idx * 24 + k, ok) for k in range(24)]
+    on = si.is_valid() & (idx < len(flags))
+    on &= dr.gather(mi.UInt32, mi.UInt32(flags), dr.select(on, idx, 0), on) == 1
     p = dr.detach(si.p)
-
-    def affine(r, x, y, z):
-        return mi.Point3f(*[dr.fma(r[4 * a], x, dr.fma(r[4 * a + 1], y,
-                                                         dr.fma(r[4 * a + 2], z, r[4 * a + 3])))
-                            for a in range(3)])
-
-    local = affine(row[:12], p.x, p.y, p.z)
-    rho = dr.sqrt(local.x * local.x + local.y * local.y)
-    # a cylinder's row (other shapes' rows are zeros; an inverse has no zero row)
-    cyl = ok & (rho > 0) & ((row[0] != 0.0) | (row[1] != 0.0) | (row[2] != 0.0))
-    on = affine(row[12:], local.x / rho, local.y / rho, local.z)
-    return si.p + dr.select(cyl, on - p, 0.0)
+    d = dr.normalize(-dr.detach(si.to_world(si.wi)))     # the camera ray's direction
+    back = CYLINDER_RETRACE * dr.detach(si.t)
+    again = scene.ray_intersect(mi.Ray3f(p - d * back, d, 2.0 * back),
+                                mi.RayFlags.Minimal, False, on)
+    ok = on & again.is_valid() & (again.shape == si.shape)
+    return si.p + dr.select(ok, dr.detach(again.p) - p, 0.0)
 
 
 def shape_index(shape_ptr, size: int):

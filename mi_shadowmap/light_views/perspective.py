@@ -3,7 +3,9 @@
 The face is a square frustum circumscribing the cone (half-angle
 ``cutoff_angle``) in the emitter's own frame: the rotation of its
 ``to_world`` (columns normalised, Gram-Schmidt), so +z is the spot axis and
-the map's ``u``/``v`` are the emitter's local x/y.
+the map's ``u``/``v`` are the emitter's local x/y. A ``to_world`` that scales
+or shears the cone (Mitsuba applies the cutoff in local space) gets the frustum
+that holds the cone's image in world space (:func:`_world_cone_tan`).
 """
 from __future__ import annotations
 
@@ -239,5 +241,37 @@ def spot_view(emitter, label: str):
         return framed_cube_view(emitter, "spot", label)
     T = emitter.world_transform()
     pos = mi.ScalarPoint3f(scalar3(T.translation()))
-    return PerspectiveView("spot", pos, emitter_frame(T, pos), label=label,
-                           tan_half=math.tan(math.radians(cutoff)))
+    frame = emitter_frame(T, pos)
+    tan_half = _world_cone_tan(T, frame, math.tan(math.radians(cutoff)))
+    if tan_half is None:   # a sheared or scaled cone reaching 80 degrees off the axis
+        return framed_cube_view(emitter, "spot", label)
+    return PerspectiveView("spot", pos, frame, label=label, tan_half=tan_half)
+
+
+def _world_cone_tan(T, frame, tan_cutoff: float, n: int = 1024):
+    """``tan_half`` of the square frustum in ``frame`` (the rigid part of the spot's
+    ``to_world`` ``T``) that holds the spot's cone in world space, or None if that
+    needs ``WIDE_SPOT_CUTOFF`` or more (a cube view then).
+
+    Mitsuba's spot takes its cone in local space (``to_world``'s inverse applied to the
+    direction), so a scale or a shear in ``to_world`` turns the world cone into the
+    image of the local one under ``to_world``'s linear part: ``scale([3, 1, 1])`` with a
+    20-degree cutoff lights 47.5 degrees off the axis along x. The frame drops scale and
+    shear; this widens (or narrows) the frustum to the image of the cone's rim, sampled
+    at ``n`` angles (plus 0.1 %). A rigid or uniformly scaled ``to_world`` keeps
+    ``tan_cutoff`` exactly."""
+    M = np.array([[float(c) for c in scalar3(T @ mi.Vector3f(*(float(x) for x in e)))]
+                  for e in np.eye(3)]).T
+    R = np.array(frame.matrix, dtype=np.float64)[:3, :3]
+    A = R @ M
+    A /= np.linalg.norm(A[:, 2])
+    if np.allclose(A.T @ A, np.eye(3), rtol=0.0, atol=1e-6):
+        return tan_cutoff               # a rotation (times a uniform scale)
+    phi = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    rim = np.stack([tan_cutoff * np.cos(phi), tan_cutoff * np.sin(phi), np.ones(n)])
+    q = A @ rim
+    limit = math.tan(math.radians(WIDE_SPOT_CUTOFF))
+    if not np.all(q[2] > 0):
+        return None
+    tan = float(np.max(np.abs(q[:2]) / q[2])) * 1.001
+    return tan if tan < limit else None

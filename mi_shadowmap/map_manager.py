@@ -186,8 +186,10 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
                 "defaults (false, false, 1) for it")
         visible = camera_visible_points(scene, sensor)
     # a sensor that does not aim its pixels (irradiancemeter, distant: 1 x 1 films) sizes
-    # the automatic resolution as no sensor does: 2 x 512
-    film_size = (sensor.film().crop_size() if sensor is not None and aims_by_film(sensor)
+    # the automatic resolution as no sensor does: 2 x 512. The whole film, not its crop
+    # window: the footprint ratio is the camera's field of view over the film's width,
+    # and a crop window's pixels are the whole film's
+    film_size = (sensor.film().size() if sensor is not None and aims_by_film(sensor)
                  else (512, 512))
     # full maps (also those of a virtual render's views without virtual support) build the full
     # maps' layers: a method's layers_for may leave them out for its virtual maps

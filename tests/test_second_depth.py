@@ -598,3 +598,48 @@ def test_second_depths_over_a_ground_1e5_wide_keep_unit_boxes_back_faces():
     false_lit = np.mean((ref < 0.5) & (vis("second_depth") >= 0.5))
     print(f"second_depth false lit {false_lit:.2%}")
     assert false_lit <= 0.035
+
+
+
+def instanced_boxes_scene(light, instanced=True):
+    """Three boxes (one mirrored, one stretched) on an open ground, drawn through
+    ``instance``s of one ``shapegroup`` (``instanced``) or given as shapes."""
+    boxes = [T().translate([-1.5, 0.5, 0]) @ T().rotate([0, 1, 0], 30) @ T().scale(0.5),
+             T().translate([1.5, 0.8, 0.5]) @ T().rotate([1, 1, 0], 40)
+             @ T().scale([-0.75, 0.3, 0.5]),
+             T().translate([0, 0.4, 1.5]) @ T().scale(0.4)]
+    d = {"type": "scene",
+         "cam": camera([0.0, 6.0, 8.0], [0.0, 0.0, 0.0], 64, 64, 4),
+         "ground": {"type": "rectangle", "bsdf": DIFFUSE,
+                    "to_world": T().rotate([1, 0, 0], -90) @ T().scale(5)}}
+    if instanced:
+        d["group"] = {"type": "shapegroup", "box": {"type": "cube", "bsdf": DIFFUSE}}
+    for k, m in enumerate(boxes):
+        d[f"box{k}"] = ({"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                         "to_world": m} if instanced
+                        else {"type": "cube", "bsdf": DIFFUSE, "to_world": m})
+    d["light"] = {"spot": {"type": "spot", "cutoff_angle": 40.0, "intensity": 60.0,
+                           "to_world": T().look_at(origin=[2, 6, 3], target=[0, 0, 0],
+                                                   up=[0, 1, 0])},
+                  "point": {"type": "point", "position": [0.5, 4, 1],
+                            "intensity": 30.0}}[light]
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize("light", ["spot", "point"])
+@pytest.mark.parametrize("virtual", [False, True])
+def test_instanced_solids_are_solids(light, virtual):
+    """Shapes drawn through an ``instance`` are their shape group's, which the solidity
+    tables did not list: instanced boxes were non-solids, whose lit sides second_depth
+    compared with their own depth. Measured before (64^2, false shadow, full / virtual
+    maps): spot 0.68 / 0.71 %, point 1.44 / 1.54 %; the same boxes given as shapes
+    0.12-0.22 %, and so are the instances now (the mirrored box included)."""
+    out = {}
+    for instanced in (False, True):
+        scene = instanced_boxes_scene(light, instanced)
+        _, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+        _, sd = render_np(scene, {"type": "shadowmap", "method": "second_depth",
+                                  "virtual": virtual}, spp=4)
+        out[instanced] = misclassified(vis_stack(ref), vis_stack(sd))["false_shadow"]
+    print(out)
+    assert out[True] <= out[False] + 0.0005, out

@@ -430,10 +430,11 @@ class _Tuner:
         self.small_image = self.film.image_size(self.small)
         self.area = has_soft_lights(scene)   # area lights or an environment
         searched = {s["method"] for s in specs}
-        # the ladder follows the image's pixels, as the automatic resolution does
-        grid = search_grid(specs, *self.full_image, self.area)
+        # the ladder follows the film's pixels, as the automatic resolution does: a crop
+        # window's pixels are the whole film's, so its maps need the film's density
+        grid = search_grid(specs, *self.full, self.area)
         if REFERENCE_METHOD not in searched:
-            grid += search_grid([rt_spec], *self.full_image, self.area)
+            grid += search_grid([rt_spec], *self.full, self.area)
         self.configs = {}
         for s in grid:
             c = _Config(s, searched=s["method"] in searched)

@@ -304,8 +304,10 @@ def cropped_scene(width=96, height=64, crop=(50, 30), offset=(20, 16)):
 
 
 def test_a_crop_window_is_the_size_measured_and_searched():
-    """A 50x30 crop of a 96x64 film was reported "at 96x64; searched at 48x32", and its
-    resolutions were searched from the film's long side (64..512, not 32..256)."""
+    """A 50x30 crop of a 96x64 film was reported "at 96x64; searched at 48x32". Its
+    resolutions are searched from the film's long side (64..512), as the automatic
+    resolution takes the film's size: a crop window's pixels are the film's (the crop's
+    50 px gave 32..256, maps half as fine as the pixels need)."""
     from mi_shadowmap.tune import format_result
     scene = cropped_scene()
     res = tune(scene, 0.1, methods=["hard", "raytraced"], search_size=48, max_spp=4,
@@ -317,7 +319,7 @@ def test_a_crop_window_is_the_size_measured_and_searched():
     assert "at 50x30; searched at 25x15" in format_result(res)
     assert "at 50x30," in integrator_xml(res)
     assert {r["resolution"] for r in res["sweep"].rows if r["method"] == "hard"} == \
-        {32, 64, 128, 256}
+        {64, 128, 256, 512}
     assert list(scene.sensors()[0].film().crop_size()) == [50, 30]      # restored
 
 

@@ -46,8 +46,9 @@ For a hit on shape ``S`` at ``p``, at distance ``t`` along the camera ray::
   on a flat ground 1e6 wide about 4 units above it, over 1-unit posts: their shadows
   vanished; the ground's height is exact to far better than its width.) It is looked
   up per hit in a small table indexed by the shape's registry id (built from
-  ``scene.shapes()`` at each call; shapes not in the table, e.g. those inside an
-  ``instance``, use the scene's bounding box).
+  ``scene.shapes()`` at each call; a hit through an ``instance``, whose shape group's
+  shapes are not in the table, uses the instance's row: its world bounds; other ids
+  not in it use the scene's bounding box).
 * ``t``: in the AD variants Mitsuba's non-mesh shapes (sphere, disk, cylinder,
   curves) return ``si.p = ray(t)``, whose error is relative to the camera
   ray's origin and length, not to the shape. Meshes (``rectangle`` and ``cube``
@@ -135,8 +136,9 @@ def shape_tables(scene):
     absolute coordinate along each axis (a ``(size, 3)`` float32 array) and whether its
     hit points are computed along the ray (1, analytic shapes) or interpolated (0,
     meshes), and the origin offset's ulps (:data:`ORIGIN_ULPS` for meshes and spheres,
-    else :data:`ORIGIN_ULPS_OTHER`). Ids not listed (shapes inside instances, invalid
-    hits) get the scene's magnitudes and the larger offset. Bounds come from :func:`~mi_shadowmap.light_views.base.shape_bounds`
+    else :data:`ORIGIN_ULPS_OTHER`). Ids not listed (invalid hits; a shape group's shapes,
+    whose hits :func:`spawn_shadow_ray` looks up by their instance's row) get the scene's
+    magnitudes and the larger offset. Bounds come from :func:`~mi_shadowmap.light_views.base.shape_bounds`
     (not ``bbox()``: Mitsuba 3.9's merged meshes report wrong boxes)."""
     shapes = scene.shapes()
     fallback = _axis_magnitudes(scene_bounds(scene))
@@ -241,6 +243,13 @@ def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
 
     mag_table, along_table, ulps_table = shape_tables(scene)
     idx = shape_index(si.shape, len(along_table))
+    instance = getattr(si, "instance", None)
+    if instance is not None:
+        # a hit through an ``instance`` names its shape group's shape, which is in no
+        # table (its vertices are in the group's space): the instance's own row, its
+        # bounds in the world (rather than the whole scene's)
+        inst = dr.reinterpret_array(mi.UInt32, instance)
+        idx = dr.select((inst != 0) & (inst < len(along_table)), inst, idx)
     m_axes = dr.gather(mi.Vector3f, Float(mag_table.ravel()), idx)
     along = dr.gather(Float, Float(along_table), idx)
     ulps = dr.gather(Float, Float(ulps_table), idx)

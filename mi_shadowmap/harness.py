@@ -48,7 +48,8 @@ from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F
 from .sweep import (SweepTable, analyse, default_grid, expand_grid,  # noqa: F401
                     grid_values, sweep, with_shared)
 from .tables import format_table, jsonable, safe_name  # noqa: F401
-from .timing import MethodResult, check_scored_film, root_error, run_method  # noqa: F401
+from .timing import (MethodResult, check_scored_film, rendered_spp, root_error,  # noqa: F401
+                     run_method)
 
 
 def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
@@ -89,6 +90,12 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         method_spec(reference)   # a bad reference spec fails before anything loads
     scene = load_scene(scene, **(scene_params or {}))
     check_scored_film(scene)
+    # a method's own spp is the count the scene's sampler renders (a ``stratified``
+    # sampler renders 3 as 4): it is named, and gets its reference, by that count
+    rendered = {s["spp"]: rendered_spp(scene, s["spp"]) for s in specs if "spp" in s}
+    check_unique([{**s, "spp": rendered[s["spp"]]} if "spp" in s else s for s in specs],
+                 rounded=[f"{spec_name(s)!r} at spp={rendered[s['spp']]}" for s in specs
+                          if "spp" in s and rendered[s["spp"]] != s["spp"]])
     iterator = specs
     if progress:
         from tqdm import tqdm
@@ -98,7 +105,7 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
                          measure_cached=measure_cached)
     # a reference that shares the methods' camera samples (reference_follows_spp) holds
     # no camera noise in their errors; a method with its own spp gets one at its spp
-    per_spp = {spp: ref}
+    per_spp = {rendered_spp(scene, spp): ref}     # by the spp the sampler renders
     matched = reference_follows_spp(scene, reference)
     results, scored = [ref], [(ref, ref)]
     for spec in iterator:
@@ -108,14 +115,14 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         r = run_method(scene, spec.pop("method"), spp=m_spp, seed=seed, repeats=repeats,
                        measure_cached=measure_cached, **spec)
         if own_spp:         # told apart from the same method at compare's spp
-            r.name = spec_name({"method": r.method, **r.params, "spp": m_spp})
+            r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
         r_ref = ref
-        if matched and m_spp not in per_spp:
-            per_spp[m_spp] = make_reference(scene, reference, spp=m_spp, seed=seed,
+        if matched and r.spp not in per_spp:
+            per_spp[r.spp] = make_reference(scene, reference, spp=m_spp, seed=seed,
                                             ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays,
                                             repeats=repeats, measure_cached=measure_cached)
         if matched:
-            r_ref = per_spp[m_spp]
+            r_ref = per_spp[r.spp]
         results.append(r)
         scored.append((r, r_ref))
     for r, r_ref in scored:

@@ -197,14 +197,17 @@ def check_run_args(**args) -> None:
             raise OptionError(f"shadowmap: '{name}' must be an integer {rng}, got {value!r}")
 
 
-def check_unique(specs: list[dict]) -> None:
+def check_unique(specs: list[dict], rounded: list | None = None) -> None:
     """Two specs with one name (:func:`spec_name`) are an error: their records and output
-    files would share it."""
+    files would share it. ``rounded``: for the message, the specs whose ``spp`` the
+    scene's sampler rounds (``"'pcf spp=3' at spp=4"``; ``specs`` hold the spp rendered)."""
     names = [spec_name(s) for s in specs]
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
+        why = (f" (the scene's sampler renders {', '.join(rounded)}; list each spp it "
+               "renders once)" if rounded else "")
         raise OptionError(f"shadowmap: method {', '.join(repr(n) for n in twice)} is listed "
-                          "more than once")
+                          "more than once" + why)
 
 
 def validate_property(name: str, value) -> None:

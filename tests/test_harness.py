@@ -599,6 +599,20 @@ def test_run_method_records_the_spp_the_sampler_renders():
     assert scene.sensors()[0].sampler().sample_count() == 16   # left alone
 
 
+def test_compare_names_a_methods_own_spp_by_the_count_rendered():
+    """``pcf:spp=3`` under a stratified sampler renders 4 spp: it was named ``pcf spp=3``
+    (its row said spp 4) and rendered a second 4-spp reference for the '3'; beside
+    ``pcf:spp=4`` both wrote ``pcf_spp=...`` files of one render under two names."""
+    scene = stratified_scene()
+    res = harness.compare(scene, methods=["hard:spp=3"], spp=4, measure_cached=False)
+    assert [r.name for r in res[1:]] == ["hard spp=4"]
+    assert res[1].spp == 4 and res[1].spp_requested == 3
+    assert "reference_spp" not in res[1].metrics        # compare's own 4-spp reference
+    with pytest.raises(OptionError, match=r"'hard spp=4' is listed more than once.*"
+                                          r"'hard spp=3' at spp=4"):
+        harness.compare(scene, methods=["hard:spp=3", "hard:spp=4"], spp=1)
+
+
 def test_sweep_rows_give_the_spp_rendered_and_merge_repeats():
     """spp 2, 3, 4, 5 under a stratified sampler render 4, 4, 4, 9: two rows, not four
     rows of which three had the same error at "different" spp."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import sys
 
 import drjit as dr
 import mitsuba as mi
@@ -53,6 +54,15 @@ def load_scene(scene, **xml_params) -> mi.Scene:
         return scene
     if isinstance(scene, dict):
         return mi.load_dict(scene)
+    if not isinstance(scene, (str, bytes, os.PathLike)):
+        other = scene_variant(scene)
+        if other is not None:      # os.fspath said "expected str ..., not Scene"
+            raise ValueError(
+                f"the scene was loaded in Mitsuba variant '{other}', but the current "
+                f"variant is '{mi.variant()}': load it again in '{mi.variant()}', or "
+                f"call mi.set_variant('{other}') before using it")
+        raise TypeError(f"a scene is an mi.Scene, a scene dict or the path of an XML "
+                        f"file, not {type(scene).__name__}")
     path = os.fspath(scene)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"scene file not found: {path}")
@@ -71,6 +81,17 @@ def load_scene(scene, **xml_params) -> mi.Scene:
                          + " (neither it nor the files it includes use it; declare "
                            "<default name=... value=.../> and use $name to make it "
                            "settable)") from None
+
+
+def scene_variant(obj) -> str | None:
+    """The Mitsuba variant whose ``Scene`` class ``obj`` is an instance of, among the
+    variants imported in this process; None for anything else."""
+    for variant in mi.variants():
+        module = sys.modules.get(f"mitsuba.{variant}")
+        cls = getattr(module, "Scene", None) if module is not None else None
+        if isinstance(cls, type) and isinstance(obj, cls):
+            return variant
+    return None
 
 
 def integrator_properties(scene) -> tuple[dict | None, str | None]:

@@ -516,3 +516,19 @@ def test_emitted_values_are_checked_in_every_variant(variant):
             mi.render(mi.load_dict(d), integrator=mi.load_dict({"type": "shadowmap"}), spp=1)
         assert re.search(f"'bad'.*'{key}'.*negative", root_message(e.value)), \
             root_message(e.value)
+
+
+def test_a_scene_of_another_variant_is_named_as_such():
+    """A scene loaded in llvm_ad_rgb, used by the harness after mi.set_variant(
+    'llvm_ad_mono'): compare, sweep, render and tune said "expected str, bytes or
+    os.PathLike object, not Scene" (the scene was taken for a path)."""
+    scene = mi.load_dict(default_scene(width=8, height=8, spp=1))
+    mi.set_variant("llvm_ad_mono")
+    for call in (lambda: harness.compare(scene, methods=["hard"], spp=1),
+                 lambda: harness.sweep(scene, {"method": "hard"}, spp=1, progress=False),
+                 lambda: harness.render(scene, "hard", spp=1)):
+        with pytest.raises(ValueError, match=r"loaded in Mitsuba variant 'llvm_ad_rgb'.*"
+                                             r"current variant is 'llvm_ad_mono'"):
+            call()
+    with pytest.raises(TypeError, match="an mi.Scene, a scene dict or the path"):
+        harness.compare(3, methods=["hard"])

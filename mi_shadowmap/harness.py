@@ -45,7 +45,7 @@ from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F
                     check_run_args, check_shared_params, check_unique, default_methods,
                     map_methods, method_spec, parse_method_string, parse_value, spec_name,
                     users_of, uses_property, to_mitsuba, validate_property, validate_spec)
-from .sweep import (SweepTable, analyse, default_grid, expand_grid,  # noqa: F401
+from .sweep import (SweepTable, analyse, best_row, default_grid, expand_grid,  # noqa: F401
                     grid_values, sweep, with_shared)
 from .tables import format_table, jsonable, safe_name  # noqa: F401
 from .timing import (MethodResult, check_scored_film, rendered_spp, root_error,  # noqa: F401

@@ -158,6 +158,19 @@ def analyse(rows: list[dict], time_key="time_warm", error_key="vis_rmse") -> lis
     return rows
 
 
+def best_row(rows, key: str = "error", largest: bool = False) -> dict | None:
+    """The row of ``rows`` with the lowest (``largest``: the highest) ``key``, among those
+    where it is a finite number; None if no row has one. A configuration that failed
+    (column ``failed``) has NaN ``time`` and ``error`` and is never picked: ``min(rows,
+    key=...)`` could return it (NaN compares false, so a failed first row stays the
+    minimum), and then no result of the sweep has its name."""
+    ok = [r for r in rows if isinstance(r.get(key), (int, float, np.number))
+          and not isinstance(r.get(key), bool) and math.isfinite(r[key])]
+    if not ok:
+        return None
+    return (max if largest else min)(ok, key=lambda r: r[key])
+
+
 def _ratio(rt_error: float, error: float) -> float:
     """Ray tracing's error over a row's: 1 where both are 0 (a tie: a row that ties
     with ray tracing at 0 read as infinitely more accurate), inf where only the row's

@@ -634,6 +634,26 @@ ROOM = str(SCENES / "room_two_points.xml")
 OVER_BUDGET = {"method": ["hard", "pcf"], "resolution": [64, 8192]}
 
 
+def test_best_row_never_picks_a_failed_configuration():
+    """Notebooks 04 and 05 took ``min(rows, key=lambda r: r["error"])``: a failed
+    configuration listed first (NaN time and error) stayed the minimum, and its name
+    has no result (``by_name[...]``: KeyError)."""
+    rows = harness.analyse([
+        {"name": "pcss resolution=8192 spp=1", "method": "pcss", "failed": "over budget"},
+        {"name": "pcss resolution=64 spp=1", "method": "pcss", "time_warm": 0.02,
+         "vis_rmse": 0.09},
+        {"name": "pcss resolution=128 spp=1", "method": "pcss", "time_warm": 0.03,
+         "vis_rmse": 0.05},
+        {"name": "raytraced spp=1", "method": "raytraced", "time_warm": 0.01,
+         "vis_rmse": 0.2}])
+    assert min(rows, key=lambda r: r["error"])["name"] == rows[0]["name"]   # the trap
+    assert harness.best_row(rows)["name"] == "pcss resolution=128 spp=1"
+    assert harness.best_row(rows, key="time")["name"] == "raytraced spp=1"
+    assert harness.best_row(rows, key="error", largest=True)["name"] == "raytraced spp=1"
+    assert harness.best_row(rows[:1]) is None and harness.best_row([]) is None
+    assert harness.best_row(rows, key="rt_time_equal_error") is None   # None everywhere
+
+
 def test_a_configuration_that_fails_is_a_row_and_the_sweep_goes_on():
     """resolution 8192 over memory_budget: the sweep raised at the first such
     configuration and every row rendered before was lost."""

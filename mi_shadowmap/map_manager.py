@@ -65,12 +65,28 @@ class MapStats:
     level_histogram: list | None = None
 
     def __getitem__(self, key):
-        if key in ("texel_density_gain", "level_histogram") and getattr(self, key) is None:
+        d = self.as_dict()
+        if key not in d:     # a KeyError, as a dict's (was AttributeError, or TypeError)
             raise KeyError(key)
-        return getattr(self, key)
+        return d[key]
 
     def __contains__(self, key):
         return key in self.as_dict()
+
+    def __iter__(self):      # dict(stats), list(stats): the keys, as a dict's
+        return iter(self.as_dict())
+
+    def __len__(self):
+        return len(self.as_dict())
+
+    def keys(self):
+        return self.as_dict().keys()
+
+    def values(self):
+        return self.as_dict().values()
+
+    def items(self):
+        return self.as_dict().items()
 
     def get(self, key, default=None):
         return self.as_dict().get(key, default)

@@ -449,3 +449,20 @@ def test_a_moved_light_compiles_no_kernel(light, props):
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, had)
     assert not compiled, [(k["size"], k["operation_count"]) for k in compiled]
+
+
+def test_stats_read_like_a_dict():
+    """``integrator.stats`` "reads like a dict": ``dict(stats)`` and ``list(stats)``
+    raised "attribute name must be string, not 'int'", ``stats.items()`` an
+    AttributeError, and a misspelt key an AttributeError instead of a KeyError."""
+    from mi_shadowmap.map_manager import MapStats
+    stats = MapStats(maps_built=2, texels_built=7)
+    as_dict = dict(stats)
+    assert as_dict == stats.as_dict() and as_dict["texels_built"] == 7
+    assert list(stats) == list(as_dict) and len(stats) == len(as_dict)
+    assert dict(stats.items()) == as_dict and list(stats.keys()) == list(as_dict)
+    assert "level_histogram" not in stats and "maps_built" in stats
+    for key in ("level_histogram", "texel_built", 0):
+        with pytest.raises(KeyError):
+            stats[key]
+    assert stats.get("texel_built", -1) == -1

@@ -78,8 +78,7 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
 
     Everything is validated before the first render.
     """
-    if isinstance(methods, (str, dict)):      # one method
-        methods = [methods]
+    methods = _method_list(methods)           # one method; an iterator read once, here
     check_run_args(methods=methods, spp=spp, seed=seed, repeats=repeats, ref_spp=ref_spp,
                    ref_shadow_rays=ref_shadow_rays)
     specs = [method_spec(m, params) for m in (methods if methods is not None
@@ -177,11 +176,22 @@ def remeasure(scene, reference_info: dict, spec: dict, metric: str, seed: int) -
 
 
 # --------------------------------------------------------------------------- maps
+def _method_list(methods) -> list | None:
+    """``methods`` as a list: one method (a name, ``"pcf:num_samples=4"`` or a dict) as a
+    list of one (a name was taken for its letters, "method 'h' is not valid"), an
+    iterator read once; None stays None."""
+    if methods is None:
+        return None
+    if isinstance(methods, (str, dict)):
+        return [methods]
+    return list(methods)
+
+
 def map_specs(methods=None, params: dict | None = None) -> list[dict]:
     """Validated specs of ``methods`` (default: every method that reads a map) with the
     shared ``params``; a method that reads no depth map is an error naming it."""
     params = params or {}
-    specs = [method_spec(m, params) for m in (methods or map_methods())]
+    specs = [method_spec(m, params) for m in (_method_list(methods) or map_methods())]
     check_shared_params(specs, params)
     no_map = [s["method"] for s in specs if not validate_spec(s).record.uses_map]
     if no_map:
@@ -264,6 +274,7 @@ def _same_map(a, b) -> bool:
 
 def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
     """Per emitter, its distinct maps (see :func:`emitter_maps`)."""
+    methods = _method_list(methods)   # read twice below: an iterator was empty the second time
     specs = map_specs(methods, params)
     opts = [validate_spec(s) for s in specs]
     # named as listed, without the shared params

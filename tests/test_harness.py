@@ -734,3 +734,19 @@ def test_cli_sweep_writes_the_rows_despite_a_failing_configuration(tmp_path, cap
     rows = json.loads((out / "sweep.json").read_text())
     assert len(rows) == 4 and sum(bool(r.get("failed")) for r in rows) == 2
     assert (out / "pareto.png").stat().st_size > 0
+
+
+def test_methods_given_as_an_iterator_or_one_name_are_all_rendered():
+    """``compare(scene, methods=(m for m in ...))`` returned the reference alone: the
+    generator was read up by the check that it is not empty. ``emitter_maps`` and
+    ``prepare_maps`` read it twice (IndexError), and took one name for its letters
+    ("method 'h' is not valid") where ``compare`` takes one name."""
+    scene = mi.load_dict(default_scene(width=8, height=8, spp=1))
+    res = harness.compare(scene, methods=(m for m in ["hard", "pcf"]), spp=1,
+                          measure_cached=False)
+    assert [r.name for r in res[1:]] == ["hard", "pcf"]
+    maps = harness.emitter_maps(scene, iter(["hard", "vsm"]), resolution=16)
+    assert [m.methods for m in maps] == [["hard", "vsm"]]
+    assert [m.methods for m in harness.emitter_maps(scene, "hard", resolution=16)] == [["hard"]]
+    assert harness.prepare_maps(scene, "hard", resolution=16)[0].resolution == 16
+

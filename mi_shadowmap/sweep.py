@@ -34,6 +34,37 @@ from .timing import (MethodResult, check_scored_film, config_error, rendered_spp
                      run_method)
 
 
+#: Error columns a sweep can trade against time (lower is better; ``error_key``), besides
+#: the per-emitter ``vis_rmse[<label>]``, ``vis_misclassified[<label>]`` and
+#: ``vis_penumbra_rmse[<label>]``.
+ERROR_KEYS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow",
+              "vis_false_lit", "vis_penumbra_rmse", "img_rmse", "img_mae",
+              "img_relative_mse", "img_flip")
+#: Time columns of every row (``time_key``; ``time_cached`` implies ``measure_cached``).
+TIME_KEYS = tuple(f"time_{k}" for k in ("warm", "cached", "cold", "build", "shading", "jit",
+                                         "compile"))
+
+
+def check_keys(scene, time_key: str, error_key: str) -> None:
+    """Raise OptionError, before anything renders, for a ``time_key`` or ``error_key``
+    that is no time or error column of a sweep of ``scene`` (a misspelt one made every
+    row's error NaN, no row on the Pareto front, and a misspelt time key failed after
+    every configuration had rendered)."""
+    if time_key not in TIME_KEYS:
+        raise OptionError(f"shadowmap: unknown time_key {time_key!r}; valid: "
+                          + ", ".join(TIME_KEYS))
+    if error_key in ERROR_KEYS:
+        return
+    from .light_views import emitter_labels
+    labels = emitter_labels(scene.emitters())
+    per = [f"{k}[{label}]" for label in labels
+           for k in ("vis_rmse", "vis_misclassified", "vis_penumbra_rmse")]
+    if error_key not in per:
+        raise OptionError(f"shadowmap: unknown error_key {error_key!r}; valid (lower is "
+                          f"better): {', '.join(ERROR_KEYS)}, or per emitter "
+                          f"{', '.join(per[:3])}, ...")
+
+
 # --------------------------------------------------------------------------- grids
 def expand_grid(grid, default_spp: int = 16) -> list[dict]:
     """Expand a parameter grid into validated, de-duplicated method specs.
@@ -307,6 +338,7 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     specs = expand_grid(default_grid() if grid is None else grid, default_spp=spp)
     scene = load_scene(scene, **(scene_params or {}))
     check_scored_film(scene)
+    check_keys(scene, time_key, error_key)
     specs, asked = rendered_specs(scene, specs)
     max_spp = max(s["spp"] for s in specs)
     if reference == "auto" and not has_soft_lights(scene):

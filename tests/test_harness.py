@@ -750,3 +750,21 @@ def test_methods_given_as_an_iterator_or_one_name_are_all_rendered():
     assert [m.methods for m in harness.emitter_maps(scene, "hard", resolution=16)] == [["hard"]]
     assert harness.prepare_maps(scene, "hard", resolution=16)[0].resolution == 16
 
+
+def test_sweep_refuses_an_unknown_time_or_error_key_before_rendering(monkeypatch):
+    """``error_key="vis_rmsee"`` gave every row a NaN error and no Pareto front, silently;
+    ``time_key="time_warmm"`` rendered every configuration and then failed with
+    "argument 'times' has 1 non-finite value(s)"."""
+    from mi_shadowmap import sweep as sweep_mod
+    scene = mi.load_dict(default_scene(width=8, height=8, spp=1))
+    monkeypatch.setattr(sweep_mod, "run_method", lambda *a, **k: pytest.fail("rendered"))
+    monkeypatch.setattr(sweep_mod, "make_reference", lambda *a, **k: pytest.fail("rendered"))
+    with pytest.raises(OptionError, match=r"unknown error_key 'vis_rmsee'.*vis_misclassified"
+                                          r".*vis_rmse\[spot\]"):
+        harness.sweep(scene, {"method": "hard"}, spp=1, progress=False, error_key="vis_rmsee")
+    with pytest.raises(OptionError, match=r"unknown time_key 'time_warmm'.*time_cached"):
+        harness.sweep(scene, {"method": "hard"}, spp=1, progress=False, time_key="time_warmm")
+    monkeypatch.undo()
+    table = harness.sweep(scene, {"method": "hard", "resolution": [16, 32]}, spp=1, repeats=1,
+                          progress=False, error_key="vis_rmse[spot]", time_key="time_cold")
+    assert all(math.isfinite(r["error"]) for r in table) and any(r["pareto"] for r in table)

@@ -860,11 +860,16 @@ class _Tuner:
         the most accurate configuration is measured first, see
         :meth:`_probe_largest_spp`)."""
         self._probe_largest_spp(-math.inf)
-        best = None
+        best, bound = None, ""
         for (key, _), r in self.verified.items():
             e = self.error_of(r)
             if self.configs[key].searched and math.isfinite(e) and (best is None or e < best[0]):
                 best = (e, r.name, self.full_image)
+                ub = self.check(r)[1]
+                # an error under the budget fails on its bound: say so ("best reachable:
+                # 0.08568" read as meeting max_error=0.1)
+                bound = (f", {self.metric} + 2 standard errors {ub:.4g}, which must be <= "
+                         f"{self.B:g} too" if math.isfinite(ub) and ub > self.B else "")
         if best is None:
             for row in self.rows:
                 e = row.get(self.metric)
@@ -873,7 +878,7 @@ class _Tuner:
                     best = (float(e), row["name"], self.small_image)
         within = (f" within time_limit={self.time_limit:g} s" if self.time_limited else "")
         what = (f"; best reachable: {self.metric} {best[0]:.4g} with {best[1]} (measured at "
-                f"{best[2][0]}x{best[2][1]})" if best is not None
+                f"{best[2][0]}x{best[2][1]}{bound})" if best is not None
                 else "; no configuration was measured")
         raise TuneError(f"shadowmap: tune: no configuration meets max_error={self.B:g} "
                         f"({self.metric}, with margin {self.margin:g}){within}{what}")

@@ -116,6 +116,17 @@ def test_unreachable_budget_names_the_best_error():
     assert "max_error=0.0001" in str(e.value)
 
 
+def test_a_budget_failed_on_the_error_bound_says_so(monkeypatch):
+    """A verified error under the budget that fails on its bound (error + 2 standard
+    errors > max_error) was reported as "best reachable: vis_rmse 0.08568" for
+    max_error=0.1, which reads as meeting it; the message now gives the bound."""
+    tune_mod = sys.modules["mi_shadowmap.tune"]     # mi_shadowmap.tune is the function
+    monkeypatch.setattr(tune_mod, "error_bound", lambda *a, **k: 0.9)
+    with pytest.raises(TuneError, match=r"best reachable: vis_rmse 0\.\d+ with hard.*"
+                                        r"\+ 2 standard errors 0\.9, which must be <= 0\.5"):
+        tune(SPOT, 0.5, methods=["hard"], scene_params=FULL, max_spp=2, spp=1, **FAST)
+
+
 def test_time_limit_and_loaded_scene_restored():
     """A loaded scene works (its film is shrunk for the search and restored); the time
     limit ends the run soon after it, with a pick or an error naming the best error."""

@@ -30,7 +30,7 @@ import numpy as np
 
 from . import metrics
 from .reference import converged_visibility
-from .specs import REFERENCE_METHOD, method_spec
+from .specs import REFERENCE_METHOD, method_spec, spec_name
 from .timing import MethodResult, run_method
 
 
@@ -118,9 +118,12 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
                                   measure_cached=measure_cached)
     else:
         spec = dict(method_spec(REFERENCE_METHOD if reference == "auto" else reference))
+        own_spp = "spp" in spec
         r_spp = spec.pop("spp", spp)
         ref = run_method(scene, spec.pop("method"), spp=r_spp, seed=seed, repeats=repeats,
                          measure_cached=measure_cached, **spec)
+        if own_spp:     # named with it ("raytraced:spp=64" was "reference (raytraced)")
+            ref.name = spec_name({"method": ref.method, **ref.params, "spp": ref.spp})
         ref.name = "reference (" + ref.name + ")"
     ref.is_reference = True
     return ref

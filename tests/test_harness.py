@@ -119,6 +119,17 @@ def test_a_methods_own_spp_names_it_and_gets_a_reference_at_that_spp():
         assert res[2].metrics[key] == pytest.approx(alone.metrics[key], rel=1e-6), key
 
 
+def test_a_reference_with_its_own_spp_is_named_with_it():
+    """``reference="raytraced:spp=8"`` was named "reference (raytraced)" in the table and
+    its files, like the automatic reference at compare's spp."""
+    scene = mi.load_dict(default_scene(width=8, height=8, spp=1))
+    res = harness.compare(scene, methods=["hard"], reference="raytraced:spp=8", spp=1,
+                          measure_cached=False)
+    assert res[0].name == "reference (raytraced spp=8)" and res[0].spp == 8
+    assert harness.compare(scene, methods=["hard"], spp=1,
+                           measure_cached=False)[0].name == "reference (raytraced)"
+
+
 def test_written_error_layers_are_against_the_reference_a_method_is_scored_against(tmp_path):
     """A method with its own spp is scored against a reference at that spp; its EXR's
     ``err_*`` and ``img_err`` layers and its heat map were against compare's reference

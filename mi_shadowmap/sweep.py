@@ -160,7 +160,22 @@ def with_shared(grid, params: dict) -> list[dict]:
 # --------------------------------------------------------------------------- Pareto
 def analyse(rows: list[dict], time_key="time_warm", error_key="vis_rmse") -> list[dict]:
     """Add ``time``, ``error``, ``pareto`` and the equal-time/equal-error columns
-    (see :class:`SweepTable`) to ``rows``, in place; returns them."""
+    (see :class:`SweepTable`) to ``rows``, in place; returns them.
+
+    A ``time_key`` or ``error_key`` that a rendered row (one without ``failed``) does
+    not have is a ValueError naming it (every row's time was NaN, and the Pareto front
+    failed with "argument 'times' has 3 non-finite value(s)"; an unknown error column
+    gave every row a NaN error): ``time_cached`` is a column of sweeps rendered with
+    ``measure_cached=True`` only."""
+    for key in (time_key, error_key):
+        lacking = [r.get("name", "?") for r in rows if not r.get("failed") and key not in r]
+        if lacking:
+            have = sorted({k for r in rows for k in r if k.startswith(("time_", "vis_", "img_"))})
+            why = (" (a sweep has it with measure_cached=True or time_key='time_cached')"
+                   if key == "time_cached" else "")
+            raise ValueError(f"shadowmap: analyse: {len(lacking)} row(s) ({lacking[0]}, ...) "
+                             f"have no column {key!r}{why}; their time and error columns: "
+                             + ", ".join(have))
     for r in rows:
         t = r.get(time_key)       # none: a configuration that failed (column 'failed')
         r["time"] = float(t) if t is not None else math.nan

@@ -251,6 +251,22 @@ def test_analyse_reads_a_tie_at_zero_error_as_a_tie():
     assert by["bad"]["error_ratio_equal_time"] == pytest.approx(2.0)
 
 
+def test_analyse_names_a_column_the_rows_lack():
+    """Re-ranking a sweep rendered without ``measure_cached`` on ``time_cached`` (as
+    notebooks 04 and 05 do with theirs) failed with "argument 'times' has 3 non-finite
+    value(s) (NaN or inf)"; a misspelt error column gave every row a NaN error and no
+    Pareto front without a word. A failed row (no columns) is not counted."""
+    rows = [{"name": "rt1", "method": "raytraced", "time_warm": 1.0, "vis_rmse": 0.4},
+            {"name": "hard", "method": "hard", "time_warm": 1.5, "vis_rmse": 0.15},
+            {"name": "big", "method": "hard", "failed": "over memory_budget"}]
+    with pytest.raises(ValueError, match=r"2 row\(s\) \(rt1, ...\) have no column "
+                                         r"'time_cached' \(.*measure_cached=True.*time_warm"):
+        harness.analyse([dict(r) for r in rows], time_key="time_cached")
+    with pytest.raises(ValueError, match=r"no column 'vis_rmsee'.*vis_rmse"):
+        harness.analyse([dict(r) for r in rows], error_key="vis_rmsee")
+    assert [r["pareto"] for r in harness.analyse(rows)] == [True, True, False]
+
+
 def test_sweep_table(tmp_path):
     scene = mi.load_dict(default_scene(**SMALL))
     table = harness.sweep(scene, [{"method": "hard", "resolution": [64, 256]},

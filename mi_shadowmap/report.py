@@ -35,7 +35,9 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
     if not create:
         path = os.path.abspath(out_dir)
         if os.path.exists(path):
-            if not os.path.isdir(path) or not os.access(path, os.W_OK | os.X_OK):
+            if not os.path.isdir(path):      # was "is not writable", of a file
+                raise PermissionError(f"output folder {out_dir} is a file, not a folder")
+            if not os.access(path, os.W_OK | os.X_OK):
                 raise PermissionError(f"output folder is not writable: {out_dir}")
             return out_dir
         parent = os.path.dirname(path)
@@ -48,6 +50,8 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
             raise PermissionError(f"cannot create output folder {out_dir}: {parent} is not "
                                   "writable")
         return out_dir
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise PermissionError(f"output folder {out_dir} is a file, not a folder")
     try:
         os.makedirs(out_dir, exist_ok=True)
     except OSError as e:

@@ -113,6 +113,18 @@ def test_unwritable_out_dir(tmp_path, capsys):
     assert len(lines) == 1 and "output folder" in lines[0]
 
 
+def test_out_dir_that_is_a_file_is_named_so(tmp_path, capsys):
+    """``--out`` naming an existing file said "output folder is not writable" (of a
+    writable file); the report writers too."""
+    from mi_shadowmap import report
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("not a folder")
+    code, out, err = run(["compare", *TINY, "--out", blocker], capsys)
+    assert code == 2 and "is a file, not a folder" in err
+    with pytest.raises(PermissionError, match="is a file, not a folder"):
+        report.check_out_dir(str(blocker))
+
+
 def test_debug_shows_traceback(capsys):
     with pytest.raises(Exception, match="nope"):
         cli.main(["compare", "--methods", "nope", "--debug"])

@@ -148,17 +148,19 @@ def write_results(results, out_dir: str) -> dict:
     return written
 
 
-def warn_stale(out_dir: str, written) -> list:
+def warn_stale(out_dir: str, written, table: str | None = "metrics.csv") -> list:
     """Warn about EXR and PNG files in ``out_dir`` that this run did not write (an earlier
-    run's methods, which ``metrics.csv`` no longer lists); returns their names."""
+    run's methods, which ``table`` -- ``metrics.csv`` -- no longer lists; an earlier
+    ``maps`` run's emitters); returns their names."""
     mine = {os.path.basename(p) for p in written}
     stale = sorted(f for f in os.listdir(out_dir)
                    if f.endswith((".exr", ".png")) and f not in mine)
     if stale:
         import warnings
         shown = ", ".join(stale[:6]) + (f" and {len(stale) - 6} more" if len(stale) > 6 else "")
+        listed = f", not in its {table}" if table else ""
         warnings.warn(f"{out_dir} holds {len(stale)} image file(s) this run did not write "
-                      f"(an earlier run's, not in its metrics.csv): {shown}", stacklevel=2)
+                      f"(an earlier run's{listed}): {shown}", stacklevel=2)
     return stale
 
 
@@ -344,7 +346,9 @@ def write_maps(maps, out_dir: str, names=None) -> list[str]:
 
     Files are named after the emitters' labels (``names``, one per map, if given),
     made unique by :func:`unique_file_stems`; the header attribute ``emitter`` holds
-    the label. Returns the paths, one per map that is not None, in order."""
+    the label. Returns the paths, one per map that is not None, in order. Image files
+    in ``out_dir`` that this call did not write (an earlier run's maps) are warned about
+    (:func:`warn_stale`)."""
     check_out_dir(out_dir)
     maps = list(maps)
     names = [m.view.label if m is not None else None for m in maps] if names is None \
@@ -373,6 +377,7 @@ def write_maps(maps, out_dir: str, names=None) -> list[str]:
                 attributes[layer] = np.asarray(smap.extra[layer].numpy(), np.float32)
         write_exr(path, ch, attributes)
         paths.append(path)
+    warn_stale(out_dir, paths, table=None)   # an earlier run's maps (another scene's emitters) stay
     return paths
 
 

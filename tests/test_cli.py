@@ -231,6 +231,19 @@ def test_broken_plugin_is_one_line(tmp_path, capsys):
     assert code == 2 and "SyntaxError" in err and len(err.strip().splitlines()) == 1
 
 
+def test_maps_into_a_used_folder_warns_about_an_earlier_runs_maps(tmp_path, capsys):
+    """``maps`` of one scene, then of another, into one folder: the first one's maps
+    (``spot.exr``) stayed beside the second's without a word (``compare`` warns so)."""
+    out = tmp_path / "maps"
+    code, _, err = run(["maps", "--light", "spot", "--methods", "hard", "--set",
+                        "resolution=16", "--out", out], capsys)
+    assert code == 0 and (out / "spot.exr").exists()
+    with pytest.warns(UserWarning, match=r"did not write.*spot\.exr"):
+        code, _, _ = run(["maps", "--light", "point", "--methods", "hard", "--set",
+                          "resolution=16", "--out", out], capsys)
+    assert code == 0 and (out / "point.exr").exists()
+
+
 def test_plugin_in_help():
     p = subprocess.run([sys.executable, "-m", "mi_shadowmap.cli", "compare", "--help"],
                        capture_output=True, text=True, timeout=120)

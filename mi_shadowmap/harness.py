@@ -43,6 +43,7 @@ from .virtual import VirtualShadowMap
 from .scenes import load_scene
 from .specs import (RENDER_KEYS, REFERENCE_METHOD, available_methods,  # noqa: F401
                     check_run_args, check_shared_params, check_unique, default_methods,
+                    derived_seed,
                     map_methods, method_spec, parse_method_string, parse_value, spec_name,
                     users_of, uses_property, to_mitsuba, validate_property, validate_spec)
 from .sweep import (SweepTable, analyse, best_row, default_grid, expand_grid,  # noqa: F401
@@ -166,10 +167,10 @@ def remeasure(scene, reference_info: dict, spec: dict, metric: str, seed: int) -
     reference with its ``light_samples``, as for area lights and environments; else
     ``raytraced``) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
     if reference_info.get("method") == "converged":
-        ref = converged_reference(scene, spp=reference_info["spp"], seed=seed + 1,
+        ref = converged_reference(scene, spp=reference_info["spp"], seed=derived_seed(seed, 1),
                                   shadow_rays=1, n_light=reference_info["light_samples"])
     else:
-        ref = run_method(scene, "raytraced", spp=reference_info["spp"], seed=seed + 1,
+        ref = run_method(scene, "raytraced", spp=reference_info["spp"], seed=derived_seed(seed, 1),
                          measure_cached=False)
     out = compare(scene, methods=[spec], reference=ref, seed=seed, measure_cached=False)
     return float(out[1].metrics[metric])

@@ -197,6 +197,14 @@ def check_run_args(**args) -> None:
             raise OptionError(f"shadowmap: '{name}' must be an integer {rng}, got {value!r}")
 
 
+def derived_seed(seed: int, k: int) -> int:
+    """The seed ``k`` after ``seed`` (another seed for a reference or a re-measurement),
+    within Mitsuba's [0, 2^32): ``seed + 1`` of the largest seed ``check_run_args`` takes,
+    2^32 - 1, failed in Dr.Jit's ``sample_tea_32`` with "incompatible function
+    arguments" after the setup."""
+    return (int(seed) + int(k)) % 2 ** 32
+
+
 def check_unique(specs: list[dict], rounded: list | None = None) -> None:
     """Two specs with one name (:func:`spec_name`) are an error: their records and output
     files would share it. ``rounded``: for the message, the specs whose ``spp`` the

@@ -26,7 +26,7 @@ from .ground_truth import has_soft_lights, make_reference, score
 from .options import OptionError, parse_options
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_args,
-                    map_methods,
+                    derived_seed, map_methods,
                     property_record, spec_name, users_of, uses_property, validate_property,
                     validate_spec)
 from .tables import columns, format_sweep, write_csv, write_json
@@ -358,7 +358,8 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     max_spp = max(s["spp"] for s in specs)
     if reference == "auto" and not has_soft_lights(scene):
         reference = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}
-    ref = make_reference(scene, reference, spp=max(ref_spp, max_spp), seed=seed + 1,
+    ref = make_reference(scene, reference, spp=max(ref_spp, max_spp),
+                         seed=derived_seed(seed, 1),
                          ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
     from tqdm import tqdm
     rows, results, failed = [], [], []

@@ -71,7 +71,7 @@ from .ground_truth import (check_emitters, converged_reference, has_soft_lights,
 from .options import OptionError
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_shared_params,
-                    method_spec,
+                    derived_seed, method_spec,
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
 from .sweep import SweepTable, analyse
 from .tables import jsonable
@@ -483,8 +483,8 @@ class _Tuner:
         if size in self.pilots:
             return self.pilots[size]
         self.film.set(size)
-        a = self._ref_render(4, self.seed + 100)
-        b = self._ref_render(4, self.seed + 101)
+        a = self._ref_render(4, derived_seed(self.seed, 100))
+        b = self._ref_render(4, derived_seed(self.seed, 101))
         w, h = self.film.image_size(size)
         self._tick(f"reference noise at {w}x{h}")
         m = score(b, a)
@@ -505,7 +505,7 @@ class _Tuner:
         # noise of one reference at R spp ~ m4 * sqrt(4) / sqrt(2 R) <= B / 3
         need = (m4 * 2.0 / math.sqrt(2.0) / (REF_NOISE_FRACTION * self.B)) ** 2
         spp = int(min(max(64, 16 * math.ceil(need / 16)), self.max_ref_spp))
-        seed = self.seed + (1 if which == "small" else 3)
+        seed = derived_seed(self.seed, 1 if which == "small" else 3)
         self.film.set(size)
         ref = make_reference(self.scene, self._ref_render(spp, seed))
         capped = spp == self.max_ref_spp and need > spp
@@ -650,7 +650,7 @@ class _Tuner:
         self.film.set(self.full)
         self._tick(f"verify {c.key} spp={spp}", extra=1)
         try:
-            r = run_method(self.scene, c.method, spp=spp, seed=self.seed + 2,
+            r = run_method(self.scene, c.method, spp=spp, seed=derived_seed(self.seed, 2),
                            repeats=self.repeats, measure_cached=False,
                            **{k: v for k, v in c.spec.items() if k != "method"})
         except Exception as e:       # e.g. over memory_budget at full size: next row
@@ -831,7 +831,7 @@ class _Tuner:
                 if not self._time_left():
                     break
                 self._tick(f"time {c.key} spp={s}", extra=1)
-                r = run_method(self.scene, c.method, spp=s, seed=self.seed + 2,
+                r = run_method(self.scene, c.method, spp=s, seed=derived_seed(self.seed, 2),
                                repeats=self.repeats, measure_cached=False,
                                **{k: v for k, v in c.spec.items() if k != "method"})
                 runs[(c.key, s)].append(float(r.times["warm"]))

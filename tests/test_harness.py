@@ -795,3 +795,14 @@ def test_sweep_refuses_an_unknown_time_or_error_key_before_rendering(monkeypatch
     table = harness.sweep(scene, {"method": "hard", "resolution": [16, 32]}, spp=1, repeats=1,
                           progress=False, error_key="vis_rmse[spot]", time_key="time_cold")
     assert all(math.isfinite(r["error"]) for r in table) and any(r["pareto"] for r in table)
+
+
+def test_the_largest_seed_works_where_other_seeds_are_derived_from_it():
+    """``sweep`` renders its reference with ``seed + 1``: the largest seed it accepts,
+    2^32 - 1, failed in Dr.Jit's ``sample_tea_32`` ("incompatible function arguments")
+    after the setup; derived seeds wrap within [0, 2^32)."""
+    assert harness.derived_seed(2 ** 32 - 1, 1) == 0 and harness.derived_seed(5, 2) == 7
+    scene = mi.load_dict(default_scene(width=8, height=8, spp=1))
+    table = harness.sweep(scene, {"method": "hard"}, spp=1, seed=2 ** 32 - 1, repeats=1,
+                          ref_spp=2, progress=False)
+    assert math.isfinite(table[0]["error"])

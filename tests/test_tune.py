@@ -127,6 +127,14 @@ def test_a_budget_failed_on_the_error_bound_says_so(monkeypatch):
         tune(SPOT, 0.5, methods=["hard"], scene_params=FULL, max_spp=2, spp=1, **FAST)
 
 
+def test_the_largest_seed_is_a_seed_tune_takes():
+    """tune's references and verifications use ``seed + 1`` ... ``seed + 101``: seed
+    2^32 - 1, which it accepts, failed with Dr.Jit's "incompatible function arguments"."""
+    res = tune(SPOT, 0.5, methods=["hard"], scene_params={"width": 16, "height": 16},
+               max_spp=2, seed=2 ** 32 - 1, search_size=8, repeats=1, progress=False)
+    assert res["method"] == "hard"
+
+
 def test_time_limit_and_loaded_scene_restored():
     """A loaded scene works (its film is shrunk for the search and restored); the time
     limit ends the run soon after it, with a pick or an error naming the best error."""

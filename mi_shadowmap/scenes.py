@@ -192,7 +192,8 @@ def random_large_world(seed: int, width: int = 128, height: int | None = None,
     """A random scene like issue 11's large world (``scenes_xml/large_world.xml`` is
     one): a 4 km x 4 km ground under a sun 8-40 degrees high from any azimuth, seen
     from eye height (1.4-2.2) with a field of view of 45-75 degrees, 2-8 degrees
-    below the horizon, in any heading; 4 thin posts 2-7 away, 6 boxes or spheres
+    below the horizon, in any heading; 4 thin posts 2-7 away (square or round: cubes or
+    cylinders, as chance has it), 6 boxes or spheres
     8-80 away, 5 buildings 100-1500 away, all in or near the view. The same ``seed``
     gives the same scene (numpy's ``default_rng``). For checking that results hold
     beyond the repository's scenes (``benchmarks/bench_unseen.py``)."""
@@ -213,11 +214,17 @@ def random_large_world(seed: int, width: int = 128, height: int | None = None,
                               -math.cos(elev) * math.sin(az)],
                 "irradiance": {"type": "rgb", "value": 3.0}},
     }
+    # posts: square (cube) or round (cylinder), drawn from a stream of their own so the
+    # scene is otherwise the one the seed gave before round posts existed
+    round_posts = np.random.default_rng([seed, 1]).random(4) < 0.5
     for k, dist in enumerate(rng.uniform(2, 7, 4)):
         x, z = _placed(rng, yaw, fov, dist, 0.9)
         w, hh = rng.uniform(0.03, 0.08), rng.uniform(0.6, 1.5)
-        scene[f"post_{k}"] = {"type": "cube", "bsdf": _diffuse(0.8, 0.8, 0.8),
-                              "to_world": T().translate([x, hh, z]).scale([w, hh, w])}
+        scene[f"post_{k}"] = (
+            {"type": "cylinder", "p0": [x, 0.0, z], "p1": [x, 2 * hh, z], "radius": w,
+             "bsdf": _diffuse(0.8, 0.8, 0.8)} if round_posts[k] else
+            {"type": "cube", "bsdf": _diffuse(0.8, 0.8, 0.8),
+             "to_world": T().translate([x, hh, z]).scale([w, hh, w])})
     for k, dist in enumerate(rng.uniform(8, 80, 6)):
         x, z = _placed(rng, yaw, fov, dist, 0.9)
         r, sphere, turn = rng.uniform(0.3, 2.0), rng.random() < 0.5, rng.uniform(0, 90)

@@ -43,7 +43,7 @@ def test_random_scenes_are_reproducible_and_differ_by_seed():
     assert str({k: v for k, v in p.items() if k != "light"}) == \
         str({k: v for k, v in q.items() if k != "light"})
     shapes = [k for k, v in a.items() if isinstance(v, dict) and v["type"] in
-              ("rectangle", "cube", "sphere")]
+              ("rectangle", "cube", "sphere", "cylinder")]
     assert len(shapes) == 1 + 4 + 6 + 5
     scene = mi.load_dict(random_large_world(0, width=16, spp=1))
     assert [emitter_kind(e) for e in scene.emitters()] == ["directional"]

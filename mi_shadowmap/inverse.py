@@ -32,6 +32,7 @@ import numpy as np
 
 from .procedural import box
 from .scenes import camera, mesh
+from .specs import derived_seed
 
 T = mi.ScalarTransform4f
 #: Where :func:`occluder_scene` puts the light (the area light's centre).
@@ -182,7 +183,8 @@ def optimize(param: Parameter, integrator, target, mask: np.ndarray, x0, steps: 
              penalty=None) -> History:
     """Adam (``mi.ad.Adam``) on ``param`` from ``x0`` against ``target`` with
     :func:`masked_mse` over ``mask`` (plus ``penalty(x)``, a ``mi.Float``, if
-    given); a new seed every step. ``callback(step, history)`` after each step
+    given); a new seed every step (``seed + step`` within [0, 2^32),
+    :func:`~mi_shadowmap.specs.derived_seed`). ``callback(step, history)`` after each step
     (e.g. a progress bar). The scene is left at the final value."""
     opt = mi.ad.Adam(lr=lr)
     opt["x"] = mi.Float(np.asarray(x0, np.float32).ravel())
@@ -191,7 +193,7 @@ def optimize(param: Parameter, integrator, target, mask: np.ndarray, x0, steps: 
     for step in range(steps):
         param.set(opt["x"])
         img = mi.render(param.scene, param.params, integrator=integrator, spp=spp or 0,
-                        seed=seed + step)
+                        seed=derived_seed(seed, step))
         loss = masked_mse(img, target, mask)
         if penalty is not None:
             loss = loss + penalty(opt["x"])

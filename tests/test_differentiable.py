@@ -882,3 +882,18 @@ def test_forward_mode_with_maps_the_image_does_not_differentiate(method, what):
     print(f"{method} {what}: forward {fwd}, reverse {back}")
     assert np.isfinite(fwd).all() and np.abs(fwd).max() > 0.0
     assert np.allclose(fwd, back, rtol=1e-3, atol=1e-4 * np.abs(back).max())
+
+
+def test_optimising_from_the_largest_seed_wraps_the_seed():
+    """``optimize`` renders step ``k`` at ``seed + k``: from the largest seed Mitsuba
+    takes, 2^32 - 1, the second step failed in Dr.Jit's ``sample_tea_32`` ("incompatible
+    function arguments"); the seed now wraps within [0, 2^32)."""
+    scene = inverse.occluder_scene("point", 16, 1)
+    mask = inverse.receiver_mask(scene)
+    target = mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
+                                                       "method": "raytraced"}), spp=1)
+    param = _pose_parameter(scene, "point")
+    x0 = np.zeros(param.size)
+    hist = inverse.optimize(param, _integ("vsm"), target, mask, x0, steps=2, lr=0.01,
+                            spp=1, seed=2 ** 32 - 1)
+    assert len(hist.loss) == 2 and np.all(np.isfinite(hist.loss))

@@ -121,6 +121,12 @@ class LightView:
         """Unit vector from ``p_world`` towards the light (its centre)."""
         return dr.normalize(opaque_point(self.position) - p_world)
 
+    def direction_to_light_on_face(self, face, p_world: mi.Point3f) -> mi.Vector3f:
+        """Unit vector from ``p_world`` towards the light point that ``face``'s map is
+        seen from (one light point for every face here; views of several light points
+        tell each face's own, :class:`~mi_shadowmap.light_views.multi.MultiView`)."""
+        return self.direction_to_light(p_world)
+
     def tap_texel(self, face, xy_texel: mi.Point2f, res: int, cross_seams: bool = True):
         """Texel hit by a filter tap at continuous texel coordinates ``xy_texel``
         (``uv_light * res``) of ``face``: ``(face, i, j, inside)``.

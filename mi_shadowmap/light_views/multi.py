@@ -271,6 +271,12 @@ class MultiView(LightView):
         """Towards the template's light (the centre; a directional light's axis)."""
         return self.sub.direction_to_light(p_world)
 
+    def direction_to_light_on_face(self, face, p_world: mi.Point3f) -> mi.Vector3f:
+        """Towards the light point of ``face``'s view (an environment region's own
+        direction, a multi-view light point), not the template's."""
+        k, _ = self._split(face)
+        return self.lane(k).direction_to_light(p_world)
+
     def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
         return self.sub.texel_world_size(res, depth, p_world, n_world)
 

@@ -586,6 +586,17 @@ def light_view(emitter, scene, index: int, opts, label: str | None = None):
         return None
     if label is None:
         label = emitter_labels(scene.emitters())[index]
+    R = _to_world(emitter)
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4):
+        # Mitsuba maps a direction into the emitter's frame through the inverse
+        # transform and reads the texel of the result as if it were a unit vector, so a
+        # scaled frame reads another texel than the region's sampling put there (a
+        # to_world scaled by 2: the map methods rendered the sky 97 % too dark)
+        raise ValueError(
+            f"shadowmap: emitter '{label}': its to_world is not a rotation (it scales or "
+            f"shears: rows {np.round(R, 4).tolist()}); environment='shadowed' needs a "
+            "rotation (a mirror is fine). Remove the scale from to_world, or use "
+            "method='raytraced' or environment='unshadowed'")
     return environment_view(emitter, scene, label, opts.env_lights)
 
 

@@ -441,3 +441,37 @@ def test_a_sky_that_emits_nothing_has_visibility_zero_as_raytraced(virtual):
     for r in res:
         assert np.all(r.vis_stack() == 0.0), r.name
         assert r.metrics["vis_misclassified"] == 0.0
+
+
+def _framed_sky_scene(to_world):
+    sky = np.full((16, 32, 3), 0.1, np.float32)
+    sky[3:5, 10:12] = 200.0
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": T().look_at([0, 5, 5], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16,
+                            "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+        "box": {"type": "cube", "to_world": T().translate([0, 0.6, 0]).scale(0.4)},
+        "sky": {"type": "envmap", "bitmap": mi.Bitmap(sky), "to_world": to_world}})
+
+
+def test_a_scaled_environment_frame_is_refused_and_a_mirrored_one_renders():
+    """An envmap whose ``to_world`` scales: Mitsuba reads the texel of the inverse-
+    transformed direction as if it were a unit vector, so the regions' samples read
+    other texels (scaled by 2 and turned: every map method 97 % darker than ``direct``,
+    ``raytraced`` equal to it). Refused naming ``to_world``; a mirror (an orthogonal
+    frame) renders as ``raytraced`` does."""
+    T = mi.ScalarTransform4f
+    scene = _framed_sky_scene(T().rotate([0, 1, 0], 50).scale(2.0))
+    with pytest.raises(ValueError, match="to_world is not a rotation"):
+        mi.load_dict({"type": "shadowmap"}).check_scene(scene)
+    # ray tracing and an unshadowed environment do not use the regions
+    for props in ({"method": "raytraced"}, {"environment": "unshadowed"}):
+        assert np.isfinite(_render(scene, {"type": "shadowmap", **props}, 1)).all()
+    scene = _framed_sky_scene(T().rotate([0, 1, 0], 50).scale([1, 1, -1]))
+    rt = _render(scene, {"type": "shadowmap", "method": "raytraced"}, 256)
+    hard = _render(scene, {"type": "shadowmap"}, 64)
+    assert abs(hard[..., :3].mean() / rt[..., :3].mean() - 1.0) < 0.03

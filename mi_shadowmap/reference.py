@@ -131,7 +131,10 @@ def converged_visibility(scene: mi.Scene, n_light: int = 1024, seed: int = 0, sp
     method's AOV is binary noise around the right mean whatever its shadows.
     """
     from .integrator import integrator_class
+    from .scenes import load_scene
     from .timing import check_film
+    if not isinstance(scene, mi.Scene):
+        scene = load_scene(scene)   # a dict or a path; another variant's scene is named
     if not isinstance(spp, int) or spp < 1:
         raise ValueError(f"converged_visibility: spp must be an integer >= 1, got {spp!r}")
     check_film(scene, sensor, what="converged_visibility")

@@ -532,3 +532,20 @@ def test_a_scene_of_another_variant_is_named_as_such():
             call()
     with pytest.raises(TypeError, match="an mi.Scene, a scene dict or the path"):
         harness.compare(3, methods=["hard"])
+
+
+def test_a_scene_of_another_variant_is_named():
+    """A scene loaded before ``mi.set_variant`` is another variant's ``mi.Scene``:
+    ``compare``, ``sweep``, ``tune`` and ``converged_visibility`` name both variants
+    (they said "expected str, bytes or os.PathLike object, not Scene", or failed in
+    ``mi.render`` with a bare AssertionError)."""
+    scene = load("spot_sphere_box.xml", width=8, height=8)
+    mi.set_variant("llvm_ad_mono")
+    calls = [lambda: mi_shadowmap.compare(scene, methods=["hard"], spp=1),
+             lambda: mi_shadowmap.harness.sweep(scene, grid={"method": ["hard"]}),
+             lambda: mi_shadowmap.tune(scene, max_error=0.1),
+             lambda: mi_shadowmap.harness.prepare_maps(scene, methods=["hard"]),
+             lambda: mi_shadowmap.reference.converged_visibility(scene, n_light=4, spp=1)]
+    for call in calls:
+        with pytest.raises(ValueError, match="'llvm_ad_rgb'.*'llvm_ad_mono'"):
+            call()

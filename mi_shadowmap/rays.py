@@ -204,6 +204,66 @@ def _on_cylinders(si, scene):
     return si.p + dr.select(ok, dr.detach(again.p) - p, 0.0)
 
 
+#: A shadow ray is intersected (:func:`occluded`) where the scene's bounding diagonal
+#: exceeds this many radii of its smallest ``sphere``: from 100 radii Mitsuba's sphere
+#: ``ray_test`` errs on 0.02 % of the rays aimed at it, within 0.0012 radii of its outline.
+SPHERE_TEST_RADII = 100.0
+
+
+def sphere_test_unsafe(scene) -> tuple:
+    """``(unsafe, instances)``: whether ``scene``'s own shapes include a ``sphere`` that a
+    ray starting within the scene's bounds may start more than :data:`SPHERE_TEST_RADII`
+    radii from (see :func:`occluded`), and whether they include an ``instance`` (whose
+    shape groups' shapes are not listed)."""
+    shapes = list(scene.shapes())
+    instances = any(s.class_name() == "Instance" for s in shapes)
+    radii = []
+    for s in shapes:
+        if s.class_name() == "Sphere":
+            b = shape_bounds(s)
+            radii.append(0.5 * float(np.max(b[1] - b[0])) if b is not None else 0.0)
+    if not radii:
+        return False, instances
+    bounds = scene_bounds(scene)
+    diagonal = float(np.linalg.norm(bounds[1] - bounds[0])) if bounds is not None else 0.0
+    return diagonal > SPHERE_TEST_RADII * min(radii), instances
+
+
+def occluded(scene, ray, active=True):
+    """Whether anything lies on the shadow ray ``ray`` (within its ``maxt``): Mitsuba's
+    ``scene.ray_test``, except where the scene holds a ``sphere``.
+
+    Mitsuba 3.9's sphere answers ``ray_test`` with the textbook quadratic in float32 (AD
+    variants): ``|o - c|^2 - r^2`` from an origin ``D`` away loses ``r`` once ``u
+    (D / r)^2`` nears 1, so a shadow ray that starts a few hundred radii or more from a
+    sphere misses it or hits thin air near its outline. Its ``ray_intersect`` moves the
+    origin to the plane through the centre first and is exact to ``~u D``. Measured
+    (rays aimed within 1.3 radii of the centre, against the float64 answer): ``ray_test``
+    wrong on 0.02 % of them from 100 radii, 0.3 % from 300, 2.3 % from 1000 (up to 0.12
+    radii from the outline), 47 % from 1e4 (any of them), ``ray_intersect`` on <= 0.01
+    %. A 1 mm ball 10 units above a floor under a point light at 20 cast, in
+    ``raytraced`` and in Mitsuba's ``direct``, a shadow 3.8x the area of its true one.
+    So where the scene's own shapes include a sphere more than
+    :data:`SPHERE_TEST_RADII` radii smaller than the scene's diagonal the ray is
+    intersected instead (``ray_intersect_preliminary``: its first hit within ``maxt``;
+    measured 1.5x the time of ``ray_test`` on the built-in scene's rays). A sphere inside an
+    ``instance`` whose ``to_world`` scales it is intersected in Mitsuba with a ray
+    direction that is not unit length, where the same plane step lands off the plane
+    and is worse than ``ray_test``; in a scene with instances a hit on an instance's
+    shape is therefore left to ``ray_test`` (an intersected hit on the scene's own
+    shapes still counts).
+    """
+    unsafe, instances = sphere_test_unsafe(scene)
+    if not unsafe:
+        return scene.ray_test(ray, active)
+    pi = scene.ray_intersect_preliminary(ray, active=active)
+    hit = pi.is_valid()
+    if not instances:
+        return active & hit
+    own = hit & (dr.reinterpret_array(mi.UInt32, pi.instance) == 0)
+    return active & (own | scene.ray_test(ray, active & ~own))
+
+
 def shape_index(shape_ptr, size: int):
     """The registry id of each lane's shape (``si.shape``) as a ``mi.UInt32`` index into
     :func:`shape_tables`' rows (0 for ids out of range)."""

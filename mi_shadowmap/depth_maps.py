@@ -27,7 +27,7 @@ import numpy as np
 import mitsuba as mi
 
 from .light_views import LightView
-from .map_scene import map_scene
+from .map_scene import map_scene, stand_in
 from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
 
 
@@ -164,15 +164,17 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
     ``(shape, prim_index)`` (null shape where nothing is hit), for
     :mod:`mi_shadowmap.antialias`.
     """
+    own_shape = view.ignore_shape
     if not (differentiable or return_hit):
-        scene = map_scene(scene)       # cylinders as meshes (mi_shadowmap.map_scene)
+        original, scene = scene, map_scene(scene)   # cylinders as meshes (map_scene)
+        own_shape = stand_in(original, own_shape)   # a tube light's prism
     o_ad = d_ad = None
     if pose is not None:
         o_ad, d_ad = pose.ray(o, d)
         o, d = dr.detach(o_ad), dr.detach(d_ad)
     ray = mi.Ray3f(o, d)
     pi = scene.ray_intersect_preliminary(ray, coherent=COHERENT_RAYS)
-    own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
+    own = mi.ShapePtr(own_shape) if own_shape is not None else None
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     t_acc = mi.Float(0.0)
     it = dr.zeros(mi.UInt32, dr.width(pi.t))
@@ -440,8 +442,9 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
 def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
     """:func:`second_depth_layer` for given texel rays ``(o, d)`` (unit ``d``): the
     distance along each ray to its second surface (the virtual maps' pages use it)."""
-    scene = map_scene(scene)           # cylinders as meshes (mi_shadowmap.map_scene)
-    own = mi.ShapePtr(view.ignore_shape) if view.ignore_shape is not None else None
+    original, scene = scene, map_scene(scene)   # cylinders as meshes (map_scene)
+    own_shape = stand_in(original, view.ignore_shape)   # a tube light's prism
+    own = mi.ShapePtr(own_shape) if own_shape is not None else None
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     face_offset, face_mag, face_solid = _face_magnitudes(scene)
     # a stored depth's rounding (see second_depth_layer), at least the ray origins'

@@ -247,7 +247,8 @@ def sphere_test_unsafe(scene) -> tuple:
 
 def occluded(scene, ray, active=True):
     """Whether anything lies on the shadow ray ``ray`` (within its ``maxt``): Mitsuba's
-    ``scene.ray_test``, except where the scene holds a ``sphere``.
+    ``scene.ray_test``, except where the scene holds a ``sphere`` or a ``cylinder``
+    (for cylinders see the code).
 
     Mitsuba 3.9's sphere answers ``ray_test`` with the textbook quadratic in float32 (AD
     variants): ``|o - c|^2 - r^2`` from an origin ``D`` away loses ``r`` once ``u
@@ -269,15 +270,72 @@ def occluded(scene, ray, active=True):
     shape is therefore left to ``ray_test`` (an intersected hit on the scene's own
     shapes still counts).
     """
+    return occlusion(scene)(ray, active)
+
+
+def occlusion(scene):
+    """:func:`occluded` for ``scene``, prepared: a function ``(ray, active) -> mi.Bool``.
+    Everything read from the scene (its cylinders' radii, the maps' copy of it, its
+    spheres) is read here, so the function can be called inside symbolic loops."""
+    r_min = _smallest_cylinder(scene)
+    inside = _occlusion_in(scene)
+    if r_min is None:
+        return inside
+    from .map_scene import DEVIATION, map_scene
+    copy = map_scene(scene)
+    if copy is scene:              # kept (instances): Mitsuba's cylinders, with a warning
+        return inside
+    # Cylinders: Mitsuba 3.9 intersects them in float32 in object space (see
+    # map_scene), so a shadow ray that starts hundreds of radii from a thin cylinder
+    # misses it: a pole 0.06 wide under a sun 6 degrees high lost its shadow 100 units
+    # away on 3.7 % of a view (of 12.5 % shadowed), 200 units away on all of it but 0.5 %
+    # (in Mitsuba's ``direct`` too). The first CYLINDER_NEAR smallest radii of the ray
+    # (where the receiver's own cylinder is, exactly as the camera saw it) query the
+    # scene; the rest the maps' copy, whose cylinders are prisms within DEVIATION of the
+    # scene's diagonal of them (the end shortened by twice that: a tube light's prism).
+    beyond = _occlusion_in(copy)
+    near_t = CYLINDER_NEAR * r_min
+    b = scene_bounds(scene)
+    margin = 2.0 * DEVIATION * (float(np.linalg.norm(b[1] - b[0])) if b is not None else 0.0)
+
+    def query(ray, active=True):
+        near = mi.Ray3f(ray.o, ray.d, dr.minimum(ray.maxt, near_t), ray.time,
+                        ray.wavelengths)
+        far_active = active & (ray.maxt - margin > near_t)
+        far = mi.Ray3f(ray.o + ray.d * near_t, ray.d,
+                       dr.maximum(ray.maxt - near_t - margin, 0.0), ray.time, ray.wavelengths)
+        return inside(near, active) | beyond(far, far_active)
+    return query
+
+
+#: :func:`occluded` queries the scene itself for the first this many radii of the
+#: smallest cylinder along a shadow ray, the maps' copy (cylinders as prisms) beyond:
+#: from 333 radii Mitsuba's cylinder test still agreed with a near ray on 20,000 rays.
+CYLINDER_NEAR = 100.0
+
+
+def _smallest_cylinder(scene):
+    """The smallest radius of ``scene``'s own cylinders, or None without any."""
+    radii = [float(np.linalg.norm(np.array(mi.traverse(s)["to_world"].matrix,
+                                           np.float64).reshape(4, 4)[:3, 0]))
+             for s in scene.shapes() if s.shape_type() == mi.ShapeType.Cylinder]
+    return min(radii) if radii else None
+
+
+def _occlusion_in(scene):
+    """:func:`occlusion` within ``scene`` alone (its spheres; see :func:`occluded`)."""
     unsafe, instances = sphere_test_unsafe(scene)
-    if not unsafe:
-        return scene.ray_test(ray, active)
-    pi = scene.ray_intersect_preliminary(ray, active=active)
-    hit = pi.is_valid()
-    if not instances:
-        return active & hit
-    own = hit & (dr.reinterpret_array(mi.UInt32, pi.instance) == 0)
-    return active & (own | scene.ray_test(ray, active & ~own))
+
+    def query(ray, active=True):
+        if not unsafe:
+            return scene.ray_test(ray, active)
+        pi = scene.ray_intersect_preliminary(ray, active=active)
+        hit = pi.is_valid()
+        if not instances:
+            return active & hit
+        own = hit & (dr.reinterpret_array(mi.UInt32, pi.instance) == 0)
+        return active & (own | scene.ray_test(ray, active & ~own))
+    return query
 
 
 def shape_index(shape_ptr, size: int):

@@ -32,7 +32,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .rays import is_infinite, occluded as occluded_by, spawn_shadow_ray
+from .rays import is_infinite, occlusion, spawn_shadow_ray
 from .variants import unpolarized, variant_class
 
 
@@ -84,6 +84,7 @@ class _ConvergedVisibilityMixin:
         ctx = mi.BSDFContext()
         n = self.n_light
         aovs = []
+        query = occlusion(scene) if self.occlusion else None   # outside the loops
         for emitter in scene.emitters():
             k = mi.UInt32(0)
             n_vis = mi.Float(0.0)
@@ -100,8 +101,8 @@ class _ConvergedVisibilityMixin:
                 f = unpolarized(bsdf.eval(ctx, si, si.to_local(ds.d), lit))
                 lit &= dr.max(w * f) > 0
                 if self.occlusion:
-                    occluded = occluded_by(    # not ray_test alone: spheres
-                        scene, spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter)), lit)
+                    occluded = query(    # not ray_test alone: spheres, cylinders
+                        spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter)), lit)
                 else:
                     occluded = mi.Bool(False)
                 n_vis = dr.select(lit & ~occluded, n_vis + 1.0, n_vis)

@@ -61,6 +61,14 @@ class RayTracedLight:
     (None: unknown; it says whether its samples are at infinity)."""
     scene: mi.Scene
     emitter: object = None
+    #: the scene's shadow-ray query (:func:`mi_shadowmap.rays.occlusion`), prepared here,
+    #: outside the symbolic loops that call it
+    occlusion: object = None
+
+    def __post_init__(self):
+        if self.occlusion is None:
+            from ..rays import occlusion
+            self.occlusion = occlusion(self.scene)
 
 
 @dataclass

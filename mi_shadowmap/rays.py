@@ -226,23 +226,31 @@ def _on_cylinders(si, scene):
 SPHERE_TEST_RADII = 100.0
 
 
+#: Up to this many spheres :func:`occluded` tests each shadow ray against (which spheres
+#: it passes from far); beyond, every ray of the scene is intersected.
+MAX_SPHERES_CHECKED = 32
+
+
 def sphere_test_unsafe(scene) -> tuple:
-    """``(unsafe, instances)``: whether ``scene``'s own shapes include a ``sphere`` that a
-    ray starting within the scene's bounds may start more than :data:`SPHERE_TEST_RADII`
-    radii from (see :func:`occluded`), and whether they include an ``instance`` (whose
-    shape groups' shapes are not listed)."""
+    """``(spheres, instances)``: the centres and radii (a ``(k, 4)`` float64 array) of
+    ``scene``'s own spheres that a ray starting within the scene's bounds may start more
+    than :data:`SPHERE_TEST_RADII` radii from (see :func:`occluded`; None without any),
+    and whether its shapes include an ``instance`` (whose shape groups' shapes are not
+    listed)."""
     shapes = list(scene.shapes())
     instances = any(s.class_name() == "Instance" for s in shapes)
-    radii = []
+    spheres = []
     for s in shapes:
         if s.class_name() == "Sphere":
             b = shape_bounds(s)
-            radii.append(0.5 * float(np.max(b[1] - b[0])) if b is not None else 0.0)
-    if not radii:
-        return False, instances
+            if b is not None:
+                spheres.append(np.r_[0.5 * (b[0] + b[1]), 0.5 * float(np.max(b[1] - b[0]))])
+    if not spheres:
+        return None, instances
     bounds = scene_bounds(scene)
     diagonal = float(np.linalg.norm(bounds[1] - bounds[0])) if bounds is not None else 0.0
-    return diagonal > SPHERE_TEST_RADII * min(radii), instances
+    spheres = np.array([sp for sp in spheres if diagonal > SPHERE_TEST_RADII * sp[3]])
+    return (spheres if len(spheres) else None), instances
 
 
 def occluded(scene, ray, active=True):
@@ -260,17 +268,19 @@ def occluded(scene, ray, active=True):
     radii from the outline), 47 % from 1e4 (any of them), ``ray_intersect`` on <= 0.01
     %. A 1 mm ball 10 units above a floor under a point light at 20 cast, in
     ``raytraced`` and in Mitsuba's ``direct``, a shadow 3.8x the area of its true one.
-    So where the scene's own shapes include a sphere more than
-    :data:`SPHERE_TEST_RADII` radii smaller than the scene's diagonal the ray is
-    intersected instead (``ray_intersect_preliminary``: its first hit within ``maxt``;
-    measured 1.5x the time of ``ray_test`` on the built-in scene's rays). A sphere inside an
+    So a ray that passes near (see the code) a sphere more than
+    :data:`SPHERE_TEST_RADII` radii from its origin is intersected instead
+    (``ray_intersect_preliminary``: its first hit within ``maxt``; 1.5x the time of
+    ``ray_test`` on the built-in scene's rays), the others tested (up to
+    :data:`MAX_SPHERES_CHECKED` spheres smaller than a hundredth of the scene's diagonal
+    checked per ray; with more, every ray is intersected). A sphere inside an
     ``instance`` whose ``to_world`` scales it is intersected in Mitsuba with a ray
     direction that is not unit length, where the same plane step lands off the plane
     and is worse than ``ray_test``; in a scene with instances a hit on an instance's
     shape is therefore left to ``ray_test`` (an intersected hit on the scene's own
     shapes still counts).
     """
-    return occlusion(scene)(ray, active)
+    return occlusion(scene)(ray, active)     # as if every ray left a cylinder
 
 
 def occlusion(scene):
@@ -289,23 +299,39 @@ def occlusion(scene):
     # map_scene), so a shadow ray that starts hundreds of radii from a thin cylinder
     # misses it: a pole 0.06 wide under a sun 6 degrees high lost its shadow 100 units
     # away on 3.7 % of a view (of 12.5 % shadowed), 200 units away on all of it but 0.5 %
-    # (in Mitsuba's ``direct`` too). The first CYLINDER_NEAR smallest radii of the ray
-    # (where the receiver's own cylinder is, exactly as the camera saw it) query the
-    # scene; the rest the maps' copy, whose cylinders are prisms within DEVIATION of the
-    # scene's diagonal of them (the end shortened by twice that: a tube light's prism).
+    # (in Mitsuba's ``direct`` too). The ray queries the maps' copy, whose cylinders are
+    # prisms within DEVIATION of the scene's diagonal of them (the end shortened by twice
+    # that: a tube light's prism); a ray that leaves a cylinder (on_cylinder) queries the
+    # scene for its first CYLINDER_NEAR smallest radii, where its own cylinder is
+    # exactly as the camera saw it (not its prism, which it may start inside).
     beyond = _occlusion_in(copy)
     near_t = CYLINDER_NEAR * r_min
     b = scene_bounds(scene)
     margin = 2.0 * DEVIATION * (float(np.linalg.norm(b[1] - b[0])) if b is not None else 0.0)
 
-    def query(ray, active=True):
+    def query(ray, active=True, on_cylinder=None):
+        # on_cylinder (per lane, :func:`on_cylinder`): the ray leaves a cylinder; elsewhere
+        # the copy alone is queried (None: every lane as if it did)
+        split = active if on_cylinder is None else active & on_cylinder
+        start = dr.select(split, near_t, 0.0)
         near = mi.Ray3f(ray.o, ray.d, dr.minimum(ray.maxt, near_t), ray.time,
                         ray.wavelengths)
-        far_active = active & (ray.maxt - margin > near_t)
-        far = mi.Ray3f(ray.o + ray.d * near_t, ray.d,
-                       dr.maximum(ray.maxt - near_t - margin, 0.0), ray.time, ray.wavelengths)
-        return inside(near, active) | beyond(far, far_active)
+        far_active = active & (ray.maxt - margin > start)
+        far = mi.Ray3f(ray.o + ray.d * start, ray.d,
+                       dr.maximum(ray.maxt - start - margin, 0.0), ray.time, ray.wavelengths)
+        return inside(near, split) | beyond(far, far_active)
     return query
+
+
+def on_cylinder(si, scene):
+    """Per lane, whether the surface interaction ``si`` is on one of ``scene``'s own
+    cylinders (``mi.Bool``; reads no JIT value)."""
+    flags = cylinder_flags(scene)
+    if flags is None:
+        return dr.zeros(mi.Bool, dr.width(si.t))
+    idx = dr.reinterpret_array(mi.UInt32, si.shape)
+    on = si.is_valid() & (idx < len(flags))
+    return on & (dr.gather(mi.UInt32, mi.UInt32(flags), dr.select(on, idx, 0), on) == 1)
 
 
 #: :func:`occluded` queries the scene itself for the first this many radii of the
@@ -324,17 +350,43 @@ def _smallest_cylinder(scene):
 
 def _occlusion_in(scene):
     """:func:`occlusion` within ``scene`` alone (its spheres; see :func:`occluded`)."""
-    unsafe, instances = sphere_test_unsafe(scene)
+    spheres, instances = sphere_test_unsafe(scene)
+    if spheres is not None and len(spheres) <= MAX_SPHERES_CHECKED:
+        table = mi.Float(spheres.astype(np.float32).ravel())   # not literals: may move
 
-    def query(ray, active=True):
-        if not unsafe:
+    def risky(ray, active):
+        """The rays that pass near such a sphere from more than
+        :data:`SPHERE_TEST_RADII` radii away (only there ``ray_test`` errs)."""
+        if len(spheres) > MAX_SPHERES_CHECKED:
+            return active
+        out = mi.Bool(False)
+        o, d = dr.detach(ray.o), dr.detach(ray.d)
+        for k in range(len(spheres)):
+            c = mi.Point3f(*[dr.gather(mi.Float, table, mi.UInt32(4 * k + j)) for j in range(3)])
+            r = dr.gather(mi.Float, table, mi.UInt32(4 * k + 3))
+            oc = c - o
+            along = dr.dot(oc, d)
+            # squared distance of the centre from the ray's line (a cross product: no
+            # cancellation) against where ray_test may answer wrongly: its discriminant
+            # r^2 - dist^2 is off by about u |oc|^2 (u = 2^-24), so up to dist^2 = r^2 +
+            # u |oc|^2 (2.6 radii from 1e4 radii away); 1.5 r and 8 u |oc|^2 here
+            dist2 = dr.squared_norm(dr.cross(oc, d))
+            oc2 = dr.squared_norm(oc)
+            out |= ((dist2 < 2.25 * r * r + 8.0 * UNIT_ROUNDOFF * oc2) & (along > -r)
+                    & (along < ray.maxt + r) & (oc2 > (SPHERE_TEST_RADII * r) ** 2))
+        return active & out
+
+    def query(ray, active=True, on_cylinder=None):     # (on_cylinder: unused here)
+        if spheres is None:
             return scene.ray_test(ray, active)
-        pi = scene.ray_intersect_preliminary(ray, active=active)
-        hit = pi.is_valid()
-        if not instances:
-            return active & hit
-        own = hit & (dr.reinterpret_array(mi.UInt32, pi.instance) == 0)
-        return active & (own | scene.ray_test(ray, active & ~own))
+        far = risky(ray, active)
+        pi = scene.ray_intersect_preliminary(ray, active=far)
+        hit = far & pi.is_valid()
+        test = active & ~far
+        if instances:
+            own = hit & (dr.reinterpret_array(mi.UInt32, pi.instance) == 0)
+            hit, test = own, test | (far & ~own)
+        return hit | scene.ray_test(ray, test)
     return query
 
 

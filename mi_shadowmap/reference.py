@@ -32,7 +32,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .rays import is_infinite, occlusion, spawn_shadow_ray
+from .rays import is_infinite, occlusion, on_cylinder, spawn_shadow_ray
 from .variants import unpolarized, variant_class
 
 
@@ -85,6 +85,7 @@ class _ConvergedVisibilityMixin:
         n = self.n_light
         aovs = []
         query = occlusion(scene) if self.occlusion else None   # outside the loops
+        on_cyl = on_cylinder(si, scene)
         for emitter in scene.emitters():
             k = mi.UInt32(0)
             n_vis = mi.Float(0.0)
@@ -102,7 +103,8 @@ class _ConvergedVisibilityMixin:
                 lit &= dr.max(w * f) > 0
                 if self.occlusion:
                     occluded = query(    # not ray_test alone: spheres, cylinders
-                        spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter)), lit)
+                        spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter)), lit,
+                        on_cyl)
                 else:
                     occluded = mi.Bool(False)
                 n_vis = dr.select(lit & ~occluded, n_vis + 1.0, n_vis)

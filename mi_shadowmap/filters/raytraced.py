@@ -5,7 +5,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from ..rays import is_infinite, spawn_shadow_ray
+from ..rays import is_infinite, on_cylinder, spawn_shadow_ray
 from .common import Lookup, RayTracedLight
 
 
@@ -32,7 +32,8 @@ def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
     if opts.light_sample == "independent":
         target = _independent_target(lk, active)
     ray = spawn_shadow_ray(lk.si, target, smap.scene, is_infinite(smap.emitter))
-    occluded = smap.occlusion(ray, active)     # not ray_test alone: spheres, cylinders
+    occluded = smap.occlusion(ray, active,     # not ray_test alone: spheres, cylinders
+                              on_cylinder(lk.si, smap.scene))
     return dr.select(occluded, 0.0, 1.0)
 
 

@@ -37,7 +37,10 @@ Not replaced (the maps keep Mitsuba's cylinder there):
 
 * cylinders inside an ``instance`` (a copy of the scene cannot hold the scene's
   instances: Mitsuba refuses to add an existing ``instance`` to another scene), so a
-  scene with instances and cylinders keeps its cylinders (a warning says so);
+  scene with instances and cylinders keeps its cylinders, a warning says so (also
+  where the only cylinders are inside shape groups: posts drawn through instances
+  under a low sun over a 4 km ground, ``hard`` 13 % misclassified against 0.24 % for
+  the same posts as shapes);
 * maps built with gradients or antialiased outlines (:func:`~mi_shadowmap.depth_maps.
   first_hit`'s ``differentiable``, ``return_hit``): their derivatives and outlines
   belong to the scene's own shapes.
@@ -125,6 +128,9 @@ def map_scene(scene: mi.Scene) -> mi.Scene:
     shapes = list(scene.shapes())
     cylinders = [sh for sh in shapes if is_cylinder(sh)]
     if not cylinders:
+        if grouped_cylinders(scene):       # only inside instances: kept, with a warning
+            return _keep(scene, None, [], "a copy of the scene with the cylinders as "
+                         "meshes cannot hold its instances")
         _remember(scene, None, scene, [])
         return scene
     key, held = _key(shapes)
@@ -163,6 +169,17 @@ def stand_in(scene: mi.Scene, shape):
     if hit is None or hit[0] is not scene:
         return shape
     return hit[4].get(id(shape), shape)
+
+
+def grouped_cylinders(scene: mi.Scene) -> int:
+    """How many cylinders ``scene``'s shape groups hold (drawn through ``instance``s;
+    :meth:`mi.Scene.shapes` lists the instances, not them)."""
+    if not any(sh.class_name() == "Instance" for sh in scene.shapes()):
+        return 0
+    hierarchy = mi.traverse(scene).hierarchy
+    return sum(1 for obj, (parent, _) in hierarchy.items()
+               if parent is not None and parent.class_name().startswith("ShapeGroup")
+               and obj.class_name() == "Cylinder")
 
 
 def _keep(scene, key, held, why: str) -> mi.Scene:

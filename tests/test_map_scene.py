@@ -168,3 +168,22 @@ def test_a_tube_light_is_a_prism_in_the_other_lights_maps():
     assert sun < 0.01 and own < 0.02
     tube = [s for s in scene.shapes() if s.is_emitter()][0]
     assert ms.stand_in(scene, tube) in list(ms.map_scene(scene).shapes())
+
+
+def test_cylinders_only_inside_instances_are_warned_about():
+    """Posts drawn only through ``instance``s (no cylinder among the scene's own shapes)
+    kept Mitsuba's cylinder in the maps without the warning the README promises: under a
+    low sun over a 4 km ground ``hard`` misclassified 13 % of a view (0.24 % for the same
+    post as a shape)."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2000)},
+        "g": {"type": "shapegroup", "c": {"type": "cylinder", "p0": [0, 0, 0], "p1": [0, 2, 0],
+                                          "radius": 0.03}},
+        "i": {"type": "instance", "shapegroup": {"type": "ref", "id": "g"}}})
+    with pytest.warns(RuntimeWarning, match="instances"):
+        assert ms.map_scene(scene) is scene
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")        # once per scene
+        assert ms.map_scene(scene) is scene
+    assert ms.grouped_cylinders(scene) == 1

@@ -106,13 +106,19 @@ def cylinder_prism(shape, n: int) -> mi.Mesh:
 
 def _key(shapes) -> tuple:
     """What the copy depends on: the shapes, meshes' buffers (JIT indices; the buffers
-    are held with the copy so their indices are not reused), others' bounds."""
+    are held with the copy so their indices are not reused), cylinders' ``to_world``
+    (their prisms are baked from it; a cylinder tilted about its centre the other way
+    keeps its bounds), others' bounds (Embree's bounds of them: the copy holds the
+    shapes themselves, which intersect with their current parameters)."""
     key, held = [], []
     for sh in shapes:
         if sh.is_mesh():
             v, f = sh.vertex_positions_buffer(), sh.faces_buffer()
             held += [v, f]
             key.append((id(sh), v.index, f.index))
+        elif is_cylinder(sh) and not sh.is_emitter():
+            m = np.array(mi.traverse(sh)["to_world"].matrix, np.float64)
+            key.append((id(sh), tuple(m.ravel().tolist())))
         else:
             b = sh.bbox()
             key.append((id(sh), tuple(b.min), tuple(b.max)))

@@ -187,3 +187,35 @@ def test_cylinders_only_inside_instances_are_warned_about():
         warnings.simplefilter("error")        # once per scene
         assert ms.map_scene(scene) is scene
     assert ms.grouped_cylinders(scene) == 1
+
+
+def test_a_cylinder_tilted_the_other_way_gets_a_new_prism():
+    """A cylinder turned about its own centre from +30 to -30 degrees keeps its bounding
+    box, which was all the copy's key held of it: the maps kept the old prism (depths
+    of the post leaning the other way, off by up to 2.3 units along these rays)."""
+    def lean(angle):
+        return T().translate([0, 2, 0]).rotate([0, 0, 1], angle).rotate([1, 0, 0], -90) \
+            .translate([0, 0, -1.5]).scale([0.2, 0.2, 3])
+
+    def scene_at(angle):
+        return mi.load_dict({
+            "type": "scene",
+            "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(10)},
+            "post": {"type": "cylinder", "to_world": lean(angle)},
+            "sun": {"type": "directional", "direction": [0, -1, 0]}})
+
+    xs = np.linspace(-1, 1, 21).astype(np.float32)
+    o = mi.Point3f(xs, np.full(21, 5, np.float32), np.zeros(21, np.float32))
+    d = mi.Vector3f(0, -1, 0)
+
+    def depths(scene):
+        return first_hit(scene, make_light_view(scene.emitters()[0], scene, 0), o, d).numpy()
+
+    scene = scene_at(30)
+    before = depths(scene)
+    params = mi.traverse(scene)
+    params["post.to_world"] = mi.Transform4f(lean(-30).matrix)
+    params.update()
+    want = depths(scene_at(-30))
+    assert np.abs(before - want).max() > 1.0           # the two leans differ here
+    assert np.abs(depths(scene) - want).max() < 1e-4

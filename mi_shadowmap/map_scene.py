@@ -19,8 +19,8 @@ as shadowed (a phantom depth 0.3-0.8 units in front of them).
 
 What it does: every cylinder among the scene's shapes becomes an open prism of
 :func:`segments` sides (Mitsuba's cylinders have no caps) with the cylinder's
-``to_world``, its vertices at ``r / cos(pi / (2 n))`` so that the prism's faces lie
-within ``+- r (1 - cos(pi / n)) / 2`` of the true surface; meshes are intersected in
+``to_world``, its vertices at ``r / cos(pi / (2 n))^2`` so that the prism's faces lie
+within ``+- r tan(pi / (2 n))^2`` of the true surface; meshes are intersected in
 world space by Embree, exactly to float32. The copy holds the scene's other shapes
 themselves (the same objects, so an area light's own shape is still recognised; a
 cylinder that is an area light has its prism recognised instead, :func:`stand_in`), is
@@ -69,11 +69,11 @@ _MAX_SCENES = 4
 def segments(radius: float, diagonal: float) -> int:
     """Sides of the prism standing for a cylinder of ``radius`` in a scene of bounding
     diagonal ``diagonal``: the fewest (a power of two, 32-2048) whose faces lie within
-    ``DEVIATION * diagonal`` of the cylinder, i.e. ``r (1 - cos(pi / n)) / 2`` (about
+    ``DEVIATION * diagonal`` of the cylinder, i.e. ``r tan(pi / (2 n))^2`` (about
     ``r (pi / n)^2 / 4``) at most that."""
     if not (radius > 0.0 and diagonal > 0.0):
         return MIN_SEGMENTS
-    n = math.pi / math.sqrt(4.0 * DEVIATION * diagonal / radius)
+    n = math.pi / (2.0 * math.atan(math.sqrt(DEVIATION * diagonal / radius)))
     n = 2 ** math.ceil(math.log2(max(n, 1.0)))
     return int(min(max(n, MIN_SEGMENTS), MAX_SEGMENTS))
 
@@ -87,7 +87,7 @@ def cylinder_prism(shape, n: int) -> mi.Mesh:
     doc), as a Mitsuba mesh without BSDF-relevant data (only its depths are read)."""
     to_world = np.array(mi.traverse(shape)["to_world"].matrix, np.float64).reshape(4, 4)
     phi = 2.0 * np.pi * np.arange(n) / n
-    rho = 1.0 / math.cos(math.pi / (2 * n))
+    rho = 1.0 / math.cos(math.pi / (2 * n)) ** 2   # vertices and faces r tan^2 off, out and in
     ring = np.stack([rho * np.cos(phi), rho * np.sin(phi)], 1)
     local = np.concatenate([np.c_[ring, np.zeros(n), np.ones(n)],
                             np.c_[ring, np.ones(n), np.ones(n)]])     # z = 0, then 1

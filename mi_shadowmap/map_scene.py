@@ -116,7 +116,7 @@ def _key(shapes) -> tuple:
             v, f = sh.vertex_positions_buffer(), sh.faces_buffer()
             held += [v, f]
             key.append((id(sh), v.index, f.index))
-        elif is_cylinder(sh) and not sh.is_emitter():
+        elif is_cylinder(sh):
             m = np.array(mi.traverse(sh)["to_world"].matrix, np.float64)
             key.append((id(sh), tuple(m.ravel().tolist())))
         else:

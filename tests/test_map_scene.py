@@ -222,28 +222,6 @@ def test_a_cylinder_tilted_the_other_way_gets_a_new_prism():
 
 
 
-def test_cylinders_only_inside_a_shapegroup_are_named_by_the_warning():
-    """The README says cylinders inside instances keep Mitsuba's test with a warning;
-    a scene whose only cylinder was a shapegroup's got none (only a top-level cylinder
-    beside instances was warned about)."""
-    scene = mi.load_dict({
-        "type": "scene", "r": {"type": "rectangle"},
-        "sg": {"type": "shapegroup", "c": {"type": "cylinder", "radius": 0.03}},
-        "i": {"type": "instance", "shapegroup": {"type": "ref", "id": "sg"}}})
-    with pytest.warns(RuntimeWarning, match="inside instances"):
-        assert ms.map_scene(scene) is scene
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")        # once per scene
-        assert ms.map_scene(scene) is scene
-    plain = mi.load_dict({
-        "type": "scene", "r": {"type": "rectangle"},
-        "sg": {"type": "shapegroup", "s": {"type": "sphere"}},
-        "i": {"type": "instance", "shapegroup": {"type": "ref", "id": "sg"}}})
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")        # no cylinder anywhere: no warning
-        assert ms.map_scene(plain) is plain
-
-
 @pytest.mark.parametrize("radius, diagonal", [(0.03, 5657.0), (1.0, 10.0), (100.0, 300.0)])
 def test_the_prisms_faces_lie_within_the_deviation(radius, diagonal):
     """The prism itself, not the formula: its vertices (outside the cylinder) and the

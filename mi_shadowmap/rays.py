@@ -175,6 +175,15 @@ def cylinder_flags(scene):
 CYLINDER_RETRACE = 1e-3
 
 
+def surface_point(si, scene):
+    """The point a shadow ray from ``si`` leaves from, before its offset (and the point
+    the maps look up): ``si.p``, found again from near it on cylinders and on non-mesh
+    hits through instances (:func:`_on_cylinders`). One ``ray_intersect`` where the scene
+    has such shapes: a caller tracing several shadow rays from one ``si`` (light samples
+    in a loop) computes it once and passes it to :func:`spawn_shadow_ray`."""
+    return _on_cylinders(si, scene)
+
+
 def _on_cylinders(si, scene):
     """``si.p``, found again from near it where it is a cylinder's, or a hit through an
     ``instance`` (see the code for those).
@@ -403,7 +412,8 @@ def is_infinite(emitter) -> bool:
     return emitter is not None and mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
 
 
-def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
+def spawn_shadow_ray(si, p_target, scene, infinite: bool = False,
+                     p_surface=None) -> "mi.Ray3f":
     """A shadow ray from the surface interaction ``si`` towards ``p_target``.
 
     ``si`` is a ``mi.SurfaceInteraction3f`` of ``scene`` (``si.p``, ``si.n``,
@@ -424,6 +434,9 @@ def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
     20-degree sun cast no shadow in Mitsuba's own ``direct`` (image mean 0.1075
     against 0.0880 with the meshes kept apart). A ray that long still stops short of
     the target it is given when that is farther.
+
+    ``p_surface``: :func:`surface_point` of ``si``, if the caller has it (default:
+    computed here, one more ``ray_intersect`` per call on a scene with cylinders).
     """
     Float = mi.Float
 
@@ -440,7 +453,7 @@ def spawn_shadow_ray(si, p_target, scene, infinite: bool = False) -> "mi.Ray3f":
     along = dr.gather(Float, Float(along_table), idx)
     ulps = dr.gather(Float, Float(ulps_table), idx)
 
-    p = _on_cylinders(si, scene)
+    p = _on_cylinders(si, scene) if p_surface is None else p_surface
     p_d = dr.detach(p)
     n = dr.detach(si.n)
     t_cam = dr.detach(si.t)

@@ -32,7 +32,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .rays import is_infinite, occlusion, on_cylinder, spawn_shadow_ray
+from .rays import is_infinite, occlusion, on_cylinder, spawn_shadow_ray, surface_point
 from .variants import unpolarized, variant_class
 
 
@@ -86,6 +86,8 @@ class _ConvergedVisibilityMixin:
         aovs = []
         query = occlusion(scene) if self.occlusion else None   # outside the loops
         on_cyl = on_cylinder(si, scene)
+        # once, not per light sample: on cylinders it is one more ray_intersect
+        p_surface = surface_point(si, scene) if self.occlusion else None
         for emitter in scene.emitters():
             k = mi.UInt32(0)
             n_vis = mi.Float(0.0)
@@ -103,8 +105,8 @@ class _ConvergedVisibilityMixin:
                 lit &= dr.max(w * f) > 0
                 if self.occlusion:
                     occluded = query(    # not ray_test alone: spheres, cylinders
-                        spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter)), lit,
-                        on_cyl)
+                        spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter), p_surface),
+                        lit, on_cyl)
                 else:
                     occluded = mi.Bool(False)
                 n_vis = dr.select(lit & ~occluded, n_vis + 1.0, n_vis)

@@ -64,6 +64,9 @@ class RayTracedLight:
     #: the scene's shadow-ray query (:func:`mi_shadowmap.rays.occlusion`), prepared here,
     #: outside the symbolic loops that call it
     occlusion: object = None
+    #: the shading point's :func:`~mi_shadowmap.rays.surface_point`, computed once for all
+    #: its light samples (None: per shadow ray)
+    p_surface: object = None
 
     def __post_init__(self):
         if self.occlusion is None:

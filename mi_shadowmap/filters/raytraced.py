@@ -31,7 +31,8 @@ def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
     target = lk.ds.p
     if opts.light_sample == "independent":
         target = _independent_target(lk, active)
-    ray = spawn_shadow_ray(lk.si, target, smap.scene, is_infinite(smap.emitter))
+    ray = spawn_shadow_ray(lk.si, target, smap.scene, is_infinite(smap.emitter),
+                           getattr(smap, "p_surface", None))
     occluded = smap.occlusion(ray, active,     # not ray_test alone: spheres, cylinders
                               on_cylinder(lk.si, smap.scene))
     return dr.select(occluded, 0.0, 1.0)

@@ -240,3 +240,16 @@ def test_the_prisms_faces_lie_within_the_deviation(radius, diagonal):
     bound = ms.DEVIATION * diagonal + 1e-7 * radius   # + float32 rounding of the vertices
     assert 0 < out <= bound and 0 < inside <= bound, (n, out, inside, bound)
     assert max(out, inside) > 0.25 * ms.DEVIATION * diagonal or n == ms.MIN_SEGMENTS
+
+
+def test_a_kept_copy_costs_no_traversal(monkeypatch):
+    """Every first_hit asks for the copy: reading each cylinder's to_world through a new
+    mi.traverse and a read-back made a cached call of 500 cylinders 13x slower (56 ms
+    against 4 ms). The cylinders' parameters are traversed once, with the copy."""
+    scene = post_scene(radius=0.5)
+    copy = ms.map_scene(scene)
+    calls = []
+    real = mi.traverse
+    monkeypatch.setattr(mi, "traverse", lambda *a, **k: calls.append(a) or real(*a, **k))
+    assert ms.map_scene(scene) is copy
+    assert calls == []

@@ -82,10 +82,17 @@ def is_cylinder(shape) -> bool:
     return shape.shape_type() == mi.ShapeType.Cylinder
 
 
+def cylinder_radius(shape) -> float:
+    """A cylinder's radius: the length of its ``to_world``'s first column (Mitsuba's
+    cylinder has radius 1 in its object space)."""
+    m = np.array(_traversal(shape)["to_world"].matrix, np.float64).reshape(4, 4)
+    return float(np.linalg.norm(m[:3, 0]))
+
+
 def cylinder_prism(shape, n: int) -> mi.Mesh:
     """An open prism of ``n`` sides standing for the cylinder ``shape`` (see the module
     doc), as a Mitsuba mesh without BSDF-relevant data (only its depths are read)."""
-    to_world = np.array(mi.traverse(shape)["to_world"].matrix, np.float64).reshape(4, 4)
+    to_world = np.array(_traversal(shape)["to_world"].matrix, np.float64).reshape(4, 4)
     phi = 2.0 * np.pi * np.arange(n) / n
     rho = 1.0 / math.cos(math.pi / (2 * n)) ** 2   # vertices and faces r tan^2 off, out and in
     ring = np.stack([rho * np.cos(phi), rho * np.sin(phi)], 1)
@@ -170,9 +177,8 @@ def map_scene(scene: mi.Scene) -> mi.Scene:
     entries, stand_ins = {}, {}
     for k, sh in enumerate(shapes):
         if is_cylinder(sh):
-            radius = float(np.linalg.norm(np.array(mi.traverse(sh)["to_world"].matrix,
-                                                   np.float64).reshape(4, 4)[:3, 0]))
-            entries[f"shape_{k}"] = cylinder_prism(sh, segments(radius, diagonal))
+            entries[f"shape_{k}"] = cylinder_prism(sh, segments(cylinder_radius(sh),
+                                                                 diagonal))
             if sh.is_emitter():
                 stand_ins[id(sh)] = entries[f"shape_{k}"]
         else:
@@ -200,12 +206,8 @@ def stand_in(scene: mi.Scene, shape):
 def grouped_cylinders(scene: mi.Scene) -> int:
     """How many cylinders ``scene``'s shape groups hold (drawn through ``instance``s;
     :meth:`mi.Scene.shapes` lists the instances, not them)."""
-    if not any(sh.class_name() == "Instance" for sh in scene.shapes()):
-        return 0
-    hierarchy = mi.traverse(scene).hierarchy
-    return sum(1 for obj, (parent, _) in hierarchy.items()
-               if parent is not None and parent.class_name().startswith("ShapeGroup")
-               and obj.class_name() == "Cylinder")
+    from .depth_maps import _grouped_shapes      # (depth_maps imports this module)
+    return sum(1 for sh in _grouped_shapes(scene, list(scene.shapes())) if is_cylinder(sh))
 
 
 def _keep(scene, key, held, why: str) -> mi.Scene:

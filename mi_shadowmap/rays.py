@@ -203,11 +203,7 @@ def _on_cylinders(si, scene):
     instances = any(s.class_name() == "Instance" for s in scene.shapes())
     if flags is None and not instances:
         return si.p
-    on = mi.Bool(False)
-    if flags is not None:
-        idx = dr.reinterpret_array(mi.UInt32, si.shape)
-        on = si.is_valid() & (idx < len(flags))
-        on &= dr.gather(mi.UInt32, mi.UInt32(flags), dr.select(on, idx, 0), on) == 1
+    on = on_cylinder(si, scene, flags)
     if instances:
         # a sphere drawn through an instance that scales it is intersected with a ray
         # direction that is not unit length, and Mitsuba 3.9's step to the plane through
@@ -332,10 +328,11 @@ def occlusion(scene):
     return query
 
 
-def on_cylinder(si, scene):
+def on_cylinder(si, scene, flags=False):
     """Per lane, whether the surface interaction ``si`` is on one of ``scene``'s own
-    cylinders (``mi.Bool``; reads no JIT value)."""
-    flags = cylinder_flags(scene)
+    cylinders (``mi.Bool``; reads no JIT value). ``flags``: :func:`cylinder_flags` of
+    ``scene`` where the caller has it."""
+    flags = cylinder_flags(scene) if flags is False else flags
     if flags is None:
         return dr.zeros(mi.Bool, dr.width(si.t))
     idx = dr.reinterpret_array(mi.UInt32, si.shape)
@@ -351,9 +348,8 @@ CYLINDER_NEAR = 100.0
 
 def _smallest_cylinder(scene):
     """The smallest radius of ``scene``'s own cylinders, or None without any."""
-    radii = [float(np.linalg.norm(np.array(mi.traverse(s)["to_world"].matrix,
-                                           np.float64).reshape(4, 4)[:3, 0]))
-             for s in scene.shapes() if s.shape_type() == mi.ShapeType.Cylinder]
+    from .map_scene import cylinder_radius, is_cylinder
+    radii = [cylinder_radius(s) for s in scene.shapes() if is_cylinder(s)]
     return min(radii) if radii else None
 
 

@@ -66,7 +66,9 @@ or 'name=v1,v2 name=v1,v2 ...' items separated by spaces or ';'. Every sub-grid 
 it. Default: every map method at resolution 256,512,1024 and raytraced at spp 1..16."""
 
 
-#: Error columns a sweep can trade against time (all "lower is better").
+#: Error columns a sweep can trade against time (all "lower is better"): sweep.ERROR_KEYS,
+#: spelled out so that the CLI's argument parser does not import Mitsuba
+#: (tests/test_tune.py checks they agree).
 ERROR_COLUMNS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow",
                  "vis_false_lit", "vis_penumbra_rmse", "img_rmse", "img_mae",
                  "img_relative_mse", "img_flip")

@@ -73,15 +73,14 @@ from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_shared_params,
                     derived_seed, method_spec,
                     property_record, spec_name, to_mitsuba, uses_property, validate_spec)
-from .sweep import SweepTable, analyse
+from .sweep import ERROR_KEYS, SweepTable, analyse
 from .tables import jsonable
 from .timing import (MIN_SCORED_SIDE, MethodResult, check_film, check_scored_film, config_error,
                      film_is_xyz, render_timed, rendered_spp, run_method, sampler_spp,
                      split_channels)
 
 #: Error metrics the tuner accepts (lower is better; the sweep's error columns).
-METRICS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow", "vis_false_lit",
-           "vis_penumbra_rmse", "img_rmse", "img_mae", "img_relative_mse", "img_flip")
+METRICS = ERROR_KEYS
 
 #: Main accuracy parameters of the built-in methods and the values searched, besides
 #: ``spp`` (every method) and ``resolution`` (every method that reads a depth map).

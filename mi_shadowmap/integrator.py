@@ -30,7 +30,7 @@ from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys
                           unique_labels)  # noqa: F401  (re-exported)
 from .light_views.base import scene_bounds
 from .methods import MethodError
-from .rays import surface_point
+from .rays import occlusion, surface_point
 from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
                        variant_class)
 from .virtual import VirtualShadowMap, camera_frame
@@ -444,6 +444,9 @@ screen is Mitsuba's projective integrators' job.
         p_surface = surface_point(si, scene)
         if opts.uses_map:
             si.p = p_surface
+        # raytraced: the scene's shadow-ray query (rays.occlusion: its spheres, the maps'
+        # copy for cylinders), prepared once for every emitter
+        query = None if opts.uses_map else occlusion(scene)
         for k, emitter in enumerate(scene.emitters()):
             # an emitter with sampling_weight 0 is never sampled by Mitsuba's direct (nor
             # path): it lights nothing; its visibility AOV is still reported
@@ -460,7 +463,7 @@ screen is Mitsuba's projective integrators' job.
                 smap = None   # environment='unshadowed': no shadows for any method
             else:
                 smap = (self.maps[k] if opts.uses_map
-                        else RayTracedLight(scene, emitter, p_surface=p_surface))
+                        else RayTracedLight(scene, emitter, query, p_surface))
             vis_sum = mi.Float(0.0)
             contributes = mi.Bool(False)
             shift = None

@@ -133,7 +133,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "slope and normal biases, which are scale-invariant).", lo=0.0),
     Prop("slope_bias", "float", None,
          "Slope-scaled depth bias in texels (multiplied by the texel's world size and "
-         "tan(angle to the light)). Default: 1.0 (0 for second_depth).", lo=0.0),
+         "tan(angle to the light)). Default: 1.0, or the method's own "
+         "(Method.bias_defaults, listed below).", lo=0.0),
     Prop("normal_bias", "float", None,
          "Offset of the lookup point along the surface normal (turned towards the light), "
          "in texels, times cos(theta), theta the angle between the normal and the light "
@@ -141,7 +142,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "the full offset where tan(theta) > max_tan_slope clamps the slope bias, at "
          "least 0.5 texel there when slope_bias > 0). A texel's width is taken along the "
          "receiver's slope (a low sun's stretched map: its short side on the ground). "
-         "Default: 0.5 (0 for second_depth).", lo=0.0),
+         "Default: 0.5, or the method's own (Method.bias_defaults, listed below).",
+         lo=0.0),
     Prop("hide_emitters", "bool", False, "Hide directly visible emitters."),
     Prop("environment", "str", "shadowed",
          "What to do with environment/constant emitters: 'shadowed' splits them into "
@@ -560,10 +562,19 @@ def _check_virtual(record, values: dict, given) -> None:
                           "'page_size' or set virtual=false (full maps)")
 
 
+def _default_text(p: Prop) -> str:
+    """The default a docs row gives: the declared one, or for the texel biases the
+    shared one and each method's own (its record's ``bias_defaults``)."""
+    if p.name in _DEFAULT_BIAS:
+        own = [f"{m.name}: {m.bias_defaults[p.name]!r}" for m in _methods.records()
+               if p.name in m.bias_defaults]
+        return repr(_DEFAULT_BIAS[p.name]) + (f" ({', '.join(own)})" if own else "")
+    return "automatic" if p.default is None else repr(p.default)
+
+
 def _row(p: Prop, where: str) -> str:
     return ("   * - " + p.name + "\n     - |" + p.kind + "|\n     - " + p.doc
-            + f" (default: {'automatic' if p.default is None else repr(p.default)}; "
-              f"{p.describe_range()}{where})")
+            + f" (default: {_default_text(p)}; {p.describe_range()}{where})")
 
 
 def docs_table() -> str:

@@ -144,3 +144,154 @@ def test_resolution_zero_means_automatic():
     """Scene files pass ``$resolution``; a default of 0 leaves it to the integrator."""
     assert parse_options({"resolution": 0}).resolution is None
     assert parse_options({"resolution": 0, "virtual": True}).resolution is None
+
+
+# ------------------------------------------------------- the README's table against the code
+_README_TYPES = {"string": "str", "integer": "int", "float": "float", "boolean": "bool"}
+_README_AUTOMATIC = ("automatic", "derived", "none")
+
+
+def _readme_property_rows() -> dict:
+    """``{name: (type cell, default cell, meaning cell)}`` of the README's table of the
+    integrator's properties."""
+    import pathlib
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    rows, inside = {}, False
+    for line in readme.splitlines():
+        if line.startswith("| property | type | default | meaning |"):
+            inside = True
+            continue
+        if inside and not line.startswith("|"):
+            break
+        if inside and not line.startswith("|---"):
+            name, kind, default, meaning = [c.strip() for c in
+                                            line.strip().strip("|").split(" | ", 3)]
+            rows[name.strip("`")] = (kind, default, meaning)
+    return rows
+
+
+def _readme_value(text: str):
+    text = text.strip().strip("`")
+    if text in _README_AUTOMATIC:
+        return None
+    if text in ("true", "false"):
+        return text == "true"
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _readme_defaults(cell: str) -> dict:
+    """A default cell, ``2`` or ``1 (`msm`, `evsm`), 2 (`vsm`)``: ``{method or None:
+    value}`` (None: every method not named)."""
+    import re
+    out = {}
+    for m in re.finditer(r"\s*([^,()]+?)\s*(?:\(([^)]*)\))?\s*(?:,|$)", cell):
+        if not m.group(1):
+            continue
+        value = _readme_value(m.group(1))
+        who = [w.strip().strip("`") for w in m.group(2).split(",")] if m.group(2) else [None]
+        for w in who:
+            assert w not in out, f"default cell {cell!r} names {w} twice"
+            out[w] = value
+    return out
+
+
+def _code_default(method: str, prop):
+    """The default of ``prop`` for ``method``: its declared one (None: automatic), the
+    method's resolved texel biases, the integrator's own ``method``."""
+    resolved = {"bias": "bias_world", "slope_bias": "slope_bias_texels",
+                "normal_bias": "normal_bias_texels"}
+    if prop.name == "method":
+        return parse_options({}).method
+    if prop.name in resolved:
+        return getattr(parse_options({"method": method}), resolved[prop.name])
+    return prop.default
+
+
+def _num(x: float) -> str:
+    return f"{x:g}".replace("e+0", "e").replace("e+", "e")
+
+
+def test_readme_property_table_matches_the_parser():
+    """Every row of the README's property table gives each method that accepts the
+    property its type and default as the options parser has them, and its allowed values
+    (choices, ranges). The table once gave ``slope_bias`` 1.0 / ``normal_bias`` 0.5 but
+    for ``multiview``, where ``vsm`` and ``evsm`` default to 0.5 / 0.25 and
+    ``second_depth`` to 0 / 0, and listed no ``vsm``, ``evsm``, ``msm`` as a ``method``."""
+    from mi_shadowmap import methods
+    from mi_shadowmap.options import all_properties, properties_for
+    rows = _readme_property_rows()
+    builtin = [m.name for m in methods.records() if m.builtin]
+    problems = []
+    for prop in all_properties():
+        if prop.name not in rows:
+            problems.append(f"{prop.name}: no row")
+            continue
+        kind, default, meaning = rows[prop.name]
+        words = kind.split()
+        want = "pair" if words[0] == "string" and len(words) > 1 else _README_TYPES.get(words[0])
+        if want != prop.kind:
+            problems.append(f"{prop.name}: README type {kind!r}, code {prop.kind!r}")
+        defaults = _readme_defaults(default)
+        for m in builtin:
+            own = {p.name: p for p in properties_for(m)}
+            if prop.name not in own:
+                continue
+            p = own[prop.name]
+            doc = defaults.get(m, defaults.get(None, "missing"))
+            code = _code_default(m, p)
+            if isinstance(code, (int, float)) and not isinstance(code, bool) \
+                    and isinstance(doc, float):
+                same = abs(doc - code) <= 1e-12 * max(1.0, abs(code))
+            else:
+                same = doc == code
+            if not same:
+                problems.append(f"{prop.name} ({m}): README default {doc!r}, code {code!r}")
+            if p.choices is not None:
+                listed = [f"`{c}`" if isinstance(c, str) else str(c) for c in p.choices]
+                missing = [c for c in listed if c not in meaning]
+                if missing:
+                    problems.append(f"{prop.name}: README lacks choices {missing}")
+            elif p.kind in ("int", "float", "pair") and p.lo is not None:
+                lo = _num(p.lo)
+                if p.hi is not None:
+                    hi = _num(p.hi) if p.hi < 2**20 else None
+                    forms = ([f"{lo}..{hi}"] if not p.lo_open else []) + \
+                        [f"> {lo} and <= {hi}"]
+                    ok = hi is None or any(f in meaning for f in forms)
+                else:
+                    forms = [f"> {lo}"] if p.lo_open else [f">= {lo}", f"{lo} <="]
+                    ok = any(f in meaning for f in forms)
+                if not ok:
+                    problems.append(f"{prop.name}: README gives no range {forms}")
+    method_row = rows["method"][2]
+    problems += [f"method: README lacks `{m}`" for m in builtin if f"`{m}`" not in method_row]
+    problems = list(dict.fromkeys(problems))
+    assert not problems, "README property table vs options:\n  " + "\n  ".join(problems)
+
+
+def test_plugin_docstring_gives_each_methods_texel_bias_defaults():
+    """The plugin docstring's table (``docs_table``) gives ``slope_bias`` and
+    ``normal_bias`` defaults every method renders with: it said "1.0 (0 for
+    second_depth)" and "0.5 (0 for second_depth)", where ``vsm`` and ``evsm`` use 0.5 /
+    0.25 and ``multiview`` 2.0 / 0."""
+    import re
+    from mi_shadowmap import methods
+    from mi_shadowmap.options import docs_table
+    from mi_shadowmap.integrator import ShadowMapIntegratorMixin
+    table = docs_table()
+    assert table in ShadowMapIntegratorMixin.__doc__
+    rows = {blk.split("\n", 1)[0]: blk for blk in table.split("   * - ")[1:]}
+    for name, attr in (("slope_bias", "slope_bias_texels"),
+                       ("normal_bias", "normal_bias_texels")):
+        m = re.search(r"\(default: ([0-9.]+)(?: \(([^)]*)\))?;", rows[name])
+        assert m, rows[name]
+        own = dict(item.split(": ") for item in m.group(2).split(", ")) if m.group(2) else {}
+        for rec in methods.records():
+            if not rec.uses_map:
+                continue
+            code = getattr(parse_options({"method": rec.name}), attr)
+            doc = float(own.get(rec.name, m.group(1)))
+            assert doc == code, f"{name} of {rec.name}: docstring {doc}, code {code}"

@@ -66,8 +66,9 @@ lobe with a non-delta one weights its delta samples by the mixture's density in
 ``direct`` and ``path``: 0.77x of the blend's share on a diffuse/conductor blend;
 this term uses the delta lobes alone and gives the share.)
 
-One visibility AOV per emitter, ``vis_<id>`` (``vis_<index>`` when the
-emitter has no id), carries the visibility used for it (0 where it
+One visibility AOV per emitter, ``vis_<id>`` (an area emitter without an id of
+its own, or sharing it, takes its shape's id where unique; the rest ``vis_<index>``:
+:func:`~mi_shadowmap.light_views.emitter_labels`), carries the visibility used for it (0 where it
 contributes nothing; a method whose record has ``whole_light``, e.g.
 ``multiview``, reports its visibility of the whole light, horizon included).
 

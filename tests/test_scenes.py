@@ -114,3 +114,17 @@ def test_load_scene_sets_parameters_of_included_files(tmp_path):
     with pytest.raises(ValueError, match=r"has no parameter \$spp \(neither it nor the "
                                          r"files it includes"):
         load_scene(tmp_path / "main.xml", width=40, spp=4)
+
+
+def test_readme_scene_table_lists_every_scene_file():
+    """Every ``scenes_xml/*.xml`` has a row in the README's scene table, and every row
+    names a file there (``spectral_point.xml`` had none)."""
+    import pathlib
+    import re
+    root = pathlib.Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    table = readme.split("| scene | lights | what it exercises |", 1)[1].split("\n\n", 1)[0]
+    rows = set(re.findall(r"^\| `([\w.]+\.xml)` \|", table, re.M))
+    files = {p.name for p in (root / "scenes_xml").glob("*.xml")}
+    assert rows == files, (f"README lacks {sorted(files - rows)}; "
+                           f"lists missing files {sorted(rows - files)}")

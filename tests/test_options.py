@@ -135,6 +135,19 @@ def test_readme_has_a_row_for_every_builtin_method():
     assert not missing, f"README method table lacks: {missing}"
 
 
+def test_readme_method_table_is_methods_table():
+    """The README says ``options.methods_table()`` prints its method table: the built-in
+    rows are that table's, in its order (msm and evsm were in another order)."""
+    import pathlib
+    from mi_shadowmap import methods
+    from mi_shadowmap.options import methods_table
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    builtin = {m.name for m in methods.records() if m.builtin}
+    lines = methods_table().splitlines()
+    lines = lines[:2] + [ln for ln in lines[2:] if ln.split("`")[1] in builtin]
+    assert "\n".join(lines) + "\n" in readme
+
+
 def test_min_samples_default_follows_num_samples():
     assert parse_options({"method": "pcf", "num_samples": 1}).min_samples == 1
     assert parse_options({"method": "pcf"}).min_samples == 2

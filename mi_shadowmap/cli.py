@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser(
         "compare", help="render the reference and each method, write images and metrics",
         description="Render the reference (raytraced for delta lights; converged soft-shadow "
-                    "reference for area lights) and each method with the same seed; print "
+                    "reference for area lights and environments) and each method with the same seed; print "
                     "the metrics table; write <out>/<method>.exr (RGB, vis_<emitter>, "
                     "err_<emitter>, img_err), PNG previews, contact_sheet.png, pareto.png, "
                     "metrics.csv and metrics.json.")
@@ -158,7 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="spp of --reference converged (default 64); the automatic reference "
                         "renders at --spp, with the methods' camera samples")
     c.add_argument("--ref-shadow-rays", type=int, default=64,
-                   help="shadow rays of the converged area-light reference (default 64)")
+                   help="shadow rays of the converged reference of area lights and "
+                        "environments (default 64)")
 
     s = sub.add_parser(
         "sweep", help="render a parameter grid, Pareto front of time vs error",

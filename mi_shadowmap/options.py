@@ -123,7 +123,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "gradient_light_samples stratified light samples, as Worchel & Alexa's "
          "rasteriser evaluates one point per pixel: the value is unchanged, the "
          "derivative loses the pixel position's and the light sample's noise (measured: "
-         "gradient spread 9-14x lower for vsm, pcf and bilinear, 2x for pcss). 'sample': "
+         "gradient spread 9-14x lower for vsm, pcf and bilinear; pcss's and jittered pcf's "
+         "taps are drawn per film pixel there, pcss 12x). 'sample': "
          "the plain derivative of each sample.",
          choices=("pixel_centre", "sample")),
     Prop("gradient_light_samples", "int", 16,

@@ -308,3 +308,16 @@ def test_plugin_docstring_gives_each_methods_texel_bias_defaults():
             code = getattr(parse_options({"method": rec.name}), attr)
             doc = float(own.get(rec.name, m.group(1)))
             assert doc == code, f"{name} of {rec.name}: docstring {doc}, code {code}"
+
+
+def test_docs_name_the_methods_with_virtual_maps():
+    """The README's ``virtual`` row and the property's docstring name exactly the
+    built-in methods whose records read virtual maps."""
+    import re
+    from mi_shadowmap import methods
+    from mi_shadowmap.options import _GENERAL
+    builtin = {m.name for m in methods.records() if m.builtin}
+    want = {m.name for m in methods.records() if m.builtin and m.virtual}
+    row = _readme_property_rows()["virtual"][2]
+    assert set(re.findall(r"`(\w+)`", row)) & builtin == want
+    assert set(re.findall(r"\w+", _GENERAL["virtual"].doc)) & builtin == want

@@ -328,21 +328,22 @@ screen is Mitsuba's projective integrators' job.
     def _names(self):
         return [f"vis_{lab}" for lab in self._emitter_labels]
 
-    def _prepare_nested(self, scene, sampler):
+    def _prepare_nested(self, scene, sampler, ray=None):
         """``sample()`` called by another integrator's render: Mitsuba's ``aov`` (or
         ``moment``) integrator nesting this one. Mitsuba 3.9's ``aov`` renders its child
         with the child's ``render()`` (our image, visibility AOVs included) and then
         calls the child's ``sample()`` again in its own render, for its own channels;
         other integrators may call ``sample()`` alone. The first pass runs here: for
         the sensor of our render of this scene that just ran (its maps come from the
-        cache), else for the scene's first sensor; footprints take the spp from the
-        render's sampler."""
+        cache), else for the sensor being rendered (:func:`_nested_sensor`: the one whose
+        film's pixel count fits the render's wavefront, and if several do, whose ray
+        through its first pixel is nearest the render's first ray); footprints take the
+        spp from the render's sampler."""
         rendered = self._last_render is scene     # aov: our render() just ran
         if rendered and self._sensor is not None:
             sensor = self._sensor
         else:
-            sensors = scene.sensors()
-            sensor = sensors[0] if len(sensors) > 0 else None
+            sensor = _nested_sensor(scene, sampler, ray)
         self._first_pass(scene, sensor, max(sampler.sample_count(), 1))
         missing = [n for n in self._names() if n not in self._names_given]
         # after our own render() of this scene (Mitsuba's aov merges that image, whose
@@ -405,7 +406,7 @@ screen is Mitsuba's projective integrators' job.
             # Nested: the parent reserved one channel per name aov_names() gave it when
             # it was built (before any scene: none) and advances by aov_names() now.
             self._nested = True
-            self._prepare_nested(scene, sampler)
+            self._prepare_nested(scene, sampler, ray)
             result, valid, aovs = self._sample(scene, sampler, ray, medium, active)
             mine = dict(zip(self._names(), aovs))
             return result, valid, [mine.get(n, mi.Float(0.0)) for n in self._names_given]
@@ -755,6 +756,58 @@ def _warn_if_enclosing(scene, view, method: str) -> None:
             "inside the scene. Use method='multiview' (maps from points on the light) or "
             "'raytraced', or an environment emitter (envmap, constant) with "
             "environment='shadowed'", RuntimeWarning, stacklevel=3)
+
+
+def _nested_sensor(scene, sampler, ray):
+    """The sensor a render that calls our ``sample()`` alone (Mitsuba's ``moment``,
+    ``stokes``) is rendering: Mitsuba does not pass it. Its sampler's wavefront holds
+    ``spp`` samples per pixel of that sensor's film (its crop and a sampled border),
+    which rules out sensors of other sizes; among several (or none) of that size, the
+    one whose ray through the centre of its first pixel is nearest to the wavefront's
+    first ray (Mitsuba's lane 0: that pixel, one jittered sample). Before, the scene's first sensor was taken: a ``moment``
+    render of ``sensor=1`` built its maps for sensor 0's view."""
+    sensors = list(scene.sensors())
+    if len(sensors) <= 1:
+        return sensors[0] if sensors else None
+    wavefront, spp = sampler.wavefront_size(), max(sampler.sample_count(), 1)
+
+    def border(film):    # a film with sample_border also samples its filter's border
+        return film.rfilter().border_size() if film.sample_border() else 0
+
+    def pixels(s):
+        film = s.film()
+        size, b = film.crop_size(), border(film)
+        return (int(size[0]) + 2 * b) * (int(size[1]) + 2 * b)
+
+    fits = [s for s in sensors
+            if pixels(s) > 0 and wavefront % pixels(s) == 0
+            and spp % (wavefront // pixels(s)) == 0]
+    if len(fits) == 1:
+        return fits[0]
+    fits = fits or sensors
+    if ray is None:
+        return fits[0]
+    # several films of this size: compare the first ray with each one's first pixel's
+    o = np.array([dr.slice(ray.o.x, 0), dr.slice(ray.o.y, 0), dr.slice(ray.o.z, 0)],
+                 dtype=np.float64)
+    d = np.array([dr.slice(ray.d.x, 0), dr.slice(ray.d.y, 0), dr.slice(ray.d.z, 0)],
+                 dtype=np.float64)
+    best, best_err = fits[0], math.inf
+    for s in fits:
+        film = s.film()
+        size, offset = film.size(), film.crop_offset()
+        first = [offset[0] - border(film) + 0.5, offset[1] - border(film) + 0.5]
+        uv = mi.Point2f(first[0] / size[0], first[1] / size[1])
+        r, _ = s.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5))
+        o_s = np.array([dr.slice(r.o.x, 0), dr.slice(r.o.y, 0), dr.slice(r.o.z, 0)],
+                       dtype=np.float64)
+        d_s = np.array([dr.slice(r.d.x, 0), dr.slice(r.d.y, 0), dr.slice(r.d.z, 0)],
+                       dtype=np.float64)
+        scale = max(float(np.linalg.norm(o_s)), float(np.linalg.norm(o)), 1e-30)
+        err = float(np.linalg.norm(o - o_s)) / scale + float(np.linalg.norm(d - d_s))
+        if err < best_err:
+            best, best_err = s, err
+    return best
 
 
 def has_delta_bsdf(scene) -> bool:

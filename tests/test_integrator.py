@@ -523,6 +523,51 @@ def test_nested_in_mitsubas_aov_integrator(method):
         np.testing.assert_allclose(film[..., :3], alone[..., :3], rtol=1e-5, atol=1e-6)
 
 
+def _two_camera_scene(same_size: bool, film_extra=None):
+    """A spot light over a box and a ball on a floor, seen by two cameras."""
+    def camera(origin, target, width, height, fov):
+        film = {"type": "hdrfilm", "width": width, "height": height, **(film_extra or {})}
+        return {"type": "perspective", "fov": fov, "film": film,
+                "to_world": T().look_at(origin=origin, target=target, up=[0, 0, 1]),
+                "sampler": {"type": "independent", "sample_count": 4}}
+    return {
+        "type": "scene",
+        "cam0": camera([0, -6, 6], [0, 0, 0], 40, 40, 45),
+        "cam1": camera([5, 3, 2], [0, 0, 0.5], 40 if same_size else 24, 40, 30),
+        "floor": {"type": "rectangle", "to_world": T().scale(5)},
+        "box": {"type": "cube", "to_world": T().translate([0.3, 0.2, 1.0]).scale(0.4)},
+        "ball": {"type": "sphere", "center": [-1.0, -0.8, 0.6], "radius": 0.5},
+        "light": {"type": "spot", "intensity": 60.0, "cutoff_angle": 40,
+                  "to_world": T().look_at(origin=[2, 1, 6], target=[0, 0, 0], up=[0, 0, 1])},
+    }
+
+
+@pytest.mark.parametrize("same_size,film_extra", [
+    (False, None), (True, None),
+    (True, {"rfilter": {"type": "gaussian"}, "sample_border": True})])
+def test_nested_in_moment_renders_the_requested_sensor(same_size, film_extra):
+    """Mitsuba's ``moment`` calls our ``sample()`` alone, without the sensor. The maps
+    were built for the scene's first sensor whatever ``mi.render(..., sensor=1)`` asked:
+    sensor 1's image differed from the same camera alone in 1.6 % (``hard``) to 5.7 %
+    (``pcf``) of its pixels, by up to 0.09, its shadows read pages marked for sensor 0.
+    Now the sensor is the one whose film fits the wavefront (and, among films of one
+    size, whose first pixel's ray is the wavefront's first ray)."""
+    inner = {"type": "shadowmap", "method": "pcf"}
+    both = mi.load_dict(_two_camera_scene(same_size, film_extra))
+    alone = _two_camera_scene(same_size, film_extra)
+    del alone["cam0"]
+    alone = mi.load_dict(alone)
+    for sensor in (1, 0, both.sensors()[1]):
+        moment = mi.load_dict({"type": "moment", "nested": inner})
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")    # the moment's channels leave vis_light out
+            img = np.asarray(mi.render(both, integrator=moment, sensor=sensor, seed=1))
+            own = both if isinstance(sensor, int) and sensor == 0 else alone
+            ref = np.asarray(mi.render(own, integrator=mi.load_dict(
+                {"type": "moment", "nested": inner}), sensor=0, seed=1))
+        np.testing.assert_allclose(img, ref, rtol=1e-5, atol=1e-5)
+
+
 # ------------------------------------------------- sensors that do not aim by pixel
 _METER_FILM = {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}}
 _METER_LIGHTS = {

@@ -121,7 +121,7 @@ screen is Mitsuba's projective integrators' job.
         self._views_memo = None     # (scene, scene state, views, labels, unshadowed)
         self._value_watch = None    # [scene, watches, token checked, values held]
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
-        self._diff_scale = dr.opaque(mi.Float, 1.0)
+        self._diff_scale, self._diff_spp = dr.opaque(mi.Float, 1.0), 1
         self._sensor = None
         self._pixel_step = None       # a sensor without ray differentials (render() sets it)
         self._pixel_step_memo = None
@@ -369,7 +369,7 @@ screen is Mitsuba's projective integrators' job.
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
-        self._diff_scale = dr.opaque(mi.Float, math.sqrt(spp))
+        self._diff_scale, self._diff_spp = dr.opaque(mi.Float, math.sqrt(spp)), spp
         self._pixel_step = self._sensor_pixel_step(sensor)
         self._pinhole = camera_frame(sensor)   # shared with the mark pass
 
@@ -410,6 +410,12 @@ screen is Mitsuba's projective integrators' job.
             result, valid, aovs = self._sample(scene, sampler, ray, medium, active)
             mine = dict(zip(self._names(), aovs))
             return result, valid, [mine.get(n, mi.Float(0.0)) for n in self._names_given]
+        # Mitsuba scales ray differentials by 1/sqrt of the count its sampler renders,
+        # which the sampler may have rounded: a stratified sampler renders spp=3 as 4 (the
+        # requested 3 made the footprints of non-pinhole cameras 0.87 of a pixel)
+        spp = max(sampler.sample_count(), 1)
+        if spp != self._diff_spp:
+            self._diff_scale, self._diff_spp = dr.opaque(mi.Float, math.sqrt(spp)), spp
         return self._sample(scene, sampler, ray, medium, active)
 
     def _sample(self, scene, sampler, ray, medium=None, active=True):

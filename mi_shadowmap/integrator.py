@@ -181,6 +181,7 @@ screen is Mitsuba's projective integrators' job.
         :data:`SYMBOLIC_BACKWARD` in one pass of symbolic loops (measured: ``pcf`` with
         ``soft_compare``, 128^2, 16 spp, 0.36 s a gradient against 1.3 s through
         Mitsuba's default); the others go through Mitsuba's default."""
+        self._check_gradient_channels(scene, sensor, grad_in)
         if not self._symbolic_backward(scene):
             return self._mi_base.render_backward(self, scene, params, grad_in, sensor, seed,
                                                  spp)
@@ -190,6 +191,31 @@ screen is Mitsuba's projective integrators' job.
             dr.enqueue(dr.ADMode.Backward, image)
             dr.traverse(dr.ADMode.Backward)
         dr.eval()
+
+    def _check_gradient_channels(self, scene, sensor, grad_in) -> None:
+        """Refuse, with a message, an image gradient whose channels are not our image's.
+        Mitsuba's ``aov`` splits the gradient of its image among its children by the
+        channel count their ``aov_names()`` give then; built before this integrator had
+        rendered the scene it was given none, so it cut our image's gradient short (RGB
+        without the visibility AOVs) and shifted its own channels' gradients by as many;
+        Dr.Jit then failed with "attempted to store a gradient of size 3072 into AD
+        variable ..., which has size 4096" (or "incompatible tensor shapes")."""
+        shape = tuple(getattr(grad_in, "shape", ()))
+        if len(shape) != 3:
+            return
+        sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        film = sensor_obj.film()
+        aovs = len(scene.emitters()) if _film_takes_aovs(film) else 0
+        expected = film.base_channels_count() + aovs
+        if shape[2] != expected:
+            raise ValueError(
+                f"shadowmap: the image gradient given to render_backward() has {shape[2]} "
+                f"channels, this integrator's image {expected} ({aovs} visibility AOV(s)). "
+                "Nested in Mitsuba's 'aov' integrator, that integrator splits the gradient "
+                "by the AOV names this one gave when it was built (none before it had "
+                "rendered a scene): render the scene once with the shadowmap integrator, "
+                "then build the 'aov' integrator around it (in Python), or differentiate "
+                "the shadowmap integrator alone")
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         """Forward mode (``dr.forward``): the derivative image, as :meth:`render_backward`

@@ -593,6 +593,41 @@ def test_spp_override_a_sampler_rounds_gives_the_footprints_of_the_count_rendere
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5, err_msg=method)
 
 
+def test_gradients_through_mitsubas_aov_integrator():
+    """``dr.backward`` through ``mi.render`` with Mitsuba's ``aov`` around ``shadowmap``:
+    ``aov`` splits the image gradient by the AOV names its child gave when ``aov`` was
+    built. Built before the child had rendered a scene (as an XML scene's is), it cut our
+    gradient to RGB and Dr.Jit failed with "attempted to store a gradient of size 3072
+    into AD variable ..., which has size 4096" (``hard``, ``vsm``) or "incompatible
+    tensor shapes" (``raytraced``). That is now an error saying so and what to do; built
+    after a render, the gradient is the one of ``shadowmap`` alone."""
+    import drjit as dr
+
+    def gradient(nest, render_first):
+        d = _two_camera_scene(True)
+        del d["cam1"]
+        scene = mi.load_dict(d)
+        params = mi.traverse(scene)
+        inner = mi.load_dict({"type": "shadowmap", "method": "hard"})
+        if render_first:
+            mi.render(scene, integrator=inner, spp=1)
+        integrator = (mi.load_dict({"type": "aov", "aovs": "dd:depth", "inner": inner})
+                      if nest else inner)
+        dr.enable_grad(params["light.intensity.value"])
+        params.update()
+        img = mi.render(scene, params, integrator=integrator, spp=2, seed=1)
+        weight = np.zeros(img.shape, dtype=np.float32)
+        weight[..., :3] = 1.0                  # the colour only
+        dr.backward(dr.sum(img * mi.TensorXf(weight), axis=None))
+        return dr.grad(params["light.intensity.value"]).numpy()
+
+    alone = gradient(False, False)
+    assert np.all(alone > 0)
+    np.testing.assert_allclose(gradient(True, True), alone, rtol=1e-5)
+    with pytest.raises(ValueError, match="render the scene once with the shadowmap"):
+        gradient(True, False)
+
+
 # ------------------------------------------------- sensors that do not aim by pixel
 _METER_FILM = {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}}
 _METER_LIGHTS = {

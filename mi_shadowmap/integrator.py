@@ -796,11 +796,11 @@ def _nested_sensor(scene, sampler, ray):
     ``spp`` samples per pixel of that sensor's film (its crop and a sampled border),
     which rules out sensors of other sizes; among several (or none) of that size, the
     one whose ray through the centre of its first pixel is nearest to the wavefront's
-    first ray (Mitsuba's lane 0: that pixel, one jittered sample). Before, the scene's first sensor was taken: a ``moment``
-    render of ``sensor=1`` built its maps for sensor 0's view."""
+    first ray (Mitsuba's lane 0: that pixel, one jittered sample). Before, the scene's
+    first sensor was taken: a ``moment`` render of ``sensor=1`` built its maps for sensor
+    0's view. A sensor that is not the scene's (``mi.render(scene, sensor=obj)``) cannot
+    be found: where no film of the scene fits, a warning says so."""
     sensors = list(scene.sensors())
-    if len(sensors) <= 1:
-        return sensors[0] if sensors else None
     wavefront, spp = sampler.wavefront_size(), max(sampler.sample_count(), 1)
 
     def border(film):    # a film with sample_border also samples its filter's border
@@ -814,8 +814,18 @@ def _nested_sensor(scene, sampler, ray):
     fits = [s for s in sensors
             if pixels(s) > 0 and wavefront % pixels(s) == 0
             and spp % (wavefront // pixels(s)) == 0]
-    if len(fits) == 1:
-        return fits[0]
+    if not fits:
+        warnings.warn(
+            "shadowmap: nested in another integrator that calls its sample() alone "
+            "(Mitsuba's moment, stokes, ...), which does not say which sensor it renders, "
+            f"and no sensor of the scene has a film of the render's {wavefront // spp} "
+            "pixels (a sensor given to mi.render that is not the scene's?): the maps are "
+            + (f"built for the scene's sensor {sensors[0].id() or 0!r}" if sensors else
+               "built without a sensor (a 512x512 film assumed)")
+            + ", so their pages and footprints may not fit the view rendered",
+            RuntimeWarning, stacklevel=4)
+    if len(fits) == 1 or len(sensors) <= 1:
+        return (fits or sensors or [None])[0]
     fits = fits or sensors
     if ray is None:
         return fits[0]

@@ -106,7 +106,7 @@ class _ConvergedVisibilityMixin:
                 if self.occlusion:
                     occluded = query(    # not ray_test alone: spheres, cylinders
                         spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter), p_surface),
-                        lit, on_cyl)
+                        lit, on_cyl, si)
                 else:
                     occluded = mi.Bool(False)
                 n_vis = dr.select(lit & ~occluded, n_vis + 1.0, n_vis)

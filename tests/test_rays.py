@@ -525,3 +525,37 @@ def test_shadow_rays_find_a_cylinders_hit_again_once_per_camera_hit(monkeypatch)
     vis = converged_visibility(scene, n_light=4, spp=1)
     assert len(calls) == 1, len(calls)
     assert min(float(np.mean(v)) for v in vis.values()) > 0.8   # (the post fills 0.89)
+
+
+def test_a_large_cylinder_beside_a_far_thinner_one_does_not_shadow_itself():
+    """A shadow ray that leaves a cylinder queried the scene itself for its first 100
+    radii of the scene's smallest cylinder, the maps' copy beyond, where its own prism
+    reaches r tan(pi/2n)^2 outside it: a tank 10 in radius on a 4 km ground, beside a
+    wire 1e-4 in radius far away (near part 0.01 long), had rays from its sunlit side
+    start inside its prism and hit it: 190 of 7797 lit pixels of a 128^2 view shadowed
+    near its terminator (``raytraced`` and the converged reference; ``direct`` and
+    ``hard`` lit). A ray leaving outwards now queries the scene until it is clear of
+    its own prism."""
+    from mi_shadowmap.reference import converged_visibility
+    sun = np.array([1.0, 0.5, 0.0]) / math.sqrt(1.25)
+    scene = mi.load_dict({
+        "type": "scene",
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2000)},
+        "tank": {"type": "cylinder", "p0": [0, 0, 0], "p1": [0, 20, 0], "radius": 10.0},
+        "wire": {"type": "cylinder", "p0": [300, 5, 300], "p1": [310, 5, 300], "radius": 1e-4},
+        "sun": {"type": "directional", "direction": (-sun).tolist(), "irradiance": 3.0},
+        "sensor": {"type": "perspective", "fov": 12,
+                   "to_world": T().look_at([0, 10, -60], [0, 10, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 64, "height": 64,
+                            "rfilter": {"type": "box"}}}})
+    direct = np.asarray(mi.render(scene, integrator=mi.load_dict(
+        {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}), spp=2, seed=0))[..., 0]
+    got = np.asarray(mi.render(scene, integrator=mi.load_dict(
+        {"type": "shadowmap", "method": "raytraced"}), spp=2, seed=0))
+    lit = direct > 0.05 * direct.max()           # the tank's sunlit side (all of the view)
+    assert lit.sum() > 1500
+    dark = int(np.sum(lit & (got[..., 0] < 0.5 * direct)))
+    conv = next(iter(converged_visibility(scene, n_light=1, spp=2).values()))
+    dark_conv = int(np.sum(lit & (conv < 0.5)))
+    print(f"lit {lit.sum()}: raytraced dark on {dark}, converged reference on {dark_conv}")
+    assert dark == 0 and dark_conv == 0

@@ -34,7 +34,7 @@ def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
     ray = spawn_shadow_ray(lk.si, target, smap.scene, is_infinite(smap.emitter),
                            getattr(smap, "p_surface", None))
     occluded = smap.occlusion(ray, active,     # not ray_test alone: spheres, cylinders
-                              on_cylinder(lk.si, smap.scene))
+                              on_cylinder(lk.si, smap.scene), lk.si)
     return dr.select(occluded, 0.0, 1.0)
 
 

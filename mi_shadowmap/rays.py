@@ -48,7 +48,9 @@ For a hit on shape ``S`` at ``p``, at distance ``t`` along the camera ray::
   up per hit in a small table indexed by the shape's registry id (built from
   ``scene.shapes()`` at each call; a hit through an ``instance``, whose shape group's
   shapes are not in the table, uses the instance's row: its world bounds; other ids
-  not in it use the scene's bounding box).
+  not in it use the scene's bounding box). Curves (``linearcurve``, ``bsplinecurve``:
+  one shape, every strand of a file) have 0 there: their box bounds no one strand's
+  hit, which the ``t`` term covers.
 * ``t``: in the AD variants Mitsuba's non-mesh shapes (sphere, disk, cylinder,
   curves) return ``si.p = ray(t)``, whose error is relative to the camera
   ray's origin and length, not to the shape. Meshes (``rectangle`` and ``cube``

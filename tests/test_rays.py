@@ -599,7 +599,7 @@ def test_a_far_strand_does_not_light_a_hair_clump():
     distance now: the same visibility with or without the far strand."""
     def vis(scene):
         return np.asarray(mi.render(scene, integrator=mi.load_dict(
-            {"type": "shadowmap", "method": "raytraced"}), spp=4, seed=0))[..., 3]
+            {"type": "shadowmap", "method": "raytraced"}), spp=4, seed=0))[..., -1]
     near, far = vis(_hair_clump_scene(0.0)), vis(_hair_clump_scene(1000.0))
     differ = float(np.mean((near < 0.5) != (far < 0.5)))
     print(f"shadowed {np.mean(near < 0.5):.4f}; with a far strand {differ:.4f} differ")

@@ -672,7 +672,7 @@ def test_ellipsoidsmesh_is_no_solid(light):
 
     def vis(method):
         return np.asarray(mi.render(scene, integrator=mi.load_dict(
-            {"type": "shadowmap", "method": method}), spp=4, seed=0))[..., 3]
+            {"type": "shadowmap", "method": method}), spp=4, seed=0))[..., -1]
     ref = vis("raytraced")
     r = misclassified(ref, vis("second_depth"))
     print(light, r, "shadowed", np.mean(ref < 0.5))

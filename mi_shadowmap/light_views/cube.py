@@ -289,12 +289,40 @@ def planar_normal(shape):
     return tuple(c / norm for c in mean)
 
 
+def _unsampled_area_shape(shape) -> str | None:
+    """Why Mitsuba 3.9 cannot sample points on the area emitter's shape (None: it can).
+    Its ``linearcurve``, ``bsplinecurve`` and ``ellipsoids`` implement no surface area
+    (their lights failed inside the light's set-up with "Shape::surface_area(): not
+    implemented!"), ``sdfgrid`` has area 0 and samples no position (the light's shadow
+    rays and maps read it as shadowed everywhere: a ground it lights rendered black in
+    every method, ``raytraced`` included), and an ``ellipsoidsmesh`` light has no shape
+    at all (an ``AttributeError`` on ``None``)."""
+    if shape is None:
+        return "Mitsuba gives the emitter no shape"
+    try:
+        area = float(dr.ravel(shape.surface_area())[0])
+    except RuntimeError as exc:
+        return f"Mitsuba cannot sample it: {str(exc).strip()}"
+    if not area > 0.0:
+        return f"Mitsuba gives it a surface area of {area:g}, and samples no point on it"
+    return None
+
+
 def area_view(emitter, scene, label: str) -> CubeView:
     shape = emitter.get_shape()
-    bbox = shape.bbox()
-    centre = mi.ScalarPoint3f(bbox.center())
     # get_shape() is typed as the Shape base; the scene's list has the Mesh interface.
     typed = [s for s in scene.shapes() if s.emitter() is emitter] if scene is not None else []
+    why = _unsampled_area_shape(shape)
+    if why is not None:
+        from . import UnsupportedEmitterError
+        on = typed[0] if typed else shape
+        raise UnsupportedEmitterError(
+            f"shadowmap: area emitter '{label}' on a "
+            f"{on.class_name() if on is not None else 'shape'} is not supported ({why}); "
+            "area lights on rectangle, disk, sphere, cylinder, cube and triangle meshes "
+            "(ply, obj, serialized) are")
+    bbox = shape.bbox()
+    centre = mi.ScalarPoint3f(bbox.center())
     size = area_light_size(typed[0] if typed else shape)
     return CubeView("area", centre, mi.ScalarTransform4f(), light_size=size,
                     ignore_shape=shape, light_normal=planar_normal(shape), label=label)

@@ -303,8 +303,10 @@ def _unsampled_area_shape(shape) -> str | None:
         area = float(dr.ravel(shape.surface_area())[0])
     except RuntimeError as exc:
         return f"Mitsuba cannot sample it: {str(exc).strip()}"
-    if not area > 0.0:
-        return f"Mitsuba gives it a surface area of {area:g}, and samples no point on it"
+    if not area > 0.0 and shape.class_name() == "SDFGrid":
+        # (a light scaled to zero area emits nothing, in Mitsuba's ``direct`` too: black)
+        return (f"Mitsuba gives it a surface area of {area:g} and samples no point on it; "
+                "its direct integrator reaches it by BSDF sampling alone")
     return None
 
 

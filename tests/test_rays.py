@@ -604,3 +604,38 @@ def test_a_far_strand_does_not_light_a_hair_clump():
     differ = float(np.mean((near < 0.5) != (far < 0.5)))
     print(f"shadowed {np.mean(near < 0.5):.4f}; with a far strand {differ:.4f} differ")
     assert np.mean(near < 0.5) > 0.5 and differ < 0.002
+
+
+def _plate_far_along_x(x: float):
+    """A plate 0.1 wide 0.03 above a flat ground 4 wide, both ``x`` units along the x axis
+    (the ground's height, y = 0, is exact), under a sun 25 degrees high."""
+    el = math.radians(25.0)
+    return mi.load_dict({
+        "type": "scene",
+        "ground": {"type": "rectangle",
+                   "to_world": T().translate([x, 0, 0]) @ T().rotate([1, 0, 0], -90).scale(2.0)},
+        "plate": {"type": "rectangle", "to_world": T().translate([x, 0.03, 0])
+                  @ T().rotate([1, 0, 0], -90).scale(0.05)},
+        "sun": {"type": "directional", "direction": [math.cos(el), -math.sin(el), 0.0]},
+        "sensor": {"type": "perspective", "fov": 25,
+                   "to_world": T().look_at([x + 0.05, 0.5, 0.2], [x + 0.05, 0, 0], [1, 0, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                            "rfilter": {"type": "box"}}}})
+
+
+@pytest.mark.parametrize("x", [1e4, 1e5])
+def test_a_contact_shadow_far_along_one_axis(x):
+    """The origin offset took the hit's largest coordinate, ``max|p|``: 1e5 along x put a
+    shadow ray from a flat ground (its height exact, y = 0) 16 ulps of 1e5 = 0.095 above
+    it, above a plate 0.03 high, whose shadow vanished (``raytraced``: 10.6 % of this view
+    misclassified against the same scene at the origin, all of its shadow; 1e4: 0.0095
+    above, 3.3 %). Only the rounding along the normal moves the origin off the surface: the
+    coordinates weighted by the normal's components, ``|n| . |p|`` (0 here): 0 at 1e4,
+    0.6 % at 1e5 (float32 spaces x by 0.008 there: the plate's edges move)."""
+    def vis(scene):
+        return np.asarray(mi.render(scene, integrator=mi.load_dict(
+            {"type": "shadowmap", "method": "raytraced"}), spp=4, seed=0))[..., -1]
+    near, far = vis(_plate_far_along_x(0.0)), vis(_plate_far_along_x(x))
+    wrong = float(np.mean((near < 0.5) != (far < 0.5)))
+    print(f"x={x:g}: shadowed {np.mean(near < 0.5):.4f}, misclassified {wrong:.4f}")
+    assert np.mean(near < 0.5) > 0.1 and wrong < 0.015

@@ -176,6 +176,51 @@ def test_receiver_plane_removes_self_shadowing_of_a_slope():
     assert paper.mean() < 0.8                  # Reeves' single depth shadows itself
 
 
+@pytest.mark.parametrize("kind", ["cube", "spot"])
+def test_texel_world_size_is_the_texels_width_off_axis(kind):
+    """The biases' texel width (``texel_world_size``) at a point far off the face's
+    axis is the widest a texel-long step on the face gets across the ray there
+    (measured between rays through the face); it had been the distance from the light
+    times the width at the face's centre: 1.62x too wide at s = t = 0.9 on a cube face
+    (1.73x at a corner of a spot's square frustum), so the slope bias and the normal
+    offset were too, and contact shadows near a cube map's face corners leaked."""
+    from mi_shadowmap.light_views import make_light_view
+    res = 256
+    if kind == "cube":
+        view = CubeView("point", mi.ScalarPoint3f(0.5, -1, 2), mi.ScalarTransform4f(),
+                        label="cube")
+        p = np.array([0.5, -1, 2]) + 7.0 * np.array([1.0, 0.9, 0.9]) / np.linalg.norm([1, .9, .9])
+    else:
+        scene = mi.load_dict({"type": "scene", "light": {
+            "type": "spot", "cutoff_angle": 48.0,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1],
+                                                         up=[0, 1, 0])},
+            "plane": {"type": "rectangle",
+                      "to_world": mi.ScalarTransform4f().translate([0, 0, 5]).scale(9)}})
+        view = make_light_view(scene.emitters()[0], scene, 0)
+        t = 0.9 * view.tan_half
+        p = 6.0 * np.array([t, t, 1.0])
+    P = mi.Point3f(*[float(c) for c in p])
+    face, uv, depth, inside = view.project(P)
+    assert bool(inside[0])
+    uv = np.array([uv.x[0], uv.y[0]])
+    dist = float(np.linalg.norm(p - np.array(view.position)))
+
+    def ray(du, dv):
+        _, d = view.ray_through(face, mi.Point2f(float(uv[0] + du), float(uv[1] + dv)))
+        return np.array([d.x[0], d.y[0], d.z[0]], np.float64)
+
+    # a texel-long step on the face in 16 directions, across the ray at the point
+    h = 0.5 / res
+    widths = [dist * np.linalg.norm(ray(h * math.cos(a), h * math.sin(a))
+                                    - ray(-h * math.cos(a), -h * math.sin(a)))
+              for a in np.arange(16) * math.pi / 16]
+    got = float(view.texel_world_size(res, depth, P, None)[0])
+    print(kind, "texel widths across the ray", min(widths), "-", max(widths),
+          "texel_world_size", got, "distance-based", float(depth[0]) * 2 * view.tan_half / res)
+    assert got == pytest.approx(max(widths), rel=0.01)
+
+
 def test_cube_taps_continue_on_the_neighbouring_face():
     """A point light whose +y face is fully occluded; a receiver on +x near that seam."""
     view = CubeView("point", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(), label="cube")

@@ -128,6 +128,17 @@ class CubeView(LightView):
                                   mi.Point3f(p_world) - opaque_point(self.position)))
 
     def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
+        """A texel's width across the ray (:meth:`LightView.texel_world_size`) at
+        ``p_world``: its *axial* depth along its face's axis (the major component of
+        ``p_world - position``) times ``2 tan_half / res``; ``depth`` (the distance from
+        the light, up to sqrt(3) times more at a face's corner) only without ``p_world``.
+        (A step ``2 / res`` long on the face at ``(s, t)`` is at most ``z 2 / res`` wide
+        across the ray, ``z`` the axial depth (sideways to the direction from the face's
+        centre; ``z 2 / res / sqrt(1 + s^2 + t^2)`` towards it): the distance overstated
+        it, and so the biases, up to 1.73x at a face's corner.)"""
+        if p_world is not None:
+            d = mi.Point3f(p_world) - opaque_point(self.position)
+            depth = dr.maximum(dr.maximum(dr.abs(d.x), dr.abs(d.y)), dr.abs(d.z))
         return depth * (2.0 * self.tan_half / res)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):

@@ -118,6 +118,12 @@ class PerspectiveView(LightView):
                 mi.Vector3f(opaque_point(k * R[:, 1])))
 
     def texel_world_size(self, res: int, depth, p_world=None, n_world=None):
+        """At ``p_world``: its axial depth (along the spot's axis) times ``2 tan_half /
+        res``, a texel's width across the ray (see :meth:`CubeView.texel_world_size`;
+        the distance ``depth`` overstated it by ``1 / cos`` of the angle off the axis,
+        2x at the edge of a 60-degree cone); ``depth`` only without ``p_world``."""
+        if p_world is not None:
+            depth = dr.abs((opaque_transform(self.light_from_world) @ mi.Point3f(p_world)).z)
         return depth * (2.0 * self.tan_half / res)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):

@@ -204,7 +204,8 @@ def light_pose(emitter, view, bounds=None, detached: bool = False):
         # WIDE_SPOT_CUTOFF on): the reference frustum may no longer cover it
         r_now, r_ref = light_rotation(view), light_rotation(ref.view)
         turned = (_angle(r_now @ r_ref.T) > REFERENCE_TURN or type(view) is not type(ref.view)
-                  or getattr(view, "tan_half", None) != getattr(ref.view, "tan_half", None))
+                  or getattr(view, "tan_half", None) != getattr(ref.view, "tan_half", None)
+                  or getattr(view, "tan_half_y", None) != getattr(ref.view, "tan_half_y", None))
     if (ref is None or ref.emitter is not emitter or ref.kind != view.kind or turned
             or _far(ref, current)):
         ref = _Reference(emitter, view, view.kind, current, max(scene_size, 1e-30))

@@ -134,9 +134,12 @@ class VirtualShadowMap:
     def level_for(self, face, p64, dp_dx, dp_dy) -> mi.UInt32:
         """Level whose texel matches the pixel footprint ``dp_dx``, ``dp_dy`` at
         ``p64`` on ``face``: ``floor(log2(w) + lod_bias)`` clamped to the levels,
-        ``w`` the footprint in level-0 texels (its shorter side, or 1/ANISO of its
-        longer one if larger); at ``lod_bias = -0.5`` a texel is 0.35-0.7 of the
-        footprint. No footprint (no ray differentials): level 0, and the
+        ``w`` the footprint in level-0 texels: the shorter side of its bounding box
+        in the map's axes (``|du/dx| + |du/dy|`` and the same in ``v``), or 1/ANISO of
+        the longer side if larger (not the footprint ellipse's minor axis: a footprint
+        turned to the map's axes reads a level up to sqrt(2) coarser; the minor axis,
+        probed, bought about what ``lod_bias`` buys for the same texels); at
+        ``lod_bias = -0.5`` a texel is 0.35-0.7 of that. No footprint (no ray differentials): level 0, and the
         lookup walks to the finest level built."""
         view, lay = self.view, self.layout
         p = mi.Point3f(p64)

@@ -117,6 +117,14 @@ class LightView:
         between planes parallel to the light (PCSS) hold in this width."""
         raise NotImplementedError
 
+    def texel_parallel_xy(self, res: int, face, p_world: mi.Point3f, texel_world):
+        """``(w_x, w_y)``: a texel's world widths at ``p_world`` along ``face``'s image
+        x and y, parallel to its image plane, where its texels are not square (a
+        rectangular face: :meth:`texel_parallel_size` is then the width along the
+        receiver's depth gradient, which sizes depth biases but not a kernel of a
+        world width, PCSS's); None where they are square (this default)."""
+        return None
+
     def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
         """Unit vector from ``p_world`` towards the light (its centre)."""
         return dr.normalize(opaque_point(self.position) - p_world)

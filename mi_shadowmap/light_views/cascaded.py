@@ -175,6 +175,13 @@ class CascadedView(OrthoView):
             return 2.0 * dr.maximum(hx, hy) / res
         return self._texel_along(2.0 * hx / res, 2.0 * hy / res, n_world)
 
+    def texel_parallel_xy(self, res: int, face, p_world, texel_world):
+        """Each cascade's own rectangle's texel sides (None if all are square)."""
+        if all(r[2] == r[3] for r in self.rects):
+            return None
+        _, _, hx, hy = self._rect(mi.UInt32(face))
+        return 2.0 * hx / res, 2.0 * hy / res
+
     def map_width(self, p_world: np.ndarray) -> float:
         return 2.0 * max(max(r[2], r[3]) for r in self.rects)
 

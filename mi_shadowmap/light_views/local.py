@@ -243,6 +243,10 @@ class LocalView:
     def texel_parallel_size(self, res, face, p_world, texel_world):
         return self.inner.texel_parallel_size(res, face, p_world, texel_world)
 
+    def texel_parallel_xy(self, res, face, p_world, texel_world):
+        xy = getattr(self.inner, "texel_parallel_xy", None)
+        return None if xy is None else xy(res, face, p_world, texel_world)
+
     def direction_to_light(self, p_world):
         return self.inner.direction_to_light(p_world)
 

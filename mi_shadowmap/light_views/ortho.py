@@ -137,6 +137,14 @@ class OrthoView(LightView):
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
         return texel_world
 
+    def texel_parallel_xy(self, res: int, face, p_world, texel_world):
+        """The rectangle's texel sides, ``2 half_extent / res`` (None if square)."""
+        if self.half_extent[0] == self.half_extent[1]:
+            return None
+        hx, hy = self._half()
+        zero = dr.zeros(mi.Float, dr.width(texel_world))
+        return zero + 2.0 * hx / res, zero + 2.0 * hy / res
+
     def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
         return -dr.normalize(self._forward())
 

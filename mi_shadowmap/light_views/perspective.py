@@ -152,6 +152,14 @@ class PerspectiveView(LightView):
             return texel_world            # an orthographic rectangle's (its axial depth)
         return axial_texel_size(self, res, face, p_world)
 
+    def texel_parallel_xy(self, res: int, face, p_world, texel_world):
+        """A rectangle's texels (``tan_half_y``): its axial depth times ``2 tan_half /
+        res`` along x, ``2 tan_half_y / res`` along y; None for a square face."""
+        if self.tan_half_y is None:
+            return None
+        w_x = axial_texel_size(self, res, face, p_world)
+        return w_x, w_x * (self.tan_half_y / self.tan_half)
+
     def map_width(self, p_world: np.ndarray) -> float:
         return 2.0 * self.tan_half * float(np.linalg.norm(p_world - position_np(self)))
 

@@ -573,12 +573,13 @@ def _hair_clump_scene(far_strand: float):
             lines.append("")
     if far_strand:
         lines += [f"{far_strand} {0.01 * k} 0 {r}" for k in range(4)]
+    import os
     import tempfile
     path = tempfile.NamedTemporaryFile("w", suffix=".txt", delete=False)
     path.write("\n".join(lines) + "\n")
     path.close()
     el = math.radians(30.0)
-    return mi.load_dict({
+    desc = {
         "type": "scene",
         "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(0.2)},
         "hair": {"type": "linearcurve", "filename": path.name},
@@ -587,7 +588,11 @@ def _hair_clump_scene(far_strand: float):
         "sensor": {"type": "perspective", "fov": 30,
                    "to_world": T().look_at([0, 0.06, 0.08], [0, 0.025, 0], [0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": 48, "height": 48,
-                            "rfilter": {"type": "box"}}}})
+                            "rfilter": {"type": "box"}}}}
+    try:
+        return mi.load_dict(desc)
+    finally:        # Mitsuba has read the strands: the file would be left in /tmp
+        os.unlink(path.name)
 
 
 def test_a_far_strand_does_not_light_a_hair_clump():

@@ -61,7 +61,9 @@ Deviations from the paper and why:
   a virtual map at the level ``2^k`` times coarser where it fits (the
   mark pass builds those levels' tiles around each point, down to 512 texels a face,
   at most 8 levels: ``virtual_coarse_res``; not for an environment's regions, whose
-  wide kernels the plain cap regularises better), on a full map with its taps spread
+  wide kernels the plain cap regularises better: they keep their own level, capped at
+  ``page_size / 2 - 1`` texels, within the 2 x 2 pages a lookup binds, whose tiles the
+  mark pass builds), on a full map with its taps spread
   over it (the same ``filter_samples``, strided across the texels). A virtual map's
   blocker search reads at most one level coarser than the receiver's
   (:data:`SEARCH_COARSER`): a region sized from the face's nearest depth can be far
@@ -350,8 +352,13 @@ def _kernel_cap(smap, half_max):
     vmap = getattr(smap, "vmap", None)
     if vmap is None:
         return half_max * max(smap.resolution / KERNEL_REF_RES, 1.0)
-    if vmap.coarse_res is None:     # no coarser level marked (an environment's regions)
-        return half_max
+    if vmap.coarse_res is None:     # no coarser level marked (an environment's regions):
+        # what the marks built around the point on its own level, page_size / 2 texels
+        # less the camera sample's texel; a tap beyond read the coarsest level where no
+        # neighbouring point had built its page, whose texels, far wider, stood in front
+        # of the receiver plane (an open ground seen through a 0.5-degree lens under a
+        # uniform sky: visibility 0.34 against raytraced's 0.49)
+        return min(half_max, 0.5 * vmap.layout.page_size - 1.0)
     from ..virtual import coarser_levels
     k = coarser_levels(vmap.layout, smap.level, vmap.coarse_res)
     return half_max * mi.Float(mi.UInt32(1) << k)
@@ -462,9 +469,26 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
 def _size_zero(view, opts) -> bool:
     """A light PCSS reads as hard shadows (size 0: a point or spot light without
     ``light_size``, a directional one without ``angular_diameter``): its lookups read
-    one texel, so the mark pass builds ``hard``'s margin, not the kernel's."""
+    one texel, so the mark pass builds ``hard``'s margin, not the kernel's. Not an
+    environment: its regions' widths are per lane (:class:`~mi_shadowmap.environment.
+    RegionView`), not the width the whole view reports (0, a directional light's
+    without ``angular_diameter``), which marked ``hard``'s margin around each point
+    for kernels up to ``max_kernel`` texels wide."""
+    if getattr(view, "kind", None) == "environment":
+        return False
     w_light, _ = view.light_width(opts.light_size, opts.angular_diameter)
     return isinstance(w_light, (int, float)) and w_light <= 0.0
+
+
+def _virtual_margin(view, opts) -> float:
+    """Texels the mark pass builds around each point: ``hard``'s for a light of size 0,
+    else the kernels' half-width (:func:`_kernel_cap`: an environment's regions, which
+    read no coarser level, keep their kernels within the 2 x 2 pages a lookup binds)."""
+    if _size_zero(view, opts):
+        return 2.0
+    if getattr(view, "kind", None) == "environment":
+        return 2.0 + min(0.5 * opts.max_kernel, 0.5 * opts.page_size - 3.0)
+    return 2.0 + 0.5 * opts.max_kernel
 
 
 METHOD = Method(
@@ -501,7 +525,7 @@ METHOD = Method(
     #: ``pcss_near``: one value per face (not a per-texel layer), see face_near_depth.
     layers={"pcss_near": face_near_layer},
     layer_cost={"pcss_near": 0.0},
-    virtual_margin=lambda o, view: (2.0 if _size_zero(view, o) else 2.0 + 0.5 * o.max_kernel),
+    virtual_margin=lambda o, view: _virtual_margin(view, o),
     # kernels wider than max_kernel texels filter coarser levels, down to KERNEL_REF_RES;
     # not an environment's regions (their wide kernels are better regularised by the cap:
     # sky_sun zoomed, RMSE 0.052 -> 0.069 with coarser levels)

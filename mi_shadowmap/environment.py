@@ -370,6 +370,11 @@ class RegionView(SubView):
     rows64: tuple = ()
     axes32: tuple = ()     # the light axes x, y, z in world space: rows64's rotation rows
     #                        in float32 (made once per lookup)
+    #: An environment region is a set of directions, not a light point, and the
+    #: shading (:func:`shade`) tests the horizon itself, of the direction it draws and
+    #: of the region: a lookup's own horizon test (``multiview``'s) is left out, as its
+    #: region's axis can lie below a horizon most of the region is above.
+    caller_tests_horizon = True
 
     def light_width(self, light_size=None, angular_diameter: float = 0.0):
         return self.spread, True

@@ -126,7 +126,14 @@ def multiview(smap, lk: Lookup, opts, active=True):
     # the same side of the shading plane gets the same answer (BSDFs are zero or not per
     # hemisphere), only views across it evaluate the BSDF themselves.
     wo_c = si.to_local(smap.view.direction_to_light(p))
-    above_c = dr.max(unpolarized(bsdf.eval(ctx, si, wo_c, act))) > 0
+    # An environment region (one view) is no light point: the environment's shading
+    # tests the horizon of the direction it draws and of the region; its axis can lie
+    # below a horizon most of the region is above (a floor under a sky lost 4 % of its
+    # light when such regions read as shadowed).
+    if getattr(smap.view, "caller_tests_horizon", False):
+        above_c = mi.Bool(True)
+    else:
+        above_c = dr.max(unpolarized(bsdf.eval(ctx, si, wo_c, act))) > 0
     side_c = mi.Frame3f.cos_theta(wo_c) > 0
 
     def cond(j, n_emit, n_above, n_lit):

@@ -19,6 +19,7 @@ import dataclasses
 import hashlib
 import math
 import time
+import warnings
 
 import numpy as np
 
@@ -30,6 +31,7 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
 from .methods import OptionError
+from .options import camera_fit_pins
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
                           footprint_ratio, make_light_view)
 
@@ -186,6 +188,16 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     live = [v for v in views if v is not None]
     if not live:
         return RenderPlan(views, [None] * len(views), None, None, None)
+    pins = camera_fit_pins(opts)
+    if pins and not any(v.needs_camera_points(opts) for v in live):
+        warnings.warn(
+            f"shadowmap: property {' and '.join(pins)} applies to none of this scene's "
+            "lights (cascades: directional lights; fit_frusta: spot and directional "
+            "lights; cull_faces: cube maps of point, area and projector lights), so it "
+            "changes nothing but turning the automatic virtual maps off: every light gets "
+            "a full map (a far light's shadows can fall into a few of its texels and be "
+            "lost); leave it out, or set virtual=false to keep full maps",
+            RuntimeWarning, stacklevel=2)
     if sensor is None and len(scene.sensors()) > 0:
         sensor = scene.sensors()[0]
     visible = None

@@ -84,7 +84,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "per face. Default: "
          "automatic -- true for those methods (and user methods registered with "
          "virtual=True) unless a full-map property is set (resolution > 0, cascades > 1, "
-         "fit_frusta, cull_faces, antialias='always') or memory_budget cannot hold a "
+         "fit_frusta, cull_faces, antialias='always'; one that applies to none of the "
+         "scene's lights still counts, with a warning) or memory_budget cannot hold a "
          "virtual cube map's coarsest level; a scene with shape or emitter gradients "
          "enabled then gets full maps (built in the AD graph), and so does a sensor that "
          "spreads each pixel's rays over a surface or a hemisphere (irradiancemeter, "
@@ -519,6 +520,26 @@ def _automatic_virtual(record, values: dict) -> bool:
     if not _holds_virtual_cube(values["memory_budget"], values["page_size"]):
         return False
     return all(values.get(name, off) == off for name, off in FULL_MAP_PROPERTIES.items())
+
+
+#: Properties that fit full maps to the camera, each to some lights' views (the views
+#: say whether they use them: ``needs_camera_points``), with their defaults.
+CAMERA_FIT_PROPERTIES = {"cascades": 1, "fit_frusta": False, "cull_faces": False}
+
+
+def camera_fit_pins(opts) -> list:
+    """The camera-fitting properties (``cascades`` > 1, ``fit_frusta``, ``cull_faces``)
+    set in ``opts`` that alone turned the automatic ``virtual`` off, as ``"'name' =
+    value"``; [] where ``virtual`` was given or full maps come anyway (a ``resolution``,
+    ``antialias='always'``, a method without virtual maps, a small ``memory_budget``)."""
+    if "virtual" in opts.given or opts.record is None:
+        return []
+    values = opts.as_dict()
+    named = [n for n, off in CAMERA_FIT_PROPERTIES.items() if values.get(n, off) != off]
+    if not named or not _automatic_virtual(opts.record, {**values, **CAMERA_FIT_PROPERTIES}):
+        return []
+    return [f"'{n}' = " + (str(values[n]).lower() if isinstance(values[n], bool)
+                           else str(values[n])) for n in named]
 
 
 def _holds_virtual_cube(budget_mib: float, page: int) -> bool:

@@ -861,3 +861,34 @@ def test_a_spot_stretched_beyond_80_degrees_gets_a_cube_view():
         assert type(view) is kind
     plain = make_light_view(_scaled_spot_scene([2, 2, 2]).emitters()[0], scene, 0)
     assert plain.tan_half == math.tan(math.radians(20))    # rigid x uniform: unchanged
+
+
+@pytest.mark.parametrize("light, props, warns", [
+    ("far", {"cascades": 3}, "'cascades' = 3"),
+    ("far", {"fit_frusta": True}, "'fit_frusta' = true"),
+    ("spot", {"cull_faces": True}, "'cull_faces' = true"),
+    ("directional", {"cascades": 3}, None),            # applies: no warning
+    ("point", {"cull_faces": True}, None),
+    ("far", {"cascades": 3, "virtual": False}, None),  # full maps asked for
+    ("far", {"cascades": 3, "resolution": 256}, None)])
+def test_a_camera_fit_property_no_light_uses_is_not_silent(light, props, warns):
+    """``cascades``, ``fit_frusta`` and ``cull_faces`` fit full maps to the camera, and set,
+    they turn the automatic ``virtual`` off for every light. On a scene none of whose
+    lights they apply to they change nothing else, silently: under a point light 1e5
+    units away ``cascades=3`` (directional lights only) or ``fit_frusta`` (spot and
+    directional) lost the whole shadow (misclassified 0.06 % -> 0.37 % against
+    ``raytraced``, as ``unshadowed``) without a word. Now a warning names the property."""
+    d = default_scene(width=16, height=16, spp=1,
+                      light="point" if light == "far" else light)
+    if light == "far":
+        d["point"] = {"type": "point", "position": [3e4, 1e5, 2e4], "intensity": 1e10}
+    scene = mi.load_dict(d)
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard", **props})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mi.render(scene, integrator=integ, spp=1)
+    msgs = [str(w.message) for w in caught if "applies to none" in str(w.message)]
+    if warns is None:
+        assert not msgs, msgs
+    else:
+        assert len(msgs) == 1 and warns in msgs[0] and "virtual" in msgs[0], msgs

@@ -325,7 +325,8 @@ def emitter_regions(emitter, K: int, with_key: bool = False):
     for k in params.keys():
         v = params[k]
         h.update(k.encode())
-        if hasattr(v, "matrix"):   # transforms: by value
+        if not isinstance(v, dr.ArrayBase) and hasattr(v, "matrix"):   # transforms: by value
+            # (a 3-vector's .matrix is a Dr.Jit swizzle: its x six times)
             v = v.matrix
         try:
             a = np.asarray(v.numpy() if hasattr(v, "numpy") else v)

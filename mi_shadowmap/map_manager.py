@@ -544,9 +544,17 @@ def _virtual_cascades(scene, sensor, opts, views) -> list:
 
 
 # ------------------------------------------------------------------ map cache
+def is_transform(value) -> bool:
+    """Whether ``value`` is a Mitsuba transform (read by value: its ``matrix``). Not
+    ``hasattr(value, "matrix")`` alone: Dr.Jit answers ``.matrix`` on a 3-vector (a
+    ``Point3f``, ``Vector3f``, ``Color3f``; scalar ones too) with its x component six
+    times, so a point light's ``position`` was hashed by its x alone."""
+    return not isinstance(value, dr.ArrayBase) and hasattr(value, "matrix")
+
+
 def _param_bytes(value) -> bytes:
     """Bytes of one scene parameter's value (transforms as their matrix)."""
-    if hasattr(value, "matrix"):
+    if is_transform(value):
         value = value.matrix
     if isinstance(value, (bool, int, float, str)):
         return repr(value).encode()
@@ -575,7 +583,7 @@ def param_digest(memo: dict, name: str, value) -> bytes:
     and scalar types) are their bytes.
     """
     ids = (tuple(dr.detail.collect_indices(value))
-           if isinstance(value, dr.ArrayBase) or hasattr(value, "matrix") else ())
+           if isinstance(value, dr.ArrayBase) or is_transform(value) else ())
     if not ids or not all(ids):
         return _param_bytes(value)
     m = memo.get(name)
@@ -602,7 +610,7 @@ class ParamWatch:
         self._getters = [(v, t, node) for v, t, node, _ in props]
         first = self._values()
         self.jit = [isinstance(v, dr.ArrayBase) and dr.is_jit_v(v)
-                     or hasattr(v, "matrix") and dr.is_jit_v(v.matrix) for v in first]
+                     or is_transform(v) and dr.is_jit_v(v.matrix) for v in first]
 
     def _values(self) -> list:
         get = mi.get_property
@@ -633,7 +641,7 @@ def view_fingerprint(view) -> tuple:
             return tuple(fp(x) for x in v)
         if isinstance(v, dict):
             return tuple(sorted((k, fp(x)) for k, x in v.items()))
-        if hasattr(v, "matrix") or type(v).__module__.startswith(("mitsuba", "drjit")):
+        if is_transform(v) or type(v).__module__.startswith(("mitsuba", "drjit")):
             try:
                 return _param_bytes(v)
             except Exception:

@@ -139,7 +139,8 @@ class PerspectiveView(LightView):
         if self.tan_half_y is None or n_world is None:
             return depth * (2.0 * self.tan_half / res)
         # the light's axes in the world: the rows of light_from_world's rotation (the
-        # opaque matrix project() reads, made before the symbolic lookups)
+        # opaque matrix project() reads; tan_half_y a Python float, as tan_half: a numpy
+        # float times a JIT array asks numpy to convert it, which a symbolic lookup refuses)
         m = opaque_transform(self.light_from_world).matrix
         return texel_width_along(depth * (2.0 * self.tan_half / res),
                                  depth * (2.0 * self._tan_y / res),

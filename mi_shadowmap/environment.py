@@ -319,14 +319,14 @@ _CACHE: dict = {}
 def emitter_regions(emitter, K: int, with_key: bool = False):
     """The cut of ``emitter`` into ``K`` regions, cached per emitter parameters (a hash
     of every ``mi.traverse(emitter)`` value and the transform), variant and K."""
+    from .map_manager import is_transform    # (map_manager imports this module lazily)
     params = mi.traverse(emitter)
     h = hashlib.blake2b(digest_size=16)
     h.update(f"{mi.variant()}/{K}".encode())
     for k in params.keys():
         v = params[k]
         h.update(k.encode())
-        if not isinstance(v, dr.ArrayBase) and hasattr(v, "matrix"):   # transforms: by value
-            # (a 3-vector's .matrix is a Dr.Jit swizzle: its x six times)
+        if is_transform(v):   # transforms: by value
             v = v.matrix
         try:
             a = np.asarray(v.numpy() if hasattr(v, "numpy") else v)

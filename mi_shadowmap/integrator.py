@@ -830,10 +830,9 @@ def _nested_sensor(scene, sampler, ray):
     if ray is None:
         return fits[0]
     # several films of this size: compare the first ray with each one's first pixel's
-    o = np.array([dr.slice(ray.o.x, 0), dr.slice(ray.o.y, 0), dr.slice(ray.o.z, 0)],
-                 dtype=np.float64)
-    d = np.array([dr.slice(ray.d.x, 0), dr.slice(ray.d.y, 0), dr.slice(ray.d.z, 0)],
-                 dtype=np.float64)
+    def lane0(v):     # lane 0 of a 3-vector, float64
+        return np.array([dr.slice(v.x, 0), dr.slice(v.y, 0), dr.slice(v.z, 0)], np.float64)
+    o, d = lane0(ray.o), lane0(ray.d)
     best, best_err = fits[0], math.inf
     for s in fits:
         film = s.film()
@@ -841,10 +840,7 @@ def _nested_sensor(scene, sampler, ray):
         first = [offset[0] - border(film) + 0.5, offset[1] - border(film) + 0.5]
         uv = mi.Point2f(first[0] / size[0], first[1] / size[1])
         r, _ = s.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5))
-        o_s = np.array([dr.slice(r.o.x, 0), dr.slice(r.o.y, 0), dr.slice(r.o.z, 0)],
-                       dtype=np.float64)
-        d_s = np.array([dr.slice(r.d.x, 0), dr.slice(r.d.y, 0), dr.slice(r.d.z, 0)],
-                       dtype=np.float64)
+        o_s, d_s = lane0(r.o), lane0(r.d)
         scale = max(float(np.linalg.norm(o_s)), float(np.linalg.norm(o)), 1e-30)
         err = float(np.linalg.norm(o - o_s)) / scale + float(np.linalg.norm(d - d_s))
         if err < best_err:

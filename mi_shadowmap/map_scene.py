@@ -174,8 +174,7 @@ def map_scene(scene: mi.Scene) -> mi.Scene:
     if any(sh.class_name() == "Instance" for sh in shapes):
         return _keep(scene, key, held, "a copy of the scene with the cylinders as meshes "
                      "cannot hold its instances")
-    b = scene.bbox()
-    diagonal = float(dr.norm(mi.ScalarVector3f(b.max) - mi.ScalarVector3f(b.min)))
+    diagonal = scene_diagonal(scene)
     entries, stand_ins = {}, {}
     for k, sh in enumerate(shapes):
         if is_cylinder(sh):
@@ -191,6 +190,12 @@ def map_scene(scene: mi.Scene) -> mi.Scene:
         return _keep(scene, key, held, f"Mitsuba did not copy the scene: {exc}")
     _remember(scene, key, copy, held, stand_ins)
     return copy
+
+
+def scene_diagonal(scene: mi.Scene) -> float:
+    """The diagonal of ``scene.bbox()``, which sizes the prisms (:func:`segments`)."""
+    b = scene.bbox()
+    return float(dr.norm(mi.ScalarVector3f(b.max) - mi.ScalarVector3f(b.min)))
 
 
 def stand_in(scene: mi.Scene, shape):

@@ -399,12 +399,11 @@ def _cylinder_shells(scene) -> np.ndarray:
     far its prism in :func:`~mi_shadowmap.map_scene.map_scene`'s copy reaches outside it
     (``r tan(pi / 2n)^2``, ``r`` its larger radial axis), negative where its normals are
     flipped; 0 for other shapes."""
-    from .map_scene import _traversal, cylinder_radius, is_cylinder, segments
+    from .map_scene import _traversal, cylinder_radius, is_cylinder, scene_diagonal, segments
     shapes = list(scene.shapes())
     ids = dr.reinterpret_array(mi.UInt32, scene.shapes_dr()).numpy().astype(np.int64)
     out = np.zeros(int(ids.max()) + 1 if ids.size else 1, np.float32)
-    b = scene.bbox()       # the diagonal map_scene sizes the prisms by
-    diagonal = float(dr.norm(mi.ScalarVector3f(b.max) - mi.ScalarVector3f(b.min)))
+    diagonal = scene_diagonal(scene)       # the diagonal map_scene sizes the prisms by
     for i, sh in zip(ids, shapes):
         if is_cylinder(sh):
             m = np.array(_traversal(sh)["to_world"].matrix, np.float64).reshape(4, 4)

@@ -214,18 +214,27 @@ class PerspectiveView(LightView):
                 self.tan_half * self._tan_y / tan ** 2)
 
 
-def _aimed_frustum(pos, axis, p_world: np.ndarray, margin: float):
-    """``(light_from_world, tan_half)`` of the square frustum from ``pos`` along ``axis``
-    (numpy) that holds ``p_world`` (``(N, 3)``), widened by ``margin`` of its width per
-    side; None if a point lies at or behind the light's plane. The points are rotated
-    relative to ``pos`` in float64 (the float32 matrix's own translation would round to
-    2^-24 of the light's distance)."""
+def _aimed_extents(pos, axis, p_world: np.ndarray, margin: float):
+    """``(light_from_world, tan_x, tan_y)``: the frame from ``pos`` along ``axis`` (numpy,
+    :func:`look_along_np`) and the largest ``|x / z|``, ``|y / z|`` of ``p_world`` (``(N,
+    3)``) in it, widened by ``margin`` of the width per side; None if a point lies at or
+    behind the light's plane. The points are rotated relative to ``pos`` in float64 (the
+    float32 matrix's own translation would round to 2^-24 of the light's distance)."""
     lfw = look_along_np(pos, axis / np.linalg.norm(axis))
     R = np.array(lfw.matrix, dtype=np.float64)[:3, :3]
     q = (np.asarray(p_world, np.float64) - pos) @ R.T
     if np.any(q[:, 2] <= 1e-9 * np.abs(q).max()):
         return None
-    return lfw, float(np.max(np.abs(q[:, :2]) / q[:, 2:3])) * (1.0 + 2.0 * margin)
+    grow = 1.0 + 2.0 * margin
+    x, y = (float(np.max(np.abs(q[:, k]) / q[:, 2])) * grow for k in (0, 1))
+    return lfw, x, y
+
+
+def _aimed_frustum(pos, axis, p_world: np.ndarray, margin: float):
+    """``(light_from_world, tan_half)`` of the square frustum from ``pos`` along ``axis``
+    that holds ``p_world``, as :func:`_aimed_extents`; None as there."""
+    aimed = _aimed_extents(pos, axis, p_world, margin)
+    return None if aimed is None else (aimed[0], max(aimed[1], aimed[2]))
 
 
 def box_view(view: LightView, lo, hi, margin: float = 0.05):
@@ -290,13 +299,10 @@ def _aimed_rectangle(pos, axis, p_world: np.ndarray, margin: float):
     average, but a turned grid lays staircases along the shadows of vertical edges,
     and a turned row rounded to float32 moves a point 1e9 away by tens of units).
     """
-    lfw = look_along_np(pos, axis / np.linalg.norm(axis))
-    R = np.array(lfw.matrix, dtype=np.float64)[:3, :3]
-    q = (np.asarray(p_world, np.float64) - pos) @ R.T
-    if np.any(q[:, 2] <= 1e-9 * np.abs(q).max()):
+    aimed = _aimed_extents(pos, axis, p_world, margin)
+    if aimed is None:
         return None
-    grow = 1.0 + 2.0 * margin
-    x, y = (float(np.max(np.abs(q[:, k] / q[:, 2]))) * grow for k in (0, 1))
+    lfw, x, y = aimed
     if y > x:    # a quarter turn (exact: rows swapped, one negated): x the longer side
         m = np.array(lfw.matrix, dtype=np.float64)
         m[[0, 1]] = m[[1, 0]]

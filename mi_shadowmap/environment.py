@@ -100,6 +100,7 @@ import dataclasses
 import functools
 import hashlib
 import math
+import warnings
 from dataclasses import dataclass
 
 import drjit as dr
@@ -341,6 +342,11 @@ def emitter_regions(emitter, K: int, with_key: bool = False):
         H, W = grid_shape(emitter)
         mean, bound = luminance_grid(emitter, H, W)
         reg = regions_of(mean, K, T, bound)
+        if reg.count < K:   # once per cut (the cut is cached below)
+            warnings.warn(
+                f"shadowmap: property 'env_lights' = {K} asks for more regions than the "
+                f"environment emitter's {H} x {W} cells (half texels) allow; it gets {reg.count} regions",
+                stacklevel=2)
         while len(_CACHE) >= 64:   # oldest first
             _CACHE.pop(next(iter(_CACHE)))
         _CACHE[key] = reg

@@ -475,6 +475,11 @@ def parse_options(props: Any) -> Options:
         values[name] = _convert(prop, value)
     given = frozenset(values)
     values = {**{name: p.default for name, p in own.items()}, **values}
+    if "env_lights" in given and values["environment"] != "shadowed":
+        raise OptionError(   # a region count nothing would use
+            f"shadowmap: property 'env_lights' is used only with environment='shadowed' "
+            f"(environment={values['environment']!r} has no regions); leave it out or "
+            "set environment='shadowed'")
     if record.finalize is not None:
         record.finalize(values, given)
     if values.get("resolution") == 0:      # 0: automatic, as if not given

@@ -179,10 +179,27 @@ def test_unshadowed_environment_with_several_shadow_rays():
     ({"env_lights": 2000}, "env_lights"),
     ({"env_lights": 2.5}, "env_lights"),
     ({"method": "raytraced", "env_lights": 8}, "env_lights"),
+    ({"environment": "unshadowed", "env_lights": 8}, "env_lights.*environment='shadowed'"),
+    ({"environment": "error", "env_lights": 8}, "env_lights.*environment='shadowed'"),
 ])
 def test_bad_input_names_the_property(props, name):
     with pytest.raises(OptionError, match=name):
         parse_options(props)
+
+
+def test_more_regions_than_the_map_has_cells_warns():
+    """A map of 2 x 4 texels (6 x 12 half-texel cells, with Mitsuba's padding) cannot
+    be cut into 128 regions: the warning names env_lights and the count it got (before:
+    fewer regions, silently)."""
+    bmp = mi.Bitmap(np.ones((2, 4, 3), dtype=np.float32))
+    emitter = mi.load_dict({"type": "envmap", "bitmap": bmp})
+    with pytest.warns(UserWarning, match=r"'env_lights' = 128 .* gets 72 regions"):
+        reg = env.emitter_regions(emitter, 128)
+    assert reg.count == 72
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert env.emitter_regions(emitter, 64).count == 64
 
 
 def test_defaults():

@@ -31,7 +31,7 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
 from .methods import OptionError
-from .options import camera_fit_pins
+from .options import camera_fit_pins, unused_light_properties
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
                           footprint_ratio, make_light_view)
 
@@ -355,6 +355,12 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     """
     t0 = time.perf_counter()
     params = _traverse(scene, opts)    # once per render: read by every check below
+    kinds = {emitter_kind(e) for e in scene.emitters()}
+    unused = unused_light_properties(opts, kinds) if opts.uses_map else []
+    if unused:
+        warnings.warn(
+            f"shadowmap: property {' and '.join(unused)} changes nothing in this scene, "
+            f"whose lights are {', '.join(sorted(kinds))}", RuntimeWarning, stacklevel=3)
     if sensor is None and len(scene.sensors()) > 0:
         sensor = scene.sensors()[0]
     if opts.uses_map and opts.virtual and sensor is not None and not aims_by_film(sensor):

@@ -64,7 +64,10 @@ class Prop:
     ``kind`` is ``'int'``, ``'float'``, ``'bool'``, ``'str'`` or ``'pair'`` (two numbers
     ``"a, b"`` with ``a <= b``). A default of None means "automatic" (documented
     in ``doc``). ``lo``/``hi`` are inclusive bounds (``lo_open``: exclusive lower
-    bound); ``choices`` lists the only allowed values.
+    bound); ``choices`` lists the only allowed values. ``lights`` names the light
+    kinds the property acts on (``'point'``, ``'spot'``, ``'directional'``, ``'area'``,
+    ``'projector'``; None: every light): set to other than its default on a scene
+    without such a light, a render warns that it changes nothing.
     """
     name: str
     kind: str
@@ -74,6 +77,7 @@ class Prop:
     hi: float | None = None
     lo_open: bool = False
     choices: tuple | None = None
+    lights: tuple | None = None
 
     def __post_init__(self):
         if self.kind not in ("int", "float", "bool", "str", "pair"):
@@ -86,6 +90,12 @@ class Prop:
             raise MethodError(f"property '{self.name}': the name is reserved ('type' is "
                               "the plugin's, 'spp' the render's in specs such as "
                               "'pcf:spp=4'); choose another")
+        kinds = ("point", "spot", "directional", "area", "projector")
+        if self.lights is not None and (isinstance(self.lights, str) or not self.lights
+                                        or not set(self.lights) <= set(kinds)):
+            raise MethodError(f"property '{self.name}': lights must be a non-empty tuple of "
+                              f"{', '.join(repr(k) for k in kinds)} or None, got "
+                              f"{self.lights!r}")
         for bound in ("lo", "hi"):
             v = getattr(self, bound)
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))

@@ -547,6 +547,25 @@ def camera_fit_pins(opts) -> list:
                            else str(values[n])) for n in named]
 
 
+def unused_light_properties(opts, kinds) -> list:
+    """The properties of ``opts`` given with other than their default whose
+    ``Prop.lights`` hold none of the light ``kinds`` (a scene's), as ``"'name' =
+    value (lights: ...)"``: e.g. ``angular_diameter`` in a scene without a directional
+    light, which changes nothing."""
+    if opts.record is None:
+        return []
+    out = []
+    for p in properties_for(opts.record.name):
+        if p.lights is None or p.name not in opts.given:
+            continue
+        value = getattr(opts, p.name)
+        if value != p.default and not set(p.lights) & set(kinds):
+            out.append(f"'{p.name}' = {value:g} (it acts on {', '.join(p.lights)} lights)"
+                       if isinstance(value, float) else
+                       f"'{p.name}' = {value} (it acts on {', '.join(p.lights)} lights)")
+    return out
+
+
 def _holds_virtual_cube(budget_mib: float, page: int) -> bool:
     """Whether ``budget_mib`` holds the coarsest level of a virtual cube map: 6 pages of
     ``page^2`` texels, depth and one more layer, 4 bytes each."""

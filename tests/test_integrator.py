@@ -892,3 +892,29 @@ def test_a_camera_fit_property_no_light_uses_is_not_silent(light, props, warns):
         assert not msgs, msgs
     else:
         assert len(msgs) == 1 and warns in msgs[0] and "virtual" in msgs[0], msgs
+
+
+@pytest.mark.parametrize("light, props, warns", [
+    ("point", {"method": "pcss", "angular_diameter": 0.5}, "'angular_diameter' = 0.5"),
+    ("directional", {"method": "pcss", "light_size": 0.3}, "'light_size' = 0.3"),
+    ("area", {"method": "multiview", "light_size": 0.3}, "'light_size' = 0.3"),
+    ("directional", {"method": "pcss", "angular_diameter": 0.5}, None),   # applies
+    ("point", {"method": "pcss", "light_size": 0.3}, None),
+    ("area", {"method": "pcss", "light_size": 0.3}, None),
+    ("point", {"method": "pcss", "angular_diameter": 0.0}, None)])        # the default
+def test_a_light_property_no_light_of_the_scene_uses_warns(light, props, warns):
+    """``angular_diameter`` acts on directional lights only, ``light_size`` on the others
+    (``multiview``: not on area lights, which use their shape). Set on a scene without
+    such a light it changed nothing, silently (``pcss`` with ``angular_diameter=0.5``
+    under a point light casts hard shadows). Now a warning names it and the scene's
+    light kinds."""
+    scene = mi.load_dict(default_scene(width=16, height=16, spp=1, light=light))
+    integ = mi.load_dict({"type": "shadowmap", **props})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mi.render(scene, integrator=integ, spp=1)
+    msgs = [str(w.message) for w in caught if "changes nothing" in str(w.message)]
+    if warns is None:
+        assert not msgs, msgs
+    else:
+        assert len(msgs) == 1 and warns in msgs[0] and light in msgs[0], msgs

@@ -286,6 +286,8 @@ def test_a_bad_record_is_refused_when_registered(kwargs, match):
     ({"name": "spp"}, "reserved"),
     ({"name": "taps", "lo": 5, "hi": 1}, "no value could be set"),
     ({"name": "taps", "lo": float("nan")}, "lo must be a finite number"),
+    ({"name": "taps", "lights": ("sun",)}, "lights must be .*'directional'"),
+    ({"name": "taps", "lights": "point"}, "lights must be"),
 ])
 def test_a_property_that_could_never_be_set_is_refused(kwargs, match):
     with pytest.raises(methods.MethodError, match=match):

@@ -192,10 +192,12 @@ METHOD = Method(
         Prop("light_size", "float", None,
              "Point and spot lights: light width in world units (point: a sphere of that "
              "diameter; spot: a square across its axis). Default 0: one view (hard "
-             "shadows). Area lights use their shape.", lo=0.0),
+             "shadows). Area lights use their shape.", lo=0.0,
+             lights=("point", "spot", "projector")),
         Prop("angular_diameter", "float", 0.0,
              "Apparent diameter of a directional light in degrees; > 0 spreads the views "
-             "over that cone of directions (0: one view, hard shadows).", lo=0.0, hi=30.0),
+             "over that cone of directions (0: one view, hard shadows).", lo=0.0, hi=30.0,
+             lights=("directional",)),
     ),
     # No normal offset: it moves every view's lookup the same way, a systematic shift of
     # the averaged penumbra that K views cannot average out; the depth-only slope bias

@@ -505,7 +505,7 @@ METHOD = Method(
              "Light width in world units for PCSS. Default: derived from an area emitter's "
              "shape (side of the square of equal projected area, see light_views), 0 for "
              "point and spot lights (hard shadows); > 0 gives point/spot lights a PCSS "
-             "penumbra.", lo=0.0),
+             "penumbra.", lo=0.0, lights=("point", "spot", "projector", "area")),
         Prop("max_kernel", "float", 64.0,
              "PCSS blocker-search and filter kernels are at most max_kernel texels wide "
              "or max_kernel / 512 of the face's width, whichever is wider (so the cap "
@@ -519,7 +519,8 @@ METHOD = Method(
              choices=("stratified", "poisson")),
         Prop("angular_diameter", "float", 0.0,
              "Apparent diameter of a directional light (sun: about 0.53), in degrees; > 0 "
-             "gives directional lights a PCSS penumbra.", lo=0.0, hi=30.0),
+             "gives directional lights a PCSS penumbra.", lo=0.0, hi=30.0,
+             lights=("directional",)),
         SOFT_COMPARE,
     ),
     #: ``pcss_near``: one value per face (not a per-texel layer), see face_near_depth.

@@ -367,6 +367,7 @@ def clear_memos() -> None:
     meshes (:mod:`~mi_shadowmap.map_scene`)."""
     _SOLID_MEMO.clear()
     _FACE_MEMO[:] = [None, None]
+    _SMOOTH_MEMO[:] = [None, None]
     from . import map_scene as ms
     ms.clear()
 
@@ -400,6 +401,49 @@ def face_solidity(shape) -> np.ndarray:
         _SOLID_MEMO.popitem(last=False)
     _SOLID_MEMO[key] = ((vbuf, fbuf), out)
     return out
+
+
+#: The last :func:`smooth_solid_faces` answer: ``[key, tables]`` (as :data:`_FACE_MEMO`).
+_SMOOTH_MEMO: list = [None, None]
+
+
+def smooth_solid_faces(scene: mi.Scene):
+    """``(offset, solid)`` tables of the faces that bound a solid with outward normals
+    (:func:`face_solidity`) among the scene's meshes with vertex normals, or None where
+    no such face exists: ``offset[id]`` (``mi.Int32``, by shape registry id) is a mesh's
+    first row in ``solid`` (``mi.Bool``, indexed by ``prim_index``), -1 for other shapes.
+
+    Only interpolated normals let a BSDF reflect light arriving from behind the hit's
+    geometric face (a smooth-shaded mesh's terminator): a camera hit on the outside of a
+    solid's face whose geometric normal looks away from the light is lit there by
+    Mitsuba's ``direct``'s BSDF, while its shadow ray, which leaves the surface on the
+    light's side, starts inside the solid and is occluded by it; the maps' biases (and
+    ``second_depth``'s second surface, which such a face is) let that light through
+    (the integrator's ``_into_solid``). Remembered while the shapes and their buffers
+    are the same."""
+    shapes = list(scene.shapes())
+    smooth = [sh.is_mesh() and hasattr(sh, "faces_buffer") and sh.has_vertex_normals()
+              for sh in shapes]
+    held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer())
+            for sh, m in zip(shapes, smooth) if m]
+    key = tuple((id(sh), v.index, f.index) for sh, v, f in held)
+    if _SMOOTH_MEMO[0] is not None and _SMOOTH_MEMO[0][0] == key:
+        return _SMOOTH_MEMO[1]
+    tables = None
+    if held:
+        ids = dr.reinterpret_array(mi.UInt32, scene.shapes_dr()).numpy().astype(np.int64)
+        offset = np.full(int(ids.max()) + 1, -1, np.int64)
+        parts, n = [], 0
+        for i, shape, m in zip(ids, shapes, smooth):
+            sol = face_solidity(shape) if m else None
+            if sol is not None and sol.any():
+                offset[i] = n
+                parts.append(sol)
+                n += len(sol)
+        if parts:
+            tables = (mi.Int32(offset.astype(np.int32)), mi.Bool(np.concatenate(parts)))
+    _SMOOTH_MEMO[:] = [(key, held), tables]   # held: their buffers' indices stay unused
+    return tables
 
 
 def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:

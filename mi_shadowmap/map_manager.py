@@ -33,7 +33,7 @@ from .light_views.pose import light_pose
 from .methods import OptionError
 from .options import camera_fit_pins, unused_light_properties
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
-                          footprint_ratio, make_light_view)
+                          footprint_ratio, make_light_view, _child_sensors)
 
 
 @dataclasses.dataclass
@@ -213,12 +213,13 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
                 "over a target); leave fit_frusta, cull_faces and cascades at their "
                 "defaults (false, false, 1) for it")
         visible = camera_visible_points(scene, sensor)
-    # a sensor that does not aim its pixels (irradiancemeter, distant: 1 x 1 films) sizes
-    # the automatic resolution as no sensor does: 2 x 512. The whole film, not its crop
-    # window: the footprint ratio is the camera's field of view over the film's width,
-    # and a crop window's pixels are the whole film's
+    # a sensor that does not aim its pixels (irradiancemeter, distant: 1 x 1 films) or
+    # whose pixel is one ray with no field of view (radiancemeter) sizes the automatic
+    # resolution as no sensor does: 2 x 512. The whole film, not its crop window: the
+    # footprint ratio is the camera's field of view over the film's width, and a crop
+    # window's pixels are the whole film's
     film_size = (sensor.film().size() if sensor is not None and aims_by_film(sensor)
-                 else (512, 512))
+                 and _has_field_of_view(sensor) else (512, 512))
     # full maps (also those of a virtual render's views without virtual support) build the full
     # maps' layers: a method's layers_for may leave them out for its virtual maps
     full_opts = opts.replace(virtual=False) if getattr(opts, "virtual", False) else opts
@@ -382,6 +383,19 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
     return PreparedMaps(plan.views, maps, plan.resolution, stats)
+
+
+def _has_field_of_view(sensor) -> bool:
+    """Whether ``sensor``'s film spans a field of view that its pixels divide: a camera
+    (``perspective``, ``thinlens``, ``orthographic``) or a ``batch`` holding one. Not a
+    ``radiancemeter``: its 1 x 1 film is one ray, so sized by its film (2 x 1, rounded
+    up to 8) the automatic full maps were 8^2 and lost a shadow the ray ends in
+    (``multiview``, ``virtual=false``: lit where ``raytraced`` is shadowed)."""
+    if isinstance(sensor, mi.ProjectiveCamera):
+        return True
+    if sensor.class_name() == "BatchSensor":
+        return any(_has_field_of_view(s) for s in _child_sensors(sensor))
+    return False
 
 
 def _sensor_name(sensor) -> str:

@@ -768,6 +768,39 @@ def test_sensors_that_spread_a_pixel_refuse_camera_fitted_maps(props, light, nam
     assert named in msg and "IrradianceMeter" in msg, msg
 
 
+@pytest.mark.parametrize("light", ["spot", "point", "directional"])
+def test_a_radiancemeter_gets_full_maps_as_fine_as_without_a_sensor(light):
+    """A ``radiancemeter`` (one ray; its film must be 1 x 1) aims by film, so its
+    automatic full maps were sized by its film: 2 x 1 texels, rounded up to 8^2. Its
+    ray ends in a ball's shadow (``raytraced``: 0), which the 8^2 maps lost:
+    ``multiview`` measured the unshadowed radiance under all three lights, ``pcf`` with
+    ``virtual=false`` 21-66 % of it, ``hard`` with ``virtual=false`` all of it under the
+    point light. It has no field of view to size maps by: they are now 1024^2, as for
+    an ``irradiancemeter`` or no sensor, and all measure 0."""
+    floor = mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3)
+    d = {"type": "scene", "floor": {"type": "rectangle", "to_world": floor},
+         "ball": {"type": "sphere", "center": [0.6, 0.6, 0], "radius": 0.5},
+         "light": _METER_LIGHTS[light],
+         "sensor": {"type": "radiancemeter", "origin": [-0.1, 2.5, 2.0],
+                    "direction": [0.0, -2.5, -2.08], "film": _METER_FILM}}
+    scene = mi.load_dict(d)
+
+    def measure(props):
+        integ = mi.load_dict({"type": "shadowmap", **props})
+        img = np.asarray(mi.render(scene, integrator=integ, spp=64, seed=1))
+        return float(img.ravel()[0]), integ
+
+    unshadowed, _ = measure({"method": "unshadowed"})
+    truth, _ = measure({"method": "raytraced"})
+    assert unshadowed > 0 and truth <= 0.01 * unshadowed      # the ray ends in the shadow
+    for props in ({"method": "hard", "virtual": False}, {"method": "pcf", "virtual": False},
+                  {"method": "multiview"}):
+        got, integ = measure(props)
+        print(light, props, got / unshadowed, integ.resolution)
+        assert got <= 0.01 * unshadowed, props
+        assert integ.resolution == 1024, props
+
+
 def test_which_sensors_aim_their_pixels_by_film():
     """Cameras, a ``radiancemeter`` and a ``batch`` of cameras (with a ``thinlens`` too,
     which needs aperture samples) aim each pixel's rays by film position; an

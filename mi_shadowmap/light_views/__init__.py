@@ -434,9 +434,12 @@ def footprint_ratio(scene, sensor, views) -> float:
     Per unit resolution a view spans :meth:`LightView.map_width` (a spot map
     ``2 tan(cutoff) d`` at distance ``d`` from the light, a cube face ``2 d``,
     an orthographic map its width, cascades their largest one); a perspective
-    camera spans ``2 tan(x_fov / 2) d_cam`` per unit film width. ``d`` and
-    ``d_cam`` are measured to the centre of the scene's bounding box. Returns
-    1 when it cannot be computed (no bounds, not a perspective camera). Used
+    camera spans ``2 tan(x_fov / 2) d_cam`` per unit film width, an orthographic
+    camera its own width at any distance (before, 1 was taken: its automatic full
+    maps were the film's size whatever its zoom, 4x coarser than a perspective
+    camera's of the same view). ``d`` and ``d_cam`` are measured to the centre of
+    the scene's bounding box. Returns 1 when it cannot be computed (no bounds,
+    a sensor without a field of view). Used
     by the automatic ``resolution``
     (:meth:`~mi_shadowmap.options.Options.map_resolution`).
     """
@@ -444,14 +447,19 @@ def footprint_ratio(scene, sensor, views) -> float:
     if sensor is None or bounds is None:
         return 1.0
     centre = 0.5 * (bounds[0] + bounds[1])
-    params = mi.traverse(sensor)
-    key = next((k for k in params.keys() if k.endswith("x_fov")), None)
-    if key is None:
-        return 1.0
-    x_fov = float(dr.ravel(params[key])[0])
-    cam = sensor.world_transform().translation()
-    cam = np.array([float(dr.ravel(cam[k])[0]) for k in range(3)])
-    cam_width = 2.0 * math.tan(math.radians(x_fov) / 2) * np.linalg.norm(centre - cam)
+    if sensor.class_name() == "OrthographicCamera":
+        # the whole film spans camera x in [-1, 1], scaled by to_world, at any distance
+        m = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+        cam_width = 2.0 * float(np.linalg.norm(m[:3, 0]))
+    else:
+        params = mi.traverse(sensor)
+        key = next((k for k in params.keys() if k.endswith("x_fov")), None)
+        if key is None:
+            return 1.0
+        x_fov = float(dr.ravel(params[key])[0])
+        cam = sensor.world_transform().translation()
+        cam = np.array([float(dr.ravel(cam[k])[0]) for k in range(3)])
+        cam_width = 2.0 * math.tan(math.radians(x_fov) / 2) * np.linalg.norm(centre - cam)
     if not cam_width > 0:
         return 1.0
     widths = [v.map_width(centre) for v in views if v is not None]

@@ -103,6 +103,44 @@ def test_an_orthographic_camera_gets_the_automatic_resolution_of_its_view():
     assert out["orthographic"][1] <= 0.02
 
 
+@pytest.mark.parametrize("offset", [0.0, 500.0])
+def test_a_batch_sensor_gets_the_automatic_resolution_of_its_cameras(offset):
+    """A ``batch`` sensor's footprint correction took its first camera's field of view
+    but the batch's own position (the world origin) as the camera's: the same two
+    cameras (4 and 30 degrees, 64^2 each) over a pole's shadow got 1024^2 maps with the
+    scene at the origin and 128^2 with everything moved 500 units away, where
+    ``multiview`` (full maps only) misclassified 4.81 % of the 4-degree camera's half
+    (0.66 % at the origin; that camera alone, 512^2: 1.42 %). Each camera's ratio is
+    now taken at its own pixels: 1024^2 wherever the scene is, 0.66 %."""
+    T = mi.ScalarTransform4f
+    at = T().translate([offset, 0, 0])
+
+    def cam(target, fov):
+        return {"type": "perspective", "fov": fov,
+                "to_world": at @ T().look_at(origin=[1, 5, 8.5], target=target, up=[0, 1, 0])}
+
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "batch", "a": cam([1.25, 0, 0.75], 4), "b": cam([0, 0.5, 0], 30),
+                   "film": {"type": "hdrfilm", "width": 128, "height": 64,
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "floor": {"type": "rectangle", "to_world": at @ T().rotate([1, 0, 0], -90).scale(6)},
+        "pole": {"type": "cube",
+                 "to_world": at @ T().translate([1.5, 1.0, 1.0]).scale([0.04, 1, 0.04])},
+        "light": {"type": "spot", "cutoff_angle": 50, "intensity": 60,
+                  "to_world": at @ T().look_at(origin=[2.5, 6, 2], target=[0, 0, 0],
+                                               up=[0, 1, 0])}})
+    vis = {}
+    for method in ("raytraced", "multiview"):
+        integ = mi.load_dict({"type": "shadowmap", "method": method})
+        vis[method] = np.asarray(mi.render(scene, integrator=integ, seed=0))[:, :64, -1]
+    miss = misclassified(vis["raytraced"], vis["multiview"])["misclassified"]
+    print(offset, integ.resolution, miss)
+    assert integ.resolution == 1024
+    assert miss <= 0.01
+
+
 def test_automatic_resolution_respects_the_memory_budget():
     scene = mi.load_dict(default_scene(width=64, height=64, spp=1, light="point"))
     budget_bytes = 6 * 4 * 40 * 40      # six cube faces of 40^2 float32 texels

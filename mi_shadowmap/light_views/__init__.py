@@ -438,14 +438,23 @@ def footprint_ratio(scene, sensor, views) -> float:
     camera its own width at any distance (before, 1 was taken: its automatic full
     maps were the film's size whatever its zoom, 4x coarser than a perspective
     camera's of the same view). ``d`` and ``d_cam`` are measured to the centre of
-    the scene's bounding box. Returns 1 when it cannot be computed (no bounds,
-    a sensor without a field of view). Used
+    the scene's bounding box. A ``batch`` sensor: the largest of its cameras' ratios,
+    each at its own pixels (before, the first camera's field of view was taken from
+    the batch's own position, the world origin: a scene 500 units from it got 128^2
+    maps where its 4-degree camera alone gets 512^2). Returns 1 when it cannot be
+    computed (no bounds, a sensor without a field of view). Used
     by the automatic ``resolution``
     (:meth:`~mi_shadowmap.options.Options.map_resolution`).
     """
     bounds = scene_bounds(scene)     # not scene.bbox(): merged meshes (base.shape_bounds)
     if sensor is None or bounds is None:
         return 1.0
+    if sensor.class_name() == "BatchSensor":
+        # each camera's ratio at its own pixels: its film is its share of the batch's
+        width = int(sensor.film().size()[0])
+        ratios = [footprint_ratio(scene, s, views) * int(s.film().size()[0]) / width
+                  for s in _child_sensors(sensor) if isinstance(s, mi.ProjectiveCamera)]
+        return max(ratios) if ratios else 1.0
     centre = 0.5 * (bounds[0] + bounds[1])
     if sensor.class_name() == "OrthographicCamera":
         # the whole film spans camera x in [-1, 1], scaled by to_world, at any distance

@@ -652,6 +652,11 @@ def main(argv=None) -> int:
         print("mi-shadowmap: interrupted", file=sys.stderr)
         return 130
     except Exception as e:  # one line, no traceback, unless --debug
+        from .timing import root_error
+        if isinstance(root_error(e), KeyboardInterrupt):   # mi.render wraps a Ctrl-C
+            _close_progress_bars()
+            print("mi-shadowmap: interrupted", file=sys.stderr)
+            return 130
         if debug:
             raise
         _close_progress_bars()

@@ -110,6 +110,7 @@ screen is Mitsuba's projective integrators' job.
         self.resolution = None      # the resolution of the last render's maps
         self.stats = MapStats()     # see map_manager.prepare_maps()
         self._in_render = False
+        self._sigint_before = None  # the SIGINT action before the render (_sigint_action)
         self._nested = False        # sample() is called by another integrator (aov)
         self._names_given: list[str] = []   # aov_names() given outside a render
         self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
@@ -135,7 +136,16 @@ screen is Mitsuba's projective integrators' job.
     # ---------------------------------------------------------------- passes
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if self._in_render:   # Mitsuba re-enters a Python render() override
+            # Its binding installs a Ctrl-C handler for the render and keeps the one it
+            # replaces in a single static: this nested scope recorded the outer scope's
+            # handler as the one to restore, so Mitsuba's stayed installed after every
+            # render, bound to this integrator: a later Ctrl-C called cancel() on a freed
+            # integrator ("free(): invalid pointer", a segfault) or was swallowed, and
+            # no KeyboardInterrupt ever reached the caller. The nested scope gets the
+            # handler from before the render instead.
+            _set_sigint_action(self._sigint_before)
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
+        self._sigint_before = _sigint_action()
         self._in_render = True
         self._nested = False
         self._last_render = None
@@ -161,6 +171,8 @@ screen is Mitsuba's projective integrators' job.
         finally:
             self._in_render = False
             self._out_of_range = None
+            _set_sigint_action(self._sigint_before)   # as it was, whatever happened
+            self._sigint_before = None
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
     #: (``pcf``'s, ``bilinear``'s and ``pcss``'s taps, ``max_iterations=-1``; ``pcss``
@@ -807,6 +819,41 @@ def _rendered_spp(sensor, spp: int) -> int:
         if logger is not None:
             logger.set_log_level(level)
     return sampler.sample_count()
+
+
+_LIBC: list = []      # [the C library, or None where it has no sigaction (Windows)]
+
+
+def _libc():
+    if not _LIBC:
+        try:
+            import ctypes
+            lib = ctypes.CDLL(None)
+            lib.sigaction        # noqa: B018  (AttributeError where there is none)
+        except (OSError, AttributeError, TypeError):
+            lib = None
+        _LIBC.append(lib)
+    return _LIBC[0]
+
+
+def _sigint_action():
+    """The process's SIGINT action (its ``struct sigaction``, as opaque bytes), for
+    :func:`_set_sigint_action`; None where it cannot be read (no ``sigaction``: Windows,
+    where Mitsuba installs no Ctrl-C handler either)."""
+    lib = _libc()
+    if lib is None:
+        return None
+    import ctypes
+    import signal
+    buf = ctypes.create_string_buffer(512)    # larger than any libc's struct sigaction
+    return buf if lib.sigaction(int(signal.SIGINT), None, buf) == 0 else None
+
+
+def _set_sigint_action(action) -> None:
+    """Install a SIGINT action read by :func:`_sigint_action` (None: leave it)."""
+    if action is not None:
+        import signal
+        _libc().sigaction(int(signal.SIGINT), action, None)
 
 
 def _tracks_gradients(scene) -> bool:

@@ -571,3 +571,18 @@ def test_tune_fixes_the_scene_integrator_properties_it_does_not_search(tmp_path,
     assert cli.tune_methods(args, load_scene(own), {}) == ["pcf:bias=0.2"]   # nothing fixed
     args.methods = ["hard"]
     assert cli.tune_methods(args, load_scene(own), {"bias": 0.1}) == ["hard"]
+
+
+def test_ctrl_c_in_a_render_is_interrupted_not_an_error(tmp_path, capsys, monkeypatch):
+    """mi.render wraps a Ctrl-C raised in a Python integrator as a RuntimeError: the
+    command printed 'mi-shadowmap: error: KeyboardInterrupt' with status 2, not the
+    'interrupted' and 130 of a Ctrl-C elsewhere."""
+    def interrupted(*a, **k):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise RuntimeError("render failed") from e
+    monkeypatch.setattr(harness, "compare", interrupted)
+    code, out, err = run(["compare", *TINY, "--methods", "hard", "--out", tmp_path / "o"],
+                         capsys)
+    assert code == 130 and err.strip().splitlines()[-1] == "mi-shadowmap: interrupted", err

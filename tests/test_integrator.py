@@ -1031,3 +1031,39 @@ def test_a_light_property_no_light_of_the_scene_uses_warns(light, props, warns):
         assert not msgs, msgs
     else:
         assert len(msgs) == 1 and warns in msgs[0] and light in msgs[0], msgs
+
+
+CTRL_C_AFTER_RENDER = """
+import gc, os, signal, time
+signal.signal(signal.SIGINT, signal.default_int_handler)   # whatever the parent ignores
+import mitsuba as mi
+import mi_shadowmap
+scene = mi.load_dict({"type": "scene", "s": {"type": "sphere"},
+                      "e": {"type": "point", "position": [0, 0, 3]},
+                      "c": {"type": "perspective",
+                            "film": {"type": "hdrfilm", "width": 8, "height": 8}}})
+integ = mi.load_dict({"type": "shadowmap", "method": "hard", "resolution": 16})
+mi.render(scene, integrator=integ, spp=1)
+del integ
+gc.collect()
+try:
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(2)
+    print("no KeyboardInterrupt")
+except KeyboardInterrupt:
+    print("KeyboardInterrupt")
+"""
+
+
+def test_ctrl_c_after_a_render_raises_keyboard_interrupt():
+    """Mitsuba's render binding, re-entered by the Python render() override, left its
+    own Ctrl-C handler installed after every render, bound to the integrator: a Ctrl-C
+    later (between a sweep's renders, after the integrator was freed) aborted the process
+    ("free(): invalid pointer", exit -6, nothing written) or was swallowed. Now the
+    handler from before the render is back and Ctrl-C is a KeyboardInterrupt."""
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-c", CTRL_C_AFTER_RENDER], capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 0 and p.stdout.strip() == "KeyboardInterrupt", (
+        p.returncode, p.stdout, p.stderr)

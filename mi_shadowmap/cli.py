@@ -414,10 +414,21 @@ def cmd_compare(args) -> int:
     methods = [harness.method_spec(m, params) for m in (args.methods or
                                                         harness.default_methods())]
     report.check_out_dir(out, create=False)   # made when written: no empty folder
-    results = harness.compare(scene, methods=methods, reference=reference, spp=args.spp,
-                              seed=args.seed, repeats=args.repeats, progress=True,
-                              ref_spp=args.ref_spp, ref_shadow_rays=args.ref_shadow_rays,
-                              **params)
+    try:
+        results = harness.compare(scene, methods=methods, reference=reference, spp=args.spp,
+                                  seed=args.seed, repeats=args.repeats, progress=True,
+                                  ref_spp=args.ref_spp, ref_shadow_rays=args.ref_shadow_rays,
+                                  **params)
+    except BaseException as exc:    # a method that failed, Ctrl-C: keep those rendered
+        done = getattr(exc, "compare_results", None)
+        if done is not None and len(done) > 1:
+            _close_progress_bars()
+            print(harness.format_table(done))
+            report.write_results(done, out)
+            print(f"mi-shadowmap: the comparison stopped after {len(done) - 1} of "
+                  f"{len(methods)} methods; the reference and those are in "
+                  f"{os.path.abspath(out)}", file=sys.stderr)
+        raise
     print(harness.format_table(results))
     written = report.write_results(results, out)
     print(f"\nwrote {len(written['exr'])} EXR, {len(written['png'])} PNG, metrics.csv and "

@@ -77,7 +77,10 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         Integrator properties shared by every method that uses them (a
         property no listed method uses is an error).
 
-    Everything is validated before the first render.
+    Everything is validated before the first render, but what depends on the scene's
+    maps (a ``resolution`` whose maps exceed ``memory_budget``) fails at the method's
+    render: the error (and a Ctrl-C) then carries the results rendered before it,
+    scored, as ``exc.compare_results`` (reference first), which the CLI writes.
     """
     methods = _method_list(methods)           # one method; an iterator read once, here
     check_run_args(methods=methods, spp=spp, seed=seed, repeats=repeats, ref_spp=ref_spp,
@@ -108,29 +111,45 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
     per_spp = {rendered_spp(scene, spp): ref}     # by the spp the sampler renders
     matched = reference_follows_spp(scene, reference)
     results, scored = [ref], [(ref, ref)]
-    for spec in iterator:
-        spec = dict(spec)
-        own_spp = "spp" in spec
-        m_spp = spec.pop("spp", spp)
-        r = run_method(scene, spec.pop("method"), spp=m_spp, seed=seed, repeats=repeats,
-                       measure_cached=measure_cached, **spec)
-        if own_spp:         # told apart from the same method at compare's spp
-            r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
-        r_ref = ref
-        if matched and r.spp not in per_spp:
-            per_spp[r.spp] = make_reference(scene, reference, spp=m_spp, seed=seed,
-                                            ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays,
-                                            repeats=repeats, measure_cached=measure_cached)
-        if matched:
-            r_ref = per_spp[r.spp]
-        results.append(r)
-        scored.append((r, r_ref))
+    try:
+        for spec in iterator:
+            spec = dict(spec)
+            own_spp = "spp" in spec
+            m_spp = spec.pop("spp", spp)
+            r = run_method(scene, spec.pop("method"), spp=m_spp, seed=seed, repeats=repeats,
+                           measure_cached=measure_cached, **spec)
+            if own_spp:         # told apart from the same method at compare's spp
+                r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
+            r_ref = ref
+            if matched and r.spp not in per_spp:
+                per_spp[r.spp] = make_reference(scene, reference, spp=m_spp, seed=seed,
+                                                ref_spp=ref_spp,
+                                                ref_shadow_rays=ref_shadow_rays,
+                                                repeats=repeats, measure_cached=measure_cached)
+            if matched:
+                r_ref = per_spp[r.spp]
+            results.append(r)
+            scored.append((r, r_ref))
+    except (Exception, KeyboardInterrupt) as e:
+        # a method the scene cannot render (a map over memory_budget), a bug, Ctrl-C: the
+        # results rendered so far, scored, go with the error (the CLI writes them)
+        try:
+            _score(scored, ref)
+        except Exception:    # the error that stopped the comparison is the one to raise
+            pass
+        e.compare_results = results
+        raise
+    _score(scored, ref)
+    return results
+
+
+def _score(scored, ref) -> None:
+    """Score each ``(result, its reference)`` of :func:`compare`."""
     for r, r_ref in scored:
         r.metrics = score(r, r_ref)
         if r_ref is not ref:
             r.metrics["reference_spp"] = r_ref.spp
             r.scored_against = r_ref     # its error layers and heat map too
-    return results
 
 
 def render(scene, method="hard", spp: int = 16, seed: int = 0, **params):

@@ -586,3 +586,21 @@ def test_ctrl_c_in_a_render_is_interrupted_not_an_error(tmp_path, capsys, monkey
     code, out, err = run(["compare", *TINY, "--methods", "hard", "--out", tmp_path / "o"],
                          capsys)
     assert code == 130 and err.strip().splitlines()[-1] == "mi-shadowmap: interrupted", err
+
+
+def test_compare_keeps_the_methods_rendered_before_one_that_fails(tmp_path, capsys):
+    """A method whose maps exceed memory_budget fails at its render, after the reference
+    and the methods before it rendered: the command wrote nothing (3 renders lost); now
+    it writes those, with their metrics, and still reports the error (status 2)."""
+    out_dir = tmp_path / "out"
+    code, out, err = run(["compare", "--width", "16", "--height", "16", "--spp", "1",
+                          "--repeats", "1", "--light", "point", "--methods",
+                          "hard:resolution=32", "pcf:resolution=8192", "--out", out_dir],
+                         capsys)
+    assert code == 2 and "memory_budget" in err.strip().splitlines()[-1], err
+    assert "stopped after 1 of 2 methods" in err, err
+    rows = json.loads((out_dir / "metrics.json").read_text())
+    assert [r["name"] for r in rows] == ["reference (raytraced)", "hard resolution=32"]
+    assert rows[0]["vis_rmse"] == 0 and rows[1]["vis_rmse"] >= 0
+    assert (out_dir / "hard_resolution=32.exr").exists()
+    assert "hard resolution=32" in out       # the table of what was rendered

@@ -96,6 +96,9 @@ def _add_scene_args(p, sizes=True, out="out"):
                        help="image width (built-in scene, or an XML file with $width)")
         p.add_argument("--height", type=int, default=None,
                        help="image height (built-in scene, or an XML file with $height)")
+    p.add_argument("--param", action="append", metavar="NAME=VALUE", default=[],
+                   help="value of the scene file's $NAME parameter (repeatable), e.g. "
+                        "--param light_distance=1e6; needed for one without a <default>")
     p.add_argument("--set", action="append", metavar="NAME=VALUE", default=[],
                    help="integrator property for every method that uses it (repeatable), "
                         "e.g. --set resolution=512 --set bias=0.01; overrides the scene "
@@ -288,12 +291,31 @@ def load_scene_arg(args, sizes=True):
                 if v < 1:
                     raise ValueError(f"--{k} must be >= 1, got {v}")
                 size[k] = v
+    params = {}
+    for item in getattr(args, "param", None) or []:
+        name, eq, value = item.partition("=")
+        name = name.strip().lstrip("$")
+        if not eq or not re.fullmatch(r"[A-Za-z_]\w*", name):
+            raise ValueError(f"--param expects NAME=VALUE (a scene file's $NAME), got {item!r}")
+        if name in size:
+            raise ValueError(f"--param {name}=... and --{name} both set ${name}; give one")
+        params[name] = value
     if args.scene is None:
+        if params:
+            raise ValueError("--param fills a scene file's $ parameters; the built-in scene "
+                             "has none (give a scene file, or use --width, --height, --light)")
         return scenes.load_scene(scenes.default_scene(light=args.light or "spot", **size))
     if args.light is not None:
         raise ValueError(f"--light {args.light} picks the built-in scene's light; the scene "
                          f"file {args.scene} brings its own (leave --light out, or the file)")
-    return scenes.load_scene(args.scene, **size)
+    try:
+        return scenes.load_scene(args.scene, **size, **params)
+    except RuntimeError as e:    # Mitsuba's parser: "... undefined parameter: $ypos"
+        m = re.search(r"undefined parameter: \$(\w+)", str(e))
+        if m is None:
+            raise
+        raise ValueError(f"scene file {args.scene} uses ${m.group(1)}, which has no "
+                         f"<default>: give it with --param {m.group(1)}=VALUE") from None
 
 
 def note(text: str) -> None:

@@ -604,3 +604,36 @@ def test_compare_keeps_the_methods_rendered_before_one_that_fails(tmp_path, caps
     assert rows[0]["vis_rmse"] == 0 and rows[1]["vis_rmse"] >= 0
     assert (out_dir / "hard_resolution=32.exr").exists()
     assert "hard resolution=32" in out       # the table of what was rendered
+
+
+PARAM_SCENE = """<scene version="3.0.0">
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="0,3,4" target="0,0,0" up="0,1,0"/></transform>
+    <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+  </sensor>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="3"/></transform></shape>
+  <shape type="sphere"><point name="center" x="0" y="$ypos" z="0"/><float name="radius" value="0.3"/></shape>
+  <emitter type="point"><point name="position" x="0" y="3" z="0"/><rgb name="intensity" value="10"/></emitter>
+</scene>"""
+
+
+def test_a_scene_parameter_without_default_is_given_with_param(tmp_path, capsys):
+    """A scene file's $ypos without a <default> could not be given on the command line
+    (only $width and $height had options): Mitsuba's "undefined parameter: $ypos" was the
+    end of it. --param fills any $ parameter; the error says so."""
+    scene = tmp_path / "user scene.xml"
+    scene.write_text(PARAM_SCENE)
+    base = ["compare", scene, "--methods", "hard:resolution=32", "--spp", "1",
+            "--repeats", "1"]
+    code, out, err = run(base + ["--out", tmp_path / "a"], capsys)
+    assert code == 2 and "--param ypos=VALUE" in err, err
+    assert not (tmp_path / "a").exists()
+    code, out, err = run(base + ["--param", "ypos=0.8", "--out", tmp_path / "b"], capsys)
+    assert code == 0, err
+    assert len(json.loads((tmp_path / "b" / "metrics.json").read_text())) == 2
+    code, out, err = run(base + ["--param", "ypos=0.8", "--param", "yposs=1", "--out",
+                                 tmp_path / "c"], capsys)
+    assert code == 2 and "$yposs" in err, err
+    code, out, err = run(["compare", "--param", "ypos=1", "--out", tmp_path / "d"], capsys)
+    assert code == 2 and "built-in scene" in err, err

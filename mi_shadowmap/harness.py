@@ -101,8 +101,8 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
                           if "spp" in s and rendered[s["spp"]] != s["spp"]])
     iterator = specs
     if progress:
-        from tqdm import tqdm
-        iterator = tqdm(specs, desc="methods", unit="method", leave=False)
+        from .progress import bar
+        iterator = bar(specs, desc="methods", unit="method", leave=False)
     ref = make_reference(scene, reference, spp=spp, seed=seed, ref_spp=ref_spp,
                          ref_shadow_rays=ref_shadow_rays, repeats=repeats,
                          measure_cached=measure_cached)

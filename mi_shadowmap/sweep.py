@@ -361,11 +361,11 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     ref = make_reference(scene, reference, spp=max(ref_spp, max_spp),
                          seed=derived_seed(seed, 1),
                          ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
-    from tqdm import tqdm
+    from .progress import bar
     rows, results, failed = [], [], []
     try:
-        for spec, spp_asked in tqdm(list(zip(specs, asked)), desc="sweep", unit="config",
-                                    disable=not progress):
+        for spec, spp_asked in bar(list(zip(specs, asked)), desc="sweep", unit="config",
+                                   disable=not progress):
             spec = dict(spec)
             s_spp = spec.pop("spp")
             method = spec.pop("method")

@@ -445,9 +445,9 @@ class _Tuner:
         self.row_of: dict = {}        # (key, spp) -> sweep row
         self.steps: list = []         # every full-size verification
         self.contested: set = set()
-        from tqdm import tqdm
-        self.bar = tqdm(total=4 + len(self.configs) * len(self.screen_spp), desc="tune",
-                        unit="render", disable=not progress, leave=False)
+        from .progress import bar
+        self.bar = bar(total=4 + len(self.configs) * len(self.screen_spp), desc="tune",
+                       unit="render", disable=not progress, leave=False)
 
     # ------------------------------------------------------------- bookkeeping
     def _tick(self, what: str, extra: int = 0):

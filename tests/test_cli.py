@@ -637,3 +637,20 @@ def test_a_scene_parameter_without_default_is_given_with_param(tmp_path, capsys)
     assert code == 2 and "$yposs" in err, err
     code, out, err = run(["compare", "--param", "ypos=1", "--out", tmp_path / "d"], capsys)
     assert code == 2 and "built-in scene" in err, err
+
+
+def test_progress_in_a_log_is_lines(tmp_path, capsys):
+    """stderr that is not a terminal (a log, a pipe; capsys here): tqdm drew its bar with
+    carriage returns there too, every redraw on one line of the log, and a bar that does
+    not stay (compare's) left a line of blanks. Now: plain lines, the last one kept."""
+    code, out, err = run(["sweep", "--grid", "method=hard resolution=32", "--width", "16",
+                          "--height", "16", "--spp", "1", "--repeats", "1",
+                          "--out", tmp_path / "s"], capsys)
+    assert code == 0, err
+    assert "\r" not in err and "sweep: 100%" in err, repr(err)
+    code, out, err = run(["compare", "--methods", "hard:resolution=32", "pcf:resolution=32",
+                          "--width", "16", "--height", "16", "--spp", "1", "--repeats", "1",
+                          "--out", tmp_path / "c"], capsys)
+    assert code == 0, err
+    assert "\r" not in err and "methods: 100%" in err, repr(err)
+    assert all(line.strip() for line in err.splitlines()), repr(err)

@@ -96,6 +96,29 @@ def check_emitters(scene, what: str = "shadow to measure") -> None:
                          "environment)")
 
 
+def check_given_reference(scene, ref: MethodResult) -> None:
+    """Raise ValueError, before a method renders, if ``ref`` (a reference given as a
+    result) cannot score renders of ``scene``: other emitters, or another image size (every
+    method rendered, then scoring failed with "shape mismatch: 'test_vis' has shape (3, 32,
+    40) but 'ref_vis' has shape (3, 32, 32)" and nothing was returned)."""
+    from .light_views import emitter_labels
+    labels = sorted(emitter_labels(scene.emitters()))
+    if sorted(ref.visibility) != labels:
+        raise ValueError(f"shadowmap: the reference given ({ref.name!r}) has the emitters "
+                         f"{', '.join(sorted(ref.visibility)) or 'none'}, the scene "
+                         f"{', '.join(labels)}: give a reference rendered from this scene")
+    sensors = scene.sensors()
+    if not len(sensors):
+        return
+    w, h = (int(c) for c in sensors[0].film().crop_size())
+    shapes = sorted({tuple(np.shape(v)) for v in ref.visibility.values()})
+    if shapes != [(h, w)]:
+        got = " and ".join(f"{s[1]} x {s[0]}" if len(s) == 2 else str(s) for s in shapes)
+        raise ValueError(f"shadowmap: the reference given ({ref.name!r}) is {got} pixels, "
+                         f"the scene's film renders {w} x {h}: give a reference rendered "
+                         "at the scene's film size")
+
+
 def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_spp: int = 64,
                    ref_shadow_rays: int = 64, repeats: int = 1,
                    measure_cached: bool = True) -> MethodResult:
@@ -111,6 +134,7 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
     """
     check_emitters(scene)
     if isinstance(reference, MethodResult):
+        check_given_reference(scene, reference)
         ref = reference
     elif reference == "converged" or (reference == "auto" and has_soft_lights(scene)):
         ref = converged_reference(scene, spp=spp if reference == "auto" else max(spp, ref_spp),

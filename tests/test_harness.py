@@ -806,3 +806,22 @@ def test_the_largest_seed_works_where_other_seeds_are_derived_from_it():
     table = harness.sweep(scene, {"method": "hard"}, spp=1, seed=2 ** 32 - 1, repeats=1,
                           ref_spp=2, progress=False)
     assert math.isfinite(table[0]["error"])
+
+
+def test_a_given_reference_of_another_size_or_scene_is_refused_before_rendering(monkeypatch):
+    """A reference result rendered at another film size (or from another scene's lights)
+    was found out by the scoring, after every method had rendered, as "shape mismatch:
+    'test_vis' has shape (1, 24, 32) but 'ref_vis' ..." with nothing returned. Now it is
+    refused before a method renders, naming both sizes (or both sets of emitters)."""
+    small = harness.load_scene(default_scene(width=24, height=24))
+    ref = harness.run_method(small, "raytraced", spp=1, measure_cached=False)
+    rendered = []
+    monkeypatch.setattr(harness, "run_method",
+                        lambda *a, **k: rendered.append(a) or pytest.fail("rendered"))
+    wide = harness.load_scene(default_scene(width=32, height=24))
+    with pytest.raises(ValueError, match="is 24 x 24 pixels, the scene's film renders 32 x 24"):
+        harness.compare(wide, methods=["hard"], reference=ref, spp=1)
+    other = harness.load_scene(default_scene(width=24, height=24, light="point"))
+    with pytest.raises(ValueError, match="has the emitters spot, the scene point"):
+        harness.compare(other, methods=["hard"], reference=ref, spp=1)
+    assert not rendered

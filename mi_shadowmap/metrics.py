@@ -400,12 +400,21 @@ def distinct_levels(values, decimals=6):
 
 def dilate(mask, margin: int) -> np.ndarray:
     """``mask`` (2-D bool) grown by ``margin`` pixels in every direction (a square
-    neighbourhood, wrapping at the borders): e.g. the pixels near an object on screen."""
+    neighbourhood, clipped at the image's borders): e.g. the pixels near an object on
+    screen. (It wrapped around the borders before: an object touching the left edge grew
+    the mask along the right one.)"""
     mask = np.asarray(mask, bool)
-    out = mask.copy()
-    for dy in range(-margin, margin + 1):
-        for dx in range(-margin, margin + 1):
-            out |= np.roll(np.roll(mask, dy, 0), dx, 1)
+    if margin <= 0:
+        return mask.copy()
+    H, W = mask.shape
+    out = np.zeros_like(mask)
+    rows = np.pad(mask, ((margin, margin), (0, 0)))
+    for d in range(2 * margin + 1):          # a square is a row dilation of a column one
+        out |= rows[d:d + H]
+    cols = np.pad(out, ((0, 0), (margin, margin)))
+    out = np.zeros_like(mask)
+    for d in range(2 * margin + 1):
+        out |= cols[:, d:d + W]
     return out
 
 

@@ -310,3 +310,20 @@ def test_dilate_grows_a_mask_by_the_margin():
     grown = dilate(m, 2)
     assert grown.sum() == 25 and grown[2:7, 2:7].all() and not grown[1, 4]
     assert np.array_equal(dilate(m, 0), m)
+
+
+def test_dilate_stops_at_the_borders():
+    """A mask touching the left edge grows inwards only (before: it wrapped around and
+    grew along the right edge too, so inverse.receiver_mask lost the ground there)."""
+    from mi_shadowmap.metrics import dilate
+    m = np.zeros((6, 8), bool)
+    m[0, 0] = True
+    grown = dilate(m, 2)
+    assert grown.sum() == 9 and grown[:3, :3].all()
+    assert not grown[:, -2:].any() and not grown[-2:, :].any()
+    rng = np.random.default_rng(3)
+    r = rng.random((12, 10)) < 0.1
+    brute = np.zeros_like(r)      # against the definition: any set pixel within margin
+    for y, x in zip(*np.nonzero(r)):
+        brute[max(y - 3, 0):y + 4, max(x - 3, 0):x + 4] = True
+    assert np.array_equal(dilate(r, 3), brute)

@@ -500,9 +500,14 @@ screen is Mitsuba's projective integrators' job.
         # copy for cylinders), prepared once for every emitter
         query = None if opts.uses_map else occlusion(scene)
         for k, emitter in enumerate(scene.emitters()):
-            # an emitter with sampling_weight 0 is never sampled by Mitsuba's direct (nor
-            # path): it lights nothing; its visibility AOV is still reported
-            sampled = emitter.sampling_weight() > 0
+            # a delta light with sampling_weight 0 is never sampled by Mitsuba's direct (nor
+            # path), and no BSDF sample can hit it: it lights nothing; its visibility AOV is
+            # still reported. An area light or an environment with weight 0 does light:
+            # direct's and path's BSDF samples reach it (MIS then gives them the whole
+            # weight), so it is shaded as any other (it rendered black: a rectangle light
+            # 0 against direct's 0.0173)
+            sampled = (emitter.sampling_weight() > 0
+                       or not mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta))
             if (opts.uses_map and k < len(self.maps)
                     and isinstance(getattr(self.maps[k], "view", None), env_mod.EnvironmentView)):
                 # environment='shadowed': K median-cut regions, one while loop

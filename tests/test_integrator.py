@@ -1067,3 +1067,33 @@ def test_ctrl_c_after_a_render_raises_keyboard_interrupt():
                        text=True, timeout=300)
     assert p.returncode == 0 and p.stdout.strip() == "KeyboardInterrupt", (
         p.returncode, p.stdout, p.stderr)
+
+
+@pytest.mark.parametrize("light", ["area", "constant"])
+def test_a_non_delta_emitter_with_sampling_weight_zero_still_lights(light):
+    """``sampling_weight`` 0 only stops Mitsuba from sampling an emitter: an area light or
+    an environment is still reached by ``direct``'s (and ``path``'s) BSDF samples, with
+    the whole MIS weight, so it lights the scene as with any weight. Every method left it
+    out (a rectangle light rendered black: 0 against direct's 0.0173; a constant sky
+    0.151, the background alone, against 0.320)."""
+    d = default_scene(width=24, height=24, light="point")
+    if light == "area":
+        d["lamp"] = {"type": "rectangle", "emitter": {"type": "area", "radiance": 3.0},
+                     "to_world": T().translate([0.5, 2.5, 0.5]).rotate([1, 0, 0], 90)
+                     .scale(0.6)}
+        em = d["lamp"]["emitter"]
+    else:
+        d["sky"] = {"type": "constant", "radiance": 0.5}
+        em = d["sky"]
+    ours = {}
+    for w in (1.0, 0.0):
+        em["sampling_weight"] = w
+        scene = mi.load_dict(d)
+        for method in ("raytraced", "hard"):
+            ours[w, method] = render_np(scene, {"type": "shadowmap", "method": method},
+                                        spp=16, seed=3)[0]
+    ref = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=256,
+                               seed=3))
+    for method in ("raytraced", "hard"):
+        assert relative_rmse(ours[1.0, method], ours[0.0, method]) < 1e-5
+        assert abs(ours[0.0, method].mean() / ref.mean() - 1) < 0.05

@@ -223,6 +223,44 @@ def test_enclosing_area_light_warns_the_map_methods():
                       spp=1)
 
 
+def test_an_area_light_whose_centre_is_hidden_warns_the_map_methods(tmp_path):
+    """Two tube lights in one mesh with a beam between them: the light's centre, from
+    which the map methods see it, is inside the beam, so every receiver is shadowed in
+    their maps: ``hard``, ``pcf``, ``vsm``, ``second_depth`` rendered the floor black
+    (0 against direct's 0.0278) and ``pcss`` 0.0004, with no word. The map methods now
+    warn; ``raytraced`` and ``multiview`` (which see the light itself) do not, and
+    neither does a lone tube pair without the beam."""
+    import warnings
+    obj = tmp_path / "tubes.obj"
+    lines = []
+    for x0 in (-1.0, 0.6):
+        lines += [f"v {x} 0 {z}" for x, z in
+                  [(x0, -1), (x0 + 0.4, -1), (x0 + 0.4, 1), (x0, 1)]]
+    obj.write_text("\n".join(lines) + "\nf 1 2 3\nf 1 3 4\nf 5 6 7\nf 5 7 8\n")
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "to_world": T().look_at(
+             origin=[0, 4, 6], target=[0, 0, 0], up=[0, 1, 0]),
+             "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+         "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(5)},
+         "lamp": {"type": "obj", "filename": str(obj), "to_world": T().translate([0, 2.5, 0]),
+                  "emitter": {"type": "area", "radiance": 5.0}}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mi.load_dict({"type": "shadowmap", "method": "hard"}).check_scene(mi.load_dict(d))
+    d["beam"] = {"type": "cube", "to_world": T().translate([0, 2.5, 0]).scale([0.2, 0.2, 1.2])}
+    scene = mi.load_dict(d)
+    rt, _ = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    assert rt.mean() > 0.01                         # the tubes light the floor
+    for method in ("hard", "pcf", "pcss"):
+        with pytest.warns(RuntimeWarning, match="'emitter'.*centre.*hidden from 100 %.*multiview"):
+            img, _ = render_np(scene, {"type": "shadowmap", "method": method}, spp=4)
+        assert img.mean() < 0.1 * rt.mean()        # the loss the warning is about
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for method in ("raytraced", "multiview"):
+            render_np(scene, {"type": "shadowmap", "method": method}, spp=1)
+
+
 @pytest.mark.parametrize("n", [3, 50, 1000])
 def test_the_reference_pattern_samples_the_whole_light_for_any_count(n):
     """One point in each of ``n`` equal-area cells (a ceil(sqrt(n))-column grid filled

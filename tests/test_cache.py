@@ -452,6 +452,53 @@ def test_a_moved_light_compiles_no_kernel(light, props):
     assert not compiled, [(k["size"], k["operation_count"]) for k in compiled]
 
 
+
+@pytest.mark.parametrize("case,props", [
+    ("far_point", {"method": "hard"}), ("far_point", {"method": "pcf"}),
+    ("spot_cutoff", {"method": "hard"}),
+    ("spot_cutoff", {"method": "hard", "virtual": False, "resolution": 128})],
+    ids=lambda p: p if isinstance(p, str) else "-".join(f"{v}" for v in p.values()))
+def test_a_far_light_moved_or_a_new_cutoff_compiles_no_kernel(case, props):
+    """A perspective face's ``tan_half`` entered kernels as a literal: a spot's new
+    cutoff angle, and a far point light moved (its face aimed at the scene's box is
+    refitted, :func:`~mi_shadowmap.light_views.perspective.box_view`), compiled 3
+    kernels a frame with virtual maps (220-480 ms against 15-40 ms; full maps 2).
+    Values are random, so Dr.Jit's disk cache cannot hold an earlier run's kernels."""
+    import random
+    rng = random.Random()
+    T = mi.ScalarTransform4f
+    d = default_scene(width=32, height=32)
+    d = {k: v for k, v in d.items() if not (isinstance(v, dict) and v.get("type") in (
+        "spot", "point", "directional"))}
+    far = 1e5
+    d["lamp"] = ({"type": "point", "position": [-0.6 * far, 0.64 * far, -0.48 * far],
+                  "intensity": 60.0 * far * far / 30.0} if case == "far_point" else
+                 {"type": "spot", "cutoff_angle": 35.0, "intensity": 120.0,
+                  "to_world": T().look_at(origin=[-2.4, 4.0, -3.4], target=[0.2, 0.0, 0.3],
+                                          up=[0, 1, 0])})
+    scene = mi.load_dict(d)
+    params = mi.traverse(scene)
+    integ = mi.load_dict({"type": "shadowmap", **props})
+    had = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for step in range(3):
+            j = rng.uniform(-0.05, 0.05) if step else 0.0
+            if case == "far_point":
+                params["lamp.position"] = mi.Point3f(far * (-0.6 + j), 0.64 * far, -0.48 * far)
+            else:
+                params["lamp.cutoff_angle"] = 35.0 + 40.0 * j
+            params.update()
+            dr.kernel_history()
+            img = mi.render(scene, integrator=integ, spp=2, seed=step)
+            dr.eval(img)
+            compiled = [k for k in dr.kernel_history()
+                        if k["type"] == dr.KernelType.JIT and not k.get("cache_hit", 1)]
+        assert np.isfinite(np.asarray(img)).all()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, had)
+    assert not compiled, [(k["size"], k["operation_count"]) for k in compiled]
+
 def test_stats_read_like_a_dict():
     """``integrator.stats`` "reads like a dict": ``dict(stats)`` and ``list(stats)``
     raised "attribute name must be string, not 'int'", ``stats.items()`` an

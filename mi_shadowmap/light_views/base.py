@@ -303,7 +303,8 @@ def axial_texel_size(view, res: int, face, p_world):
     face's view axis, ``z_axial * 2 tan_half / res``."""
     o, axis = view.ray_through(face, mi.Point2f(0.5, 0.5))
     z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
-    return z_axial * (2.0 * view.tan_half / res)
+    return z_axial * (opaque_scalar(2.0 * view.tan_half) / res)   # opaque: a spot's new
+    #                                                         cutoff compiles no kernel
 
 
 def transform_f64(m: np.ndarray, p, point: bool = True):

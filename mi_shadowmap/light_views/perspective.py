@@ -18,8 +18,8 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, axial_texel_size, emitter_frame, light_matrix, look_along_np,
-                   opaque_point, opaque_transform, position_np, scalar3, texel_width_along,
-                   transform_f64, unit_grid)
+                   opaque_point, opaque_scalar, opaque_transform, position_np, scalar3,
+                   texel_width_along, transform_f64, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -46,15 +46,23 @@ class PerspectiveView(LightView):
     def _tan_y(self) -> float:
         return self.tan_half if self.tan_half_y is None else self.tan_half_y
 
+    def _tans(self, double: bool = False):
+        """``(tan_half, tan_half_y)`` as opaque JIT scalars, as :class:`OrthoView`'s
+        half extents: a spot's new cutoff angle or a far light's moved face
+        (:func:`box_view` refits ``tan_half`` to the scene's box) compiles no new kernel."""
+        return opaque_scalar(self.tan_half, double), opaque_scalar(self._tan_y, double)
+
     def texel_rays(self, res: int):
         _, s, t = unit_grid(1, res)
-        d_light = mi.Vector3f(s * self.tan_half, t * self._tan_y, 1.0)
+        tx, ty = self._tans()
+        d_light = mi.Vector3f(s * tx, t * ty, 1.0)
         return opaque_point(self.position), dr.normalize(self._world_from_light() @ d_light)
 
     def ray_through(self, face, uv_light: mi.Point2f):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
-        d_light = mi.Vector3f(s * self.tan_half, t * self._tan_y, 1.0)
+        tx, ty = self._tans()
+        d_light = mi.Vector3f(s * tx, t * ty, 1.0)
         return opaque_point(self.position), dr.normalize(self._world_from_light() @ d_light)
 
     def project(self, p_world: mi.Point3f):
@@ -65,8 +73,9 @@ class PerspectiveView(LightView):
         # points at or behind the light's plane
         inv_z = dr.rcp(dr.maximum(z, dr.maximum(1e-7 * (dr.abs(p_light.x) + dr.abs(p_light.y)),
                                                 1e-30)))
-        uv = mi.Point2f(0.5 * (p_light.x * inv_z / self.tan_half + 1.0),
-                        0.5 * (p_light.y * inv_z / self._tan_y + 1.0))
+        tx, ty = self._tans()
+        uv = mi.Point2f(0.5 * (p_light.x * inv_z / tx + 1.0),
+                        0.5 * (p_light.y * inv_z / ty + 1.0))
         depth = dr.norm(p_world - opaque_point(self.position))
         inside = (z > 0) & (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
         return mi.UInt32(0), uv, depth, inside
@@ -85,15 +94,16 @@ class PerspectiveView(LightView):
     def uv_on_face_f64(self, face, p_world):
         p_light = self._light_f64(p_world)
         inv_z = dr.rcp(dr.maximum(p_light.z, 1e-300))
-        return mi.Point2d(0.5 * (p_light.x * inv_z / self.tan_half + 1.0),
-                          0.5 * (p_light.y * inv_z / self._tan_y + 1.0))
+        tx, ty = self._tans(True)
+        return mi.Point2d(0.5 * (p_light.x * inv_z / tx + 1.0),
+                          0.5 * (p_light.y * inv_z / ty + 1.0))
 
     def uv_differential(self, face, p_world, dp_world):
         L = opaque_transform(self.light_from_world)
         p = L @ mi.Point3f(p_world)
         dp = L @ mi.Vector3f(dp_world)
         inv_z = dr.rcp(dr.maximum(p.z, 1e-30))
-        kx, ky = 0.5 / self.tan_half, 0.5 / self._tan_y
+        kx, ky = opaque_scalar(0.5 / self.tan_half), opaque_scalar(0.5 / self._tan_y)
         return mi.Point2f(kx * (dp.x - p.x * dp.z * inv_z) * inv_z,
                           ky * (dp.y - p.y * dp.z * inv_z) * inv_z)
 
@@ -108,7 +118,8 @@ class PerspectiveView(LightView):
     def ray_through_f64(self, face, uv_light):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
-        d_light = mi.Vector3d(s * self.tan_half, t * self._tan_y, 1.0)
+        tx, ty = self._tans(True)
+        d_light = mi.Vector3d(s * tx, t * ty, 1.0)
         d = transform_f64(np.linalg.inv(light_matrix(self)), d_light, point=False)
         return opaque_point(self.position, True), dr.normalize(d)
 
@@ -118,8 +129,8 @@ class PerspectiveView(LightView):
         W = np.linalg.inv(light_matrix(self))
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
-        base = transform_f64(W, mi.Vector3d(s * self.tan_half, t * self._tan_y, 1.0),
-                             point=False)
+        tx, ty = self._tans(True)
+        base = transform_f64(W, mi.Vector3d(s * tx, t * ty, 1.0), point=False)
         R = W[:3, :3]
         kx, ky = 2.0 * self.tan_half, 2.0 * self._tan_y
         # opaque (opaque_point): a turned light compiles no new kernel
@@ -137,13 +148,13 @@ class PerspectiveView(LightView):
         if p_world is not None:
             depth = dr.abs((opaque_transform(self.light_from_world) @ mi.Point3f(p_world)).z)
         if self.tan_half_y is None or n_world is None:
-            return depth * (2.0 * self.tan_half / res)
+            return depth * (opaque_scalar(2.0 * self.tan_half) / res)
         # the light's axes in the world: the rows of light_from_world's rotation (the
         # opaque matrix project() reads; tan_half_y a Python float, as tan_half: a numpy
         # float times a JIT array asks numpy to convert it, which a symbolic lookup refuses)
         m = opaque_transform(self.light_from_world).matrix
-        return texel_width_along(depth * (2.0 * self.tan_half / res),
-                                 depth * (2.0 * self._tan_y / res),
+        return texel_width_along(depth * (opaque_scalar(2.0 * self.tan_half) / res),
+                                 depth * (opaque_scalar(2.0 * self._tan_y) / res),
                                  dr.normalize(mi.Vector3f(m[0][0], m[0][1], m[0][2])),
                                  dr.normalize(mi.Vector3f(m[1][0], m[1][1], m[1][2])),
                                  mi.Vector3f(n_world))
@@ -159,7 +170,7 @@ class PerspectiveView(LightView):
         if self.tan_half_y is None:
             return None
         w_x = axial_texel_size(self, res, face, p_world)
-        return w_x, w_x * (self.tan_half_y / self.tan_half)
+        return w_x, w_x * opaque_scalar(self.tan_half_y / self.tan_half)
 
     def map_width(self, p_world: np.ndarray) -> float:
         return 2.0 * self.tan_half * float(np.linalg.norm(p_world - position_np(self)))

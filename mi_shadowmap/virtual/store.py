@@ -192,7 +192,10 @@ class PageStore:
             uv = mi.Point2d((mi.Float64(gx) + TEXEL_SAMPLE[0]) / res,
                             (mi.Float64(gy) + TEXEL_SAMPLE[1]) / res)
             o64, d64 = lay.view.ray_through_f64(f_l, uv)
-            o = mi.Point3f(o64 + d64 * lay.t0)     # start near the scene: float32 stays exact
+            # start near the scene: float32 stays exact (t0 opaque, as the lookups'
+            # depth_origin: a moved far light compiles no new kernel)
+            o = mi.Point3f(o64 + d64 * dr.opaque(mi.Float64, float(lay.t0))
+                           if lay.t0 > 0.0 else o64)
             d = dr.normalize(mi.Vector3f(d64))
             slot = dr.gather(mi.UInt32, padded_array(mi.UInt32, tslots.astype(np.uint32)), tile)
             dst = slot * (P * P) + (gy & (P - 1)) * P + (gx & (P - 1))

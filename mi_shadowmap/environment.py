@@ -107,7 +107,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .light_views.base import look_along_np, position_np
+from .light_views.base import look_along_np, opaque_scalar, position_np
 from .light_views.multi import MultiView, SubView, stratified_points
 from .light_views.ortho import directional_view
 from .variants import bsdf_to_world, unpolarized
@@ -387,9 +387,10 @@ class RegionView(SubView):
         return self.spread, True
 
     # ---------------------------------------------- float64 (virtual maps)
-    @property
-    def _half(self):
-        return self.inner.half_extent
+    def _half(self, double: bool = False):
+        """The face's half sizes as opaque JIT scalars (:meth:`OrthoView._half`): a
+        rotated environment refits them and compiles no new kernel."""
+        return self.inner._half(double)
 
     def _light64(self, p_world):
         M = self.rows64
@@ -399,7 +400,7 @@ class RegionView(SubView):
 
     def project_f64(self, p_world):
         x, y, z = self._light64(p_world)
-        hx, hy = self._half
+        hx, hy = self._half(True)
         uv = mi.Point2d(0.5 * (x / hx + 1.0), 0.5 * (y / hy + 1.0))
         inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
         return mi.UInt32(self.offset), uv, z, inside
@@ -408,17 +409,17 @@ class RegionView(SubView):
         return self.project_f64(p_world)[1]
 
     def ray_through_f64(self, face, uv_light):
-        return _region_ray64(self.rows64, self._half, uv_light)
+        return _region_ray64(self.rows64, self._half(True), uv_light)
 
     def ray_frame_f64(self, face, uv_light):
         ax, ay, az = self.axes32
-        hx, hy = self._half
+        hx, hy = self._half()
         return False, az, ax * (2.0 * hx), ay * (2.0 * hy)
 
     def uv_differential(self, face, p_world, dp_world):
         ax, ay, _ = self.axes32
         dp = mi.Vector3f(dp_world)
-        hx, hy = self._half
+        hx, hy = self._half()
         return mi.Point2f(0.5 * dr.dot(ax, dp) / hx, 0.5 * dr.dot(ay, dp) / hy)
 
     def depth_differential(self, p_world, dp_world):
@@ -513,7 +514,7 @@ class EnvironmentView(MultiView):
         """Texel rays of ``face`` (the region, per lane) in float64 (the page build)."""
         face = mi.UInt32(face)
         return _region_ray64(tuple(dr.gather(mi.Float64, c, face) for c in self._rows64),
-                             self.half_extent, uv_light)
+                             self.sub._half(True), uv_light)
 
     def depth_range64(self, corners: np.ndarray) -> tuple:
         """``(lo, hi)`` of the depths of ``corners`` (``(n, 3)``) over every region."""
@@ -642,7 +643,9 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
     record = opts.record
     vis_fn = record.lookup
     ctx = mi.BSDFContext()
-    R = np.asarray(view.to_world_env, dtype=np.float64).reshape(3, 3).tolist()
+    # opaque: a rotated environment compiles no new kernel
+    R = [[opaque_scalar(v) for v in row]
+         for row in np.asarray(view.to_world_env, dtype=np.float64).reshape(3, 3).tolist()]
     shift = sampler.next_2d(active)
     act = mi.Bool(active)
     bsphere = 1e3 * (dr.norm(si.p) + 1.0)

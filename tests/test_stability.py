@@ -474,3 +474,30 @@ def test_plane_facing_the_light_without_a_normal_offset_has_no_acne(method, para
     top[:, 8:11, 17:24] = True      # the box's top: lit in the reference
     assert ref[top].min() >= 0.5
     assert float(np.mean(vis[top] < 0.5)) == 0.0
+
+
+@pytest.mark.parametrize("light", ["directional", "point"])
+@pytest.mark.parametrize("value", [math.inf, -math.inf, math.nan])
+def test_a_mesh_vertex_that_is_not_finite_bounds_nothing(light, value):
+    """One occluder vertex set to inf (an optimizer's step gone wrong): Embree drops its
+    triangles, so ``direct`` renders the rest, but the scene's bounds became infinite. A
+    directional light's frame (fitted to them) was then NaN and every method, raytraced
+    included, was refused with "its direction is zero or not finite", which blamed the
+    light; a point light's virtual layout raised "cannot convert float NaN to integer".
+    (A NaN vertex bounded the whole scene as nothing.) Now such vertices bound nothing:
+    the renders match the scene's own (raytraced to ``direct``, the maps to raytraced)."""
+    scene = mi.load_dict(small_scene(light))
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("vertex_positions")
+               and np.asarray(params[k]).size > 12)
+    v = np.array(params[key])
+    v[4] = value
+    params[key] = mi.Float(v)
+    params.update()
+    direct = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "direct"}),
+                                  spp=4, seed=2))[..., :3]
+    rgb, ref = render(scene, "raytraced")
+    assert np.abs(rgb - direct).mean() <= 1e-3 * max(direct.mean(), 1e-6)
+    for props in ({}, {"virtual": False}):
+        _, vis = render(scene, "hard", **props)
+        assert misclassified(ref, vis) <= 0.01, props

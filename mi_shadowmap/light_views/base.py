@@ -378,6 +378,11 @@ def shape_bounds(shape):
         entry = _mesh_entry(shape)
         if entry[1] is False:
             v = entry[0][0].numpy().reshape(-1, 3)
+            # vertices that are not finite (an optimizer's step gone wrong) bound nothing:
+            # Embree drops their triangles, so no ray (direct's, the maps') hits them, and
+            # an infinite box made a directional light's frame NaN (refused as "direction
+            # zero or not finite") and a virtual layout's level count NaN (a ValueError)
+            v = v[np.isfinite(v).all(axis=1)]
             entry[1] = ((v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64))
                         if len(v) else None)
         return entry[1]

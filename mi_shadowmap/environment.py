@@ -317,6 +317,11 @@ def grid_shape(emitter) -> tuple:
 _CACHE: dict = {}
 
 
+def positive_scale(value) -> bool:
+    """Whether an envmap's ``scale`` parameter (a JIT or Python scalar) is > 0."""
+    return float(np.max(np.asarray(value, dtype=np.float64))) > 0.0
+
+
 def emitter_regions(emitter, K: int, with_key: bool = False):
     """The cut of ``emitter`` into ``K`` regions, cached per emitter parameters (a hash
     of every ``mi.traverse(emitter)`` value and the transform), variant and K."""
@@ -326,6 +331,9 @@ def emitter_regions(emitter, K: int, with_key: bool = False):
     h.update(f"{mi.variant()}/{K}".encode())
     for k in params.keys():
         v = params[k]
+        if k == "scale":   # scales every texel alike: the cut is the same (but for 0)
+            h.update(b"scale>0" if positive_scale(v) else b"scale=0")
+            continue
         h.update(k.encode())
         if is_transform(v):   # transforms: by value
             v = v.matrix
@@ -341,6 +349,9 @@ def emitter_regions(emitter, K: int, with_key: bool = False):
     if reg is None:
         H, W = grid_shape(emitter)
         mean, bound = luminance_grid(emitter, H, W)
+        top = float(bound.max()) if bound.size else 0.0
+        if top > 0.0:   # relative luminance: an emitter's scale changes no cut
+            mean, bound = mean / top, bound / top
         reg = regions_of(mean, K, T, bound)
         if reg.count < K:   # once per cut (the cut is cached below)
             warnings.warn(

@@ -650,6 +650,15 @@ class ParamWatch:
         return (tuple(dr.detail.collect_indices(jit)), scalars), values
 
 
+def _environment_scale(params, name: str) -> bool:
+    """Whether parameter ``name`` is an environment emitter's ``scale``."""
+    owner = params.properties[name][2]
+    if name.rsplit(".", 1)[-1] != "scale" or not isinstance(owner, mi.Emitter):
+        return False
+    from .light_views import emitter_kind
+    return emitter_kind(owner) == "environment"
+
+
 def view_fingerprint(view) -> tuple:
     """A hashable summary of every field of a :class:`LightView` (transforms by value)."""
     def fp(v):
@@ -759,13 +768,25 @@ class MapCache:
         params = params if params is not None else self.traverse(scene)
         slot = self._memo_slot(scene)
         if slot[3] is None or slot[3][0].params is not params:
-            slot[3] = [ParamWatch(params, [
-                name for name in params.keys()
-                if isinstance(params.properties[name][2], (mi.Shape, mi.Emitter))]), None]
-        watch, last = slot[3]
+            names = [name for name in params.keys()
+                     if isinstance(params.properties[name][2], (mi.Shape, mi.Emitter))]
+            # an environment map's scale moves no map (its regions' cut is of relative
+            # luminance): only whether it is > 0 counts (environment.emitter_regions)
+            scales = [name for name in names if _environment_scale(params, name)]
+            slot[3] = [ParamWatch(params, [n for n in names if n not in scales]), None,
+                       ParamWatch(params, scales) if scales else None, None]
+        watch, last, scale_watch, signs = slot[3]
+        if scale_watch is not None:
+            s_token, s_values = scale_watch.read()
+            if signs is None or signs[0] != s_token:
+                from .environment import positive_scale
+                signs = slot[3][3] = (s_token, "".join(
+                    "+" if positive_scale(v) else "0" for v in s_values),
+                    scale_watch.held(s_values))
+        suffix = "" if scale_watch is None else "/" + signs[1]
         token, values = watch.read()
         if last is not None and last[0] == token:    # the same variables and values
-            return last[1]
+            return last[1] + suffix
         memo = slot[1]
         h = hashlib.blake2b(digest_size=16)
         h.update(f"{len(scene.shapes())}/{len(scene.emitters())}".encode())
@@ -774,7 +795,7 @@ class MapCache:
             h.update(param_digest(memo, name, value))
         # the memo holds references to every JIT value of this token (param_digest)
         slot[3][1] = (token, h.hexdigest())
-        return slot[3][1][1]
+        return slot[3][1][1] + suffix
 
     def _slot(self, scene, state):
         return scene_slot(self._scenes, scene, state, self.max_scenes)

@@ -590,3 +590,34 @@ def test_a_rotated_environment_compiles_no_kernel(props):
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, had)
     assert not compiled, [(k["size"], k["operation_count"]) for k in compiled]
+
+
+@pytest.mark.parametrize("props", [{"method": "hard"}, {"method": "pcss"},
+                                   {"method": "hard", "virtual": False, "resolution": 64}],
+                         ids=lambda p: "-".join(f"{v}" for v in p.values()))
+def test_an_environment_scaled_keeps_its_maps(props):
+    """An envmap's ``scale`` (its intensity) changed through ``params.update()`` rebuilt
+    every map, as a moved light does (hard: 671 pages, 337k texels a frame, 0.09 s
+    against 0.02 s; pcss 1003 pages, 0.27 s; multiview 1.6M texels), while a point,
+    spot, area or directional light's intensity rebuilds nothing: the scale is the
+    emitter's own parameter, so it was part of the scene state and of the regions' key.
+    The cut is of relative luminance, so only whether the scale is > 0 counts; every
+    frame renders as a fresh scene at its scale does (the AOV of a zero sky included)."""
+    T = mi.ScalarTransform4f
+    scene = _framed_sky_scene(T().rotate([0, 1, 0], 20.0))
+    params = mi.traverse(scene)
+    integ = mi.load_dict({"type": "shadowmap", **props})
+    np.asarray(mi.render(scene, integrator=integ, spp=2))
+    for scale in (3.0, 0.37, 0.0, 1.0):
+        params["sky.scale"] = scale
+        params.update()
+        img = np.asarray(mi.render(scene, integrator=integ, spp=2))
+        if scale not in (0.0, 1.0):      # a zero sky, and back: the cut is redone
+            assert integ.stats["maps_built"] == 0 and integ.stats["texels_built"] == 0
+        fresh = _framed_sky_scene(T().rotate([0, 1, 0], 20.0))
+        p2 = mi.traverse(fresh)
+        p2["sky.scale"] = scale
+        p2.update()
+        want = np.asarray(mi.render(fresh, integrator=mi.load_dict(
+            {"type": "shadowmap", **props}), spp=2))
+        assert np.allclose(img, want, rtol=1e-5, atol=1e-7), scale

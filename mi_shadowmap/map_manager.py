@@ -848,7 +848,9 @@ def clear_caches() -> None:
     PAGE_CACHE`), cascades of virtual maps, light-pose references
     (:mod:`~mi_shadowmap.light_views.pose`), meshes' edge topologies
     (:mod:`~mi_shadowmap.antialias`) and their bounds
-    (:func:`~mi_shadowmap.light_views.base.shape_bounds`).
+    (:func:`~mi_shadowmap.light_views.base.shape_bounds`), and environment emitters'
+    median cuts (:func:`~mi_shadowmap.environment.emitter_regions`: numpy arrays, keyed
+    by the emitter's values, holding no scene).
 
     Each of them holds references to the scenes, emitters or meshes it describes (so
     that a freed object's ``id`` never aliases a live one), and so keeps them alive
@@ -861,6 +863,7 @@ def clear_caches() -> None:
     scenes go) when switching between scenes in one process, e.g. between tests.
     """
     from . import antialias, depth_maps, virtual
+    from . import environment as env_mod
     from .light_views import base, pose
     base.clear_memos()
     depth_maps.clear_memos()
@@ -869,3 +872,4 @@ def clear_caches() -> None:
     _VIRTUAL_CASCADES.clear()
     pose.clear_references()
     antialias.clear_meshes()
+    env_mod._CACHE.clear()

@@ -621,3 +621,14 @@ def test_an_environment_scaled_keeps_its_maps(props):
         want = np.asarray(mi.render(fresh, integrator=mi.load_dict(
             {"type": "shadowmap", **props}), spp=2))
         assert np.allclose(img, want, rtol=1e-5, atol=1e-7), scale
+
+
+def test_clear_caches_empties_the_cuts():
+    """``clear_caches()`` says it empties every cache the package keeps: the median cuts
+    too (they stayed, up to 64 of them)."""
+    from mi_shadowmap import clear_caches
+    emitter = mi.load_dict({"type": "constant"})
+    env.emitter_regions(emitter, 4)
+    assert env._CACHE
+    clear_caches()
+    assert not env._CACHE

@@ -368,6 +368,7 @@ def clear_memos() -> None:
     _SOLID_MEMO.clear()
     _FACE_MEMO[:] = [None, None]
     _SMOOTH_MEMO[:] = [None, None]
+    _EDGES_MEMO.clear()
     from . import map_scene as ms
     ms.clear()
 
@@ -444,6 +445,31 @@ def smooth_solid_faces(scene: mi.Scene):
             tables = (mi.Int32(offset.astype(np.int32)), mi.Bool(np.concatenate(parts)))
     _SMOOTH_MEMO[:] = [(key, held), tables]   # held: their buffers' indices stay unused
     return tables
+
+
+#: The meshes :func:`directed_edges` built edges for: ``{id(mesh): faces buffer}`` (the
+#: buffers held, so their JIT indices are not reused while remembered).
+_EDGES_MEMO: dict = {}
+
+
+def directed_edges(scene: mi.Scene) -> None:
+    """Build Mitsuba's directed-edge table (``Mesh.build_directed_edges``, read through
+    ``MeshPtr.opposite_dedge``) of every mesh of ``scene`` whose faces changed since it
+    was last built here: ``second_depth``'s lookup finds a camera hit's neighbouring
+    faces with it. Vertices are matched by index, so faces that share a position through
+    separate vertices (a mesh split at its seams, Mitsuba's ``cube``) are no neighbours
+    there. An ``instance``'s shapes are not built (the lookup skips them)."""
+    for shape in scene.shapes():
+        if not shape.is_mesh() or not hasattr(shape, "faces_buffer"):
+            continue
+        faces = shape.faces_buffer()
+        held = _EDGES_MEMO.get(id(shape))
+        if held is not None and held.index == faces.index:
+            continue
+        shape.build_directed_edges()
+        _EDGES_MEMO[id(shape)] = faces
+    while len(_EDGES_MEMO) > _SOLID_MEMO_SIZE:
+        _EDGES_MEMO.pop(next(iter(_EDGES_MEMO)))
 
 
 def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:

@@ -22,7 +22,7 @@ import mitsuba as mi
 
 from . import environment as env_mod
 from . import options as opt_mod
-from .depth_maps import ShadowMap, smooth_solid_faces
+from .depth_maps import ShadowMap, directed_edges, smooth_solid_faces
 from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys,
                           emitted_value_owners, emitter_kind, emitter_labels, is_pinhole,
@@ -413,8 +413,11 @@ screen is Mitsuba's projective integrators' job.
         # second_depth only: its maps' builds have each mesh's face_solidity already (for
         # the other methods it would cost a pass over every smooth mesh's faces, 2-4 s
         # for 330k, again after every edit of its vertices)
-        self._solid_faces = (smooth_solid_faces(scene) if self.opts.uses_map and "second_depth"
-                             in self.opts.record.layer_names(self.opts) else None)
+        reads_second = (self.opts.uses_map
+                        and "second_depth" in self.opts.record.layer_names(self.opts))
+        self._solid_faces = smooth_solid_faces(scene) if reads_second else None
+        if reads_second:    # the lookup's neighbouring faces (second_depth's virtual samples)
+            directed_edges(scene)
         self._diff_scale, self._diff_spp = dr.opaque(mi.Float, math.sqrt(spp)), spp
         self._pixel_step = self._sensor_pixel_step(sensor)
         self._pinhole = camera_frame(sensor)   # shared with the mark pass

@@ -111,6 +111,7 @@ screen is Mitsuba's projective integrators' job.
         self.stats = MapStats()     # see map_manager.prepare_maps()
         self._in_render = False
         self._sigint_before = None  # the SIGINT action before the render (_sigint_action)
+        self._sigint_after = None   # and the one the binding's scopes restore (render())
         self._nested = False        # sample() is called by another integrator (aov)
         self._names_given: list[str] = []   # aov_names() given outside a render
         self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
@@ -143,10 +144,14 @@ screen is Mitsuba's projective integrators' job.
             # render, bound to this integrator: a later Ctrl-C called cancel() on a freed
             # integrator ("free(): invalid pointer", a segfault) or was swallowed, and
             # no KeyboardInterrupt ever reached the caller. The nested scope gets the
-            # handler from before the render instead.
-            _set_sigint_action(self._sigint_before)
+            # handler from before the render instead (Python's, where that was Mitsuba's
+            # own: see _outside_mitsuba).
+            _set_sigint_action(self._sigint_after)
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
         self._sigint_before = _sigint_action()
+        # what the binding's scopes are to restore: its static holds the action current
+        # when a scope begins (see _outside_mitsuba)
+        self._sigint_after = _outside_mitsuba(self._sigint_before)
         self._in_render = True
         self._nested = False
         self._last_render = None
@@ -160,6 +165,7 @@ screen is Mitsuba's projective integrators' job.
             self._last_render = scene
             record = self.opts.record
             self._out_of_range = None if record.builtin else dr.zeros(mi.UInt32, 1)
+            _set_sigint_action(self._sigint_after)    # the binding's scope keeps it
             image = self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
             if self._out_of_range is not None:
                 bad = int(self._out_of_range.numpy()[0])     # evaluates the render
@@ -173,7 +179,7 @@ screen is Mitsuba's projective integrators' job.
             self._in_render = False
             self._out_of_range = None
             _set_sigint_action(self._sigint_before)   # as it was, whatever happened
-            self._sigint_before = None
+            self._sigint_before = self._sigint_after = None
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
     #: (``pcf``'s, ``bilinear``'s and ``pcss``'s taps, ``max_iterations=-1``; ``pcss``
@@ -857,6 +863,51 @@ def _sigint_action():
     import signal
     buf = ctypes.create_string_buffer(512)    # larger than any libc's struct sigaction
     return buf if lib.sigaction(int(signal.SIGINT), None, buf) == 0 else None
+
+
+def _outside_mitsuba(action):
+    """``action``, unless its handler is one of Mitsuba's (its render binding's, found
+    with ``dladdr``): then Python's SIGINT handler's action, as ``signal.signal``
+    installs it (``action`` where that cannot be had: not the main thread, a handler
+    not set from Python, no ``dladdr``).
+
+    Our render() called inside another render binding's scope (Mitsuba's ``aov``
+    rendering this integrator as its child; Mitsuba's default ``render_backward``) finds
+    that scope's handler installed, bound to the outer integrator; our own call of the
+    binding then overwrote the single static that scope restores from with it, so
+    Mitsuba's handler stayed installed after the outer render: a later Ctrl-C, once
+    that integrator was freed, aborted the process ("free(): invalid pointer")."""
+    lib = _libc()
+    if action is None or lib is None or not hasattr(lib, "dladdr"):
+        return action
+    import ctypes
+    import os
+
+    class DlInfo(ctypes.Structure):
+        _fields_ = [("dli_fname", ctypes.c_char_p), ("dli_fbase", ctypes.c_void_p),
+                    ("dli_sname", ctypes.c_char_p), ("dli_saddr", ctypes.c_void_p)]
+
+    info = DlInfo()
+    handler = ctypes.c_void_p.from_buffer(action).value
+    if not handler or handler <= 1 or not lib.dladdr(ctypes.c_void_p(handler),
+                                                     ctypes.byref(info)):
+        return action        # SIG_DFL, SIG_IGN, or not in a loaded library
+    fname = os.fsdecode(info.dli_fname or b"")
+    if "mitsuba" not in os.path.basename(os.path.dirname(fname)) + os.path.basename(fname):
+        return action
+    import signal
+    import threading
+    python = signal.getsignal(signal.SIGINT)
+    if python is None or threading.current_thread() is not threading.main_thread():
+        return action
+    current = _sigint_action()
+    try:
+        signal.signal(signal.SIGINT, python)      # Python's own C handler for it
+        return _sigint_action()
+    except (ValueError, OSError):
+        return action
+    finally:
+        _set_sigint_action(current)
 
 
 def _set_sigint_action(action) -> None:

@@ -1069,6 +1069,54 @@ def test_ctrl_c_after_a_render_raises_keyboard_interrupt():
         p.returncode, p.stdout, p.stderr)
 
 
+CTRL_C_AFTER_AN_OUTER_RENDER = """
+import gc, os, signal, sys, time
+signal.signal(signal.SIGINT, signal.default_int_handler)
+import drjit as dr
+import mitsuba as mi
+import mi_shadowmap
+mi.set_variant("llvm_ad_rgb")
+scene = mi.load_dict({"type": "scene", "s": {"type": "sphere"},
+                      "e": {"type": "point", "position": [0, 0, 3]},
+                      "c": {"type": "perspective",
+                            "film": {"type": "hdrfilm", "width": 8, "height": 8}}})
+sm = {"type": "shadowmap", "method": "mdsm", "resolution": 16}
+if sys.argv[1] == "aov":
+    integ = mi.load_dict({"type": "aov", "aovs": "dd:depth", "i": sm})
+    mi.render(scene, integrator=integ, spp=1)
+else:   # Mitsuba's default render_backward (mdsm is not in SYMBOLIC_BACKWARD)
+    integ = mi.load_dict(sm)
+    params = mi.traverse(scene)
+    dr.enable_grad(params["e.intensity.value"])
+    params.update()
+    dr.backward(dr.mean(mi.render(scene, params, integrator=integ, spp=1)))
+del integ
+gc.collect()
+try:
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(2)
+    print("no KeyboardInterrupt")
+except KeyboardInterrupt:
+    print("KeyboardInterrupt")
+"""
+
+
+@pytest.mark.parametrize("outer", ["aov", "backward"])
+def test_ctrl_c_after_a_render_inside_another_binding_raises_keyboard_interrupt(outer):
+    """Our render() called inside another render binding's scope (Mitsuba's aov renders
+    its child with the child's render(); Mitsuba's default render_backward renders
+    through render()) found that scope's Ctrl-C handler installed and restored it; our
+    call of the binding overwrote the static the outer scope restores from, so Mitsuba's
+    handler stayed installed after the render, bound to the freed integrator: a Ctrl-C
+    then aborted the process ("free(): invalid pointer", exit -6)."""
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-c", CTRL_C_AFTER_AN_OUTER_RENDER, outer],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and p.stdout.strip() == "KeyboardInterrupt", (
+        p.returncode, p.stdout, p.stderr[-2000:])
+
+
 @pytest.mark.parametrize("light", ["area", "constant"])
 def test_a_non_delta_emitter_with_sampling_weight_zero_still_lights(light):
     """``sampling_weight`` 0 only stops Mitsuba from sampling an emitter: an area light or

@@ -422,7 +422,10 @@ def smooth_solid_faces(scene: mi.Scene):
     ``second_depth``'s second surface, which such a face is) let that light through
     (the integrator's ``_into_solid``). Remembered while the shapes and their buffers
     are the same."""
-    shapes = list(scene.shapes())
+    listed = list(scene.shapes())
+    # a shapegroup's meshes too: an instance's hits name them (as in _face_tables: an
+    # instance maps a solid's outside to its outside, and Mitsuba turns the normals)
+    shapes = listed + _grouped_shapes(scene, listed)
     smooth = [sh.is_mesh() and hasattr(sh, "faces_buffer") and sh.has_vertex_normals()
               for sh in shapes]
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer())
@@ -432,7 +435,7 @@ def smooth_solid_faces(scene: mi.Scene):
         return _SMOOTH_MEMO[1]
     tables = None
     if held:
-        ids = dr.reinterpret_array(mi.UInt32, scene.shapes_dr()).numpy().astype(np.int64)
+        ids = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)).numpy().astype(np.int64)
         offset = np.full(int(ids.max()) + 1, -1, np.int64)
         parts, n = [], 0
         for i, shape, m in zip(ids, shapes, smooth):

@@ -53,7 +53,9 @@ ray queries from each light (first pass) and looked up with the chosen
 ``method`` (second pass). ``method='raytraced'`` traces real shadow rays and
 is the ground truth; it matches Mitsuba's ``direct`` integrator (for scenes
 without delta BSDF lobes sample for sample with ``emitter_samples=1,
-bsdf_samples=0``; but see ``blendbsdf`` below).
+bsdf_samples=0``; but see ``blendbsdf`` below; an area light or environment with
+``sampling_weight`` 0 is lit as by ``direct``'s defaults, whose BSDF samples reach it,
+while ``direct`` with ``bsdf_samples=0`` never lights it).
 
 Light seen through a delta lobe -- an area light or the environment in a
 mirror (``conductor``), through glass (``dielectric``, ``thindielectric``), in

@@ -163,7 +163,8 @@ screen is Mitsuba's projective integrators' job.
             else:
                 sensor_obj = sensor
             self._film_takes_aovs = _film_takes_aovs(sensor_obj.film())
-            self._first_pass(scene, sensor_obj, _rendered_spp(sensor_obj, spp))
+            self._first_pass(scene, sensor_obj,
+                             spp if spp > 0 else sensor_obj.sampler().sample_count())
             self._last_render = scene
             record = self.opts.record
             self._out_of_range = None if record.builtin else dr.zeros(mi.UInt32, 1)
@@ -813,30 +814,6 @@ screen is Mitsuba's projective integrators' job.
     def to_string(self):
         res = self.opts.resolution if self.opts.resolution is not None else "auto"
         return f"ShadowMapIntegrator[method={self.opts.method}, resolution={res}]"
-
-
-def _rendered_spp(sensor, spp: int) -> int:
-    """The spp Mitsuba's render takes for ``spp`` (0: the sampler's own count): it sets
-    the count on ``sensor``'s sampler, which rounds it (``stratified`` and ``ldsampler``
-    render 3 as 4), and scales ray differentials by the rounded count. Found on a fork
-    of the sampler, its rounding warning muted (Mitsuba's render gives it). Footprints
-    taken with the count asked for were sqrt(3/4) of the pixel's under ``spp=3``, so an
-    orthographic or thin-lens view's ``pcf`` and ``hard`` (virtual levels) differed from
-    the same samples rendered with ``spp=4``."""
-    sampler = sensor.sampler()
-    if spp <= 0:
-        return sampler.sample_count()
-    sampler = sampler.fork()
-    logger = mi.logger()
-    level = logger.log_level() if logger is not None else None
-    try:
-        if logger is not None:
-            logger.set_log_level(mi.LogLevel.Error)
-        sampler.set_sample_count(int(spp))
-    finally:
-        if logger is not None:
-            logger.set_log_level(level)
-    return sampler.sample_count()
 
 
 _LIBC: list = []      # [the C library, or None where it has no sigaction (Windows)]

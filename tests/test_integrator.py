@@ -831,12 +831,10 @@ def test_a_radiancemeter_gets_full_maps_as_fine_as_without_a_sensor(light):
 @pytest.mark.parametrize("camera, method", [("orthographic", "pcf"), ("thinlens", "hard")])
 def test_a_rounded_spp_takes_the_footprints_of_the_count_rendered(camera, method):
     """Mitsuba rounds ``mi.render(..., spp=3)`` on a ``stratified`` sampler to 4 samples
-    and scales ray differentials by 1/sqrt(4); footprints were taken at sqrt(3), so with
-    a camera whose footprints come from its ray differentials (``orthographic``,
-    ``thinlens``) the same samples gave another image than ``spp=4`` (32^2, largest
-    pixel difference 0.17 for ``pcf`` under an orthographic view, 0.5
-    for virtual ``hard`` under a thin lens: another virtual level). Now the two are the
-    same render."""
+    and scales ray differentials by 1/sqrt(4); ``sample()`` rescales footprints by the
+    sampler's own (rounded) count, so with a camera whose footprints come from its ray
+    differentials (``orthographic``, ``thinlens``) the same samples give the same image
+    as ``spp=4`` (this fails where footprints are rescaled by the count asked for)."""
     T = mi.ScalarTransform4f
     view = T().look_at(origin=[1, 5, 8.5], target=[1.0, 0, 0.5], up=[0, 1, 0])
     sensor = {"type": camera, "film": {"type": "hdrfilm", "width": 32, "height": 32,

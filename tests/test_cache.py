@@ -436,11 +436,19 @@ def test_a_moved_light_compiles_no_kernel(light, props):
     scene = _light_scene(light)
     params = mi.traverse(scene)
     integ = mi.load_dict({"type": "shadowmap", **props})
+    _assert_no_kernel_compiled_last(
+        scene, integ, lambda step: _move(params, light,
+                                         rng.uniform(-0.05, 0.05) if step else 0.0))
+
+
+def _assert_no_kernel_compiled_last(scene, integ, edit, frames: int = 3):
+    """Render ``frames`` frames of ``scene``, ``edit(step)`` before each; the last one
+    must compile no kernel (cache hits excepted) and be finite."""
     had = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        for step in range(3):
-            _move(params, light, rng.uniform(-0.05, 0.05) if step else 0.0)
+        for step in range(frames):
+            edit(step)
             dr.kernel_history()
             img = mi.render(scene, integrator=integ, spp=2, seed=step)
             dr.eval(img)
@@ -479,25 +487,17 @@ def test_a_far_light_moved_or_a_new_cutoff_compiles_no_kernel(case, props):
     scene = mi.load_dict(d)
     params = mi.traverse(scene)
     integ = mi.load_dict({"type": "shadowmap", **props})
-    had = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        for step in range(3):
-            j = rng.uniform(-0.05, 0.05) if step else 0.0
-            if case == "far_point":
-                params["lamp.position"] = mi.Point3f(far * (-0.6 + j), 0.64 * far, -0.48 * far)
-            else:
-                params["lamp.cutoff_angle"] = 35.0 + 40.0 * j
-            params.update()
-            dr.kernel_history()
-            img = mi.render(scene, integrator=integ, spp=2, seed=step)
-            dr.eval(img)
-            compiled = [k for k in dr.kernel_history()
-                        if k["type"] == dr.KernelType.JIT and not k.get("cache_hit", 1)]
-        assert np.isfinite(np.asarray(img)).all()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, had)
-    assert not compiled, [(k["size"], k["operation_count"]) for k in compiled]
+
+    def edit(step):
+        j = rng.uniform(-0.05, 0.05) if step else 0.0
+        if case == "far_point":
+            params["lamp.position"] = mi.Point3f(far * (-0.6 + j), 0.64 * far, -0.48 * far)
+        else:
+            params["lamp.cutoff_angle"] = 35.0 + 40.0 * j
+        params.update()
+
+    _assert_no_kernel_compiled_last(scene, integ, edit)
+
 
 def test_stats_read_like_a_dict():
     """``integrator.stats`` "reads like a dict": ``dict(stats)`` and ``list(stats)``

@@ -441,6 +441,41 @@ def test_every_method_sees_light_through_delta_lobes(bsdf, method):
     assert abs(bias) <= 0.015
 
 
+def _smooth_icosahedron(tmp_path, instanced=False):
+    """A 20-face icosahedron with vertex normals (smooth-shaded) under a point light
+    above it, seen alone from its side at 48^2 (``instanced``: through a mirrored
+    ``instance``), and the path of its PLY file."""
+    from mi_shadowmap.procedural import _icosphere, write_ply
+    v, f = _icosphere(0)
+    path = write_ply(str(tmp_path / "ico.ply"), v, f, normals=v)
+    T = mi.ScalarTransform4f
+    d = {"type": "scene",
+         "cam": {"type": "perspective", "fov": 35,
+                 "to_world": T().look_at([4, 1.5, 0.5], [0, 1, 0], [0, 1, 0]),
+                 "film": {"type": "hdrfilm", "width": 48, "height": 48,
+                          "rfilter": {"type": "box"}}},
+         "light": {"type": "point", "position": [0.3, 6, 0.2], "intensity": 60.0}}
+    if instanced:
+        d["group"] = {"type": "shapegroup", "ball": {"type": "ply", "filename": path}}
+        d["ball"] = {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                     "to_world": T().translate([0, 1, 0]).scale([-1, 1, 1])}
+    else:
+        d["ball"] = {"type": "ply", "filename": path, "to_world": T().translate([0, 1, 0])}
+    return mi.load_dict(d), path
+
+
+def _dark_past_the_terminator(scene, props):
+    """``second_depth`` (with ``props``) against ``raytraced`` on ``scene``: at most 2
+    pixels lit where ``raytraced`` is dark, image relative RMSE below 0.02."""
+    ref_img, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    img, aovs = render_np(scene, {"type": "shadowmap", "method": "second_depth", **props},
+                          spp=4)
+    false_lit = int(((aovs["vis_light"] >= 0.5) & (ref["vis_light"] < 0.5)).sum())
+    print(props, "false lit", false_lit, "relative RMSE", relative_rmse(ref_img, img))
+    assert false_lit <= 2
+    assert relative_rmse(ref_img, img) < 0.02
+
+
 def test_smooth_shaded_solid_is_dark_past_its_terminator(tmp_path):
     """A mesh with vertex normals reflects light from behind its geometric faces near
     the terminator (its shading frame leans towards the light); Mitsuba's ``direct``
@@ -451,38 +486,22 @@ def test_smooth_shaded_solid_is_dark_past_its_terminator(tmp_path):
     relative RMSE 0.066), with virtual and 1024^2 full maps alike; now none. (The other
     methods' biases let less through, less at finer maps: ``hard`` 17, 5 at 1024^2;
     they are left as they are.)"""
-    method = "second_depth"
-    from mi_shadowmap.procedural import _icosphere, write_ply
-    v, f = _icosphere(0)
-    path = write_ply(str(tmp_path / "ico.ply"), v, f, normals=v)   # smooth-shaded
-    T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "cam": {"type": "perspective", "fov": 35,
-                "to_world": T().look_at([4, 1.5, 0.5], [0, 1, 0], [0, 1, 0]),
-                "film": {"type": "hdrfilm", "width": 48, "height": 48,
-                         "rfilter": {"type": "box"}}},
-        "ball": {"type": "ply", "filename": path, "to_world": T().translate([0, 1, 0])},
-        "light": {"type": "point", "position": [0.3, 6, 0.2], "intensity": 60.0}})
-    ref_img, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    scene, path = _smooth_icosahedron(tmp_path)
     for props in ({}, {"virtual": False, "resolution": 1024}):
-        img, aovs = render_np(scene, {"type": "shadowmap", "method": method, **props}, spp=4)
-        false_lit = int(((aovs["vis_light"] >= 0.5) & (ref["vis_light"] < 0.5)).sum())
-        print(method, props, "false lit", false_lit)
-        assert false_lit <= 2
-        assert relative_rmse(ref_img, img) < 0.02
+        _dark_past_the_terminator(scene, props)
     # a point light inside the smooth closed mesh, now frosted glass: its outside is lit
     # through it (its shadow rays stay inside), which second_depth keeps (full maps: on
     # virtual ones the flat facets' known false shadows of a light inside a flat-faced
     # closed shape are coarser)
+    T = mi.ScalarTransform4f
     scene = mi.load_dict({
         "type": "scene", "cam": scene.sensors()[0],
         "shade": {"type": "ply", "filename": path, "to_world": T().translate([0, 1, 0]),
                   "bsdf": {"type": "roughdielectric", "alpha": 0.3}},
         "light": {"type": "point", "position": [0, 1, 0], "intensity": 10.0}})
     ref_img, _ = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
-    img, _ = render_np(scene, {"type": "shadowmap", "method": method, "virtual": False,
-                               "resolution": 1024}, spp=4)
+    img, _ = render_np(scene, {"type": "shadowmap", "method": "second_depth",
+                               "virtual": False, "resolution": 1024}, spp=4)
     print("light inside: mean", ref_img.mean(), "relative RMSE", relative_rmse(ref_img, img))
     assert ref_img.mean() > 0.05
     assert relative_rmse(ref_img, img) < 0.05
@@ -493,26 +512,8 @@ def test_smooth_shaded_solid_in_an_instance_is_dark_past_its_terminator(tmp_path
     name the shapegroup's mesh, which scene.shapes() does not list, so smooth_solid_faces
     left it out and second_depth lit 17 of 48^2 pixels where ``raytraced`` is dark
     (image relative RMSE 0.066); now none, as the same mesh outside an instance."""
-    from mi_shadowmap.procedural import _icosphere, write_ply
-    v, f = _icosphere(0)
-    path = write_ply(str(tmp_path / "ico.ply"), v, f, normals=v)   # smooth-shaded
-    T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "cam": {"type": "perspective", "fov": 35,
-                "to_world": T().look_at([4, 1.5, 0.5], [0, 1, 0], [0, 1, 0]),
-                "film": {"type": "hdrfilm", "width": 48, "height": 48,
-                         "rfilter": {"type": "box"}}},
-        "group": {"type": "shapegroup", "ball": {"type": "ply", "filename": path}},
-        "ball": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
-                 "to_world": T().translate([0, 1, 0]).scale([-1, 1, 1])},
-        "light": {"type": "point", "position": [0.3, 6, 0.2], "intensity": 60.0}})
-    ref_img, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
-    img, aovs = render_np(scene, {"type": "shadowmap", "method": "second_depth"}, spp=4)
-    false_lit = int(((aovs["vis_light"] >= 0.5) & (ref["vis_light"] < 0.5)).sum())
-    print("false lit", false_lit, "relative RMSE", relative_rmse(ref_img, img))
-    assert false_lit <= 2
-    assert relative_rmse(ref_img, img) < 0.02
+    scene, _ = _smooth_icosahedron(tmp_path, instanced=True)
+    _dark_past_the_terminator(scene, {})
 
 
 def test_delta_term_only_where_a_bsdf_has_delta_lobes():

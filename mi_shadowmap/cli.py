@@ -573,9 +573,7 @@ def tune_methods(args, scene, sets: dict):
 
 def cmd_tune(args) -> int:
     from . import report
-    from .report import tune_plot as plot
-    from .tune import (check_inputs, format_result, integrator_xml, result_json,
-                       tune)
+    from .tune import check_inputs, format_result, integrator_xml, tune
     out = args.out
     params = parse_sets(args.set)
     kwargs = dict(metric=args.metric, methods=args.methods, time_limit=args.time_limit,
@@ -588,19 +586,45 @@ def cmd_tune(args) -> int:
     check_scored_film(scene)
     kwargs["methods"] = tune_methods(args, scene, params)
     report.check_out_dir(out, create=False)   # made when written: no empty folder
-    res = tune(scene, args.max_error, seed=args.seed, repeats=args.repeats, progress=True,
-               **kwargs, **params)
+    try:
+        res = tune(scene, args.max_error, seed=args.seed, repeats=args.repeats,
+                   progress=True, **kwargs, **params)
+    except BaseException as exc:    # Ctrl-C, a bug, no pick: the search so far is kept
+        done = getattr(exc, "tune_result", None)
+        if done is not None and len(done["sweep"]):
+            _close_progress_bars()
+            print(format_result(done))
+            written = _write_tune(done, out)
+            what = "was interrupted" if done["interrupted"] else "stopped on an error"
+            pick = (f" and the best pick verified so far ({done['name']}; a faster one may "
+                    "exist)" if done["name"] is not None else "")
+            print(f"mi-shadowmap: tune {what} after {done['search']['renders']} search "
+                  f"renders; those{pick} are in {os.path.abspath(out)} "
+                  f"({', '.join(written)}, marked \"partial\": true)", file=sys.stderr)
+        raise
     print(format_result(res))
-    report.check_out_dir(out)
-    plot(res, os.path.join(out, "tune_pareto.png"))
-    with open(os.path.join(out, "tune.json"), "w") as f:
-        json.dump(result_json(res), f, indent=2)
-    xml = integrator_xml(res)
-    with open(os.path.join(out, "integrator.xml"), "w") as f:
-        f.write(xml)
-    print("\n" + xml)
+    _write_tune(res, out)
+    print("\n" + integrator_xml(res))
     print(f"wrote tune_pareto.png, tune.json and integrator.xml to {os.path.abspath(out)}")
     return 0
+
+
+def _write_tune(res: dict, out: str) -> list[str]:
+    """``tune_pareto.png``, ``tune.json`` and (if there is a pick) ``integrator.xml`` of a
+    :func:`~mi_shadowmap.tune` result, complete or partial; the names written."""
+    from . import report
+    from .report import tune_plot
+    from .tune import integrator_xml, result_json
+    report.check_out_dir(out)
+    tune_plot(res, os.path.join(out, "tune_pareto.png"))
+    with open(os.path.join(out, "tune.json"), "w") as f:
+        json.dump(result_json(res), f, indent=2)
+    written = ["tune_pareto.png", "tune.json"]
+    if res["name"] is not None:
+        with open(os.path.join(out, "integrator.xml"), "w") as f:
+            f.write(integrator_xml(res))
+        written.append("integrator.xml")
+    return written
 
 
 _COMMANDS = {"compare": cmd_compare, "sweep": cmd_sweep, "maps": cmd_maps, "tune": cmd_tune}

@@ -385,7 +385,7 @@ def tune_plot(result: dict, path: str | None = None, ax=None):
     """The search's time/error plot of a :func:`mi_shadowmap.tune.tune` result
     (:func:`pareto_plot`) with the pick and the raytraced configuration starred and
     the search threshold dashed."""
-    marks = {result["name"]: "pick"}
+    marks = {result["name"]: "pick"} if result["name"] is not None else {}   # partial
     rt = result.get("raytraced")
     if rt is not None and rt["name"] != result["name"]:
         marks[rt["name"]] = "raytraced"

@@ -53,7 +53,10 @@ is modified while :func:`tune` runs).
 
 Errors (:class:`TuneError`, a ``ValueError``): ``max_error`` <= 0, an unknown
 ``metric`` (naming the valid ones), and a budget that no configuration meets
-(within ``time_limit``), naming the best error reached and its configuration.
+(within ``time_limit``), naming the best error reached and its configuration. An
+error once the search has begun (that one, a bug, a Ctrl-C) carries what was measured
+as ``exc.tune_result``: a result marked ``partial`` (see :meth:`_Tuner.partial`) with
+the search's rows and the best pick verified so far, if any, which the CLI writes.
 """
 from __future__ import annotations
 
@@ -445,6 +448,7 @@ class _Tuner:
         self.row_of: dict = {}        # (key, spp) -> sweep row
         self.steps: list = []         # every full-size verification
         self.contested: set = set()
+        self.tau0 = self.tau = None   # the initial and the current search threshold
         from .progress import bar
         self.bar = bar(total=4 + len(self.configs) * len(self.screen_spp), desc="tune",
                        unit="render", disable=not progress, leave=False)
@@ -700,6 +704,7 @@ class _Tuner:
         the budget (within ``max_spp`` and the time limit)."""
         target = self.B * (1.0 - self.margin)
         while True:
+            self.tau = tau
             self.search(tau, only)
             self.contest(tau, only)
             self.search(tau, only)          # the re-timed rows may open new candidates
@@ -739,9 +744,62 @@ class _Tuner:
     def run(self) -> dict:
         try:
             return self._run()
+        except (Exception, KeyboardInterrupt) as e:   # Ctrl-C, a bug, no pick: keep the search
+            try:
+                e.tune_result = self.partial(e)
+            except Exception:    # the error that stopped the tune is the one to raise
+                pass
+            raise
         finally:
             self.film.restore()
             self.bar.close()
+
+    def partial(self, exc: BaseException) -> dict:
+        """What the tuner measured before ``exc`` stopped it, shaped like :meth:`_run`'s
+        result and marked ``partial``: the search's rows (``sweep``), the verifications
+        (``steps``) and the best verified pick so far -- the fastest configuration verified
+        at full size that meets the budget, a faster one may exist -- in ``method``,
+        ``params``, ``spp``, ... (None where none is verified yet); ``interrupted`` (a
+        Ctrl-C) and ``stopped_by`` (the error). Before, an interrupted tune kept nothing."""
+        from .timing import root_error
+        cause = root_error(exc)
+        interrupted = isinstance(cause, KeyboardInterrupt)
+        small = self.refs.get("small")
+        full = self.refs.get("full") if self.small != self.full else small
+        table = SweepTable(analyse(self.rows, "time_warm", self.metric), None, "time_warm",
+                           self.metric, small["result"] if small else None)
+        out = {
+            "partial": True, "interrupted": interrupted,
+            "stopped_by": ("KeyboardInterrupt" if interrupted else
+                           f"{type(cause).__name__}: {' '.join(str(cause).split())}"),
+            "method": None, "params": None, "spp": None, "name": None, "error": None,
+            "error_bound": None, "seconds": None, "integrator": None, "pareto": None,
+            "metric": self.metric, "max_error": self.B,
+            "reference": full["info"] if full else None,
+            "size": list(self.full_image), "film_size": list(self.full),
+            "search": {"size": list(self.small_image), "film_size": list(self.small),
+                       "error": None, "seconds": None, "threshold": self.tau,
+                       "initial_threshold": self.tau0,
+                       "reference": small["info"] if small else None,
+                       "configurations": len(self.configs), "renders": len(self.rows)},
+            "methods": sorted({x.method for x in self.configs.values() if x.searched}),
+            "steps": self.steps, "raytraced": None, "speed_ratio": None, "sweep": table,
+            "result": None, "time_limited": self.time_limited,
+            "elapsed": time.perf_counter() - self.t0}
+        passed = [(float(r.times["warm"]), key) for key, r in self.verified.items()
+                  if self.configs[key[0]].searched and self.check(r)[2]] if full else []
+        if passed:
+            seconds, (key, s) = min(passed)
+            c, res = self.configs[key], self.verified[(key, s)]
+            params = {k: v for k, v in c.spec.items() if k != "method"}
+            row = self.row_of.get((key, s), {})
+            out.update(method=c.method, params=params, spp=s,
+                       name=spec_name({**c.spec, "spp": s}), error=self.error_of(res),
+                       error_bound=self.check(res)[1], seconds=seconds,
+                       integrator={"type": "shadowmap", "method": c.method, **params},
+                       pareto=self.on_front(c, s), result=res)
+            out["search"].update(error=row.get(self.metric), seconds=row.get("time_warm"))
+        return out
 
     def _run(self) -> dict:
         target = self.B * (1.0 - self.margin)
@@ -752,7 +810,7 @@ class _Tuner:
             scale = min(max(scale, 0.5), 2.0)
         else:
             scale = 1.0
-        tau0 = target * scale
+        tau0 = self.tau0 = self.tau = target * scale
         self.screen()
         found = self.pick(tau0)
         if found is None and self._probe_largest_spp(tau0):
@@ -802,7 +860,7 @@ class _Tuner:
             "pareto": self.on_front(c, s),
             "methods": sorted({x.method for x in self.configs.values() if x.searched}),
             "steps": self.steps, "raytraced": None, "speed_ratio": None,
-            "sweep": table, "result": res,
+            "sweep": table, "result": res, "partial": False,
         }
         if rt_found is not None:
             (rt_t, rt_e, rt_c, rt_s), rt_res, rt_tau = rt_found
@@ -1022,7 +1080,13 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
         front of the searched methods' rows -- with ``methods=None``, of the whole sweep;
         with a list without ``raytraced``, the raytraced rows measured for the comparison
         may dominate it), ``methods`` (the methods searched), ``steps`` (verifications),
-        ``time_limited``, ``elapsed``.
+        ``time_limited``, ``elapsed``, ``partial`` (False).
+
+    An error once rendering has begun -- a budget no configuration meets, a bug, Ctrl-C --
+    carries the search so far as ``exc.tune_result``: the same fields, ``partial`` True,
+    ``interrupted`` (a Ctrl-C), ``stopped_by``, ``sweep`` the rows rendered, and the pick
+    fields the fastest configuration verified at full size that meets the budget (a
+    faster one may exist), or None where none is verified yet.
     """
     specs, rt_spec = check_inputs(max_error, metric, methods, time_limit, search_size, margin,
                                   max_spp, spp, params)
@@ -1068,6 +1132,10 @@ def integrator_xml(result: dict) -> str:
     if rt is not None and result.get("speed_ratio"):
         note += (f"; raytraced at the same budget: {rt['name']}, {rt['seconds'] * 1e3:.1f} ms "
                  f"({result['speed_ratio']:.2f}x)")
+    if result.get("partial"):     # an interrupted tune's best verified pick so far
+        note = ("PARTIAL, the tune did not finish (" + ("interrupted" if result["interrupted"]
+                else "stopped by an error") + "): the best configuration verified so far, "
+                "a faster one may exist; " + note)
     lines = [f"<!-- {note.replace('--', '-')} -->",
              f"<!-- render with spp={result['spp']}: <integer name=\"sample_count\" "
              f"value=\"{result['spp']}\"/> in the sensor's sampler -->",
@@ -1085,7 +1153,10 @@ def integrator_xml(result: dict) -> str:
 
 def format_result(result: dict) -> str:
     """The choice as text: the pick, the raytraced configuration at the same budget,
-    the speed ratio, the search and the verification steps."""
+    the speed ratio, the search and the verification steps (of a partial result,
+    ``exc.tune_result``: what was searched and the best pick verified so far)."""
+    if result.get("partial"):
+        return _format_partial(result)
     W, H = result["size"]
     se = result["search"]
     m = result["metric"]
@@ -1107,6 +1178,33 @@ def format_result(result: dict) -> str:
         lines.append(f"raytraced: {rt['name']}: {m} {rt['error']:.4g}, "
                      f"{rt['seconds'] * 1e3:.1f} ms per frame; the pick is "
                      f"{result['speed_ratio']:.2f}x as fast")
+    for st in result["steps"]:
+        lines.append(f"verified:  {st['name']}: {m} {st['error']:.4g} at full size "
+                     f"({st['search_error']:.4g} searched) -> "
+                     f"{'meets the budget' if st['ok'] else 'misses it'}")
+    return "\n".join(lines)
+
+
+def _format_partial(result: dict) -> str:
+    W, H = result["size"]
+    se = result["search"]
+    m = result["metric"]
+    why = ("interrupted" if result["interrupted"] else
+           f"stopped by {result['stopped_by'].split(':')[0]}")   # the error's type
+    threshold = (f", threshold {se['threshold']:.4g}" if se["threshold"] is not None else "")
+    lines = [f"tune (PARTIAL: {why} after {result['elapsed']:.0f} s): {m} <= "
+             f"{result['max_error']:g} at {W}x{H}; {se['renders']} renders of "
+             f"{se['configurations']} configurations searched at "
+             f"{se['size'][0]}x{se['size'][1]}{threshold}"]
+    if result["name"] is None:
+        lines.append("pick:      none verified yet")
+    else:
+        lines += [f"pick:      {result['name']} (the best verified so far; the search had "
+                  "not finished: a faster one may exist)",
+                  f"           {m} {result['error']:.4g} (+2 s.e.: "
+                  f"{result['error_bound']:.4g}), {result['seconds'] * 1e3:.1f} ms per frame "
+                  f"(maps rebuilt), against {result['reference']['name']} (seed "
+                  f"{result['reference']['seed']})"]
     for st in result["steps"]:
         lines.append(f"verified:  {st['name']}: {m} {st['error']:.4g} at full size "
                      f"({st['search_error']:.4g} searched) -> "

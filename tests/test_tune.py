@@ -16,8 +16,8 @@ import pytest
 import mi_shadowmap
 from mi_shadowmap import cli, harness, metrics
 from mi_shadowmap.scenes import default_scene
-from mi_shadowmap.tune import (METRICS, TuneError, integrator_xml, result_json,
-                               search_grid, tune)
+from mi_shadowmap.tune import (METRICS, TuneError, format_result, integrator_xml,
+                               result_json, search_grid, tune)
 
 from conftest import SCENES
 
@@ -375,3 +375,70 @@ def test_a_search_size_too_small_for_the_metrics_is_refused_up_front(crop, searc
     check_search_size(scene, ok)                      # the value named works
     with pytest.raises(TuneError):
         check_search_size(scene, ok - 1)              # and is the smallest
+
+
+def _ctrl_c(monkeypatch, after_pick: bool):
+    """Ctrl-C at tune's next search render once it has a verified pick (``after_pick``),
+    or at its fourth search render (screening, nothing verified yet)."""
+    tune_mod = sys.modules["mi_shadowmap.tune"]
+    real_run, real_pick, picked, calls = tune_mod.run_method, tune_mod._Tuner.pick, [], []
+
+    def pick(self, *a, **k):
+        found = real_pick(self, *a, **k)
+        picked.append(found)
+        return found
+
+    def run(*a, **k):
+        calls.append(1)
+        if (picked and picked[0] is not None) if after_pick else len(calls) > 3:
+            raise KeyboardInterrupt
+        return real_run(*a, **k)
+
+    monkeypatch.setattr(tune_mod._Tuner, "pick", pick)
+    monkeypatch.setattr(tune_mod, "run_method", run)
+
+
+@pytest.mark.parametrize("after_pick", [False, True])
+def test_an_interrupted_tune_keeps_its_search(monkeypatch, after_pick):
+    """tune kept nothing when interrupted (Ctrl-C, or an error mid-search): all its rows
+    were lost, where sweep attaches those rendered to the error. Now the error carries
+    ``tune_result``, marked partial: the rows and the best pick verified so far."""
+    _ctrl_c(monkeypatch, after_pick)
+    with pytest.raises(KeyboardInterrupt) as e:
+        tune(SPOT, 0.1, methods=["hard"], scene_params=FULL, max_spp=16, **FAST)
+    part = e.value.tune_result
+    assert part["partial"] and part["interrupted"] and part["stopped_by"] == "KeyboardInterrupt"
+    rows = part["sweep"].rows
+    assert len(rows) == part["search"]["renders"] >= (4 if after_pick else 3)
+    assert all(math.isfinite(r["vis_rmse"]) for r in rows)
+    json.dumps(result_json(part))
+    if not after_pick:
+        assert part["name"] is None and part["steps"] == []
+        assert "pick:      none verified yet" in format_result(part)
+        return
+    assert part["method"] == "hard" and part["error"] <= 0.1 * 0.95
+    assert any(st["ok"] and st["name"] == part["name"] for st in part["steps"])
+    assert part["integrator"] == {"type": "shadowmap", "method": "hard", **part["params"]}
+    assert "PARTIAL" in integrator_xml(part) and "best verified so far" in format_result(part)
+
+
+@pytest.mark.parametrize("after_pick", [False, True])
+def test_cli_tune_writes_the_search_of_an_interrupted_run(tmp_path, capsys, monkeypatch,
+                                                          after_pick):
+    """Ctrl-C in ``mi-shadowmap tune`` printed "interrupted" and wrote nothing; now it
+    writes the search so far (tune.json marked partial, tune_pareto.png, and
+    integrator.xml if a pick is verified), says so, and exits with 130 as sweep does."""
+    _ctrl_c(monkeypatch, after_pick)
+    out = tmp_path / "tune"
+    code = cli.main(["tune", SPOT, "--width", "48", "--height", "48", "--max-error", "0.1",
+                     "--methods", "hard", "--search-size", "32", "--repeats", "1",
+                     "--max-spp", "16", "--out", str(out)])
+    stdout, err = capsys.readouterr()
+    assert code == 130 and err.strip().splitlines()[-1] == "mi-shadowmap: interrupted", err
+    assert "tune was interrupted after" in err and "PARTIAL" in stdout, err
+    data = json.loads((out / "tune.json").read_text())
+    assert data["partial"] is True and len(data["sweep"]) >= 3
+    assert (out / "tune_pareto.png").stat().st_size > 0
+    assert (out / "integrator.xml").exists() == after_pick
+    if after_pick:
+        assert data["method"] == "hard" and "PARTIAL" in (out / "integrator.xml").read_text()

@@ -56,17 +56,22 @@ def has_soft_lights(scene: mi.Scene) -> bool:
 
 def converged_reference(scene: mi.Scene, spp: int = 64, seed: int = 0,
                         shadow_rays: int = 64, n_light: int = 1024, repeats: int = 1,
-                        measure_cached: bool = False) -> MethodResult:
+                        measure_cached: bool = False, step=None) -> MethodResult:
     """The converged soft-shadow reference for scenes with area lights.
 
     The image is ``raytraced`` with ``shadow_rays`` stratified shadow rays per
     camera sample (timed as :func:`~mi_shadowmap.timing.run_method` times a method:
     ``repeats``, ``measure_cached``); the visibility is
     :func:`mi_shadowmap.reference.converged_visibility` (the average of
-    ``n_light`` hard shadows from fixed stratified light positions).
+    ``n_light`` hard shadows from fixed stratified light positions). ``step``, if
+    given, is called with a description before each of the two (a progress bar's).
     """
+    if step is not None:
+        step(f"image: raytraced, {spp} spp x {shadow_rays} shadow rays")
     res = run_method(scene, REFERENCE_METHOD, spp=spp, seed=seed, shadow_rays=shadow_rays,
                      repeats=repeats, measure_cached=measure_cached)
+    if step is not None:
+        step(f"visibility: {n_light} light samples x {spp} spp")
     t0 = time.perf_counter()
     vis = converged_visibility(scene, n_light=n_light, seed=seed, spp=spp)
     res.visibility = {k[len("vis_"):]: np.asarray(v, dtype=np.float32) for k, v in vis.items()}
@@ -121,7 +126,7 @@ def check_given_reference(scene, ref: MethodResult) -> None:
 
 def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_spp: int = 64,
                    ref_shadow_rays: int = 64, repeats: int = 1,
-                   measure_cached: bool = True) -> MethodResult:
+                   measure_cached: bool = True, step=None) -> MethodResult:
     """Render the reference (see the module docstring).
 
     ``reference`` is ``"auto"`` (at ``spp``), ``"converged"`` (rendered at ``max(spp,
@@ -130,7 +135,9 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
     :class:`~mi_shadowmap.timing.MethodResult`. A method's render is timed as
     :func:`~mi_shadowmap.timing.run_method` times it (``repeats``, ``measure_cached``),
     so the reference's row of :func:`~mi_shadowmap.harness.compare`'s table is timed as
-    its methods' are.
+    its methods' are. ``step``, if given, is called with a description before each
+    render (two for the converged reference: its image and its visibility; one
+    otherwise): :func:`~mi_shadowmap.sweep.sweep` shows them in a progress bar.
     """
     check_emitters(scene)
     if isinstance(reference, MethodResult):
@@ -139,11 +146,13 @@ def make_reference(scene, reference="auto", spp: int = 16, seed: int = 0, ref_sp
     elif reference == "converged" or (reference == "auto" and has_soft_lights(scene)):
         ref = converged_reference(scene, spp=spp if reference == "auto" else max(spp, ref_spp),
                                   seed=seed, shadow_rays=ref_shadow_rays, repeats=repeats,
-                                  measure_cached=measure_cached)
+                                  measure_cached=measure_cached, step=step)
     else:
         spec = dict(method_spec(REFERENCE_METHOD if reference == "auto" else reference))
         own_spp = "spp" in spec
         r_spp = spec.pop("spp", spp)
+        if step is not None:
+            step(spec_name({**spec, "spp": r_spp}))
         ref = run_method(scene, spec.pop("method"), spp=r_spp, seed=seed, repeats=repeats,
                          measure_cached=measure_cached, **spec)
         if own_spp:     # named with it ("raytraced:spp=64" was "reference (raytraced)")

@@ -358,10 +358,32 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     max_spp = max(s["spp"] for s in specs)
     if reference == "auto" and not has_soft_lights(scene):
         reference = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}
-    ref = make_reference(scene, reference, spp=max(ref_spp, max_spp),
-                         seed=derived_seed(seed, 1),
-                         ref_spp=ref_spp, ref_shadow_rays=ref_shadow_rays)
     from .progress import bar
+    # the reference (the converged one of area lights and environments can take longer
+    # than the whole grid) in a bar of its own: it rendered before the sweep's bar began,
+    # with nothing shown for that long
+    converged = not isinstance(reference, (dict, MethodResult)) and (
+        reference == "converged" or (reference == "auto" and has_soft_lights(scene)))
+    ref_bar = []      # made at the first render, so that its first line names it
+
+    def step(what: str) -> None:
+        if not ref_bar:
+            ref_bar.append(bar(total=2 if converged else 1, desc="sweep reference",
+                               unit="render", leave=False, disable=not progress,
+                               postfix=what))
+            return
+        ref_bar[0].update(1)         # the previous render is done
+        ref_bar[0].set_postfix_str(what)
+
+    try:
+        ref = make_reference(scene, reference, spp=max(ref_spp, max_spp),
+                             seed=derived_seed(seed, 1), ref_spp=ref_spp,
+                             ref_shadow_rays=ref_shadow_rays, step=step)
+        if ref_bar:
+            ref_bar[0].update(ref_bar[0].total - ref_bar[0].n)
+    finally:
+        if ref_bar:
+            ref_bar[0].close()
     rows, results, failed = [], [], []
     try:
         for spec, spp_asked in bar(list(zip(specs, asked)), desc="sweep", unit="config",

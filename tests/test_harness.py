@@ -825,3 +825,22 @@ def test_a_given_reference_of_another_size_or_scene_is_refused_before_rendering(
     with pytest.raises(ValueError, match="has the emitters spot, the scene point"):
         harness.compare(other, methods=["hard"], reference=ref, spp=1)
     assert not rendered
+
+
+@pytest.mark.parametrize("light, steps", [("area", ["image: raytraced, 4 spp x 4 shadow "
+                                                     "rays", "visibility: 1024 light samples"]),
+                                           ("point", ["raytraced spp=4"])])
+def test_sweep_shows_its_reference_in_progress(capsys, light, steps):
+    """The sweep rendered its reference -- under an area light the converged one, which
+    can take longer than the whole grid -- before its bar started, showing nothing all
+    that time. It has a bar of its own now, naming each render as it starts (plain lines
+    here: stderr is no terminal)."""
+    scene = mi.load_dict(default_scene(width=16, height=16, light=light))
+    harness.sweep(scene, {"method": "hard", "resolution": 16}, spp=1, repeats=1, ref_spp=4,
+                  ref_shadow_rays=4)
+    err = capsys.readouterr().err.splitlines()
+    first = next(i for i, line in enumerate(err) if line.startswith("sweep:"))
+    ref = [line for line in err[:first] if line.startswith("sweep reference:")]
+    for what in steps:
+        assert any(what in line for line in ref), err
+    assert "100%" in ref[-1], err

@@ -378,7 +378,8 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     try:
         ref = make_reference(scene, reference, spp=max(ref_spp, max_spp),
                              seed=derived_seed(seed, 1), ref_spp=ref_spp,
-                             ref_shadow_rays=ref_shadow_rays, step=step)
+                             ref_shadow_rays=ref_shadow_rays, step=step,
+                             measure_cached=False)   # its times are not used
         if ref_bar:
             ref_bar[0].update(ref_bar[0].total - ref_bar[0].n)
     finally:

@@ -844,3 +844,21 @@ def test_sweep_shows_its_reference_in_progress(capsys, light, steps):
     for what in steps:
         assert any(what in line for line in ref), err
     assert "100%" in ref[-1], err
+
+
+def test_sweep_does_not_time_its_reference_cached(monkeypatch):
+    """The sweep's reference was rendered as compare's is timed -- a cold, a warm and a
+    cached frame -- though only its image and visibility are used: one of its three
+    image renders (a third of a ray-traced reference's time) was wasted."""
+    from mi_shadowmap import timing
+    real, calls = timing.render_timed, []
+
+    def counted(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(timing, "render_timed", counted)
+    scene = mi.load_dict(default_scene(width=16, height=16, light="point"))
+    harness.sweep(scene, {"method": "hard", "resolution": 16}, spp=1, repeats=1, ref_spp=4,
+                  progress=False)
+    assert len(calls) == 2 + 2       # reference: cold, warm; hard: cold, warm

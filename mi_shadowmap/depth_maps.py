@@ -328,16 +328,11 @@ _SOLID_MEMO = collections.OrderedDict()
 _SOLID_MEMO_SIZE = 4096
 
 
-def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> np.ndarray:
-    """Per face: does its connected part bound a solid with outward normals (watertight,
-    consistently oriented once coincident vertices are welded, positive volume; as
-    :func:`~mi_shadowmap.procedural.check_closed`)? A mesh that is such a solid as a
-    whole is solid everywhere (a hollow solid: its inner shell, turned inwards, has a
-    negative volume of its own). One pass over the edges for every part (a loop over
-    5000 parts took 244 s; 0.14 s)."""
+def _welded_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> tuple:
+    """``(welded faces, connected part per face, number of parts, number of welded
+    vertices)`` of a mesh: faces joined by vertices equal at ``decimals`` decimals."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
-    v = np.asarray(v, np.float64)
     _, weld = np.unique(np.round(v, decimals), axis=0, return_inverse=True)
     fw = weld.reshape(-1)[f]
     m = int(weld.max()) + 1
@@ -345,7 +340,18 @@ def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> np.ndarray:
                                             np.concatenate([fw[:, 1], fw[:, 2]]))),
                    shape=(m, m))
     n_parts, label = connected_components(g, directed=False)
-    part = label[fw[:, 0]]
+    return fw, label[fw[:, 0]], n_parts, m
+
+
+def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> np.ndarray:
+    """Per face: does its connected part bound a solid with outward normals (watertight,
+    consistently oriented once coincident vertices are welded, positive volume; as
+    :func:`~mi_shadowmap.procedural.check_closed`)? A mesh that is such a solid as a
+    whole is solid everywhere (a hollow solid: its inner shell, turned inwards, has a
+    negative volume of its own). One pass over the edges for every part (a loop over
+    5000 parts took 244 s; 0.14 s)."""
+    v = np.asarray(v, np.float64)
+    fw, part, n_parts, m = _welded_parts(v, f, decimals)
     ok = (fw[:, 0] != fw[:, 1]) & (fw[:, 1] != fw[:, 2]) & (fw[:, 2] != fw[:, 0])
     gf, gp = fw[ok], part[ok]
     e = np.concatenate([gf[:, [0, 1]], gf[:, [1, 2]], gf[:, [2, 0]]])
@@ -368,6 +374,7 @@ def clear_memos() -> None:
     _SOLID_MEMO.clear()
     _FACE_MEMO[:] = [None, None]
     _SMOOTH_MEMO[:] = [None, None]
+    _OUTSIDE_MEMO.clear()
     _EDGES_MEMO.clear()
     from . import map_scene as ms
     ms.clear()
@@ -408,28 +415,43 @@ def face_solidity(shape) -> np.ndarray:
 _SMOOTH_MEMO: list = [None, None]
 
 
-def smooth_solid_faces(scene: mi.Scene):
-    """``(offset, solid)`` tables of the faces that bound a solid with outward normals
-    (:func:`face_solidity`) among the scene's meshes with vertex normals, or None where
-    no such face exists: ``offset[id]`` (``mi.Int32``, by shape registry id) is a mesh's
-    first row in ``solid`` (``mi.Bool``, indexed by ``prim_index``), -1 for other shapes.
+def _transmits(shape) -> bool:
+    """Whether a shape's BSDF transmits light (glass, a frosted shade, ...)."""
+    bsdf = shape.bsdf()
+    return bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
 
-    Only interpolated normals let a BSDF reflect light arriving from behind the hit's
-    geometric face (a smooth-shaded mesh's terminator): a camera hit on the outside of a
-    solid's face whose geometric normal looks away from the light is lit there by
-    Mitsuba's ``direct``'s BSDF, while its shadow ray, which leaves the surface on the
-    light's side, starts inside the solid and is occluded by it; the maps' biases (and
-    ``second_depth``'s second surface, which such a face is) let that light through
-    (the integrator's ``_into_solid``). Remembered while the shapes and their buffers
-    are the same."""
+
+def smooth_solid_faces(scene: mi.Scene):
+    """``(offset, solid, part, shells)`` tables of the faces that bound a solid with
+    outward normals (:func:`face_solidity`) among the scene's meshes with vertex normals
+    or a BSDF that transmits, or None where no such face exists: ``offset[id]``
+    (``mi.Int32``, by shape registry id) is a mesh's first row in ``solid`` (``mi.Bool``,
+    indexed by ``prim_index``), -1 for other shapes; ``part`` (``mi.Int32`` by row, or
+    None where no transmitting mesh has such faces) numbers the closed parts of the
+    transmitting meshes' solid faces (-1 elsewhere), whose geometry ``shells`` holds
+    for :func:`lights_outside`.
+
+    Only interpolated normals let a BSDF that does not transmit reflect light arriving
+    from behind the hit's geometric face (a smooth-shaded mesh's terminator): a camera
+    hit on the outside of a solid's face whose geometric normal looks away from the
+    light is lit there by Mitsuba's ``direct``'s BSDF, while its shadow ray, which
+    leaves the surface on the light's side, starts inside the solid and is occluded by
+    it; the maps' biases (and ``second_depth``'s second surface, which such a face is)
+    let that light through (the integrator's ``_into_solid``). A BSDF that transmits
+    shades light from behind any face, flat ones too: there the shadow ray is occluded
+    by the solid unless the light is inside it (:func:`lights_outside`). A shapegroup's
+    meshes (hit through instances, whose placements the tables do not know) get no
+    parts. Remembered while the shapes and their buffers are the same."""
     listed = list(scene.shapes())
     # a shapegroup's meshes too: an instance's hits name them (as in _face_tables: an
     # instance maps a solid's outside to its outside, and Mitsuba turns the normals)
     shapes = listed + _grouped_shapes(scene, listed)
-    smooth = [sh.is_mesh() and hasattr(sh, "faces_buffer") and sh.has_vertex_normals()
-              for sh in shapes]
+    meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
+    glass = [m and k < len(listed) and _transmits(sh)
+             for k, (sh, m) in enumerate(zip(shapes, meshes))]
+    use = [m and (g or sh.has_vertex_normals()) for sh, m, g in zip(shapes, meshes, glass)]
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer())
-            for sh, m in zip(shapes, smooth) if m]
+            for sh, m in zip(shapes, use) if m]
     key = tuple((id(sh), v.index, f.index) for sh, v, f in held)
     if _SMOOTH_MEMO[0] is not None and _SMOOTH_MEMO[0][0] == key:
         return _SMOOTH_MEMO[1]
@@ -437,17 +459,131 @@ def smooth_solid_faces(scene: mi.Scene):
     if held:
         ids = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)).numpy().astype(np.int64)
         offset = np.full(int(ids.max()) + 1, -1, np.int64)
-        parts, n = [], 0
-        for i, shape, m in zip(ids, shapes, smooth):
+        parts, labels, shells, n, n_parts = [], [], [], 0, 0
+        for i, shape, m, g in zip(ids, shapes, use, glass):
             sol = face_solidity(shape) if m else None
             if sol is not None and sol.any():
                 offset[i] = n
                 parts.append(sol)
+                lab = np.full(len(sol), -1, np.int64)
+                if g:
+                    shell = _shells(shape, sol, n_parts)
+                    lab[sol] = shell["label"]
+                    n_parts += shell["count"]
+                    shells.append(shell)
+                labels.append(lab)
                 n += len(sol)
         if parts:
-            tables = (mi.Int32(offset.astype(np.int32)), mi.Bool(np.concatenate(parts)))
+            part = (mi.Int32(np.concatenate(labels).astype(np.int32)) if shells else None)
+            tables = (mi.Int32(offset.astype(np.int32)), mi.Bool(np.concatenate(parts)),
+                      part, shells)
     _SMOOTH_MEMO[:] = [(key, held), tables]   # held: their buffers' indices stay unused
     return tables
+
+
+def _shells(shape, solid: np.ndarray, first: int) -> dict:
+    """The closed parts of a mesh's solid faces (``solid``, :func:`face_solidity`), for
+    :func:`lights_outside`: ``label`` (per solid face, numbered from ``first``),
+    ``count``, their triangles' world vertices ``tri`` (float64), whether a part is
+    turned inwards (``inward``: a hollow solid's inner shell) and its bounds."""
+    v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
+    f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)[solid]
+    _, part, _, _ = _welded_parts(v, f)
+    uniq, local = np.unique(part, return_inverse=True)
+    tri = v[f]
+    six_vol = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
+    count = len(uniq)
+    lo = np.full((count, 3), np.inf)
+    hi = np.full((count, 3), -np.inf)
+    for ax in range(3):
+        np.minimum.at(lo[:, ax], local, tri[:, :, ax].min(axis=1))
+        np.maximum.at(hi[:, ax], local, tri[:, :, ax].max(axis=1))
+    return {"label": local + first, "local": local, "count": count, "tri": tri,
+            "inward": np.bincount(local, weights=six_vol, minlength=count) < 0,
+            "lo": lo, "hi": hi}
+
+
+def _light_points(emitter):
+    """Where ``emitter``'s light samples lie, for :func:`lights_outside`: None for an
+    infinitely distant light (directional, environment), an ``(n, 3)`` array of points
+    (a delta-position light's position; 64 points spread over an area light's shape),
+    or False where that is unknown."""
+    flags = emitter.flags()
+    if mi.has_flag(flags, mi.EmitterFlags.Infinite):
+        return None
+    if mi.has_flag(flags, mi.EmitterFlags.DeltaPosition):
+        it = dr.zeros(mi.Interaction3f)
+        ds, _ = emitter.sample_direction(it, mi.Point2f(0.5))
+        return np.asarray(ds.p.numpy(), np.float64).reshape(3, -1).T[:1]
+    shape = emitter.get_shape()
+    if shape is None:
+        return False
+    g = (np.arange(8) + 0.5) / 8
+    u, w = np.meshgrid(g, g)
+    ps = shape.sample_position(0.0, mi.Point2f(u.ravel(), w.ravel()))
+    return np.asarray(ps.p.numpy(), np.float64).reshape(3, -1).T
+
+
+def lights_outside(shells: list, emitter) -> np.ndarray:
+    """Per part of ``shells`` (:func:`smooth_solid_faces`): does every light sample of
+    ``emitter`` lie on the side its normals face (outside it; in the cavity of a hollow
+    solid's inner shell)? Then a shadow ray from the outside of one of its faces to a
+    light sample behind that face must cross the part again: it is occluded. Decided
+    by the winding number of the part around the emitter's points (:func:`_light_points`;
+    an area light's 64 points over its shape: a light crossing a part's surface counts
+    as inside when one of them is inside); a point outside the mesh's whole solid (all
+    its parts' windings summing to 0: the cavity of a hollow solid) is outside each of
+    its parts too (a ray into the material must leave it). An infinitely distant light
+    is outside every part; an emitter of unknown kind inside every part (the old
+    answer: lit)."""
+    count = sum(sh["count"] for sh in shells)
+    points = _light_points(emitter)
+    if points is None:
+        return np.ones(count, bool)
+    if points is False or not len(points):
+        return np.zeros(count, bool)
+    key = (id(shells), points.tobytes())     # every render asks again: lights move
+    hit = _OUTSIDE_MEMO.get(key)
+    if hit is not None:
+        return hit[1]
+    out = np.concatenate(_outside(shells, points))
+    while len(_OUTSIDE_MEMO) >= 64:
+        _OUTSIDE_MEMO.popitem(last=False)
+    _OUTSIDE_MEMO[key] = (shells, out)       # shells held: their id is not reused
+    return out
+
+
+#: :func:`lights_outside` answers: ``{(id(shells), points): (shells, answer)}``.
+_OUTSIDE_MEMO = collections.OrderedDict()
+
+
+def _outside(shells: list, points: np.ndarray) -> list:
+    """:func:`lights_outside` of ``points``: one boolean array per mesh of ``shells``."""
+    out = []
+    for sh in shells:
+        ok = np.ones(sh["count"], bool)
+        margin = 1e-4 * (np.abs(sh["lo"]).max() + np.abs(sh["hi"]).max() + 1.0)
+        for p in points:
+            if not ok.any():       # inside every part already
+                break
+            near = np.all((p >= sh["lo"] - margin) & (p <= sh["hi"] + margin), axis=1)
+            wind = np.zeros(sh["count"])
+            if near.any():
+                rows = near[sh["local"]]
+                t = sh["tri"][rows] - p
+                a, b, c = t[:, 0], t[:, 1], t[:, 2]
+                la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+                num = np.einsum("ij,ij->i", a, np.cross(b, c))
+                den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc
+                       + np.einsum("ij,ij->i", a, c) * lb + np.einsum("ij,ij->i", b, c) * la)
+                wind = np.bincount(sh["local"][rows], minlength=sh["count"],
+                                   weights=np.arctan2(num, den) / (2 * np.pi))
+            # on the part's normals' side (winding 0 about an outward part, -1 in an
+            # inward shell's cavity), or outside the mesh's whole solid (winding 0 about
+            # all its parts: in a hollow solid's cavity)
+            ok &= (np.abs(wind + sh["inward"]) < 0.25) | (abs(wind.sum()) < 0.25)
+        out.append(ok)
+    return out
 
 
 #: The meshes :func:`directed_edges` built edges for: ``{id(mesh): faces buffer}`` (the

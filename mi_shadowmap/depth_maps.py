@@ -439,16 +439,15 @@ def smooth_solid_faces(scene: mi.Scene):
     it; the maps' biases (and ``second_depth``'s second surface, which such a face is)
     let that light through (the integrator's ``_into_solid``). A BSDF that transmits
     shades light from behind any face, flat ones too: there the shadow ray is occluded
-    by the solid unless the light is inside it (:func:`lights_outside`). A shapegroup's
-    meshes (hit through instances, whose placements the tables do not know) get no
-    parts. Remembered while the shapes and their buffers are the same."""
+    by the solid unless the light is inside it (:func:`lights_outside`; a shapegroup's
+    mesh, hit through instances, in every instance's placement). Remembered while the
+    shapes and their buffers are the same."""
     listed = list(scene.shapes())
     # a shapegroup's meshes too: an instance's hits name them (as in _face_tables: an
     # instance maps a solid's outside to its outside, and Mitsuba turns the normals)
     shapes = listed + _grouped_shapes(scene, listed)
     meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
-    glass = [m and k < len(listed) and _transmits(sh)
-             for k, (sh, m) in enumerate(zip(shapes, meshes))]
+    glass = [m and _transmits(sh) for sh, m in zip(shapes, meshes)]
     use = [m and (g or sh.has_vertex_normals()) for sh, m, g in zip(shapes, meshes, glass)]
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer())
             for sh, m in zip(shapes, use) if m]
@@ -460,7 +459,7 @@ def smooth_solid_faces(scene: mi.Scene):
         ids = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)).numpy().astype(np.int64)
         offset = np.full(int(ids.max()) + 1, -1, np.int64)
         parts, labels, shells, n, n_parts = [], [], [], 0, 0
-        for i, shape, m, g in zip(ids, shapes, use, glass):
+        for k, (i, shape, m, g) in enumerate(zip(ids, shapes, use, glass)):
             sol = face_solidity(shape) if m else None
             if sol is not None and sol.any():
                 offset[i] = n
@@ -468,6 +467,7 @@ def smooth_solid_faces(scene: mi.Scene):
                 lab = np.full(len(sol), -1, np.int64)
                 if g:
                     shell = _shells(shape, sol, n_parts)
+                    shell["grouped"] = k >= len(listed)
                     lab[sol] = shell["label"]
                     n_parts += shell["count"]
                     shells.append(shell)
@@ -524,7 +524,19 @@ def _light_points(emitter):
     return np.asarray(ps.p.numpy(), np.float64).reshape(3, -1).T
 
 
-def lights_outside(shells: list, emitter) -> np.ndarray:
+#: At most this many light points times instances are tested against a shapegroup's
+#: meshes (:func:`lights_outside`); beyond, their parts keep the old answer (lit).
+MAX_INSTANCED_POINTS = 4096
+
+
+def _instance_placements(scene) -> np.ndarray:
+    """The ``to_world`` matrices of the scene's instances, ``(n, 4, 4)`` float64."""
+    out = [np.array(mi.traverse(sh)["to_world"].matrix, np.float64).reshape(4, 4)
+           for sh in scene.shapes() if sh.class_name() == "Instance"]
+    return np.array(out).reshape(-1, 4, 4)
+
+
+def lights_outside(shells: list, emitter, scene=None) -> np.ndarray:
     """Per part of ``shells`` (:func:`smooth_solid_faces`): does every light sample of
     ``emitter`` lie on the side its normals face (outside it; in the cavity of a hollow
     solid's inner shell)? Then a shadow ray from the outside of one of its faces to a
@@ -533,7 +545,11 @@ def lights_outside(shells: list, emitter) -> np.ndarray:
     an area light's 64 points over its shape: a light crossing a part's surface counts
     as inside when one of them is inside); a point outside the mesh's whole solid (all
     its parts' windings summing to 0: the cavity of a hollow solid) is outside each of
-    its parts too (a ray into the material must leave it). An infinitely distant light
+    its parts too (a ray into the material must leave it). A shapegroup's mesh (its
+    vertices in the group's space) is tested with the points brought into the group's
+    space by every instance of ``scene`` (which instances draw which group is not known
+    here: the light must be outside the part in all their placements; beyond
+    :data:`MAX_INSTANCED_POINTS` points the old answer). An infinitely distant light
     is outside every part; an emitter of unknown kind inside every part (the old
     answer: lit)."""
     count = sum(sh["count"] for sh in shells)
@@ -542,11 +558,18 @@ def lights_outside(shells: list, emitter) -> np.ndarray:
         return np.ones(count, bool)
     if points is False or not len(points):
         return np.zeros(count, bool)
-    key = (id(shells), points.tobytes())     # every render asks again: lights move
+    local = None
+    if scene is not None and any(sh["grouped"] for sh in shells):
+        inv = np.linalg.inv(_instance_placements(scene))
+        if len(inv) * len(points) <= MAX_INSTANCED_POINTS:
+            local = (np.einsum("nij,pj->npi", inv[:, :3, :3], points)
+                     + inv[None, :, :3, 3].transpose(1, 0, 2)).reshape(-1, 3)
+    # every render asks again: lights (and instances) move
+    key = (id(shells), points.tobytes(), None if local is None else local.tobytes())
     hit = _OUTSIDE_MEMO.get(key)
     if hit is not None:
         return hit[1]
-    out = np.concatenate(_outside(shells, points))
+    out = np.concatenate(_outside(shells, points, local))
     while len(_OUTSIDE_MEMO) >= 64:
         _OUTSIDE_MEMO.popitem(last=False)
     _OUTSIDE_MEMO[key] = (shells, out)       # shells held: their id is not reused
@@ -557,13 +580,17 @@ def lights_outside(shells: list, emitter) -> np.ndarray:
 _OUTSIDE_MEMO = collections.OrderedDict()
 
 
-def _outside(shells: list, points: np.ndarray) -> list:
-    """:func:`lights_outside` of ``points``: one boolean array per mesh of ``shells``."""
+def _outside(shells: list, points: np.ndarray, local) -> list:
+    """:func:`lights_outside` of ``points`` (``local``: in the shapegroups' space, or
+    None): one boolean array per mesh of ``shells``."""
     out = []
     for sh in shells:
+        if sh["grouped"] and local is None:
+            out.append(np.zeros(sh["count"], bool))
+            continue
         ok = np.ones(sh["count"], bool)
         margin = 1e-4 * (np.abs(sh["lo"]).max() + np.abs(sh["hi"]).max() + 1.0)
-        for p in points:
+        for p in (local if sh["grouped"] else points):
             if not ok.any():       # inside every part already
                 break
             near = np.all((p >= sh["lo"] - margin) & (p <= sh["hi"] + margin), axis=1)

@@ -433,7 +433,7 @@ screen is Mitsuba's projective integrators' job.
         if self._solid_faces is not None and self._solid_faces[2] is not None:
             for k, emitter in enumerate(scene.emitters()):
                 if k < len(self.maps) and self.maps[k] is not None:
-                    out = lights_outside(self._solid_faces[3], emitter)
+                    out = lights_outside(self._solid_faces[3], emitter, scene)
                     # padded: a one-entry array would be a literal compiled into the kernel
                     self._light_outside[id(self.maps[k])] = mi.Bool(np.append(out, False))
         if reads_second:    # the lookup's neighbouring faces (second_depth's virtual samples)

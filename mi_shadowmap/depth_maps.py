@@ -529,10 +529,14 @@ def _light_points(emitter):
 MAX_INSTANCED_POINTS = 4096
 
 
-def _instance_placements(scene) -> np.ndarray:
-    """The ``to_world`` matrices of the scene's instances, ``(n, 4, 4)`` float64."""
+def _instance_placements(scene, n_points: int):
+    """The ``to_world`` matrices of the scene's instances, ``(n, 4, 4)`` float64, or None
+    where ``n * n_points`` exceeds :data:`MAX_INSTANCED_POINTS`."""
+    instances = [sh for sh in scene.shapes() if sh.class_name() == "Instance"]
+    if len(instances) * n_points > MAX_INSTANCED_POINTS:
+        return None
     out = [np.array(mi.traverse(sh)["to_world"].matrix, np.float64).reshape(4, 4)
-           for sh in scene.shapes() if sh.class_name() == "Instance"]
+           for sh in instances]
     return np.array(out).reshape(-1, 4, 4)
 
 
@@ -560,8 +564,10 @@ def lights_outside(shells: list, emitter, scene=None) -> np.ndarray:
         return np.zeros(count, bool)
     local = None
     if scene is not None and any(sh["grouped"] for sh in shells):
-        inv = np.linalg.inv(_instance_placements(scene))
-        if len(inv) * len(points) <= MAX_INSTANCED_POINTS:
+        placements = _instance_placements(scene, len(points))
+        # a flattened (singular) placement: the old answer
+        if placements is not None and np.all(np.abs(np.linalg.det(placements)) > 1e-30):
+            inv = np.linalg.inv(placements)
             local = (np.einsum("nij,pj->npi", inv[:, :3, :3], points)
                      + inv[None, :, :3, 3].transpose(1, 0, 2)).reshape(-1, 3)
     # every render asks again: lights (and instances) move

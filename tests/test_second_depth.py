@@ -788,6 +788,25 @@ def test_an_instanced_glass_solid_lit_from_outside_is_dark_behind_its_near_side(
         assert rgb_ref.mean() > 0.03 and err < 0.05
 
 
+def test_a_flattened_instance_of_a_glass_solid_renders(tmp_path):
+    """An instance of a glass solid scaled by 0 along one axis (a singular placement):
+    bringing the light into its group's space raised numpy's LinAlgError from render;
+    such placements keep the old answer."""
+    from mi_shadowmap.procedural import _icosphere, write_ply
+    v, f = _icosphere(1)
+    path = write_ply(str(tmp_path / "ball.ply"), 0.6 * np.asarray(v, np.float64), f)
+    scene = mi.load_dict({
+        "type": "scene", "sensor": camera([-4, 0.5, 0.5], [0, 0, 0], 16, 16, 1),
+        "group": {"type": "shapegroup",
+                  "ball": {"type": "ply", "filename": path, "bsdf": {"type": "dielectric"}}},
+        "flat": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                 "to_world": T().scale([1, 0, 1])},
+        "ball": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}},
+        "light": {"type": "point", "position": [3, 1, 0]}})
+    img, _ = render_np(scene, {"type": "shadowmap", "method": "second_depth"}, spp=1)
+    assert np.isfinite(img).all()
+
+
 def test_a_ridge_keeps_its_shadow_on_the_valley_beside_it(tmp_path):
     """A closed height-field terrain under a low sun: a valley face next to a ridge's far
     slope has that slope as a neighbour rising towards the light, and the layer holds the

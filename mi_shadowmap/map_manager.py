@@ -758,12 +758,14 @@ class MapCache:
             slot[2] = mi.traverse(scene)
         return slot[2]
 
-    def scene_state(self, scene, params=None) -> str:
+    def scene_state(self, scene, params=None, shapes_only: bool = False) -> str:
         """Hash of the scene's shape and emitter parameters (see the class doc).
 
         Each JIT-array value is hashed once per set of JIT variables
         (:func:`param_digest`): an unchanged scene costs a read of each parameter's
-        variable indices per render.
+        variable indices per render. ``shapes_only``: the hash of the shapes'
+        parameters alone (the virtual maps' page cache, whose stores are also keyed
+        by their light's view: a moved light must not drop every other light's pages).
         """
         params = params if params is not None else self.traverse(scene)
         slot = self._memo_slot(scene)
@@ -786,16 +788,22 @@ class MapCache:
         suffix = "" if scale_watch is None else "/" + signs[1]
         token, values = watch.read()
         if last is not None and last[0] == token:    # the same variables and values
-            return last[1] + suffix
+            return last[2] if shapes_only else last[1] + suffix
         memo = slot[1]
         h = hashlib.blake2b(digest_size=16)
-        h.update(f"{len(scene.shapes())}/{len(scene.emitters())}".encode())
+        hs = hashlib.blake2b(digest_size=16)
+        counts = f"{len(scene.shapes())}/{len(scene.emitters())}".encode()
+        h.update(counts)
+        hs.update(counts)
         for name, value in zip(watch.names, values):
-            h.update(name.encode())
-            h.update(param_digest(memo, name, value))
+            digest = param_digest(memo, name, value)
+            for hh in ((h, hs) if isinstance(watch.params.properties[name][2], mi.Shape)
+                       else (h,)):
+                hh.update(name.encode())
+                hh.update(digest)
         # the memo holds references to every JIT value of this token (param_digest)
-        slot[3][1] = (token, h.hexdigest())
-        return slot[3][1][1] + suffix
+        slot[3][1] = (token, h.hexdigest(), "shapes:" + hs.hexdigest())
+        return slot[3][1][2] if shapes_only else slot[3][1][1] + suffix
 
     def _slot(self, scene, state):
         return scene_slot(self._scenes, scene, state, self.max_scenes)

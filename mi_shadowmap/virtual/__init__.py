@@ -81,7 +81,8 @@ need no cascades.
 
 **Caching** (:data:`PAGE_CACHE`): pages live in light space, so a camera move
 builds only the pages that were never built; the cache is dropped when the
-scene's shapes or emitters change (the map cache's scene state). Every
+scene's shapes change (the map cache's scene state of the shapes), and a light's
+pages when its view changes (a moved light: the other lights keep theirs). Every
 camera-dependent value is data (page tables, levels, slots), never a kernel
 literal, so moving the camera compiles no new kernel.
 

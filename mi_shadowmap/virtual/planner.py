@@ -61,15 +61,16 @@ class PageCache:
             slot[2][key] = layout_for(view, scene, opts)
         return slot[2][key]
 
-    def retire(self, scene, state, label: str, fingerprint) -> None:
-        """Keep one fingerprint's store and layout for ``label``'s camera-following view
-        (cascades): when it changes, the stores and layouts of the previous one are
-        dropped, so a camera path does not pile up page pools."""
+    def retire(self, scene, state, label, fingerprint) -> None:
+        """Keep one fingerprint's store and layout for ``label``'s view: when it changes
+        (a moved light, cascades following the camera), the stores and layouts of the
+        previous one are dropped, so a light or camera path does not pile up page
+        pools."""
         if state is None:
             return
         from ..map_manager import scene_slot
         entries = scene_slot(self._scenes, scene, state, self.max_scenes)[2]
-        group = ("follows camera", label)
+        group = ("view of", label)
         old = entries.get(group)
         if old is not None and old != fingerprint:
             for k in [k for k in entries if k != group and (
@@ -97,15 +98,22 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
     """
     from ..map_manager import MAP_CACHE
     layer_names = page_layers(opts)
-    state = MAP_CACHE.scene_state(scene, params) if opts.cache_maps else None
+    # the shapes' state: a store is keyed by its light's view too, so a moved light (new
+    # view) rebuilds its own pages and keeps every other light's (retired below)
+    state = (MAP_CACHE.scene_state(scene, params, shapes_only=True) if opts.cache_maps
+             else None)
     cam = camera_state(sensor) if sensor is not None else None
     margins, coarse, stores = {}, {}, {}
     for i, view in enumerate(views):
         if view is None or not getattr(view, "supports_virtual", False):
             continue
         fingerprint = PAGE_CACHE.fingerprint(view)
-        if getattr(view, "follows_camera", False):
-            PAGE_CACHE.retire(scene, state, view.label, fingerprint)
+        # one view's stores per light (a light moved every frame, cascades following the
+        # camera: the previous view's pages are dropped, not piled up)
+        # (per kind of view: integrators whose options give one light other views --
+        # cascades, an environment's region count -- do not drop each other's)
+        PAGE_CACHE.retire(scene, state, (view.label, type(view).__name__, view.n_faces),
+                          fingerprint)
         layout = PAGE_CACHE.layout(scene, state, view, fingerprint, opts)
         key = (fingerprint, layout.res0, layout.page_size, layer_names)
         store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))

@@ -245,8 +245,10 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     aa = aa == "always" or (aa == "gradients" and diff)
     # the cache holds detached, plain depths: neither read nor written for gradients
     # or antialiased maps
-    state = (MAP_CACHE.scene_state(scene, params) if opts.cache_maps and not (diff or aa)
-             else None)
+    # the shapes' state: maps are keyed by their light's view too, so a moved light (new
+    # view) rebuilds its own map and keeps every other light's (MapCache.retire)
+    state = (MAP_CACHE.scene_state(scene, params, shapes_only=True)
+             if opts.cache_maps and not (diff or aa) else None)
     layers = {name: record.layers[name] for name in layer_names}
     poses = [None] * len(views)
     if diff or _differentiated(scene, params):
@@ -279,6 +281,9 @@ def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose
     key = (view_fingerprint(view), res)
     if antialias:
         faces = None
+    if state is not None:
+        MAP_CACHE.retire(scene, state, (view.label, type(view).__name__, view.n_faces),
+                         key[0])
     cached = MAP_CACHE.get(scene, state, key, "depth") if state is not None else None
     if faces is not None:
         faces = tuple(bool(f) for f in faces)
@@ -304,6 +309,11 @@ def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
 
 def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
     view = p.view
+    if p.pose is not None:
+        # a posed map (the reference view moved by the pose) is keyed by the reference
+        # view: neither its depth nor its layers may be cached (the scene state of the
+        # shapes does not change with the pose)
+        state = None
     if p.cached_depth is not None:
         smap = ShadowMap(view=view, resolution=res, depth=p.cached_depth[0])
         stats.maps_reused += 1
@@ -711,6 +721,10 @@ class MapCache:
       JIT arrays are hashed once per JIT variable (:func:`param_digest`), so an
       unchanged scene costs a read of its parameters' variable indices per render
       (and ``mi.traverse(scene)`` is kept per scene: :meth:`traverse`).
+    * the maps' plans use the state of the shapes' parameters alone
+      (``scene_state(shapes_only=True)``): a map is keyed by its light's view too, so
+      a moved light rebuilds its own map and the other lights keep theirs
+      (:meth:`retire` keeps its two latest views' maps).
     * the *light view* is :func:`view_fingerprint` of the emitter's
       :class:`~mi_shadowmap.light_views.LightView` (its class, transform,
       extents, ...), so anything that moves a frustum (a light, a directional
@@ -735,6 +749,7 @@ class MapCache:
         # id(scene) -> [scene, {param: (held value, JIT ids, digest)}, its mi.traverse,
         #               (ParamWatch of its shape and emitter parameters, last state)]
         self._memo = collections.OrderedDict()
+        self._views = {}        # id(scene) -> {"state": state, (label, ...): [fingerprints]}
         self.hits = 0
         self.misses = 0
 
@@ -828,6 +843,24 @@ class MapCache:
         self.misses += entry is None
         return entry
 
+    def retire(self, scene, state, group, fingerprint, keep: int = 2) -> None:
+        """Keep the maps of the ``keep`` latest view fingerprints of ``group`` (a light's
+        label and kind of view): when the light moves, older ones are dropped, so a light
+        moved every frame does not pile up maps (two: integrators whose views of one
+        light differ, e.g. one with ``fit_frusta``, do not drop each other's)."""
+        slot = self._slot(scene, state)
+        for k in [k for k in self._views if k not in self._scenes]:
+            del self._views[k]          # scenes the cache let go
+        held = self._views.setdefault(id(scene), {})
+        if held.get("state") != state:
+            held.clear()
+            held["state"] = state
+        recent = [fingerprint] + [f for f in held.get(group, []) if f != fingerprint]
+        for old in recent[keep:]:
+            for k in [k for k in slot[2] if k[0][0] == old]:
+                del slot[2][k]
+        held[group] = recent[:keep]
+
     def put(self, scene, state, key, layer, data, seconds: float) -> None:
         slot = self._slot(scene, state)
         slot[2][(key, layer)] = (data, seconds)
@@ -844,6 +877,7 @@ class MapCache:
     def clear(self) -> None:
         self._scenes.clear()
         self._memo.clear()
+        self._views.clear()
 
 
 #: The cache of every ``shadowmap`` integrator (``MAP_CACHE.clear()`` empties it).

@@ -129,6 +129,33 @@ def test_geometry_or_emitter_change_rebuilds(builds, edit):
     assert len(builds) == 3 and integ.stats["maps_reused"] == 1
 
 
+def test_moving_one_light_rebuilds_its_map_only(builds):
+    """Full maps, four point lights: a light moved through ``params.update()`` rebuilds
+    its own map (the cache was keyed by every emitter's parameters, so moving one
+    rebuilt all four); the render equals a fresh build, and a light moved every frame
+    keeps its two latest maps in the cache."""
+    d = {k: v for k, v in default_scene(width=32, height=32).items()
+         if not (isinstance(v, dict) and v.get("type") in ("spot", "point"))}
+    for k, x in enumerate([-1.5, -0.5, 0.5, 1.5]):
+        d[f"pl{k}"] = {"type": "point", "position": [x, 3.0, 1.0 + 0.3 * k],
+                       "intensity": {"type": "rgb", "value": [3.0] * 3}}
+    scene = mi.load_dict(d)
+    integ = shadowmap()
+    render(scene, integ)
+    assert sorted(builds) == ["pl0", "pl1", "pl2", "pl3"]
+    params = mi.traverse(scene)
+    for step in range(3):
+        del builds[:]
+        params["pl1.position"] = mi.Point3f(-0.5 + 0.1 * (step + 1), 3.0, 1.3)
+        params.update()
+        img = render(scene, integ)
+        assert builds == ["pl1"], (step, builds)
+        assert integ.stats["maps_built"] == 1 and integ.stats["maps_reused"] == 3
+    np.testing.assert_array_equal(img, render(scene, shadowmap(cache_maps=False)))
+    slot = MAP_CACHE._scenes[id(scene)]
+    assert len({k[0] for k in slot[2]}) == 5
+
+
 def test_material_change_keeps_maps(builds):
     scene = mi.load_dict(default_scene(width=16, height=16))
     integ = shadowmap()

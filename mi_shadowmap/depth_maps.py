@@ -373,7 +373,7 @@ def clear_memos() -> None:
     meshes (:mod:`~mi_shadowmap.map_scene`)."""
     _SOLID_MEMO.clear()
     _FACE_MEMO[:] = [None, None]
-    _SMOOTH_MEMO[:] = [None, None]
+    _SOLID_TABLES_MEMO[:] = [None, None]
     _OUTSIDE_MEMO.clear()
     _EDGES_MEMO.clear()
     from . import map_scene as ms
@@ -411,8 +411,8 @@ def face_solidity(shape) -> np.ndarray:
     return out
 
 
-#: The last :func:`smooth_solid_faces` answer: ``[key, tables]`` (as :data:`_FACE_MEMO`).
-_SMOOTH_MEMO: list = [None, None]
+#: The last :func:`solid_face_tables` answer: ``[key, tables]`` (as :data:`_FACE_MEMO`).
+_SOLID_TABLES_MEMO: list = [None, None]
 
 
 def _transmits(shape) -> bool:
@@ -421,7 +421,7 @@ def _transmits(shape) -> bool:
     return bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
 
 
-def smooth_solid_faces(scene: mi.Scene):
+def solid_face_tables(scene: mi.Scene):
     """``(offset, solid, part, shells)`` tables of the faces that bound a solid with
     outward normals (:func:`face_solidity`) among the scene's meshes with vertex normals
     or a BSDF that transmits, or None where no such face exists: ``offset[id]``
@@ -452,8 +452,8 @@ def smooth_solid_faces(scene: mi.Scene):
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer())
             for sh, m in zip(shapes, use) if m]
     key = tuple((id(sh), v.index, f.index) for sh, v, f in held)
-    if _SMOOTH_MEMO[0] is not None and _SMOOTH_MEMO[0][0] == key:
-        return _SMOOTH_MEMO[1]
+    if _SOLID_TABLES_MEMO[0] is not None and _SOLID_TABLES_MEMO[0][0] == key:
+        return _SOLID_TABLES_MEMO[1]
     tables = None
     if held:
         ids = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)).numpy().astype(np.int64)
@@ -477,7 +477,7 @@ def smooth_solid_faces(scene: mi.Scene):
             part = (mi.Int32(np.concatenate(labels).astype(np.int32)) if shells else None)
             tables = (mi.Int32(offset.astype(np.int32)), mi.Bool(np.concatenate(parts)),
                       part, shells)
-    _SMOOTH_MEMO[:] = [(key, held), tables]   # held: their buffers' indices stay unused
+    _SOLID_TABLES_MEMO[:] = [(key, held), tables]   # held: their buffers' indices stay unused
     return tables
 
 
@@ -541,7 +541,7 @@ def _instance_placements(scene, n_points: int):
 
 
 def lights_outside(shells: list, emitter, scene=None) -> np.ndarray:
-    """Per part of ``shells`` (:func:`smooth_solid_faces`): does every light sample of
+    """Per part of ``shells`` (:func:`solid_face_tables`): does every light sample of
     ``emitter`` lie on the side its normals face (outside it; in the cavity of a hollow
     solid's inner shell)? Then a shadow ray from the outside of one of its faces to a
     light sample behind that face must cross the part again: it is occluded. Decided

@@ -22,8 +22,9 @@ import mitsuba as mi
 
 from . import environment as env_mod
 from . import options as opt_mod
-from .depth_maps import ShadowMap, directed_edges, lights_outside, smooth_solid_faces
+from .depth_maps import ShadowMap, directed_edges, lights_outside, solid_face_tables
 from .filters import Lookup, RayTracedLight, shifted_grid_point
+from .sigint import outside_mitsuba, set_sigint_action, sigint_action
 from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys,
                           emitted_value_owners, emitter_kind, emitter_labels, is_pinhole,
                           make_light_view, pinhole_footprint, pixel_step,
@@ -112,7 +113,7 @@ screen is Mitsuba's projective integrators' job.
         self.resolution = None      # the resolution of the last render's maps
         self.stats = MapStats()     # see map_manager.prepare_maps()
         self._in_render = False
-        self._sigint_before = None  # the SIGINT action before the render (_sigint_action)
+        self._sigint_before = None  # the SIGINT action before the render (sigint.py)
         self._sigint_after = None   # and the one the binding's scopes restore (render())
         self._nested = False        # sample() is called by another integrator (aov)
         self._names_given: list[str] = []   # aov_names() given outside a render
@@ -134,7 +135,7 @@ screen is Mitsuba's projective integrators' job.
         self._pinhole = None
         self._delta_term = False
         self._delta_memo = None    # the scene has delta BSDF lobes (render() sets it)
-        # second_depth: depth_maps.smooth_solid_faces of the scene (render() sets it)
+        # second_depth: depth_maps.solid_face_tables of the scene (render() sets it)
         self._solid_faces = None
         # and per map (by id) the parts of transmitting solids its light is outside of
         self._light_outside = {}
@@ -149,13 +150,13 @@ screen is Mitsuba's projective integrators' job.
             # integrator ("free(): invalid pointer", a segfault) or was swallowed, and
             # no KeyboardInterrupt ever reached the caller. The nested scope gets the
             # handler from before the render instead (Python's, where that was Mitsuba's
-            # own: see _outside_mitsuba).
-            _set_sigint_action(self._sigint_after)
+            # own: see sigint.outside_mitsuba).
+            set_sigint_action(self._sigint_after)
             return self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
-        self._sigint_before = _sigint_action()
+        self._sigint_before = sigint_action()
         # what the binding's scopes are to restore: its static holds the action current
-        # when a scope begins (see _outside_mitsuba)
-        self._sigint_after = _outside_mitsuba(self._sigint_before)
+        # when a scope begins (see sigint.outside_mitsuba)
+        self._sigint_after = outside_mitsuba(self._sigint_before)
         self._in_render = True
         self._nested = False
         self._last_render = None
@@ -170,7 +171,7 @@ screen is Mitsuba's projective integrators' job.
             self._last_render = scene
             record = self.opts.record
             self._out_of_range = None if record.builtin else dr.zeros(mi.UInt32, 1)
-            _set_sigint_action(self._sigint_after)    # the binding's scope keeps it
+            set_sigint_action(self._sigint_after)    # the binding's scope keeps it
             image = self._mi_base.render(self, scene, sensor, seed, spp, develop, evaluate)
             if self._out_of_range is not None:
                 bad = int(self._out_of_range.numpy()[0])     # evaluates the render
@@ -183,7 +184,7 @@ screen is Mitsuba's projective integrators' job.
         finally:
             self._in_render = False
             self._out_of_range = None
-            _set_sigint_action(self._sigint_before)   # as it was, whatever happened
+            set_sigint_action(self._sigint_before)   # as it was, whatever happened
             self._sigint_before = self._sigint_after = None
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
@@ -426,7 +427,7 @@ screen is Mitsuba's projective integrators' job.
         # for 330k, again after every edit of its vertices)
         reads_second = (self.opts.uses_map
                         and "second_depth" in self.opts.record.layer_names(self.opts))
-        self._solid_faces = smooth_solid_faces(scene) if reads_second else None
+        self._solid_faces = solid_face_tables(scene) if reads_second else None
         # per map (by id): which closed parts of transmitting meshes its light is outside
         # of (every render: lights move); only where the scene has such parts
         self._light_outside = {}
@@ -698,7 +699,7 @@ screen is Mitsuba's projective integrators' job.
         """Where the light sample ``lk.ds`` lies behind the geometric face of a camera hit
         seen from outside a solid (a closed, outward-oriented mesh part with vertex
         normals, or any such part of a mesh whose BSDF transmits,
-        :func:`~mi_shadowmap.depth_maps.smooth_solid_faces`): visibility 0.
+        :func:`~mi_shadowmap.depth_maps.solid_face_tables`): visibility 0.
 
         A smooth-shaded mesh's BSDF reflects light from below its geometric face near the
         terminator (its shading frame leans over), and Mitsuba's ``direct`` (and
@@ -839,86 +840,6 @@ screen is Mitsuba's projective integrators' job.
     def to_string(self):
         res = self.opts.resolution if self.opts.resolution is not None else "auto"
         return f"ShadowMapIntegrator[method={self.opts.method}, resolution={res}]"
-
-
-_LIBC: list = []      # [the C library, or None where it has no sigaction (Windows)]
-
-
-def _libc():
-    if not _LIBC:
-        try:
-            import ctypes
-            lib = ctypes.CDLL(None)
-            lib.sigaction        # noqa: B018  (AttributeError where there is none)
-        except (OSError, AttributeError, TypeError):
-            lib = None
-        _LIBC.append(lib)
-    return _LIBC[0]
-
-
-def _sigint_action():
-    """The process's SIGINT action (its ``struct sigaction``, as opaque bytes), for
-    :func:`_set_sigint_action`; None where it cannot be read (no ``sigaction``: Windows,
-    where Mitsuba installs no Ctrl-C handler either)."""
-    lib = _libc()
-    if lib is None:
-        return None
-    import ctypes
-    import signal
-    buf = ctypes.create_string_buffer(512)    # larger than any libc's struct sigaction
-    return buf if lib.sigaction(int(signal.SIGINT), None, buf) == 0 else None
-
-
-def _outside_mitsuba(action):
-    """``action``, unless its handler is one of Mitsuba's (its render binding's, found
-    with ``dladdr``): then Python's SIGINT handler's action, as ``signal.signal``
-    installs it (``action`` where that cannot be had: not the main thread, a handler
-    not set from Python, no ``dladdr``).
-
-    Our render() called inside another render binding's scope (Mitsuba's ``aov``
-    rendering this integrator as its child; Mitsuba's default ``render_backward``) finds
-    that scope's handler installed, bound to the outer integrator; our own call of the
-    binding then overwrote the single static that scope restores from with it, so
-    Mitsuba's handler stayed installed after the outer render: a later Ctrl-C, once
-    that integrator was freed, aborted the process ("free(): invalid pointer")."""
-    lib = _libc()
-    if action is None or lib is None or not hasattr(lib, "dladdr"):
-        return action
-    import ctypes
-    import os
-
-    class DlInfo(ctypes.Structure):
-        _fields_ = [("dli_fname", ctypes.c_char_p), ("dli_fbase", ctypes.c_void_p),
-                    ("dli_sname", ctypes.c_char_p), ("dli_saddr", ctypes.c_void_p)]
-
-    info = DlInfo()
-    handler = ctypes.c_void_p.from_buffer(action).value
-    if not handler or handler <= 1 or not lib.dladdr(ctypes.c_void_p(handler),
-                                                     ctypes.byref(info)):
-        return action        # SIG_DFL, SIG_IGN, or not in a loaded library
-    fname = os.fsdecode(info.dli_fname or b"")
-    if "mitsuba" not in os.path.basename(os.path.dirname(fname)) + os.path.basename(fname):
-        return action
-    import signal
-    import threading
-    python = signal.getsignal(signal.SIGINT)
-    if python is None or threading.current_thread() is not threading.main_thread():
-        return action
-    current = _sigint_action()
-    try:
-        signal.signal(signal.SIGINT, python)      # Python's own C handler for it
-        return _sigint_action()
-    except (ValueError, OSError):
-        return action
-    finally:
-        _set_sigint_action(current)
-
-
-def _set_sigint_action(action) -> None:
-    """Install a SIGINT action read by :func:`_sigint_action` (None: leave it)."""
-    if action is not None:
-        import signal
-        _libc().sigaction(int(signal.SIGINT), action, None)
 
 
 def _tracks_gradients(scene) -> bool:

@@ -509,7 +509,7 @@ def test_smooth_shaded_solid_is_dark_past_its_terminator(tmp_path):
 
 def test_smooth_shaded_solid_in_an_instance_is_dark_past_its_terminator(tmp_path):
     """As above, for the icosahedron drawn through an ``instance`` (mirrored): its hits
-    name the shapegroup's mesh, which scene.shapes() does not list, so smooth_solid_faces
+    name the shapegroup's mesh, which scene.shapes() does not list, so solid_face_tables
     left it out and second_depth lit 17 of 48^2 pixels where ``raytraced`` is dark
     (image relative RMSE 0.066); now none, as the same mesh outside an instance."""
     scene, _ = _smooth_icosahedron(tmp_path, instanced=True)

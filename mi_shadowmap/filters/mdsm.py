@@ -9,7 +9,7 @@ Maps", SIBGRAPI 2004 (``shared/papers/004``).
   the cell (q = search^2 samples; the paper's "maximum or minimum (or
   both)" selection, with its 3 x 3 default). The 3 x 3 minimum and maximum
   are map layers ``mdsm_min`` / ``mdsm_max`` built only for this method
-  (:data:`mi_shadowmap.depth_maps.LAYER_BUILDERS`).
+  (the ``layers`` of its record, :data:`METHOD`).
 * **The n-shadow test (n-ST).** A receiver at depth ``d`` is shadowed by
   ``s`` of the cell's ``n`` depths (``Z_i < d``); the shadow coverage is
   ``s / n`` -- one of ``n + 1`` equally spaced values.
@@ -59,8 +59,8 @@ Deviations from the paper, and why:
   n-SM then equals a standard map).
 * Taps are clamped to the receiver's face (cube-map seams are not
   crossed); lookups outside the map are lit.
-* Only the layers the options read are built (:data:`LAYERS_FOR`, via
-  :func:`mi_shadowmap.filters.layers_for`): none for ``depths = 1`` or
+* Only the layers the options read are built (the record's ``layers_for``,
+  :meth:`mi_shadowmap.methods.Method.layer_names`): none for ``depths = 1`` or
   ``search = 1``, ``mdsm_max`` for ``depths = 2``, both for ``depths = 3``.
 * **Virtual maps** (``virtual=true``, :mod:`mi_shadowmap.virtual`) store no extra
   depths: their pages hold the base depth only, and a page's 3 x 3 extremes at its
@@ -73,8 +73,7 @@ Deviations from the paper, and why:
   clamped windows (9 depths a window). The mark pass builds the pages within the taps' windows
   (``virtual_margin``); a window beyond the lookup's 2 x 2 pages reads its own pages
   through the page table, as every virtual tap does.
-* **Stored window.** The layer builders
-  (:data:`mi_shadowmap.depth_maps.LAYER_BUILDERS`, ``mdsm_min`` /
+* **Stored window.** The layer builders (the record's ``layers``, ``mdsm_min`` /
   ``mdsm_max``) always store the 3 x 3 (q = 9, the paper's default)
   minimum / maximum, clamped at the face border, whatever ``search`` is;
   other sizes are composed from it at lookup (above).

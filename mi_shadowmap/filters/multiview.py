@@ -204,9 +204,9 @@ METHOD = Method(
              "multiview: test of each view, 'hard' (nearest texel) or 'bilinear' (2x2 "
              "bilinear PCF with receiver-plane depths).", choices=("hard", "bilinear")),
         Prop("light_size", "float", None,
-             "Point and spot lights: light width in world units (point: a sphere of that "
-             "diameter; spot: a square across its axis). Default 0: one view (hard "
-             "shadows). Area lights use their shape.", lo=0.0,
+             "Point, spot and projector lights: light width in world units (point: a sphere "
+             "of that diameter; spot, projector: a square across its axis). Default 0: "
+             "one view (hard shadows). Area lights use their shape.", lo=0.0,
              lights=("point", "spot", "projector")),
         Prop("angular_diameter", "float", 0.0,
              "Apparent diameter of a directional light in degrees; > 0 spreads the views "

@@ -504,7 +504,7 @@ METHOD = Method(
         Prop("light_size", "float", None,
              "Light width in world units for PCSS. Default: derived from an area emitter's "
              "shape (side of the square of equal projected area, see light_views), 0 for "
-             "point and spot lights (hard shadows); > 0 gives point/spot lights a PCSS "
+             "point, spot and projector lights (hard shadows); > 0 gives them a PCSS "
              "penumbra.", lo=0.0, lights=("point", "spot", "projector", "area")),
         Prop("max_kernel", "float", 64.0,
              "PCSS blocker-search and filter kernels are at most max_kernel texels wide "

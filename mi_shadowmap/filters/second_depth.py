@@ -3,7 +3,7 @@
 Y. Wang and S. Molnar, "Second-Depth Shadow Mapping", UNC Chapel Hill
 TR94-019, 1994 (``shared/papers/001``). The map stores the depth of the
 **second** surface from the light (built by
-:func:`mi_shadowmap.depth_maps._second_surface`, layer ``second_depth``,
+:func:`mi_shadowmap.depth_maps.second_depth_layer`, layer ``second_depth``,
 only when this method is used); the lookup is the per-pixel algorithm of
 the paper's Figure 10:
 

@@ -279,6 +279,16 @@ def test_spot_without_a_cone_is_refused_by_name():
         make_light_view(scene.emitters()[0], scene, 0)
 
 
+@pytest.mark.parametrize("beam", [float("nan"), float("inf")])
+def test_spot_with_a_beam_width_that_is_not_finite_is_refused_by_name(beam):
+    """Mitsuba loads it; ``direct`` rendered NaN inside the cone (NaN) or black (inf),
+    and every method here black with visibility AOV 0."""
+    scene = mi.load_dict({"type": "scene", "lamp": {"type": "spot", "cutoff_angle": 30.0,
+                                                    "beam_width": beam}})
+    with pytest.raises(ValueError, match="lamp.*beam_width=(nan|inf).*finite"):
+        make_light_view(scene.emitters()[0], scene, 0)
+
+
 def test_projection_inverts_texel_rays():
     """Every texel's own hit point looks up that texel, at its stored depth."""
     scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere", "radius": 5.0},

@@ -337,11 +337,20 @@ def spot_view(emitter, label: str):
     taken, so no face there is read)."""
     from . import UnsupportedEmitterError
     from .cube import framed_cube_view
-    cutoff = float(dr.ravel(mi.traverse(emitter)["cutoff_angle"])[0])
+    params = mi.traverse(emitter)
+    cutoff = float(dr.ravel(params["cutoff_angle"])[0])
     if not cutoff > 0.0:
         raise UnsupportedEmitterError(
             f"shadowmap: spot emitter '{label}' has cutoff_angle={cutoff}; it must be > 0 "
             "degrees (a spot with no cone lights nothing)")
+    if "beam_width" in params:
+        # Mitsuba loads any beam_width: NaN made `direct` render NaN inside the cone
+        # (and every method here black, visibility AOV 0), inf black.
+        beam = float(dr.ravel(params["beam_width"])[0])
+        if not math.isfinite(beam):
+            raise UnsupportedEmitterError(
+                f"shadowmap: spot emitter '{label}' has beam_width={beam}; it must be a "
+                "finite angle in degrees (at most cutoff_angle; larger is the cutoff)")
     if cutoff >= WIDE_SPOT_CUTOFF:
         return framed_cube_view(emitter, "spot", label)
     T = emitter.world_transform()

@@ -26,7 +26,8 @@ from .depth_maps import ShadowMap, directed_edges, lights_outside, solid_face_ta
 from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .sigint import outside_mitsuba, set_sigint_action, sigint_action
 from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys,
-                          emitted_value_owners, emitter_kind, emitter_labels, is_pinhole,
+                          emitted_value_owners, emitter_class, emitter_kind,
+                          emitter_labels, is_pinhole, UnsupportedEmitterError,
                           make_light_view, pinhole_footprint, pixel_step,
                           unique_labels)  # noqa: F401  (re-exported)
 from .light_views.base import scene_bounds
@@ -343,6 +344,15 @@ screen is Mitsuba's projective integrators' job.
         checks them on the host when they differ.
         Emitted values are not part of the map cache's scene state (maps do not depend
         on them), so a ``params.update()`` of an intensity alone reaches only this."""
+        for i, e in enumerate(scene.emitters()):
+            # Mitsuba refuses a NaN or negative weight at load, not an infinite one: its
+            # `direct` then rendered the whole image black (every light), this one lit it
+            w = float(e.sampling_weight())
+            if not (math.isfinite(w) and w >= 0.0):
+                raise UnsupportedEmitterError(
+                    f"shadowmap: emitter '{emitter_labels(scene.emitters())[i]}' "
+                    f"({emitter_class(e)}): parameter 'sampling_weight' is {w:g}; it "
+                    "must be finite and >= 0")
         memo = self._value_watch
         if memo is None or memo[0] is not scene:
             watches = []

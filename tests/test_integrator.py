@@ -909,6 +909,30 @@ def test_an_emitter_with_sampling_weight_zero_lights_nothing_as_in_direct():
     assert lit.mean() > 1.5 * direct.mean()           # the lamp does light when sampled
 
 
+@pytest.mark.parametrize("method", ["raytraced", "hard"])
+def test_an_infinite_sampling_weight_is_refused_by_name(method):
+    """Mitsuba refuses a NaN or negative ``sampling_weight`` at load, not an infinite one:
+    its ``direct`` then rendered the whole image black (0 against 0.644 with weight 1),
+    while this integrator lit it as with any weight. Now an error names the emitter and
+    the parameter, at load and after a ``params.update()``."""
+    d = default_scene(width=8, height=8, spp=1)
+    d["lamp"] = {"type": "point", "position": [-2.0, 4.0, 1.0], "intensity": 20.0,
+                 "sampling_weight": float("inf")}
+    integ = mi.load_dict({"type": "shadowmap", "method": method})
+    with pytest.raises(RuntimeError) as err:
+        mi.render(mi.load_dict(d), integrator=integ, spp=1)
+    assert re.search("lamp.*sampling_weight.*inf.*finite", root_message(err.value))
+    d["lamp"]["sampling_weight"] = 1.0
+    scene = mi.load_dict(d)
+    mi.render(scene, integrator=integ, spp=1)
+    params = mi.traverse(scene)
+    params["lamp.sampling_weight"] = float("inf")
+    params.update()
+    with pytest.raises(RuntimeError) as err:
+        mi.render(scene, integrator=integ, spp=1)
+    assert re.search("lamp.*sampling_weight.*inf.*finite", root_message(err.value))
+
+
 def test_aov_labels_stay_unique_when_an_index_is_another_emitters_id():
     """A point light keyed '1' and two area lights whose shapes share the id
     'emitter' (Mitsuba gives both that id): the fallback indices must not collide with

@@ -37,7 +37,7 @@ from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolar
                        variant_class)
 from .virtual import VirtualShadowMap, camera_frame
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
-                          prepare_maps)
+                          _differentiated, prepare_maps)
 
 
 class ShadowMapIntegratorMixin:
@@ -209,6 +209,7 @@ screen is Mitsuba's projective integrators' job.
         ``soft_compare``, 128^2, 16 spp, 0.36 s a gradient against 1.3 s through
         Mitsuba's default); the others go through Mitsuba's default."""
         self._check_gradient_channels(scene, sensor, grad_in)
+        self._warn_if_no_shadow_gradient(scene)
         if not self._symbolic_backward(scene):
             return self._mi_base.render_backward(self, scene, params, grad_in, sensor, seed,
                                                  spp)
@@ -218,6 +219,39 @@ screen is Mitsuba's projective integrators' job.
             dr.enqueue(dr.ADMode.Backward, image)
             dr.traverse(dr.ADMode.Backward)
         dr.eval()
+
+    #: Methods whose visibility is a step of the map's depths at the nearest texels
+    #: (README, "Differentiable shadows"): no shadow gradient at all (``multiview`` with
+    #: ``filter='hard'``); ``pcf`` and ``pcss`` only with ``soft_compare`` > 0.
+    #: (``bilinear`` without ``soft_compare`` still passes its weights' derivative in
+    #: the receiver's and the light's position, so it is not warned about.)
+    STEP_METHODS = frozenset({"hard", "second_depth", "mdsm", "multiview"})
+    SOFT_COMPARE_METHODS = frozenset({"pcf", "pcss"})
+
+    def _warn_if_no_shadow_gradient(self, scene) -> None:
+        """Warn (once per integrator) when a gradient render differentiates a shape's or
+        an emitter's parameter (its maps are built in the AD graph) with a method whose
+        visibility passes no gradient: the shadows' part of the gradient is silently 0
+        (measured: an occluder moved sideways under a spot, ``hard`` and ``pcf`` without
+        ``soft_compare`` gave exactly the ``raytraced`` integrator's image gradient,
+        none of the shadow's motion, without a word)."""
+        if getattr(self, "_no_gradient_warned", False):
+            return
+        name = self.opts.record.name
+        step = (name in self.STEP_METHODS
+                and not (name == "multiview" and self.opts.filter != "hard")) or (
+            name in self.SOFT_COMPARE_METHODS and not self.opts.soft_compare > 0)
+        if not step or not _differentiated(scene):
+            return
+        self._no_gradient_warned = True
+        fix = ("set soft_compare > 0 (e.g. 2)" if name in self.SOFT_COMPARE_METHODS
+               else "use vsm, evsm, msm, or pcf, pcss or bilinear with soft_compare > 0")
+        warnings.warn(
+            f"shadowmap: method '{name}'"
+            + (" with soft_compare=0" if name in self.SOFT_COMPARE_METHODS else "")
+            + " passes no shadow gradient: a shape's or an emitter's parameter has "
+            "gradients enabled, but the shadows' part of its gradient is 0 (only the "
+            f"shading's derivative remains); {fix}", RuntimeWarning, stacklevel=3)
 
     def _check_gradient_channels(self, scene, sensor, grad_in) -> None:
         """Refuse, with a message, an image gradient whose channels are not our image's.
@@ -257,6 +291,7 @@ screen is Mitsuba's projective integrators' job.
         raised "tried to forward-propagate derivatives across edge ... outside of the
         current dr.isolate_grad() scope"). Their derivatives are computed and dropped:
         about one more map build's work."""
+        self._warn_if_no_shadow_gradient(scene)
         loops = (contextlib.nullcontext() if self._symbolic_backward(scene)
                  else dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False))
         with dr.resume_grad(), loops:

@@ -930,3 +930,54 @@ def test_environment_regions_antialias_their_own_silhouettes():
     print(f"AD {g:.4g}, own FD {fd:.4g}")
     assert abs(fd) > 1e-4
     assert abs(g - fd) <= 0.2 * abs(fd)
+
+
+def test_a_method_without_shadow_gradients_says_so():
+    """A gradient render that moves an occluder with a method whose visibility is a step
+    of the maps' depths (``hard``, ``pcf`` without ``soft_compare``, ...) got the
+    shading's derivative only -- exactly ``raytraced``'s image gradient, none of the
+    shadow's motion -- with no word (README: they "pass no visibility gradient"). It now
+    warns once, naming the method and the setting that gives shadow gradients; a smooth
+    method (``vsm``, ``pcf`` with ``soft_compare``) and a reflectance-only gradient (maps
+    not in the AD graph) do not warn. Forward and reverse mode alike."""
+    import warnings
+    scene = inverse.occluder_scene("point", 16, 1)
+
+    def messages(integ, what="occluder", mode="backward"):
+        param = (inverse.translate_shape(scene, axes="x") if what == "occluder"
+                 else None)
+        params = mi.traverse(scene)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if param is not None:
+                param.set(mi.Float(0.0))
+                dr.enable_grad(param.params[param.key])
+                param.params.update()
+                key = param.key
+            else:
+                key = "ground.bsdf.reflectance.value"
+                dr.enable_grad(params[key])
+                params.update()
+            p = param.params if param is not None else params
+            img = mi.render(scene, p, integrator=integ, spp=1)
+            if mode == "backward":
+                dr.backward(dr.sum(img, axis=None))
+            else:
+                dr.forward(p[key])
+            dr.disable_grad(p[key])
+            p.update()
+        return [str(w.message) for w in caught if "passes no shadow gradient" in str(w.message)]
+
+    def integ(**kw):
+        return mi.load_dict({"type": "shadowmap", "resolution": 64, **kw})
+
+    hard = messages(integ(method="hard"))
+    assert len(hard) == 1 and "'hard'" in hard[0] and "soft_compare" in hard[0]
+    pcf = messages(integ(method="pcf"), mode="forward")
+    assert len(pcf) == 1 and "soft_compare=0" in pcf[0]
+    assert not messages(integ(method="pcf", soft_compare=2.0))
+    assert not messages(integ(method="vsm"))
+    assert not messages(integ(method="hard"), what="reflectance")
+    # once per integrator
+    it = integ(method="second_depth")
+    assert len(messages(it)) == 1 and not messages(it)

@@ -233,14 +233,17 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     # Raises (naming the memory needed) before any map is allocated.
     cost = 1.0 + sum(record.layer_cost.get(name, 1.0) for name in layer_names)
     res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint)
+    params = params if params is not None else _traverse(scene, opts)
+    diff = maps_need_gradients(scene, params)
+    if opts.resolution is None and (diff or _differentiated(scene, params)):
+        res = _gradient_resolution(scene, sensor, film_size, math.ceil(n_faces * cost),
+                                   opts, res)
     gains = [] if opts.fit_frusta else None
     for k, view in enumerate(views):
         if view is not None:
             views[k], gain = view.refine(opts, scene, sensor, visible, res)
             if gain is not None:
                 gains.append(gain)
-    params = params if params is not None else _traverse(scene, opts)
-    diff = maps_need_gradients(scene, params)
     aa = getattr(opts, "antialias", "never")
     aa = aa == "always" or (aa == "gradients" and diff)
     # the cache holds detached, plain depths: neither read nor written for gradients
@@ -266,6 +269,37 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
                                              diff, pose, aa)
             for v, pose in zip(views, poses)]
     return RenderPlan(views, maps, res, state, gains)
+
+
+#: (id(scene), id(sensor), film size, faces x layers, memory_budget) -> [scene, sensor,
+#: resolution]: the automatic resolution of renders with shape or emitter gradients, kept
+#: (the scene and sensor held, so their ids are not reused) for the next such render;
+#: the oldest dropped beyond _MAX_GRADIENT_RESOLUTIONS
+_GRADIENT_RESOLUTIONS: collections.OrderedDict = collections.OrderedDict()
+_MAX_GRADIENT_RESOLUTIONS = 16
+
+
+def _gradient_resolution(scene, sensor, film_size, faces: int, opts, res: int) -> int:
+    """The automatic resolution of a render whose shapes or emitters have gradients:
+    the one the first such render of this scene, sensor, film size and map set chose.
+
+    The automatic resolution follows the scene's bounds and the camera's footprint
+    (:func:`footprint_ratio`), so an optimisation that moves an occluder or a light
+    changed it between steps: measured, 56^2 -> 64^2 at an Adam step's second
+    iteration (``vsm``, an occluder's translation), which compiled 12 kernels (about
+    5 s against 0.15-0.2 s a step) and changed the function being optimised. Renders
+    without gradients enabled keep following the scene; a ``resolution`` given is
+    used as is; :func:`clear_caches` forgets the kept ones."""
+    key = (id(scene), id(sensor), tuple(int(x) for x in film_size), int(faces),
+           float(opts.memory_budget))
+    entry = _GRADIENT_RESOLUTIONS.get(key)
+    if entry is None or entry[0] is not scene or entry[1] is not sensor:
+        entry = [scene, sensor, res]
+    _GRADIENT_RESOLUTIONS.pop(key, None)
+    _GRADIENT_RESOLUTIONS[key] = entry
+    while len(_GRADIENT_RESOLUTIONS) > _MAX_GRADIENT_RESOLUTIONS:
+        _GRADIENT_RESOLUTIONS.popitem(last=False)
+    return entry[2]
 
 
 def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose=None,
@@ -888,7 +922,8 @@ def clear_caches() -> None:
     """Empty every cache the package keeps across renders: depth maps
     (:data:`MAP_CACHE`), virtual pages and camera digests (:data:`~mi_shadowmap.virtual.
     PAGE_CACHE`), cascades of virtual maps, light-pose references
-    (:mod:`~mi_shadowmap.light_views.pose`), meshes' edge topologies
+    (:mod:`~mi_shadowmap.light_views.pose`), gradient renders' automatic resolutions
+    (:func:`_gradient_resolution`), meshes' edge topologies
     (:mod:`~mi_shadowmap.antialias`) and their bounds
     (:func:`~mi_shadowmap.light_views.base.shape_bounds`), and environment emitters'
     median cuts (:func:`~mi_shadowmap.environment.emitter_regions`: numpy arrays, keyed
@@ -910,6 +945,7 @@ def clear_caches() -> None:
     base.clear_memos()
     depth_maps.clear_memos()
     MAP_CACHE.clear()
+    _GRADIENT_RESOLUTIONS.clear()
     virtual.PAGE_CACHE.clear()
     _VIRTUAL_CASCADES.clear()
     pose.clear_references()

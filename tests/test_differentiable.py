@@ -981,3 +981,41 @@ def test_a_method_without_shadow_gradients_says_so():
     # once per integrator
     it = integ(method="second_depth")
     assert len(messages(it)) == 1 and not messages(it)
+
+
+def test_automatic_resolution_is_kept_while_gradients_are_enabled():
+    """The automatic resolution follows the scene's bounds, so an optimisation moving an
+    occluder changed it between steps (a helper's Adam run: 56^2 -> 64^2 at its second
+    step, 12 kernels compiled, the optimised function changed). While a shape has
+    gradients enabled the first gradient render's resolution is kept; without them it
+    follows the scene as before (checked here first, so the test can tell)."""
+    scene = mi.load_dict(scene_dict())
+    params = mi.traverse(scene)
+    key = "post.vertex_positions"
+    base = mi.Float(params[key])
+
+    def move(dx):
+        params[key] = dr.ravel(dr.unravel(mi.Point3f, base) + mi.Vector3f(dx, 0.0, dx))
+        params.update()
+
+    # full maps, as a gradient render's automatic maps are (virtual maps have no
+    # automatic resolution)
+    integ = mi.load_dict({"type": "shadowmap", "method": "vsm", "virtual": False})
+    seen = []
+    for dx in (0.0, 6.0):                  # no gradients: the bounds grow, the maps follow
+        move(dx)
+        mi.render(scene, integrator=integ, spp=1)
+        seen.append(integ.resolution)
+    assert seen[0] != seen[1], seen
+    move(0.0)
+    dr.enable_grad(params[key])
+    params.update()
+    kept = []
+    for dx in (0.0, 6.0):
+        move(dx)
+        dr.enable_grad(params[key])
+        params.update()
+        img = mi.render(scene, params, integrator=integ, spp=1)
+        dr.backward(dr.sum(img, axis=None))
+        kept.append(integ.resolution)
+    assert kept == [seen[0], seen[0]], (seen, kept)

@@ -37,7 +37,7 @@ from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolar
                        variant_class)
 from .virtual import VirtualShadowMap, camera_frame
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
-                          _differentiated, prepare_maps)
+                          _differentiated, prepare_maps, scene_token)
 
 
 class ShadowMapIntegratorMixin:
@@ -121,12 +121,14 @@ screen is Mitsuba's projective integrators' job.
         self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
         # a user method's render: a one-element counter of lookups outside [0, 1] or NaN
         self._out_of_range = None
-        self._last_render = None    # the scene of the render in progress or just done
+        # scene_token() of the scene of the render in progress or just done (the memos
+        # below keep tokens too: a scene holds its own integrator, see scene_token)
+        self._last_render = None
         self._emitter_labels: list[str] = []
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
-        self._views_memo = None     # (scene, scene state, views, labels, unshadowed)
+        self._views_memo = None     # (scene_token, scene state, views, labels, unshadowed)
         self._centre_memo = {}      # _warn_if_centre_hidden's checks done
-        self._value_watch = None    # [scene, watches, token checked, values held]
+        self._value_watch = None    # [scene_token, watches, token checked, values held]
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale, self._diff_spp = dr.opaque(mi.Float, 1.0), 1
         self._sensor = None
@@ -169,7 +171,7 @@ screen is Mitsuba's projective integrators' job.
             self._film_takes_aovs = _film_takes_aovs(sensor_obj.film())
             self._first_pass(scene, sensor_obj,
                              spp if spp > 0 else sensor_obj.sampler().sample_count())
-            self._last_render = scene
+            self._last_render = scene_token(scene)
             record = self.opts.record
             self._out_of_range = None if record.builtin else dr.zeros(mi.UInt32, 1)
             set_sigint_action(self._sigint_after)    # the binding's scope keeps it
@@ -326,13 +328,14 @@ screen is Mitsuba's projective integrators' job.
         opts = self.opts
         state = MAP_CACHE.scene_state(scene) if opts.uses_map and opts.cache_maps else None
         memo = self._views_memo
-        if state is not None and memo is not None and memo[0] is scene and memo[1] == state:
+        if (state is not None and memo is not None and memo[0] is scene_token(scene)
+                and memo[1] == state):
             self._check_emitter_values(scene)
             self._emitter_labels, self._unshadowed = list(memo[3]), list(memo[4])
             return list(memo[2])
         views = self.check_scene(scene)
         self._views_memo = (None if state is None else
-                            (scene, state, list(views), list(self._emitter_labels),
+                            (scene_token(scene), state, list(views), list(self._emitter_labels),
                              list(self._unshadowed)))
         return views
 
@@ -389,7 +392,7 @@ screen is Mitsuba's projective integrators' job.
                     f"({emitter_class(e)}): parameter 'sampling_weight' is {w:g}; it "
                     "must be finite and >= 0")
         memo = self._value_watch
-        if memo is None or memo[0] is not scene:
+        if memo is None or memo[0] is not scene_token(scene):
             watches = []
             labels = emitter_labels(scene.emitters())
             for i, e in enumerate(scene.emitters()):
@@ -397,7 +400,7 @@ screen is Mitsuba's projective integrators' job.
                 watches.append((e, labels[i],
                                 ParamWatch(params, emitted_value_keys(params)),
                                 emitted_value_owners(params)))
-            memo = self._value_watch = [scene, watches, None, None]
+            memo = self._value_watch = [scene_token(scene), watches, None, None]
         reads = [watch.read() for _, _, watch, _ in memo[1]]
         token = tuple(r[0] for r in reads)
         if token == memo[2]:
@@ -437,7 +440,7 @@ screen is Mitsuba's projective integrators' job.
         film's pixel count fits the render's wavefront, and if several do, whose ray
         through its first pixel is nearest the render's first ray); footprints take the
         spp from the render's sampler."""
-        rendered = self._last_render is scene     # aov: our render() just ran
+        rendered = self._last_render is scene_token(scene)     # aov: our render() just ran
         if rendered and self._sensor is not None:
             sensor = self._sensor
         else:
@@ -492,8 +495,8 @@ screen is Mitsuba's projective integrators' job.
         """:func:`has_delta_bsdf`, kept per scene (a scene's shapes and their BSDFs'
         types are fixed once it is loaded; 3,000 shapes take 8 ms to scan)."""
         memo = self._delta_memo
-        if memo is None or memo[0] is not scene:
-            memo = self._delta_memo = (scene, has_delta_bsdf(scene))
+        if memo is None or memo[0] is not scene_token(scene):
+            memo = self._delta_memo = (scene_token(scene), has_delta_bsdf(scene))
         return memo[1]
 
     def _sensor_pixel_step(self, sensor):

@@ -739,6 +739,28 @@ def scene_slot(scenes: collections.OrderedDict, scene, state, max_scenes: int) -
     return slot
 
 
+#: id(scene) -> (scene, token): :func:`scene_token` (at most 8 scenes; ``clear_caches``).
+_SCENE_TOKENS = collections.OrderedDict()
+
+
+def scene_token(scene) -> object:
+    """A token standing for ``scene`` in an integrator's per-scene memos, the same object
+    while the scene is held here (at most 8 scenes, least recently used out first;
+    :func:`clear_caches` empties it). An integrator keeps the token, not the scene: a
+    scene holds its own integrator (``<integrator type="shadowmap">``), and a Python
+    reference back to the scene from it is a cycle through C++ that Python's collector
+    cannot see, so every scene rendered with its own integrator stayed alive forever,
+    ``clear_caches()`` and ``del`` notwithstanding (30 scenes of 45k triangles: +5 MiB
+    each, and renders 0.23 -> 0.45 s as Dr.Jit traced every live scene's shapes)."""
+    hit = _SCENE_TOKENS.get(id(scene))
+    if hit is None or hit[0] is not scene:
+        hit = _SCENE_TOKENS[id(scene)] = (scene, object())
+    _SCENE_TOKENS.move_to_end(id(scene))
+    while len(_SCENE_TOKENS) > 8:
+        _SCENE_TOKENS.popitem(last=False)
+    return hit[1]
+
+
 class MapCache:
     """Depth-map layers kept across renders, shared by every integrator instance.
 
@@ -951,3 +973,4 @@ def clear_caches() -> None:
     pose.clear_references()
     antialias.clear_meshes()
     env_mod._CACHE.clear()
+    _SCENE_TOKENS.clear()

@@ -420,6 +420,32 @@ def test_clear_caches_frees_the_scenes_and_their_kernels_repeat():
         assert first and again == first
 
 
+
+@pytest.mark.parametrize("props", [{"method": "hard"}, {"method": "pcf", "virtual": False},
+                                   {"method": "raytraced"}],
+                         ids=lambda p: "-".join(f"{v}" for v in p.values()))
+def test_a_scene_rendered_by_its_own_integrator_is_freed(props):
+    """A scene holds its own integrator (``<integrator type="shadowmap">``, or the dict's
+    ``"integrator"``), so a reference from the integrator back to the scene is a cycle
+    through C++ that Python's collector cannot break: the integrator kept the scene in
+    its per-scene memos (last render, views, emitter values, delta BSDFs), and every
+    scene rendered with ``mi.render(scene)`` stayed alive after ``del`` and
+    ``clear_caches()`` (30 scenes of 45k triangles: +5 MiB each, and renders slowed from
+    0.23 to 0.45 s as Dr.Jit traced every live scene's shapes). It keeps tokens now."""
+    import sys
+
+    mi_shadowmap.clear_caches()
+    gc.collect()
+    scene = mi.load_dict({**default_scene(width=16, height=16),
+                          "integrator": {"type": "shadowmap", **props}})
+    unheld = sys.getrefcount(scene)
+    first = np.asarray(mi.render(scene, spp=2, seed=1))
+    again = np.asarray(mi.render(scene, spp=2, seed=1))     # the memos serve this one
+    assert np.array_equal(first, again)
+    mi_shadowmap.clear_caches()
+    gc.collect()
+    assert sys.getrefcount(scene) == unheld     # nothing but this test holds it
+
 def _light_scene(light):
     T = mi.ScalarTransform4f
     d = default_scene(width=32, height=32)

@@ -146,7 +146,8 @@ def scene_views(scene, opts) -> list:
             else make_light_view(e, scene, i, labels[i]) for i, e in enumerate(emitters)]
 
 
-def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderPlan:
+def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
+              budget_bytes: int | None = None) -> RenderPlan:
     """Decide one render's maps; nothing is built (the camera-visible points may be
     traced, one ray per pixel, when a view's refinement needs them).
 
@@ -157,7 +158,8 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     everything below -- faces, memory, cache key -- sees the view it builds.
     ``sensor``: default the scene's first; a scene without any sensor takes a
     512 x 512 film and skips every camera-dependent step (cascades, culling,
-    fitting, the footprint factor).
+    fitting, the footprint factor). ``budget_bytes``: what these maps may use
+    (default ``memory_budget``; less where a render's virtual maps hold the rest).
 
     1. The views say whether they read camera-visible points
        (``cascades``/``fit_frusta``/``cull_faces``) and how many faces they
@@ -232,12 +234,13 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
             for v in views])
     # Raises (naming the memory needed) before any map is allocated.
     cost = 1.0 + sum(record.layer_cost.get(name, 1.0) for name in layer_names)
-    res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint)
+    res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint, budget_bytes)
     params = params if params is not None else _traverse(scene, opts)
     diff = maps_need_gradients(scene, params)
     if opts.resolution is None and (diff or _differentiated(scene, params)):
         res = _gradient_resolution(scene, sensor, film_size, math.ceil(n_faces * cost),
-                                   opts, res)
+                                   opts.budget_bytes if budget_bytes is None else budget_bytes,
+                                   res)
     gains = [] if opts.fit_frusta else None
     for k, view in enumerate(views):
         if view is not None:
@@ -271,7 +274,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None) -> RenderP
     return RenderPlan(views, maps, res, state, gains)
 
 
-#: (id(scene), id(sensor), film size, faces x layers, memory_budget) -> [scene, sensor,
+#: (id(scene), id(sensor), film size, faces x layers, bytes allowed) -> [scene, sensor,
 #: resolution]: the automatic resolution of renders with shape or emitter gradients, kept
 #: (the scene and sensor held, so their ids are not reused) for the next such render;
 #: the oldest dropped beyond _MAX_GRADIENT_RESOLUTIONS
@@ -279,7 +282,7 @@ _GRADIENT_RESOLUTIONS: collections.OrderedDict = collections.OrderedDict()
 _MAX_GRADIENT_RESOLUTIONS = 16
 
 
-def _gradient_resolution(scene, sensor, film_size, faces: int, opts, res: int) -> int:
+def _gradient_resolution(scene, sensor, film_size, faces: int, budget: int, res: int) -> int:
     """The automatic resolution of a render whose shapes or emitters have gradients:
     the one the first such render of this scene, sensor, film size and map set chose.
 
@@ -290,8 +293,7 @@ def _gradient_resolution(scene, sensor, film_size, faces: int, opts, res: int) -
     5 s against 0.15-0.2 s a step) and changed the function being optimised. Renders
     without gradients enabled keep following the scene; a ``resolution`` given is
     used as is; :func:`clear_caches` forgets the kept ones."""
-    key = (id(scene), id(sensor), tuple(int(x) for x in film_size), int(faces),
-           float(opts.memory_budget))
+    key = (id(scene), id(sensor), tuple(int(x) for x in film_size), int(faces), int(budget))
     entry = _GRADIENT_RESOLUTIONS.get(key)
     if entry is None or entry[0] is not scene or entry[1] is not sensor:
         entry = [scene, sensor, res]
@@ -522,46 +524,55 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
     stats = MapStats()
     maps = [None] * len(views)
     res = None
+    # one memory_budget for both kinds: the full maps get what the virtual maps' coarsest
+    # levels leave, the virtual maps what the full maps leave (each planned against the
+    # whole budget, a mixed render held up to twice it)
+    reserve = _virtual_minimum(opts, virtual_views)
     if any(v is not None for v in full_views):
-        plan = plan_maps(scene, sensor, opts, full_views, params)
+        plan = plan_maps(scene, sensor, opts, full_views, params,
+                         budget_bytes=opts.budget_bytes - reserve if reserve else None)
         maps, stats = build_maps(scene, plan)
         res = plan.resolution
-    virtual = prepare_virtual(scene, sensor, opts, virtual_views, stats, params)
+    full_bytes = sum(m.nbytes for m in maps if m is not None)
+    virtual = prepare_virtual(scene, sensor, opts, virtual_views, stats, params,
+                              budget_bytes=opts.budget_bytes - full_bytes)
     maps = [vm if vm is not None else m for vm, m in zip(virtual, maps)]
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
     return PreparedMaps(list(views), maps, res, stats)
 
 
+def _virtual_minimum(opts, views: list) -> int:
+    """Bytes the virtual maps of ``views`` (None: none) need at least: per map its
+    empty page and one page per face (the coarsest level, always built)."""
+    from .virtual import page_bytes
+    return sum((v.n_faces + 1) * page_bytes(opts) for v in views if v is not None)
+
+
 def _within_budget(opts, views: list) -> list:
-    """``views`` (those to get virtual maps), but None for a view whose coarsest level
-    (one page per face, always built) and the empty page do not fit its share of
-    ``memory_budget`` (split evenly over the virtual maps, as :func:`~mi_shadowmap.virtual.
-    prepare_virtual` does): with ``virtual`` automatic it gets full maps, which the
-    budget sizes; ``virtual=true`` given raises, naming what it needs. (The options
-    check a cube map's 6 faces; an environment's regions are up to 32 faces.)"""
-    from .virtual import page_bytes, page_layers
+    """``views`` (those to get virtual maps), or all None when ``memory_budget`` cannot
+    hold every one's coarsest level (one page per face, always built) and empty page
+    (:func:`_virtual_minimum`): with ``virtual`` automatic they all get full maps, which
+    the budget sizes together (a light given a full map beside the others' virtual
+    maps was sized by the whole budget too: 1.9x it); ``virtual=true`` given raises,
+    naming what it needs. (The options check a cube map's 6 faces; an environment's
+    regions are up to 32 faces.)"""
+    from .virtual import page_layers
     live = [v for v in views if v is not None]
-    if not live:
+    need = _virtual_minimum(opts, live)
+    if not live or need <= opts.budget_bytes:
         return views
-    layers = page_layers(opts)
-    per_page = page_bytes(opts)
-    share = opts.budget_bytes / len(live)
-    out = []
-    for v in views:
-        if v is not None and (v.n_faces + 1) * per_page > share:
-            need = (v.n_faces + 1) * per_page * len(live) / 2 ** 20
-            if "virtual" in opts.given:
-                raise OptionError(
-                    f"shadowmap: property 'memory_budget' = {opts.memory_budget:g} MiB "
-                    f"cannot hold the coarsest level of emitter '{v.label}''s virtual map "
-                    f"({v.n_faces} faces of page_size^2 = {opts.page_size}^2 texels, "
-                    f"{1 + len(layers)} layer(s), shared by {len(live)} virtual map(s)): "
-                    f"at least {need:.3g} MiB; raise it, lower page_size, or set "
-                    "virtual=false")
-            v = None
-        out.append(v)
-    return out
+    if "virtual" in opts.given:
+        layers = page_layers(opts)
+        faces = ", ".join(f"'{v.label}' ({v.n_faces} faces)" for v in live[:4]) + (
+            f", ... ({len(live)} maps)" if len(live) > 4 else "")
+        raise OptionError(
+            f"shadowmap: property 'memory_budget' = {opts.memory_budget:g} MiB cannot hold "
+            f"the coarsest levels of the virtual maps ({faces}; one page "
+            f"per face and an empty page per map, page_size^2 = {opts.page_size}^2 texels, "
+            f"{1 + len(layers)} layer(s)): at least {need / 2 ** 20:.3g} MiB; raise it, "
+            "lower page_size, or set virtual=false")
+    return [None] * len(views)
 
 
 #: ``(id(view), camera state) -> CascadedView`` of the latest renders with ``virtual=true``

@@ -86,7 +86,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "virtual=True) unless a full-map property is set (resolution > 0, cascades > 1, "
          "fit_frusta, cull_faces, antialias='always'; one that applies to none of the "
          "scene's lights still counts, with a warning) or memory_budget cannot hold a "
-         "virtual cube map's coarsest level; a scene with shape or emitter gradients "
+         "virtual cube map's coarsest level (or, at the render, every light's coarsest "
+         "virtual level together); a scene with shape or emitter gradients "
          "enabled then gets full maps (built in the AD graph), and so does a sensor that "
          "spreads each pixel's rays over a surface or a hemisphere (irradiancemeter, "
          "distant: no pixel footprint to mark pages by; 1024^2 automatic maps; "
@@ -257,7 +258,8 @@ class Options:
     def budget_bytes(self) -> int:
         return int(self.memory_budget * 2**20)
 
-    def map_resolution(self, film_size, face_layers: int, footprint: float = 1.0) -> int:
+    def map_resolution(self, film_size, face_layers: int, footprint: float = 1.0,
+                       budget: int | None = None) -> int:
         """The per-face resolution of one render's maps; checks ``memory_budget``.
 
         ``face_layers`` is the number of ``res x res`` float32 arrays the render
@@ -274,9 +276,12 @@ class Options:
         1 when unknown), so that one texel covers at most about half a pixel
         there. It is rounded up to a multiple of 8, capped at 8192, and lowered
         to the largest value whose maps fit in the budget.
+
+        ``budget``: the bytes these maps may use (default: ``memory_budget``; less
+        where virtual maps of the same render hold the rest).
         """
         face_layers = max(int(face_layers), 1)
-        budget = self.budget_bytes
+        budget = self.budget_bytes if budget is None else int(budget)
         if self.resolution is not None:
             need = face_layers * self.resolution ** 2 * _BYTES_PER_TEXEL
             if need > budget:

@@ -886,6 +886,94 @@ def test_camera_moves_under_a_budget_evict_and_reuse_slots(monkeypatch):
     assert sum(evicted) > 0, "the budget never made the store evict"
 
 
+def many_lights_scene(n_point=4, n_spot=4, aim_away=(), width=32):
+    """A floor, a box and a sphere under point and spot lights (spots ``aim_away``
+    indices point at the floor's far corner: few pages)."""
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "fov": 60,
+                    "to_world": T().look_at(origin=[0, 1.2, 3.6], target=[0, 0.5, 0],
+                                            up=[0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": width, "height": width}},
+         "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+         "box": {"type": "cube", "to_world": T().translate([0.5, 0.3, 0]).scale(0.3)},
+         "sph": {"type": "sphere", "center": [-0.7, 0.4, 0.3], "radius": 0.35}}
+    for i in range(n_point):
+        d[f"pl{i}"] = {"type": "point", "position": [-1.2 + 0.8 * i, 1.8, 0.5 - 0.3 * i]}
+    for i in range(n_spot):
+        target = [2.9, 0, -2.9] if i in aim_away else [0.2 * i - 0.3, 0, 0]
+        d[f"sp{i}"] = {"type": "spot", "cutoff_angle": 5 if i in aim_away else 40,
+                       "to_world": T().look_at(origin=[-1 + 0.6 * i, 2.2, 1.5],
+                                               target=target, up=[0, 1, 0])}
+    return mi.load_dict(d)
+
+
+def maps_bytes(integ) -> int:
+    """Bytes of one render's maps: every virtual map's pool (once per store) and every
+    full map."""
+    stores, total = [], 0
+    for m in integ.maps:
+        st = getattr(m, "store", None)
+        if st is not None and all(st is not s for s in stores):
+            stores.append(st)
+            total += st.nbytes
+        elif st is None and m is not None:
+            total += m.nbytes
+    return total
+
+
+def test_memory_budget_caps_virtual_and_full_maps_together():
+    """Point (cube) and spot lights under a budget that holds every virtual map's
+    coarsest level but not a cube's even share of it: the maps stay within the budget
+    (cube maps given full maps sized by the whole budget, beside virtual maps sized by it
+    too, held 1.9x it)."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(4, 4)
+    budget = 0.15         # 37 pages of 32^2: 4 x 7 + 4 x 2 the coarsest levels
+    integ = shadowmap(method="hard", memory_budget=budget)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)      # degraded pages: expected
+        vis = vis_of(scene, integ, spp=2)
+    used = maps_bytes(integ)
+    print(f"{used} bytes of {budget * 2**20:.0f}")
+    assert used <= budget * 2**20
+    assert misclassified(vis, reference(("many", 4, 4), many_lights_scene(4, 4), 2)) < 0.1
+
+
+def test_memory_budget_is_shared_by_need():
+    """One spot light reads many pages, three read few: a budget that holds all their
+    pages (but not four times the first's) degrades nothing, warns nothing, and renders
+    what an unlimited budget renders (split evenly, the first light degraded while the
+    others' shares stayed unused)."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(0, 4, aim_away=(1, 2, 3))
+    probe = shadowmap(method="hard", cache_maps=False)
+    want = vis_of(scene, probe, spp=2)
+    stores = [m.store for m in probe.maps]
+    slots = sum(st.n_pages + 1 for st in stores)
+    pages = [st.n_pages for st in stores]
+    assert pages[0] + 1 > slots / 4, pages       # an even split cannot hold the first
+    budget = slots * stores[0].texels_per_page * 4 / 2**20
+    integ = shadowmap(method="hard", memory_budget=budget, cache_maps=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        vis = vis_of(scene, integ, spp=2)
+    assert np.array_equal(vis, want)
+    assert maps_bytes(integ) <= budget * 2**20
+
+
+def test_one_budget_warning_per_render_names_the_degraded_lights():
+    """Eight lights degraded by a small budget: one warning, naming the count, the first
+    lights and the budget that would hold every marked page (was one per light)."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(2, 6)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vis_of(scene, shadowmap(method="hard", memory_budget=0.12, cache_maps=False), spp=1)
+    msgs = [str(w.message) for w in caught if "memory_budget" in str(w.message)]
+    assert len(msgs) == 1, msgs
+    assert "'pl0'" in msgs[0] and "more" in msgs[0] and "would hold every marked" in msgs[0]
+
+
 # -------------------------------------------------------------------- variants
 @pytest.mark.parametrize("variant", ["llvm_ad_mono", "llvm_ad_spectral"])
 @pytest.mark.parametrize("light, extra", [("point", {}), ("directional", {"cascades": 2})])

@@ -86,10 +86,12 @@ pages when its view changes (a moved light: the other lights keep theirs). Every
 camera-dependent value is data (page tables, levels, slots), never a kernel
 literal, so moving the camera compiles no new kernel.
 
-**Memory** (``memory_budget``): the pool holds at most the budget's pages
-(all layers). Cached pages the frame does not read are evicted first; if the
-frame's own pages do not fit, the finest marked pages are replaced by their
-parents (coarser, never missing) with a warning.
+**Memory** (``memory_budget``): one render's pools together hold at most the
+budget's pages (all layers; less what its full maps hold), shared by need
+(:func:`.planner.share_pages`). Cached
+pages the frame does not read are evicted first; if the frame's own pages do not
+fit, the finest marked pages are replaced by their parents (coarser, never missing)
+with one warning a render naming the degraded lights.
 
 **Gradients**: pages are built detached; with ``virtual`` automatic (left out), a
 render whose shape or emitter parameters have gradients enabled gets full maps,

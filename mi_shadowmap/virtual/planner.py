@@ -4,6 +4,7 @@ budget) and build those missing; the page cache that keeps them across renders.
 from __future__ import annotations
 
 import collections
+import math
 import time
 import warnings
 
@@ -88,13 +89,19 @@ class PageCache:
 PAGE_CACHE = PageCache()
 
 
-def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
+def prepare_virtual(scene, sensor, opts, views, stats, params=None,
+                    budget_bytes: int | None = None) -> list:
     """First pass with ``virtual=true``: mark, build missing pages, return one
     :class:`VirtualShadowMap` per emitter whose view supports it (None elsewhere).
 
     ``params``: the scene's ``mi.traverse`` where the caller has it (else traversed
     here). Updates ``stats`` (a :class:`~mi_shadowmap.map_manager.MapStats`): pages marked,
     built, reused, the level histogram of the marked pages and ``texels_built``.
+    ``budget_bytes``: what the virtual maps' pools may hold together (default
+    ``memory_budget``; less what the render's full maps hold), shared by need
+    (:func:`share_pages`); Maps
+    whose marked pages do not fit are degraded (finest levels replaced by coarser ones)
+    with one warning naming them.
     """
     from ..map_manager import MAP_CACHE
     layer_names = page_layers(opts)
@@ -176,6 +183,48 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
                            active=lambda p, n, f=mark_active: f(p, n, through))
                 parts.append(tiles(i, dedupe_many(gs)))
             settle(i, parts)
+    # memory: the budget's pages shared by need (share_pages), then the pages each map's
+    # marks keep (fit_marks); a degraded map's unused pages go to the next degraded one
+    per_page = page_bytes(opts)
+    budget_bytes = opts.budget_bytes if budget_bytes is None else int(budget_bytes)
+    uniq = [i for i in stores if all(stores[j] is not stores[i] for j in stores if j < i)]
+    plans = {}
+    for i in uniq:
+        store = stores[i]
+        layout = store.layout
+        view = layout.view      # the emitter's view, or one face aimed at a far scene
+        if store.lit_faces is None:
+            store.lit_faces = _lit_faces(view)
+            store.coarse_keys = np.sort(np.array([page_key(f, layout.coarsest, 0, 0)
+                                                  for f in store.lit_faces],
+                                                 np.uint64).reshape(-1))
+        mark = store.last_mark if cam is not None else None
+        marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
+        tiles = with_keys(marked, store.coarse_keys)
+        # slots: the empty page (slot 0) and unlit faces' reserved coarsest slots (empty
+        # pages) besides the pages
+        fixed = 1 + view.n_faces - len(store.lit_faces)
+        plans[i] = [mark, tiles, fixed, _n_pages(tiles, layout)]
+    alloc = share_pages(budget_bytes // per_page,
+                        [plans[i][2] + len(stores[i].lit_faces) for i in uniq],
+                        [plans[i][2] + plans[i][3] for i in uniq],
+                        [stores[i].capacity for i in uniq])
+    fits = {}
+    for i, slots in zip(uniq, alloc):
+        fits[i] = _fit_marks(stores[i], plans[i][0], plans[i][1], slots - plans[i][2])
+    spare = budget_bytes // per_page - sum(alloc)
+    for k, i in enumerate(uniq):        # degraded maps keep the pages they use ...
+        if fits[i][1]:
+            spare += alloc[k] - plans[i][2] - fits[i][2]
+            alloc[k] = plans[i][2] + fits[i][2]
+    for k, i in enumerate(uniq):        # ... and the next take what is left, in turn
+        if fits[i][1] and spare > 0:
+            fits[i] = _fit_marks(stores[i], plans[i][0], plans[i][1],
+                                 alloc[k] + spare - plans[i][2])
+            spare -= plans[i][2] + fits[i][2] - alloc[k]
+            alloc[k] = plans[i][2] + fits[i][2]
+    budgets = {i: alloc[k] - plans[i][2] for k, i in enumerate(uniq)}
+    degraded_maps = []
     out = []
     for i, view in enumerate(views):
         if i not in stores:
@@ -183,20 +232,14 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             continue
         store = stores[i]
         layout = store.layout
-        mark = store.last_mark if cam is not None else None
-        # memory: the whole budget split evenly over the virtual maps
-        per_page = page_bytes(opts)
-        view = layout.view      # the emitter's view, or one face aimed at a far scene
-        if store.lit_faces is None:
-            store.lit_faces = _lit_faces(view)
-            store.coarse_keys = np.sort(np.array([page_key(f, layout.coarsest, 0, 0)
-                                                  for f in store.lit_faces],
-                                                 np.uint64).reshape(-1))
-        unlit = view.n_faces - len(store.lit_faces)
-        budget_pages = max(int(opts.budget_bytes // len(stores) // per_page) - 1 - unlit,
-                           view.n_faces)       # - 1: the empty page (slot 0); unlit faces'
-        #                                        reserved coarsest slots stay empty pages
-        store.max_pages = budget_pages + 1 + unlit
+        view = layout.view
+        first = i in budgets
+        if not first:        # a store another view of this render shares: planned there
+            i0 = next(j for j in uniq if stores[j] is store)
+            mark, fixed, budget_pages = plans[i0][0], plans[i0][2], budgets[i0]
+        else:
+            mark, fixed, budget_pages = plans[i][0], plans[i][2], budgets[i]
+        store.max_pages = budget_pages + fixed
         settled = store.settled
         if (settled is not None and settled[0] is mark and settled[1] == budget_pages
                 and settled[2] == store.version):
@@ -207,18 +250,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             dt = 0.0
             store.slot_frame[slots] = store.frame
         else:
-            marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
-            tiles = with_keys(marked, store.coarse_keys)
-            dropped = 0
-            if mark is not None and len(mark[2]) and _n_pages(tiles, layout) > budget_pages:
-                # over budget: first the tiles only coarser-level kernels read (their
-                # lookups walk to a coarser level built), then the finest levels
-                kept = with_keys(np.setdiff1d(marked, mark[2], assume_unique=True),
-                                  store.coarse_keys)
-                dropped = _n_pages(tiles, layout) - _n_pages(kept, layout)
-                tiles = kept
-            tiles, degraded = _fit_budget(tiles, budget_pages, layout)
-            degraded += dropped
+            tiles, degraded, _ = fits[i] if first else fits[i0]
             needed, masks = tile_pages(tiles, layout)
             have, _ = store.lookup(needed)
             over = store.n_pages + int((~have).sum()) - budget_pages
@@ -239,11 +271,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
             hist = np.bincount(levels, minlength=layout.n_levels)
             store.settled = (mark, budget_pages, store.version, needed, slots, masks,
                              hist, degraded)
-        if degraded:
-            warnings.warn(f"shadowmap: emitter '{view.label}': memory_budget = "
-                          f"{opts.memory_budget:g} MiB holds {budget_pages} pages of "
-                          f"{layout.page_size}^2; {degraded} marked pages were replaced by "
-                          "coarser ones", RuntimeWarning, stacklevel=3)
+        if degraded and first:
+            degraded_maps.append((view.label, degraded))
         stats.pages_marked += int(len(needed))
         stats.pages_built += int(n_cast)
         stats.pages_reused += int(len(needed) - n_cast)
@@ -257,7 +286,75 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None) -> list:
         out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
                                     opts.lod_bias, margins[i], coarse.get(i),
                                     frame=(needed, slots, masks)))
+    if degraded_maps:
+        # one warning a render, whatever the number of lights
+        need = sum(plans[i][2] + plans[i][3] for i in uniq) * per_page + (
+            opts.budget_bytes - budget_bytes)
+        names = ", ".join(f"'{name}' ({n})" for name, n in degraded_maps[:4]) + (
+            f", and {len(degraded_maps) - 4} more" if len(degraded_maps) > 4 else "")
+        warnings.warn(f"shadowmap: memory_budget = {opts.memory_budget:g} MiB holds "
+                      f"{budget_bytes // per_page} pages of {opts.page_size}^2 for "
+                      f"{len(uniq)} virtual map(s); {len(degraded_maps)} of them had marked "
+                      f"pages replaced by coarser ones (pages): {names}; memory_budget = "
+                      f"{math.ceil(need / 2 ** 20 * 100) / 100:g} MiB would hold every "
+                      "marked page", RuntimeWarning, stacklevel=3)
     return out
+
+
+def share_pages(total: int, least: list, need: list, held: list) -> list:
+    """Slots of ``total`` for each virtual map, by need: each map asks for ``need[k]``
+    slots (its marked pages, its coarsest pages, the empty page and unlit faces'
+    reserved slots) and gets at least ``least[k]`` (the same without marked pages).
+
+    Everything fits: each map gets its need, then what is left keeps cached pages -- up to
+    the slots a map holds already (``held``, so a pool need not shrink), in order, then
+    evenly. It does not: the maps below a common level get their need, the others the
+    level (the largest whose sum fits; the remainder one slot each, in order), so no slot
+    stays unused while a map degrades (the pages of a level a map then does not fill
+    are passed on by the caller). Deterministic: the same arguments, the same shares."""
+    n = len(need)
+    need = [max(a, b) for a, b in zip(need, least)]
+    if sum(need) <= total:
+        out = list(need)
+        left = total - sum(out)
+        for k in range(n):
+            add = min(left, max(int(held[k]) - out[k], 0))
+            out[k] += add
+            left -= add
+        for k in range(n):
+            out[k] += left // n + (k < left % n)
+        return out
+    clamp = lambda lv: [min(max(lv, a), b) for a, b in zip(least, need)]  # noqa: E731
+    lo, hi = 0, max(need)
+    while lo < hi:                          # the largest level whose shares fit
+        mid = (lo + hi + 1) // 2
+        if sum(clamp(mid)) <= total:
+            lo = mid
+        else:
+            hi = mid - 1
+    out = clamp(lo)
+    left = total - sum(out)
+    for k in range(n):
+        if left > 0 and out[k] < need[k]:
+            out[k] += 1
+            left -= 1
+    return out
+
+
+def _fit_marks(store, mark, tiles, budget_pages) -> tuple:
+    """The tiles of ``store``'s marks (``tiles``: the marked ones and the coarsest pages)
+    that fit ``budget_pages`` pages: over it, first without the tiles only coarser-level
+    kernels read (their lookups walk to a coarser level built), then the finest levels
+    replaced by their parents (:func:`_fit_budget`). ``(tiles, pages replaced, pages)``."""
+    layout = store.layout
+    dropped = 0
+    if mark is not None and len(mark[2]) and _n_pages(tiles, layout) > budget_pages:
+        kept = with_keys(np.setdiff1d(mark[1], mark[2], assume_unique=True),
+                         store.coarse_keys)
+        dropped = _n_pages(tiles, layout) - _n_pages(kept, layout)
+        tiles = kept
+    tiles, degraded = _fit_budget(tiles, budget_pages, layout)
+    return tiles, degraded + dropped, _n_pages(tiles, layout)
 
 
 def _lit_faces(view) -> list:

@@ -974,6 +974,43 @@ def test_one_budget_warning_per_render_names_the_degraded_lights():
     assert "'pl0'" in msgs[0] and "more" in msgs[0] and "would hold every marked" in msgs[0]
 
 
+def test_a_smaller_budget_later_shrinks_the_shared_pools():
+    """Pools kept in the page cache from a render with a large budget: a later render
+    with a smaller one resizes them to it (they kept the largest size any render gave
+    them), moving the pages it keeps into the remaining slots, and renders what a fresh
+    integrator renders with that budget."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(1, 2)
+    params = mi.traverse(scene)
+    cams = [T().look_at(origin=o, target=[0, 0.5, 0], up=[0, 1, 0])
+            for o in ([0, 1.2, 3.6], [-3.0, 1.5, 1.0])]
+    for cam in cams:                          # two poses' pages in one pool, large budget
+        params["sensor.to_world"] = cam
+        params.update()
+        vis_of(scene, shadowmap(method="hard"), spp=1)
+    big = sum(st.nbytes for st in {id(s): s for s in _stores()}.values())
+    budget = big / 2 / 2**20
+    integ = shadowmap(method="hard", memory_budget=budget)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        vis = vis_of(scene, integ, spp=1)
+        fresh = vis_of(scene, shadowmap(method="hard", memory_budget=budget,
+                                        cache_maps=False), spp=1)
+    print(f"pools {big} bytes, then {maps_bytes(integ)} of {budget * 2**20:.0f}")
+    assert maps_bytes(integ) <= budget * 2**20
+    assert np.array_equal(vis, fresh)
+    for m in integ.maps:
+        st = m.store
+        keys, slots = st._index()
+        assert slots.max() < st.capacity and len(set(slots.tolist())) == len(slots)
+
+
+def _stores():
+    """Every page store in the page cache."""
+    return [v for slot in virtual.PAGE_CACHE._scenes.values() for k, v in slot[2].items()
+            if isinstance(v, virtual.PageStore)]
+
+
 # -------------------------------------------------------------------- variants
 @pytest.mark.parametrize("variant", ["llvm_ad_mono", "llvm_ad_spectral"])
 @pytest.mark.parametrize("light, extra", [("point", {}), ("directional", {"cascades": 2})])

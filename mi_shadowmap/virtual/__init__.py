@@ -88,7 +88,7 @@ literal, so moving the camera compiles no new kernel.
 
 **Memory** (``memory_budget``): one render's pools together hold at most the
 budget's pages (all layers; less what its full maps hold), shared by need
-(:func:`.planner.share_pages`). Cached
+(:func:`.planner.share_pages`); a pool is resized to its share, smaller too. Cached
 pages the frame does not read are evicted first; if the frame's own pages do not
 fit, the finest marked pages are replaced by their parents (coarser, never missing)
 with one warning a render naming the degraded lights.

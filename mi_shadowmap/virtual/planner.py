@@ -99,7 +99,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     built, reused, the level histogram of the marked pages and ``texels_built``.
     ``budget_bytes``: what the virtual maps' pools may hold together (default
     ``memory_budget``; less what the render's full maps hold), shared by need
-    (:func:`share_pages`); Maps
+    (:func:`share_pages`); every pool is resized to its share, smaller ones too. Maps
     whose marked pages do not fit are degraded (finest levels replaced by coarser ones)
     with one warning naming them.
     """
@@ -256,6 +256,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             over = store.n_pages + int((~have).sum()) - budget_pages
             if over > 0:
                 store.evict(needed, over)
+            store.shrink(store.max_pages)   # a smaller budget, or share of it, than before
             t0 = time.perf_counter()
             stats.texels_built += store.build(scene, needed, masks)
             n_cast = store.pages_cast

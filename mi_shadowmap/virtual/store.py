@@ -101,6 +101,47 @@ class PageStore:
         self.capacity = cap
         dr.eval(*self.pools.values())
 
+    def shrink(self, max_slots: int) -> None:
+        """Reallocate the pools to ``max_slots`` slots (a later render's smaller
+        ``memory_budget``, or this map's smaller share of it): pages in slots from
+        ``max_slots`` on move to unused slots below it (the caller evicted enough pages
+        first). Without this a pool kept the largest size any render gave it."""
+        fixed = 1 + self.layout.view.n_faces     # the empty page, the coarsest pages
+        max_slots = max(int(max_slots), fixed)
+        if self.capacity <= max_slots:
+            return
+        high = self._slot_of >= max_slots
+        used = np.zeros(max_slots, bool)
+        used[:fixed] = True
+        used[self._slot_of[~high]] = True
+        holes = np.flatnonzero(~used)
+        n_high = int(high.sum())
+        if n_high > len(holes):
+            raise RuntimeError(f"shadowmap: virtual map '{self.layout.view.label}': "
+                               f"{self.n_pages} pages do not fit {max_slots} slots")
+        src = np.arange(max_slots, dtype=np.int64)      # new slot -> old slot
+        src[holes[:n_high]] = self._slot_of[high]
+        tpp = self.texels_per_page
+        idx = dr.arange(mi.UInt32, max_slots * tpp)
+        slot = idx // tpp
+        old = dr.gather(mi.UInt32, padded_array(mi.UInt32, src.astype(np.uint32)), slot)
+        old = old * tpp + (idx - slot * tpp)
+        for name, pool in self.pools.items():
+            self.pools[name] = dr.gather(mi.Float, pool, old)
+        dr.eval(*self.pools.values())
+        self.tile_min = self.tile_min[src]
+        self.page_face = self.page_face[src]
+        self.slot_frame = self.slot_frame[src]
+        self.slot_mask = self.slot_mask[src]
+        self._slot_of = self._slot_of.copy()
+        self._slot_of[high] = holes[:n_high]
+        used[holes[:n_high]] = True
+        self.next_slot = int(np.flatnonzero(used).max()) + 1
+        self.free = np.flatnonzero(~used[:self.next_slot]).tolist()
+        self.capacity = max_slots
+        self.version += 1
+        self.settled = None
+
     def _index(self):
         """``(keys, slots)`` sorted by key, rebuilt when the pages change."""
         if self._sorted is None or self._sorted[0] != self.version:

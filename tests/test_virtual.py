@@ -1005,6 +1005,33 @@ def test_a_smaller_budget_later_shrinks_the_shared_pools():
         assert slots.max() < st.capacity and len(set(slots.tolist())) == len(slots)
 
 
+def test_a_light_of_zero_intensity_builds_only_its_coarsest_pages(monkeypatch):
+    """A point light of intensity 0 lights no sample: its map keeps the coarsest level
+    (6 pages; 22 marked before), the image and every visibility AOV are those of a render
+    that builds its pages, and once lit again (``params.update``) its pages are built as
+    a fresh integrator's."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(2, 1)
+    params = mi.traverse(scene)
+    params["pl1.intensity.value"] = 0.0
+    params.update()
+    integ = shadowmap(method="hard")
+    img = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    assert integ.maps[1].store.n_pages == 6 < integ.maps[0].store.n_pages
+    with monkeypatch.context() as m:
+        m.setattr(planner, "_dark", lambda emitter: False)
+        want = np.asarray(mi.render(scene, integrator=shadowmap(method="hard",
+                                                                cache_maps=False), spp=1))
+    assert np.array_equal(img, want)
+    params["pl1.intensity.value"] = 1.0
+    params.update()
+    img = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    assert integ.maps[1].store.n_pages > 6
+    fresh = np.asarray(mi.render(scene, integrator=shadowmap(method="hard",
+                                                             cache_maps=False), spp=1))
+    assert np.array_equal(img, fresh)
+
+
 def _stores():
     """Every page store in the page cache."""
     return [v for slot in virtual.PAGE_CACHE._scenes.values() for k, v in slot[2].items()

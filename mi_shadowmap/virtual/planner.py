@@ -132,7 +132,13 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias) for i in stores}
     # the mark pass: every light whose marks are stale, from one set of camera hits traced
     # in the same kernel as all their marks (a still camera reuses its marks)
-    stale = [i for i, st in stores.items() if cam is not None
+    # a light whose radiance is exactly 0 lights no sample, so no lookup of its map
+    # reaches the image or its visibility AOV (both 0 where it does not contribute);
+    # its map keeps the coarsest level only (no marks), until it is lit again
+    emitters = scene.emitters()
+    dark = {i: len(emitters) == len(views) and _dark(emitters[i]) for i in stores}
+    dark = {i: all(dark[j] for j in stores if stores[j] is stores[i]) for i in stores}
+    stale = [i for i, st in stores.items() if cam is not None and not dark[i]
              and (st.last_mark is None or st.last_mark[0] != mark_key[i])]
     stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
              if all(stores[j] is not stores[i] for j in stale[:k])]
@@ -198,7 +204,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             store.coarse_keys = np.sort(np.array([page_key(f, layout.coarsest, 0, 0)
                                                   for f in store.lit_faces],
                                                  np.uint64).reshape(-1))
-        mark = store.last_mark if cam is not None else None
+        mark = store.last_mark if cam is not None and not dark[i] else None
         marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
         tiles = with_keys(marked, store.coarse_keys)
         # slots: the empty page (slot 0) and unlit faces' reserved coarsest slots (empty
@@ -356,6 +362,28 @@ def _fit_marks(store, mark, tiles, budget_pages) -> tuple:
         tiles = kept
     tiles, degraded = _fit_budget(tiles, budget_pages, layout)
     return tiles, degraded + dropped, _n_pages(tiles, layout)
+
+
+def _dark(emitter) -> bool:
+    """Whether ``emitter`` emits nothing: its ``intensity``, ``radiance`` or
+    ``irradiance`` is a uniform value of exactly 0 (a texture, or an environment: not
+    known to be, False). Only read, never differentiated: a render with emitter
+    gradients enabled gets full maps."""
+    if mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) and not mi.has_flag(
+            emitter.flags(), mi.EmitterFlags.DeltaDirection):
+        return False
+    params = mi.traverse(emitter)
+    found = False
+    for key in params.keys():
+        parts = key.split(".")
+        if parts[0] not in ("intensity", "radiance", "irradiance"):
+            continue
+        if parts[-1] != "value" or len(parts) != 2:
+            return False
+        if np.any(np.asarray(params[key]) != 0):
+            return False
+        found = True
+    return found
 
 
 def _lit_faces(view) -> list:

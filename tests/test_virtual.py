@@ -939,6 +939,36 @@ def test_memory_budget_caps_virtual_and_full_maps_together():
     assert misclassified(vis, reference(("many", 4, 4), many_lights_scene(4, 4), 2)) < 0.1
 
 
+def test_memory_budget_caps_an_environments_full_map_beside_virtual_maps():
+    """An environment cut into 64 regions (more than a virtual map's 32 faces: a full
+    map) beside a point and a spot light's virtual maps: the full map gets what the
+    virtual maps' coarsest levels leave, the virtual pools what the full map leaves
+    (each was sized by the whole budget: 1.76x it at 0.2 MiB)."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 60,
+                   "to_world": T().look_at(origin=[0, 1.2, 3.6], target=[0, 0.5, 0],
+                                           up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+        "box": {"type": "cube", "to_world": T().translate([0.5, 0.3, 0]).scale(0.3)},
+        "sky": {"type": "constant", "radiance": 0.5},
+        "sp": {"type": "spot", "cutoff_angle": 40,
+               "to_world": T().look_at(origin=[-1, 2.2, 1.5], target=[0, 0, 0],
+                                       up=[0, 1, 0])},
+        "pl": {"type": "point", "position": [0.5, 2, 0.5]}})
+    integ = shadowmap(method="hard", env_lights=64, memory_budget=0.2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        img = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    assert np.isfinite(img).all()
+    assert [type(m) for m in integ.maps] == [ShadowMap, virtual.VirtualShadowMap,
+                                            virtual.VirtualShadowMap]
+    assert maps_bytes(integ) <= 0.2 * 2**20
+
+
 def test_memory_budget_is_shared_by_need():
     """One spot light reads many pages, three read few: a budget that holds all their
     pages (but not four times the first's) degrades nothing, warns nothing, and renders

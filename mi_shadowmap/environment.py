@@ -110,7 +110,7 @@ import numpy as np
 from .light_views.base import look_along_np, opaque_scalar, position_np
 from .light_views.multi import MultiView, SubView, stratified_points
 from .light_views.ortho import directional_view
-from .variants import bsdf_to_world, unpolarized
+from .variants import bsdf_eval_reaches, bsdf_to_world, unpolarized
 
 #: Grid of a ``constant`` emitter's cut (rows x columns).
 CONSTANT_GRID = (32, 64)
@@ -701,14 +701,15 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         si_e.wavelengths = si.wavelengths
         L = emitter.eval(si_e, act)
         wo = si.to_local(d)
-        f = bsdf_to_world(si, bsdf.eval(ctx, si, wo, act), wo)
+        f, seen = bsdf_eval_reaches(bsdf, ctx, si, wo, act)
+        f = bsdf_to_world(si, f, wo)
         contrib = f * L * omega
         lit = act & (dr.max(unpolarized(contrib)) > 0)
         # the lookup runs wherever the direction is above the horizon, dark or not (the
         # region's visibility, its map's, does not depend on the direction's radiance),
         # and wherever the region's own direction is on the viewer's side: the AOV's
         # fallback, where every region's direction was dark, reads the regions there
-        seen = act & (dr.max(unpolarized(f)) > 0)
+        # (a black receiver too: the BSDF's pdf, bsdf_eval_reaches)
         rv = view.region_view(k)
         region_up = act & (si.to_local(-rv.axes32[2]).z * si.wi.z > 0)
         ask = seen | region_up

@@ -33,8 +33,8 @@ from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys
 from .light_views.base import scene_bounds
 from .methods import MethodError
 from .rays import occlusion, surface_point
-from .variants import (SUPPORTED_VARIANTS, bsdf_to_world, check_variant, unpolarized,
-                       variant_class)
+from .variants import (SUPPORTED_VARIANTS, bsdf_eval_reaches, bsdf_to_world, check_variant,
+                       unpolarized, variant_class)
 from .virtual import VirtualShadowMap, camera_frame
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
                           _differentiated, prepare_maps, scene_token)
@@ -1092,8 +1092,11 @@ def _light_sample(emitter, si, bsdf, ctx, u, shade):
     ds, w = emitter.sample_direction(si, u, shade)
     lit = shade & (ds.pdf > 0)
     wo = si.to_local(ds.d)
-    unshadowed = bsdf_to_world(si, bsdf.eval(ctx, si, wo, lit), wo) * w
-    return ds, unshadowed, lit & (dr.max(unpolarized(unshadowed)) > 0)
+    f, reaches = bsdf_eval_reaches(bsdf, ctx, si, wo, lit)
+    unshadowed = bsdf_to_world(si, f, wo) * w
+    # a dark receiver is still lit (its BSDF's pdf): only the light's weight and the
+    # horizon decide whether the sample counts for the visibility AOV
+    return ds, unshadowed, reaches & (dr.max(unpolarized(w)) > 0)
 
 
 class _Recorder:

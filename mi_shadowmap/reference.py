@@ -33,7 +33,7 @@ import mitsuba as mi
 import numpy as np
 
 from .rays import is_infinite, occlusion, on_cylinder, spawn_shadow_ray, surface_point
-from .variants import unpolarized, variant_class
+from .variants import bsdf_eval_reaches, unpolarized, variant_class
 
 
 def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
@@ -101,8 +101,8 @@ class _ConvergedVisibilityMixin:
                 ds, w = emitter.sample_direction(si, u, shade)
                 lit = shade & (ds.pdf > 0)
                 w = unpolarized(w)
-                f = unpolarized(bsdf.eval(ctx, si, si.to_local(ds.d), lit))
-                lit &= dr.max(w * f) > 0
+                _, reaches = bsdf_eval_reaches(bsdf, ctx, si, si.to_local(ds.d), lit)
+                lit = reaches & (dr.max(w) > 0)
                 if self.occlusion:
                     occluded = query(    # not ray_test alone: spheres, cylinders
                         spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter), p_surface),

@@ -11,6 +11,7 @@ whose code looks up ``mi.Float``, ``mi.Spectrum``, ... when it runs).
 """
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 
 #: Variants the package supports (JIT): every colour mode, polarized or not, LLVM and CUDA.
@@ -49,6 +50,17 @@ def unpolarized(spectrum):
     variant, where spectra are Mueller matrices, their ``(0, 0)`` entry; elsewhere
     ``spectrum`` itself. For tests and masks (whether a term contributes at all)."""
     return mi.unpolarized_spectrum(spectrum)
+
+
+def bsdf_eval_reaches(bsdf, ctx, si, wo_local, active):
+    """``(value, reaches)`` of ``bsdf`` at ``si`` towards local direction ``wo_local``:
+    its value (as ``bsdf.eval``) and whether light from there reaches the viewer at all
+    -- the value is non-zero, or the BSDF's pdf is (the horizon test of the visibility
+    AOVs). A black receiver, or one whose reflectance is zero at the sampled
+    wavelengths (a narrow-band spectrum in a spectral variant), is still above the
+    horizon: read from the value alone, its lit points had visibility 0."""
+    value, pdf = bsdf.eval_pdf(ctx, si, wo_local, active)
+    return value, mi.Bool(active) & ((dr.max(unpolarized(value)) > 0) | (pdf > 0))
 
 
 def bsdf_to_world(si, value, wo_local):

@@ -68,7 +68,7 @@ import dataclasses
 import drjit as dr
 import mitsuba as mi
 
-from ..variants import unpolarized
+from ..variants import bsdf_eval_reaches, unpolarized
 from ..light_views.multi import as_multi_view, multi_view
 from ..methods import Method, Prop
 from .common import Lookup, receiver, receiver_plane, tap_lit
@@ -133,7 +133,7 @@ def multiview(smap, lk: Lookup, opts, active=True):
     if getattr(smap.view, "caller_tests_horizon", False):
         above_c = mi.Bool(True)
     else:
-        above_c = dr.max(unpolarized(bsdf.eval(ctx, si, wo_c, act))) > 0
+        above_c = bsdf_eval_reaches(bsdf, ctx, si, wo_c, act)[1]
     side_c = mi.Frame3f.cos_theta(wo_c) > 0
 
     def cond(j, n_emit, n_above, n_lit):
@@ -145,8 +145,8 @@ def multiview(smap, lk: Lookup, opts, active=True):
         emits = act & view.emits_towards(k, p)
         wo = si.to_local(sub.view.direction_to_light(p))
         across = emits & ((mi.Frame3f.cos_theta(wo) > 0) != side_c)
-        f = unpolarized(bsdf.eval(ctx, si, wo, across))
-        above = emits & dr.select(across, dr.max(f) > 0, above_c)
+        above = emits & dr.select(across, bsdf_eval_reaches(bsdf, ctx, si, wo, across)[1],
+                                  above_c)
         vis = dr.select(above, test(sub, lk, opts, above), 0.0)
         if not view.cone:
             return (j + 1, dr.select(emits, n_emit + 1.0, n_emit),

@@ -631,13 +631,16 @@ _COMMANDS = {"compare": cmd_compare, "sweep": cmd_sweep, "maps": cmd_maps, "tune
 
 
 def _pre_parse(argv):
-    """``(plugin files, debug, the other arguments)``: ``--plugin`` and ``--debug`` are
-    taken out wherever they stand (before or after the command)."""
+    """``(plugin files, debug, variant, the other arguments)``: ``--plugin``, ``--debug``
+    and ``--variant`` are taken out wherever they stand (before or after the command:
+    ``mi-shadowmap --variant llvm_ad_mono sweep scene.xml`` said "unrecognized arguments:
+    scene.xml", and without a scene "scene file not found: sweep")."""
     pre = _Parser(prog="mi-shadowmap", add_help=False, allow_abbrev=False)
     pre.add_argument("--plugin", action="append", default=[])
     pre.add_argument("--debug", action="store_true")
+    pre.add_argument("--variant", default=None)
     known, rest = pre.parse_known_args(argv)
-    return known.plugin, known.debug, rest
+    return known.plugin, known.debug, known.variant, rest
 
 
 def _unknown_command(word: str) -> str | None:
@@ -683,7 +686,7 @@ def load_plugin(path: str):
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        plugins, debug, rest = _pre_parse(argv)
+        plugins, debug, variant, rest = _pre_parse(argv)
     except SystemExit as e:          # e.g. --plugin without a file name
         return e.code if isinstance(e.code, int) else 2
     parser = build_parser()
@@ -700,8 +703,8 @@ def main(argv=None) -> int:
     try:
         with one_line_warnings():
             import mi_shadowmap  # noqa: F401  (LLVM set-up and registration)
-            if getattr(args, "variant", None) is not None:
-                set_variant(args.variant)
+            if variant is not None:
+                set_variant(variant)
             for path in plugins:
                 load_plugin(path)
             return _COMMANDS[args.command](args)

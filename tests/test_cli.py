@@ -654,3 +654,16 @@ def test_progress_in_a_log_is_lines(tmp_path, capsys):
     assert code == 0, err
     assert "\r" not in err and "methods: 100%" in err, repr(err)
     assert all(line.strip() for line in err.splitlines()), repr(err)
+
+
+def test_variant_before_the_command(tmp_path, capsys):
+    """``--variant`` is taken before the command too, as ``--plugin`` and ``--debug``:
+    ``mi-shadowmap --variant llvm_ad_mono maps ...`` ran ``compare`` on a scene file
+    named "maps" ("scene file not found: maps"), and with a scene file said
+    "unrecognized arguments: scene.xml"."""
+    import mitsuba as mi
+    code, out, err = run(["--variant", "llvm_ad_mono", "maps", "--methods", "hard",
+                          "--set", "resolution=16", "--out", tmp_path], capsys)
+    assert code == 0, err
+    assert mi.variant() == "llvm_ad_mono"
+    assert list(tmp_path.glob("*.exr"))

@@ -290,8 +290,11 @@ def write_sweep(table, out_dir: str) -> dict:
     check_out_dir(out_dir)
     paths = write_tables(table.rows, out_dir, "sweep")
     png = os.path.join(out_dir, "pareto.png")
+    ref = getattr(table, "reference", None)
+    against = (f"\nagainst {ref.name}" + ("" if "spp=" in ref.name else f", {ref.spp} spp")
+               if ref is not None and ref.name else "")
     pareto_plot(table.rows, png, time_key="time", error_key="error",
-                title=f"sweep: {table.time_key} vs {table.error_key}",
+                title=f"sweep: {table.time_key} vs {table.error_key}{against}",
                 xlabel=f"{table.time_key} [ms]", ylabel=table.error_key)
     return {"table": paths, "png": [png]}
 

@@ -237,6 +237,8 @@ class SweepTable:
     ``rt_time_equal_error`` (fastest ``raytraced`` row at least as accurate),
     ``speedup_equal_error`` (that / this row's time: > 1 means faster than ray
     tracing at the same error). ``None`` where no ray-traced row qualifies.
+    A rendered row of :func:`sweep` also names its reference: ``scored_against``
+    (e.g. ``"reference (raytraced spp=64)"``) and ``reference_spp``.
     """
 
     def __init__(self, rows: list[dict], results: list[MethodResult] | None = None,
@@ -410,6 +412,8 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
             r.metrics = score(r, ref)
             row = r.row()
             row["spp_requested"] = spp_asked
+            # what every error is against: sweep.csv/json did not say (its spp, kind)
+            row["scored_against"], row["reference_spp"] = ref.name, ref.spp
             rows.append(row)
             if not keep_images:
                 r.image, r.visibility = None, {}

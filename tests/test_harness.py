@@ -876,3 +876,19 @@ def test_the_converged_reference_has_camera_samples_of_its_own():
     assert res[0].spp == 8
     print(f"raytraced vs converged at its spp: vis RMSE {res[1].metrics['vis_rmse']:.2e}")
     assert res[1].metrics["vis_rmse"] > 1e-3
+
+
+def test_sweep_rows_name_their_reference(tmp_path):
+    """sweep.csv / sweep.json and pareto.png gave errors without saying what they were
+    measured against (a ``raytraced`` reference at ``max(ref_spp, the grid's spp)`` with
+    a seed of its own, or the converged one): each rendered row now names it
+    (``scored_against``) and its ``reference_spp``."""
+    from mi_shadowmap import report
+    scene = mi.load_dict(default_scene(width=8, height=8, spp=1))
+    table = harness.sweep(scene, {"method": "raytraced", "spp": [1, 2]}, spp=1, repeats=1,
+                          ref_spp=4, progress=False)
+    assert [r["reference_spp"] for r in table] == [4, 4]
+    assert all(r["scored_against"] == "reference (raytraced spp=4)" for r in table)
+    report.write_sweep(table, str(tmp_path))
+    rows = json.loads((tmp_path / "sweep.json").read_text())
+    assert rows[0]["scored_against"] == "reference (raytraced spp=4)"

@@ -110,6 +110,7 @@ import numpy as np
 from .light_views.base import look_along_np, opaque_scalar, position_np
 from .light_views.multi import MultiView, SubView, stratified_points
 from .light_views.ortho import directional_view
+from .methods import whole_light_values
 from .variants import bsdf_eval_reaches, bsdf_to_world, unpolarized
 
 #: Grid of a ``constant`` emitter's cut (rows x columns).
@@ -729,8 +730,8 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
             vis = dr.select(ask, vis_fn(bound, lk, opts, ask), 0.0)
         elif record.whole_light:
             sub = dataclasses.replace(smap, view=rv)
-            whole, above = vis_fn(sub, lk, opts, ask)
-            vis = dr.select(ask & (above > 0), whole / dr.maximum(above, 1e-30), 0.0)
+            _, _, weight = whole_light_values(vis_fn(sub, lk, opts, ask))
+            vis = dr.select(ask, weight, 0.0)
         else:
             sub = dataclasses.replace(smap, view=rv)
             vis = dr.select(ask, vis_fn(sub, lk, opts, ask), 0.0)

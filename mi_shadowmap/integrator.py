@@ -31,7 +31,7 @@ from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys
                           make_light_view, pinhole_footprint, pixel_step,
                           unique_labels)  # noqa: F401  (re-exported)
 from .light_views.base import scene_bounds
-from .methods import MethodError
+from .methods import MethodError, whole_light_values
 from .rays import occlusion, surface_point
 from .variants import (SUPPORTED_VARIANTS, bsdf_eval_reaches, bsdf_to_world, check_variant,
                        unpolarized, variant_class)
@@ -732,9 +732,9 @@ screen is Mitsuba's projective integrators' job.
         # a light sample that reaches the hit only through its solid (see _into_solid)
         lit = mi.Bool(lit) & ~self._into_solid(lk, self._light_outside.get(id(smap)))
         if self.opts.record.whole_light:
-            whole, above = vis_fn(smap, lk, opts, shade)
-            self._count_out_of_range((whole, above), shade)
-            return dr.select(lit & (above > 0), whole / dr.maximum(above, 1e-30), 0.0), whole
+            whole, above, weight = whole_light_values(vis_fn(smap, lk, opts, shade))
+            self._count_out_of_range((whole, above, weight), shade)
+            return dr.select(lit, weight, 0.0), whole
         if isinstance(smap, VirtualShadowMap):
             vis = smap.visibility(vis_fn, lk, opts, lit,
                                   per_tap=self.opts.record.virtual_per_tap)

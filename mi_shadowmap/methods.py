@@ -19,7 +19,8 @@ A lookup has the signature of every built-in::
 
     lookup(smap, lk, opts, active) -> mi.Float   # visibility in [0, 1]
 
-(a record with ``whole_light`` returns ``(visible, above)``, see :class:`Method`).
+(a record with ``whole_light`` returns ``(visible, above)`` or ``(visible, above,
+weight)``, see :class:`Method`).
 
 ``smap`` is the emitter's :class:`~mi_shadowmap.depth_maps.ShadowMap` (for a
 method with ``uses_map=False``, a :class:`~mi_shadowmap.filters.common.
@@ -160,7 +161,11 @@ class Method:
       the converged reference's definition) and are unoccluded, and that contribute.
       The integrator then calls it at every shaded point (not only where its one
       light sample contributes), reports ``visible`` as the visibility AOV and
-      weights the light sample by ``visible / above`` (``multiview``);
+      weights the light sample by ``visible / above`` (0 where ``above`` is 0), or by
+      a third value ``weight`` the lookup returns, ``(visible, above, weight)``: its own
+      estimate of ``visible / above`` (``multiview`` with ``lookups`` < ``views``,
+      whose subset can hold no point above the horizon, see
+      :func:`whole_light_values`);
     * ``virtual`` -- the lookup reads the map only through ``smap.fetch``,
       ``smap.texel_index``, ``smap.depth``/``smap.extra`` gathers at those indices and
       ``smap.view``, with ``smap.resolution`` possibly a per-lane ``mi.Int32``, and its
@@ -381,16 +386,28 @@ def _checked_lookup(name: str, lookup: Callable, whole_light) -> Callable:
     @functools.wraps(lookup)
     def checked(*args, **kwargs):
         out = lookup(*args, **kwargs)
-        values = out if whole_light is True and isinstance(out, tuple) and len(out) == 2 \
-            else (out,)
+        values = out if whole_light is True and isinstance(out, tuple) \
+            and len(out) in (2, 3) else (out,)
         if not all(ok(v) for v in values):
             what = ", ".join(type(v).__name__ for v in values)
             raise MethodError(
                 f"shadowmap: method '{name}': its lookup returned {what}; a lookup returns "
-                + ("a pair (visible, above) of mi.Float" if whole_light is True
+                + ("a pair (visible, above) of mi.Float, or (visible, above, weight)"
+                   if whole_light is True
                    else "one visibility per lane, an mi.Float in [0, 1]"))
         return out
     return checked
+
+
+def whole_light_values(out) -> tuple:
+    """``(visible, above, weight)`` of a ``whole_light`` lookup's result ``out``:
+    ``(visible, above)``, whose light sample weight is ``visible / above`` (0 where
+    ``above`` is 0), or ``(visible, above, weight)`` with the lookup's own weight."""
+    import drjit as dr
+    if len(out) == 3:
+        return tuple(out)
+    visible, above = out
+    return visible, above, dr.select(above > 0, visible / dr.maximum(above, 1e-30), 0.0)
 
 
 def register_method(name: str, lookup: Callable, properties=None, layers=None,

@@ -448,3 +448,34 @@ def test_a_sphere_light_subset_facing_away_looks_all_views_up():
     print(f"unoccluded ground, lookups=1 of 64: visibility {got[lit].mean():.4f}")
     assert lit.sum() >= 40
     assert got[lit].mean() > 0.99
+
+
+def test_a_subset_below_the_horizon_keeps_the_light_sample_s_weight():
+    """``lookups`` < K on a light whose points are partly below the receiver's horizon
+    or behind the light (a cube light: from the ground only its bottom and near sides
+    face it). A camera sample's subset holding none of the points above the horizon
+    weighted its light sample by 0 although the sample itself lit the point: under a
+    cube light with 256 views the image was 0.908 of direct at ``lookups=1`` and 0.972
+    at 4 (1.005 with all views), while the AOV was right. Such lanes now draw views
+    until one is above the horizon; the AOV keeps the subset's estimate."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": T().look_at(origin=[0, 4, 4.5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24,
+                            "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2.5),
+                   "bsdf": {"type": "diffuse"}},
+        "box": {"type": "cube", "to_world": T().translate([0.3, 0.5, 0.2]).scale(0.25),
+                "bsdf": {"type": "diffuse"}},
+        "light": {"type": "cube", "to_world": T().translate([0, 2.2, 0]).scale(0.3),
+                  "emitter": {"type": "area", "radiance": 10.0}}})
+    props = {"type": "shadowmap", "method": "multiview", "views": 64, "resolution": 64}
+    img_all, aov_all = render_np(scene, {**props, "lookups": 0}, spp=32)
+    for lookups in (1, 4):
+        img, aov = render_np(scene, {**props, "lookups": lookups}, spp=32)
+        ratio = img.mean() / img_all.mean()
+        aov_ratio = next(iter(aov.values())).mean() / next(iter(aov_all.values())).mean()
+        print(f"lookups={lookups} of 64: image {ratio:.4f}, AOV {aov_ratio:.4f} of all views")
+        assert abs(ratio - 1.0) < 0.015, lookups
+        assert abs(aov_ratio - 1.0) < 0.015, lookups

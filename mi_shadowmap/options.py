@@ -105,7 +105,10 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "footprint in finest-level texels: 0 puts texels of 0.5-1 footprint, -0.5 "
          "(default) 0.35-0.7, -1 0.25-0.5 (each step of -0.5: twice the texels in theory; "
          "1.45-1.7x the texels and 1.4-1.6x the pages built, measured on the built-in "
-         "scene at 64^2-128^2, whose tiles and coarsest level do not scale).",
+         "scene at 64^2-128^2, whose tiles and coarsest level do not scale). At least "
+         "-log2(page_size) with the automatic resolution (an error below: a pixel would "
+         "span more than 2 page_size texels of its level, more than the mark pass builds "
+         "around its centre); with a resolution given, finer levels are not read.",
          lo=-8.0, hi=8.0),
     Prop("antialias", "str", "gradients",
          "Silhouette antialiasing of full maps (Worchel & Alexa 2023, after nvdiffrast; "
@@ -608,6 +611,16 @@ def _check_virtual(record, values: dict, given) -> None:
                               "virtual=true builds only the pages the camera reads, at "
                               "each lookup's pixel footprint (remove it or set "
                               "virtual=false)")
+    lod = values.get("lod_bias")
+    if lod is not None and res is None and lod < -math.log2(page):
+        # levels finer than that are never read (virtual.lookup.effective_lod_bias: a
+        # pixel would span more than 2 page_size texels, beyond what the mark pass builds
+        # around its centre); with the automatic resolution finer levels always exist
+        raise OptionError(f"shadowmap: property 'lod_bias' = {lod:g} needs larger pages: "
+                          f"with page_size = {page} it must be >= {-math.log2(page):g} "
+                          f"(-log2(page_size): a pixel then spans up to 2 page_size "
+                          "texels of its level; -8 needs page_size >= 256); raise "
+                          "'page_size' or 'lod_bias'")
     if not _holds_virtual_cube(values["memory_budget"], page):
         raise OptionError(f"shadowmap: property 'memory_budget' = "
                           f"{values['memory_budget']:g} MiB cannot hold the coarsest level of "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 
 import drjit as dr
 import mitsuba as mi
@@ -14,6 +15,17 @@ from ..methods import MethodError
 from ..light_views.local import LocalView
 from .layout import ANISO, INVALID_SLOT, key_fields, padded_array
 from .store import PageStore
+
+
+def effective_lod_bias(lod_bias: float, page_size: int) -> float:
+    """The ``lod_bias`` the level choice uses: at least ``-log2(page_size)``. Finer, a
+    pixel spans more than ``2 page_size`` texels of its level, and the mark pass (from
+    pixel centres, up to ``page_size / 2`` texels around each) leaves most of the pixel's
+    samples without a page there: they walked to the coarsest level (``lod_bias`` -8 on
+    pages of 32^2 rendered as the coarsest level alone, 0.66 % misclassified against
+    0.10 % at the default). A ``resolution`` given reads level 0 where the footprint is
+    finer than that anyway."""
+    return max(float(lod_bias), -math.log2(int(page_size)))
 
 
 class VirtualShadowMap:
@@ -151,7 +163,7 @@ class VirtualShadowMap:
         # floor(log2(w) + lod_bias) is the binary exponent of w 2^lod_bias, a normal float
         # or +inf (w >= 1, |lod_bias| <= 8): read from its bits, not through a log2
         # polynomial (about 1 ns of a lookup's 6-13)
-        scaled = w_eff * float(2.0 ** self.lod_bias)
+        scaled = w_eff * float(2.0 ** effective_lod_bias(self.lod_bias, lay.page_size))
         level = mi.Int32(dr.reinterpret_array(mi.UInt32, scaled) >> 23) - 127
         return mi.UInt32(dr.clip(level, 0, lay.coarsest))
 

@@ -14,7 +14,7 @@ from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differenti
 from ..light_views.base import opaque_point
 from .camera import camera_frame, has_aperture
 from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
-from .lookup import VirtualShadowMap
+from .lookup import VirtualShadowMap, effective_lod_bias
 
 
 #: The mark pass of a camera with a lens (``thinlens``, ``aperture_radius`` > 0) traces
@@ -107,7 +107,11 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     None: every point the view sees."""
     lay, P = vmap_like.layout, vmap_like.layout.page_size
     T = lay.tile_size
-    m = min(float(margin) + 1.0, 0.5 * P)
+    # camera samples off the pixel centre: half a pixel, 2^(-1 - lod_bias) texels at the
+    # lower end of its level's range (1 at the default lod_bias: finer levels put a
+    # pixel's samples farther from its centre in texels)
+    off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
+    m = min(float(margin) + off, 0.5 * P)
     per_axis = min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
     face, uv64, act, level = _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
     res = mi.Float64(mi.UInt32(lay.res0) >> level)

@@ -253,7 +253,11 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
         rises |= valid
     # 3. virtual samples on the tangent plane where the compares disagree, and where all
     # shadow a mesh face with a rising neighbour (see the module doc)
-    mixed = active & (n_lit < k) & ((n_lit > 0) | rises)
+    # (one tap, pcf_samples=1, never disagrees: its compare of a texel centre's depth
+    # shadowed an open plane, its own second surface, about half the time; its virtual
+    # sample decides there)
+    single = k == 1
+    mixed = active & (n_lit < k) & ((n_lit > 0) | rises | single)
 
     def virt_body(tap, n_virt, n_nb):
         ij, z_second = fetch(tap_texel(tap), mixed)
@@ -279,7 +283,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
     # where every compare said shadowed, only a tap that sees a neighbour face shows the
     # texels read the receiver's own surface (a solid resting on the face, whose second
     # surface lies in its plane, keeps its shadow: the paper's reason to return 0 there)
-    vis = dr.select(mixed & ((n_lit > 0) | (n_nb > 0)), mi.Float(n_virt) / k, vis)
+    vis = dr.select(mixed & ((n_lit > 0) | (n_nb > 0) | single), mi.Float(n_virt) / k, vis)
     return dr.select(r.inside, vis, 1.0)
 
 

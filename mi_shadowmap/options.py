@@ -106,8 +106,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "(default) 0.35-0.7, -1 0.25-0.5 (each step of -0.5: twice the texels in theory; "
          "1.45-1.7x the texels and 1.4-1.6x the pages built, measured on the built-in "
          "scene at 64^2-128^2, whose tiles and coarsest level do not scale). At least "
-         "-log2(page_size) with the automatic resolution (an error below: a pixel would "
-         "span more than 2 page_size texels of its level, more than the mark pass builds "
+         "1 - log2(page_size) with the automatic resolution (an error below: a pixel would "
+         "span more than page_size texels of its level, more than the mark pass builds "
          "around its centre); with a resolution given, finer levels are not read.",
          lo=-8.0, hi=8.0),
     Prop("antialias", "str", "gradients",
@@ -612,14 +612,14 @@ def _check_virtual(record, values: dict, given) -> None:
                               "each lookup's pixel footprint (remove it or set "
                               "virtual=false)")
     lod = values.get("lod_bias")
-    if lod is not None and res is None and lod < -math.log2(page):
+    if lod is not None and res is None and lod < 1.0 - math.log2(page):
         # levels finer than that are never read (virtual.lookup.effective_lod_bias: a
-        # pixel would span more than 2 page_size texels, beyond what the mark pass builds
+        # pixel would span more than page_size texels, beyond what the mark pass builds
         # around its centre); with the automatic resolution finer levels always exist
         raise OptionError(f"shadowmap: property 'lod_bias' = {lod:g} needs larger pages: "
-                          f"with page_size = {page} it must be >= {-math.log2(page):g} "
-                          f"(-log2(page_size): a pixel then spans up to 2 page_size "
-                          "texels of its level; -8 needs page_size >= 256); raise "
+                          f"with page_size = {page} it must be >= {1.0 - math.log2(page):g} "
+                          f"(1 - log2(page_size): a pixel then spans up to page_size "
+                          "texels of its level; -8 needs page_size >= 512); raise "
                           "'page_size' or 'lod_bias'")
     if not _holds_virtual_cube(values["memory_budget"], page):
         raise OptionError(f"shadowmap: property 'memory_budget' = "

@@ -98,8 +98,8 @@ def valid_sets(draw):
             props["min_samples"], props["num_samples"] = n_max, n_min
     if "page_size" in props:   # a power of two, whatever 'virtual' is
         props["page_size"] = max(1 << (int(props["page_size"]).bit_length() - 1), 8)
-    if "lod_bias" in props and not props.get("resolution"):   # >= -log2(page_size)
-        props["lod_bias"] = max(props["lod_bias"], -math.log2(props.get("page_size", 32)))
+    if "lod_bias" in props and not props.get("resolution"):   # >= 1 - log2(page_size)
+        props["lod_bias"] = max(props["lod_bias"], 1 - math.log2(props.get("page_size", 32)))
     if props.get("virtual"):   # virtual maps: powers of two, no full-map-only properties
         if not _methods.get(method).virtual:
             del props["virtual"]

@@ -18,14 +18,15 @@ from .store import PageStore
 
 
 def effective_lod_bias(lod_bias: float, page_size: int) -> float:
-    """The ``lod_bias`` the level choice uses: at least ``-log2(page_size)``. Finer, a
-    pixel spans more than ``2 page_size`` texels of its level, and the mark pass (from
-    pixel centres, up to ``page_size / 2`` texels around each) leaves most of the pixel's
-    samples without a page there: they walked to the coarsest level (``lod_bias`` -8 on
-    pages of 32^2 rendered as the coarsest level alone, 0.66 % misclassified against
-    0.10 % at the default). A ``resolution`` given reads level 0 where the footprint is
-    finer than that anyway."""
-    return max(float(lod_bias), -math.log2(int(page_size)))
+    """The ``lod_bias`` the level choice uses: at least ``1 - log2(page_size)`` (-4 for
+    pages of 32^2). Finer, a pixel spans more than ``page_size`` texels of its level, and
+    the mark pass (from pixel centres, up to ``page_size / 2`` texels around each) leaves
+    many of the pixel's samples (and their kernels' taps) without a page there: they
+    walked to coarse levels (``lod_bias`` -8 on pages of 32^2 rendered as the coarsest
+    level alone, 0.66 % misclassified against 0.10 % at the default; at -5 ``pcf`` and
+    ``vsm`` were 3-8x the default's visibility RMSE). A ``resolution`` given reads level
+    0 where the footprint is finer than that anyway."""
+    return max(float(lod_bias), 1.0 - math.log2(int(page_size)))
 
 
 class VirtualShadowMap:

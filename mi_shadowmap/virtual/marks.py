@@ -94,8 +94,9 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
     (unevaluated): the tiles the lookups at ``si`` read (see the module doc): at each
     point's level, the tiles (:attr:`VirtualLayout.tile_size` texels wide; keys as
-    :func:`page_key` in tile units) overlapping ``margin + 1`` texels around it (the
-    method's kernel, plus one texel for camera samples off the pixel centre), capped at
+    :func:`page_key` in tile units) overlapping ``margin + max(1, 2^(-1 - lod_bias))``
+    texels around it (the method's kernel, plus half a pixel at the level's lower end for
+    camera samples off the pixel centre: one texel at the default ``lod_bias``), capped at
     ``page_size / 2`` texels (what :meth:`VirtualShadowMap.bind`'s 2 x 2 pages serve):
     ``ceil(2 m / tile_size) + 1`` tiles per axis at most (2 x 2 for ``hard``'s kernel).
     A wider tap (PCSS's kernel up to ``max_kernel / 2``) reads its own page through the

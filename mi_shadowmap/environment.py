@@ -31,8 +31,8 @@ and cached by the map manager like every map.
 and K). The emitter's radiance is evaluated (``emitter.eval``, so whatever the
 variant -- rgb, mono, spectral at four fixed wavelengths -- and whatever the
 emitter: a ``constant`` one is uniform) over the cells of an ``H x W``
-latitude-longitude grid (cells of half an envmap texel, :data:`GRID_REFINE`;
-32 x 64 for ``constant``), in Mitsuba's envmap convention (``u = atan2(d.x, -d.z)
+latitude-longitude grid (cells of half an envmap texel, :data:`GRID_REFINE`, or of
+one texel past :data:`MAX_REFINED_CELLS`; 32 x 64 for ``constant``), in Mitsuba's envmap convention (``u = atan2(d.x, -d.z)
 / 2 pi``, ``v = acos(d.y) / pi`` in the emitter's frame, row 0 at the zenith): a
 cell's luminance is the mean of its centre and four corners, its energy that
 times its solid angle (``sin theta`` weighting). "Texel" below means a cell.
@@ -117,6 +117,9 @@ from .variants import bsdf_eval_reaches, bsdf_to_world, unpolarized
 CONSTANT_GRID = (32, 64)
 #: Cells per envmap texel side in the cut's grid.
 GRID_REFINE = 2
+#: Most cells of a refined grid: a larger envmap's cut works on its texels (a 4096 x 2048
+#: map refined is 33.5M cells, evaluated twice: about 50 s and 4.6 GB per cut).
+MAX_REFINED_CELLS = 1 << 21
 #: Largest angular diameter (degrees) a region reports as its light width (pcss's range).
 MAX_ANGULAR_DIAMETER = 30.0
 #: Share of a region's texel-sampling probability spread by solid angle (the rest
@@ -311,7 +314,8 @@ def grid_shape(emitter) -> tuple:
         # Mitsuba pads the stored map with copies of border columns (W + 2 of them);
         # the cut works on cells of half a texel (GRID_REFINE).
         W = shape[1] - 2 if shape[1] >= 2 * shape[0] + 2 else shape[1]
-        return GRID_REFINE * int(shape[0]), GRID_REFINE * int(W)
+        r = GRID_REFINE if GRID_REFINE ** 2 * int(shape[0]) * int(W) <= MAX_REFINED_CELLS else 1
+        return r * int(shape[0]), r * int(W)
     return CONSTANT_GRID
 
 

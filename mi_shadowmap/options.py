@@ -601,6 +601,12 @@ def _check_virtual(record, values: dict, given) -> None:
         raise OptionError(f"shadowmap: property 'resolution' = {res} must be a power of two "
                           f"from page_size = {page} to 2^30 with virtual=true (the virtual "
                           "resolution of the finest level)")
+    if "virtual" in given and values.get("env_lights", 16) > 32:
+        # environment.MAX_VIRTUAL_REGIONS: a virtual map's page keys hold 32 faces; more
+        # regions got full maps, silently, although virtual=true was asked for
+        raise OptionError(f"shadowmap: property 'env_lights' = {values['env_lights']} with "
+                          "virtual=true: a virtual map holds at most 32 environment regions; "
+                          "set env_lights <= 32, or virtual=false (full maps)")
     if values.get("antialias") == "always":
         raise OptionError("shadowmap: property 'antialias' = 'always' applies to full maps "
                           "only (virtual pages are not antialiased); use 'gradients' or "

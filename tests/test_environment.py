@@ -202,6 +202,8 @@ def test_unshadowed_environment_with_several_shadow_rays():
     ({"method": "raytraced", "env_lights": 8}, "env_lights"),
     ({"environment": "unshadowed", "env_lights": 8}, "env_lights.*environment='shadowed'"),
     ({"environment": "error", "env_lights": 8}, "env_lights.*environment='shadowed'"),
+    # virtual=true asked for: more than 32 regions got full maps silently
+    ({"virtual": True, "env_lights": 33}, "'env_lights' = 33 with virtual=true"),
 ])
 def test_bad_input_names_the_property(props, name):
     with pytest.raises(OptionError, match=name):
@@ -350,6 +352,12 @@ def test_mark_pass_skips_regions_below_a_points_horizon():
     assert below and above
     assert not (fine & below)
     assert above <= fine
+
+
+def test_virtual_true_takes_up_to_32_regions():
+    assert parse_options({"virtual": True, "env_lights": 32}).virtual
+    parse_options({"env_lights": 33})                    # automatic: full maps for it
+    assert not parse_options({"virtual": False, "env_lights": 64}).virtual
 
 
 def test_more_regions_than_a_virtual_map_has_faces_keep_full_maps():

@@ -329,7 +329,10 @@ def positive_scale(value) -> bool:
 
 def emitter_regions(emitter, K: int, with_key: bool = False):
     """The cut of ``emitter`` into ``K`` regions, cached per emitter parameters (a hash
-    of every ``mi.traverse(emitter)`` value and the transform), variant and K."""
+    of every ``mi.traverse(emitter)`` value but ``to_world``), variant and K, in the
+    emitter's own frame: a rotated emitter rotates the cached cut's directions (the cut
+    and the texel tables are the same in its frame; a sky turned every frame re-cut it
+    every frame). ``with_key``: also a key of the cut and the transform."""
     from .map_manager import is_transform    # (map_manager imports this module lazily)
     params = mi.traverse(emitter)
     h = hashlib.blake2b(digest_size=16)
@@ -338,6 +341,8 @@ def emitter_regions(emitter, K: int, with_key: bool = False):
         v = params[k]
         if k == "scale":   # scales every texel alike: the cut is the same (but for 0)
             h.update(b"scale>0" if positive_scale(v) else b"scale=0")
+            continue
+        if k == "to_world":   # the cut is made in the emitter's frame (rotated below)
             continue
         h.update(k.encode())
         if is_transform(v):   # transforms: by value
@@ -348,25 +353,34 @@ def emitter_regions(emitter, K: int, with_key: bool = False):
         except Exception:
             h.update(repr(v).encode())
     T = _to_world(emitter)
+    local_key = h.hexdigest()
     h.update(T.tobytes())
     key = h.hexdigest()
-    reg = _CACHE.get(key)
+    reg = _CACHE.get(local_key)
     if reg is None:
         H, W = grid_shape(emitter)
         mean, bound = luminance_grid(emitter, H, W)
         top = float(bound.max()) if bound.size else 0.0
         if top > 0.0:   # relative luminance: an emitter's scale changes no cut
             mean, bound = mean / top, bound / top
-        reg = regions_of(mean, K, T, bound)
+        reg = regions_of(mean, K, np.eye(3), bound)
         if reg.count < K:   # once per cut (the cut is cached below)
             warnings.warn(
                 f"shadowmap: property 'env_lights' = {K} asks for more regions than the "
-                f"environment emitter's {H} x {W} cells (half texels) allow; it gets {reg.count} regions",
+                f"environment emitter's {H} x {W} cells allow; it gets {reg.count} regions",
                 stacklevel=2)
         while len(_CACHE) >= 64:   # oldest first
             _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = reg
-    return (reg, key) if with_key else reg
+        _CACHE[local_key] = reg
+    world = _CACHE.get(key)
+    if world is None:   # centroids to world space (the maps' views read it by key)
+        d = reg.directions @ T.T
+        world = dataclasses.replace(
+            reg, directions=d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30))
+        while len(_CACHE) >= 64:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = world
+    return (world, key) if with_key else world
 
 
 # ------------------------------------------------------------------ the view

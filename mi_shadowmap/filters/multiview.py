@@ -128,6 +128,8 @@ def multiview(smap, lk: Lookup, opts, active=True):
     ds0, w0 = lk.ds.emitter.sample_direction(si, mi.Point2f(0.5, 0.5), act)
     act &= ~ds0.delta | ((ds0.pdf > 0) & (dr.max(unpolarized(w0)) > 0))
     shift = lk.sampler.next_1d(act) if L < K else mi.Float(0.0)
+    subset_shift = shift    # the retry's seed below (``shift`` is rebound for a sphere's
+    #                         fallback loop, whose body reads it)
     step = K / L
     # The horizon test: the BSDF towards the light's centre, evaluated once; a view on
     # the same side of the shading plane gets the same answer (BSDFs are zero or not per
@@ -207,7 +209,7 @@ def multiview(smap, lk: Lookup, opts, active=True):
     wo_s = si.to_local(lk.ds.d)
     sample_above = bsdf_eval_reaches(bsdf, ctx, si, wo_s, act)[1]
     retry = sample_above & (n_above <= 0)
-    seed = dr.reinterpret_array(mi.UInt32, shift)
+    seed = dr.reinterpret_array(mi.UInt32, subset_shift)
 
     def cond_r(r, found, v):
         return retry & ~found & (r < K)

@@ -700,6 +700,13 @@ def main(argv=None) -> int:
         args = parser.parse_args(rest)
     except SystemExit as e:          # --help (0) or a usage error (2, one line printed)
         return e.code if isinstance(e.code, int) else 2
+    # an abbreviation after the command ("--varia X") reaches the command's own parser
+    # only (the pre-parse takes whole names): taken from there too, not dropped
+    if variant is None:
+        variant = getattr(args, "variant", None)
+    plugins = list(plugins) + [p for p in getattr(args, "plugin", None) or []
+                               if p not in plugins]
+    debug = debug or bool(getattr(args, "debug", False))
     try:
         with one_line_warnings():
             import mi_shadowmap  # noqa: F401  (LLVM set-up and registration)

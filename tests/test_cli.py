@@ -667,3 +667,15 @@ def test_variant_before_the_command(tmp_path, capsys):
     assert code == 0, err
     assert mi.variant() == "llvm_ad_mono"
     assert list(tmp_path.glob("*.exr"))
+
+
+def test_an_abbreviated_variant_after_the_command_is_used(tmp_path, capsys):
+    """argparse takes ``--varia`` for ``--variant`` after the command; since the variant
+    was taken by the pre-parse only (whole names), such an abbreviation was parsed and
+    then dropped: ``maps ... --varia llvm_ad_mono`` rendered in llvm_ad_rgb."""
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    code, out, err = run(["maps", "--methods", "hard", "--set", "resolution=16",
+                          "--out", tmp_path, "--varia", "llvm_ad_mono"], capsys)
+    assert code == 0, err
+    assert mi.variant() == "llvm_ad_mono"

@@ -142,7 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser(
         "compare", help="render the reference and each method, write images and metrics",
         description="Render the reference (raytraced for delta lights; converged soft-shadow "
-                    "reference for area lights and environments) and each method with the same seed; print "
+                    "reference for area lights and environments) and each method with one seed (the "
+                    "reference too, unless --reference converged is given: that one has a "
+                    "seed of its own); print "
                     "the metrics table; write <out>/<method>.exr (RGB, vis_<emitter>, "
                     "err_<emitter>, img_err), PNG previews, contact_sheet.png, pareto.png, "
                     "metrics.csv and metrics.json.")

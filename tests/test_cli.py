@@ -500,8 +500,11 @@ def test_compare_takes_the_scene_files_shadowmap_integrator_properties(tmp_path,
     same, _ = _compare_rows([bare, "--methods", "hard", "pcf", "--set", "resolution=24",
                              "--set", "bias=0.3", "--set", "num_samples=8"], tmp_path / "b",
                             capsys)
+    # equal up to the film's accumulation order: Dr.Jit's parallel scatter-adds of the
+    # samples sum in a varying order (the exact compare failed 1 run in 5 by 2.5e-10)
     for name in rows:
-        assert rows[name]["vis_rmse"] == same[name]["vis_rmse"], name
+        assert rows[name]["vis_rmse"] == pytest.approx(same[name]["vis_rmse"], rel=1e-6,
+                                                       abs=1e-9), name
     # --set over the scene, the method string over both; a property no method uses: a note
     rows, err = _compare_rows([own, "--methods", "hard:resolution=16", "--set", "bias=0.1"],
                               tmp_path / "c", capsys)
@@ -511,7 +514,8 @@ def test_compare_takes_the_scene_files_shadowmap_integrator_properties(tmp_path,
                               tmp_path / "d", capsys)
     bare_rows, _ = _compare_rows([bare, "--methods", "hard"], tmp_path / "e", capsys)
     assert set(rows) == {"reference (raytraced)", "hard"} and "note" not in err
-    assert rows["hard"]["vis_rmse"] == bare_rows["hard"]["vis_rmse"]
+    assert rows["hard"]["vis_rmse"] == pytest.approx(bare_rows["hard"]["vis_rmse"],
+                                                     rel=1e-6, abs=1e-9)
 
 
 def test_a_scene_property_some_method_refuses_is_not_taken_with_a_note(tmp_path, capsys):

@@ -1994,3 +1994,31 @@ def test_lod_bias_finer_than_the_pages_hold_is_an_error():
     assert parse_options({"method": "hard", "lod_bias": -8.0, "virtual": True,
                           "resolution": 256}).lod_bias == -8
     assert parse_options({"method": "hard", "lod_bias": -8.0, "virtual": False}).lod_bias == -8
+
+
+def test_a_still_camera_plans_from_the_last_render(monkeypatch):
+    """A still camera's frame takes its pages' plan from the last render: the planner's
+    page counts (``_n_pages``: sorts of every marked tile) and each emitter's
+    ``mi.traverse`` (``_dark``) ran every frame, 1.3 ms more host time a room_two_points
+    frame than before them (0.2 ms an emitter). A changed intensity is still seen."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(1, 1)
+    integ = shadowmap(method="hard")
+    mi.render(scene, integrator=integ, spp=1)
+    first = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    calls = []
+    real_n_pages, real_traverse = planner._n_pages, mi.traverse
+    monkeypatch.setattr(planner, "_n_pages", lambda *a: calls.append("n") or real_n_pages(*a))
+    monkeypatch.setattr(mi, "traverse", lambda obj, *a, **k: (
+        calls.append("traverse") if isinstance(obj, mi.Emitter) else None)
+        or real_traverse(obj, *a, **k))
+    again = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    assert calls == [] and np.array_equal(first, again)
+    monkeypatch.undo()
+    params = mi.traverse(scene)
+    light = next(e for e in scene.emitters() if e.class_name() == "PointLight")
+    assert not planner._dark(light)
+    for value, dark in ((0.0, True), (2.0, False)):
+        params["pl0.intensity.value"] = value
+        params.update()
+        assert planner._dark(light) is dark

@@ -46,6 +46,10 @@ class PageStore:
         self._sorted = None
         self._table = None
         self.lit_faces = None                        # faces a one-sided light shines through
+        # the planner's last (marks, coarsest keys, tiles, pages) and (marks, tiles, budget,
+        # fit): a still camera's frame plans from them (planner.prepare_virtual)
+        self.plan_memo = None
+        self.fit_memo = None
         self.coarse_keys = None                      # their coarsest pages' keys
         # slot 0 is never allocated: an empty page (+inf, lit). Slot f + 1 is reserved for
         # face f's coarsest page (always built where the light shines; empty where a

@@ -555,6 +555,21 @@ def test_a_scene_of_another_variant_is_named():
         with pytest.raises(ValueError, match="'llvm_ad_rgb'.*'llvm_ad_mono'"):
             call()
 
+def _ball_over_ground(reflectance, method, light):
+    """A ball over a ground of ``reflectance`` under ``light`` (id ``L``; AOV ``vis_L``),
+    rendered by ``shadowmap`` with ``method``: 16^2, 4 spp."""
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "shadowmap", "method": method},
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": T().look_at(origin=[0, 4, 6], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(5),
+                   "bsdf": {"type": "diffuse", "reflectance": reflectance}},
+        "ball": {"type": "sphere", "center": [0, 1, 0], "radius": 0.7},
+        "L": light})
+
 
 @pytest.mark.parametrize("variant", ("llvm_ad_rgb", "llvm_ad_spectral"))
 def test_a_dark_receiver_is_not_reported_as_shadowed(variant):
@@ -568,18 +583,8 @@ def test_a_dark_receiver_is_not_reported_as_shadowed(variant):
     mi.set_variant(variant)
 
     def scene(reflectance, method="raytraced"):
-        return mi.load_dict({
-            "type": "scene", "integrator": {"type": "shadowmap", "method": method},
-            "sensor": {"type": "perspective", "fov": 45,
-                       "to_world": mi.ScalarTransform4f().look_at(
-                           origin=[0, 4, 6], target=[0, 0, 0], up=[0, 1, 0]),
-                       "film": {"type": "hdrfilm", "width": 16, "height": 16},
-                       "sampler": {"type": "independent", "sample_count": 4}},
-            "ground": {"type": "rectangle",
-                       "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(5),
-                       "bsdf": {"type": "diffuse", "reflectance": reflectance}},
-            "ball": {"type": "sphere", "center": [0, 1, 0], "radius": 0.7},
-            "L": {"type": "point", "position": [1, 4, 1], "intensity": 10.0}})
+        return _ball_over_ground(reflectance, method,
+                                 {"type": "point", "position": [1, 4, 1], "intensity": 10.0})
 
     grey = {"type": "spectrum", "value": 0.5}
     darks = [{"type": "spectrum", "value": 0.0}]
@@ -604,18 +609,8 @@ def test_a_dark_receiver_under_the_sky_is_not_reported_as_shadowed():
     env = (np.random.default_rng(1).random((8, 16, 3)) * 2).astype(np.float32)
 
     def scene(value, method):
-        return mi.load_dict({
-            "type": "scene", "integrator": {"type": "shadowmap", "method": method},
-            "sensor": {"type": "perspective", "fov": 45,
-                       "to_world": mi.ScalarTransform4f().look_at(
-                           origin=[0, 4, 6], target=[0, 0, 0], up=[0, 1, 0]),
-                       "film": {"type": "hdrfilm", "width": 16, "height": 16},
-                       "sampler": {"type": "independent", "sample_count": 4}},
-            "ground": {"type": "rectangle",
-                       "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(5),
-                       "bsdf": {"type": "diffuse", "reflectance": value}},
-            "ball": {"type": "sphere", "center": [0, 1, 0], "radius": 0.7},
-            "env": {"type": "envmap", "bitmap": mi.Bitmap(env.copy())}})
+        return _ball_over_ground(value, method,
+                                 {"type": "envmap", "bitmap": mi.Bitmap(env.copy())})
 
     for method in ("raytraced", "hard"):
         grey = np.asarray(mi.render(scene(0.5, method), seed=0))[..., -1]

@@ -980,8 +980,6 @@ def clear_caches() -> None:
     MAP_CACHE.clear()
     _GRADIENT_RESOLUTIONS.clear()
     virtual.PAGE_CACHE.clear()
-    from .virtual import planner
-    planner.clear_memos()
     _VIRTUAL_CASCADES.clear()
     pose.clear_references()
     antialias.clear_meshes()

@@ -1054,7 +1054,7 @@ def test_a_light_of_zero_intensity_builds_only_its_coarsest_pages(monkeypatch):
     img = np.asarray(mi.render(scene, integrator=integ, spp=1))
     assert integ.maps[1].store.n_pages == 6 < integ.maps[0].store.n_pages
     with monkeypatch.context() as m:
-        m.setattr(planner, "_dark", lambda emitter: False)
+        m.setattr(planner, "_dark", lambda emitter, store=None: False)
         want = np.asarray(mi.render(scene, integrator=shadowmap(method="hard",
                                                                 cache_maps=False), spp=1))
     assert np.array_equal(img, want)
@@ -2017,8 +2017,9 @@ def test_a_still_camera_plans_from_the_last_render(monkeypatch):
     monkeypatch.undo()
     params = mi.traverse(scene)
     light = next(e for e in scene.emitters() if e.class_name() == "PointLight")
-    assert not planner._dark(light)
+    store = next(m.store for m, e in zip(integ.maps, scene.emitters()) if e is light)
+    assert store.dark_memo[0] == id(light) and not planner._dark(light, store)
     for value, dark in ((0.0, True), (2.0, False)):
         params["pl0.intensity.value"] = value
         params.update()
-        assert planner._dark(light) is dark
+        assert planner._dark(light, store) is dark

@@ -136,7 +136,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     # reaches the image or its visibility AOV (both 0 where it does not contribute);
     # its map keeps the coarsest level only (no marks), until it is lit again
     emitters = scene.emitters()
-    dark = {i: len(emitters) == len(views) and _dark(emitters[i]) for i in stores}
+    dark = {i: len(emitters) == len(views) and _dark(emitters[i], stores[i])
+            for i in stores}
     dark = {i: all(dark[j] for j in stores if stores[j] is stores[i]) for i in stores}
     stale = [i for i, st in stores.items() if cam is not None and not dark[i]
              and (st.last_mark is None or st.last_mark[0] != mark_key[i])]
@@ -377,41 +378,38 @@ def _fit_marks(store, mark, tiles, budget_pages) -> tuple:
     return out
 
 
-#: id(emitter) -> [emitter, ParamWatch of its emitted values or None, token, held values,
-#: dark]: :func:`_dark`'s answer, read again only when the values' variables change (a
-#: ``mi.traverse`` per emitter and frame cost 0.2 ms each: a still camera's frame of
-#: room_two_points 1.3 ms more host time with the planner's page counts)
-_DARK = collections.OrderedDict()
-_MAX_DARK = 256
-
-
-def clear_memos() -> None:
-    """Forget :func:`_dark`'s emitters (``clear_caches``)."""
-    _DARK.clear()
-
-
-def _dark(emitter) -> bool:
+def _dark(emitter, store=None) -> bool:
     """Whether ``emitter`` emits nothing: its ``intensity``, ``radiance`` or
     ``irradiance`` is a uniform value of exactly 0 (a texture, or an environment: not
     known to be, False). Only read, never differentiated: a render with emitter
-    gradients enabled gets full maps. The values are watched (:class:`~mi_shadowmap.
-    map_manager.ParamWatch`), so a still scene reads no parameter again."""
+    gradients enabled gets full maps.
+
+    ``store``: the light's :class:`PageStore`, which keeps the emitter's watched values
+    (:class:`~mi_shadowmap.map_manager.ParamWatch`) in ``dark_memo``, so a still scene
+    reads no parameter again (a ``mi.traverse`` per emitter and frame cost 0.2 ms each).
+    The memo holds neither the emitter nor its ``mi.traverse`` (only the getters of its
+    emitted values, whose nodes are its textures), and lives with the store, a light's
+    in one scene: a first version kept emitters in a module-level memo, past their
+    scenes, and an area emitter outliving its shape made Mitsuba's later kernels, which
+    dispatch over every live emitter, crash (``direct`` on the next scene of a test
+    module: a segmentation fault)."""
     if mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) and not mi.has_flag(
             emitter.flags(), mi.EmitterFlags.DeltaDirection):
         return False
-    slot = _DARK.get(id(emitter))
-    if slot is None or slot[0] is not emitter:
+    slot = store.dark_memo if store is not None else None
+    if slot is None or slot[0] != id(emitter):
         from ..map_manager import ParamWatch
         params = mi.traverse(emitter)
         keys = [k for k in params.keys()
                 if k.split(".")[0] in ("intensity", "radiance", "irradiance")]
         uniform = bool(keys) and all(len(k.split(".")) == 2 and k.endswith(".value")
                                      for k in keys)
-        slot = [emitter, ParamWatch(params, keys) if uniform else None, None, None, False]
-        _DARK[id(emitter)] = slot
-        while len(_DARK) > _MAX_DARK:
-            _DARK.popitem(last=False)
-    _DARK.move_to_end(id(emitter))
+        watch = ParamWatch(params, keys) if uniform else None
+        if watch is not None:
+            watch.params = None          # the getters only: not the emitter
+        slot = [id(emitter), watch, None, None, False]
+        if store is not None:
+            store.dark_memo = slot
     watch = slot[1]
     if watch is None:
         return False

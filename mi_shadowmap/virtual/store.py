@@ -50,6 +50,7 @@ class PageStore:
         # fit): a still camera's frame plans from them (planner.prepare_virtual)
         self.plan_memo = None
         self.fit_memo = None
+        self.dark_memo = None      # planner._dark's watch of the light's emitted values
         self.coarse_keys = None                      # their coarsest pages' keys
         # slot 0 is never allocated: an empty page (+inf, lit). Slot f + 1 is reserved for
         # face f's coarsest page (always built where the light shines; empty where a

@@ -108,6 +108,8 @@ def valid_sets(draw):
                 props.pop(name, None)
             if props.get("antialias") == "always":   # full maps only
                 del props["antialias"]
+            if props.get("env_lights", 0) > 32:      # a virtual map holds 32 regions
+                props["env_lights"] = 32
             props["page_size"] = props.get("page_size", 32)
             if props.get("resolution"):   # (0 is automatic)
                 props["resolution"] = max(1 << (int(props["resolution"]).bit_length() - 1),

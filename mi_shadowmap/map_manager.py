@@ -274,8 +274,8 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     return RenderPlan(views, maps, res, state, gains)
 
 
-#: (id(scene), id(sensor), film size, faces x layers, bytes allowed) -> [scene, sensor,
-#: resolution]: the automatic resolution of renders with shape or emitter gradients, kept
+#: (id(scene), id(sensor), film size, faces x layers, bytes allowed) -> ((scene, sensor),
+#: resolution): the automatic resolution of renders with shape or emitter gradients, kept
 #: (the scene and sensor held, so their ids are not reused) for the next such render;
 #: the oldest dropped beyond _MAX_GRADIENT_RESOLUTIONS
 _GRADIENT_RESOLUTIONS: collections.OrderedDict = collections.OrderedDict()
@@ -294,14 +294,23 @@ def _gradient_resolution(scene, sensor, film_size, faces: int, budget: int, res:
     without gradients enabled keep following the scene; a ``resolution`` given is
     used as is; :func:`clear_caches` forgets the kept ones."""
     key = (id(scene), id(sensor), tuple(int(x) for x in film_size), int(faces), int(budget))
-    entry = _GRADIENT_RESOLUTIONS.get(key)
-    if entry is None or entry[0] is not scene or entry[1] is not sensor:
-        entry = [scene, sensor, res]
-    _GRADIENT_RESOLUTIONS.pop(key, None)
-    _GRADIENT_RESOLUTIONS[key] = entry
-    while len(_GRADIENT_RESOLUTIONS) > _MAX_GRADIENT_RESOLUTIONS:
-        _GRADIENT_RESOLUTIONS.popitem(last=False)
-    return entry[2]
+    return _held_lru(_GRADIENT_RESOLUTIONS, key, (scene, sensor), lambda: res,
+                     _MAX_GRADIENT_RESOLUTIONS)
+
+
+def _held_lru(table: collections.OrderedDict, key, held: tuple, make, limit: int):
+    """``table[key]``'s value, made by ``make()`` where there is none or where the objects
+    ``held`` with it are not these (a freed object's ``id`` in ``key`` reused): the entry
+    holds them, so their ids stay theirs while it lives. The entry becomes the newest;
+    the oldest beyond ``limit`` are dropped."""
+    entry = table.get(key)
+    if entry is None or any(a is not b for a, b in zip(entry[0], held)):
+        entry = (held, make())
+    table.pop(key, None)
+    table[key] = entry
+    while len(table) > limit:
+        table.popitem(last=False)
+    return entry[1]
 
 
 def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose=None,
@@ -750,7 +759,7 @@ def scene_slot(scenes: collections.OrderedDict, scene, state, max_scenes: int) -
     return slot
 
 
-#: id(scene) -> (scene, token): :func:`scene_token` (at most 8 scenes; ``clear_caches``).
+#: id(scene) -> ((scene,), token): :func:`scene_token` (at most 8 scenes; ``clear_caches``).
 _SCENE_TOKENS = collections.OrderedDict()
 
 
@@ -763,13 +772,7 @@ def scene_token(scene) -> object:
     cannot see, so every scene rendered with its own integrator stayed alive forever,
     ``clear_caches()`` and ``del`` notwithstanding (30 scenes of 45k triangles: +5 MiB
     each, and renders 0.23 -> 0.45 s as Dr.Jit traced every live scene's shapes)."""
-    hit = _SCENE_TOKENS.get(id(scene))
-    if hit is None or hit[0] is not scene:
-        hit = _SCENE_TOKENS[id(scene)] = (scene, object())
-    _SCENE_TOKENS.move_to_end(id(scene))
-    while len(_SCENE_TOKENS) > 8:
-        _SCENE_TOKENS.popitem(last=False)
-    return hit[1]
+    return _held_lru(_SCENE_TOKENS, id(scene), (scene,), object, 8)
 
 
 class MapCache:

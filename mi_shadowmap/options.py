@@ -173,10 +173,11 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "(each 'resolution' squared, fitted to its slice). With virtual=true each "
          "cascade is a virtual face (pages rebuilt when the camera moves, as the "
          "cascades follow it); the automatic virtual maps need no cascades: their "
-         "levels follow the pixel footprint.", lo=1, hi=4),
+         "levels follow the pixel footprint.", lo=1, hi=4, lights=("directional",)),
     Prop("split_lambda", "float", 0.5,
          "Weight of the uniform split scheme against the logarithmic one (thesis eq. in "
-         "sec. 5.1: C_i = lambda*C_uni + (1-lambda)*C_log).", lo=0.0, hi=1.0),
+         "sec. 5.1: C_i = lambda*C_uni + (1-lambda)*C_log); acts with cascades > 1.",
+         lo=0.0, hi=1.0, lights=("directional",)),
 )
 #: Scope of each shared property (see EVERY, ACCEPTED, MAP).
 SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY, "env_lights": MAP,
@@ -562,12 +563,19 @@ def unused_light_properties(opts, kinds) -> list:
     light, which changes nothing."""
     if opts.record is None:
         return []
+    # a camera-fitting property that turned the automatic virtual maps off gets its own
+    # warning when no light uses it (map_manager.plan_maps)
+    pinned = {pin.split("'")[1] for pin in camera_fit_pins(opts)}
     out = []
     for p in properties_for(opts.record.name):
-        if p.lights is None or p.name not in opts.given:
+        if p.lights is None or p.name not in opts.given or p.name in pinned:
             continue
         value = getattr(opts, p.name)
-        if value != p.default and not set(p.lights) & set(kinds):
+        if (p.name == "split_lambda" and value != p.default and opts.cascades == 1
+                and "directional" in kinds):
+            out.append(f"'split_lambda' = {value:g} (it weighs the splits of cascades > 1; "
+                       "cascades = 1)")
+        elif value != p.default and not set(p.lights) & set(kinds):
             out.append(f"'{p.name}' = {value:g} (it acts on {', '.join(p.lights)} lights)"
                        if isinstance(value, float) else
                        f"'{p.name}' = {value} (it acts on {', '.join(p.lights)} lights)")

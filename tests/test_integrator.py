@@ -1064,13 +1064,22 @@ def test_a_camera_fit_property_no_light_uses_is_not_silent(light, props, warns):
     ("directional", {"method": "pcss", "angular_diameter": 0.5}, None),   # applies
     ("point", {"method": "pcss", "light_size": 0.3}, None),
     ("area", {"method": "pcss", "light_size": 0.3}, None),
-    ("point", {"method": "pcss", "angular_diameter": 0.0}, None)])        # the default
+    ("point", {"method": "pcss", "angular_diameter": 0.0}, None),         # the default
+    ("point", {"method": "hard", "cascades": 3, "virtual": False}, "'cascades' = 3"),
+    ("point", {"method": "hard", "cascades": 3, "virtual": True}, "'cascades' = 3"),
+    ("point", {"method": "hard", "cascades": 3},       # the camera-fit warning alone
+     "'cascades' = 3 applies to none"),
+    ("directional", {"method": "hard", "cascades": 3, "split_lambda": 0.8}, None),
+    ("directional", {"method": "hard", "split_lambda": 0.8}, "'split_lambda' = 0.8"),
+    ("point", {"method": "hard", "split_lambda": 0.8}, "'split_lambda' = 0.8")])
 def test_a_light_property_no_light_of_the_scene_uses_warns(light, props, warns):
     """``angular_diameter`` acts on directional lights only, ``light_size`` on the others
     (``multiview``: not on area lights, which use their shape). Set on a scene without
     such a light it changed nothing, silently (``pcss`` with ``angular_diameter=0.5``
     under a point light casts hard shadows). Now a warning names it and the scene's
-    light kinds."""
+    light kinds. The same for ``cascades`` (directional lights) with ``virtual`` given
+    (left out, the camera-fit warning names it), and for ``split_lambda``, which weighs
+    the splits of ``cascades`` > 1 only."""
     scene = mi.load_dict(default_scene(width=16, height=16, spp=1, light=light))
     integ = mi.load_dict({"type": "shadowmap", **props})
     with warnings.catch_warnings(record=True) as caught:

@@ -622,11 +622,35 @@ def _write_tune(res: dict, out: str) -> list[str]:
     with open(os.path.join(out, "tune.json"), "w") as f:
         json.dump(result_json(res), f, indent=2)
     written = ["tune_pareto.png", "tune.json"]
+    xml = os.path.join(out, "integrator.xml")
     if res["name"] is not None:
-        with open(os.path.join(out, "integrator.xml"), "w") as f:
+        with open(xml, "w") as f:
             f.write(integrator_xml(res))
         written.append("integrator.xml")
+    elif os.path.isfile(xml) and _is_tune_xml(xml):
+        # an earlier tune's pick, beside this run's tune.json without one: it was
+        # left there and read as this run's result
+        os.remove(xml)
+        import warnings
+        warnings.warn(f"removed {xml}: an earlier tune run's pick (this run verified "
+                      "none; its tune.json and tune_pareto.png replaced that run's)",
+                      stacklevel=2)
+    elif os.path.exists(xml):
+        import warnings
+        warnings.warn(f"{xml} is not this run's (it verified no pick): the file was "
+                      "there before and is left as it was", stacklevel=2)
     return written
+
+
+def _is_tune_xml(path: str) -> bool:
+    """Whether the file ``path`` is an ``integrator.xml`` that tune wrote (its first
+    line is tune's comment, partial or not); a file of the user's is left alone."""
+    try:
+        with open(path) as f:
+            first = f.readline()
+    except (OSError, UnicodeDecodeError):
+        return False
+    return first.startswith("<!-- ") and "mi-shadowmap tune:" in first
 
 
 _COMMANDS = {"compare": cmd_compare, "sweep": cmd_sweep, "maps": cmd_maps, "tune": cmd_tune}

@@ -442,3 +442,33 @@ def test_cli_tune_writes_the_search_of_an_interrupted_run(tmp_path, capsys, monk
     assert (out / "integrator.xml").exists() == after_pick
     if after_pick:
         assert data["method"] == "hard" and "PARTIAL" in (out / "integrator.xml").read_text()
+
+
+def test_cli_tune_without_a_pick_removes_an_earlier_runs_integrator_xml(
+        tmp_path, capsys, monkeypatch):
+    """A tune that verified no pick rewrote tune.json and tune_pareto.png in --out but
+    left the integrator.xml an earlier run had written there: the folder then held a
+    pick (budget 0.2, 56.8 ms) beside a tune.json saying there was none, and the message
+    did not name it. tune's own earlier file is now removed, with a warning; a file of
+    the user's is kept, with a warning."""
+    _ctrl_c(monkeypatch, False)
+    out = tmp_path / "tune"
+    out.mkdir()
+    stale = ("<!-- mi-shadowmap tune: vis_rmse 0.0897 (budget 0.2) at 64x64 -->\n"
+             '<integrator type="shadowmap">\n    <string name="method" value="pcf"/>\n'
+             "</integrator>\n")
+    (out / "integrator.xml").write_text(stale)
+    argv = ["tune", SPOT, "--width", "48", "--height", "48", "--max-error", "0.1",
+            "--methods", "hard", "--search-size", "32", "--repeats", "1",
+            "--max-spp", "16", "--out", str(out)]
+    with pytest.warns(UserWarning, match="removed .*integrator.xml: an earlier tune"):
+        assert cli.main(argv) == 130
+    assert json.loads((out / "tune.json").read_text())["name"] is None
+    assert not (out / "integrator.xml").exists()
+    mine = "<integrator type=\"path\"/>\n"     # the user's own file: kept
+    (out / "integrator.xml").write_text(mine)
+    monkeypatch.undo()
+    _ctrl_c(monkeypatch, False)
+    with pytest.warns(UserWarning, match="integrator.xml is not this run's"):
+        assert cli.main(argv) == 130
+    assert (out / "integrator.xml").read_text() == mine

@@ -279,7 +279,24 @@ def check_scored_film(scene) -> None:
     if len(scene.sensors()) == 0:   # was Mitsuba's "No sensor specified!" mid-render
         raise ValueError("the scene has no sensor: comparing methods renders its first "
                          "sensor; add a <sensor> (with an hdrfilm)")
+    note_sensors(scene)
     check(scene)
+
+
+def note_sensors(scene, what: str = "renders") -> None:
+    """A note naming the sensors left out when the scene has more than one: the
+    commands render (``maps``: size virtual pages for) the first sensor only, and the
+    others were dropped without a word."""
+    sensors = scene.sensors()
+    if len(sensors) < 2:
+        return
+
+    def name(k, s):
+        return f"'{s.id()}'" if s.id() else f"#{k} ({s.class_name()})"
+    rest = [name(k, s) for k, s in enumerate(sensors) if k > 0]
+    note(f"the scene has {len(sensors)} sensors; this command {what} the first one, "
+         f"{name(0, sensors[0])}, only (not {', '.join(rest)}): move the sensor to use "
+         "to the top of the file")
 
 
 def load_scene_arg(args, sizes=True):
@@ -507,6 +524,7 @@ def cmd_maps(args) -> int:
     scene = load_scene_arg(args, sizes=False)
     from .ground_truth import check_emitters
     check_emitters(scene, "depth map to write")
+    note_sensors(scene, "builds the maps (virtual pages) for")
     params = scene_integrator_params(args, scene, params,
                                      _used_by(harness.map_specs(args.methods)))
     harness.map_specs(args.methods, params)

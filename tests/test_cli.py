@@ -683,3 +683,26 @@ def test_an_abbreviated_variant_after_the_command_is_used(tmp_path, capsys):
                           "--out", tmp_path, "--varia", "llvm_ad_mono"], capsys)
     assert code == 0, err
     assert mi.variant() == "llvm_ad_mono"
+
+
+def test_a_scene_with_several_sensors_says_which_one_renders(tmp_path, capsys):
+    """compare, sweep, tune and maps use a scene's first sensor only; a user's file with
+    two cameras (ids cam_main, cam_top) had the second dropped without a word. A note
+    now names the one rendered and those left out; one sensor: no note."""
+    top = ('  <sensor type="perspective" id="cam_top"><transform name="to_world">\n'
+           '    <lookat origin="0, 6, 0.01" target="0, 0, 0" up="0, 1, 0"/></transform>\n'
+           '    <film type="hdrfilm"><integer name="width" value="12"/>'
+           '<integer name="height" value="12"/></film></sensor>\n')
+    text = _three_lights_xml().replace('<sensor type="perspective">',
+                                       '<sensor type="perspective" id="cam_main">', 1)
+    scene = tmp_path / "two_cams.xml"
+    scene.write_text(text.replace("  <shape", top + "  <shape", 1))
+    rows, err = _compare_rows([scene, "--methods", "hard"], tmp_path / "a", capsys)
+    assert ("note: the scene has 2 sensors; this command renders the first one, "
+            "'cam_main', only (not 'cam_top')") in err, err
+    code, _, err = run(["maps", scene, "--methods", "hard", "--out", tmp_path / "m"], capsys)
+    assert code == 0 and "the first one, 'cam_main', only (not 'cam_top')" in err, err
+    one = tmp_path / "one_cam.xml"
+    one.write_text(_three_lights_xml())
+    rows, err = _compare_rows([one, "--methods", "hard"], tmp_path / "b", capsys)
+    assert "sensors" not in err, err

@@ -189,6 +189,19 @@ def test_help_via_entry_point():
     assert p.returncode == 0 and "--grid" in p.stdout and "name=v1,v2" in p.stdout
 
 
+def test_python_dash_m_package_runs_the_command_line(tmp_path):
+    """``python -m mi_shadowmap ...`` said "No module named mi_shadowmap.__main__;
+    'mi_shadowmap' is a package and cannot be directly executed" (a venv whose scripts
+    folder is not on PATH has no other short way to the CLI); it now runs it."""
+    p = subprocess.run([sys.executable, "-m", "mi_shadowmap", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "compare" in p.stdout and "tune" in p.stdout, p.stderr
+    p = subprocess.run([sys.executable, "-m", "mi_shadowmap", "compare",
+                        str(tmp_path / "missing.xml")], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 2 and "scene file not found" in p.stderr, p.stderr
+
+
 def test_maps_default_scene_every_layer(tmp_path, capsys):
     """Without --methods every layer any map method uses (with default properties) is
     exported; the second surface is never in front of the first (equal, to rounding,

@@ -153,7 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=_methods_help("methods to compare, each 'name' or "
                                       "'name:prop=value,prop=value' (default: every "
                                       "registered method except raytraced)"))
-    c.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
+    c.add_argument("--spp", type=int, default=None,
+                   help="samples per pixel (default: a scene file's sampler's "
+                        "sample_count; 16 for the built-in scene)")
     c.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
     c.add_argument("--repeats", type=int, default=3,
                    help="warm re-renders per method; the median is reported (default 3)")
@@ -175,8 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scene_args(s, out="out/sweep")
     s.add_argument("--grid", action="append", default=None, metavar="FILE|INLINE",
                    help=GRID_HELP)
-    s.add_argument("--spp", type=int, default=16,
-                   help="spp of configurations that do not sweep spp (default 16)")
+    s.add_argument("--spp", type=int, default=None,
+                   help="spp of configurations that do not sweep spp (default: a scene "
+                        "file's sampler's sample_count; 16 for the built-in scene)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--repeats", type=int, default=3,
                    help="warm re-renders per configuration, median reported (default 3)")
@@ -337,6 +340,26 @@ def load_scene_arg(args, sizes=True):
                          f"<default>: give it with --param {m.group(1)}=VALUE") from None
 
 
+#: compare's and sweep's spp for the built-in scene (and a scene without a sampler)
+DEFAULT_SPP = 16
+
+
+def run_spp(args, scene) -> int:
+    """The spp compare and sweep render: ``--spp``; else the scene file's sampler's
+    ``sample_count`` (its ``$spp`` too), named in a note where it is not 16 -- it was
+    16 whatever the file or ``--param spp=N`` said; 16 for the built-in scene."""
+    if args.spp is not None or args.scene is None:
+        return args.spp if args.spp is not None else DEFAULT_SPP
+    from .timing import sampler_spp
+    n = sampler_spp(scene)      # read before any render: the file's own count
+    if n < 1:
+        return DEFAULT_SPP
+    if n != DEFAULT_SPP:
+        note(f"rendering {n} spp, the sample_count of the scene's sampler (--spp "
+             "overrides)")
+    return n
+
+
 def note(text: str) -> None:
     """One line on stderr: ``mi-shadowmap: note: <text>``."""
     print(f"mi-shadowmap: note: {text}", file=sys.stderr)
@@ -451,12 +474,13 @@ def cmd_compare(args) -> int:
         reference = harness.method_spec(reference)
     scene = load_scene_arg(args)
     check_scored_film(scene)
+    spp = run_spp(args, scene)
     params = scene_integrator_params(args, scene, params, _used_by(methods))
     methods = [harness.method_spec(m, params) for m in (args.methods or
                                                         harness.default_methods())]
     report.check_out_dir(out, create=False)   # made when written: no empty folder
     try:
-        results = harness.compare(scene, methods=methods, reference=reference, spp=args.spp,
+        results = harness.compare(scene, methods=methods, reference=reference, spp=spp,
                                   seed=args.seed, repeats=args.repeats, progress=True,
                                   ref_spp=args.ref_spp, ref_shadow_rays=args.ref_shadow_rays,
                                   **params)
@@ -489,10 +513,11 @@ def cmd_sweep(args) -> int:
             grid += sub if isinstance(sub, list) else [sub]
     grid = grid if grid is not None else harness.default_grid()
     harness.expand_grid(harness.with_shared(grid, params) if params else grid,
-                        default_spp=args.spp)   # reject bad entries before rendering
+                        default_spp=args.spp or DEFAULT_SPP)   # reject bad entries first
     harness.check_run_args(spp=args.spp, seed=args.seed, repeats=args.repeats)
     scene = load_scene_arg(args)
     check_scored_film(scene)
+    spp = run_spp(args, scene)
     grid_methods = [m for g in ([grid] if isinstance(grid, dict) else grid)
                     for m in ([g.get("method", [])] if isinstance(g.get("method"), str)
                               else g.get("method", []))]
@@ -501,7 +526,7 @@ def cmd_sweep(args) -> int:
         grid = harness.with_shared(grid, params)
     report.check_out_dir(out, create=False)   # made when written: no empty folder
     try:
-        table = harness.sweep(scene, grid, spp=args.spp, seed=args.seed,
+        table = harness.sweep(scene, grid, spp=spp, seed=args.seed,
                               repeats=args.repeats, error_key=args.error, progress=True)
     except BaseException as exc:    # a bug, Ctrl-C: the rows rendered so far are kept
         done = getattr(exc, "sweep_table", None)

@@ -719,3 +719,35 @@ def test_a_scene_with_several_sensors_says_which_one_renders(tmp_path, capsys):
     one.write_text(_three_lights_xml())
     rows, err = _compare_rows([one, "--methods", "hard"], tmp_path / "b", capsys)
     assert "sensors" not in err, err
+
+
+def test_compare_and_sweep_render_the_scene_files_sample_count(tmp_path, capsys):
+    """compare and sweep rendered 16 spp whatever the scene file's sampler said: a
+    user's file with sample_count 4, or 'compare spot_sphere_box.xml --param spp=2',
+    rendered and reported 16 (metrics.json spp 16). Without --spp they now render the
+    file's count, with a note; --spp overrides it; 16 stays the count for a file that
+    says 16 (every scene of scenes_xml), without a note."""
+    scene = tmp_path / "four.xml"
+    scene.write_text(_three_lights_xml().replace(
+        '<sensor type="perspective">',
+        '<sensor type="perspective"><sampler type="independent">'
+        '<integer name="sample_count" value="3"/></sampler>', 1))
+    code, _, err = run(["compare", scene, "--methods", "hard", "--repeats", "1",
+                        "--out", tmp_path / "a"], capsys)
+    assert code == 0, err
+    rows = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert [r["spp"] for r in rows] == [3, 3]
+    assert "rendering 3 spp, the sample_count of the scene's sampler" in err, err
+    code, _, err = run(["compare", scene, "--methods", "hard", "--repeats", "1",
+                        "--spp", "1", "--out", tmp_path / "b"], capsys)
+    rows = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert code == 0 and [r["spp"] for r in rows] == [1, 1] and "sample_count" not in err
+    code, _, err = run(["sweep", scene, "--grid", "method=hard", "--repeats", "1",
+                        "--out", tmp_path / "s"], capsys)
+    assert code == 0, err
+    assert [r["spp"] for r in json.loads((tmp_path / "s" / "sweep.json").read_text())] == [3]
+    code, _, err = run(["compare", SCENES / "spot_sphere_box.xml", "--param", "spp=2",
+                        "--width", "16", "--height", "16", "--methods", "hard",
+                        "--repeats", "1", "--out", tmp_path / "c"], capsys)
+    rows = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert code == 0 and [r["spp"] for r in rows] == [2, 2], err

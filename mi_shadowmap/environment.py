@@ -14,7 +14,8 @@ sub-views).
 (:meth:`EnvironmentView.ray_through_f64` for the page build, per texel's face;
 :class:`RegionView`'s for the lookups, per lane's region: the shading loop's). The
 mark pass projects every camera point into every region
-(:meth:`EnvironmentView.mark_views`) that can light it: whose directions reach
+(:meth:`EnvironmentView.mark_views`; all regions in one kernel,
+:meth:`EnvironmentView.mark_lanes`) that can light it: whose directions reach
 above the point's horizon (its normal facing the camera; the region's largest angle
 from its centroid plus :data:`MARK_SLACK`; either side's horizon where the point's BSDF
 transmits light), so a region behind a wall or below the ground builds no page there;
@@ -592,6 +593,32 @@ class EnvironmentView(MultiView):
 
             out.append((self.region_view(dr.opaque(mi.UInt32, k)), active))
         return out
+
+    def _mark_tables(self) -> tuple:
+        """Per region, :meth:`mark_views`'s centroid (float32) and horizon limit, as
+        opaque JIT arrays (padded to two entries: a one-entry array would be a literal)."""
+        c = np.asarray(self.centroids, np.float64).reshape(-1, 3)
+        lim = [-math.sin(min(r + MARK_SLACK, 0.5 * math.pi)) for r in self.region_radii]
+        pad = [0] * (len(lim) < 2)
+        cv = mi.Vector3f(*(mi.Float(c[:, a].tolist() + [0.0] * len(pad)) for a in range(3)))
+        lim = mi.Float(lim + [0.0] * len(pad))
+        dr.make_opaque(cv, lim)
+        return cv, lim
+
+    def mark_lanes(self, k) -> tuple:
+        """:meth:`mark_views` for the regions ``k`` (``mi.UInt32``, per lane) in one
+        kernel: ``(view, active(p, n, through))``, the same values per lane as region
+        ``k``'s entry of :meth:`mark_views`."""
+        k = mi.UInt32(k)
+        cv_all, lim_all = self._mark_tables()
+        cv = dr.gather(mi.Vector3f, cv_all, k)
+        lim = dr.gather(mi.Float, lim_all, k)
+
+        def active(p, n, through):
+            c = dr.dot(n, cv)
+            return (c > lim) | (mi.Bool(through) & (-c > lim))
+
+        return self.region_view(k), active
 
     def describe(self) -> str:
         return (f"{self.label}: environment light, {self.n_views} median-cut regions x "

@@ -2023,3 +2023,35 @@ def test_a_still_camera_plans_from_the_last_render(monkeypatch):
         params["pl0.intensity.value"] = value
         params.update()
         assert planner._dark(light, store) is dark
+
+
+@pytest.mark.parametrize("margin", [0.0, 2.0, 5.5, 9.0, 12.0, 40.0])
+def test_mark_blocks_give_the_candidate_tiles(margin):
+    """The mark pass dedupes one block of tiles per point (:func:`marks.mark_blocks`,
+    expanded on the host by :func:`marks.expand_blocks`) instead of every candidate
+    tile of :func:`marks.mark_candidates`: the same tiles, for points anywhere on a
+    face (its edges too: blocks clipped at 0 and at the level's last tile), at every
+    level, for kernels of every width (2 to 5 tiles a side)."""
+    scene = mi.load_dict({"type": "scene", "sensor": {
+        "type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        "ground": {"type": "rectangle"},
+        "sun": {"type": "directional", "direction": [0.2, 0.1, -1]}})
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard"})
+    mi.render(scene, integrator=integ, spp=1)
+    lay = integ.maps[0].layout
+    marker = marks.Marker(lay, -0.5)
+    rng = np.random.default_rng(5)
+    n = 4000
+    uv = rng.random((2, n))
+    uv[:, :400] = rng.choice([0.0, 1e-9, 1.0 - 1e-9, 1.0], (2, 400))   # at the edges
+    level = rng.integers(0, lay.coarsest + 1, n)
+    points = (mi.UInt32(rng.integers(0, lay.view.n_faces, n)), mi.Point2d(uv[0], uv[1]),
+              mi.Bool(rng.random(n) < 0.9), mi.UInt32(level))
+    keys, oks = marks.mark_candidates(marker, None, None, None, None, margin=margin,
+                                      points=points)
+    want = np.unique(np.concatenate([k.numpy()[ok.numpy()] for k, ok in zip(keys, oks)]))
+    bkeys, boks = marks.mark_blocks(marker, points, margin=margin)
+    per_axis = math.isqrt(len(bkeys))
+    found = [k.numpy()[ok.numpy()] for k, ok in zip(bkeys, boks)]
+    got = np.unique(marks.expand_blocks(found, per_axis))
+    assert len(want) > 100 and np.array_equal(got, want)

@@ -68,7 +68,8 @@ sees it), which does not change as pages are built.
 **Environment lights**: an :class:`~mi_shadowmap.environment.EnvironmentView`'s K
 median-cut regions are the K faces of one virtual map (orthographic faces, like a
 directional light's), marked per region for the points it can light
-(``mark_views``) and read through the region of the shading loop
+(``mark_views``; all regions in one pass, a lane per region and point:
+``mark_lanes``) and read through the region of the shading loop
 (:meth:`VirtualShadowMap.with_view`); see :mod:`mi_shadowmap.environment`.
 
 **Cascades** (``virtual=true`` with ``cascades`` > 1): a directional light's view is

@@ -74,7 +74,7 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     return si, dp_dx, dp_dy, valid
 
 
-def _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
+def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     """``(face, uv64, act, level)`` of the camera hits ``si`` a mark reads: their face and
     float64 uv, which of them mark (valid, on a face, in front of a one-sided planar
     light, and ``active(p, n)`` if given) and their footprint's level."""
@@ -90,7 +90,7 @@ def _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
 
 
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
-                    active=None) -> tuple:
+                    active=None, points=None) -> tuple:
     """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
     (unevaluated): the tiles the lookups at ``si`` read (see the module doc): at each
     point's level, the tiles (:attr:`VirtualLayout.tile_size` texels wide; keys as
@@ -105,22 +105,11 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     instead, 64 texels wide, cast 1.5-1.9x the texels and doubled a camera move's PCSS
     frame for the same error on the soft-shadow scenes.)
     ``active(p, n)``: which points to mark (``n`` the normal facing the camera), or
-    None: every point the view sees."""
-    lay, P = vmap_like.layout, vmap_like.layout.page_size
-    T = lay.tile_size
-    # camera samples off the pixel centre: half a pixel, 2^(-1 - lod_bias) texels at the
-    # lower end of its level's range (1 at the default lod_bias: finer levels put a
-    # pixel's samples farther from its centre in texels)
-    off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
-    m = min(float(margin) + off, 0.5 * P)
-    per_axis = min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
-    face, uv64, act, level = _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
-    res = mi.Float64(mi.UInt32(lay.res0) >> level)
-    xy = uv64 * res
-    n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1) \
-        * lay.tiles_per_side
-    lo = mi.Point2i(dr.floor((xy - m) / T))
-    hi = mi.Point2i(dr.floor((xy + m) / T))
+    None: every point the view sees. ``points``: the points' :func:`marked_points`
+    (evaluated: then each key is a few integer operations on them, cheap to recompute
+    in every round of :func:`dedupe_many`), or None: computed here."""
+    face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
+        vmap_like, si, dp_dx, dp_dy, valid, margin, active, points)
     # per_axis^2 candidates per point, all in one kernel; only the valid ones leave
     # Dr.Jit (most points read one tile or two)
     keys, oks = [], []
@@ -130,6 +119,68 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
                    & (tx < n_tiles) & (ty < n_tiles))
         keys.append(page_key(face, level, dr.maximum(tx, 0), dr.maximum(ty, 0)))
     return keys, oks
+
+
+def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> tuple:
+    """``(face, level, act, lo, hi, n_tiles, per_axis)`` of :func:`mark_candidates`: the
+    tiles ``lo`` to ``hi`` (per axis, at most ``per_axis`` from ``lo``) around each point
+    at its level, of ``n_tiles`` per side there."""
+    lay, P = vmap_like.layout, vmap_like.layout.page_size
+    T = lay.tile_size
+    # camera samples off the pixel centre: half a pixel, 2^(-1 - lod_bias) texels at the
+    # lower end of its level's range (1 at the default lod_bias: finer levels put a
+    # pixel's samples farther from its centre in texels)
+    off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
+    m = min(float(margin) + off, 0.5 * P)
+    per_axis = min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
+    face, uv64, act, level = (points if points is not None else
+                              marked_points(vmap_like, si, dp_dx, dp_dy, valid, active))
+    res = mi.Float64(mi.UInt32(lay.res0) >> level)
+    xy = uv64 * res
+    n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1) \
+        * lay.tiles_per_side
+    lo = mi.Point2i(dr.floor((xy - m) / T))
+    hi = mi.Point2i(dr.floor((xy + m) / T))
+    return face, level, act, lo, hi, n_tiles, per_axis
+
+
+def mark_blocks(vmap_like, points, margin: float = 2.0) -> tuple:
+    """:func:`mark_candidates`' tiles as one block per point: ``(keys, oks)``, one list
+    per block shape ``(w, h)`` (``w = c % per_axis + 1``, ``h = c // per_axis + 1`` for
+    list ``c``), holding the same key in every list -- the block's first tile (as
+    :func:`page_key` in tile units) -- valid in the list of its shape only. Neighbouring
+    points mark the same block, so deduplicating blocks (:func:`dedupe_many`, one key
+    and hash a point) finds what the ``per_axis^2`` candidate tiles a point would find,
+    then :func:`expand_blocks` gives the tiles: the same set as :func:`mark_candidates`'
+    valid keys. ``points``: the points' evaluated :func:`marked_points`."""
+    face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
+        vmap_like, None, None, None, None, margin, None, points)
+    # the valid candidates of mark_candidates: lo + a (a < per_axis) in [0, n_tiles)
+    # and at most hi, i.e. the range [max(lo, 0), min(hi, lo + per_axis - 1, n_tiles - 1)]
+    sx, sy = dr.maximum(lo.x, 0), dr.maximum(lo.y, 0)
+    ex = dr.minimum(dr.minimum(hi.x, lo.x + (per_axis - 1)), n_tiles - 1) - sx
+    ey = dr.minimum(dr.minimum(hi.y, lo.y + (per_axis - 1)), n_tiles - 1) - sy
+    ok = act & (ex >= 0) & (ey >= 0)
+    key = page_key(face, level, sx, sy)
+    keys, oks = [], []
+    for c in range(per_axis * per_axis):
+        keys.append(key)
+        oks.append(ok & (ex == c % per_axis) & (ey == c // per_axis))
+    return keys, oks
+
+
+def expand_blocks(found: list, per_axis: int) -> np.ndarray:
+    """The tile keys of :func:`mark_blocks`' blocks: ``found[c]`` the first tiles of the
+    blocks of list ``c``'s shape (repeats allowed). Unsorted, with repeats."""
+    out = []
+    for c, first in enumerate(found):
+        if len(first) == 0:
+            continue
+        face, level, sx, sy = key_fields(np.asarray(first, np.uint64))
+        for dy in range(c // per_axis + 1):
+            for dx in range(c % per_axis + 1):
+                out.append(page_key(face, level, sx + np.uint64(dx), sy + np.uint64(dy)))
+    return (np.concatenate(out).astype(np.uint64) if out else np.zeros(0, np.uint64))
 
 
 def coarser_levels(layout, level, coarse_res: int):
@@ -144,7 +195,7 @@ def coarser_levels(layout, level, coarse_res: int):
 
 
 def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
-                 active=None) -> tuple:
+                 active=None, points=None) -> tuple:
     """``(keys, oks)`` like :func:`mark_candidates` for the coarser levels a method
     with ``virtual_coarse_res`` may read (:func:`coarser_levels`): at each of them, the
     tile under the point only (one candidate per level: neighbouring points mark the
@@ -152,7 +203,8 @@ def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
     of those on the host (:func:`dilate_tiles`)."""
     lay = vmap_like.layout
     T = lay.tile_size
-    face, uv64, act, level = _marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
+    face, uv64, act, level = (points if points is not None else
+                              marked_points(vmap_like, si, dp_dx, dp_dy, valid, active))
     k_max = coarser_levels(lay, level, coarse_res)
     keys, oks = [], []
     for k in range(1, min(MAX_COARSER, lay.coarsest) + 1):
@@ -201,7 +253,7 @@ def tile_pages(tiles: np.ndarray, layout) -> tuple:
     return pages, masks
 
 
-def dedupe_many(groups: list, bits: int = 14) -> list:
+def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list:
     """For each ``(keys, oks)`` of ``groups`` (one per light), most of the keys
     ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
     65 k candidates hold a few thousand keys), so that the host sorts a few thousand keys
@@ -215,22 +267,42 @@ def dedupe_many(groups: list, bits: int = 14) -> list:
     whose ``np.unique`` was a tenth of a camera move's frame). Which key wins a slot
     does not matter: the returned set is the same. The selection is done on the host
     with numpy, so every frame runs the same kernels (a compress and gather would trace
-    new ones whenever a frame first has 0, 1 or more lost keys)."""
+    new ones whenever a frame first has 0, 1 or more lost keys).
+
+    ``parts``: per group, None or ``(part, n)``: its candidates' partition (``mi.UInt32``
+    per candidate, below ``n``; an environment's region), each with its own ``2^bits``
+    slots of the group's tables (``n 2^bits`` slots), so that one kernel dedupes the
+    keys of every region as the region's own tables would (their load, and a region's
+    lanes, which run together, touch only its slots). On the host a table's entries
+    that repeat the previous table's in the same slot are left out (a group's tables
+    share their slots: a key wins the same slot in each), one comparison per slot and
+    table (comparing with every earlier table was quadratic in the lists: 300
+    comparisons a slot for a 25-list ``pcss`` mark pass)."""
     # one table per candidate list: Dr.Jit puts scatters into different arrays in one
     # kernel (a second scatter into the same array would start a new kernel)
     flat = [(k, ok) for keys, oks in groups for k, ok in zip(keys, oks)]
+    parts = [None] * len(groups) if parts is None else list(parts)
+    flat_parts = [pt for (keys, _), pt in zip(groups, parts) for _ in keys]
 
-    def slots_of(k, mult):
-        return mi.UInt32((k * mi.UInt64(mult)) >> (64 - bits))
+    def slots_of(k, mult, pt):
+        s = mi.UInt32((k * mi.UInt64(mult)) >> (64 - bits))
+        return s if pt is None else s + (mi.UInt32(pt[0]) << bits)
 
-    tables = [dr.full(mi.UInt64, NO_KEY, 1 << bits) for _ in flat]
-    slot = [slots_of(k, 0x9E3779B97F4A7C15) for k, _ in flat]
+    def table(pt):
+        return dr.full(mi.UInt64, NO_KEY, (1 if pt is None else int(pt[1])) << bits)
+
+    tables = [table(pt) for pt in flat_parts]
+    slot = [slots_of(k, 0x9E3779B97F4A7C15, pt) for (k, _), pt in zip(flat, flat_parts)]
     for t, (k, ok), s in zip(tables, flat, slot):
         dr.scatter(t, k, s, ok)
-    dr.eval(*tables, *(k for k, _ in flat), *(ok for _, ok in flat))
+    # the keys are not stored: each round recomputes them from their inputs (the mark
+    # pass evaluates its points first, :func:`marked_points`), a few integer operations
+    # where storing every candidate list (25 of a pcss mark under a 16-region sky, 60 MB)
+    # and reading it back twice was bound by memory
+    dr.eval(*tables)
     # the second round, in one kernel with the first round's losers
-    tables2 = [dr.full(mi.UInt64, NO_KEY, 1 << bits) for _ in flat]
-    slot2 = [slots_of(k, 0xC2B2AE3D27D4EB4F) for k, _ in flat]
+    tables2 = [table(pt) for pt in flat_parts]
+    slot2 = [slots_of(k, 0xC2B2AE3D27D4EB4F, pt) for (k, _), pt in zip(flat, flat_parts)]
     lost = [ok & (dr.gather(mi.UInt64, t, s, ok) != k)
             for t, (k, ok), s in zip(tables, flat, slot)]
     for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost):
@@ -239,25 +311,31 @@ def dedupe_many(groups: list, bits: int = 14) -> list:
     lost2 = [lo & (dr.gather(mi.UInt64, t2, s2, lo) != k)
              for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost)]
     dr.eval(*lost2)
+    lost2 = [lo.numpy() for lo in lost2]
+    if any(lo.any() for lo in lost2):
+        # every list's keys in one kernel (the same code whichever lists lost keys)
+        dr.eval(*(k for k, _ in flat))
     out, start = [], 0
     for keys, _ in groups:
         idx = range(start, start + len(keys))
         start += len(keys)
-        parts = []
+        found = []
         for tabs in (tables, tables2):
             # a group's tables share their hash: a key sits in the same slot in each, so
             # a slot's entries repeat across tables unless different keys won it
-            rows = [tabs[i].numpy() for i in idx]
-            for j, row in enumerate(rows):
+            prev = None
+            for i in idx:
+                row = tabs[i].numpy()
                 keep = row != np.uint64(NO_KEY)
-                for earlier in rows[:j]:
-                    keep &= row != earlier
-                parts.append(row[keep])
+                if prev is not None:
+                    keep &= row != prev
+                found.append(row[keep])
+                prev = row
         for i in idx:
-            lo = lost2[i].numpy()
+            lo = lost2[i]
             if lo.any():
-                parts.append(flat[i][0].numpy()[lo])
-        out.append(np.concatenate(parts) if parts else np.zeros(0, np.uint64))
+                found.append(flat[i][0].numpy()[lo])
+        out.append(np.concatenate(found) if found else np.zeros(0, np.uint64))
     return out
 
 

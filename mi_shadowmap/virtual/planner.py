@@ -17,9 +17,22 @@ from .camera import camera_state, clear_camera_states
 from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_unique,
                      with_keys)
 from .lookup import VirtualShadowMap
-from .marks import (Marker, camera_hits, dedupe_many, dilate_tiles, mark_candidates,
-                    mark_coarser, tile_pages)
+from .marks import (Marker, camera_hits, dedupe_many, dilate_tiles, expand_blocks,
+                    mark_blocks, mark_coarser, marked_points, tile_pages)
 from .store import PageStore, page_bytes, page_layers
+
+
+#: Most lanes of one environment mark kernel (regions x camera hits): an environment's
+#: regions are marked in batches of ``MARK_LANES // hits`` regions (at least one).
+MARK_LANES = 1 << 19
+
+
+class _Hits:
+    """Camera hits gathered per mark lane: the position and the normal facing the camera
+    (all that marking reads of a surface interaction)."""
+
+    def __init__(self, p, n):
+        self.p, self.n = p, n
 
 
 # ----------------------------------------------------------------------- the cache
@@ -144,10 +157,9 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
              if all(stores[j] is not stores[i] for j in stale[:k])]
     if stale:
-        # lights marked from their own view: all in one kernel; an environment's regions
-        # (mark_views): one kernel per region, the same code for every region (their
-        # values are opaque), from hits evaluated once (and whether each hit's BSDF
-        # transmits: light reaches it from behind too)
+        # lights marked from their own view: all in one pass; an environment's regions
+        # (mark_lanes): in one pass too, a lane per region and hit, from hits evaluated
+        # once (and whether each hit's BSDF transmits: light reaches it from behind too)
         plain = [i for i in stale if not hasattr(stores[i].layout.view, "mark_views")]
         multi = [i for i in stale if i not in plain]
         hits = camera_hits(scene, sensor, evaluate=bool(multi))
@@ -155,20 +167,26 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
             dr.eval(through)
-        def marks(i, marker, active=None):
+        def marks(i, marker, points):
             """The candidate lists of light ``i`` (its own levels', then the coarser
-            levels' its kernels may filter, :func:`mark_coarser`)."""
-            out = [mark_candidates(marker, *hits, margin=margins[i], active=active)]
+            levels' its kernels may filter, :func:`mark_coarser`) from its evaluated
+            :func:`marked_points` ``points``."""
+            # its own levels' tiles as blocks (mark_blocks): one group per block shape
+            keys, oks = mark_blocks(marker, points, margin=margins[i])
+            out = [([k], [ok]) for k, ok in zip(keys, oks)]
             if coarse[i]:
-                out.append(mark_coarser(marker, *hits, coarse_res=coarse[i], active=active))
+                out.append(mark_coarser(marker, None, None, None, None,
+                                        coarse_res=coarse[i], points=points))
             return out
 
         def tiles(i, found):
-            """Light ``i``'s tile keys from its :func:`marks` lists' keys: ``(own levels',
+            """Light ``i``'s tile keys from its :func:`marks` groups' keys: ``(own levels',
             coarser levels')`` (the latter empty without ``virtual_coarse_res``)."""
-            extra = (dilate_tiles(found[1], stores[i].layout, margins[i]) if coarse[i]
+            n = len(found) - bool(coarse[i])
+            own = expand_blocks(found[:n], math.isqrt(n))
+            extra = (dilate_tiles(found[n], stores[i].layout, margins[i]) if coarse[i]
                      else np.zeros(0, np.uint64))
-            return found[0], extra
+            return own, extra
 
         def settle(i, parts):
             """Light ``i``'s mark: every tile, and those only the coarser levels' kernels
@@ -178,17 +196,42 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             optional = np.setdiff1d(extra, own, assume_unique=True)
             stores[i].last_mark = (mark_key[i], with_keys(own, optional), optional)
 
-        groups = [marks(i, Marker(stores[i].layout, opts.lod_bias)) for i in plain]
+        # every light's marked points first (one kernel with the camera hits), then the
+        # candidate tiles from them in each dedupe round (a few integer operations)
+        markers = [Marker(stores[i].layout, opts.lod_bias) for i in plain]
+        points = [marked_points(mk, *hits) for mk in markers]
+        dr.eval(*(x for pt in points for x in pt))
+        groups = [marks(i, mk, pt) for i, mk, pt in zip(plain, markers, points)]
         found = dedupe_many([g for gs in groups for g in gs])
         for i, gs in zip(plain, groups):
             mine, found = found[:len(gs)], found[len(gs):]
             settle(i, [tiles(i, mine)])
+        # an environment's regions: every (region, camera hit) pair a lane, as many
+        # regions a kernel as MARK_LANES lanes hold (16 regions of a 128^2 film: one
+        # kernel, where one per region launched 48 kernels and 900 table memsets a
+        # camera move); each region keeps its own hash slots (dedupe_many's parts)
+        n_pts = dr.width(hits[3])
         for i in multi:
+            view = stores[i].layout.view
+            n_regions = view.n_views
+            per = max(1, min(n_regions, MARK_LANES // max(n_pts, 1)))
             parts = []
-            for mark_view, mark_active in stores[i].layout.view.mark_views():
-                gs = marks(i, Marker(stores[i].layout, opts.lod_bias, mark_view),
-                           active=lambda p, n, f=mark_active: f(p, n, through))
-                parts.append(tiles(i, dedupe_many(gs)))
+            for k0 in range(0, n_regions, per):
+                nk = min(per, n_regions - k0)
+                lane = dr.arange(mi.UInt32, nk * n_pts)
+                width = dr.opaque(mi.UInt32, n_pts)
+                local = lane // width
+                pt = lane - local * width
+                pts = (_Hits(*(dr.gather(type(a), a, pt) for a in (hits[0].p, hits[0].n))),
+                       *(dr.gather(type(a), a, pt) for a in hits[1:]))
+                thr = dr.gather(mi.Bool, through, pt)
+                mark_view, mark_active = view.mark_lanes(local + dr.opaque(mi.UInt32, k0))
+                marker = Marker(stores[i].layout, opts.lod_bias, mark_view)
+                points = marked_points(marker, *pts,
+                                       active=lambda p, n, f=mark_active, t=thr: f(p, n, t))
+                dr.eval(*points)
+                gs = marks(i, marker, points)
+                parts.append(tiles(i, dedupe_many(gs, parts=[(local, nk)] * len(gs))))
             settle(i, parts)
     # memory: the budget's pages shared by need (share_pages), then the pages each map's
     # marks keep (fit_marks); a degraded map's unused pages go to the next degraded one

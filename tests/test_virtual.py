@@ -190,6 +190,33 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
     assert np.all(moved[inside_tile]) and not np.any(moved[lit & ~inside_tile])
 
 
+def test_a_lookup_whose_level_is_not_built_walks_to_the_next_finer_first():
+    """The walk's order (``bind``): the wanted level, else the next finer, else the next
+    coarser, else the coarsest. Asked one level coarser than their pixels' (``level``),
+    the lanes whose page is not built there must read their own level, one finer (built:
+    the render marked it), not walk on to coarser ones (mutation audit: a walk trying
+    ``want + 1`` first passed all of this module; here its 359 walked lanes read levels
+    up to 4 coarser)."""
+    from mi_shadowmap.filters.common import Lookup
+    scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light="spot"))
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap = integ.maps[0]
+    lay = vmap.layout
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    p64 = mi.Point3d(lk.p_world)
+    face, _, _, inside = vmap.view.project_f64(p64)
+    want = vmap.level_for(face, p64, dp_dx, dp_dy)
+    lit = (valid & inside).numpy() & (want.numpy() + 1 < lay.coarsest)
+    assert np.all(vmap.bind(lk, valid, per_tap=True).level.numpy()[lit] == want.numpy()[lit])
+    got = vmap.bind(lk, valid, per_tap=True, level=want + 1).level.numpy()[lit]
+    w = want.numpy()[lit]
+    walked = got != w + 1
+    assert lit.sum() > 500 and walked.sum() > 100, (lit.sum(), walked.sum())
+    np.testing.assert_array_equal(got[walked], w[walked])
+
+
 def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
     """``hard`` reads at every lane's wanted level and runs again, walked, where its
     read finds the page or tile missing (:meth:`VirtualShadowMap.visibility`): with one

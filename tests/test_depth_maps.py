@@ -405,3 +405,30 @@ def test_fit_frusta_keeps_every_visible_receiver_in_the_map(light):
         _, aovs = render_np(scene, {"type": "shadowmap", **props}, spp=2)
         (vis,) = aovs.values()
         assert np.count_nonzero(vis >= 0.5) == 0, props
+
+
+@pytest.mark.parametrize("props", [{}, {"resolution": 256}], ids=["virtual", "full"])
+def test_a_directional_map_covers_the_scene_to_its_edges(props):
+    """A directional light's map is fitted to the scene's bounds (``directional_view``):
+    a receiver at the edge of the scene must still project inside it. A sun straight
+    down on a ground under a plate of the same size, seen from between them to beyond
+    the ground's edges: every ground pixel is shadowed. A window 10 % too small
+    (mutation audit: it passed test_depth_maps and test_cascades) lit the ground's rim,
+    152 of the 48^2 pixels, on virtual and full maps alike."""
+    from conftest import render_np
+    scene = mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "perspective", "fov": 120,
+                "to_world": T().look_at(origin=[0, 0, 0.9], target=[0, 0, 0], up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": 48, "height": 48},
+                "sampler": {"type": "independent", "sample_count": 2}},
+        "sun": {"type": "directional", "direction": [0, 0, -1], "irradiance": 1.0},
+        "ground": {"type": "rectangle"},
+        "plate": {"type": "rectangle", "to_world": T().translate([0, 0, 1.0]),
+                  "flip_normals": True}})
+    _, aovs = render_np(scene, {"type": "shadowmap", "method": "hard", **props}, spp=2)
+    (vis,) = aovs.values()
+    assert np.count_nonzero(vis >= 0.5) == 0
+    _, aovs = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=2)
+    (vis,) = aovs.values()
+    assert np.count_nonzero(vis >= 0.5) == 0

@@ -27,6 +27,7 @@ import numpy as np
 import mitsuba as mi
 
 from .light_views import LightView
+from .light_views.base import remember_latest
 from .map_scene import map_scene, stand_in
 from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
 
@@ -326,6 +327,9 @@ def _grouped_shapes(scene: mi.Scene, listed) -> list:
 #: :func:`face_solidity` per mesh state (as light_views.base's bounds memo).
 _SOLID_MEMO = collections.OrderedDict()
 _SOLID_MEMO_SIZE = 4096
+#: ``id(shape)`` -> its latest key in :data:`_SOLID_MEMO` (an edited mesh's earlier
+#: state is dropped: ``light_views.base.remember_latest``).
+_SOLID_LATEST: dict = {}
 
 
 def _welded_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> tuple:
@@ -378,6 +382,7 @@ def clear_memos() -> None:
     last face tables (:func:`_face_magnitudes`) and the scenes' copies with cylinders as
     meshes (:mod:`~mi_shadowmap.map_scene`)."""
     _SOLID_MEMO.clear()
+    _SOLID_LATEST.clear()
     _FACE_MEMO[:] = [None, None]
     _SOLID_TABLES_MEMO[:] = [None, None]
     _OUTSIDE_MEMO.clear()
@@ -411,9 +416,7 @@ def face_solidity(shape) -> np.ndarray:
     out = np.zeros(len(f), bool)
     if len(f) and not shape.has_flipped_normals() and not _culls_back_faces(shape):
         out = _solid_parts(vbuf.numpy().reshape(-1, 3), f)
-    while len(_SOLID_MEMO) >= _SOLID_MEMO_SIZE:
-        _SOLID_MEMO.popitem(last=False)
-    _SOLID_MEMO[key] = ((vbuf, fbuf), out)
+    remember_latest(_SOLID_MEMO, _SOLID_LATEST, key, ((vbuf, fbuf), out), _SOLID_MEMO_SIZE)
     return out
 
 

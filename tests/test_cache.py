@@ -612,3 +612,36 @@ def test_a_point_light_moved_along_any_axis_rebuilds_the_maps(axis):
         {"type": "shadowmap", "method": "hard", "resolution": 128, "cache_maps": False}),
         spp=1, seed=3))[..., -1]
     assert np.array_equal(reused, fresh)
+
+
+@pytest.mark.parametrize("method", ["hard", "second_depth"])
+def test_a_mesh_deformed_every_frame_keeps_one_state_in_the_mesh_memos(method):
+    """The per-mesh-state memos (bounds and per-face magnitudes, ``second_depth``'s
+    face solidity) held every frame's vertex buffer of a mesh deformed by
+    ``params.update()`` until 4096 entries: a 90k-vertex mesh animated with ``hard``
+    grew RSS 1.1 MB a frame (263 -> 308 MB over 40 frames; ``second_depth`` 2 MB a
+    frame), Mitsuba's ``direct`` not at all. Only a mesh's latest state is kept now."""
+    from mi_shadowmap.light_views import base
+    from mi_shadowmap import depth_maps
+    mi_shadowmap.clear_caches()
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "shadowmap", "method": method},
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": T().look_at(origin=[0, 4, 6], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4)},
+        "blob": {"type": "cube", "to_world": T().translate([0, 1, 0]).scale(0.5)},
+        "light": {"type": "point", "position": [1, 4, 1]}})
+    params = mi.traverse(scene)
+    v0 = np.array(params["blob.vertex_positions"]).reshape(-1, 3)
+    blob = [s for s in scene.shapes() if s.id() == "blob"][0]
+    for f in range(5):
+        params["blob.vertex_positions"] = mi.Float((v0 + [0.2 * f, 0, 0]).ravel())
+        params.update()
+        mi.render(scene, spp=1, seed=f)
+    for memo in (base._MESH_MEMO, depth_maps._SOLID_MEMO):
+        assert len([k for k in memo if k[0] == id(blob)]) <= 1
+    assert [k for k in base._MESH_MEMO if k[0] == id(blob)]      # it was remembered
+    mi_shadowmap.clear_caches()

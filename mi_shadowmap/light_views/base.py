@@ -330,14 +330,36 @@ _MESH_MEMO = collections.OrderedDict()
 _MESH_MEMO_SIZE = 4096
 
 
+def remember_latest(memo: collections.OrderedDict, latest: dict, key: tuple, value,
+                    limit: int):
+    """``memo[key] = value`` for a per-mesh-state memo keyed ``(id(shape), buffer
+    indices...)``, keeping only each shape's latest state (``latest``: ``id(shape)`` ->
+    its key in ``memo``): an edited mesh's earlier entry, which holds its earlier
+    buffers, is dropped. Without that, a mesh deformed every frame kept every frame's
+    vertex buffer until ``limit`` entries (a 90k-vertex mesh: +1.1 MB a frame with
+    ``hard``, +2 MB with ``second_depth``)."""
+    old = latest.get(key[0])
+    if old is not None and old != key:
+        memo.pop(old, None)
+    while len(memo) >= limit:
+        gone = memo.popitem(last=False)[0]
+        if latest.get(gone[0]) == gone:
+            del latest[gone[0]]
+    memo[key] = value
+    latest[key[0]] = key
+    return value
+
+
+#: ``id(shape)`` -> its latest key in :data:`_MESH_MEMO` (:func:`remember_latest`).
+_MESH_LATEST: dict = {}
+
+
 def _mesh_entry(shape) -> list:
     vbuf, fbuf = shape.vertex_positions_buffer(), shape.faces_buffer()
     key = (id(shape), vbuf.index, fbuf.index)
     hit = _MESH_MEMO.get(key)
     if hit is None:
-        while len(_MESH_MEMO) >= _MESH_MEMO_SIZE:
-            _MESH_MEMO.popitem(last=False)
-        hit = _MESH_MEMO[key] = [(vbuf, fbuf), False, None]
+        hit = remember_latest(_MESH_MEMO, _MESH_LATEST, key, [(vbuf, fbuf), False, None], _MESH_MEMO_SIZE)
     else:
         _MESH_MEMO.move_to_end(key)
     return hit
@@ -347,6 +369,7 @@ def clear_memos() -> None:
     """Forget every mesh's remembered bounds and per-face magnitudes, and the opaque
     values of light positions and frames (:func:`opaque_point`, ...)."""
     _MESH_MEMO.clear()
+    _MESH_LATEST.clear()
     _OPAQUE.clear()
 
 

@@ -185,8 +185,22 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     else:
         views = list(views)
     if record.view_for is not None and opts.uses_map:   # e.g. multiview: K views in one map
-        views = [v if v is None else (record.view_for(v, e, scene, opts) or v)
-                 for v, e in zip(views, scene.emitters())]
+        made = [None if v is None else record.view_for(v, e, scene, opts)
+                for v, e in zip(views, scene.emitters())]
+        idle = [n for n in record.view_properties
+                if n in opts.given and getattr(opts, n) != record.property(n).default]
+        if idle and any(v is not None for v in views) and all(m is None for m in made):
+            sizes = [f"'{n}'" for n in ("light_size", "angular_diameter")
+                     if record.property(n) is not None]
+            warnings.warn(
+                f"shadowmap: {'property' if len(idle) == 1 else 'properties'} "
+                f"{' and '.join(repr(n) for n in idle)} of method '{record.name}' "
+                f"{'changes' if len(idle) == 1 else 'change'} nothing in this scene: none "
+                "of its lights has a "
+                "size, so each gets one view (hard shadows)"
+                + (f"; give the lights a size ({' or '.join(sizes)}) or use an area light"
+                   if sizes else ""), RuntimeWarning, stacklevel=2)
+        views = [v if m is None else m for v, m in zip(views, made)]
     live = [v for v in views if v is not None]
     if not live:
         return RenderPlan(views, [None] * len(views), None, None, None)

@@ -155,6 +155,10 @@ class Method:
       the method's maps are built from instead of the emitter's ordinary ``view``
       (None: the ordinary one), asked by the map manager before it plans the maps
       (``multiview``: K views of the light in one map);
+    * ``view_properties`` -- names of the method's own properties that only shape the
+      views ``view_for`` makes (``multiview``: ``views``, ``lookups``): given other than
+      their default on a scene where ``view_for`` made no view (no light with a size), a
+      render warns that they change nothing;
     * ``whole_light`` -- the lookup averages over the whole light itself and returns
       ``(visible, above)`` instead of one visibility: the fractions of its light points
       that contribute to the shading point (above its horizon, emitting towards it:
@@ -212,6 +216,7 @@ class Method:
     finalize: Callable | None = None
     shadow_rays: str | None = None
     view_for: Callable | None = None
+    view_properties: tuple = ()
     whole_light: bool = False
     virtual: bool = False
     virtual_margin: Callable | None = None
@@ -414,7 +419,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     needs_footprint: bool = False, bias_defaults=None, summary: str = "",
                     layers_for: Callable | None = None, finalize: Callable | None = None,
                     uses_map: bool = True, layer_cost=None, view_for: Callable | None = None,
-                    whole_light: bool = False, virtual: bool = False,
+                    view_properties=(), whole_light: bool = False, virtual: bool = False,
                     virtual_margin: Callable | None = None, virtual_per_tap: bool = False,
                     virtual_coarse_res: Callable | None = None,
                     needs_curvature: bool = False, replace: bool = False) -> Method:
@@ -428,8 +433,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     'method': name}`` (and XML), :func:`~mi_shadowmap.harness.compare`,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
-    ``needs_curvature``, ``virtual``, ``virtual_margin``, ``virtual_coarse_res`` and
-    ``virtual_per_tap``: see
+    ``needs_curvature``, ``view_properties``, ``virtual``, ``virtual_margin``,
+    ``virtual_coarse_res`` and ``virtual_per_tap``: see
     :class:`Method` (a
     lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
@@ -453,6 +458,12 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                 raise MethodError(f"register_method: method '{name}': the default "
                                   f"{prop.default!r} of property '{prop.name}' is not one of "
                                   f"its own valid values ({e})") from None
+    own = {p.name for p in properties or () if isinstance(p, Prop)}
+    if isinstance(view_properties, str) or not all(
+            isinstance(n, str) and n in own for n in view_properties or ()):
+        raise MethodError(f"register_method: method '{name}': view_properties must be "
+                          f"names of its own properties ({', '.join(sorted(own)) or 'none'}), "
+                          f"got {view_properties!r}")
     record = Method(name=name, lookup=_checked_lookup(name, lookup, whole_light),
                     summary=summary,
                     properties=tuple(properties or ()), layers=dict(layers or {}),
@@ -460,7 +471,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     needs_footprint=needs_footprint,
                     needs_curvature=needs_curvature,
                     uses_map=uses_map, bias_defaults=dict(bias_defaults or {}),
-                    finalize=finalize, view_for=view_for, whole_light=whole_light,
+                    finalize=finalize, view_for=view_for,
+                    view_properties=tuple(view_properties or ()), whole_light=whole_light,
                     virtual=virtual, virtual_margin=virtual_margin,
                     virtual_coarse_res=virtual_coarse_res,
                     virtual_per_tap=virtual_per_tap)

@@ -3,6 +3,7 @@ converged reference, K = 1 and size-0 lights are hard shadows, the K views in on
 caching, the lookup subsets, point/spot/directional lights with extent, bad input, mono
 and spectral variants. Small sizes: 64^2 images, maps of at most 256^2."""
 import re
+import warnings
 
 import drjit as dr
 import mitsuba as mi
@@ -109,6 +110,31 @@ def test_lights_without_extent_are_hard(light):
     np.testing.assert_array_equal(rgb_h, rgb_m)
     for k in h:
         np.testing.assert_array_equal(h[k], m[k])
+
+
+@pytest.mark.parametrize("light, props, warns", [
+    ("point", {"views": 64}, "property 'views' of method 'multiview' changes nothing"),
+    ("directional", {"views": 8, "lookups": 2}, "properties 'views' and 'lookups'"),
+    ("point", {"views": 64, "light_size": 0.3}, None),
+    ("directional", {"views": 8, "angular_diameter": 2.0}, None),
+    ("area", {"views": 8}, None),
+    ("point", {}, None)])
+def test_views_on_lights_without_extent_warn(light, props, warns):
+    """``views`` and ``lookups`` on a scene none of whose lights has a size rendered
+    the one hard view, bit-identical to the default, without a word. Now a warning names
+    them and what gives a light a size."""
+    scene = mi.load_dict(default_scene(light=light, width=16, height=16))
+    integ = mi.load_dict({"type": "shadowmap", "method": "multiview", "resolution": 64,
+                          **props})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mi.render(scene, integrator=integ, spp=1)
+    msgs = [str(w.message) for w in caught if "changes nothing" in str(w.message)
+            or "change nothing" in str(w.message)]
+    if warns is None:
+        assert not msgs, msgs
+    else:
+        assert len(msgs) == 1 and warns in msgs[0] and "'light_size'" in msgs[0], msgs
 
 
 @pytest.mark.parametrize("light, props, faces", [

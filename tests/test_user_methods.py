@@ -271,6 +271,8 @@ def test_a_lookup_returning_another_type_is_an_error_naming_the_method():
     ({"layers": ["a"]}, "layers must be a dict"),
     ({"layers": {"a": lambda scene, smap: None}, "layer_cost": {"a": float("inf")}},
      "layer_cost must map"),
+    ({"view_properties": ("views",)}, "view_properties must be names of its own"),
+    ({"view_properties": "views"}, "view_properties must be names of its own"),
 ])
 def test_a_bad_record_is_refused_when_registered(kwargs, match):
     """Each was accepted and failed at render (an int called, a string multiplied inside

@@ -266,6 +266,7 @@ METHOD = Method(
     # 512^2 0.0116 -> 0.0061 (normal_bias 0.5 / slope_bias 1 -> 0 / 2).
     bias_defaults={"normal_bias": 0.0, "slope_bias": 2.0},
     view_for=_views,
+    view_properties=("views", "lookups"),
     whole_light=True,
     builtin=True,
 )

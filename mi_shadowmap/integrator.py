@@ -619,13 +619,13 @@ screen is Mitsuba's projective integrators' job.
                     if s == 0:
                         shift = sampler.next_2d(shade)
                     u = shifted_grid_point(s, n_light, shift)
-                ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx, u, shade)
+                ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx, u, shade)
                 vis, whole = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit,
                                                      shade)
                 if sampled:
                     result += dr.select(lit, unshadowed * vis, 0.0) / n_light
-                vis_sum += vis
-                contributes |= lit
+                vis_sum += vis if counts is lit else dr.select(counts, vis, 0.0)
+                contributes |= counts
             aovs.append(dr.select(contributes, vis_sum / n_light, 0.0) if whole is None
                         else dr.select(shade, whole, 0.0))
         if self._delta_term:
@@ -657,11 +657,12 @@ screen is Mitsuba's projective integrators' job.
             return k < n
 
         def body(k, result, vis_sum, contributes, sampler):
-            ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx,
-                                                shifted_grid_point(k, n, shift), shade)
+            ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx,
+                                                        shifted_grid_point(k, n, shift), shade)
             vis, _ = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit, shade)
-            return (k + 1, result + dr.select(lit, unshadowed * vis, 0.0) / n, vis_sum + vis,
-                    contributes | lit, sampler)
+            return (k + 1, result + dr.select(lit, unshadowed * vis, 0.0) / n,
+                    vis_sum + (vis if counts is lit else dr.select(counts, vis, 0.0)),
+                    contributes | counts, sampler)
 
         _, result, vis_sum, contributes, _ = dr.while_loop(
             (mi.UInt32(0), mi.Spectrum(0.0), mi.Float(0.0), mi.Bool(False), sampler), cond,
@@ -687,7 +688,7 @@ screen is Mitsuba's projective integrators' job.
         pixel's size; what they remove is the pixel position's and the light sample's
         noise in the visibility's derivative."""
         u = sampler.next_2d(shade)
-        ds, unshadowed, lit = _light_sample(emitter, si, bsdf, ctx, u, shade)
+        ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx, u, shade)
         p_centre, pixel = centre
         rec = _Recorder(sampler) if pixel is None else sampler
         with dr.suspend_grad():
@@ -707,7 +708,7 @@ screen is Mitsuba's projective integrators' job.
                 # values of later emitters match the primal render's; one symbolic loop
                 # (no derivatives here), whose kernel does not grow with n
                 def body(k, average):
-                    _, unshadowed_k, lit_k = _light_sample(
+                    _, unshadowed_k, lit_k, _ = _light_sample(
                         emitter, si, bsdf, ctx, shifted_grid_point(k, n, u), shade)
                     return k + 1, average + dr.select(lit_k, unshadowed_k, 0.0)
 
@@ -720,6 +721,8 @@ screen is Mitsuba's projective integrators' job.
         # d value = d(L) V + L_avg dV(p_centre)
         grad = dr.select(lit, unshadowed * dr.detach(v_value), 0.0) + average * v_centre
         aov = dr.replace_grad(v_value, v_centre)
+        if counts is not lit:   # the AOV counts only samples the light's weight lights
+            aov = dr.select(counts, aov, 0.0)
         if whole is not None:   # the whole-light AOV: its derivative at the centre too
             whole = dr.replace_grad(whole, whole_centre)
         return dr.replace_grad(value, grad), aov, whole
@@ -1086,9 +1089,15 @@ def _delta_lobe_term(scene, si, bsdf, sampler, valid):
 
 
 def _light_sample(emitter, si, bsdf, ctx, u, shade):
-    """One light sample at ``si``: ``(ds, unshadowed = bsdf * weight, lit)``, ``lit``
-    where it contributes (Mueller matrices in a polarized variant:
-    :func:`~mi_shadowmap.variants.bsdf_to_world`)."""
+    """One light sample at ``si``: ``(ds, unshadowed = bsdf * weight, lit, counts)``
+    (Mueller matrices in a polarized variant: :func:`~mi_shadowmap.variants.bsdf_to_world`).
+    ``counts``: where the sample counts for the visibility AOV (the light's weight is
+    non-zero and the light is above the horizon); ``lit``: where its term is shaded
+    (visibility looked up, ``unshadowed * vis`` added) -- ``counts``, but where the
+    weight tracks gradients every sample above the horizon, whatever the weight's value:
+    a light of intensity exactly 0 has weight 0 everywhere, and gating its term by the
+    weight's value cut the derivative wrt the intensity to 0 (``raytraced``, ``hard``,
+    ``pcf``: 0 against ``direct``'s 55.5 on a point light; the image is linear in it)."""
     ds, w = emitter.sample_direction(si, u, shade)
     lit = shade & (ds.pdf > 0)
     wo = si.to_local(ds.d)
@@ -1096,7 +1105,8 @@ def _light_sample(emitter, si, bsdf, ctx, u, shade):
     unshadowed = bsdf_to_world(si, f, wo) * w
     # a dark receiver is still lit (its BSDF's pdf): only the light's weight and the
     # horizon decide whether the sample counts for the visibility AOV
-    return ds, unshadowed, reaches & (dr.max(unpolarized(w)) > 0)
+    counts = reaches & (dr.max(unpolarized(w)) > 0)
+    return ds, unshadowed, (reaches if dr.grad_enabled(w) else counts), counts
 
 
 class _Recorder:

@@ -1019,3 +1019,50 @@ def test_automatic_resolution_is_kept_while_gradients_are_enabled():
         dr.backward(dr.sum(img, axis=None))
         kept.append(integ.resolution)
     assert kept == [seen[0], seen[0]], (seen, kept)
+
+
+def _zero_light_scene(method, light):
+    lights = {
+        "point": {"type": "point", "position": [0.3, 2.0, 0.2],
+                  "intensity": {"type": "rgb", "value": 0.0}},
+        "area": {"type": "rectangle",
+                 "to_world": T().translate([0, 2.0, 0]).rotate([1, 0, 0], 90).scale(0.3),
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 0.0}}}}
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "shadowmap", "method": method},
+        "sensor": camera([0, 3, 3], [0, 0, 0], 32, 32, 2),
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2)},
+        "box": {"type": "cube", "to_world": T().translate([0, 0.5, 0]).scale(0.25)},
+        "light": lights[light]})
+
+
+@pytest.mark.parametrize("method,light", [("raytraced", "area"), ("hard", "point")])
+def test_gradient_wrt_an_intensity_of_zero(method, light):
+    """The image is linear in a light's intensity, so its derivative there is the same
+    at 0 as at 1. The term was gated by the light's weight being > 0: at intensity 0 the
+    derivative was 0 (raytraced, hard, pcf; direct: 55.5 on a point light), and a dark
+    light's virtual map kept its coarsest level only (hard at 0: 55.11 against 55.60 at
+    1). Reverse and forward mode; the visibility AOV stays 0 for the dark light."""
+    key = "light.emitter.radiance.value" if light == "area" else "light.intensity.value"
+    grads = []
+    for value in (0.0, 1.0):
+        scene = _zero_light_scene(method, light)
+        params = mi.traverse(scene)
+        params[key] = mi.Color3f(value)
+        dr.enable_grad(params[key])
+        params.update()
+        image = mi.render(scene, params, seed=0, spp=2)
+        if value == 0.0:
+            assert np.all(np.asarray(image)[..., 3] == 0)   # vis_light: lit by nothing
+        dr.backward(dr.sum(image[:, :, :3], axis=None))
+        reverse = float(dr.sum(dr.grad(params[key])).array[0])
+        dr.set_grad(params[key], mi.Color3f(1.0))
+        image = mi.render(scene, params, seed=0, spp=2)
+        dr.forward_to(image)
+        forward = np.asarray(dr.grad(image))[..., :3]
+        grads.append((reverse, forward))
+    (r0, f0), (r1, f1) = grads
+    assert r1 > 1.0
+    assert r0 == pytest.approx(r1, rel=1e-5)
+    assert float(f0.sum()) == pytest.approx(r1, rel=1e-4)
+    np.testing.assert_allclose(f0, f1, rtol=1e-5, atol=1e-7)

@@ -424,8 +424,8 @@ def _fit_marks(store, mark, tiles, budget_pages) -> tuple:
 def _dark(emitter, store=None) -> bool:
     """Whether ``emitter`` emits nothing: its ``intensity``, ``radiance`` or
     ``irradiance`` is a uniform value of exactly 0 (a texture, or an environment: not
-    known to be, False). Only read, never differentiated: a render with emitter
-    gradients enabled gets full maps.
+    known to be, False). A 0 with gradients enabled (``dr.grad_enabled``, whatever the
+    AD scope) is not dark: the gradient image it lights reads its map's marked pages.
 
     ``store``: the light's :class:`PageStore`, which keeps the emitter's watched values
     (:class:`~mi_shadowmap.map_manager.ParamWatch`) in ``dark_memo``, so a still scene
@@ -460,6 +460,14 @@ def _dark(emitter, store=None) -> bool:
     if token != slot[2]:
         slot[2], slot[3] = token, watch.held(values)
         slot[4] = all(not np.any(np.asarray(v) != 0) for v in values)
+    if slot[4]:
+        # a 0 whose gradient is tracked lights the derivative image (the shading's
+        # derivative wrt the intensity is the unshadowed light times the visibility):
+        # its pages are marked as any lit light's, in the primal render too (run under
+        # dr.suspend_grad() by mi.render(scene, params)), so both see the same maps
+        with dr.resume_grad():
+            if any(dr.grad_enabled(v) for v in values):
+                return False
     return slot[4]
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import math
 import warnings
+import weakref
 
 import drjit as dr
 import numpy as np
@@ -37,7 +38,7 @@ from .variants import (SUPPORTED_VARIANTS, bsdf_eval_reaches, bsdf_to_world, che
                        unpolarized, variant_class)
 from .virtual import VirtualShadowMap, camera_frame
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
-                          _differentiated, prepare_maps, scene_token)
+                          _differentiated, prepare_maps, scene_lease, scene_token)
 
 
 class ShadowMapIntegratorMixin:
@@ -128,7 +129,10 @@ screen is Mitsuba's projective integrators' job.
         self._unshadowed: list[bool] = []   # per emitter: environment='unshadowed' applies
         self._views_memo = None     # (scene_token, scene state, views, labels, unshadowed)
         self._centre_memo = {}      # _warn_if_centre_hidden's checks done
-        self._value_watch = None    # [scene_token, watches, token checked, values held]
+        # {scene_lease: [watches, token checked, values held]}, one scene's: weak, so
+        # the getters (whose nodes may be an emitter: an envmap's data) go with the
+        # scene (see _check_emitter_values)
+        self._value_watch = weakref.WeakKeyDictionary()
         # An opaque JIT scalar, not a Python float: a new spp must not recompile sample().
         self._diff_scale, self._diff_spp = dr.opaque(mi.Float, 1.0), 1
         self._sensor = None
@@ -381,7 +385,14 @@ screen is Mitsuba's projective integrators' job.
         indices (:class:`~mi_shadowmap.map_manager.ParamWatch`, its values held), and
         checks them on the host when they differ.
         Emitted values are not part of the map cache's scene state (maps do not depend
-        on them), so a ``params.update()`` of an intensity alone reaches only this."""
+        on them), so a ``params.update()`` of an intensity alone reaches only this.
+
+        The memo holds no emitter, no ``mi.traverse`` of one (but an envmap's getters,
+        whose node is the emitter), and lives while the scene does in the package's table
+        of scenes (``map_manager.scene_lease``; ``clear_caches()`` empties it): it held
+        the last scene's emitters past ``clear_caches()`` and ``del scene``, and an area
+        emitter outliving its shape crashed Mitsuba's later kernels, which dispatch over
+        every live emitter (``direct`` on the next scene: a segmentation fault)."""
         for i, e in enumerate(scene.emitters()):
             # Mitsuba refuses a NaN or negative weight at load, not an infinite one: its
             # `direct` then rendered the whole image black (every light), this one lit it
@@ -391,24 +402,28 @@ screen is Mitsuba's projective integrators' job.
                     f"shadowmap: emitter '{emitter_labels(scene.emitters())[i]}' "
                     f"({emitter_class(e)}): parameter 'sampling_weight' is {w:g}; it "
                     "must be finite and >= 0")
-        memo = self._value_watch
-        if memo is None or memo[0] is not scene_token(scene):
+        key = scene_lease(scene)
+        memo = self._value_watch.get(key)
+        if memo is None:
             watches = []
             labels = emitter_labels(scene.emitters())
             for i, e in enumerate(scene.emitters()):
                 params = mi.traverse(e)
-                watches.append((e, labels[i],
-                                ParamWatch(params, emitted_value_keys(params)),
+                watch = ParamWatch(params, emitted_value_keys(params))
+                watch.params = None          # the getters only: not the emitter
+                watches.append((emitter_class(e), labels[i], watch,
                                 emitted_value_owners(params)))
-            memo = self._value_watch = [scene_token(scene), watches, None, None]
-        reads = [watch.read() for _, _, watch, _ in memo[1]]
+            memo = [watches, None, None]
+            self._value_watch.clear()        # the scene being rendered's only
+            self._value_watch[key] = memo
+        reads = [watch.read() for _, _, watch, _ in memo[0]]
         token = tuple(r[0] for r in reads)
-        if token == memo[2]:
+        if token == memo[1]:
             return
-        for (e, label, watch, owners), (_, values) in zip(memo[1], reads):
-            check_emitter_values(e, label, dict(zip(watch.names, values)), owners)
-        memo[2] = token
-        memo[3] = [watch.held(values) for (_, _, watch, _), (_, values) in zip(memo[1], reads)]
+        for (cls, label, watch, owners), (_, values) in zip(memo[0], reads):
+            check_emitter_values(cls, label, dict(zip(watch.names, values)), owners)
+        memo[1] = token
+        memo[2] = [watch.held(values) for (_, _, watch, _), (_, values) in zip(memo[0], reads)]
 
     def aov_names(self):
         """``vis_<emitter>`` per emitter of the last scene rendered (none before one;

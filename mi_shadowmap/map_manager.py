@@ -786,7 +786,24 @@ def scene_token(scene) -> object:
     cannot see, so every scene rendered with its own integrator stayed alive forever,
     ``clear_caches()`` and ``del`` notwithstanding (30 scenes of 45k triangles: +5 MiB
     each, and renders 0.23 -> 0.45 s as Dr.Jit traced every live scene's shapes)."""
-    return _held_lru(_SCENE_TOKENS, id(scene), (scene,), object, 8)
+    return _held_lru(_SCENE_TOKENS, id(scene), (scene,), _token_and_lease, 8)[0]
+
+
+def scene_lease(scene) -> object:
+    """An object that lives exactly as long as ``scene``'s entry here (while it lives,
+    its scene does): evicted or ``clear_caches()``, only weak references to it remain.
+    An integrator's memo of a scene's objects (which must not outlive the scene, as a
+    token held by its other memos may) is kept in a ``weakref.WeakKeyDictionary`` keyed
+    by it."""
+    return _held_lru(_SCENE_TOKENS, id(scene), (scene,), _token_and_lease, 8)[1]
+
+
+class _Lease:
+    __slots__ = ("__weakref__",)
+
+
+def _token_and_lease():
+    return object(), _Lease()
 
 
 class MapCache:

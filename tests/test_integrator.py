@@ -1180,3 +1180,48 @@ def test_a_non_delta_emitter_with_sampling_weight_zero_still_lights(light):
     for method in ("raytraced", "hard"):
         assert relative_rmse(ours[1.0, method], ours[0.0, method]) < 1e-5
         assert abs(ours[0.0, method].mean() / ref.mean() - 1) < 0.05
+
+
+DIRECT_AFTER_A_FREED_SCENE = """
+import gc, sys
+import drjit as dr
+import mitsuba as mi
+import mi_shadowmap
+mi.set_variant("llvm_ad_rgb")
+T = mi.ScalarTransform4f
+def scene(integrator):
+    return mi.load_dict({
+        "type": "scene", "integrator": integrator,
+        "c": {"type": "perspective", "to_world": T().look_at(origin=[0, 3, 3], target=[0, 0, 0],
+                                                             up=[0, 1, 0]),
+              "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2)},
+        "light": {"type": "rectangle",
+                  "to_world": T().translate([0, 2, 0]).rotate([1, 0, 0], 90).scale(0.3),
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5}}}})
+integ = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
+a = scene({"type": "path"})
+mi.render(a, integrator=integ, spp=1)
+del a
+mi_shadowmap.clear_caches()
+gc.collect()
+print(len(integ._value_watch), flush=True)
+b = scene({"type": "direct"})
+mi.render(b, spp=1)
+mi.render(b, integrator=integ, spp=1)
+print("ok")
+"""
+
+
+def test_the_integrator_holds_no_emitter_of_a_freed_scene():
+    """The integrator's watch of the emitted values (``_check_emitter_values``) held the
+    last scene's emitters (and their ``mi.traverse``) past ``del scene`` and
+    ``clear_caches()``: the area emitter outlived its shape, and Mitsuba's ``direct`` on
+    the next scene, whose kernels dispatch over every live emitter, crashed (exit -11).
+    The watch now holds getters only, for as long as the scene's token lives."""
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-c", DIRECT_AFTER_A_FREED_SCENE],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and p.stdout.split() == ["0", "ok"], (
+        p.returncode, p.stdout, p.stderr[-2000:])

@@ -203,7 +203,8 @@ def check_emitter_values(emitter, label: str, values: dict, owners: dict) -> Non
     are radiances: uniform and sampled spectra, an envmap's ``scale``). ``values``:
     ``{key: value}`` of :func:`emitted_value_keys`, ``owners``: ``{key: class name of
     the object holding it}`` (:func:`emitted_value_owners`). Reads evaluated values on
-    the host (no kernel)."""
+    the host (no kernel). ``emitter``: the emitter or its class name."""
+    cls = emitter if isinstance(emitter, str) else emitter_class(emitter)
     for key, value in values.items():
         try:
             a = np.asarray(value.array if hasattr(value, "array") else value, np.float32)
@@ -215,7 +216,7 @@ def check_emitter_values(emitter, label: str, values: dict, owners: dict) -> Non
             what = (f"{bad} of its {a.size} values are not finite (NaN or inf)" if bad
                     else f"{neg} of its {a.size} values are negative (min {float(a.min()):g})")
             raise UnsupportedEmitterError(
-                f"shadowmap: emitter '{label}' ({emitter_class(emitter)}): parameter "
+                f"shadowmap: emitter '{label}' ({cls}): parameter "
                 f"'{key}': {what}; emitted values must be finite and >= 0")
 
 

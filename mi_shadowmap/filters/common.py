@@ -159,8 +159,12 @@ def receiver(smap, lk: Lookup, opts) -> Receiver:
         scale = dr.select(clamped, full, nb * cos_nl)
         p = p + n_towards * (texel * scale)
     face, uv, depth, inside = view.project(p)
+    # the margin for rounding: of the depth, and of the receiver's own world position
+    # (a camera hit far from the origin but near the light: see DEPTH_ULPS)
+    p0 = dr.detach(mi.Point3f(lk.p_world))
+    scale = dr.maximum(dr.abs(depth), dr.max(dr.abs(p0)))
     z = depth - opts.bias_world - opts.slope_bias_texels * texel * tan_theta \
-        - DEPTH_ULPS * dr.abs(depth)
+        - DEPTH_ULPS * scale
     return Receiver(face, uv, z, inside, texel, tan_theta)
 
 

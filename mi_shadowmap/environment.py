@@ -765,7 +765,7 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         ds.dist = bsphere
         ds.pdf = dr.rcp(dr.maximum(omega, 1e-30))
         ds.emitter = mi.EmitterPtr(emitter)
-        lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler)
+        lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, ds, sampler, emitter=emitter)
         if virtual:
             # region k's face of the virtual map, bound walked (VirtualShadowMap.visibility's
             # unwalked first try needs a dr.if_stmt outside symbolic loops, and this is

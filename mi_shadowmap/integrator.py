@@ -636,7 +636,7 @@ screen is Mitsuba's projective integrators' job.
                     u = shifted_grid_point(s, n_light, shift)
                 ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx, u, shade)
                 vis, whole = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit,
-                                                     shade)
+                                                     shade, emitter)
                 if sampled:
                     result += dr.select(lit, unshadowed * vis, 0.0) / n_light
                 vis_sum += vis if counts is lit else dr.select(counts, vis, 0.0)
@@ -647,13 +647,15 @@ screen is Mitsuba's projective integrators' job.
             result += _delta_lobe_term(scene, si, bsdf, sampler, valid)
         return result, valid, aovs if (self._film_takes_aovs or self._nested) else []
 
-    def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade):
-        """``(visibility, whole)`` of one light sample (see :meth:`_visibility`); 1 and
-        None without a map (``smap`` None: an environment emitter lit without shadows)."""
+    def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade, emitter):
+        """``(visibility, whole)`` of one light sample of ``emitter`` (see
+        :meth:`_visibility`); 1 and None without a map (``smap`` None: an environment
+        emitter lit without shadows)."""
         if smap is None:
             return mi.Float(1.0), None
-        return self._visibility(smap, self._lookup(smap, si, dp_dx, dp_dy, ds, sampler), lit,
-                                shade)
+        return self._visibility(
+            smap, self._lookup(smap, si, dp_dx, dp_dy, ds, sampler, emitter=emitter), lit,
+            shade)
 
     def _light_samples(self, scene, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx,
                        dp_dy, n: int):
@@ -674,7 +676,8 @@ screen is Mitsuba's projective integrators' job.
         def body(k, result, vis_sum, contributes, sampler):
             ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx,
                                                         shifted_grid_point(k, n, shift), shade)
-            vis, _ = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit, shade)
+            vis, _ = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit, shade,
+                                             emitter)
             return (k + 1, result + dr.select(lit, unshadowed * vis, 0.0) / n,
                     vis_sum + (vis if counts is lit else dr.select(counts, vis, 0.0)),
                     contributes | counts, sampler)
@@ -708,11 +711,12 @@ screen is Mitsuba's projective integrators' job.
         rec = _Recorder(sampler) if pixel is None else sampler
         with dr.suspend_grad():
             v_value, whole = self._visibility(
-                smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec), lit, shade)
+                smap, self._lookup(smap, si, dp_dx, dp_dy, ds, rec, emitter=emitter), lit,
+                shade)
         centre_sampler = rec.replay() if pixel is None else _PixelSampler(sampler, pixel, k)
         v_centre, whole_centre = self._visibility(
             smap, self._lookup(smap, si, dp_dx, dp_dy, ds, centre_sampler, p_centre,
-                               pixel is not None), shade,
+                               pixel is not None, emitter), shade,
             shade)
         delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
         n = 1 if delta else self.opts.gradient_light_samples
@@ -856,19 +860,21 @@ screen is Mitsuba's projective integrators' job.
         return si.p + dp_dx * off.x + dp_dy * off.y, pixel
 
     @staticmethod
-    def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None, centre=False) -> Lookup:
+    def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None, centre=False,
+                emitter=None) -> Lookup:
         """The lookup of ``si`` in ``smap``, at ``p`` (default ``si.p``); ``centre``:
         ``p`` is the pixel centre's point, in the derivative run of
-        :meth:`_gradient_light_term` (``Lookup.centre``). When the light's pose has
+        :meth:`_gradient_light_term` (``Lookup.centre``); ``emitter``: the light shaded
+        (``Lookup.emitter``). When the light's pose has
         gradients (``smap.pose``, :mod:`mi_shadowmap.light_views.pose`) the point,
         normal and footprint carry them (values unchanged)."""
         pose = getattr(smap, "pose", None)
         p = si.p if p is None else p
         if pose is None:
-            return Lookup(p, si.n, dp_dx, dp_dy, si, ds, sampler, centre)
+            return Lookup(p, si.n, dp_dx, dp_dy, si, ds, sampler, centre, emitter)
         return Lookup(pose.to_view(p), pose.vector_to_view(si.n),
                       pose.vector_to_view(dp_dx), pose.vector_to_view(dp_dy), si, ds, sampler,
-                      centre)
+                      centre, emitter)
 
     def _footprint(self, ray: mi.RayDifferential3f, si):
         """World-space pixel footprint on the tangent plane: a perspective camera's from

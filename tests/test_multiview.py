@@ -566,3 +566,48 @@ def test_a_frosted_bulb_around_its_point_light_is_not_self_shadowed():
     assert ref.mean() > 0.5             # the shell is lit
     wrong = np.abs(img - ref).sum(-1) > 1e-3
     assert wrong.sum() == 0, (int(wrong.sum()), img.mean(), ref.mean())
+
+
+def test_the_lookup_calls_its_own_emitter_not_the_samples_pointer(tmp_path):
+    """The lookup called the light through its sample's pointer (``lk.ds.emitter``), a
+    call that traces every live emitter of the process: with an area light on a
+    ``linearcurve`` alive anywhere (here another scene; curves have no
+    ``sample_position``), rendering a disk light with multiview raised "Shape::
+    sample_position(): not implemented!" (raytraced rendered 0.0449). It calls the
+    emitter it shades (``Lookup.emitter``); a spot's cone still bounds its light."""
+    import gc
+    curve = tmp_path / "curve.txt"
+    curve.write_text("-0.3 1 0 0.02\n0 1.1 0 0.02\n0.3 1 0 0.02\n0.5 1.1 0.1 0.02\n")
+    keep = mi.load_dict({"type": "scene", "lamp": {
+        "type": "linearcurve", "filename": str(curve),
+        "emitter": {"type": "area", "radiance": 5.0}}})
+    try:
+        def scene(light):
+            return mi.load_dict({
+                "type": "scene",
+                "sensor": {"type": "perspective", "fov": 45,
+                           "to_world": T().look_at(origin=[0, 4, 4.5], target=[0, 0, 0],
+                                                   up=[0, 1, 0]),
+                           "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+                "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2.5),
+                           "bsdf": {"type": "diffuse"}},
+                "box": {"type": "cube", "to_world": T().translate([0.3, 0.5, 0.2]).scale(0.25),
+                        "bsdf": {"type": "diffuse"}},
+                "light": light})
+        disk = scene({"type": "disk",
+                      "to_world": T().translate([0, 2.2, 0]).rotate([1, 0, 0], 90).scale(0.4),
+                      "emitter": {"type": "area", "radiance": 10.0}})
+        ref = vis(disk, method="raytraced")
+        for lookups in (0, 4):
+            v = vis(disk, method="multiview", views=16, lookups=lookups)
+            assert abs(v.mean() - ref.mean()) < 0.02, lookups
+        spot = scene({"type": "spot", "cutoff_angle": 15, "intensity": 20.0,
+                      "to_world": T().look_at(origin=[0, 2.2, 0], target=[0, 0, 0],
+                                              up=[0, 0, 1])})
+        ref = vis(spot, method="raytraced")
+        v = vis(spot, method="multiview", views=16, light_size=0.2)
+        assert 0.0 < v.mean() < 0.5
+        assert abs(v.mean() - ref.mean()) < 0.02
+    finally:
+        del keep
+        gc.collect()

@@ -53,6 +53,11 @@ class Lookup:
     ds: object                    # mi.DirectionSample3f of the light sample
     sampler: object
     centre: bool = False          # the pixel-centre derivative run (see above)
+    #: the emitter shaded (its Python object, called directly), or None where unknown; a
+    #: lookup that needs the light calls this, never ``ds.emitter``: a call through the
+    #: sample's emitter pointer traces every live emitter of the process, and one on a
+    #: shape without position sampling (a curve's, in any scene) raises there
+    emitter: object = None
 
 
 @dataclass

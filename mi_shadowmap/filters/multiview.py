@@ -125,8 +125,13 @@ def multiview(smap, lk: Lookup, opts, active=True):
     test = _TESTS[opts.filter]
     # Delta lights (point, spot, directional): whether the emitter itself lights p
     # (the spot's cone), from its own sample; area lights: per point, emits_towards.
-    ds0, w0 = lk.ds.emitter.sample_direction(si, mi.Point2f(0.5, 0.5), act)
-    act &= ~ds0.delta | ((ds0.pdf > 0) & (dr.max(unpolarized(w0)) > 0))
+    # The emitter shaded (lk.emitter), called directly: through the sample's pointer
+    # (lk.ds.emitter) the call traced every live emitter of the process, and an area
+    # light on a curve anywhere (Shape::sample_position not implemented) raised here.
+    emitter = lk.emitter
+    if emitter is not None and mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta):
+        ds0, w0 = emitter.sample_direction(si, mi.Point2f(0.5, 0.5), act)
+        act &= (ds0.pdf > 0) & (dr.max(unpolarized(w0)) > 0)
     shift = lk.sampler.next_1d(act) if L < K else mi.Float(0.0)
     subset_shift = shift    # the retry's seed below (``shift`` is rebound for a sphere's
     #                         fallback loop, whose body reads it)

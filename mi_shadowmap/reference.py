@@ -42,7 +42,9 @@ def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
 
     ``rows = round(sqrt(n))`` rows, row ``r`` of ``n_r`` cells (``n // rows`` or one
     more) of width ``1 / n_r`` and height ``n_r / n``; one uniformly jittered point per
-    cell, row-major. For ``n = 1024``: a 32 x 32 jittered grid. Deterministic given
+    cell, row-major, in its own ``1 / n``-high band of the row (a permutation per row),
+    so that ``y`` alone is stratified in ``n`` strata (a mesh light's triangle is picked
+    from ``y``). For ``n = 1024``: a 32 x 32 jittered grid. Deterministic given
     ``seed``. (A ``ceil(sqrt(n))``-column grid, before, filled only the first ``n``
     cells: part of the light was never sampled for a non-square ``n``, each point still
     weighing ``1 / n``; ``n = 1000`` was off by up to 0.026 on contact_hardening, 1024
@@ -57,7 +59,13 @@ def light_sample_pattern(n_light: int, seed: int = 0) -> np.ndarray:
         n_r = n_light // rows + (1 if r < n_light % rows else 0)
         j = jitter[start:start + n_r]
         xs.append((np.arange(n_r) + j[:, 0]) / n_r)
-        ys.append((start + j[:, 1] * n_r) / n_light)
+        # each cell's point in its own 1/n-high band of the row (a random one): y alone
+        # is then stratified in n strata, as a mesh light's triangle is picked from y
+        # (Mitsuba's sample_position; jittered over the whole row, a cube light's faces
+        # got 164..175 of 1024 points instead of 170.7 each, 36..48 of 256 instead of 42.7;
+        # now 170 or 171, 42 or 43)
+        band = np.random.default_rng([seed, r]).permutation(n_r)
+        ys.append((start + band + j[:, 1]) / n_light)
         start += n_r
     pts = np.stack([np.concatenate(xs), np.concatenate(ys)], axis=1).astype(np.float32)
     return np.clip(pts, np.float32(0.0), np.nextafter(np.float32(1.0), np.float32(0.0)))

@@ -48,22 +48,27 @@ def vis(scene, spp=SPP, **props):
     return next(iter(aovs.values()))
 
 
-#: RMSE against the converged reference measured 2026-11-30 (64^2, 4 spp, seed 0):
-#: multiview K = 4 / 16 / 64 at 256^2 maps, and pcss at 256^2.
-MEASURED = {"cbox_area": {4: 0.0719, 16: 0.0462, 64: 0.0115, "pcss": 0.0760},
-            "contact_hardening": {4: 0.1100, 16: 0.0338, 64: 0.0153, "pcss": 0.0458}}
+#: RMSE against the converged reference measured 2026-12-06 (64^2, 4 spp, seed 0):
+#: multiview K = 4 / 16 / 64 at 256^2 maps, and pcss at 256^2. (The light points' y
+#: now stratified in K bands, stratified_points: these are one realization of the fixed
+#: jitter; over the seeds 0..23 cbox_area's mean RMSE at K = 4 / 16 / 64 went
+#: 0.062 / 0.021 / 0.0088 -> 0.041 / 0.021 / 0.0069, though seed 0's K = 16 went
+#: 0.046 -> 0.060.)
+MEASURED = {"cbox_area": {4: 0.0271, 16: 0.0599, 64: 0.0116, "pcss": 0.0761},
+            "contact_hardening": {4: 0.0773, 16: 0.0273, 64: 0.0101, "pcss": 0.0459}}
 
 
 @pytest.mark.parametrize("name", sorted(MEASURED))
 def test_converges_to_the_reference(name):
-    """RMSE falls with K, stays within 10 % of its measured value, and at K = 64 is
-    below half of PCSS's on the same maps."""
+    """RMSE at K = 64 is below that at 4 and 16 (one fixed jitter: cbox_area's K = 4
+    happens to beat its K = 16), stays within 10 % of its measured value, and at K = 64
+    is below half of PCSS's on the same maps."""
     scene, ref = reference(name)
     err = {K: rmse(vis(scene, method="multiview", views=K, resolution=256), ref)
            for K in (4, 16, 64)}
     err["pcss"] = rmse(vis(scene, method="pcss", resolution=256), ref)
     print(f"{name}: RMSE " + ", ".join(f"{k}: {v:.4f}" for k, v in err.items()))
-    assert err[4] > err[16] > err[64]
+    assert min(err[4], err[16]) > err[64]
     assert err[64] < 0.5 * err["pcss"]
     for k, measured in MEASURED[name].items():
         assert err[k] <= 1.1 * measured, k
@@ -611,3 +616,39 @@ def test_the_lookup_calls_its_own_emitter_not_the_samples_pointer(tmp_path):
     finally:
         del keep
         gc.collect()
+
+
+def test_a_cube_light_gets_each_face_its_share_of_views():
+    """A mesh light's triangle is picked from the sample's y (Mitsuba's
+    ``sample_position``); the light points were jittered in y over whole rows of the
+    stratified grid, so a cube light's six faces got 36..48 of 256 views (the bottom one,
+    facing the ground, 36 instead of 42.7) and the AOV under it was 0.015 below
+    raytraced's (0.2990 / 0.3144 here, 32^2, 16 spp, 128^2 maps). Every point now has
+    its own 1/K band of y: 42 or 43 views a face (each triangle its share within one),
+    the AOV 0.3136. The converged reference's
+    pattern is the same points (it had the same defect)."""
+    from mi_shadowmap.reference import light_sample_pattern
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": T().look_at(origin=[0, 4, 4.5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                            "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2.5),
+                   "bsdf": {"type": "diffuse"}},
+        "box": {"type": "cube", "to_world": T().translate([0.3, 0.5, 0.2]).scale(0.25),
+                "bsdf": {"type": "diffuse"}},
+        "light": {"type": "cube", "to_world": T().translate([0, 2.2, 0]).scale(0.3),
+                  "emitter": {"type": "area", "radiance": 10.0}}})
+    e = scene.emitters()[0]
+    axes = np.vstack([np.eye(3), -np.eye(3)])
+    for K in (64, 256, 1024):
+        for u in (stratified_points(K), light_sample_pattern(K)):
+            ps, _ = e.sample_position(0.0, mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1])))
+            n = np.stack([c.numpy() for c in ps.n], axis=1)
+            counts = ((n @ axes.T) > 0.9).sum(axis=0)
+            assert np.abs(counts - K / 6).max() < 2.0, (K, counts)   # 2 triangles a face
+    ref = vis(scene, spp=16, method="raytraced", shadow_rays=16)
+    got = vis(scene, spp=16, method="multiview", views=256, resolution=128)
+    print(f"cube light: multiview {got.mean():.4f}, raytraced {ref.mean():.4f}")
+    assert abs(got.mean() - ref.mean()) < 0.006

@@ -24,7 +24,10 @@ Hilbert curve over the light
 (:func:`~mi_shadowmap.light_views.multi.stratified_points`), so every camera
 sample sees a stratified subset and the fixed light points give noise instead
 of banding; every view is chosen with probability ``lookups / K``, so the
-average (the visibility AOV) is unbiased for the K-view one. The light sample's
+average (the visibility AOV) is unbiased for the K-view one. A sphere light sampled
+in its cone (``MultiView.cone``) instead draws its ``lookups`` points in that cone, as
+Mitsuba draws its light samples, each testing the view of its point's stratum
+(:meth:`~mi_shadowmap.light_views.multi.MultiView.cone_view`; ``_cone_subset``). The light sample's
 weight, ``visible / above``, is the subset's ratio; where the subset holds no
 point above the receiver's horizon (or none facing it) while the light sample is
 above the horizon, uniformly drawn views are tested until one is (at most K),
@@ -72,9 +75,10 @@ import dataclasses
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..variants import bsdf_eval_reaches, unpolarized
-from ..light_views.multi import as_multi_view, multi_view
+from ..light_views.multi import as_multi_view, multi_view, stratified_points
 from ..methods import Method, Prop
 from .common import Lookup, receiver, receiver_plane, tap_lit
 from .hard import hard
@@ -132,7 +136,12 @@ def multiview(smap, lk: Lookup, opts, active=True):
     if emitter is not None and mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta):
         ds0, w0 = emitter.sample_direction(si, mi.Point2f(0.5, 0.5), act)
         act &= (ds0.pdf > 0) & (dr.max(unpolarized(w0)) > 0)
-    shift = lk.sampler.next_1d(act) if L < K else mi.Float(0.0)
+    cone_subset = L < K and view.cone and bool(view.sphere)
+    if cone_subset:
+        shift2 = lk.sampler.next_2d(act)
+        shift = shift2.x
+    else:
+        shift = lk.sampler.next_1d(act) if L < K else mi.Float(0.0)
     subset_shift = shift    # the retry's seed below (``shift`` is rebound for a sphere's
     #                         fallback loop, whose body reads it)
     step = K / L
@@ -161,6 +170,10 @@ def multiview(smap, lk: Lookup, opts, active=True):
                                   above_c)
         w = dr.select(emits, view.weight(k, p), 0.0) if view.cone else mi.Float(1.0)
         return sub, emits, above, w
+
+    if cone_subset:
+        return _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx,
+                            above_c, side_c)
 
     def cond(j, n_emit, n_above, n_lit):
         return act & (j < L)
@@ -230,6 +243,69 @@ def multiview(smap, lk: Lookup, opts, active=True):
                                 cond_r, body_r)
     ratio = dr.select(retry & found, v, ratio)
     return n_lit * inv, n_above * inv, ratio
+
+
+def _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx, above_c,
+                 side_c):
+    """``lookups`` L < K on a sphere light sampled in its cone (``MultiView.cone``):
+    ``(visible, above, weight)`` from L points drawn as Mitsuba draws the sphere's light
+    samples -- uniformly in the cone it subtends from the receiver, at a stratified
+    pattern of L points shifted per camera sample -- each testing the view of its
+    stratum (``MultiView.cone_view``), so each counts 1 / L. A subset of the K views
+    weighted by their solid angle (its ratio sum(w v) / sum(w)) was biased where few of
+    its points face the receiver, their weights cancelling (a sphere of radius 0.3 at
+    0.6 over a ground, K=256: the AOV +0.0125 at lookups=4, at 16 and 64 spp alike).
+    The weight (visible / above) is the drawn points' ratio; where none is above the
+    horizon but the light sample is, points drawn from a hash of the shift are tested
+    until one is (rejection sampling, as for the other lights)."""
+    p = lk.p_world
+    base = stratified_points(L)
+    base = mi.Point2f(mi.Float(base[:, 0].astype(np.float32)),
+                      mi.Float(base[:, 1].astype(np.float32)))
+    dr.make_opaque(base)
+    _, _, outside = view.cone_view(p, mi.Point2f(0.5, 0.5))
+    act = act & outside
+
+    def draw(u, active):
+        """The view of the point drawn at ``u``, whether it is above the horizon, and its
+        hard shadow's visibility (0 below the horizon)."""
+        k, d, _ = view.cone_view(p, u)
+        sub = dataclasses.replace(smap, view=view.sub_view(k))
+        wo = si.to_local(d)
+        across = active & ((mi.Frame3f.cos_theta(wo) > 0) != side_c)
+        above = active & dr.select(across, bsdf_eval_reaches(bsdf, ctx, si, wo, across)[1],
+                                   above_c)
+        return above, dr.select(above, test(sub, lk, opts, above), 0.0)
+
+    def cond(j, n_above, n_lit):
+        return act & (j < L)
+
+    def body(j, n_above, n_lit):
+        u = dr.gather(mi.Point2f, base, j) + shift2
+        u = u - dr.floor(u)
+        above, vis = draw(dr.minimum(u, 0.99999994), act)
+        return j + 1, dr.select(above, n_above + 1.0, n_above), n_lit + vis
+
+    z = mi.Float(0.0)
+    _, n_above, n_lit = dr.while_loop((mi.UInt32(0), z, z), cond, body)
+    ratio = dr.select(n_above > 0, n_lit / dr.maximum(n_above, 1e-30), 0.0)
+    sample_above = bsdf_eval_reaches(bsdf, ctx, si, si.to_local(lk.ds.d), act)[1]
+    retry = sample_above & (n_above <= 0)
+    seed = dr.reinterpret_array(mi.UInt32, shift2.x)
+    K = view.n_views
+
+    def cond_r(r, found, v):
+        return retry & ~found & (r < K)
+
+    def body_r(r, found, v):
+        u = mi.sample_tea_float32(seed, 2 * r)
+        w = mi.sample_tea_float32(seed, 2 * r + 1)
+        above, vis = draw(mi.Point2f(u, w), retry & ~found)
+        return r + 1, found | above, dr.select(above, vis, v)
+
+    _, found, v = dr.while_loop((mi.UInt32(0), mi.Bool(False), z), cond_r, body_r)
+    ratio = dr.select(retry & found, v, ratio)
+    return n_lit / L, n_above / L, ratio
 
 
 def _views(view, emitter, scene, opts):

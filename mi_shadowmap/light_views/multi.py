@@ -110,6 +110,56 @@ def stratified_points(n: int, seed: int = SEED) -> np.ndarray:
     return p[np.argsort(_hilbert_index(cells[:, 0], cells[:, 1], order), kind="stable")]
 
 
+def stratified_cell(u, n: int):
+    """Index of the stratum of :func:`stratified_points` (``n`` points) that holds ``u``
+    (in the strata's construction order, row by row: before the Hilbert sort), for a
+    ``numpy`` ``(m, 2)`` array or a ``mi.Point2f``. O(1): the first ``n % rows`` rows
+    hold ``n // rows + 1`` cells, the others ``n // rows``, all cells of area ``1 / n``."""
+    rows = max(1, int(round(math.sqrt(n))))
+    q, m = n // rows, n % rows
+    if isinstance(u, np.ndarray):
+        x, t = u[:, 0], u[:, 1] * n
+        r = np.where(t < m * (q + 1), np.floor(t / (q + 1)),
+                     m + np.floor((t - m * (q + 1)) / q))
+        r = np.clip(r, 0, rows - 1).astype(np.int64)
+        n_r = q + (r < m)
+        c = np.clip(np.floor(x * n_r).astype(np.int64), 0, n_r - 1)
+        return r * q + np.minimum(r, m) + c
+    x, t = u.x, u.y * n
+    r = dr.select(t < m * (q + 1), dr.floor(t / (q + 1)), m + dr.floor((t - m * (q + 1)) / q))
+    r = mi.UInt32(dr.clip(r, 0.0, rows - 1.0))
+    n_r = dr.select(r < m, mi.UInt32(q + 1), mi.UInt32(q))
+    c = dr.minimum(mi.UInt32(dr.maximum(dr.floor(x * mi.Float(n_r)), 0.0)), n_r - 1)
+    return r * q + dr.minimum(r, m) + c
+
+
+def _sphere_cells(u: np.ndarray, p: np.ndarray, centre, radius: float):
+    """``(sphere, cells)`` of :attr:`MultiView.sphere` and :attr:`MultiView.cells` for
+    light points ``p`` made from the samples ``u`` on the sphere ``(centre, radius)``
+    (by ``square_to_uniform_sphere``, possibly rotated: Mitsuba's sphere shape applies
+    its ``to_world`` rotation to the positions), or ``((), ())`` where the points do not
+    invert to their own strata."""
+    K = len(u)
+    c = np.asarray(centre, dtype=np.float64)
+    w = mi.warp.square_to_uniform_sphere(mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1])))
+    local = np.stack([a.numpy() for a in w], axis=1).astype(np.float64)
+    # (p - c) / r = local @ A; world -> the warp's frame: @ inv(A)
+    A = np.linalg.lstsq(local, (p - c) / radius, rcond=None)[0]
+    if not np.allclose(local @ A, (p - c) / radius, atol=1e-4):
+        return (), ()
+    inv = np.linalg.inv(A)
+    cells = stratified_cell(u, K)
+    back = stratified_cell(np.stack([a.numpy() for a in mi.warp.uniform_sphere_to_square(
+        mi.Vector3f(*[mi.Float(col) for col in (((p - c) / radius) @ inv).T]))],
+        axis=1).astype(np.float64), K)
+    if sorted(cells.tolist()) != list(range(K)) or np.mean(back == cells) < 0.99:
+        return (), ()
+    table = np.empty(K, dtype=np.int64)
+    table[cells] = np.arange(K)
+    return ((*map(float, c), float(radius), *map(float, inv.ravel())),
+            tuple(int(k) for k in table))
+
+
 # --------------------------------------------------------------------- the view
 @dataclass(frozen=True)
 class MultiView(LightView):
@@ -139,7 +189,13 @@ class MultiView(LightView):
     * ``inside_only`` -- ``(centre, radius)`` of a sphere light with ``flip_normals``,
       which emits inwards only: a receiver outside it sees none of its points (their
       light would cross the sphere itself, which the maps skip as the light's own
-      shape), else None.
+      shape), else None;
+    * ``sphere`` -- a ``cone`` light's sphere: centre (3), radius and the 3 x 3 matrix
+      (row-major) taking ``(p - centre) / radius`` to the ``square_to_uniform_sphere``
+      frame its points were made in, or ``()``; with ``cells`` -- the ``K`` views by
+      stratum (:func:`stratified_cell`): ``cells[i]`` is the view whose sample lies in
+      stratum ``i``. Lookups of a subset draw points in the cone the sphere subtends
+      and test the view of each one's stratum (:meth:`cone_view`).
     """
     sub: LightView | None = None
     positions: tuple = ()
@@ -150,6 +206,8 @@ class MultiView(LightView):
     count_all: bool = False
     cone: bool = False
     inside_only: tuple | None = None
+    sphere: tuple = ()
+    cells: tuple = ()
 
     projection = "multi-view"
 
@@ -195,6 +253,10 @@ class MultiView(LightView):
             t["normal"] = mi.Vector3f(*cols([self.normals[0]], 3))
         elif self.normals:
             t["normal"] = mi.Vector3f(*cols(self.normals, 3))
+        if self.sphere:
+            t["sphere_inv"] = [opaque_scalar(v) for v in self.sphere[4:]]
+            t["cells"] = mi.UInt32(np.asarray(self.cells, dtype=np.uint32))
+            dr.make_opaque(t["cells"])
         return t
 
     def lane(self, k) -> LightView:
@@ -252,6 +314,37 @@ class MultiView(LightView):
         n = t["normal"] if len(self.normals) == 1 else dr.gather(mi.Vector3f, t["normal"], k)
         d2 = dr.squared_norm(d)
         return dr.maximum(dr.dot(n, d), 0.0) * dr.rsqrt(d2) / d2
+
+    def cone_view(self, p_world: mi.Point3f, u: mi.Point2f):
+        """A point of the sphere (``sphere``) drawn as Mitsuba draws a light sample of
+        it from ``p_world`` -- uniformly in the cone it subtends, ``u`` in ``[0, 1)^2`` --
+        and the view of its stratum: ``(k, d, outside)``, ``d`` the unit direction from
+        ``p_world`` to the point, ``outside`` False where ``p_world`` is inside the
+        sphere (which lights it from no point). Each view ``k`` is so drawn with the
+        probability of the solid angle its stratum subtends: averaging the views' hard
+        shadows over such draws estimates the cone's visibility without the
+        ratio-of-sums bias of a weighted subset."""
+        t = self._tables
+        sp = self.sphere
+        c, r = opaque_point(sp[:3]), opaque_scalar(sp[3])
+        p = mi.Point3f(p_world)
+        dc = c - p
+        d2 = dr.squared_norm(dc)
+        outside = d2 > r * r
+        inv_dist = dr.rsqrt(dr.maximum(d2, 1e-30))
+        sin_a = dr.minimum(r * inv_dist, 1.0)
+        cos_a = dr.safe_sqrt(1.0 - sin_a * sin_a)
+        d = mi.Frame3f(dc * inv_dist).to_world(mi.warp.square_to_uniform_cone(u, cos_a))
+        b = dr.dot(d, dc)
+        dist = b - dr.safe_sqrt(r * r - (d2 - b * b))     # the near hit
+        q = (p + dist * d - c) / r
+        M = t["sphere_inv"]
+        local = mi.Vector3f(q.x * M[0] + q.y * M[3] + q.z * M[6],
+                            q.x * M[1] + q.y * M[4] + q.z * M[7],
+                            q.x * M[2] + q.y * M[5] + q.z * M[8])
+        cell = stratified_cell(mi.warp.uniform_sphere_to_square(dr.normalize(local)),
+                               self.n_views)
+        return dr.gather(mi.UInt32, t["cells"], cell), d, outside
 
     def _split(self, face):
         face = mi.UInt32(face)
@@ -531,11 +624,17 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
         # outside it (uniformly by area from inside: a flipped sphere's receivers, which
         # are all inside, keep equal weights); a textured one through its texture.
         cone_sampled = sphere and not textured
+        cone = cone_sampled and inside is None
+        sp, cells = ((), ())
+        if cone:
+            b = shape.bbox()
+            sp, cells = _sphere_cells(u, p, tuple(float(c) for c in b.center()),
+                                      0.5 * float(b.max[0] - b.min[0]))
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
                          normals=_normals(n), samples=samples,
                          radiant=_radiant(emitter, ps),
                          count_all=not cone_sampled,
-                         cone=cone_sampled and inside is None, inside_only=inside)
+                         cone=cone, inside_only=inside, sphere=sp, cells=cells)
     if view.kind in ("point", "spot", "projector"):
         size = float(light_size or 0.0)
         if size <= 0.0:
@@ -546,9 +645,10 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                                                              mi.Float(u[:, 1])))
             n = np.stack([c.numpy() for c in w], axis=1).astype(np.float64)
             p = centre + 0.5 * size * n
+            sp, cells = _sphere_cells(u, p, tuple(float(c) for c in centre), 0.5 * size)
             return MultiView(**base, sub=view, positions=tuple(map(tuple, p.tolist())),
                              normals=tuple(map(tuple, n.tolist())), samples=samples,
-                             cone=True)
+                             cone=True, sphere=sp, cells=cells)
         # spot, projector: a square of side `size` across the axis, same frame otherwise
         R = np.array(view.light_from_world.matrix, dtype=np.float64)[:3, :3]
         offsets = np.stack([u[:, 0] - 0.5, u[:, 1] - 0.5, np.zeros(K)], axis=1) * size

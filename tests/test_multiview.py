@@ -462,7 +462,9 @@ def test_a_sphere_light_subset_facing_away_looks_all_views_up():
     """``lookups`` < K on a sphere light: a subset whose points all lie on the sphere's
     far side (none emits towards the receiver) read 0, so unoccluded ground under a
     sphere light had visibility 0.437 at ``lookups=1`` of 256 (0.966 at 4) and the image
-    was 41 % (4 %) too dark against ``direct``. Those lanes now look up every view."""
+    was 41 % (4 %) too dark against ``direct``. Those lanes then looked up every view;
+    a sphere's subset is now drawn in the cone it subtends, all of whose points face the
+    receiver (test_a_sphere_light_subset_is_unbiased_near_the_light)."""
     scene = mi.load_dict({
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 40,

@@ -1021,7 +1021,7 @@ def test_automatic_resolution_is_kept_while_gradients_are_enabled():
     assert kept == [seen[0], seen[0]], (seen, kept)
 
 
-def _zero_light_scene(method, light):
+def _zero_light_scene(method, light, **props):
     lights = {
         "point": {"type": "point", "position": [0.3, 2.0, 0.2],
                   "intensity": {"type": "rgb", "value": 0.0}},
@@ -1029,24 +1029,30 @@ def _zero_light_scene(method, light):
                  "to_world": T().translate([0, 2.0, 0]).rotate([1, 0, 0], 90).scale(0.3),
                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 0.0}}}}
     return mi.load_dict({
-        "type": "scene", "integrator": {"type": "shadowmap", "method": method},
+        "type": "scene", "integrator": {"type": "shadowmap", "method": method, **props},
         "sensor": camera([0, 3, 3], [0, 0, 0], 32, 32, 2),
         "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2)},
         "box": {"type": "cube", "to_world": T().translate([0, 0.5, 0]).scale(0.25)},
         "light": lights[light]})
 
 
-@pytest.mark.parametrize("method,light", [("raytraced", "area"), ("hard", "point")])
-def test_gradient_wrt_an_intensity_of_zero(method, light):
+@pytest.mark.parametrize("method,light,props", [
+    ("raytraced", "area", {}), ("hard", "point", {}),
+    ("multiview", "point", {"light_size": 0.3, "views": 16, "lookups": 4}),
+    ("multiview", "area", {"views": 16})])
+def test_gradient_wrt_an_intensity_of_zero(method, light, props):
     """The image is linear in a light's intensity, so its derivative there is the same
     at 0 as at 1. The term was gated by the light's weight being > 0: at intensity 0 the
     derivative was 0 (raytraced, hard, pcf; direct: 55.5 on a point light), and a dark
     light's virtual map kept its coarsest level only (hard at 0: 55.11 against 55.60 at
-    1). Reverse and forward mode; the visibility AOV stays 0 for the dark light."""
+    1). Reverse and forward mode; the visibility AOV stays 0 for the dark light.
+    multiview gated its lookups by the weight too (a delta light's weight, an area
+    light's per-point radiance): 0 at intensity 0 against 14.2 at 1 on a point light
+    with light_size (16^2, 2 spp), 0 against 4.1 on a rectangle."""
     key = "light.emitter.radiance.value" if light == "area" else "light.intensity.value"
     grads = []
     for value in (0.0, 1.0):
-        scene = _zero_light_scene(method, light)
+        scene = _zero_light_scene(method, light, **props)
         params = mi.traverse(scene)
         params[key] = mi.Color3f(value)
         dr.enable_grad(params[key])

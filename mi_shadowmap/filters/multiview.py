@@ -132,10 +132,22 @@ def multiview(smap, lk: Lookup, opts, active=True):
     # The emitter shaded (lk.emitter), called directly: through the sample's pointer
     # (lk.ds.emitter) the call traced every live emitter of the process, and an area
     # light on a curve anywhere (Shape::sample_position not implemented) raised here.
+    # Where the light's weight tracks gradients, the views are looked up wherever the
+    # light sample is valid, whatever the weight's value (a point light of intensity
+    # exactly 0 has weight 0 everywhere, and gating by it cut the derivative wrt the
+    # intensity to 0: 0 against 14.2 at intensity 1, and an area light's: 4.1); the
+    # visibility AOV (``visible``, ``above``) still counts only where the weight is
+    # non-zero.
     emitter = lk.emitter
+    emitting = mi.Bool(True)
+    tracked = view.dark     # an area light of radiance 0 that tracks gradients
     if emitter is not None and mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta):
         ds0, w0 = emitter.sample_direction(si, mi.Point2f(0.5, 0.5), act)
-        act &= (ds0.pdf > 0) & (dr.max(unpolarized(w0)) > 0)
+        emitting = (ds0.pdf > 0) & (dr.max(unpolarized(w0)) > 0)
+        tracked = tracked or dr.grad_enabled(w0)
+        act &= (ds0.pdf > 0) if tracked else emitting
+    if view.dark:
+        emitting = mi.Bool(False)
     cone_subset = L < K and view.cone and bool(view.sphere)
     if cone_subset:
         shift2 = lk.sampler.next_2d(act)
@@ -172,8 +184,11 @@ def multiview(smap, lk: Lookup, opts, active=True):
         return sub, emits, above, w
 
     if cone_subset:
-        return _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx,
-                            above_c, side_c)
+        visible, above, ratio = _cone_subset(view, smap, lk, opts, act, L, shift2, test, si,
+                                             bsdf, ctx, above_c, side_c)
+        if tracked:   # the weight is the geometric one; the AOV counts emitting lanes only
+            return dr.select(emitting, visible, 0.0), dr.select(emitting, above, 0.0), ratio
+        return visible, above, ratio
 
     def cond(j, n_emit, n_above, n_lit):
         return act & (j < L)
@@ -213,6 +228,9 @@ def multiview(smap, lk: Lookup, opts, active=True):
     else:
         inv = dr.select(n_emit > 0, dr.rcp(dr.maximum(total, 1.0)), 0.0)
     if L >= K:
+        if tracked:   # the weight is the geometric one; the AOV counts emitting lanes only
+            return (dr.select(emitting, n_lit * inv, 0.0), dr.select(emitting, n_above * inv, 0.0),
+                    dr.select(n_above > 0, n_lit / dr.maximum(n_above, 1e-30), 0.0))
         return n_lit * inv, n_above * inv
     # The light sample's weight, visible / above: where the subset holds no point above
     # the horizon (a cube light's far faces, a light straddling the receiver's horizon)
@@ -242,6 +260,8 @@ def multiview(smap, lk: Lookup, opts, active=True):
     _, found, v = dr.while_loop((mi.UInt32(0), mi.Bool(False), mi.Float(0.0)),
                                 cond_r, body_r)
     ratio = dr.select(retry & found, v, ratio)
+    if tracked:
+        return dr.select(emitting, n_lit * inv, 0.0), dr.select(emitting, n_above * inv, 0.0), ratio
     return n_lit * inv, n_above * inv, ratio
 
 

@@ -196,6 +196,9 @@ class MultiView(LightView):
       stratum (:func:`stratified_cell`): ``cells[i]`` is the view whose sample lies in
       stratum ``i``. Lookups of a subset draw points in the cone the sphere subtends
       and test the view of each one's stratum (:meth:`cone_view`).
+    * ``dark`` -- an area light whose radiance is 0 at every point while its value tracks
+      gradients: ``radiant`` then holds every valid point (the derivative image it lights
+      reads them as a lit light's), and the lookup's visibility AOV is 0.
     """
     sub: LightView | None = None
     positions: tuple = ()
@@ -208,6 +211,7 @@ class MultiView(LightView):
     inside_only: tuple | None = None
     sphere: tuple = ()
     cells: tuple = ()
+    dark: bool = False
 
     projection = "multi-view"
 
@@ -581,6 +585,17 @@ def _radiant(emitter, ps) -> tuple:
     return tuple(bool(x) for x in lit)
 
 
+def _tracks_gradients(emitter) -> bool:
+    """Whether any of ``emitter``'s emitted values (``radiance``, ``intensity``,
+    ``irradiance`` and their textures' parameters) has gradients enabled, whatever the
+    AD scope (the primal pass of ``mi.render(scene, params)`` runs under
+    ``dr.suspend_grad()``, and must see the views the derivative pass sees)."""
+    params = mi.traverse(emitter)
+    with dr.resume_grad():
+        return any(dr.grad_enabled(params[k]) for k in params.keys()
+                   if k.split(".")[0] in ("intensity", "radiance", "irradiance"))
+
+
 def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
                angular_diameter: float = 0.0) -> MultiView | None:
     """The :class:`MultiView` of ``views`` light points of an emitter whose ordinary
@@ -641,9 +656,12 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
             b = shape.bbox()
             sp, cells = _sphere_cells(u, p, tuple(float(c) for c in b.center()),
                                       0.5 * float(b.max[0] - b.min[0]))
+        radiant = _radiant(emitter, ps)
+        dark = not any(radiant) and _tracks_gradients(emitter)
+        if dark:   # a tracked 0: every valid point, for the derivative image
+            radiant = tuple(bool(x) for x in np.broadcast_to(ps.pdf.numpy() > 0, (K,)))
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
-                         normals=_normals(n), samples=samples,
-                         radiant=_radiant(emitter, ps),
+                         normals=_normals(n), samples=samples, radiant=radiant, dark=dark,
                          count_all=not cone_sampled,
                          cone=cone, inside_only=inside, sphere=sp, cells=cells)
     if view.kind in ("point", "spot", "projector"):

@@ -42,7 +42,8 @@ Starting from the whole map, the region of largest energy that can be split
 ``d_phi sin(theta_mid)`` against height ``d_theta``) at the texel boundary
 closest to the median of its energy -- Debevec's rule, one region at a time, so
 any K works (for K a power of two on an even map it is Debevec's
-all-regions-per-round cut). Per region: the ``(u, v)`` rectangle, its solid
+all-regions-per-round cut; an emitter with no energy at all is cut by solid angle, as
+a uniform one is). Per region: the ``(u, v)`` rectangle, its solid
 angle ``2 pi du (cos theta0 - cos theta1)`` (they sum to 4 pi), its energy,
 its luminance-weighted centroid direction in world space (through the emitter's
 ``to_world``) and its *angular diameter*: the diameter of the uniform disc with
@@ -224,6 +225,12 @@ def median_cut(lum: np.ndarray, K: int) -> list:
     # energy per texel: luminance x solid angle
     omega_row = (2.0 * np.pi / W) * (np.cos(theta_edges[:-1]) - np.cos(theta_edges[1:]))
     e = lum * omega_row[:, None]
+    if not np.any(e > 0):
+        # an emitter with no energy (radiance 0, or scale 0) is cut by solid angle, as a
+        # uniform one is: its regions are those of any uniform value (the cut of the
+        # texel-count middle differed, and the derivative image of a tracked 0, which the
+        # regions shadow, was not that of radiance 1: hard 371 against 1004)
+        e = np.broadcast_to(omega_row[:, None], lum.shape)
     S = np.zeros((H + 1, W + 1))
     S[1:, 1:] = e.cumsum(0).cumsum(1)
 
@@ -750,7 +757,9 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         f, seen = bsdf_eval_reaches(bsdf, ctx, si, wo, act)
         f = bsdf_to_world(si, f, wo)
         contrib = f * L * omega
-        lit = act & (dr.max(unpolarized(contrib)) > 0)
+        # where the radiance tracks gradients, the term is gated by geometry (the BSDF
+        # reaches d), not by its value: a radiance of exactly 0 cut the derivative wrt it
+        lit = act & (seen if dr.grad_enabled(L) else (dr.max(unpolarized(contrib)) > 0))
         # the lookup runs wherever the direction is above the horizon, dark or not (the
         # region's visibility, its map's, does not depend on the direction's radiance),
         # and wherever the region's own direction is on the viewer's side: the AOV's

@@ -520,6 +520,51 @@ def test_a_sky_that_emits_nothing_has_visibility_zero_as_raytraced(virtual):
         assert r.metrics["vis_misclassified"] == 0.0
 
 
+def test_gradient_wrt_a_sky_radiance_of_zero():
+    """The image is linear in the sky's radiance, so its derivative wrt it is the same at
+    0 as at 1. With environment='shadowed' it was not: the region term was gated by its
+    contribution being > 0 (cut to 0 at radiance 0: only the visible sky's pixels kept a
+    derivative), and an all-zero sky was cut at the regions' texel-count middle instead of
+    by solid angle as a uniform sky is (other regions, other shadows): hard gave 371
+    against 1004 at radiance 1 (raytraced 1013 at both) on a 24^2 scene (an envmap's
+    scale of 0 likewise: 158.5 against 445.0 here). Reverse and forward mode; the
+    visibility AOV of the zero sky stays 0."""
+    import drjit as dr
+    T = mi.ScalarTransform4f
+
+    def scene():
+        return mi.load_dict({
+            "type": "scene", "integrator": {"type": "shadowmap", "method": "hard"},
+            "sensor": {"type": "perspective", "fov": 45,
+                       "to_world": T().look_at([0, 3, 3], [0, 0, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+            "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2)},
+            "box": {"type": "cube", "to_world": T().translate([0, 0.5, 0]).scale(0.3)},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.0}}})
+
+    key = "sky.radiance.value"
+    grads = []
+    for value in (0.0, 1.0):
+        sc = scene()
+        params = mi.traverse(sc)
+        params[key] = mi.Color3f(value)
+        dr.enable_grad(params[key])
+        params.update()
+        image = mi.render(sc, params, seed=0, spp=2)
+        if value == 0.0:
+            assert np.all(np.asarray(image)[..., -1] == 0)   # vis_sky: lit by nothing
+        dr.backward(dr.sum(image[:, :, :3], axis=None))
+        reverse = float(np.sum(np.asarray(dr.grad(params[key]))))
+        dr.set_grad(params[key], mi.Color3f(1.0))
+        image = mi.render(sc, params, seed=0, spp=2)
+        dr.forward_to(image)
+        grads.append((reverse, np.asarray(dr.grad(image))[..., :3]))
+    (r0, f0), (r1, f1) = grads
+    assert r1 > 1.0
+    assert r0 == pytest.approx(r1, rel=1e-4)
+    np.testing.assert_allclose(f0, f1, rtol=1e-4, atol=1e-6)
+
+
 def _framed_sky_scene(to_world):
     sky = np.full((16, 32, 3), 0.1, np.float32)
     sky[3:5, 10:12] = 200.0

@@ -84,7 +84,9 @@ Deviations from the paper, and why:
   The curvature bounds how a smooth surface leaves its tangent plane at the point,
   not how a tessellation leaves a facet's plane (the facets are chords, tilted
   against the surface by up to half the angle between neighbours), and a flat-shaded
-  tessellation has none to read (0 between its facets).
+  tessellation has none to read (0 between its facets). On a mesh hit the bend is
+  measured from the face's centroid (:func:`facet_centre`), which covers the chord's
+  tilt for smooth-shaded tessellations.
 * **Tessellated surfaces that are their own second surface: the neighbouring faces'
   planes.** Where a mesh rises off a face's plane towards the light (a closed shade or
   room lit from inside), a tap whose texel sees a neighbouring face compares that face
@@ -196,6 +198,28 @@ def bend_along_ray(kappa, qp, d, n) -> mi.Float:
     return dr.select(b > 0, exact, 0.5 * kd2 / c)
 
 
+def facet_centre(lk: Lookup, p, n, active) -> mi.Point3f:
+    """Where the bend allowance is measured from: ``p``, or on a mesh hit the centroid
+    of its face moved into the plane through ``p`` (normal ``n``). A smooth surface
+    tessellated into chords rises off a face's plane from the face's middle, not from
+    the shading point: near the face's edge the next faces rise by ``kappa rho d``
+    (``rho`` the face's size) more than ``kappa d^2 / 2``."""
+    si = lk.si
+    if si is None or not hasattr(si, "prim_index"):
+        return p
+    ok = mi.Bool(active) & si.is_valid() & si.shape.is_mesh() \
+        & (dr.reinterpret_array(mi.UInt32, si.instance) == 0) \
+        & dr.all(dr.detach(mi.Point3f(lk.p_world)) == dr.detach(mi.Point3f(si.p)))
+    mesh = mi.MeshPtr(si.shape)
+    fa = mesh.face_indices(si.prim_index, ok)
+    c = mi.Point3f(0.0)
+    for k in range(3):
+        c += dr.detach(mesh.vertex_position(fa[k], ok))
+    c = c * (1.0 / 3.0)
+    c = c - n * dr.dot(n, c - p)
+    return dr.select(ok & dr.all(dr.isfinite(c)), c, p)
+
+
 def rising_neighbours(lk: Lookup, n, to_light, active) -> list:
     """The planes of the mesh faces that share an edge with the hit's face, rise off its
     plane towards the light (their third vertex on the light's side of it) and turn the
@@ -274,6 +298,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
     rises = mi.Bool(False)
     for _, _, valid in neighbours:
         rises |= valid
+    p_bend = facet_centre(lk, p, n, kappa > 0)
     # 3. virtual samples on the tangent plane where the compares disagree, and where all
     # shadow a mesh face with a rising neighbour (see the module doc)
     # (one tap, pcf_samples=1, never disagrees: its compare of a texel centre's depth
@@ -292,7 +317,7 @@ def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
         # has bent further off the plane (see the module doc and bend_along_ray)
         o, d = view.ray_through(r.face, texel_sample_uv(ij, res))
         q = o + d * z_v
-        bend = bend_along_ray(kappa, q - p, d, n)
+        bend = bend_along_ray(kappa, q - p_bend, d, n)
         z_v = z_v - offset
         tol = z_second + _EQ_REL * dr.abs(z_second)
         lit_v = z_v <= tol + bend

@@ -322,6 +322,7 @@ METHOD = Method(
         SOFT_COMPARE,
     ),
     needs_footprint=True,
+    needs_curvature=True,      # the receiver plane's bend on concave receivers
     finalize=_finalize,
     virtual_margin=lambda o: 2.0 + 4.0 * o.res_factor + 0.5 * o.min_size,
     virtual=True, builtin=True,

@@ -141,7 +141,9 @@ class Method:
       (``lk.dp_dx``/``dp_dy``), which the integrator then computes;
     * ``needs_curvature`` -- the lookup reads the receiver's shading-normal derivatives
       (``lk.si.dn_du``/``dn_dv``), which the integrator then asks of the camera rays'
-      intersections (``mi.RayFlags.dNSdUV``; ``second_depth``'s curved tangent planes);
+      intersections (``mi.RayFlags.dNSdUV``; ``second_depth``'s curved tangent planes),
+      and :func:`~.filters.common.receiver_plane` then allows for a concave receiver's
+      bend (``pcf``, ``multiview``);
     * ``uses_map`` -- False for methods that read no depth map (``raytraced``,
       ``unshadowed``): no map is built and map-only properties are refused;
     * ``bias_defaults`` -- defaults of the shared texel biases for this method,

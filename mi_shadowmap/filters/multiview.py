@@ -80,9 +80,7 @@ import numpy as np
 from ..variants import bsdf_eval_reaches, unpolarized
 from ..light_views.multi import as_multi_view, multi_view, stratified_points
 from ..methods import Method, Prop
-from .common import Lookup, receiver, receiver_plane, tap_depths
-from .second_depth import bend_along_ray, concavity
-from ..light_views.base import texel_sample_uv
+from .common import Lookup, receiver, receiver_plane, tap_lit
 from .hard import hard
 
 
@@ -95,11 +93,12 @@ def bilinear2(smap, lk: Lookup, opts, active=True) -> mi.Float:
     sees it: a frosted bulb's shell or a room lit from inside) lies in front of that
     plane by the plane's bend, which no bias here covers: ``normal_bias`` defaults to 0
     (see the record) and the slope bias vanishes where the light is along the normal.
-    So each tap's plane depth is lowered by that bend along its ray (second_depth's
-    :func:`~.second_depth.bend_along_ray`, the curvature from the shading normal's
-    derivatives, 0 on planes and convex receivers). Without it a point light at the
-    centre of a rough-glass sphere (radius 0.3) shadowed its whole shell: a 64^2
-    image 0.019 against ``raytraced``'s 0.392."""
+    So each tap's plane depth is lowered by that bend along its ray (the record's
+    ``needs_curvature`` gives :func:`~.common.receiver_plane` the receiver's curvature,
+    :func:`~.common.plane_depth_at` applies second_depth's
+    :func:`~.second_depth.bend_along_ray`; 0 on planes and convex receivers). Without
+    it a point light at the centre of a rough-glass sphere (radius 0.3) shadowed its
+    whole shell: a 64^2 image 0.019 against ``raytraced``'s 0.392."""
     res = smap.resolution
     r = receiver(smap, lk, opts)
     plane = receiver_plane(smap, lk, r, opts)
@@ -108,19 +107,10 @@ def bilinear2(smap, lk: Lookup, opts, active=True) -> mi.Float:
     f = a - i0
     act = mi.Bool(active) & r.inside
     face = mi.UInt32(r.face)
-    p = mi.Point3f(lk.p_world)
-    n = dr.normalize(mi.Vector3f(lk.n_world))
-    kappa = concavity(lk, smap.view.direction_to_light(p))
     vis = mi.Float(0.0)
     for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
         w = (f.x if dx else 1.0 - f.x) * (f.y if dy else 1.0 - f.y)
-        xy = i0 + mi.Point2f(dx + 0.5, dy + 0.5)
-        z_map, z, inside = tap_depths(smap, r, face, xy, plane, act)
-        # the ray tap_depths met the plane with (past a cube seam: the next face's)
-        f2, i, j, _ = smap.view.tap_texel(face, xy, res, True)
-        o, d = smap.view.ray_through(f2, texel_sample_uv(mi.Point2f(i, j), res))
-        bend = dr.select(kappa > 0, bend_along_ray(kappa, o + d * z - p, d, n), 0.0)
-        lit = ~inside | (z - bend <= z_map)
+        lit = tap_lit(smap, r, face, i0 + mi.Point2f(dx + 0.5, dy + 0.5), plane, 0.0, act)
         vis += dr.select(lit, w, 0.0)
     return dr.select(r.inside, dr.clip(vis, 0.0, 1.0), 1.0)
 

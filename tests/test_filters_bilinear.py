@@ -225,3 +225,31 @@ def test_soft_compare_is_the_step_far_from_the_receiver_and_differentiable_near(
     # bilinear weights summing to one over the texels read
     np.testing.assert_allclose(g.sum(), len(x) * 1.5 / w, rtol=1e-4)
     assert np.count_nonzero(g) == kernel * kernel
+
+
+def test_a_frosted_bulb_lit_from_inside_without_normal_offset():
+    """A point light at the centre of a rough-glass sphere (radius 0.3) lights the
+    shell along its normal: with ``normal_bias`` 0 nothing but the receiver plane's
+    bend keeps the 2x2 taps' plane depths (behind the concave shell) from shadowing it
+    (image 0.019-0.027 against raytraced's 0.392 in a 64^2 view before)."""
+    from mi_shadowmap.scenes import camera
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": camera([2.5, 2.5, 3.0], [0.3, 1.0, 0.2], 48, 48, 4, fov=40.0),
+        "ground": {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                   "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+        "bulb": {"type": "sphere", "center": [0.3, 1.5, 0.2], "radius": 0.3,
+                 "bsdf": {"type": "roughdielectric", "alpha": 0.3}},
+        "light": {"type": "point", "position": [0.3, 1.5, 0.2],
+                  "intensity": {"type": "rgb", "value": 3.0}}})
+    imgs = [np.asarray(mi.render(scene, integrator=mi.load_dict(
+        {"type": "shadowmap", **p}), spp=4, seed=0))
+        for p in ({"method": "raytraced"},
+                  {"method": "bilinear", "normal_bias": 0.0, "virtual": True},
+                  {"method": "bilinear", "normal_bias": 0.0, "resolution": 128})]
+    for img in imgs[1:]:
+        wrong = int(np.sum(np.abs(img[..., -1] - imgs[0][..., -1]) > 0.1))
+        print(f"image {img[..., :3].mean():.4f} vs {imgs[0][..., :3].mean():.4f}, "
+              f"{wrong} pixels off")
+        assert wrong <= 1

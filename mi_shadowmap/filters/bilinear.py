@@ -209,5 +209,6 @@ METHOD = Method(
         SOFT_COMPARE,
     ),
     virtual_margin=lambda o: 2.0 + 0.5 * o.kernel,
+    needs_curvature=True,      # the receiver plane's bend on concave receivers
     virtual=True, builtin=True,
 )

@@ -919,3 +919,17 @@ def test_timed_frames_wait_for_the_render():
         synced.append(time.perf_counter() - t0)
     assert r.times["warm"] >= min(synced) / 3.0, (r.times, synced)
     assert r.times["cold"] >= min(synced) / 3.0, (r.times, synced)
+
+
+def test_a_methods_times_are_its_own_not_the_references():
+    """Every time of a method in ``compare`` is that method's renders alone: a reference
+    (here given, with every time set to 1000 s) adds nothing to them. Adding the
+    reference's warm time to each method's survived every harness test."""
+    from mi_shadowmap.timing import run_method
+    scene = mi.load_dict(default_scene(width=16, height=16, spp=1))
+    ref = run_method(scene, "raytraced", spp=1, measure_cached=False)
+    ref.times = {k: 1000.0 for k in ref.times}
+    out = harness.compare(scene, methods=["hard:resolution=64"], reference=ref, spp=1)
+    r = out[1]
+    assert r.method == "hard"
+    assert all(v < 100.0 for v in r.times.values()), r.times

@@ -472,3 +472,26 @@ def test_cli_tune_without_a_pick_removes_an_earlier_runs_integrator_xml(
     with pytest.warns(UserWarning, match="integrator.xml is not this run's"):
         assert cli.main(argv) == 130
     assert (out / "integrator.xml").read_text() == mine
+
+
+@pytest.mark.parametrize("order", [(0.3, 0.1, 0.2), (0.1, 0.3, 0.2), (0.2, 0.3, 0.1)])
+def test_the_pick_is_the_fastest_finalist_that_passes_at_full_size(order):
+    """README, Tuning, step 3: "The fastest finalist that passes, at full size, is the
+    pick". Three finalists pass with full-size warm times ``order``; the pick is the
+    fastest of them whatever their search order (``max`` in place of ``min`` survived
+    every tune test: the fixture's scenes verify one passing finalist at a time)."""
+    import types
+    import importlib
+    tune_mod = importlib.import_module("mi_shadowmap.tune")   # the package's 'tune' is the function
+    t = object.__new__(tune_mod._Tuner)
+    t.B, t.margin = 0.05, 0.05
+    front = [(0.010, 0.020, "a", 1), (0.011, 0.010, "b", 1), (0.012, 0.005, "c", 1)]
+    full = {c: types.SimpleNamespace(times={"warm": w}) for c, w in zip("abc", order)}
+    t.search = t.contest = lambda tau, only=None: None
+    t.front = lambda tau=math.inf, only=None: front
+    t.verify = lambda c, spp, *args: full[c]
+    t.check = lambda r: (0.01, 0.02, True)
+    t._time_left = lambda: True
+    best, result, tau = t.pick(0.04)
+    assert result is min(full.values(), key=lambda r: r.times["warm"])
+    assert best[2] == min(full, key=lambda c: full[c].times["warm"]) and tau == 0.04

@@ -378,3 +378,39 @@ def test_raytraced_independent_skips_the_back_of_a_closed_light():
     ratio = indep[ground].mean() / shared[ground].mean()
     print(f"independent / shared on the ground: {ratio:.4f}")
     assert ratio == pytest.approx(1.0, abs=0.03)
+
+
+def test_converged_reference_matches_an_analytic_penumbra():
+    """The converged reference's visibility against a closed form: a square light
+    (side 2a, facing down at height H, centred at x = c) and a half-plane occluder
+    (x < 0 at height h = H/2) give the ground at x the lit fraction
+    ``1 - clip((-x - (c - a)) / 2a, 0, 1)`` (a ramp from x = 1.5 to 2.5 here), seen by
+    an orthographic camera (pixels one footprint from the ramp's ends left out).
+    Measured: mean |error| 0.0012, max 0.007 with the default 1024 light samples;
+    64 light samples (the reference's count cut 16x, which survived every test):
+    0.0089 and 0.047."""
+    from mi_shadowmap.ground_truth import converged_reference
+    T = mi.ScalarTransform4f
+    c, a, H, h, W = -2.0, 0.5, 2.0, 1.0, 64
+    scene = mi.load_dict({
+        "type": "scene",
+        "ground": {"type": "rectangle", "to_world": T().scale(3)},
+        "occ": {"type": "rectangle", "to_world": T().translate([-2.5, 0, h]).scale([2.5, 3, 1])},
+        "lamp": {"type": "rectangle",
+                 "to_world": T().translate([c, 0, H]).rotate([1, 0, 0], 180).scale(a),
+                 "emitter": {"type": "area", "radiance": 1.0}},
+        "cam": {"type": "orthographic",
+                "to_world": T().look_at([2, 0, 5], [2, 0, 0], [0, 1, 0]).scale([0.8, 0.8, 1]),
+                "film": {"type": "hdrfilm", "width": W, "height": 4,
+                         "rfilter": {"type": "box"}}}})
+    sensor = scene.sensors()[0]
+    j = np.arange(W)
+    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(mi.Float((j + 0.5) / W),
+                                                   mi.Float(np.full(W, 0.5))), mi.Point2f(0.5))
+    x = np.array(scene.ray_intersect(ray).p.x)        # each column's ground point
+    expect = 1.0 - np.clip((-x - (c - a)) / (2 * a), 0.0, 1.0)
+    keep = (np.abs(x - 1.5) > 0.05) & (np.abs(x - 2.5) > 0.05)
+    ref = converged_reference(scene, spp=16, shadow_rays=1)
+    (v,) = ref.visibility.values()
+    err = np.abs(np.asarray(v) - expect[None, :])[:, keep]
+    assert err.mean() <= 0.004 and err.max() <= 0.02, (err.mean(), err.max())

@@ -2082,3 +2082,20 @@ def test_mark_blocks_give_the_candidate_tiles(margin):
     found = [k.numpy()[ok.numpy()] for k, ok in zip(bkeys, boks)]
     got = np.unique(marks.expand_blocks(found, per_axis))
     assert len(want) > 100 and np.array_equal(got, want)
+
+
+def test_share_pages_splits_what_is_left_evenly_after_needs_and_held_pages():
+    """``planner.share_pages`` (docstring): everything fits -> each map gets its need, then
+    the slots it holds already, then the rest evenly; it does not -> the maps below a
+    common level get their need, the others that level. Giving one light all that was
+    left survived every test (the renders' shares are not checked)."""
+    share = planner.share_pages
+    assert share(100, [5, 5, 5], [10, 20, 10], [0, 0, 0]) == [30, 40, 30]
+    assert share(101, [5, 5], [10, 10], [0, 0]) == [51, 50]
+    assert share(100, [5, 5], [10, 10], [40, 0]) == [65, 35]    # held first, then even
+    assert share(30, [5, 5], [40, 40], [0, 0]) == [15, 15]      # degrades both alike
+    assert share(30, [5, 5], [8, 40], [0, 0]) == [8, 22]        # the small need is met
+    for total, least, need, held in [(100, [5, 5, 5], [10, 20, 10], [0, 0, 0]),
+                                     (30, [5, 5], [40, 40], [0, 0]), (7, [3, 3], [9, 9], [9, 0])]:
+        out = share(total, least, need, held)
+        assert sum(out) == total and all(o >= lo for o, lo in zip(out, least))

@@ -2099,3 +2099,24 @@ def test_share_pages_splits_what_is_left_evenly_after_needs_and_held_pages():
                                      (30, [5, 5], [40, 40], [0, 0]), (7, [3, 3], [9, 9], [9, 0])]:
         out = share(total, least, need, held)
         assert sum(out) == total and all(o >= lo for o, lo in zip(out, least))
+
+
+def test_a_shrunk_store_frees_every_slot_it_does_not_use():
+    """``PageStore.shrink`` after an eviction: every slot below ``next_slot`` is reserved
+    (the empty page, the coarsest pages), a page's, or free -- a slot kept out of the
+    free list is lost to every later build (keeping one survived every test: the
+    budget tests' shrinks leave no holes)."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(1, 1)
+    integ = shadowmap(method="hard", cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    st = integ.maps[0].store
+    fixed = 1 + st.layout.view.n_faces
+    fine = int((st._slot_of >= fixed).sum())
+    assert fine >= 4, fine
+    assert st.evict(np.zeros(0, np.uint64), fine // 2) == fine // 2
+    st._grow(st.next_slot + 8)           # room above next_slot, so that shrink moves
+    st.shrink(st.next_slot)
+    owned = sorted(set(st._slot_of.tolist()) | set(st.free) | set(range(fixed)))
+    assert owned == list(range(st.next_slot))
+    assert len(st.free) == st.next_slot - fixed - int((st._slot_of >= fixed).sum()) > 0

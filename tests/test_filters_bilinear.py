@@ -253,3 +253,20 @@ def test_a_frosted_bulb_lit_from_inside_without_normal_offset():
         print(f"image {img[..., :3].mean():.4f} vs {imgs[0][..., :3].mean():.4f}, "
               f"{wrong} pixels off")
         assert wrong <= 1
+
+
+def test_soft_compare_is_measured_in_texels_at_the_receiver():
+    """``soft_compare`` (README/options: the smooth compare's width in map texels at the
+    receiver): the ramp of ``soft_tap_lit`` spans ``soft_compare * texel_world`` of
+    depth, lit 1 at the map's depth, 0.5 half a width behind it, 0 a whole width behind.
+    Twice that width survived every test (the gradient tests' tolerances hold either)."""
+    import types
+    from mi_shadowmap.filters.common import soft_compare_width, soft_tap_lit
+    r = types.SimpleNamespace(texel_world=mi.Float([0.01, 0.2]))
+    width = soft_compare_width(r, 3.0)
+    assert np.allclose(np.asarray(width), [0.03, 0.6])
+    assert soft_compare_width(r, 0.0) is None
+    z_map = mi.Float([1.0, 1.0])
+    for behind, lit in ((0.0, 1.0), (0.5, 0.5), (1.0, 0.0), (-0.5, 1.0)):
+        got = soft_tap_lit(z_map, z_map + behind * width, mi.Bool(True), width)
+        assert np.allclose(np.asarray(got), lit, atol=1e-5), (behind, np.asarray(got))

@@ -340,7 +340,8 @@ def load_scene_arg(args, sizes=True):
                          f"<default>: give it with --param {m.group(1)}=VALUE") from None
 
 
-#: compare's and sweep's spp for the built-in scene (and a scene without a sampler)
+#: compare's and sweep's spp for the built-in scene (a scene file without a <sampler>
+#: gets Mitsuba's default one, of sample_count 4, and renders 4)
 DEFAULT_SPP = 16
 
 
@@ -355,8 +356,8 @@ def run_spp(args, scene) -> int:
     if n < 1:
         return DEFAULT_SPP
     if n != DEFAULT_SPP:
-        note(f"rendering {n} spp, the sample_count of the scene's sampler (--spp "
-             "overrides)")
+        note(f"rendering {n} spp, the sample_count of the scene's sampler (Mitsuba's "
+             "default, 4, where the file has no <sampler>; --spp overrides)")
     return n
 
 

@@ -1072,3 +1072,23 @@ def test_gradient_wrt_an_intensity_of_zero(method, light, props):
     assert r0 == pytest.approx(r1, rel=1e-5)
     assert float(f0.sum()) == pytest.approx(r1, rel=1e-4)
     np.testing.assert_allclose(f0, f1, rtol=1e-5, atol=1e-7)
+
+
+def test_multiview_primal_is_the_same_with_an_intensity_tracked():
+    """Where a delta light's intensity tracks gradients, multiview looks its views up
+    wherever the light's sample has a pdf (so that an intensity of 0 has a derivative);
+    its sampler must still advance only where the light emits, or every later lookup's
+    random numbers change: with lookups < views the image of a spot and a point light
+    (light_size 0.3) differed from the untracked one by up to 0.25 (found in review)."""
+    from mi_shadowmap.scenes import default_scene
+    d = default_scene(width=32, height=32, spp=4, light="spot")
+    d["pt"] = {"type": "point", "position": [1, 2.5, 1], "intensity": 10}
+    scene = mi.load_dict(d)
+    integ = mi.load_dict({"type": "shadowmap", "method": "multiview", "light_size": 0.3,
+                          "views": 16, "lookups": 4})
+    before = np.asarray(mi.render(scene, integrator=integ, seed=1))
+    params = mi.traverse(scene)
+    dr.enable_grad(params["spot.intensity.value"])
+    params.update()
+    after = np.asarray(mi.render(scene, params, integrator=integ, seed=1))
+    assert np.abs(after - before).max() == 0.0

@@ -429,8 +429,10 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     unused = unused_light_properties(opts, kinds) if opts.uses_map else []
     if unused:
         warnings.warn(
-            f"shadowmap: property {' and '.join(unused)} changes nothing in this scene, "
-            f"whose lights are {', '.join(sorted(kinds))}", RuntimeWarning, stacklevel=3)
+            f"shadowmap: {'property' if len(unused) == 1 else 'properties'} "
+            f"{' and '.join(unused)} {'changes' if len(unused) == 1 else 'change'} nothing "
+            f"in this scene, whose lights are {', '.join(sorted(kinds))}", RuntimeWarning,
+            stacklevel=3)
     if sensor is None and len(scene.sensors()) > 0:
         sensor = scene.sensors()[0]
     if opts.uses_map and opts.virtual and sensor is not None and not aims_by_film(sensor):

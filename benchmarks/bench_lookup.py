@@ -43,7 +43,7 @@ import mitsuba as mi
 
 from mi_shadowmap.filters.common import Lookup, RayTracedLight, receiver
 from mi_shadowmap.filters.hard import hard
-from mi_shadowmap.filters.raytraced import raytraced
+from mi_shadowmap.filters.raytraced import METHOD as RAYTRACED, raytraced
 from mi_shadowmap.scenes import default_scene
 
 from bench_all import heavy_scene, machine   # same folder: shared benchmark helpers
@@ -90,6 +90,9 @@ def rt_ray(smap, lk, opts, active):
 VARIANTS = {"lk_const": (lk_const, True), "lk_gather0": (lk_gather0, True),
             "lk_project": (lk_project, True), "lk_receiver": (lk_receiver, True),
             "lk_hard": (lk_hard, True), "rt_ray": (rt_ray, False)}
+#: properties a variant reads besides the common ones (``raytraced`` reads its
+#: ``light_sample``: without it ``opts.light_sample`` raises)
+PROPERTIES = {"rt_ray": list(RAYTRACED.properties)}
 
 
 # --------------------------------------------------------------------------- timing
@@ -199,7 +202,8 @@ def isolated(scene, integ, width, repeats):
     its one store included; ``load_store`` reads the point and writes a float only."""
     lk, active = shading_points(scene, width)
     smap, opts = integ.maps[0], integ.opts
-    rt = RayTracedLight(scene)
+    rt = RayTracedLight(scene, scene.emitters()[0])   # the emitter shading_points samples
+    rt_opts = mi.load_dict({"type": "shadowmap", "method": "raytraced"}).opts
     kernels = {
         "load_store": lambda: dr.select(active, lk.p_world.x, 0.0),
         "gather0": lambda: lk_gather0_raw(smap, lk, active),
@@ -207,7 +211,7 @@ def isolated(scene, integ, width, repeats):
         "project+gather": lambda: lk_project_raw(smap, lk, active),
         "receiver": lambda: lk_receiver_raw(smap, lk, opts),
         "hard": lambda: hard(smap, lk, opts, active),
-        "shadow ray": lambda: raytraced(rt, lk, opts, active),
+        "shadow ray": lambda: raytraced(rt, lk, rt_opts, active),
     }
 
     def one(fn):
@@ -288,6 +292,7 @@ def main(argv=None):
 
     for name, (fn, uses_map) in VARIANTS.items():
         mi_shadowmap.register_method(name, fn, uses_map=uses_map, replace=True,
+                                     properties=PROPERTIES.get(name),
                                      summary="bench_lookup variant")
     print(f"# bench_lookup: image {args.image}^2 @ 1 spp, map {args.map}^2, median of "
           f"{args.repeats} interleaved rounds")

@@ -1,0 +1,24 @@
+"""The benchmark scripts still run (they are not part of the suite otherwise and call
+internals that change): each at its smallest settings, in its own process."""
+import os
+import pathlib
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def run_bench(script: str, *args: str, timeout: float = 300) -> str:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, f"{script} failed:\n{proc.stderr[-3000:]}"
+    return proc.stdout
+
+
+def test_bench_lookup_runs_to_the_end():
+    # rt_ray (raytraced as a user method) and the isolated shadow-ray kernel read
+    # opts.light_sample, which only raytraced's properties declare
+    out = run_bench("bench_lookup.py", "--image", "32", "--map", "64", "--repeats", "1")
+    assert "rt_ray" in out and "shadow ray" in out

@@ -30,3 +30,11 @@ def test_bench_virtual_lookup_skips_an_environment_map():
     out = run_bench("bench_virtual_lookup.py", "--scenes", "sky_sun", "--image", "32",
                     "--repeats", "1")
     assert "| scene | step |" in out and "| sky_sun |" not in out
+
+
+def test_bench_environment_names_the_default_maps():
+    # the scene's defaults render virtual maps (integrator.resolution None): the
+    # acceptance line printed "None^2 maps"
+    out = run_bench("bench_environment.py", "--image", "16", "--ref-spp", "16", "--spp", "1",
+                    "--K", "1", "--methods", "hard", "--hi-spp", "1")
+    assert "None^2" not in out and "virtual maps" in out

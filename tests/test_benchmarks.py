@@ -38,3 +38,14 @@ def test_bench_environment_names_the_default_maps():
     out = run_bench("bench_environment.py", "--image", "16", "--ref-spp", "16", "--spp", "1",
                     "--K", "1", "--methods", "hard", "--hi-spp", "1")
     assert "None^2" not in out and "virtual maps" in out
+
+
+def test_bench_all_names_the_heavy_mesh_by_its_triangles():
+    # part A and B rows said "1M-triangle mesh" whatever --triangles was
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import bench_all
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert bench_all.heavy_name(1_000_000) == "1M-triangle mesh"
+    assert bench_all.heavy_name(20_000) == "20,000-triangle mesh"

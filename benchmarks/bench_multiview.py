@@ -302,6 +302,16 @@ def report(r, target):
                       f"{best_rt:.3f} s / multiview {t_mv:.3f} s = {best_rt / t_mv:.1f}x")
 
 
+def quick_settings(args):
+    """``--quick`` caps the image at 128^2, K at 64 and the maps at 512^2 (the image was
+    set to 128^2 whatever ``--image`` asked, a smaller one too)."""
+    if args.quick:
+        args.image = min(args.image, 128)
+        args.views = [k for k in args.views if k <= 64]
+        args.res = [r for r in args.res if r <= 512]
+    return args
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--image", type=int, default=512)
@@ -312,12 +322,9 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=5,
                     help="interleaved re-timing rounds of the configurations around the target")
     ap.add_argument("--json", type=str, default=None)
-    ap.add_argument("--quick", action="store_true", help="128^2 image, K <= 64, maps <= 512^2")
-    args = ap.parse_args(argv)
-    if args.quick:
-        args.image = 128
-        args.views = [k for k in args.views if k <= 64]
-        args.res = [r for r in args.res if r <= 512]
+    ap.add_argument("--quick", action="store_true",
+                    help="image <= 128^2, K <= 64, maps <= 512^2")
+    args = quick_settings(ap.parse_args(argv))
     results = []
     for name in args.scenes:
         print(f"{name}:", flush=True)

@@ -40,12 +40,27 @@ def test_bench_environment_names_the_default_maps():
     assert "None^2" not in out and "virtual maps" in out
 
 
-def test_bench_all_names_the_heavy_mesh_by_its_triangles():
-    # part A and B rows said "1M-triangle mesh" whatever --triangles was
+def bench_module(name: str):
     sys.path.insert(0, str(ROOT / "benchmarks"))
     try:
-        import bench_all
+        return __import__(name)
     finally:
         sys.path.remove(str(ROOT / "benchmarks"))
+
+
+def test_bench_all_names_the_heavy_mesh_by_its_triangles():
+    # part A and B rows said "1M-triangle mesh" whatever --triangles was
+    bench_all = bench_module("bench_all")
     assert bench_all.heavy_name(1_000_000) == "1M-triangle mesh"
     assert bench_all.heavy_name(20_000) == "20,000-triangle mesh"
+
+
+def test_bench_multiview_quick_keeps_a_smaller_image():
+    # --quick set the image to 128^2 even when --image asked for less
+    import argparse
+    bench_multiview = bench_module("bench_multiview")
+    args = argparse.Namespace(quick=True, image=32, views=[4, 16, 128], res=[64, 1024])
+    args = bench_multiview.quick_settings(args)
+    assert (args.image, args.views, args.res) == (32, [4, 16], [64])
+    args = argparse.Namespace(quick=True, image=512, views=[4], res=[128])
+    assert bench_multiview.quick_settings(args).image == 128

@@ -64,3 +64,10 @@ def test_bench_multiview_quick_keeps_a_smaller_image():
     assert (args.image, args.views, args.res) == (32, [4, 16], [64])
     args = argparse.Namespace(quick=True, image=512, views=[4], res=[128])
     assert bench_multiview.quick_settings(args).image == 128
+
+
+def test_bench_scene_kinds_runs_every_map_method_by_default():
+    # its docstring promises every method at defaults; the default list had six of the
+    # ten map methods (no vsm, evsm, msm, multiview)
+    from mi_shadowmap.options import MAP_METHODS
+    assert set(bench_module("bench_scene_kinds").METHODS) == set(MAP_METHODS)

@@ -107,8 +107,10 @@ def configure_llvm() -> str:
     user = os.environ.get(ENV_VAR)
     if user:
         if not os.path.isfile(user):
+            what = ("is a directory, not a library file" if os.path.isdir(user)
+                    else "does not exist")
             raise LLVMNotFoundError(
-                f"mi_shadowmap: {ENV_VAR}={user!r} does not exist. Unset it to let "
+                f"mi_shadowmap: {ENV_VAR}={user!r} {what}. Unset it to let "
                 "mi_shadowmap search, or point it at a libLLVM >= %d." % MIN_LLVM_VERSION)
         return user
     path, _ = find_libllvm()
@@ -131,8 +133,12 @@ def check_loaded_llvm(drjit_imported_before: bool, variant: str | None) -> tuple
         version = (0, 0, 0)
     if version[0] >= MIN_LLVM_VERSION or (variant and not variant.startswith("llvm")):
         return version
-    if version[0] == 0:
+    if version[0] <= 0:   # Dr.Jit 1.5 reports an inactive backend as (-1, -1, -1)
         problem = "Dr.Jit's LLVM backend is inactive (it could not load any libLLVM)"
+        named = llvm_version_from_name(os.environ.get(ENV_VAR) or "")
+        if named is not None and named < MIN_LLVM_VERSION:
+            problem = ("Dr.Jit's LLVM backend is inactive: it refused LLVM %d (>= %d is "
+                       "needed)" % (named, MIN_LLVM_VERSION))
     else:
         problem = "Dr.Jit loaded LLVM %s, which crashes it (>= %d is needed)" % (
             ".".join(map(str, version)), MIN_LLVM_VERSION)

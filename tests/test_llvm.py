@@ -166,3 +166,24 @@ def test_drjit_first_without_startup_hook_is_explained():
         pytest.skip("Dr.Jit's own choice of libLLVM is recent enough here; nothing to explain")
     assert "imported before mi_shadowmap" in r.stderr and "did not run" in r.stderr
     assert _llvm.ENV_VAR in r.stderr
+
+
+OLDER_SYSTEM_LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-14.so.1"
+
+
+def test_llvm_refused_by_drjit_is_named_not_reported_as_version_minus_one():
+    """Dr.Jit 1.5 refuses LLVM 14 outright (backend inactive, llvm_version() == (-1, -1, -1)):
+    the error said "Dr.Jit loaded LLVM -1.-1.-1, which crashes it"."""
+    if not os.path.isfile(OLDER_SYSTEM_LLVM):
+        pytest.skip(f"needs an old system libLLVM at {OLDER_SYSTEM_LLVM}")
+    r = _run("import mi_shadowmap", {_llvm.ENV_VAR: OLDER_SYSTEM_LLVM})
+    assert r.returncode != 0
+    assert "LLVMNotFoundError" in r.stderr and "-1.-1.-1" not in r.stderr
+    assert "inactive" in r.stderr and "LLVM 14" in r.stderr
+    assert f"{_llvm.ENV_VAR}={OLDER_SYSTEM_LLVM} was set outside mi_shadowmap" in r.stderr
+
+
+def test_user_setting_to_a_directory_says_so(monkeypatch, tmp_path):
+    monkeypatch.setenv(_llvm.ENV_VAR, str(tmp_path))
+    with pytest.raises(_llvm.LLVMNotFoundError, match="is a directory, not a library file"):
+        _llvm.configure_llvm()

@@ -51,15 +51,30 @@ def llvm_version_from_name(path):
     return _int_after(path, "llvm-")
 
 
+def _prefixes():
+    """``sys.prefix``, the user base if user site-packages are enabled, ``sys.base_prefix``."""
+    prefixes = [sys.prefix]
+    # ``pip install --user`` puts karellen-llvm-core's libLLVM into <site.USER_BASE>/lib
+    # (~/.local/lib). ``site`` is imported already wherever .pth files run; not under -S.
+    site = sys.modules.get("site")
+    if site is not None and getattr(site, "ENABLE_USER_SITE", False):
+        user_base = getattr(site, "USER_BASE", None)
+        if user_base:
+            prefixes.append(user_base)
+    prefixes.append(sys.base_prefix)
+    return list(dict.fromkeys(prefixes))
+
+
 def prefix_libraries():
     """Every ``libLLVM*.so*``/``libLLVM*.dylib`` file in ``<prefix>/lib``, any version.
 
     Prefixes: ``sys.prefix`` (the virtual environment, where the PyPI wheel
-    ``karellen-llvm-core`` installs ``libLLVM.so.N``), then ``sys.base_prefix``.
-    Within a folder, newest version first.
+    ``karellen-llvm-core`` installs ``libLLVM.so.N``), the user base when user
+    site-packages are enabled (``pip install --user``: ``~/.local``), then
+    ``sys.base_prefix``. Within a folder, newest version first.
     """
     found = []
-    for prefix in dict.fromkeys((sys.prefix, sys.base_prefix)):
+    for prefix in _prefixes():
         folder = os.path.join(prefix, "lib")
         try:
             names = os.listdir(folder)

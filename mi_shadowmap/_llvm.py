@@ -11,7 +11,8 @@ first imported. When the package is pip-installed (``pip install .`` or
 runs :func:`_mi_shadowmap_llvm.set_default_libllvm` at interpreter start: if
 the variable is unset, it is set to the environment's own libLLVM >= 16
 (``<sys.prefix>/lib``, where the dependency ``karellen-llvm-core`` installs
-``libLLVM.so.N``; then ``<sys.base_prefix>/lib``). So ``mitsuba``/``drjit``
+``libLLVM.so.N``; then the user base's ``lib`` after ``pip install --user``, then
+``<sys.base_prefix>/lib``). So ``mitsuba``/``drjit``
 may be imported before ``mi_shadowmap``.
 
 On ``import mi_shadowmap``, :func:`configure_llvm` fills the variable if it

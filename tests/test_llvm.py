@@ -1,5 +1,6 @@
 """LLVM discovery: version parsing, search order, the start-up hook and the errors."""
 import os
+import site
 import subprocess
 import sys
 import sysconfig
@@ -77,6 +78,7 @@ def _fake_prefix(tmp_path, monkeypatch, names):
         (lib / name).write_bytes(b"")
     monkeypatch.setattr(sys, "prefix", str(tmp_path))
     monkeypatch.setattr(sys, "base_prefix", str(tmp_path))
+    monkeypatch.setattr(site, "ENABLE_USER_SITE", False)
     monkeypatch.delenv(_llvm.ENV_VAR, raising=False)
     return lib
 
@@ -86,6 +88,24 @@ def test_startup_hook_sets_newest_environment_llvm(tmp_path, monkeypatch):
                        ["libLLVM-15.so.1", "libLLVM.so.17.0", "libLLVM.so.23.1", "libLTO.so.23.1"])
     assert startup.set_default_libllvm() == str(lib / "libLLVM.so.23.1")
     assert os.environ[_llvm.ENV_VAR] == str(lib / "libLLVM.so.23.1")
+
+
+def test_startup_hook_finds_a_user_install(tmp_path, monkeypatch):
+    """``pip install --user`` (no venv, no root) puts karellen-llvm-core's libLLVM into
+    ~/.local/lib: the hook and the search looked only in sys.prefix/base_prefix, and
+    ``import mi_shadowmap`` said no usable libLLVM was found."""
+    (tmp_path / "env").mkdir()
+    _fake_prefix(tmp_path / "env", monkeypatch, ["libLLVM-15.so.1"])
+    user_lib = tmp_path / "user" / "lib"
+    user_lib.mkdir(parents=True)
+    (user_lib / "libLLVM.so.23.1").write_bytes(b"")
+    monkeypatch.setattr(site, "USER_BASE", str(tmp_path / "user"))
+    monkeypatch.setattr(site, "ENABLE_USER_SITE", True)
+    assert startup.set_default_libllvm() == str(user_lib / "libLLVM.so.23.1")
+    monkeypatch.delenv(_llvm.ENV_VAR)
+    assert _llvm.find_libllvm()[0] == str(user_lib / "libLLVM.so.23.1")
+    monkeypatch.setattr(site, "ENABLE_USER_SITE", False)   # a venv: user site disabled
+    assert startup.set_default_libllvm() is None
 
 
 def test_startup_hook_skips_old_and_unversioned_libraries(tmp_path, monkeypatch):

@@ -60,6 +60,14 @@ def _candidates() -> list[str]:
     if venv and venv not in (sys.prefix, sys.base_prefix):
         found += sorted(glob.glob(os.path.join(venv, "lib", "libLLVM*.so*")))
         found += sorted(glob.glob(os.path.join(venv, "lib", "libLLVM*.dylib")))
+    # The lib/ folder of every environment whose site-packages is on sys.path
+    # (karellen-llvm-core installs at <site-packages>/../../): under ``python -S``
+    # sys.prefix is not the venv's, but the venv's site-packages may be on sys.path.
+    for entry in sys.path:
+        if os.path.basename(os.path.normpath(entry or ".")) in ("site-packages", "dist-packages"):
+            lib = os.path.normpath(os.path.join(entry, "..", ".."))
+            found += sorted(glob.glob(os.path.join(lib, "libLLVM*.so*")),
+                            key=lambda s: -(llvm_version_from_name(s) or 0))
     system = (
         glob.glob("/usr/lib/llvm-*/lib/libLLVM*.so*")
         + glob.glob("/usr/lib/*-linux-gnu/libLLVM*.so*")

@@ -108,6 +108,19 @@ def test_startup_hook_finds_a_user_install(tmp_path, monkeypatch):
     assert startup.set_default_libllvm() is None
 
 
+def test_search_finds_the_llvm_beside_a_site_packages_on_sys_path(tmp_path, monkeypatch):
+    """Under ``python -S`` sys.prefix is not the venv's: with the venv's site-packages put
+    on sys.path by hand, ``import mi_shadowmap`` first found no libLLVM beside it."""
+    (tmp_path / "base").mkdir()
+    _fake_prefix(tmp_path / "base", monkeypatch, [])
+    venv_lib = tmp_path / "venv" / "lib"
+    (venv_lib / "python3.11" / "site-packages").mkdir(parents=True)
+    (venv_lib / "libLLVM.so.23.1").write_bytes(b"")
+    monkeypatch.setattr(sys, "path", [str(venv_lib / "python3.11" / "site-packages")])
+    monkeypatch.delenv("VIRTUAL_ENV", raising=False)
+    assert _llvm.find_libllvm()[0] == str(venv_lib / "libLLVM.so.23.1")
+
+
 def test_startup_hook_skips_old_and_unversioned_libraries(tmp_path, monkeypatch):
     _fake_prefix(tmp_path, monkeypatch, ["libLLVM-14.so", "libLLVM-15.so.1", "libLLVM.so"])
     assert startup.set_default_libllvm() is None

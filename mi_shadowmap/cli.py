@@ -839,9 +839,17 @@ def set_variant(name: str) -> None:
     try:
         mi.set_variant(name)
     except Exception as e:   # e.g. cuda_ad_* on a machine without a CUDA GPU
+        import drjit as dr
+        if name.startswith("cuda") and not dr.has_backend(dr.JitBackend.CUDA):
+            # Dr.Jit's own text ("Make sure to call jit_init(JitBackend::CUDA)") is advice
+            # for its C++ users
+            why = ("Dr.Jit found no CUDA GPU or driver; use an llvm_ad_* variant, e.g. "
+                   f"{name.replace('cuda', 'llvm', 1)}")
+        else:
+            why = one_line(e)
         raise UnsupportedVariantError(
             f"shadowmap: the Mitsuba variant '{name}' cannot be set on this machine "
-            f"({one_line(e)})") from None
+            f"({why})") from None
 
 
 def one_line(exc: BaseException) -> str:

@@ -751,3 +751,15 @@ def test_compare_and_sweep_render_the_scene_files_sample_count(tmp_path, capsys)
                         "--repeats", "1", "--out", tmp_path / "c"], capsys)
     rows = json.loads((tmp_path / "c" / "metrics.json").read_text())
     assert code == 0 and [r["spp"] for r in rows] == [2, 2], err
+
+
+def test_cuda_variant_without_a_gpu_says_so(capsys):
+    """``--variant cuda_ad_rgb`` without a CUDA GPU passed on Dr.Jit's advice for C++ users,
+    "Make sure to call jit_init(JitBackend::CUDA) to properly initialize this backend"."""
+    import drjit as dr
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("a CUDA GPU is present")
+    code, out, err = run(["--variant", "cuda_ad_mono", "--methods", "hard"], capsys)
+    assert code == 2 and "Traceback" not in err and "jit_init" not in err
+    assert "'cuda_ad_mono' cannot be set on this machine" in err
+    assert "no CUDA GPU" in err and "llvm_ad_mono" in err

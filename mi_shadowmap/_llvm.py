@@ -115,7 +115,9 @@ def configure_llvm() -> str:
     global _SET_BY_CONFIGURE
     user = os.environ.get(ENV_VAR)
     if user:
-        if not os.path.isfile(user):
+        # A bare file name (no "/") is looked up by the dynamic loader (LD_LIBRARY_PATH,
+        # ld.so.cache), not in the current folder: check_loaded_llvm checks what Dr.Jit loaded.
+        if os.sep in user and not os.path.isfile(user):
             what = ("is a directory, not a library file" if os.path.isdir(user)
                     else "does not exist")
             raise LLVMNotFoundError(

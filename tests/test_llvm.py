@@ -216,6 +216,18 @@ def test_llvm_refused_by_drjit_is_named_not_reported_as_version_minus_one():
     assert f"{_llvm.ENV_VAR}={OLDER_SYSTEM_LLVM} was set outside mi_shadowmap" in r.stderr
 
 
+def test_user_setting_to_a_bare_library_name_is_left_to_the_loader():
+    """``DRJIT_LIBLLVM_PATH=libLLVM.so.23.1`` with its folder in LD_LIBRARY_PATH: Dr.Jit
+    loads it (dlopen searches the loader's paths), but mi_shadowmap said it "does not
+    exist" (it looked for the name in the current folder)."""
+    path = os.environ[_llvm.ENV_VAR]
+    r = _run("import mi_shadowmap, drjit as dr; print(dr.detail.llvm_version()[0])",
+             {_llvm.ENV_VAR: os.path.basename(path),
+              "LD_LIBRARY_PATH": os.path.dirname(path)})
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout.split()[-1]) >= _llvm.MIN_LLVM_VERSION
+
+
 def test_user_setting_to_a_directory_says_so(monkeypatch, tmp_path):
     monkeypatch.setenv(_llvm.ENV_VAR, str(tmp_path))
     with pytest.raises(_llvm.LLVMNotFoundError, match="is a directory, not a library file"):

@@ -99,6 +99,23 @@ def delta_scene(bsdf, light: str):
     return mi.load_dict(d)
 
 
+def frosted_bulb_scene(dx: float = 0.0, size: int = 48):
+    """A point light ``dx`` off the centre of a rough-glass sphere (radius 0.3) over a
+    ground, seen from above at ``size``^2, 4 spp: the shell is a solid lit from inside,
+    its own second surface, concave as the light sees it (a frosted bulb)."""
+    from mi_shadowmap.scenes import camera
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": camera([2.5, 2.5, 3.0], [0.3, 1.0, 0.2], size, size, 4, fov=40.0),
+        "ground": {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                   "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+        "bulb": {"type": "sphere", "center": [0.3, 1.5, 0.2], "radius": 0.3,
+                 "bsdf": {"type": "roughdielectric", "alpha": 0.3}},
+        "light": {"type": "point", "position": [0.3 + dx, 1.5, 0.2],
+                  "intensity": {"type": "rgb", "value": 3.0}}})
+
+
 def root_message(exc) -> str:
     """mi.render wraps Python errors (dr.custom); the cause holds our message."""
     while exc.__cause__ is not None:

@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import SCENE_FILES, render_np, vis_stack
+from conftest import SCENE_FILES, frosted_bulb_scene, render_np, vis_stack
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
 from mi_shadowmap import methods
@@ -232,17 +232,7 @@ def test_a_frosted_bulb_lit_from_inside_without_normal_offset():
     shell along its normal: with ``normal_bias`` 0 nothing but the receiver plane's
     bend keeps the 2x2 taps' plane depths (behind the concave shell) from shadowing it
     (image 0.019-0.027 against raytraced's 0.392 in a 64^2 view before)."""
-    from mi_shadowmap.scenes import camera
-    T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": camera([2.5, 2.5, 3.0], [0.3, 1.0, 0.2], 48, 48, 4, fov=40.0),
-        "ground": {"type": "rectangle", "bsdf": {"type": "diffuse"},
-                   "to_world": T().rotate([1, 0, 0], -90).scale(3)},
-        "bulb": {"type": "sphere", "center": [0.3, 1.5, 0.2], "radius": 0.3,
-                 "bsdf": {"type": "roughdielectric", "alpha": 0.3}},
-        "light": {"type": "point", "position": [0.3, 1.5, 0.2],
-                  "intensity": {"type": "rgb", "value": 3.0}}})
+    scene = frosted_bulb_scene()
     imgs = [np.asarray(mi.render(scene, integrator=mi.load_dict(
         {"type": "shadowmap", **p}), spp=4, seed=0))
         for p in ({"method": "raytraced"},

@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import SCENE_FILES, render_np, vis_stack
+from conftest import SCENE_FILES, frosted_bulb_scene, render_np, vis_stack
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
 from mi_shadowmap import methods
@@ -439,18 +439,8 @@ def test_a_frosted_bulb_lit_from_inside_keeps_its_light():
     the shell, and shadowed it: the image 0.318 against raytraced's 0.392 (light
     centred), 0.075 against 0.175 (0.2 off the centre) in a 64^2 view; this 48^2 one
     0.176 against 0.378. The plane's depths now allow for its bend."""
-    from mi_shadowmap.scenes import camera
-    T = mi.ScalarTransform4f
     for dx in (0.0, 0.2):
-        scene = mi.load_dict({
-            "type": "scene",
-            "sensor": camera([2.5, 2.5, 3.0], [0.3, 1.0, 0.2], 48, 48, 4, fov=40.0),
-            "ground": {"type": "rectangle", "bsdf": {"type": "diffuse"},
-                       "to_world": T().rotate([1, 0, 0], -90).scale(3)},
-            "bulb": {"type": "sphere", "center": [0.3, 1.5, 0.2], "radius": 0.3,
-                     "bsdf": {"type": "roughdielectric", "alpha": 0.3}},
-            "light": {"type": "point", "position": [0.3 + dx, 1.5, 0.2],
-                      "intensity": {"type": "rgb", "value": 3.0}}})
+        scene = frosted_bulb_scene(dx)
         imgs = [np.asarray(mi.render(scene, integrator=mi.load_dict(
             {"type": "shadowmap", **p}), spp=4, seed=0))
             for p in ({"method": "raytraced"}, {"method": "pcf", "resolution": 256})]

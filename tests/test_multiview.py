@@ -17,7 +17,7 @@ from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.reference import converged_visibility
 from mi_shadowmap.scenes import default_scene
 
-from conftest import SCENES, render_np
+from conftest import SCENES, frosted_bulb_scene, render_np
 
 T = mi.ScalarTransform4f
 
@@ -483,6 +483,22 @@ def test_a_sphere_light_subset_facing_away_looks_all_views_up():
     assert got[lit].mean() > 0.99
 
 
+def _cube_light_scene(size):
+    """A cube area light (side 0.6) 2.2 over a ground with a box, ``size``^2."""
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": T().look_at(origin=[0, 4, 4.5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": size, "height": size,
+                            "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2.5),
+                   "bsdf": {"type": "diffuse"}},
+        "box": {"type": "cube", "to_world": T().translate([0.3, 0.5, 0.2]).scale(0.25),
+                "bsdf": {"type": "diffuse"}},
+        "light": {"type": "cube", "to_world": T().translate([0, 2.2, 0]).scale(0.3),
+                  "emitter": {"type": "area", "radiance": 10.0}}})
+
+
 def test_a_subset_below_the_horizon_keeps_the_light_sample_s_weight():
     """``lookups`` < K on a light whose points are partly below the receiver's horizon
     or behind the light (a cube light: from the ground only its bottom and near sides
@@ -491,18 +507,7 @@ def test_a_subset_below_the_horizon_keeps_the_light_sample_s_weight():
     cube light with 256 views the image was 0.908 of direct at ``lookups=1`` and 0.972
     at 4 (1.005 with all views), while the AOV was right. Such lanes now draw views
     until one is above the horizon; the AOV keeps the subset's estimate."""
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 45,
-                   "to_world": T().look_at(origin=[0, 4, 4.5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 24, "height": 24,
-                            "rfilter": {"type": "box"}}},
-        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2.5),
-                   "bsdf": {"type": "diffuse"}},
-        "box": {"type": "cube", "to_world": T().translate([0.3, 0.5, 0.2]).scale(0.25),
-                "bsdf": {"type": "diffuse"}},
-        "light": {"type": "cube", "to_world": T().translate([0, 2.2, 0]).scale(0.3),
-                  "emitter": {"type": "area", "radiance": 10.0}}})
+    scene = _cube_light_scene(24)
     props = {"type": "shadowmap", "method": "multiview", "views": 64, "resolution": 64}
     img_all, aov_all = render_np(scene, {**props, "lookups": 0}, spp=32)
     for lookups in (1, 4):
@@ -687,18 +692,7 @@ def test_a_cube_light_gets_each_face_its_share_of_views():
     the AOV 0.3136. The converged reference's
     pattern is the same points (it had the same defect)."""
     from mi_shadowmap.reference import light_sample_pattern
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 45,
-                   "to_world": T().look_at(origin=[0, 4, 4.5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32,
-                            "rfilter": {"type": "box"}}},
-        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2.5),
-                   "bsdf": {"type": "diffuse"}},
-        "box": {"type": "cube", "to_world": T().translate([0.3, 0.5, 0.2]).scale(0.25),
-                "bsdf": {"type": "diffuse"}},
-        "light": {"type": "cube", "to_world": T().translate([0, 2.2, 0]).scale(0.3),
-                  "emitter": {"type": "area", "radiance": 10.0}}})
+    scene = _cube_light_scene(32)
     e = scene.emitters()[0]
     axes = np.vstack([np.eye(3), -np.eye(3)])
     for K in (64, 256, 1024):
@@ -719,17 +713,7 @@ def test_bilinear_filter_lights_a_concave_receiver_lit_along_its_normal():
     shell and, with multiview's normal_bias 0 and no slope bias along the normal,
     every tap was shadowed (image 0.019 against raytraced's 0.392 at 64^2). The taps
     now allow for the plane's bend, across cube seams too."""
-    from mi_shadowmap.scenes import camera
-    T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": camera([2.5, 2.5, 3.0], [0.3, 1.0, 0.2], 48, 48, 4, fov=40.0),
-        "ground": {"type": "rectangle", "bsdf": {"type": "diffuse"},
-                   "to_world": T().rotate([1, 0, 0], -90).scale(3)},
-        "bulb": {"type": "sphere", "center": [0.3, 1.5, 0.2], "radius": 0.3,
-                 "bsdf": {"type": "roughdielectric", "alpha": 0.3}},
-        "light": {"type": "point", "position": [0.3, 1.5, 0.2],
-                  "intensity": {"type": "rgb", "value": 3.0}}})
+    scene = frosted_bulb_scene()
     ref_img, ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)
     img, aovs = render_np(scene, {"type": "shadowmap", "method": "multiview",
                                   "filter": "bilinear"}, spp=4)

@@ -19,7 +19,7 @@ from mi_shadowmap.procedural import check_closed
 from mi_shadowmap.scenes import camera
 from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 
-from conftest import SCENE_FILES, relative_rmse, render_np, vis_stack
+from conftest import SCENE_FILES, frosted_bulb_scene, relative_rmse, render_np, vis_stack
 
 T = mi.ScalarTransform4f
 DIFFUSE = {"type": "diffuse"}
@@ -877,21 +877,6 @@ def test_one_tap_lights_an_open_ground(light):
     assert m["false_shadow"] <= 0.005 and m["misclassified"] <= 0.01
 
 
-def _frosted_bulb(dx, size=48):
-    """A point light ``dx`` off the centre of a rough-glass sphere (radius 0.3) over a
-    ground: the shell is a solid lit from inside, its own second surface, concave as
-    the light sees it."""
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": camera([2.5, 2.5, 3.0], [0.3, 1.0, 0.2], size, size, 4, fov=40.0),
-        "ground": {"type": "rectangle", "bsdf": DIFFUSE,
-                   "to_world": T().rotate([1, 0, 0], -90).scale(3)},
-        "bulb": {"type": "sphere", "center": [0.3, 1.5, 0.2], "radius": 0.3,
-                 "bsdf": {"type": "roughdielectric", "alpha": 0.3}},
-        "light": {"type": "point", "position": [0.3 + dx, 1.5, 0.2],
-                  "intensity": {"type": "rgb", "value": 3.0}}})
-
-
 @pytest.mark.parametrize("dx", [0.1, 0.15])
 def test_a_frosted_bulb_lit_off_centre_is_lit(dx):
     """The shell of a frosted bulb whose light is off its centre: on virtual maps
@@ -901,7 +886,7 @@ def test_a_frosted_bulb_lit_off_centre_is_lit(dx):
     (coarse texels on a concave receiver) every compare said shadowed and the lookup
     returned 0: 5-33 shell lookups of a 64^2 view shadowed, up to 1/4 of the image's
     light lost at dx = 0.15."""
-    scene = _frosted_bulb(dx)
+    scene = frosted_bulb_scene(dx)
     ref = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=4)[1]["vis_light"]
     for virtual in (True, False):
         v = render_np(scene, {"type": "shadowmap", "method": "second_depth",

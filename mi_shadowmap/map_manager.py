@@ -196,8 +196,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
                 f"shadowmap: {'property' if len(idle) == 1 else 'properties'} "
                 f"{' and '.join(repr(n) for n in idle)} of method '{record.name}' "
                 f"{'changes' if len(idle) == 1 else 'change'} nothing in this scene: none "
-                "of its lights has a "
-                "size, so each gets one view (hard shadows)"
+                "of its lights has a size, so each gets one view (hard shadows)"
                 + (f"; give the lights a size ({' or '.join(sizes)}) or use an area light"
                    if sizes else ""), RuntimeWarning, stacklevel=2)
         views = [v if m is None else m for v, m in zip(views, made)]

@@ -83,11 +83,11 @@ images on 1024^2 maps, 128^2 on the automatic resolution, 256^2 on 256^2):
   shadow (128^2: mean false lit 0.14 -> 0.11 %, largest false shadow
   1.7 -> 1.8 %; 64^2: mean misclassified 0.57 -> 0.67 %).
 * ``slope_bias = 0.5``, ``normal_bias = 0.25`` texels (``vsm``'s): against the
-  shared 1.0 / 0.5 they lower the mean false lit from 0.42 to 0.37 %
-  (peter-panning) and the mean misclassified from 0.93 to 0.89 %
+  shared 1.0 / 0.5 they lower the mean false lit from 0.21 to 0.16 %
+  (peter-panning) and the mean misclassified from 0.55 to 0.51 %
   (``benchmarks/bench_prefiltered_bias.py``: 9 repository scenes, 128^2,
-  16 spp, virtual maps), at equal acne (none at 60-89.9 degrees). Without
-  biases the mean is 0.94 % (cbox_area 1.64 % against 1.17 %).
+  16 spp, virtual maps, on the reference's camera samples, 2026-12-06), at
+  equal acne (none at 60-89.9 degrees). Without biases the mean is 0.59 %.
 
 Deviations from the paper, and why:
 

@@ -85,10 +85,11 @@ images on 256^2 / 512^2 maps, where the footprint is below a texel):
   higher, and 10 of 11 scenes misclassified more (the other: equal).
 * The shared texel biases keep their defaults (``slope_bias`` 1,
   ``normal_bias`` 0.5). On virtual maps (``benchmarks/bench_prefiltered_bias.py``:
-  9 repository scenes, 128^2, 16 spp) ``vsm``'s halves changed
-  misclassification by at most 0.10 % on any scene (mean 0.92 -> 0.89 %,
-  false lit 0.41 -> 0.37 %); both at 0 by at most 0.36 % (cbox_area: false
-  shadow 0.78 -> 1.18 %).
+  9 repository scenes, 128^2, 16 spp, on the reference's camera samples,
+  2026-12-06) ``vsm``'s halves give a mean misclassified of 0.52 % against
+  0.55 % and false lit 0.17 % against 0.21 %; both at 0: 0.55 % / 0.13 %
+  (more false shadow, e.g. on cbox_area; an earlier run on other camera
+  samples: its false shadow 0.78 -> 1.18 %).
 
 Deviations from the paper, and why:
 

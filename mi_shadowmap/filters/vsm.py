@@ -166,15 +166,14 @@ def vsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     (:func:`~.common.receiver`), at half the compare-based defaults:
     ``slope_bias = 0.5``, ``normal_bias = 0.25`` texels. Measured
     (``benchmarks/bench_prefiltered_bias.py``: the 9 repository scenes, 128^2,
-    16 spp; mean misclassified / mean false lit on virtual maps, the default;
-    full 1024^2 maps in brackets): no bias 0.97 % / 0.24 % (1.51 % / 0.91 %);
-    (0.5, 0.25) 0.92 % / 0.31 % (1.48 % / 0.93 %); the package's (1, 0.5)
-    0.93 % / 0.36 % (1.48 % / 0.94 %). The biases remove false shadow
-    (cbox_area without them 1.29 % misclassified, with these 1.20 %) and add
-    false lit (they move shadow edges towards the occluder); half the
-    package's defaults keep the first at less of the second. (The full maps'
-    means include far_point and large_world, whose shadows full maps lose:
-    3.2-3.4 % false lit there with any bias.)
+    16 spp, on the reference's camera samples, 2026-12-06; mean misclassified /
+    mean false lit on virtual maps, the default; full 1024^2 maps in brackets):
+    no bias 0.61 % / 0.07 % (1.18 % / 0.74 %); (0.5, 0.25) 0.54 % / 0.10 %
+    (1.14 % / 0.75 %); the package's (1, 0.5) 0.55 % / 0.15 % (1.13 % /
+    0.76 %). The biases remove false shadow and add false lit (they move shadow
+    edges towards the occluder); half the package's defaults keep the first at
+    less of the second. (The full maps' means include far_point and
+    large_world, whose shadows full maps lose.)
 
     Deviations from the paper, and why:
 

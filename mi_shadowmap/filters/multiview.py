@@ -96,7 +96,7 @@ def bilinear2(smap, lk: Lookup, opts, active=True) -> mi.Float:
     So each tap's plane depth is lowered by that bend along its ray (the record's
     ``needs_curvature`` gives :func:`~.common.receiver_plane` the receiver's curvature,
     :func:`~.common.plane_depth_at` applies second_depth's
-    :func:`~.second_depth.bend_along_ray`; 0 on planes and convex receivers). Without
+    :func:`~.common.bend_along_ray`; 0 on planes and convex receivers). Without
     it a point light at the centre of a rough-glass sphere (radius 0.3) shadowed its
     whole shell: a 64^2 image 0.019 against ``raytraced``'s 0.392."""
     res = smap.resolution

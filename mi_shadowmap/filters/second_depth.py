@@ -141,61 +141,17 @@ import mitsuba as mi
 from ..depth_maps import second_depth_layer
 from ..methods import Method, Prop
 from ..light_views.base import texel_sample_uv
-from .common import Lookup, nearest_block, taps_loop, virtual_sample_depth
+from .common import (PARALLEL_TAN as _PARALLEL_TAN, Lookup, bend_along_ray,  # noqa: F401
+                     concavity, nearest_block, taps_loop, virtual_sample_depth)
 
 #: Relative rounding tolerance of the ``<=`` test at virtual samples.
 _EQ_REL = 1e-5
-#: Virtual samples are unusable only where ``tan`` of the angle between the plane's
-#: normal and the texel's ray exceeds this (the plane within 1e-4 rad of the ray).
-_PARALLEL_TAN = 1e4
 
 
 def plane_normal(lk: Lookup) -> mi.Vector3f:
     """The normal of the tangent plane the virtual samples lie on: the geometric one
     (see the module doc)."""
     return mi.Vector3f(lk.n_world)
-
-
-def concavity(lk: Lookup, to_light) -> mi.Float:
-    """How fast the receiver bends towards the light (1 / world units): the largest
-    normal curvature of the shading normal (``si.dn_du``, ``si.dn_dv`` against
-    ``si.dp_du``, ``si.dp_dv``) with which the surface rises off its tangent plane on
-    the light's side, 0 where it only falls away from it. The inside of a sphere of
-    radius r lit from within: 1 / r; its outside, a plane, a flat-shaded mesh, or no
-    surface interaction: 0. Only the rise puts the surface in front of its tangent plane
-    as the light sees it, i.e. virtual samples behind it."""
-    si = lk.si
-    if si is None or not hasattr(si, "dn_du"):
-        return mi.Float(0.0)
-    toward = dr.select(dr.dot(si.sh_frame.n, to_light) >= 0, 1.0, -1.0)
-    # dot(dn, dp) / |dp|^2 > 0: the normal turns outwards, the surface falls away from it
-    ku = dr.dot(si.dn_du, si.dp_du) / dr.maximum(dr.squared_norm(si.dp_du), 1e-30)
-    kv = dr.dot(si.dn_dv, si.dp_dv) / dr.maximum(dr.squared_norm(si.dp_dv), 1e-30)
-    k = dr.detach(dr.maximum(dr.maximum(-toward * ku, -toward * kv), 0.0))
-    return dr.select(dr.isfinite(k), k, 0.0)
-
-
-def bend_along_ray(kappa, qp, d, n) -> mi.Float:
-    """How far back along the unit ray ``d`` (pointing away from the light) from the
-    point ``p + qp`` of the tangent plane (normal ``n``, ``qp`` in the plane) the ray
-    meets the osculating sphere of curvature ``kappa`` that touches the plane at ``p``
-    on the light's side: the allowance a virtual sample's compare makes for a surface
-    that rises towards the light. With ``c = |n . d|``, ``D = |qp|`` and
-    ``B = c + kappa (d . qp)`` that is ``kappa D^2 / (B + sqrt(B^2 - kappa^2 D^2))``,
-    ``kappa D^2 / (2c)`` to first order (the ray along the normal). The slant term
-    ``kappa (d . qp)`` matters where the ray runs towards the shading point (going
-    back from the plane it moves away from ``p``, where the sphere has bent further):
-    without it a light 0.1 off the centre of a sphere of radius 0.3 had texels 0.017
-    wide fall short by ~1e-6, past the compare's tolerance, and shadowed the shell.
-    Where the ray does not meet the sphere (``B`` <= 0, ``c`` <= ``kappa D``; a tap as
-    far off as the radius times ``c``) the first-order ``kappa D^2 / (2c)``; 0 where
-    ``kappa`` is 0."""
-    c = dr.maximum(dr.abs(dr.dot(n, d)), 1.0 / _PARALLEL_TAN)
-    kd2 = kappa * dr.squared_norm(qp)
-    b = c + kappa * dr.dot(d, qp)
-    disc = dr.maximum(b * b - kappa * kd2, 0.0)
-    exact = kd2 / dr.maximum(b + dr.safe_sqrt(disc), 1e-30)
-    return dr.select(b > 0, exact, 0.5 * kd2 / c)
 
 
 def facet_centre(lk: Lookup, p, n, active) -> mi.Point3f:

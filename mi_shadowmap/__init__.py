@@ -14,6 +14,7 @@ Importing the package
 """
 from __future__ import annotations
 
+import os
 import sys
 
 from ._llvm import LLVMNotFoundError, check_loaded_llvm, configure_llvm
@@ -21,12 +22,36 @@ from ._llvm import LLVMNotFoundError, check_loaded_llvm, configure_llvm
 __version__ = "0.1.0"
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
-_DRJIT_IMPORTED_BEFORE = "drjit" in sys.modules
-LIBLLVM_PATH = configure_llvm()
+
+def _started_as_command_line() -> bool:
+    """True while the package is imported by its command line: the ``mi-shadowmap``
+    script, or ``python -m mi_shadowmap`` (runpy sets ``sys.argv[0]`` to ``"-m"`` while
+    it imports the package that holds the module to run)."""
+    argv0 = sys.argv[0] if getattr(sys, "argv", None) else ""
+    return argv0 == "-m" or os.path.basename(argv0) in ("mi-shadowmap", "mi-shadowmap.exe")
+
+
+def _check_llvm():
+    """Configure and check the libLLVM (see :mod:`mi_shadowmap._llvm`). From the command
+    line, an unusable LLVM is reported as its message and exit status 2, without the
+    traceback of the import that found it (``--debug`` shows it, as for the command
+    line's other errors); from Python it raises :class:`LLVMNotFoundError`."""
+    drjit_imported_before = "drjit" in sys.modules
+    try:
+        path = configure_llvm()
+        import mitsuba as mi
+        return path, check_loaded_llvm(drjit_imported_before, mi.variant())
+    except LLVMNotFoundError as err:
+        if not _started_as_command_line() or "--debug" in sys.argv:
+            raise
+        message = str(err).removeprefix("mi_shadowmap: ")
+        sys.stderr.write(f"mi-shadowmap: error: {message}\n")
+        raise SystemExit(2) from None
+
+
+LIBLLVM_PATH, LLVM_VERSION = _check_llvm()
 
 import mitsuba as mi  # noqa: E402  (after the LLVM path is configured)
-
-LLVM_VERSION = check_loaded_llvm(_DRJIT_IMPORTED_BEFORE, mi.variant())
 
 if mi.variant() is None:
     mi.set_variant(DEFAULT_VARIANT)

@@ -232,3 +232,29 @@ def test_user_setting_to_a_directory_says_so(monkeypatch, tmp_path):
     monkeypatch.setenv(_llvm.ENV_VAR, str(tmp_path))
     with pytest.raises(_llvm.LLVMNotFoundError, match="is a directory, not a library file"):
         _llvm.configure_llvm()
+
+
+@pytest.mark.parametrize("how", ["module", "script"])
+def test_command_line_reports_an_unusable_llvm_without_a_traceback(how, tmp_path):
+    """``mi-shadowmap`` and ``python -m mi_shadowmap`` with no usable LLVM: the import of the
+    package raised before the command line's own error handling, so the user got a
+    traceback; now one error line and exit status 2 (``--debug`` keeps the traceback)."""
+    missing = str(tmp_path / "libLLVM-18.so")
+    env = {k: v for k, v in os.environ.items() if k != _llvm.ENV_VAR}
+    env[_llvm.ENV_VAR] = missing
+    script = os.path.join(os.path.dirname(sys.executable), "mi-shadowmap")
+    if how == "script" and not os.path.isfile(script):
+        pytest.skip("the mi-shadowmap script is not installed beside this interpreter")
+    cmd = [sys.executable, "-m", "mi_shadowmap"] if how == "module" else [script]
+    r = subprocess.run(cmd + ["compare"], capture_output=True, text=True, env=env,
+                       timeout=300, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    assert r.stderr.startswith("mi-shadowmap: error: ") and "does not exist" in r.stderr
+    assert missing in r.stderr
+    r = subprocess.run(cmd + ["--debug", "compare"], capture_output=True, text=True, env=env,
+                       timeout=300, cwd=tmp_path)
+    assert r.returncode != 0 and "Traceback" in r.stderr and "LLVMNotFoundError" in r.stderr
+    r = subprocess.run([sys.executable, "-c", "import mi_shadowmap"], capture_output=True,
+                       text=True, env=env, timeout=300, cwd=tmp_path)
+    assert r.returncode != 0 and "LLVMNotFoundError" in r.stderr   # from Python: raises

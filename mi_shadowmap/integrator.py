@@ -29,7 +29,7 @@ from .sigint import outside_mitsuba, set_sigint_action, sigint_action
 from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys,
                           emitted_value_owners, emitter_class, emitter_kind,
                           emitter_labels, is_pinhole, UnsupportedEmitterError,
-                          make_light_view, pinhole_footprint, pixel_step,
+                          make_light_view, pinhole_footprint, pixel_steps,
                           unique_labels)  # noqa: F401  (re-exported)
 from .light_views.base import scene_bounds
 from .methods import MethodError, whole_light_values
@@ -517,10 +517,10 @@ screen is Mitsuba's projective integrators' job.
     def _sensor_pixel_step(self, sensor):
         """None for a sensor whose rays carry ray differentials or that does not aim its
         pixels' rays by film position (:func:`~mi_shadowmap.light_views.aims_by_film`:
-        its pixel has no footprint, read as zero); else the per-pixel
-        ``(angle, offset)`` of :func:`~mi_shadowmap.light_views.pixel_step` as opaque
-        JIT scalars (a ``batch`` sensor: :meth:`_footprint` then takes a cone of that
-        angle around each ray)."""
+        its pixel has no footprint, read as zero); else :class:`_PixelSteps`, the
+        per-pixel ``(angle, offset)`` of :func:`~mi_shadowmap.light_views.pixel_steps`
+        (a ``batch`` sensor: :meth:`_footprint` then takes a cone of its pixel's angle
+        around each ray)."""
         if sensor is None or not (self.opts.record.needs_footprint or self.opts.uses_map):
             return None
         if not aims_by_film(sensor):     # irradiancemeter, distant: no pixel footprint
@@ -531,8 +531,7 @@ screen is Mitsuba's projective integrators' job.
             memo = self._pixel_step_memo = (sensor, bool(ray.has_differentials))
         if memo[1]:
             return None
-        angle, offset = pixel_step(sensor)   # every render: its cameras may have moved
-        return dr.opaque(mi.Float, angle), dr.opaque(mi.Float, offset)
+        return _PixelSteps(sensor)       # every render: its cameras may have moved
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         if not self._in_render:
@@ -569,7 +568,7 @@ screen is Mitsuba's projective integrators' job.
         record = opts.record
         gradient = self._gradient_render()   # gradient_at='pixel_centre' applies
         if record.needs_footprint or (opts.uses_map and opts.virtual) or gradient:
-            dp_dx, dp_dy = self._footprint(ray, si)
+            dp_dx, dp_dy = self._footprint(ray, si, sampler)
         else:
             dp_dx = dp_dy = mi.Vector3f(0.0)
         p_centre = self._pixel_centre(si, dp_dx, dp_dy, valid) if gradient else None
@@ -876,12 +875,14 @@ screen is Mitsuba's projective integrators' job.
                       pose.vector_to_view(dp_dx), pose.vector_to_view(dp_dy), si, ds, sampler,
                       centre, emitter)
 
-    def _footprint(self, ray: mi.RayDifferential3f, si):
+    def _footprint(self, ray: mi.RayDifferential3f, si, sampler=None):
         """World-space pixel footprint on the tangent plane: a perspective camera's from
         its pinhole and pixel steps (:func:`~mi_shadowmap.light_views.pinhole_footprint`,
         the points its ray differentials would give, at a fraction of their cost: a
         virtual ``hard`` lookup's footprint cost as much as a full map's whole lookup);
-        other sensors' from their ray differentials."""
+        other sensors' from their ray differentials; a sensor without them (``batch``)
+        from the one-pixel steps of each sample's pixel (``sampler``: the render's, whose
+        lanes are the film's pixels, see :class:`_PixelSteps`)."""
         if self._pinhole is not None:
             return pinhole_footprint(si.p, si.n, self._pinhole)
         n = si.n
@@ -894,8 +895,8 @@ screen is Mitsuba's projective integrators' job.
 
         ok = ray.has_differentials
         if not ok and self._pixel_step is not None:
-            # a sensor without ray differentials (batch): a cone of one pixel's angle
-            angle, offset = self._pixel_step
+            # a sensor without ray differentials (batch): a cone of its pixel's angle
+            angle, offset = self._pixel_step.at(sampler)
             frame = mi.Frame3f(dr.normalize(ray.d))
             o_x, o_y = ray.o + frame.s * offset, ray.o + frame.t * offset
             d_x, d_y = frame.n + frame.s * angle, frame.n + frame.t * angle
@@ -1023,6 +1024,44 @@ def _nested_sensor(scene, sampler, ray):
         if err < best_err:
             best, best_err = s, err
     return best
+
+
+class _PixelSteps:
+    """The one-pixel steps of a sensor without ray differentials (a ``batch``), per
+    pixel of its film's crop (:func:`~mi_shadowmap.light_views.pixel_steps`), and which
+    pixel each lane of a render's wavefront samples: Mitsuba's JIT render gives lane
+    ``i`` the film pixel ``i // spp`` (row by row over the crop, and the filter's border
+    around it when the film has ``sample_border``), as ``_nested_sensor`` reads it too.
+    :meth:`at` returns ``(angle, offset)`` per lane; where the wavefront is not the
+    film's pixels times the samples (no sampler given, a sensor whose film is not the
+    one rendered), the medians over the film."""
+
+    def __init__(self, sensor):
+        film = sensor.film()
+        self.crop = tuple(int(x) for x in film.crop_size())
+        self.border = film.rfilter().border_size() if film.sample_border() else 0
+        angle, offset = pixel_steps(sensor)
+        self.angle, self.offset = mi.Float(angle), mi.Float(offset)
+        # opaque: a new view's medians must not compile a new kernel
+        self.median = tuple(dr.opaque(mi.Float, float(np.median(v)) if len(v) else 0.0)
+                            for v in (angle, offset))
+
+    def at(self, sampler):
+        w, h = self.crop
+        b = self.border
+        pixels = (w + 2 * b) * (h + 2 * b)
+        lanes = sampler.wavefront_size() if sampler is not None else 0
+        if pixels == 0 or lanes == 0 or lanes % pixels != 0 or dr.width(self.angle) != w * h:
+            return self.median
+        # opaque: a new spp or film size compiles nothing
+        pixel = dr.arange(mi.Int32, lanes) // dr.opaque(mi.Int32, lanes // pixels)
+        row = pixel // dr.opaque(mi.Int32, w + 2 * b)
+        col = pixel - row * dr.opaque(mi.Int32, w + 2 * b)
+        b_op = dr.opaque(mi.Int32, b)
+        col = dr.clip(col - b_op, 0, dr.opaque(mi.Int32, w - 1))   # border: the edge pixel's
+        row = dr.clip(row - b_op, 0, dr.opaque(mi.Int32, h - 1))
+        index = mi.UInt32(row * dr.opaque(mi.Int32, w) + col)
+        return dr.gather(mi.Float, self.angle, index), dr.gather(mi.Float, self.offset, index)
 
 
 def _warn_if_centre_hidden(scene, view, method: str, memo: dict) -> None:

@@ -46,6 +46,7 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
            "footprint_ratio", "pixel_centres", "pixel_ray_differentials", "pixel_step",
+           "pixel_steps",
            "is_pinhole", "aims_by_film", "pinhole", "differential_origins", "pinhole_frame",
            "pinhole_footprint",
            "UnsupportedEmitterError", "SUPPORTED_EMITTERS", "check_emitter_values",
@@ -405,18 +406,29 @@ def pinhole_footprint(p_world, n_world, frame):
     return tuple(out)
 
 
-def pixel_step(sensor):
-    """``(angle, offset)``: the median change of a ray's direction (radians) and origin
-    from one pixel to the next, over the pixel centres of ``sensor``
-    (:func:`pixel_ray_differentials`); the render's footprint of a sensor without ray
-    differentials (its rays in ``sample()`` have none) is a cone of this angle."""
+def pixel_steps(sensor):
+    """``(angle, offset)``: per pixel of ``sensor``'s crop (row by row, as
+    :func:`pixel_centres`), the change of a ray's direction (radians) and origin from
+    that pixel's centre to the next pixel's, the mean over x and y
+    (:func:`pixel_ray_differentials`), as float32 numpy arrays. The render's footprint
+    of a sensor without ray differentials (a ``batch``: its rays in ``sample()`` have
+    none) is a cone of its pixel's angle: per pixel, because a batch's cameras differ
+    (a 4-degree and a 30-degree camera side by side: one median for both made the
+    narrow one's footprints 4x too wide)."""
     ray = pixel_ray_differentials(sensor, pixel_centres(sensor))
     d = dr.normalize(ray.d)
-    angles = [dr.norm(dr.normalize(dd) - d).numpy() for dd in (ray.d_x, ray.d_y)]
-    offsets = [dr.norm(o - ray.o).numpy() for o in (ray.o_x, ray.o_y)]
-    angle = float(np.median(np.concatenate(angles))) if len(angles[0]) else 0.0
-    offset = float(np.median(np.concatenate(offsets))) if len(offsets[0]) else 0.0
-    return angle, offset
+    angle = sum(dr.norm(dr.normalize(dd) - d).numpy() for dd in (ray.d_x, ray.d_y)) / 2
+    offset = sum(dr.norm(o - ray.o).numpy() for o in (ray.o_x, ray.o_y)) / 2
+    return np.asarray(angle, np.float32), np.asarray(offset, np.float32)
+
+
+def pixel_step(sensor):
+    """``(angle, offset)``: the median over the pixels of ``sensor`` of
+    :func:`pixel_steps` (a sensor's typical one-pixel change of a ray's direction, in
+    radians, and origin)."""
+    angle, offset = pixel_steps(sensor)
+    return (float(np.median(angle)) if len(angle) else 0.0,
+            float(np.median(offset)) if len(offset) else 0.0)
 
 
 def camera_visible_points(scene, sensor) -> np.ndarray:

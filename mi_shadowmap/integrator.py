@@ -23,7 +23,8 @@ import mitsuba as mi
 
 from . import environment as env_mod
 from . import options as opt_mod
-from .depth_maps import ShadowMap, directed_edges, lights_outside, solid_face_tables
+from .depth_maps import (ShadowMap, _grouped_shapes, directed_edges, lights_outside,
+                         solid_face_tables)
 from .filters import Lookup, RayTracedLight, shifted_grid_point
 from .sigint import outside_mitsuba, set_sigint_action, sigint_action
 from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys,
@@ -142,6 +143,9 @@ screen is Mitsuba's projective integrators' job.
         self._pinhole = None
         self._delta_term = False
         self._delta_memo = None    # the scene has delta BSDF lobes (render() sets it)
+        # (scene_token, tilted_frame_table(scene)); render() sets it
+        self._tilted_memo = None
+        self._tilted_table = None
         # second_depth: depth_maps.solid_face_tables of the scene (render() sets it)
         self._solid_faces = None
         # and per map (by id) the parts of transmitting solids its light is outside of
@@ -485,6 +489,10 @@ screen is Mitsuba's projective integrators' job.
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
+        memo = self._tilted_memo
+        if memo is None or memo[0] is not scene_token(scene):
+            memo = self._tilted_memo = (scene_token(scene), tilted_frame_table(scene))
+        self._tilted_table = memo[1]
         # second_depth only: its maps' builds have each mesh's face_solidity already (for
         # the other methods it would cost a pass over every smooth mesh's faces, 2-4 s
         # for 330k, again after every edit of its vertices)
@@ -750,6 +758,8 @@ screen is Mitsuba's projective integrators' job.
         ``lk`` (0 where not ``lit``); a ``whole_light`` record's lookup sees the whole
         light, horizon included."""
         vis_fn, opts = self.opts.record.lookup, self.opts
+        if self._tilted_table is not None and lk.tilted is None:
+            lk.tilted = tilted_frame(self._tilted_table, lk.si)
         # a light sample that reaches the hit only through its solid (see _into_solid)
         lit = mi.Bool(lit) & ~self._into_solid(lk, self._light_outside.get(id(smap)))
         if self.opts.record.whole_light:
@@ -1120,6 +1130,48 @@ def has_delta_bsdf(scene) -> bool:
         if bsdf is not None and int(bsdf.flags()) & delta:
             return True
     return False
+
+
+#: Mitsuba BSDFs that tilt the shading frame per point (:attr:`Lookup.tilted`).
+TILTING_BSDFS = frozenset({"NormalMap", "BumpMap"})
+
+
+def tilted_frame_table(scene):
+    """``mi.Bool`` by BSDF registry id: whether that BSDF of ``scene`` (its shapes', a
+    shape group's too) is or nests one of :data:`TILTING_BSDFS`; None where none does.
+
+    Such a BSDF reflects light only from above both its shading frame's horizon and the
+    tilted frame's (Mitsuba's ``normalmap`` and ``bumpmap`` evaluate the nested BSDF in
+    the tilted frame), so a lookup may not take one horizon test for a whole hemisphere
+    of directions there (:attr:`~mi_shadowmap.filters.common.Lookup.tilted`)."""
+    listed = list(scene.shapes())
+    bsdfs, seen = [], set()
+    for shape in listed + _grouped_shapes(scene, listed):
+        bsdf = shape.bsdf()
+        if bsdf is None:
+            continue
+        key = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
+        if key in seen:
+            continue
+        seen.add(key)
+        nodes = mi.traverse(bsdf).hierarchy
+        names = {bsdf.class_name()} | {n.class_name() for n in nodes
+                                       if hasattr(n, "class_name")}
+        if names & TILTING_BSDFS:
+            bsdfs.append(key)
+    if not bsdfs:
+        return None
+    table = np.zeros(max(bsdfs) + 2, bool)   # padded: never a one-entry literal
+    table[bsdfs] = True
+    return mi.Bool(table)
+
+
+def tilted_frame(table, si) -> mi.Bool:
+    """Where the BSDF of the hits ``si`` is one that :func:`tilted_frame_table`
+    marks (``table``)."""
+    raw = dr.reinterpret_array(mi.UInt32, si.bsdf())
+    known = raw < dr.width(table)
+    return dr.gather(mi.Bool, table, dr.select(known, raw, 0), known)
 
 
 def _delta_lobe_term(scene, si, bsdf, sampler, valid):

@@ -58,6 +58,12 @@ class Lookup:
     #: sample's emitter pointer traces every live emitter of the process, and one on a
     #: shape without position sampling (a curve's, in any scene) raises there
     emitter: object = None
+    #: ``mi.Bool``: where the hit's BSDF tilts its shading frame per point (Mitsuba's
+    #: ``normalmap``, ``bumpmap``, nested anywhere), so that whether it reflects light
+    #: from a direction is not the same over a hemisphere of the shading frame (it is
+    #: zero below the tilted frame's horizon too); a lookup that tests the horizon of
+    #: several light points must then evaluate the BSDF for each. None: nowhere.
+    tilted: object = None
 
 
 @dataclass

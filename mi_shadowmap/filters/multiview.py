@@ -43,7 +43,9 @@ a light without extent is bit-identical to ``hard``.
 receiver (front side of an area light, radiance > 0 there; the spot's cone, from
 the emitter's own sample), lies above the receiver's horizon (the BSDF towards it is
 not 0: evaluated once towards the light's centre, and again only for views on the
-other side of the shading plane -- BSDFs are zero or not per hemisphere) and is not
+other side of the shading plane -- BSDFs are zero or not per hemisphere -- and for
+every view where the BSDF tilts its frame per point, ``normalmap`` or ``bumpmap``,
+whose horizon is not the shading plane's: ``Lookup.tilted``) and is not
 occluded. The points are distributed as the reference's light samples are, and the
 fraction is over the points those samples could be: all K for lights Mitsuba samples
 by area or through their texture (a point on the back of a cube or a cylinder light,
@@ -181,6 +183,9 @@ def multiview(smap, lk: Lookup, opts, active=True):
     else:
         above_c = bsdf_eval_reaches(bsdf, ctx, si, wo_c, act)[1]
     side_c = mi.Frame3f.cos_theta(wo_c) > 0
+    # a BSDF that tilts its frame per point (normalmap, bumpmap) is zero below the tilted
+    # frame's horizon too: every view evaluates it there (lk.tilted)
+    tilted = mi.Bool(False) if lk.tilted is None else mi.Bool(lk.tilted)
 
     def point(k):
         """View ``k``'s sub-map; whether its light point emits towards ``p`` and whether
@@ -188,7 +193,7 @@ def multiview(smap, lk: Lookup, opts, active=True):
         sub = dataclasses.replace(smap, view=view.sub_view(k))
         emits = act & view.emits_towards(k, p)
         wo = si.to_local(sub.view.direction_to_light(p))
-        across = emits & ((mi.Frame3f.cos_theta(wo) > 0) != side_c)
+        across = emits & (((mi.Frame3f.cos_theta(wo) > 0) != side_c) | tilted)
         above = emits & dr.select(across, bsdf_eval_reaches(bsdf, ctx, si, wo, across)[1],
                                   above_c)
         w = dr.select(emits, view.weight(k, p), 0.0) if view.cone else mi.Float(1.0)
@@ -196,7 +201,7 @@ def multiview(smap, lk: Lookup, opts, active=True):
 
     if cone_subset:
         visible, above, ratio = _cone_subset(view, smap, lk, opts, act, L, shift2, test, si,
-                                             bsdf, ctx, above_c, side_c)
+                                             bsdf, ctx, above_c, side_c, tilted)
         if tracked:   # the weight is the geometric one; the AOV counts emitting lanes only
             return dr.select(emitting, visible, 0.0), dr.select(emitting, above, 0.0), ratio
         return visible, above, ratio
@@ -277,7 +282,7 @@ def multiview(smap, lk: Lookup, opts, active=True):
 
 
 def _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx, above_c,
-                 side_c):
+                 side_c, tilted):
     """``lookups`` L < K on a sphere light sampled in its cone (``MultiView.cone``):
     ``(visible, above, weight)`` from L points drawn as Mitsuba draws the sphere's light
     samples -- uniformly in the cone it subtends from the receiver, at a stratified
@@ -303,7 +308,7 @@ def _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx, abov
         k, d, _ = view.cone_view(p, u)
         sub = dataclasses.replace(smap, view=view.sub_view(k))
         wo = si.to_local(d)
-        across = active & ((mi.Frame3f.cos_theta(wo) > 0) != side_c)
+        across = active & (((mi.Frame3f.cos_theta(wo) > 0) != side_c) | tilted)
         above = active & dr.select(across, bsdf_eval_reaches(bsdf, ctx, si, wo, across)[1],
                                    above_c)
         return above, dr.select(above, test(sub, lk, opts, above), 0.0)

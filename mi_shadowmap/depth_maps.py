@@ -332,14 +332,29 @@ _SOLID_MEMO_SIZE = 4096
 _SOLID_LATEST: dict = {}
 
 
+def _weld(v: np.ndarray, decimals: int = 5) -> tuple:
+    """``(index per vertex, count)`` of the distinct vertices of ``v`` at ``decimals``
+    decimals, numbered in lexicographic order: ``np.unique(..., axis=0,
+    return_inverse=True)``'s numbers, from one ``lexsort`` of the columns (the row
+    ``unique`` took 1.3-2.3 s of a 2M-triangle mesh's 2.3-3.6 s solidity; this 0.5 s)."""
+    r = np.round(np.asarray(v, np.float64).reshape(-1, 3), decimals)
+    if not len(r):
+        return np.zeros(0, np.int64), 0
+    order = np.lexsort((r[:, 2], r[:, 1], r[:, 0]))
+    rs = r[order]
+    ids = np.concatenate([[0], np.cumsum(np.any(rs[1:] != rs[:-1], axis=1))])
+    weld = np.empty(len(r), np.int64)
+    weld[order] = ids
+    return weld, int(ids[-1]) + 1
+
+
 def _welded_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> tuple:
     """``(welded faces, connected part per face, number of parts, number of welded
     vertices)`` of a mesh: faces joined by vertices equal at ``decimals`` decimals."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
-    _, weld = np.unique(np.round(v, decimals), axis=0, return_inverse=True)
-    fw = weld.reshape(-1)[f]
-    m = int(weld.max()) + 1
+    weld, m = _weld(v, decimals)
+    fw = weld[f]
     g = coo_matrix((np.ones(2 * len(fw)), (np.concatenate([fw[:, 0], fw[:, 1]]),
                                             np.concatenate([fw[:, 1], fw[:, 2]]))),
                    shape=(m, m))

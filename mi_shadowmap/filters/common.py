@@ -64,6 +64,14 @@ class Lookup:
     #: zero below the tilted frame's horizon too); a lookup that tests the horizon of
     #: several light points must then evaluate the BSDF for each. None: nowhere.
     tilted: object = None
+    #: ``mi.Bool``: where the hit is on the outside of a solid (a closed, outward mesh
+    #: part) that occludes light arriving from behind its geometric face -- Mitsuba's
+    #: shadow ray leaves the face on the light's side, inside the solid -- which a smooth
+    #: shading frame reflects near the terminator. The integrator gives light samples
+    #: behind the face (``dot(n_world, d) < 0``) visibility 0 there; a ``whole_light``
+    #: lookup must count its light points behind the face as occluded itself. None:
+    #: nowhere.
+    solid_back: object = None
 
 
 @dataclass

@@ -46,7 +46,8 @@ not 0: evaluated once towards the light's centre, and again only for views on th
 other side of the shading plane -- BSDFs are zero or not per hemisphere -- and for
 every view where the BSDF tilts its frame per point, ``normalmap`` or ``bumpmap``,
 whose horizon is not the shading plane's: ``Lookup.tilted``) and is not
-occluded. The points are distributed as the reference's light samples are, and the
+occluded (a light point behind the geometric face of a solid's outside is, by the
+solid itself, as Mitsuba's shadow ray is there: ``Lookup.solid_back``). The points are distributed as the reference's light samples are, and the
 fraction is over the points those samples could be: all K for lights Mitsuba samples
 by area or through their texture (a point on the back of a cube or a cylinder light,
 or on a black square of a ``checkerboard`` radiance, which samples uniformly, counts as
@@ -186,22 +187,35 @@ def multiview(smap, lk: Lookup, opts, active=True):
     # a BSDF that tilts its frame per point (normalmap, bumpmap) is zero below the tilted
     # frame's horizon too: every view evaluates it there (lk.tilted)
     tilted = mi.Bool(False) if lk.tilted is None else mi.Bool(lk.tilted)
+    # the outside of a solid whose light points behind the hit's geometric face are
+    # occluded by the solid itself (a smooth shading frame reflects them near the
+    # terminator; Lookup.solid_back): such a view is above the horizon but not lit
+    solid_back = None if lk.solid_back is None else mi.Bool(lk.solid_back)
+    n_geo = dr.detach(mi.Vector3f(lk.n_world))
+
+    def seen(above, d_world):
+        """``above`` but for a light point in direction ``d_world`` behind a solid's face."""
+        if solid_back is None:
+            return above
+        return above & ~(solid_back & (dr.dot(n_geo, d_world) < 0))
 
     def point(k):
-        """View ``k``'s sub-map; whether its light point emits towards ``p`` and whether
-        it is above the horizon too; its weight there (1, or its solid angle: ``cone``)."""
+        """View ``k``'s sub-map; whether its light point emits towards ``p``, whether it
+        is above the horizon too, and whether it may be lit there (not behind a solid's
+        face: ``seen``); its weight there (1, or its solid angle: ``cone``)."""
         sub = dataclasses.replace(smap, view=view.sub_view(k))
         emits = act & view.emits_towards(k, p)
-        wo = si.to_local(sub.view.direction_to_light(p))
+        d = sub.view.direction_to_light(p)
+        wo = si.to_local(d)
         across = emits & (((mi.Frame3f.cos_theta(wo) > 0) != side_c) | tilted)
         above = emits & dr.select(across, bsdf_eval_reaches(bsdf, ctx, si, wo, across)[1],
                                   above_c)
         w = dr.select(emits, view.weight(k, p), 0.0) if view.cone else mi.Float(1.0)
-        return sub, emits, above, w
+        return sub, emits, above, seen(above, d), w
 
     if cone_subset:
         visible, above, ratio = _cone_subset(view, smap, lk, opts, act, L, shift2, test, si,
-                                             bsdf, ctx, above_c, side_c, tilted)
+                                             bsdf, ctx, above_c, side_c, tilted, seen)
         if tracked:   # the weight is the geometric one; the AOV counts emitting lanes only
             return dr.select(emitting, visible, 0.0), dr.select(emitting, above, 0.0), ratio
         return visible, above, ratio
@@ -211,8 +225,8 @@ def multiview(smap, lk: Lookup, opts, active=True):
 
     def body(j, n_emit, n_above, n_lit):
         k = dr.minimum(mi.UInt32(dr.floor((mi.Float(j) + shift) * step)), K - 1)
-        sub, emits, above, w = point(k)
-        vis = dr.select(above, test(sub, lk, opts, above), 0.0)
+        sub, emits, above, lit, w = point(k)
+        vis = dr.select(lit, test(sub, lk, opts, lit), 0.0)
         if not view.cone:
             return (j + 1, dr.select(emits, n_emit + 1.0, n_emit),
                     dr.select(above, n_above + 1.0, n_above), n_lit + vis)
@@ -269,8 +283,8 @@ def multiview(smap, lk: Lookup, opts, active=True):
     def body_r(r, found, v):
         u = mi.sample_tea_float32(seed, r)
         k = dr.minimum(mi.UInt32(dr.floor(u * K)), K - 1)
-        sub, _, above, _ = point(k)
-        vis = dr.select(above, test(sub, lk, opts, above), 0.0)
+        sub, _, above, lit, _ = point(k)
+        vis = dr.select(lit, test(sub, lk, opts, lit), 0.0)
         return r + 1, found | above, dr.select(above, vis, v)
 
     _, found, v = dr.while_loop((mi.UInt32(0), mi.Bool(False), mi.Float(0.0)),
@@ -282,7 +296,7 @@ def multiview(smap, lk: Lookup, opts, active=True):
 
 
 def _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx, above_c,
-                 side_c, tilted):
+                 side_c, tilted, seen):
     """``lookups`` L < K on a sphere light sampled in its cone (``MultiView.cone``):
     ``(visible, above, weight)`` from L points drawn as Mitsuba draws the sphere's light
     samples -- uniformly in the cone it subtends from the receiver, at a stratified
@@ -311,7 +325,8 @@ def _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx, abov
         across = active & (((mi.Frame3f.cos_theta(wo) > 0) != side_c) | tilted)
         above = active & dr.select(across, bsdf_eval_reaches(bsdf, ctx, si, wo, across)[1],
                                    above_c)
-        return above, dr.select(above, test(sub, lk, opts, above), 0.0)
+        lit = seen(above, d)
+        return above, dr.select(lit, test(sub, lk, opts, lit), 0.0)
 
     def cond(j, n_above, n_lit):
         return act & (j < L)

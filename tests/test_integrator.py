@@ -1345,3 +1345,50 @@ def test_one_render_runs_its_first_pass_once_and_reports_its_own_build():
     assert len(calls) == 1
     st = integ.stats
     assert (st["maps_built"], st["maps_reused"], st["texels_built"]) == (1, 0, 64 * 64)
+
+
+def test_null_bsdf_shapes_occlude_and_media_are_ignored_as_in_direct():
+    """A ``null``-BSDF sphere (a medium's boundary, its ``interior`` a fog) between a
+    point light and a floor: Mitsuba's ``direct`` stops its shadow rays there, and so
+    do ``raytraced`` (equal to ``direct``) and the maps (``hard``'s visibility is what
+    it is for a diffuse ball there); a light inside it lights nothing, for any method."""
+    T = mi.ScalarTransform4f
+
+    def scene(ghost_bsdf, light_at):
+        return mi.load_dict({
+            "type": "scene",
+            "cam": {"type": "perspective", "fov": 50,
+                    "to_world": T().look_at([0.5, 2.5, 4.0], [0, 0.5, 0], [0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                             "rfilter": {"type": "box"}}},
+            "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+            "fog": {"type": "homogeneous", "sigma_t": 1.0, "albedo": 0.5},
+            "ghost": {"type": "sphere", "center": [0, 0.8, 0], "radius": 0.4,
+                      "bsdf": ghost_bsdf, "interior": {"type": "ref", "id": "fog"}},
+            "light": {"type": "point", "position": light_at, "intensity": 20.0}})
+
+    null = scene({"type": "null"}, [1.0, 3.5, 1.0])
+    ref = np.asarray(mi.render(null, integrator=mi.load_dict(DIRECT), spp=4))
+    rgb, aovs = render_np(null, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    assert relative_rmse(ref, rgb) < 1e-4
+    # the floor's pixels away from the sphere's outline (shape_index: the most common
+    # value; the aov integrator's samples are not ours, hence the margin)
+    from mi_shadowmap.metrics import dilate
+    index = np.asarray(mi.render(null, integrator=mi.load_dict(
+        {"type": "aov", "aovs": "s:shape_index"}), spp=4))[..., -1]
+    values, counts = np.unique(index[index > 0], return_counts=True)
+    floor = ~dilate(index != values[counts.argmax()], 1)
+    opaque = scene({"type": "diffuse"}, [1.0, 3.5, 1.0])
+    _, opaque_ref = render_np(opaque, {"type": "shadowmap", "method": "raytraced"}, spp=4)
+    shadowed = aovs["vis_light"][floor] < 0.5
+    assert shadowed.sum() >= 10                                   # its shadow on the floor
+    assert np.array_equal(shadowed, opaque_ref["vis_light"][floor] < 0.5)
+    _, hard = render_np(null, {"type": "shadowmap", "method": "hard"}, spp=4)
+    _, hard_opaque = render_np(opaque, {"type": "shadowmap", "method": "hard"}, spp=4)
+    assert np.array_equal(hard["vis_light"][floor], hard_opaque["vis_light"][floor])
+    assert np.mean(shadowed != (hard["vis_light"][floor] < 0.5)) < 0.01
+    inside = scene({"type": "null"}, [0, 0.8, 0])
+    assert np.asarray(mi.render(inside, integrator=mi.load_dict(DIRECT), spp=4)).max() == 0
+    for method in ("raytraced", "hard", "second_depth", "multiview"):
+        rgb, aovs = render_np(inside, {"type": "shadowmap", "method": method}, spp=4)
+        assert rgb.max() == 0 and aovs["vis_light"].max() == 0, method

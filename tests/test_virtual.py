@@ -680,6 +680,52 @@ def test_moving_one_light_keeps_the_other_lights_pages():
     assert len(stores) == 4, stores
 
 
+def test_moving_any_set_of_lights_compiles_nothing_new():
+    """Lights moved through ``params.update()`` are marked again, the others keep their
+    marks: once one light of each kind has moved, moving any other light or set of
+    lights compiles no kernel, and the pages built are the moved lights' own. (The stale
+    lights were marked in one kernel, so each new set -- two point lights, a point and a
+    spot -- compiled its own four mark kernels.)"""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(2, 2)
+    params = mi.traverse(scene)
+    integ = shadowmap(method="hard", virtual=True)
+
+    def move(*names):
+        for name in names:
+            if name.startswith("pl"):
+                p = params[f"{name}.position"]
+                params[f"{name}.position"] = mi.Point3f(p.x[0] + 0.05, p.y[0], p.z[0])
+            else:
+                key = f"{name}.to_world"
+                params[key] = T().translate([0.05, 0, 0]) @ T(params[key].matrix.numpy()[..., 0])
+        params.update()
+        dr.kernel_history()                  # Mitsuba's own updates: not counted
+        mi.render(scene, integrator=integ, spp=1)
+        jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        new = {k["hash"] for k in jit} - seen
+        seen.update(k["hash"] for k in jit)
+        built = [m.stats["new"] for m in integ.maps]
+        return len(new), built
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        mi.render(scene, integrator=integ, spp=1)
+        seen = {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+        move("pl0")
+        move("sp0")                          # each kind's first move may compile
+        got = {names: move(*names) for names in
+               [("pl1",), ("pl0", "pl1"), ("sp1", "pl0"), ("pl1", "sp0", "sp1")]}
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    print("kernels compiled, pages built per light:", got)
+    order = ["pl0", "pl1", "sp0", "sp1"]
+    for names, (compiled, built) in got.items():
+        assert compiled == 0, f"moving {names} compiled {compiled} kernel(s)"
+        assert all((b > 0) == (order[k] in names) for k, b in enumerate(built)), (names, built)
+
+
 def test_cache_off_builds_every_frame():
     scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
     integ = shadowmap(method="hard", virtual=True, cache_maps=False)

@@ -1082,6 +1082,32 @@ def test_one_budget_warning_per_render_names_the_degraded_lights():
     assert "'pl0'" in msgs[0] and "more" in msgs[0] and "would hold every marked" in msgs[0]
 
 
+def test_a_budget_below_every_lights_coarsest_level_warns_of_its_full_maps():
+    """Four lights whose coarsest virtual levels together (18 pages of 32^2: 0.07 MiB)
+    do not fit the budget: the automatic ``virtual`` gives them full maps, with one
+    warning naming the budget, what virtual maps need and the full maps' resolution
+    (it was silent: 24 lights so degraded were 1-7 % false lit, the warning of a
+    degraded virtual map never came); ``virtual=false`` asked for full maps: no warning."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(2, 2)
+    integ = shadowmap(method="hard", memory_budget=0.05, cache_maps=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        img = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    msgs = [str(w.message) for w in caught if "memory_budget" in str(w.message)]
+    assert np.isfinite(img).all()
+    assert all(isinstance(m, ShadowMap) for m in integ.maps)
+    assert len(msgs) == 1, msgs
+    assert ("memory_budget = 0.05 MiB" in msgs[0] and "0.071 MiB" in msgs[0]
+            and f"full map of {integ.resolution}^2" in msgs[0]), msgs[0]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mi.render(scene, integrator=shadowmap(method="hard", memory_budget=0.05,
+                                              virtual=False, cache_maps=False), spp=1)
+    assert not [w for w in caught if "memory_budget" in str(w.message)]
+
+
 def test_a_smaller_budget_later_shrinks_the_shared_pools():
     """Pools kept in the page cache from a render with a large budget: a later render
     with a smaller one resizes them to it (they kept the largest size any render gave

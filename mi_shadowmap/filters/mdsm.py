@@ -85,6 +85,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from ..control_flow import if_stmt
 from ..methods import Method, Prop
 from .common import Lookup, has_layers, nearest_block, taps_loop, virtual_sample_depth
 
@@ -221,8 +222,8 @@ def mdsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
                     total += dr.select(z_min < z_rec - min_drop, one, zero)
             return total
 
-        n_shadow = dr.if_stmt((mi.UInt32(r.face), mi.Point2i(i0)), interior, union_block,
-                              all_taps)
+        n_shadow = if_stmt((mi.UInt32(r.face), mi.Point2i(i0)), interior, union_block,
+                           all_taps, holds_loops=True)
     vis = 1.0 - mi.Float(n_shadow) / float(n_depths * k)
     return dr.select(r.inside, vis, 1.0)
 

@@ -16,6 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..control_flow import if_stmt
 from .base import (LightView, axial_texel_size, emitter_frame, opaque_point, position_np, scalar3,
                    unit_grid)
 
@@ -67,7 +68,7 @@ def _across_seams(face, xy, ij, in_face, res, real):
     def on_face(face, xy, i, j):
         return face, i, j
 
-    return dr.if_stmt((mi.UInt32(face), xy, ij.x, ij.y), ~in_face, across, on_face)
+    return if_stmt((mi.UInt32(face), xy, ij.x, ij.y), ~in_face, across, on_face)
 
 
 def face_split(face, v):

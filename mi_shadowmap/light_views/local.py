@@ -34,6 +34,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..control_flow import if_stmt
 from .base import opaque_point
 
 #: Receiver depths are lowered by this many float32 roundoffs (2^-24 relative) of
@@ -166,10 +167,10 @@ class LocalView:
         o, d = opaque_point(self.inner.position), dr.normalize(base + a * duv.x + b * duv.y)
         if self.inner.n_faces == 1:
             return o, d
-        return dr.if_stmt((mi.UInt32(face), mi.Point2f(uv_light), o, d),
-                          mi.UInt32(face) != self.face,
-                          lambda f, uv, o, d: self._ray_through_f64(f, uv),
-                          lambda f, uv, o, d: (o, d), label="LocalView.ray_through: another face")
+        return if_stmt((mi.UInt32(face), mi.Point2f(uv_light), o, d),
+                       mi.UInt32(face) != self.face,
+                       lambda f, uv, o, d: self._ray_through_f64(f, uv),
+                       lambda f, uv, o, d: (o, d), label="LocalView.ray_through: another face")
 
     def _ray_through_f64(self, face, uv_light):
         o, d = self.inner.ray_through_f64(face, self._to_global_uv(uv_light))
@@ -190,7 +191,7 @@ class LocalView:
         t, c = self._plane_step(uv_light, n_world, cos_min)
         if self.inner.n_faces == 1:
             return t, c
-        return dr.if_stmt(
+        return if_stmt(
             (mi.UInt32(face), mi.Point2f(uv_light), mi.Vector3f(n_world), t, c),
             mi.UInt32(face) != self.face,
             lambda f, uv, n, t, c: self._ray_plane_f64(f, uv, p_world, n, cos_min),
@@ -276,8 +277,8 @@ class LocalView:
         def on_face(face, xy, i, j):
             return face, i, j, mi.Bool(True)
 
-        f2, i, j, inside = dr.if_stmt((mi.UInt32(face), mi.Point2f(xy_texel), ij.x, ij.y),
-                                      ~in_face, off_face, on_face)
+        f2, i, j, inside = if_stmt((mi.UInt32(face), mi.Point2f(xy_texel), ij.x, ij.y),
+                                   ~in_face, off_face, on_face)
         return f2, i - self.origin.x, j - self.origin.y, inside
 
     def describe(self) -> str:

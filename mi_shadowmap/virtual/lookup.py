@@ -11,6 +11,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..control_flow import if_stmt
 from ..methods import MethodError
 from ..light_views.local import LocalView
 from .layout import ANISO, INVALID_SLOT, key_fields, padded_array
@@ -306,8 +307,8 @@ class VirtualShadowMap:
         def walked(vis):
             return mi.Float(lookup(self.bind(again, retry, per_tap), again, opts, retry))
 
-        return dr.if_stmt((vis,), retry, walked, lambda vis: vis,
-                          label="virtual map: lookups whose page is missing")
+        return if_stmt((vis,), retry, walked, lambda vis: vis,
+                       label="virtual map: lookups whose page is missing", holds_loops=True)
 
 
 class _NoDraws:

@@ -839,10 +839,18 @@ def build_culled_depth(scene, view, res: int, faces, differentiable: bool = Fals
 
 
 def write_exr(smap: ShadowMap, path: str, layer: str = "depth") -> None:
-    """Write one layer as a float32 EXR (faces stacked vertically, channel ``Y``)."""
-    arr = smap.to_numpy(layer)
-    bmp = mi.Bitmap(arr.reshape(-1, smap.resolution))
-    bmp.write(str(path))
+    """Write one layer as a float32 EXR (faces stacked vertically, channel ``Y``).
+
+    Written with the ``OpenEXR`` package, not ``mi.Bitmap``: Mitsuba 3.9.1's EXR
+    reader and writer wait forever for their OpenEXR tasks after
+    ``dr.set_thread_count(1)`` (one Dr.Jit thread, a setting users debug with), so
+    this call never returned there."""
+    import OpenEXR
+    arr = np.ascontiguousarray(smap.to_numpy(layer).reshape(-1, smap.resolution),
+                               dtype=np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {"Y": arr}) as f:
+        f.write(str(path))
 
 
 # ------------------------------------------------------------- prefiltered layers

@@ -311,6 +311,38 @@ def test_exr_export_roundtrip(tmp_path):
     np.testing.assert_array_equal(back, smap.to_numpy())
 
 
+def test_exr_export_with_one_drjit_thread(tmp_path):
+    """After ``dr.set_thread_count(1)`` Mitsuba 3.9.1's ``mi.Bitmap(...).write`` of an
+    EXR never returns (its OpenEXR tasks wait for a thread that is not there): the
+    export hung. Run in a child process, so a hang is a timeout, not a stuck suite."""
+    import subprocess
+    import sys
+    import textwrap
+    path = tmp_path / "one_thread.exr"
+    code = textwrap.dedent(f"""
+        import drjit as dr, mitsuba as mi, numpy as np
+        import mi_shadowmap
+        from mi_shadowmap.depth_maps import build_depth_map, write_exr
+        from mi_shadowmap.light_views import make_light_view
+        scene = mi.load_dict({{"type": "scene",
+                              "floor": {{"type": "rectangle"}},
+                              "lamp": {{"type": "point", "position": [0, 0, 1]}}}})
+        smap = build_depth_map(scene, make_light_view(scene.emitters()[0], scene, 0), 8)
+        dr.set_thread_count(1)
+        write_exr(smap, {str(path)!r})
+        dr.set_thread_count(2)
+        back = np.asarray(mi.Bitmap({str(path)!r})).reshape(6, 8, 8)
+        assert np.array_equal(back, smap.to_numpy())
+        print("written")
+    """)
+    try:
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("write_exr did not return within 120 s with one Dr.Jit thread")
+    assert run.returncode == 0 and "written" in run.stdout, run.stderr[-2000:]
+
+
 def test_unsupported_emitter_is_named():
     scene = mi.load_dict({"type": "scene", "env": {"type": "constant"}})
     with pytest.raises(ValueError, match="env.*not supported.*point, spot, directional, area"):

@@ -304,11 +304,30 @@ def _gradient_resolution(scene, sensor, film_size, faces: int, budget: int, res:
     changed it between steps: measured, 56^2 -> 64^2 at an Adam step's second
     iteration (``vsm``, an occluder's translation), which compiled 12 kernels (about
     5 s against 0.15-0.2 s a step) and changed the function being optimised. Renders
-    without gradients enabled keep following the scene; a ``resolution`` given is
-    used as is; :func:`clear_caches` forgets the kept ones."""
+    without gradients enabled keep following the scene, and the first of them forgets
+    the scene's kept ones (:func:`_forget_gradient_resolutions`: kept while gradients
+    stay enabled); a ``resolution`` given is used as is; :func:`clear_caches` forgets
+    the kept ones."""
     key = (id(scene), id(sensor), tuple(int(x) for x in film_size), int(faces), int(budget))
     return _held_lru(_GRADIENT_RESOLUTIONS, key, (scene, sensor), lambda: res,
                      _MAX_GRADIENT_RESOLUTIONS)
+
+
+def _keeps_gradient_resolution(scene) -> bool:
+    """Whether :func:`_gradient_resolution` keeps a resolution for ``scene``."""
+    return any(held[0] is scene for held, _ in _GRADIENT_RESOLUTIONS.values())
+
+
+def _forget_gradient_resolutions(scene) -> None:
+    """Drop the resolutions :func:`_gradient_resolution` keeps for ``scene``: called by a
+    render of it without shape or emitter gradients, so the next optimisation takes the
+    automatic resolution of the scene as it is then, as a fresh scene would. Kept past
+    such renders, a second optimisation of one scene (after the camera moved closer:
+    384^2 automatic maps) built the first one's maps (256^2): ``hard`` 0.61 % of the
+    view misclassified against 0.35 % for the same state in a fresh session, ``vsm``'s
+    gradient 7 % off that session's."""
+    for key in [k for k, (held, _) in _GRADIENT_RESOLUTIONS.items() if held[0] is scene]:
+        del _GRADIENT_RESOLUTIONS[key]
 
 
 def _held_lru(table: collections.OrderedDict, key, held: tuple, make, limit: int):
@@ -424,6 +443,9 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
     """
     t0 = time.perf_counter()
     params = _traverse(scene, opts)    # once per render: read by every check below
+    if opts.uses_map and _keeps_gradient_resolution(scene) and not _differentiated(scene,
+                                                                                   params):
+        _forget_gradient_resolutions(scene)    # gradients disabled since: follow the scene
     kinds = {emitter_kind(e) for e in scene.emitters()}
     unused = unused_light_properties(opts, kinds) if opts.uses_map else []
     if unused:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import operator
 import warnings
 import weakref
 
@@ -172,10 +173,7 @@ screen is Mitsuba's projective integrators' job.
         self._nested = False
         self._last_render = None
         try:
-            if isinstance(sensor, int):
-                sensor_obj = scene.sensors()[sensor]
-            else:
-                sensor_obj = sensor
+            sensor_obj = _sensor_object(scene, sensor)
             self._film_takes_aovs = _film_takes_aovs(sensor_obj.film())
             self._first_pass(scene, sensor_obj,
                              spp if spp > 0 else sensor_obj.sampler().sample_count())
@@ -274,7 +272,7 @@ screen is Mitsuba's projective integrators' job.
         shape = tuple(getattr(grad_in, "shape", ()))
         if len(shape) != 3:
             return
-        sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        sensor_obj = _sensor_object(scene, sensor)
         film = sensor_obj.film()
         aovs = len(scene.emitters()) if _film_takes_aovs(film) else 0
         expected = film.base_channels_count() + aovs
@@ -951,6 +949,32 @@ def _tracks_gradients(scene) -> bool:
         return False
     params = MAP_CACHE.traverse(scene)
     return any(dr.grad_enabled(params[k]) for k in params.keys())
+
+
+def _sensor_object(scene, sensor):
+    """The sensor a render's ``sensor`` argument names: a ``mi.Sensor``, or an index into
+    ``scene.sensors()`` of any integer type Mitsuba's own ``render()`` takes (``int``,
+    ``bool``, numpy's integers). A numpy index was taken for a sensor ("'numpy.int64'
+    object has no attribute 'film'", where Mitsuba's ``direct`` renders that sensor), an
+    index out of range failed as a bare "list index out of range", and -1 had the first
+    pass plan the last sensor's maps before Mitsuba refused it as "incompatible function
+    arguments". Raises an error naming ``sensor`` and the valid indices."""
+    if isinstance(sensor, mi.Sensor):
+        return sensor
+    try:
+        index = operator.index(sensor)
+    except TypeError:
+        raise TypeError(
+            f"shadowmap: render(): 'sensor' is {type(sensor).__name__} {sensor!r}; give a "
+            "mi.Sensor or an index into scene.sensors()") from None
+    sensors = scene.sensors()
+    if not 0 <= index < len(sensors):
+        valid = (f"valid: 0..{len(sensors) - 1}" if sensors else
+                 "it has none: give a mi.Sensor")
+        raise IndexError(
+            f"shadowmap: render(): sensor index {index} is out of range: the scene has "
+            f"{len(sensors)} sensor(s) ({valid})")
+    return sensors[index]
 
 
 def _film_takes_aovs(film) -> bool:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mi_shadowmap.map_manager as mm_mod
-from mi_shadowmap.scenes import default_scene
+from mi_shadowmap.scenes import camera as camera_dict, default_scene
 
 from conftest import (DELTA_BSDFS, SCENE_FILES, delta_scene, relative_rmse, render_np, root_message,
                       vis_stack)
@@ -1392,3 +1392,27 @@ def test_null_bsdf_shapes_occlude_and_media_are_ignored_as_in_direct():
     for method in ("raytraced", "hard", "second_depth", "multiview"):
         rgb, aovs = render_np(inside, {"type": "shadowmap", "method": method}, spp=4)
         assert rgb.max() == 0 and aovs["vis_light"].max() == 0, method
+
+
+def test_a_sensor_index_of_any_integer_type_and_a_bad_one_named():
+    """``integrator.render(scene, sensor)`` takes the sensor argument Mitsuba's own
+    integrators take: a numpy index rendered nothing ("'numpy.int64' object has no
+    attribute 'film'", where ``direct`` renders that sensor), an index out of range was a
+    bare "list index out of range", and -1 planned the last sensor's maps before Mitsuba
+    refused it. Each is now the indexed sensor's image or an error naming ``sensor``
+    and the valid indices, and the integrator renders on after it."""
+    d = default_scene(width=16, height=12, spp=1, light="point")
+    d["side"] = camera_dict([2.5, 2.0, 3.0], [0, 0.3, 0], 12, 8, 1)
+    scene = mi.load_dict(d)
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard"})
+    want = np.asarray(integ.render(scene, 1, 0, 1))
+    assert want.shape == (8, 12, 4)
+    for index in (np.int64(1), np.uint32(1), scene.sensors()[1]):
+        assert np.array_equal(np.asarray(integ.render(scene, index, 0, 1)), want), index
+    for index in (2, -1):
+        with pytest.raises(IndexError, match=rf"sensor index {index} is out of range: the "
+                                             r"scene has 2 sensor\(s\) \(valid: 0\.\.1\)"):
+            integ.render(scene, index, 0, 1)
+    with pytest.raises(TypeError, match="'sensor' is str"):
+        integ.render(scene, "1", 0, 1)
+    assert np.array_equal(np.asarray(integ.render(scene, 1, 0, 1)), want)

@@ -485,6 +485,8 @@ def solid_face_tables(scene: mi.Scene):
         parts, labels, shells, n, n_parts = [], [], [], 0, 0
         for k, (i, shape, m, g) in enumerate(zip(ids, shapes, use, glass)):
             sol = face_solidity(shape) if m else None
+            if sol is not None and not g:
+                sol = sol & ~_flat_shaded_faces(shape)
             if sol is not None and sol.any():
                 offset[i] = n
                 parts.append(sol)
@@ -503,6 +505,24 @@ def solid_face_tables(scene: mi.Scene):
                       part, shells)
     _SOLID_TABLES_MEMO[:] = [(key, held), tables]   # held: their buffers' indices stay unused
     return tables
+
+
+def _flat_shaded_faces(shape) -> np.ndarray:
+    """Per face of a mesh with vertex normals: are its three vertex normals its
+    geometric normal (a ``cube``'s or a ``rectangle``'s faces, a mesh exported flat)?
+    Its shading frame is then its geometric one, so a BSDF that does not transmit
+    reflects no light from behind the face and such a face needs no entry in
+    :func:`solid_face_tables` (whose per-hit test every map method's lookup pays)."""
+    f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)
+    v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
+    n = shape.vertex_normals_buffer().numpy().reshape(-1, 3).astype(np.float64)
+    tri = v[f]
+    n_face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-300)
+    n_vert = n[f]
+    n_vert = n_vert / np.maximum(np.linalg.norm(n_vert, axis=2, keepdims=True), 1e-300)
+    cos = np.einsum("fj,fkj->fk", n_face, n_vert)
+    return np.all(cos >= 1.0 - 1e-6, axis=1)
 
 
 def _shells(shape, solid: np.ndarray, first: int) -> dict:

@@ -494,7 +494,8 @@ screen is Mitsuba's projective integrators' job.
         # every map method (_into_solid): a pass over the faces of every mesh with vertex
         # normals or a BSDF that transmits, on the first render of its geometry (0.55 s
         # for a 330k-triangle sphere, 1.3 s for 2M triangles; again after every edit of
-        # its vertices); second_depth's builds have it already
+        # its vertices); None, and no per-hit test, where every such face is flat-shaded
+        # (cubes, rectangles); second_depth's builds have it already
         reads_second = (self.opts.uses_map
                         and "second_depth" in self.opts.record.layer_names(self.opts))
         self._solid_faces = solid_face_tables(scene) if self.opts.uses_map else None

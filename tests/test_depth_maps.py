@@ -482,3 +482,31 @@ def test_vertex_welding_numbers_rows_as_numpy_unique_does():
     assert count == int(expected.max()) + 1
     assert np.array_equal(weld, expected.reshape(-1))
     assert _weld(np.zeros((0, 3)))[1] == 0
+
+
+def test_flat_shaded_meshes_need_no_solid_tables(tmp_path):
+    """Every map method's lookup pays a per-hit test where ``solid_face_tables`` has
+    faces. A ``cube`` and a ``rectangle`` carry vertex normals equal to their faces'
+    (as does a mesh exported flat): their shading frame is the geometric one, so light
+    from behind a face is never reflected and they need no entry. The scenes of
+    ``scenes_xml/`` got tables (and the per-hit test) for their cubes and walls when the
+    terminator rule reached every map method; a smooth-shaded icosahedron keeps its."""
+    from mi_shadowmap.depth_maps import solid_face_tables
+    from mi_shadowmap.procedural import _icosphere, write_ply
+    T = mi.ScalarTransform4f
+    flat = {"type": "scene",
+            "box": {"type": "cube", "to_world": T().translate([0, 1, 0])},
+            "floor": {"type": "rectangle", "to_world": T().scale(5)}}
+    assert solid_face_tables(mi.load_dict(flat)) is None
+    v, f = _icosphere(0)
+    tri = v[f].reshape(-1, 3)           # unshared vertices, each with its face's normal
+    n = np.cross(tri[1::3] - tri[0::3], tri[2::3] - tri[0::3])
+    n = np.repeat(n / np.linalg.norm(n, axis=1, keepdims=True), 3, axis=0)
+    faces = np.arange(len(tri)).reshape(-1, 3)
+    flat_ply = write_ply(str(tmp_path / "flat.ply"), tri, faces, normals=n)
+    smooth_ply = write_ply(str(tmp_path / "smooth.ply"), v, f, normals=v)
+    assert solid_face_tables(mi.load_dict(
+        {**flat, "ball": {"type": "ply", "filename": flat_ply}})) is None
+    tables = solid_face_tables(mi.load_dict(
+        {**flat, "ball": {"type": "ply", "filename": smooth_ply}}))
+    assert tables is not None and int(np.count_nonzero(tables[1].numpy())) == len(f)

@@ -251,6 +251,32 @@ def test_analyse_reads_a_tie_at_zero_error_as_a_tie():
     assert by["bad"]["error_ratio_equal_time"] == pytest.approx(2.0)
 
 
+def test_analyse_counts_ray_tracing_that_ties_in_time_or_error():
+    """``rt_error_equal_time`` is the best ``raytraced`` row *not slower* than a row, and
+    ``rt_time_equal_error`` the fastest one *at least as accurate*: a tie counts (timings
+    and errors repeat on rows that render alike; mutation audit: ``<`` in place of ``<=``
+    went unnoticed)."""
+    rows = [{"name": n, "method": m, "time_warm": t, "vis_rmse": e} for n, m, t, e in [
+        ("rt1", "raytraced", 1.0, 0.3), ("rt2", "raytraced", 2.0, 0.1),
+        ("hard", "hard", 2.0, 0.3)]]
+    by = {r["name"]: r for r in harness.analyse(rows)}
+    assert by["hard"]["rt_error_equal_time"] == 0.1          # rt2 takes the same time
+    assert by["hard"]["error_ratio_equal_time"] == pytest.approx(0.1 / 0.3)
+    assert by["hard"]["rt_time_equal_error"] == 1.0          # rt1 has the same error
+    assert by["hard"]["speedup_equal_error"] == pytest.approx(0.5)
+
+
+def test_a_sweeps_reference_has_at_least_the_grids_largest_spp():
+    """The automatic reference of a delta light is ``raytraced`` at ``max(ref_spp, every
+    spp of the grid)`` (so no row is compared with a noisier render than itself); a
+    reference at ``ref_spp`` alone went unnoticed (mutation audit)."""
+    scene = mi.load_dict(default_scene(width=8, height=8, spp=1))
+    table = harness.sweep(scene, {"method": "raytraced", "spp": [1, 8]}, spp=1, repeats=1,
+                          ref_spp=2, progress=False)
+    assert table.reference.spp == 8
+    assert [r["reference_spp"] for r in table] == [8, 8]
+
+
 def test_analyse_names_a_column_the_rows_lack():
     """Re-ranking a sweep rendered without ``measure_cached`` on ``time_cached`` (as
     notebooks 04 and 05 do with theirs) failed with "argument 'times' has 3 non-finite

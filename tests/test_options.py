@@ -159,6 +159,19 @@ def test_resolution_zero_means_automatic():
     assert parse_options({"resolution": 0, "virtual": True}).resolution is None
 
 
+def test_automatic_full_map_resolution_rounds_up_to_a_multiple_of_8():
+    """``Options.map_resolution``: twice the film's larger side times the footprint
+    factor (clamped to [0.5, 4]), rounded *up* to a multiple of 8, capped at 8192 and by
+    the budget (mutation audit: rounding down went unnoticed, the suite's films being
+    multiples of 4)."""
+    opts = parse_options({"virtual": False})
+    assert opts.map_resolution((33, 20), 1) == 72          # 66 -> 72
+    assert opts.map_resolution((33, 20), 1, footprint=0.1) == 40   # 33 -> 40
+    assert opts.map_resolution((33, 20), 1, footprint=100.0) == 264
+    assert opts.map_resolution((5000, 20), 1) == 8192
+    assert opts.map_resolution((33, 20), 6, budget=6 * 4 * 50 * 50) == 50   # the budget
+
+
 # ------------------------------------------------------- the README's table against the code
 _README_TYPES = {"string": "str", "integer": "int", "float": "float", "boolean": "bool"}
 _README_AUTOMATIC = ("automatic", "derived", "none")

@@ -310,6 +310,28 @@ def test_cull_faces_with_a_camera_that_sees_nothing(builds, method):
     assert np.all(img == 0)
 
 
+def test_cull_faces_keeps_the_neighbour_of_points_near_a_face_edge():
+    """``CubeView.faces_needed``: a point within ``2 (4 + normal_bias) / res`` of a face's
+    edge (in face coordinates) also needs the face across that edge (its normal offset,
+    sub-pixel camera samples and filter taps cross it); farther in, only its own face.
+    With no margin the neighbour was culled and those taps read +inf, lit (mutation
+    audit: the bit-identical renders above never put a point that close to a seam)."""
+    from mi_shadowmap.light_views import CubeView
+    view = CubeView("point", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(), label="p")
+    res = 128                                   # margin 2 * 4.5 / 128 = 0.07 of the face
+    opts = parse_options({"method": "pcf", "cull_faces": True, "resolution": res})
+
+    def faces(*points):
+        need = view.faces_needed(opts, np.array(points, np.float64), res)
+        return {f for f in range(6) if need[f]}
+    # -y is face 3, +x face 0, -z face 5
+    assert faces([0.0, -1.0, 0.0]) == {3}
+    assert faces([0.9, -1.0, 0.0]) == {3}               # 0.1 from the edge
+    assert faces([0.96, -1.0, 0.0]) == {3, 0}           # 0.04 from the +x edge
+    assert faces([0.0, -1.0, -0.97]) == {3, 5}
+    assert faces([-0.97, -1.0, 0.97]) == {3, 1, 4}       # a corner: both neighbours
+
+
 # ---------------------------------------------------------------- fitted frusta
 def large_world(light: str):
     """A 80 x 80 ground with a far box; the camera sees a small box up close."""

@@ -439,6 +439,66 @@ def test_fit_frusta_keeps_every_visible_receiver_in_the_map(light):
         assert np.count_nonzero(vis >= 0.5) == 0, props
 
 
+@pytest.mark.parametrize("light", ["directional", "spot"])
+def test_fit_frusta_leaves_eight_texels_around_the_visible_receivers(light):
+    """``fit_frusta`` grows the fitted window by ``(8 + normal_bias)`` texels of the map
+    per side (normal offsets and filter taps of the outermost receivers), so the
+    outermost visible point lies about 8 texels inside the fitted map; half that margin
+    went unnoticed by the renders above (mutation audit: ``OrthoView.fit``'s and
+    ``_aimed_extents``' growth halved)."""
+    from mi_shadowmap.options import parse_options
+    lights = {"directional": {"type": "directional", "direction": [0.2, -1.0, 0.3]},
+              "spot": {"type": "spot", "cutoff_angle": 60.0,
+                       "to_world": T().look_at(origin=[0.5, 6.0, 0.2], target=[0, 0, 0],
+                                               up=[0, 0, 1])}}
+    scene = mi.load_dict({"type": "scene", "light": lights[light],
+                          "ground": plane([0, 0, 0], [0, 1, 0], 20.0)})
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    res = 256
+    opts = parse_options({"method": "hard", "fit_frusta": True, "resolution": res})
+    rng = np.random.default_rng(1)
+    visible = np.stack([rng.uniform(-1.0, 2.0, 500), np.zeros(500),
+                        rng.uniform(-1.5, 0.5, 500)], 1)
+    fitted, gain = view.refine(opts, scene, None, visible, res)
+    assert gain > 4.0                                   # the window did shrink
+    _, uv, _, inside = fitted.project(mi.Point3f(*(mi.Float(visible[:, k]) for k in range(3))))
+    assert np.all(inside.numpy())
+    u, v = uv.x.numpy(), uv.y.numpy()
+    border = res * np.minimum(np.minimum(u, 1 - u), np.minimum(v, 1 - v)).min()
+    print(f"{light}: the outermost visible point {border:.2f} texels inside the fitted map")
+    assert 7.5 <= border <= 9.0
+
+
+def test_a_rectangular_faces_texels_are_as_wide_as_its_rays_are_apart():
+    """``PerspectiveView.texel_parallel_xy`` of a rectangular face (a far light's face
+    aimed at the scene, ``tan_half_y`` < ``tan_half``): a texel's world widths along the
+    face's x and y, parallel to its image plane at the point's axial depth, are the
+    distances between the rays through neighbouring texels there (PCSS sizes its kernels
+    in texels per axis by them; both widths taken along x went unnoticed, mutation
+    audit)."""
+    from mi_shadowmap.light_views.perspective import PerspectiveView
+    res = 64
+    view = PerspectiveView("point", mi.ScalarPoint3f(0, 0, 0), T(), label="r",
+                           tan_half=1.0, tan_half_y=0.25)
+    p = np.array([0.6, -0.3, 4.0])
+    P = mi.Point3f(*[float(c) for c in p])
+    face, uv, depth, inside = view.project(P)
+    assert bool(inside[0])
+    uv = np.array([uv.x[0], uv.y[0]])
+
+    def at_depth(du, dv):        # the ray through uv + (du, dv) at the point's axial depth
+        o, d = view.ray_through(face, mi.Point2f(float(uv[0] + du), float(uv[1] + dv)))
+        d = np.array([d.x[0], d.y[0], d.z[0]], np.float64)
+        return d * (p[2] / d[2])
+    h = 0.5 / res
+    want_x = np.linalg.norm(at_depth(h, 0) - at_depth(-h, 0))
+    want_y = np.linalg.norm(at_depth(0, h) - at_depth(0, -h))
+    w_x, w_y = view.texel_parallel_xy(res, face, P, view.texel_world_size(res, depth, P, None))
+    assert float(w_x[0]) == pytest.approx(want_x, rel=1e-4)
+    assert float(w_y[0]) == pytest.approx(want_y, rel=1e-4)
+    assert want_y == pytest.approx(0.25 * want_x, rel=1e-4)
+
+
 @pytest.mark.parametrize("props", [{}, {"resolution": 256}], ids=["virtual", "full"])
 def test_a_directional_map_covers_the_scene_to_its_edges(props):
     """A directional light's map is fitted to the scene's bounds (``directional_view``):

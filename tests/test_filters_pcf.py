@@ -221,6 +221,38 @@ def test_texel_world_size_is_the_texels_width_off_axis(kind):
     assert got == pytest.approx(max(widths), rel=0.01)
 
 
+@pytest.mark.parametrize("props", [{}, {"virtual": False, "resolution": 256}],
+                         ids=["virtual", "full"])
+def test_an_overhead_sun_on_a_stretched_map_keeps_a_low_rods_shadow(props):
+    """A sun straight above a ground 40 x 1 (its orthographic map 40:1): the ground's
+    normal is along the light's rays, so its depth does not change across a texel and
+    the biases take the texel's *shorter* side (``texel_width_along``); the longer one
+    lifted the normal offset 40 times higher, above a rod 0.05 over the ground, whose
+    shadow vanished: 4.6 % of the image false lit against 0.8 % (32^2; mutation audit)."""
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 20,
+                   "to_world": T().look_at(origin=[0, 0.6, 0.6], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                            "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle",
+                   "to_world": T().rotate([1, 0, 0], -90).scale([20.0, 0.5, 1.0])},
+        "rod": {"type": "cube", "to_world": T().translate([0, 0.05, 0]).scale([0.3, 0.01, 0.01])},
+        "sun": {"type": "directional", "direction": [0, -1, 0]}})
+
+    def vis(**p):
+        return np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "shadowmap", **p}),
+                                    spp=4, seed=0))[..., -1]
+    ref = vis(method="raytraced")
+    assert np.mean(ref < 0.5) > 0.05                    # the rod's shadow is in view
+    for method in ("hard", "pcf"):
+        got = vis(method=method, **props)
+        false_lit = float(np.mean((ref < 0.5) & (got >= 0.5)))
+        print(f"{method} {props}: false lit {false_lit:.4f}")
+        assert false_lit <= 0.015
+
+
 def test_cube_taps_continue_on_the_neighbouring_face():
     """A point light whose +y face is fully occluded; a receiver on +x near that seam."""
     view = CubeView("point", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(), label="cube")

@@ -526,6 +526,58 @@ def test_a_directional_map_covers_the_scene_to_its_edges(props):
     assert np.count_nonzero(vis >= 0.5) == 0
 
 
+def nested_boxes(path, centre, halves):
+    """A PLY of closed, outward, welded boxes (``procedural.box``) nested about
+    ``centre``, one per half size of ``halves``, as one mesh."""
+    from mi_shadowmap.procedural import box, merge, write_ply
+    parts = []
+    for h in halves:
+        v, f, _ = box((h, h, h))
+        parts.append((v + np.asarray(centre, np.float32), f, None))
+    v, f, _ = merge(*parts)
+    return write_ply(str(path), v, f)
+
+
+def test_a_map_ray_skips_many_layers_of_the_lights_own_shape(tmp_path):
+    """``first_hit`` skips up to 32 hits of the emitter's own shape along a ray: an area
+    light on 6 nested box shells (its rays from the centre cross all 6) still sees the
+    plate above it; a loop stopped after 2 skips stored +inf there, lit (mutation
+    audit)."""
+    path = nested_boxes(tmp_path / "shells.ply", [0, 0, 0], [0.05, 0.07, 0.09, 0.11, 0.13, 0.15])
+    scene, view, smap = build({
+        "lamp": {"type": "ply", "filename": path, "face_normals": True,
+                 "emitter": {"type": "area", "radiance": 1.0}},
+        "plate": plane([0, 2.0, 0], [0, -1, 0], 1.0)}, res=16)
+    assert view.kind == "area"
+    up = smap.to_numpy()[2]              # face 2: +y
+    centre = up[6:10, 6:10]              # texels whose rays meet the plate (|s|, |t| < 0.5)
+    assert np.all(np.isfinite(centre))
+    d = cube_dirs_np(16)[2 * 256:3 * 256].reshape(16, 16, 3)[6:10, 6:10]
+    np.testing.assert_allclose(centre, 2.0 / d[..., 1], rtol=1e-4)
+
+
+def test_second_depth_passes_many_nested_solids(tmp_path):
+    """``second_depth_along`` continues past up to 64 hits: a ray down through 8 nested
+    closed boxes enters all 8 (front faces, skipped) before it leaves the innermost one,
+    whose bottom is the second surface; a loop stopped after 6 hits stored +inf, and the
+    ground under the boxes was lit (mutation audit)."""
+    from mi_shadowmap.depth_maps import second_depth_along
+    halves = [0.1 + 0.05 * k for k in range(8)]
+    path = nested_boxes(tmp_path / "nest.ply", [0, 1.0, 0], halves)
+    scene = mi.load_dict({"type": "scene",
+                          "nest": {"type": "ply", "filename": path, "face_normals": True},
+                          "ground": plane([0, 0, 0], [0, 1, 0], 5.0),
+                          "light": {"type": "point", "position": [0, 3.0, 0]}})
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    xs = [-0.02, 0.0, 0.03]
+    d = mi.Vector3f(mi.Float(xs), mi.Float([-1.0] * 3), mi.Float([0.02, 0.0, -0.01]))
+    d = dr.normalize(d)
+    z2 = second_depth_along(scene, view, mi.Point3f(0, 3.0, 0), d).numpy()
+    dy = d.y.numpy()
+    want = (3.0 - (1.0 - halves[0])) / -dy     # the innermost box's bottom
+    np.testing.assert_allclose(z2, want, rtol=1e-4)
+
+
 def test_vertex_welding_numbers_rows_as_numpy_unique_does():
     """``depth_maps._weld`` (one lexsort) numbers the vertices equal at 5 decimals as
     ``np.unique(..., axis=0, return_inverse=True)`` did (duplicates, signed zeros,

@@ -1318,6 +1318,25 @@ def test_one_sided_area_light_builds_only_the_faces_in_front():
     assert 0.0 <= vis.min() and vis.max() <= 1.0
 
 
+def test_a_tilted_one_sided_light_shines_through_every_face_a_corner_ray_leaves_in_front():
+    """``planner._lit_faces``: a face is lit where any of its corner rays leaves the
+    emitting plane's front, however grazing. A rectangle light tilted 40 degrees from
+    facing down reaches the +z face only at grazing directions (its best corner ray 4
+    degrees in front of the plane): that face must keep its coarsest page; a threshold
+    of 0.3 on the corner rays' cosine (mutation audit) dropped it unnoticed, since the
+    renders' lights face along an axis."""
+    from mi_shadowmap.light_views import CubeView
+    a = math.radians(40.0)
+    n = (0.0, -math.cos(a), -math.sin(a))
+    view = CubeView("area", mi.ScalarPoint3f(0, 1, 0), T(), light_normal=n, label="tilted")
+    assert planner._lit_faces(view) == [0, 1, 3, 4, 5]
+    flat = CubeView("area", mi.ScalarPoint3f(0, 1, 0), T(), light_normal=(0.0, -1.0, 0.0),
+                    label="down")
+    assert planner._lit_faces(flat) == [0, 1, 3, 4, 5]
+    assert planner._lit_faces(CubeView("point", mi.ScalarPoint3f(0, 1, 0), T(),
+                                       label="p")) == list(range(6))
+
+
 def test_coarsest_pages_sit_in_fixed_slots():
     """Face f's coarsest page is in slot f + 1, so a lookup finds it without the table;
     a face a one-sided light does not shine through keeps an empty (+inf) page there."""
@@ -1567,6 +1586,23 @@ def test_layout_depth_range_bounds_every_built_texel(light):
     d = d[np.isfinite(d)]
     assert len(d) and 0.0 <= d_lo < d_hi
     assert d.min() >= d_lo * (1 - 1e-6) and d.max() <= d_hi * (1 + 1e-6)
+
+
+def test_layout_depth_range_is_a_span_for_a_flat_scene_under_an_overhead_sun():
+    """A ground alone under a sun straight above it holds one depth: the layout's depth
+    range must still be a span (``d_lo < d_hi``), as the prefiltered methods divide by
+    it; ``_depth_range`` widens it to ``[d_hi / 2, d_hi]`` (mutation audit: without that
+    the span was 0 and nothing noticed)."""
+    from mi_shadowmap.light_views import make_light_view
+    scene = mi.load_dict({"type": "scene",
+                          "ground": {"type": "rectangle",
+                                     "to_world": T().rotate([1, 0, 0], -90).scale(2.0)},
+                          "sun": {"type": "directional", "direction": [0, -1, 0]}})
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    lay = layout.layout_for(view, scene, parse_options({"method": "vsm"}))
+    d_lo, d_hi = lay.depth_range
+    assert 0.0 <= d_lo < d_hi
+    assert d_lo == pytest.approx(0.5 * d_hi)
 
 
 def test_a_user_method_with_a_layer_virtual_maps_cannot_build_is_refused():

@@ -123,6 +123,38 @@ def test_no_blockers_is_fully_lit():
     assert np.all(v[lit] == 1.0)
 
 
+def test_soft_compare_scales_a_fractional_blockers_shadow_by_its_count():
+    """``soft_compare``: with less than one blocker's worth found, the filtered shadow
+    is scaled by the blocker count (``1 - (1 - V) n``), so a blocker entering the search
+    darkens the receiver from zero slope: both factors grow from 0. A hand-made map: a
+    step that rises in front of a receiver beside it, 0.6 and 0.7 texels above its
+    biased plane (a 2-texel soft width); its shadow at 0.6 is 1/16 of that at 0.7
+    (without the scaling, mutation audit: 1/4, and 20x darker at 0.6)."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    from mi_shadowmap.filters import Lookup
+    from mi_shadowmap.light_views import OrthoView
+    res, n = 32, 64
+    texel = 2.0 / res
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(),
+                     half_extent=(1.0, 1.0), label="hand")
+    opts = parse_options({"method": "pcss", "angular_diameter": 30.0, "soft_compare": 2.0})
+
+    def shadow(step_texels):
+        depth = np.full((res, res), 10.0, np.float32)
+        depth[:, :res // 2] -= step_texels * texel          # x < 0: nearer the light
+        smap = ShadowMap(view, res, depth=mi.Float(depth.ravel()))
+        p = mi.Point3f(mi.Float(np.full(n, 0.05 * texel, np.float32)), mi.Float(0.013),
+                       mi.Float(10.0))
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(0, n)
+        lk = Lookup(p, mi.Vector3f(0, 0, -1), mi.Vector3f(texel, 0, 0),
+                    mi.Vector3f(0, texel, 0), None, None, sampler)
+        return 1.0 - float(np.mean(methods.get("pcss").lookup(smap, lk, opts, True)))
+    near, far = shadow(0.6), shadow(0.7)
+    print(f"shadow at 0.6 texel {near:.2e}, at 0.7 {far:.2e}")
+    assert 0.0 < near < 0.1 * far and far < 0.01
+
+
 @pytest.mark.parametrize("light", ["point", "spot"])
 def test_point_and_spot_light_size_enables_pcss(light):
     scene = mi.load_dict(default_scene(light=light, width=64, height=64))

@@ -26,9 +26,22 @@ DEFAULT_VARIANT = "llvm_ad_rgb"
 def _started_as_command_line() -> bool:
     """True while the package is imported by its command line: the ``mi-shadowmap``
     script, or ``python -m mi_shadowmap`` (runpy sets ``sys.argv[0]`` to ``"-m"`` while
-    it imports the package that holds the module to run)."""
-    argv0 = sys.argv[0] if getattr(sys, "argv", None) else ""
-    return argv0 == "-m" or os.path.basename(argv0) in ("mi-shadowmap", "mi-shadowmap.exe")
+    it imports the package that holds the module to run; ``sys.orig_argv`` names that
+    module, so a program of yours run with ``python -m`` whose package imports this one
+    gets the exception, as any import from Python does)."""
+    argv = getattr(sys, "argv", None) or [""]
+    if os.path.basename(argv[0]) in ("mi-shadowmap", "mi-shadowmap.exe"):
+        return True
+    if argv[0] != "-m":
+        return False
+    orig = getattr(sys, "orig_argv", None)
+    if not orig or len(orig) < len(argv):
+        return True
+    # python [options] -m MODULE args: sys.argv is ["-m", *args], so MODULE (or
+    # "-mMODULE", "-BmMODULE" written as one word) is the word before the args
+    word = orig[-len(argv)]
+    module = word.split("m", 1)[1] if word.startswith("-") else word
+    return module == "mi_shadowmap" or module.startswith("mi_shadowmap.")
 
 
 def _check_llvm():

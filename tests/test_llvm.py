@@ -258,3 +258,29 @@ def test_command_line_reports_an_unusable_llvm_without_a_traceback(how, tmp_path
     r = subprocess.run([sys.executable, "-c", "import mi_shadowmap"], capture_output=True,
                        text=True, env=env, timeout=300, cwd=tmp_path)
     assert r.returncode != 0 and "LLVMNotFoundError" in r.stderr   # from Python: raises
+
+
+def test_a_program_run_with_dash_m_that_imports_the_package_gets_the_exception(tmp_path):
+    """Only the package's own command line turns an unusable LLVM into one error line
+    and exit status 2: ``python -m yourpkg``, whose package imports ``mi_shadowmap``,
+    imports it from Python and gets :class:`LLVMNotFoundError` (it got the command
+    line's ``mi-shadowmap: error:`` line and ``SystemExit(2)``: ``sys.argv[0]`` is
+    ``"-m"`` while runpy imports any package run with ``-m``)."""
+    pkg = tmp_path / "yourpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("import mi_shadowmap\n")
+    (pkg / "__main__.py").write_text("print('ran')\n")
+    env = {k: v for k, v in os.environ.items() if k != _llvm.ENV_VAR}
+    env[_llvm.ENV_VAR] = str(tmp_path / "libLLVM-18.so")
+    # the mi_shadowmap these tests import, beside the program
+    here = os.path.dirname(os.path.dirname(os.path.abspath(_llvm.__file__)))
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), here])
+    r = subprocess.run([sys.executable, "-m", "yourpkg"], capture_output=True, text=True,
+                       env=env, timeout=300, cwd=tmp_path)
+    assert r.returncode == 1 and "LLVMNotFoundError" in r.stderr, r.stderr
+    assert "mi-shadowmap: error:" not in r.stderr
+    for cmd in (["-m", "mi_shadowmap"], ["-mmi_shadowmap"], ["-Bm", "mi_shadowmap"]):
+        r = subprocess.run([sys.executable, *cmd, "compare"], capture_output=True,
+                           text=True, env=env, timeout=300, cwd=tmp_path)
+        assert r.returncode == 2 and r.stderr.startswith("mi-shadowmap: error: "), (cmd, r.stderr)
+

@@ -726,6 +726,52 @@ def test_moving_any_set_of_lights_compiles_nothing_new():
         assert all((b > 0) == (order[k] in names) for k, b in enumerate(built)), (names, built)
 
 
+def test_a_camera_move_beside_a_dark_light_marks_in_one_kernel():
+    """A camera move marks every light again; with one light dark (intensity 0: no
+    marks) the lit ones were marked one light a kernel, as after a light move, so
+    every camera move launched a mark kernel and a dedupe round per light (8 lights,
+    one dark: 36-41 kernels a move against 11-16 with all lit). Now the move marks
+    every light in the one kernel of a lit scene's moves (the dark light's marks are
+    dropped): no more kernels than with every light lit, none compiled, and the image
+    a fresh integrator's."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(2, 2)
+    params = mi.traverse(scene)
+    integ = shadowmap(method="hard", virtual=True)
+
+    def move(k):
+        params["sensor.to_world"] = T().look_at(origin=[0.1 * k, 1.2, 3.6],
+                                                target=[0, 0.5, 0], up=[0, 1, 0])
+        params.update()
+        dr.kernel_history()                  # Mitsuba's own updates: not counted
+        mi.render(scene, integrator=integ, spp=1)
+        jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        new = {k["hash"] for k in jit} - seen
+        seen.update(k["hash"] for k in jit)
+        return len(jit), len(new)
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        mi.render(scene, integrator=integ, spp=1)
+        seen = {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+        lit = [move(k) for k in (1, 2)]
+        params["pl1.intensity.value"] = 0.0
+        params.update()
+        mi.render(scene, integrator=integ, spp=1)
+        seen.update(k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT)
+        dark = [move(k) for k in (3, 4)]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    print("kernels launched, compiled per camera move: lit", lit, "one dark", dark)
+    assert all(compiled == 0 for _, compiled in dark), dark
+    assert max(n for n, _ in dark) <= max(n for n, _ in lit), (lit, dark)
+    img = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    fresh = np.asarray(mi.render(scene, integrator=shadowmap(method="hard", virtual=True,
+                                                             cache_maps=False), spp=1))
+    assert np.array_equal(img, fresh)
+
+
 def test_cache_off_builds_every_frame():
     scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
     integ = shadowmap(method="hard", virtual=True, cache_maps=False)

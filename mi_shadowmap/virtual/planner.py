@@ -162,15 +162,18 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         # once (and whether each hit's BSDF transmits: light reaches it from behind too)
         plain = [i for i in stale if not hasattr(stores[i].layout.view, "mark_views")]
         multi = [i for i in stale if i not in plain]
-        # every light marked from its own view (a first frame, a camera move): one kernel
-        # for all of them and the camera hits; some of them only (a light moved, or lit
-        # again, or one of them dark): one kernel per light on hits evaluated first, so
-        # which lights are stale does not shape a kernel (fused, each new set of stale
-        # lights -- one point light, two, a point and a spot -- compiled its own)
+        # every lit light marked from its own view (a first frame, a camera move): one
+        # kernel for all of them and the camera hits, dark lights included (their marks
+        # are dropped), so that the kernel is the same whichever lights are dark (one
+        # kernel per light there launched 36-41 kernels a camera move, not 11-16, for
+        # 8 lights one of them dark); some of them only (a light moved, or lit again):
+        # one kernel per light on hits evaluated first, so which lights are stale does
+        # not shape a kernel (fused, each new set of stale lights -- one point light,
+        # two, a point and a spot -- compiled its own)
         every = [i for k, i in enumerate(stores)
                  if not hasattr(stores[i].layout.view, "mark_views")
                  and all(stores[j] is not stores[i] for j in list(stores)[:k])]
-        fused = plain == every
+        fused = plain == [i for i in every if not dark[i]]
         hits = camera_hits(scene, sensor, evaluate=bool(multi) or not fused)
         if multi:
             si_m, valid_m = hits[0], hits[3]
@@ -207,7 +210,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
 
         # every light's marked points first (one kernel with the camera hits), then the
         # candidate tiles from them in each dedupe round (a few integer operations)
-        for batch in ([plain] if fused else [[i] for i in plain]):
+        for batch in ([every] if fused and plain else [[i] for i in plain]):
             markers = [Marker(stores[i].layout, opts.lod_bias) for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
             dr.eval(*(x for pt in points for x in pt))
@@ -215,7 +218,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             found = dedupe_many([g for gs in groups for g in gs])
             for i, gs in zip(batch, groups):
                 mine, found = found[:len(gs)], found[len(gs):]
-                settle(i, [tiles(i, mine)])
+                if not dark[i]:
+                    settle(i, [tiles(i, mine)])
         # an environment's regions: every (region, camera hit) pair a lane, as many
         # regions a kernel as MARK_LANES lanes hold (16 regions of a 128^2 film: one
         # kernel, where one per region launched 48 kernels and 900 table memsets a

@@ -362,13 +362,14 @@ def _welded_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> tuple:
     return fw, label[fw[:, 0]], n_parts, m
 
 
-def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> np.ndarray:
-    """Per face: does its connected part bound a solid with outward normals (watertight,
-    consistently oriented once coincident vertices are welded, positive volume; as
-    :func:`~mi_shadowmap.procedural.check_closed`)? A mesh that is such a solid as a
-    whole is solid everywhere (a hollow solid: its inner shell, turned inwards, has a
-    negative volume of its own). One pass over the edges for every part (a loop over
-    5000 parts took 244 s; 0.14 s)."""
+def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> tuple:
+    """``(solid, part)`` per face: does its connected part bound a solid with outward
+    normals (watertight, consistently oriented once coincident vertices are welded,
+    positive volume; as :func:`~mi_shadowmap.procedural.check_closed`)? A mesh that is
+    such a solid as a whole is solid everywhere (a hollow solid: its inner shell, turned
+    inwards, has a negative volume of its own). ``part``: the face's connected part
+    (``int32``, for :func:`_shells`). One pass over the edges for every part (a loop
+    over 5000 parts took 244 s; 0.14 s)."""
     v = np.asarray(v, np.float64)
     fw, part, n_parts, m = _welded_parts(v, f, decimals)
     ok = (fw[:, 0] != fw[:, 1]) & (fw[:, 1] != fw[:, 2]) & (fw[:, 2] != fw[:, 0])
@@ -384,12 +385,13 @@ def _solid_parts(v: np.ndarray, f: np.ndarray, decimals: int = 5) -> np.ndarray:
                           minlength=len(uses))
     bad = ~((uses == 2) & (forward == 1))[group]
     six_vol = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]]))
+    part32 = part.astype(np.int32)
     if not bad.any() and six_vol.sum() > 0:
-        return np.ones(len(f), bool)
+        return np.ones(len(f), bool), part32
     open_part = np.bincount(np.concatenate([gp] * 3), weights=bad.astype(float),
                             minlength=n_parts) > 0
     volume = np.bincount(part, weights=six_vol, minlength=n_parts)
-    return (~open_part & (volume > 0))[part]
+    return (~open_part & (volume > 0))[part], part32
 
 
 def clear_memos() -> None:
@@ -400,6 +402,7 @@ def clear_memos() -> None:
     _SOLID_LATEST.clear()
     _FACE_MEMO[:] = [None, None]
     _SOLID_TABLES_MEMO[:] = [None, None]
+    _PART_BOUNDS[:] = [None, None, None]
     _OUTSIDE_MEMO.clear()
     _EDGES_MEMO.clear()
     from . import map_scene as ms
@@ -421,18 +424,24 @@ def face_solidity(shape) -> np.ndarray:
     :func:`shape_is_solid` classifies a whole shape: Mitsuba 3.9 merges meshes that share
     a BSDF into one, so a closed trough merged with an open floor made the trough a
     non-solid (misclassified 0.33 -> 0.67 %). Remembered per mesh state."""
+    return _face_solidity_entry(shape)[1]
+
+
+def _face_solidity_entry(shape) -> tuple:
+    """:func:`face_solidity`'s memo entry: ``(buffers, solid, part)``, ``part`` the
+    connected part of each face (:func:`_solid_parts`; None where no face is solid)."""
     vbuf, fbuf = shape.vertex_positions_buffer(), shape.faces_buffer()
     key = (id(shape), vbuf.index, fbuf.index)
     hit = _SOLID_MEMO.get(key)
     if hit is not None:
         _SOLID_MEMO.move_to_end(key)
-        return hit[1]
+        return hit
     f = fbuf.numpy().reshape(-1, 3).astype(np.int64)
-    out = np.zeros(len(f), bool)
+    out, part = np.zeros(len(f), bool), None
     if len(f) and not shape.has_flipped_normals() and not _culls_back_faces(shape):
-        out = _solid_parts(vbuf.numpy().reshape(-1, 3), f)
-    remember_latest(_SOLID_MEMO, _SOLID_LATEST, key, ((vbuf, fbuf), out), _SOLID_MEMO_SIZE)
-    return out
+        out, part = _solid_parts(vbuf.numpy().reshape(-1, 3), f)
+    return remember_latest(_SOLID_MEMO, _SOLID_LATEST, key, ((vbuf, fbuf), out, part),
+                           _SOLID_MEMO_SIZE)
 
 
 #: The last :func:`solid_face_tables` answer: ``[key, tables]`` (as :data:`_FACE_MEMO`).
@@ -452,8 +461,9 @@ def solid_face_tables(scene: mi.Scene):
     (``mi.Int32``, by shape registry id) is a mesh's first row in ``solid`` (``mi.Bool``,
     indexed by ``prim_index``), -1 for other shapes; ``part`` (``mi.Int32`` by row, or
     None where no transmitting mesh has such faces) numbers the closed parts of the
-    transmitting meshes' solid faces (-1 elsewhere), whose geometry ``shells`` holds
-    for :func:`lights_outside`.
+    solid faces (-1 elsewhere; and for the meshes of a ``shapegroup`` whose BSDF does
+    not transmit, see below), whose geometry ``shells`` holds for
+    :func:`lights_outside`.
 
     Only interpolated normals let a BSDF that does not transmit reflect light arriving
     from behind the hit's geometric face (a smooth-shaded mesh's terminator): a camera
@@ -461,10 +471,15 @@ def solid_face_tables(scene: mi.Scene):
     light is lit there by Mitsuba's ``direct``'s BSDF, while its shadow ray, which
     leaves the surface on the light's side, starts inside the solid and is occluded by
     it; the maps' biases (and ``second_depth``'s second surface, which such a face is)
-    let that light through (the integrator's ``_into_solid``). A BSDF that transmits
+    let that light through (the integrator's ``_into_solid``), unless the light is inside
+    that part of the solid: then the shadow ray reaches it inside (a point light just
+    inside a smooth icosahedron lights a band of its outside in ``direct``; with the
+    part taken as occluding, every map method was black there). A BSDF that transmits
     shades light from behind any face, flat ones too: there the shadow ray is occluded
-    by the solid unless the light is inside it (:func:`lights_outside`; a shapegroup's
-    mesh, hit through instances, in every instance's placement). Remembered while the
+    by the solid unless the light is inside it. Both are decided per closed part
+    (:func:`lights_outside`; a shapegroup's transmitting mesh, hit through instances, in
+    every instance's placement; a shapegroup's mesh that does not transmit is taken as
+    occluding: its instances' placements are read every render). Remembered while the
     shapes and their buffers are the same."""
     listed = list(scene.shapes())
     # a shapegroup's meshes too: an instance's hits name them (as in _face_tables: an
@@ -484,16 +499,21 @@ def solid_face_tables(scene: mi.Scene):
         offset = np.full(int(ids.max()) + 1, -1, np.int64)
         parts, labels, shells, n, n_parts = [], [], [], 0, 0
         for k, (i, shape, m, g) in enumerate(zip(ids, shapes, use, glass)):
-            sol = face_solidity(shape) if m else None
-            if sol is not None and not g:
-                sol = sol & ~_flat_shaded_faces(shape)
-            if sol is not None and sol.any():
+            entry = _face_solidity_entry(shape) if m else None
+            sol = entry[1] if entry is not None else None
+            # a face whose vertex normals are its geometric normal (a cube's) reflects no
+            # light from behind it: no per-hit test there (the table), though its closed
+            # part still bounds the shell a light may be inside of
+            tested = (sol & ~_flat_shaded_faces(shape)
+                      if sol is not None and not g else sol)
+            if tested is not None and tested.any():
                 offset[i] = n
-                parts.append(sol)
+                parts.append(tested)
                 lab = np.full(len(sol), -1, np.int64)
-                if g:
-                    shell = _shells(shape, sol, n_parts)
-                    shell["grouped"] = k >= len(listed)
+                grouped = k >= len(listed)
+                if g or not grouped:
+                    shell = _shells(shape, sol, n_parts, entry[2])
+                    shell["grouped"] = grouped
                     lab[sol] = shell["label"]
                     n_parts += shell["count"]
                     shells.append(shell)
@@ -525,14 +545,20 @@ def _flat_shaded_faces(shape) -> np.ndarray:
     return np.all(cos >= 1.0 - 1e-6, axis=1)
 
 
-def _shells(shape, solid: np.ndarray, first: int) -> dict:
+def _shells(shape, solid: np.ndarray, first: int, part=None) -> dict:
     """The closed parts of a mesh's solid faces (``solid``, :func:`face_solidity`), for
     :func:`lights_outside`: ``label`` (per solid face, numbered from ``first``),
-    ``count``, their triangles' world vertices ``tri`` (float64), whether a part is
-    turned inwards (``inward``: a hollow solid's inner shell) and its bounds."""
+    ``count``, their vertices ``v`` (float64, world space or the shapegroup's) and
+    triangles ``f`` (``int32`` rows of ``v``), whether a part is turned inwards
+    (``inward``: a hollow solid's inner shell) and its bounds. ``part``: each face's
+    connected part (:func:`_solid_parts`, whose parts a solid face's are: found
+    again where not given)."""
     v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
     f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)[solid]
-    _, part, _, _ = _welded_parts(v, f)
+    if part is None:
+        _, part, _, _ = _welded_parts(v, f)
+    else:
+        part = part[solid]
     uniq, local = np.unique(part, return_inverse=True)
     tri = v[f]
     six_vol = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
@@ -542,7 +568,10 @@ def _shells(shape, solid: np.ndarray, first: int) -> dict:
     for ax in range(3):
         np.minimum.at(lo[:, ax], local, tri[:, :, ax].min(axis=1))
         np.maximum.at(hi[:, ax], local, tri[:, :, ax].max(axis=1))
-    return {"label": local + first, "local": local, "count": count, "tri": tri,
+    # the vertices and faces, not the triangles' corners (72 bytes a face, held as long
+    # as the tables: every smooth solid mesh has shells)
+    return {"label": local + first, "local": local, "count": count, "v": v,
+            "f": f.astype(np.int32),
             "inward": np.bincount(local, weights=six_vol, minlength=count) < 0,
             "lo": lo, "hi": hi}
 
@@ -584,7 +613,43 @@ def _instance_placements(scene, n_points: int):
     return np.array(out).reshape(-1, 4, 4)
 
 
-def lights_outside(shells: list, emitter, scene=None) -> np.ndarray:
+def _light_bounds(emitter, view=None):
+    """``(lo, hi)`` (float64) around where ``emitter``'s light samples lie, read without
+    a kernel, or None: a delta-position light's position from its map's ``view`` (not
+    a posed one: the caller passes None), an area light's shape bounds."""
+    from .light_views.base import position_np, shape_bounds
+    if mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition):
+        if view is None or getattr(view, "position", None) is None:
+            return None
+        p = position_np(view)
+        return p, p
+    shape = emitter.get_shape()
+    return shape_bounds(shape) if shape is not None else None
+
+
+#: ``[shells, lo, hi]`` of the last :func:`_part_bounds` (the shells held: their id is
+#: not reused while this lives).
+_PART_BOUNDS: list = [None, None, None]
+
+
+def _part_bounds(shells: list) -> tuple:
+    """``(lo, hi)``: every part's bounds of ``shells``, widened by the margin
+    :func:`_outside` takes for its mesh, one row a part (remembered for the last
+    ``shells``: asked every render, for every light)."""
+    if _PART_BOUNDS[0] is not shells:
+        margin = [np.full(sh["count"], 1e-4 * (np.abs(sh["lo"]).max()
+                                                + np.abs(sh["hi"]).max() + 1.0))
+                  for sh in shells]
+        margin = np.concatenate(margin)[:, None] if margin else np.zeros((0, 1))
+        lo = (np.concatenate([sh["lo"] for sh in shells]) if shells
+              else np.zeros((0, 3))) - margin
+        hi = (np.concatenate([sh["hi"] for sh in shells]) if shells
+              else np.zeros((0, 3))) + margin
+        _PART_BOUNDS[:] = [shells, lo, hi]
+    return _PART_BOUNDS[1], _PART_BOUNDS[2]
+
+
+def lights_outside(shells: list, emitter, scene=None, view=None) -> np.ndarray:
     """Per part of ``shells`` (:func:`solid_face_tables`): does every light sample of
     ``emitter`` lie on the side its normals face (outside it; in the cavity of a hollow
     solid's inner shell)? Then a shadow ray from the outside of one of its faces to a
@@ -599,8 +664,18 @@ def lights_outside(shells: list, emitter, scene=None) -> np.ndarray:
     here: the light must be outside the part in all their placements; beyond
     :data:`MAX_INSTANCED_POINTS` points the old answer). An infinitely distant light
     is outside every part; an emitter of unknown kind inside every part (the old
-    answer: lit)."""
+    answer: lit). ``view``: the light's map's view, whose position a delta-position
+    light's is: a light whose bounds (:func:`_light_bounds`) meet no part's is outside
+    every part without its points being sampled (a kernel a light and render: every
+    scene with a smooth solid mesh asks)."""
     count = sum(sh["count"] for sh in shells)
+    if mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite):
+        return np.ones(count, bool)
+    bounds = _light_bounds(emitter, view)
+    if bounds is not None and not any(sh["grouped"] for sh in shells):
+        lo, hi = _part_bounds(shells)
+        if not np.any(np.all((bounds[1] >= lo) & (bounds[0] <= hi), axis=1)):
+            return np.ones(count, bool)
     points = _light_points(emitter)
     if points is None:
         return np.ones(count, bool)
@@ -647,7 +722,7 @@ def _outside(shells: list, points: np.ndarray, local) -> list:
             wind = np.zeros(sh["count"])
             if near.any():
                 rows = near[sh["local"]]
-                t = sh["tri"][rows] - p
+                t = sh["v"][sh["f"][rows]] - p
                 a, b, c = t[:, 0], t[:, 1], t[:, 2]
                 la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
                 num = np.einsum("ij,ij->i", a, np.cross(b, c))

@@ -499,13 +499,17 @@ screen is Mitsuba's projective integrators' job.
         reads_second = (self.opts.uses_map
                         and "second_depth" in self.opts.record.layer_names(self.opts))
         self._solid_faces = solid_face_tables(scene) if self.opts.uses_map else None
-        # per map (by id): which closed parts of transmitting meshes its light is outside
-        # of (every render: lights move); only where the scene has such parts
+        # per map (by id): which closed parts of the solid meshes its light is outside of
+        # (every render: lights move); only where the scene has such parts
         self._light_outside = {}
         if self._solid_faces is not None and self._solid_faces[2] is not None:
             for k, emitter in enumerate(scene.emitters()):
-                if k < len(self.maps) and self.maps[k] is not None:
-                    out = lights_outside(self._solid_faces[3], emitter, scene)
+                smap = self.maps[k] if k < len(self.maps) else None
+                if smap is not None:
+                    # the view's position is a delta light's (not a posed map's: its view
+                    # is the pose's reference)
+                    view = None if getattr(smap, "pose", None) is not None else smap.view
+                    out = lights_outside(self._solid_faces[3], emitter, scene, view)
                     # padded: a one-entry array would be a literal compiled into the kernel
                     self._light_outside[id(self.maps[k])] = mi.Bool(np.append(out, False))
         if reads_second:    # the lookup's neighbouring faces (second_depth's virtual samples)
@@ -798,14 +802,18 @@ screen is Mitsuba's projective integrators' job.
         Applied for every map method (``multiview`` tests each of its views,
         ``Lookup.solid_back``). False where the scene has no such mesh (faces without
         interpolated normals reflect nothing from behind).
-        Where the hit's BSDF transmits, only for a part its light is outside of: a light inside a closed frosted-glass shade lights its outside through it, its
-        shadow rays never leaving the solid (second_depth, which stores the shade as its
-        second surface, is right there), while a glass ball's far side lit from outside
-        is shaded through it by Mitsuba's ``direct``, whose shadow ray crosses the near
-        side: ``second_depth`` lit it (its image 1.18x ``raytraced``'s for a glass
-        icosphere beside a point light, 1.38x for a glass cube). A reflecting solid's
-        outside lit from a light inside it, past the terminator, is darkened: it
-        reflects that light only in the sliver where its shading frame leans over."""
+        Only for a part its light is outside of: a light inside a closed frosted-glass
+        shade lights its outside through it, its shadow rays never leaving the solid
+        (second_depth, which stores the shade as its second surface, is right there),
+        while a glass ball's far side lit from outside is shaded through it by Mitsuba's
+        ``direct``, whose shadow ray crosses the near side: ``second_depth`` lit it (its
+        image 1.18x ``raytraced``'s for a glass icosphere beside a point light, 1.38x for
+        a glass cube). So too a reflecting solid's outside lit from a light inside it,
+        in the band where its shading frame leans towards the light: ``direct`` lights
+        it, its shadow ray reaching the light inside (a point light just inside a smooth
+        icosahedron: 27 of 48^2 pixels, which every map method rendered black when this
+        applied to all methods with the light inside taken as occluded; a shapegroup's
+        reflecting mesh is still taken so)."""
         if lk.solid_back is None or lk.si is None or lk.ds is None:
             return mi.Bool(False)
         n = dr.detach(lk.si.n)
@@ -816,10 +824,10 @@ screen is Mitsuba's projective integrators' job.
         outward-oriented mesh part with vertex normals, or any such part of a mesh whose
         BSDF transmits, :func:`~mi_shadowmap.depth_maps.solid_face_tables`) that occludes
         light arriving from behind the hit's geometric face (``Lookup.solid_back``): its
-        BSDF does not transmit, or the light is outside its part (see
-        :meth:`_into_solid`). Where the hit's BSDF transmits, only for a part its light
-        is outside of (``light_outside``, per part,
-        :func:`~mi_shadowmap.depth_maps.lights_outside`)."""
+        light is outside its part (``light_outside``, per part,
+        :func:`~mi_shadowmap.depth_maps.lights_outside`; see :meth:`_into_solid`), or,
+        where that is not known (no such table, a part of a shapegroup's mesh), its BSDF
+        does not transmit."""
         tables = self._solid_faces
         if tables is None or si is None:
             return None
@@ -833,10 +841,12 @@ screen is Mitsuba's projective integrators' job.
         inside = known & dr.gather(mi.Bool, solid, dr.select(known, row, 0), known)
         n = dr.detach(si.n)
         outside = dr.dot(n, dr.detach(si.to_world(si.wi))) > 0   # seen from outside
-        # through a BSDF that transmits only from a light outside the hit's part: a light
-        # inside a closed frosted-glass shade lights its outside through it, its shadow
-        # rays never leaving the solid (second_depth, which stores the shade as its second
-        # surface, is right there). Rows of meshes that do not transmit have no part.
+        # only from a light outside the hit's part: a light inside a closed frosted-glass
+        # shade lights its outside through it, its shadow rays never leaving the solid
+        # (second_depth, which stores the shade as its second surface, is right there),
+        # and a light just inside a smooth solid lights its outside where the shading
+        # frame leans towards it. Rows of a shapegroup's meshes that do not transmit have
+        # no part: occluded.
         transmits = mi.has_flag(si.bsdf().flags(), mi.BSDFFlags.Transmission)
         blocked = ~transmits
         if part is not None and light_outside is not None:

@@ -597,10 +597,10 @@ def test_solidity_sorts_the_edges_once(monkeypatch):
     cases = [(f, True), (f[:, [0, 2, 1]], False), (turned, False), (f[1:], False),
              (np.concatenate([f, f[:1]]), False)]
     for faces, solid in cases:
-        got = _solid_parts(v, faces)
+        got = _solid_parts(v, faces)[0]
         assert got.shape == (len(faces),) and (got.all() if solid else not got.any())
     degenerate = np.concatenate([f, [[0, 0, 1]]])
-    assert _solid_parts(v, degenerate)[:len(f)].all()
+    assert _solid_parts(v, degenerate)[0][:len(f)].all()
 
 
 def test_second_depths_over_a_ground_1e5_wide_keep_unit_boxes_back_faces():

@@ -31,7 +31,8 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
 from .methods import OptionError
-from .options import camera_fit_pins, unused_light_properties
+from .options import (camera_fit_pins, unused_light_properties, virtual_cube_bytes,
+                      virtual_lost_to_budget)
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
                           footprint_ratio, make_light_view, _child_sensors)
 
@@ -472,6 +473,17 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
         return _prepare_virtual(scene, sensor, opts, views, t0, params)
     plan = plan_maps(scene, sensor, opts, views, params)
     maps, stats = build_maps(scene, plan)
+    if (opts.uses_map and virtual_lost_to_budget(opts)
+            and (sensor is None or aims_by_film(sensor))
+            and not _differentiated(scene, params)):
+        # the automatic virtual=true, but for a budget below one virtual cube map's
+        # coarsest level (the options' check, whatever the lights): as _prepare_virtual's
+        # budget check, one warning a render (it was silent below 0.047 MiB at the
+        # default page_size, where the maps are coarsest: 44^2 a face at 0.046 MiB)
+        wanted = [v if v is not None and getattr(v, "supports_virtual", False) else None
+                  for v in plan.views]
+        if any(v is not None for v in wanted):
+            _warn_full_for_budget(opts, wanted, plan.resolution, cube=True)
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0
     return PreparedMaps(plan.views, maps, plan.resolution, stats)
@@ -624,18 +636,26 @@ def _within_budget(opts, views: list) -> list:
     return [None] * len(views)
 
 
-def _warn_full_for_budget(opts, wanted: list, res: int) -> None:
+def _warn_full_for_budget(opts, wanted: list, res: int, cube: bool = False) -> None:
     """The automatic ``virtual`` gave every light a full map because ``memory_budget``
-    cannot hold the virtual maps' coarsest levels (:func:`_within_budget`): one warning a
-    render, naming the budget, what the virtual maps need and the full maps' resolution
-    (it was silent: 24 lights under 0.44-0.09 MiB got full maps and 1.1-3.0 % of their
+    cannot hold the virtual maps' coarsest levels (:func:`_within_budget`), or
+    (``cube``) a virtual cube map's coarsest level, which the options check whatever the
+    lights (:func:`~mi_shadowmap.options.virtual_lost_to_budget`): one warning a render,
+    naming the budget, what the virtual maps need and the full maps' resolution (it was
+    silent: 24 lights under 0.44-0.09 MiB got full maps and 1.1-3.0 % of their
     pixel-light pairs false lit, against 0.32 % without a budget)."""
     live = [v for v in wanted if v is not None]
-    need = _virtual_minimum(opts, live)
+    if cube:
+        need = virtual_cube_bytes(opts.page_size)
+        what = (f"the coarsest level of a virtual cube map (6 pages of {opts.page_size}^2 "
+                "texels, which the automatic virtual maps need at least")
+    else:
+        need = _virtual_minimum(opts, live)
+        what = (f"the coarsest levels of {len(live)} virtual map(s) (one page of "
+                f"{opts.page_size}^2 texels per face and an empty page per map")
     warnings.warn(
-        f"shadowmap: memory_budget = {opts.memory_budget:g} MiB cannot hold the coarsest "
-        f"levels of {len(live)} virtual map(s) (one page of {opts.page_size}^2 texels per "
-        f"face and an empty page per map: {math.ceil(need / 2 ** 20 * 1000) / 1000:g} MiB), "
+        f"shadowmap: memory_budget = {opts.memory_budget:g} MiB cannot hold {what}: "
+        f"{math.ceil(need / 2 ** 20 * 1000) / 1000:g} MiB), "
         f"so every light gets a full map of {res}^2 texels a face, which may lose shadows "
         "virtual maps keep; raise memory_budget (or lower page_size) to keep virtual "
         "maps, or set virtual=false for full maps", RuntimeWarning, stacklevel=3)

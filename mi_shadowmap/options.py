@@ -536,6 +536,18 @@ def _automatic_virtual(record, values: dict) -> bool:
     return all(values.get(name, off) == off for name, off in FULL_MAP_PROPERTIES.items())
 
 
+def virtual_lost_to_budget(opts) -> bool:
+    """Whether the automatic ``virtual`` chose full maps for ``memory_budget`` alone: it
+    cannot hold a virtual cube map's coarsest level (:func:`_holds_virtual_cube`), and
+    virtual maps would have come with a budget that does (``virtual`` not given, a
+    method that reads them, no full-map property set)."""
+    if opts.record is None or "virtual" in opts.given or opts.virtual:
+        return False
+    values = opts.as_dict()
+    return (_automatic_virtual(opts.record, {**values, "memory_budget": float("inf")})
+            and not _holds_virtual_cube(values["memory_budget"], values["page_size"]))
+
+
 #: Properties that fit full maps to the camera, each to some lights' views (the views
 #: say whether they use them: ``needs_camera_points``), with their defaults.
 CAMERA_FIT_PROPERTIES = {"cascades": 1, "fit_frusta": False, "cull_faces": False}
@@ -582,10 +594,16 @@ def unused_light_properties(opts, kinds) -> list:
     return out
 
 
+def virtual_cube_bytes(page: int) -> int:
+    """Bytes of the coarsest level of a virtual cube map: 6 pages of ``page^2`` texels,
+    depth and one more layer, 4 bytes each."""
+    return 6 * page * page * 2 * _BYTES_PER_TEXEL
+
+
 def _holds_virtual_cube(budget_mib: float, page: int) -> bool:
-    """Whether ``budget_mib`` holds the coarsest level of a virtual cube map: 6 pages of
-    ``page^2`` texels, depth and one more layer, 4 bytes each."""
-    return budget_mib * 2**20 >= 6 * page * page * 8
+    """Whether ``budget_mib`` holds the coarsest level of a virtual cube map
+    (:func:`virtual_cube_bytes`)."""
+    return budget_mib * 2**20 >= virtual_cube_bytes(page)
 
 
 def _check_virtual(record, values: dict, given) -> None:

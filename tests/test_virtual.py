@@ -1154,6 +1154,35 @@ def test_a_budget_below_every_lights_coarsest_level_warns_of_its_full_maps():
     assert not [w for w in caught if "memory_budget" in str(w.message)]
 
 
+def test_a_budget_below_one_virtual_cube_warns_of_its_full_maps():
+    """A ``memory_budget`` below one virtual cube map's coarsest level (6 pages of 32^2:
+    0.047 MiB) turns the automatic ``virtual`` off when the options are read, so the
+    render never reached the budget check that warns: full maps of 29^2 texels a face
+    at 0.02 MiB, silently, where a slightly larger budget too small for 24 lights
+    warned. Now the same warning, naming what a virtual cube map needs; none where full
+    maps were asked for (``virtual=false``, a ``resolution``) or come anyway
+    (``multiview``)."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(1, 0)
+
+    def budget_warnings(**props):
+        integ = shadowmap(**{"method": "hard", "memory_budget": 0.02, "cache_maps": False,
+                             **props})
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            mi.render(scene, integrator=integ, spp=1)
+        return integ, [str(w.message) for w in caught if "memory_budget" in str(w.message)]
+
+    integ, msgs = budget_warnings()
+    assert isinstance(integ.maps[0], ShadowMap)
+    assert len(msgs) == 1, msgs
+    assert ("memory_budget = 0.02 MiB" in msgs[0] and "virtual cube map" in msgs[0]
+            and "0.047 MiB" in msgs[0] and f"full map of {integ.resolution}^2" in msgs[0]), msgs[0]
+    for props in ({"virtual": False}, {"resolution": 16}, {"method": "multiview"}):
+        assert budget_warnings(**props)[1] == [], props
+
+
 def test_a_smaller_budget_later_shrinks_the_shared_pools():
     """Pools kept in the page cache from a render with a large budget: a later render
     with a smaller one resizes them to it (they kept the largest size any render gave

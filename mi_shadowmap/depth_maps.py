@@ -403,6 +403,7 @@ def clear_memos() -> None:
     _FACE_MEMO[:] = [None, None]
     _SOLID_TABLES_MEMO[:] = [None, None]
     _PART_BOUNDS[:] = [None, None, None]
+    _CANDIDATES[:] = [None, None]
     _OUTSIDE_MEMO.clear()
     _EDGES_MEMO.clear()
     from . import map_scene as ms
@@ -454,6 +455,33 @@ def _transmits(shape) -> bool:
     return bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
 
 
+#: ``[key, answer]`` of the last :func:`_solid_candidates` (the answer holds the shapes:
+#: their ids, in the key, are not reused while it lives).
+_CANDIDATES: list = [None, None]
+
+
+def _solid_candidates(scene: mi.Scene) -> tuple:
+    """``(shapes, use, glass, n_listed)`` for :func:`solid_face_tables`: the scene's shapes
+    (``scene.shapes()``, ``n_listed`` of them, then a shapegroup's meshes, which an
+    instance's hits name: as in _face_tables, an instance maps a solid's outside to its
+    outside, and Mitsuba turns the normals), whether each is a mesh with vertex normals
+    or a BSDF that transmits (``use``), and whether that BSDF transmits (``glass``).
+    Remembered while the scene lists the same shapes (none of this changes with
+    ``params.update()``): every render of every map method asks, and the shapegroups'
+    meshes take a ``mi.traverse`` of the scene (a warm frame of 300 cubes and an
+    instance: 25k Python calls against 7.6k before every map method asked)."""
+    listed = list(scene.shapes())
+    key = (id(scene), tuple(id(sh) for sh in listed))
+    if _CANDIDATES[0] != key:
+        shapes = listed + _grouped_shapes(scene, listed)
+        meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
+        glass = [m and _transmits(sh) for sh, m in zip(shapes, meshes)]
+        use = [m and (g or sh.has_vertex_normals())
+               for sh, m, g in zip(shapes, meshes, glass)]
+        _CANDIDATES[:] = [key, (shapes, use, glass, len(listed))]
+    return _CANDIDATES[1]
+
+
 def solid_face_tables(scene: mi.Scene):
     """``(offset, solid, part, shells)`` tables of the faces that bound a solid with
     outward normals (:func:`face_solidity`) among the scene's meshes with vertex normals
@@ -481,13 +509,7 @@ def solid_face_tables(scene: mi.Scene):
     every instance's placement; a shapegroup's mesh that does not transmit is taken as
     occluding: its instances' placements are read every render). Remembered while the
     shapes and their buffers are the same."""
-    listed = list(scene.shapes())
-    # a shapegroup's meshes too: an instance's hits name them (as in _face_tables: an
-    # instance maps a solid's outside to its outside, and Mitsuba turns the normals)
-    shapes = listed + _grouped_shapes(scene, listed)
-    meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
-    glass = [m and _transmits(sh) for sh, m in zip(shapes, meshes)]
-    use = [m and (g or sh.has_vertex_normals()) for sh, m, g in zip(shapes, meshes, glass)]
+    shapes, use, glass, n_listed = _solid_candidates(scene)
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer())
             for sh, m in zip(shapes, use) if m]
     key = tuple((id(sh), v.index, f.index) for sh, v, f in held)
@@ -510,7 +532,7 @@ def solid_face_tables(scene: mi.Scene):
                 offset[i] = n
                 parts.append(tested)
                 lab = np.full(len(sol), -1, np.int64)
-                grouped = k >= len(listed)
+                grouped = k >= n_listed
                 if g or not grouped:
                     shell = _shells(shape, sol, n_parts, entry[2])
                     shell["grouped"] = grouped

@@ -1118,7 +1118,8 @@ class _PixelSteps:
         if pixels == 0 or lanes == 0 or lanes % pixels != 0 or dr.width(self.angle) != w * h:
             return self.median
         # opaque: a new spp or film size compiles nothing
-        pixel = dr.arange(mi.Int32, lanes) // dr.opaque(mi.Int32, lanes // pixels)
+        # lanes counted unsigned (a wavefront may pass 2^31 samples); pixels fit Int32
+        pixel = mi.Int32(dr.arange(mi.UInt32, lanes) // dr.opaque(mi.UInt32, lanes // pixels))
         row = pixel // dr.opaque(mi.Int32, w + 2 * b)
         col = pixel - row * dr.opaque(mi.Int32, w + 2 * b)
         b_op = dr.opaque(mi.Int32, b)

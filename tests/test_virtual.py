@@ -680,6 +680,18 @@ def test_moving_one_light_keeps_the_other_lights_pages():
     assert len(stores) == 4, stores
 
 
+def _render_counting_kernels(scene, integ, seen: set):
+    """Render at 1 spp (with ``dr.JitFlag.KernelHistory`` on): ``(JIT kernels launched,
+    of them compiled for the first time: hashes not in seen)``; ``seen`` takes them in.
+    Mitsuba's own updates before the render are not counted."""
+    dr.kernel_history()
+    mi.render(scene, integrator=integ, spp=1)
+    jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    new = {k["hash"] for k in jit} - seen
+    seen.update(k["hash"] for k in jit)
+    return len(jit), len(new)
+
+
 def test_moving_any_set_of_lights_compiles_nothing_new():
     """Lights moved through ``params.update()`` are marked again, the others keep their
     marks: once one light of each kind has moved, moving any other light or set of
@@ -700,13 +712,9 @@ def test_moving_any_set_of_lights_compiles_nothing_new():
                 key = f"{name}.to_world"
                 params[key] = T().translate([0.05, 0, 0]) @ T(params[key].matrix.numpy()[..., 0])
         params.update()
-        dr.kernel_history()                  # Mitsuba's own updates: not counted
-        mi.render(scene, integrator=integ, spp=1)
-        jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-        new = {k["hash"] for k in jit} - seen
-        seen.update(k["hash"] for k in jit)
+        _, new = _render_counting_kernels(scene, integ, seen)
         built = [m.stats["new"] for m in integ.maps]
-        return len(new), built
+        return new, built
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
@@ -743,12 +751,7 @@ def test_a_camera_move_beside_a_dark_light_marks_in_one_kernel():
         params["sensor.to_world"] = T().look_at(origin=[0.1 * k, 1.2, 3.6],
                                                 target=[0, 0.5, 0], up=[0, 1, 0])
         params.update()
-        dr.kernel_history()                  # Mitsuba's own updates: not counted
-        mi.render(scene, integrator=integ, spp=1)
-        jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-        new = {k["hash"] for k in jit} - seen
-        seen.update(k["hash"] for k in jit)
-        return len(jit), len(new)
+        return _render_counting_kernels(scene, integ, seen)
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:

@@ -485,7 +485,10 @@ def _solid_candidates(scene: mi.Scene) -> tuple:
 def solid_face_tables(scene: mi.Scene):
     """``(offset, solid, part, shells)`` tables of the faces that bound a solid with
     outward normals (:func:`face_solidity`) among the scene's meshes with vertex normals
-    or a BSDF that transmits, or None where no such face exists: ``offset[id]``
+    or a BSDF that transmits (less the flat-shaded faces of a BSDF that does not
+    transmit, :func:`_flat_shaded_faces`: their shading frame is their geometric one,
+    though they still bound their part's shell), or None where no such face exists:
+    ``offset[id]``
     (``mi.Int32``, by shape registry id) is a mesh's first row in ``solid`` (``mi.Bool``,
     indexed by ``prim_index``), -1 for other shapes; ``part`` (``mi.Int32`` by row, or
     None where no transmitting mesh has such faces) numbers the closed parts of the

@@ -624,7 +624,7 @@ def test_flat_shaded_meshes_need_no_solid_tables(tmp_path):
     assert tables is not None and int(np.count_nonzero(tables[1].numpy())) == len(f)
 
 
-def test_a_warm_frame_does_not_scan_the_scene_for_solid_meshes(monkeypatch):
+def test_a_warm_frame_does_not_scan_the_scene_for_solid_meshes(monkeypatch, tmp_path):
     """Every map method reads which faces bound solids (the terminator rule) every
     render; the scene's shapes and their shapegroups' meshes (a ``mi.traverse`` of the
     whole scene) were found again each time: a warm ``hard`` frame of 300 cubes and an
@@ -642,7 +642,7 @@ def test_a_warm_frame_does_not_scan_the_scene_for_solid_meshes(monkeypatch):
          "grp": {"type": "shapegroup", "s": {"type": "sphere", "radius": 0.3}},
          "inst": {"type": "instance", "shapegroup": {"type": "ref", "id": "grp"},
                   "to_world": T().translate([1, 1, 0])},
-         "ball": {"type": "ply", "filename": _smooth_icosphere_ply()}}
+         "ball": {"type": "ply", "filename": _smooth_icosphere_ply(tmp_path)}}
     scene = mi.load_dict(d)
     integ = mi.load_dict({"type": "shadowmap", "method": "hard"})
     first = np.asarray(mi.render(scene, integrator=integ, spp=1))
@@ -656,11 +656,11 @@ def test_a_warm_frame_does_not_scan_the_scene_for_solid_meshes(monkeypatch):
     assert np.array_equal(first, again)
 
 
-def _smooth_icosphere_ply() -> str:
-    """A smooth (vertex normals) 80-face icosphere at (-1, 1, 0) as a PLY file."""
-    import tempfile
+def _smooth_icosphere_ply(folder) -> str:
+    """A smooth (vertex normals) 80-face icosphere at (-1, 1, 0) as a PLY file in
+    ``folder`` (a test's ``tmp_path``: a temporary folder of its own was never removed)."""
     from mi_shadowmap.procedural import _icosphere, write_ply
     v, f = _icosphere(1)
     v = np.asarray(v) * 0.5 + np.array([-1.0, 1.0, 0.0])
     n = v - np.array([-1.0, 1.0, 0.0])
-    return write_ply(str(tempfile.mkdtemp()) + "/ico.ply", v, f, normals=n)
+    return write_ply(str(folder / "ico.ply"), v, f, normals=n)

@@ -1871,6 +1871,32 @@ def test_batch_sensor_pages_follow_each_views_pixels():
     assert mis <= 0.015
 
 
+@pytest.mark.parametrize("size", [(16, 8), (67, 45), (1, 9)])
+def test_block_ordered_pixel_centres_cover_every_pixel_in_squares(size):
+    """The mark pass's camera rays (``pixel_centres(blocks=True)``): every pixel centre
+    of the crop, and nothing else; each run of 64 lanes an 8 x 8 square where the crop
+    allows (Morton order: each 4 lanes a 2 x 2 square), the last column and row repeated
+    to fill blocks a crop cuts."""
+    from mi_shadowmap.light_views import PIXEL_BLOCK, pixel_centres
+    w, h = size
+    sensor = mi.load_dict({"type": "perspective", "film": {"type": "hdrfilm", "width": w,
+                                                           "height": h}})
+    rows = np.array(pixel_centres(sensor))
+    got = np.array(pixel_centres(sensor, blocks=True))
+    assert {tuple(c) for c in got.T} == {tuple(c) for c in rows.T}
+    B = PIXEL_BLOCK
+    assert got.shape[1] == -(-w // B) * -(-h // B) * B * B
+    xy = np.round(got * np.array([[w], [h]]) - 0.5).astype(int)
+    for start in range(0, got.shape[1], 4):           # 2 x 2 squares (clamped at edges)
+        q = xy[:, start:start + 4]
+        assert q[0].max() - q[0].min() <= 1 and q[1].max() - q[1].min() <= 1
+    if w % B == 0 and h % B == 0:
+        for start in range(0, got.shape[1], B * B):
+            q = xy[:, start:start + B * B]
+            assert len({tuple(c) for c in q.T}) == B * B
+            assert q[0].max() - q[0].min() == B - 1 and q[1].max() - q[1].min() == B - 1
+
+
 def test_pixel_ray_differentials_of_a_batch_equal_each_cameras_own():
     """The finite-difference differentials (next pixel's ray; at a sub-camera's last
     column the previous pixel's, mirrored: within 5 % of a pixel's step there) equal

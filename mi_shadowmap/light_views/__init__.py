@@ -45,7 +45,7 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "emitter_labels", "unique_labels",
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
-           "footprint_ratio", "pixel_centres", "pixel_ray_differentials", "pixel_step",
+           "footprint_ratio", "PIXEL_BLOCK", "pixel_centres", "pixel_ray_differentials", "pixel_step",
            "pixel_steps",
            "is_pinhole", "aims_by_film", "pinhole", "differential_origins", "pinhole_frame",
            "pinhole_footprint",
@@ -239,13 +239,37 @@ def _check_frame(view, emitter, kind: str) -> None:
         f"{what}; give it a finite position and a non-zero direction")
 
 
-def pixel_centres(sensor) -> mi.Point2f:
-    """The film position of every pixel centre of ``sensor``'s crop, row by row."""
+def pixel_centres(sensor, blocks: bool = False) -> mi.Point2f:
+    """The film position of every pixel centre of ``sensor``'s crop, row by row; with
+    ``blocks``, in blocks of ``PIXEL_BLOCK``^2 pixels (row by row), each in Morton (Z)
+    order, so that a vector of neighbouring lanes holds a square of pixels rather than a
+    run of one row, which a BVH traverses together (the mark pass's camera rays on a
+    1M-triangle mesh at 256^2: 4.1-4.3 ms against 6.4-6.7 ms in rows). A crop whose sides
+    are not multiples of the block repeats its last column or row to fill the blocks
+    (at most ``PIXEL_BLOCK - 1`` of each)."""
     w, h = (int(x) for x in sensor.film().crop_size())
-    idx = dr.arange(mi.UInt32, w * h)
-    y = idx // w
-    x = idx - y * w
+    if not blocks:
+        idx = dr.arange(mi.UInt32, w * h)
+        y = idx // w
+        x = idx - y * w
+        return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+    B = PIXEL_BLOCK
+    bw, bh = -(-w // B), -(-h // B)
+    idx = dr.arange(mi.UInt32, bw * bh * B * B)
+    block, local = idx // (B * B), idx & (B * B - 1)
+    by = block // bw
+    bx = block - by * bw
+    i, j = mi.UInt32(0), mi.UInt32(0)
+    for b in range(B.bit_length() - 1):    # even bits of local: i, odd bits: j
+        i |= ((local >> (2 * b)) & 1) << b
+        j |= ((local >> (2 * b + 1)) & 1) << b
+    x = dr.minimum(bx * B + i, w - 1)
+    y = dr.minimum(by * B + j, h - 1)
     return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+
+
+#: the side of :func:`pixel_centres`'s blocks (a power of two)
+PIXEL_BLOCK = 8
 
 
 def pixel_ray_differentials(sensor, position: mi.Point2f, time=0.0, aperture=None):

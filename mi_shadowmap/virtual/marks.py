@@ -34,9 +34,10 @@ def camera_hits(scene, sensor, evaluate: bool = True):
     with ``evaluate=False`` (the mark pass traces them in its own kernel)."""
     frame = camera_frame(sensor)
     if frame is not None:    # plain rays: the footprints come from the frame, not differentials
-        ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor), mi.Point2f(0.5))
+        ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor, blocks=True),
+                                   mi.Point2f(0.5))
     else:
-        centres = pixel_centres(sensor)
+        centres = pixel_centres(sensor, blocks=True)
         k = LENS_GRID if has_aperture(sensor) else 1
         if k == 1:
             ray = pixel_ray_differentials(sensor, centres)

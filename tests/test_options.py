@@ -334,3 +334,149 @@ def test_docs_name_the_methods_with_virtual_maps():
     row = _readme_property_rows()["virtual"][2]
     assert set(re.findall(r"`(\w+)`", row)) & builtin == want
     assert set(re.findall(r"\w+", _GENERAL["virtual"].doc)) & builtin == want
+
+
+# ------------------------------------------------ the plugin docstring's table against the code
+#: Values a documented bound needs beside it, as the docstring says: a virtual
+#: resolution up to 2^30 (full maps stop at 65536), ``lod_bias`` -8 with 512^2 pages,
+#: ``min_samples`` up to ``num_samples``.
+_BOUND_COMPANIONS = {("resolution", "hi"): {"virtual": True},
+                     ("lod_bias", "lo"): {"page_size": 512},
+                     ("min_samples", "hi"): {"num_samples": 64}}
+
+
+def _docstring_rows() -> list:
+    """``[(name, kind, default text, range text, method or None)]`` of the parameter
+    table in the integrator's own docstring (None: a shared row)."""
+    import re
+    from mi_shadowmap.integrator import ShadowMapIntegratorMixin
+    doc = ShadowMapIntegratorMixin.__doc__
+    assert ".. list-table::" in doc, "the plugin docstring has no parameter table"
+    rows = []
+    for blk in doc.split(".. list-table::", 1)[1].split("   * - ")[1:]:
+        name, kind = blk.split("\n")[0].strip(), blk.split("\n")[1].strip()
+        tail = blk[blk.rfind("(default: "):]     # the generated end of the row
+        m = re.fullmatch(r"\(default: (.*?); ([^;]*?)(?:; (map methods|method: (\w+)))?\)\s*",
+                         tail, re.S)
+        assert m, f"row {name!r} of the plugin docstring gives no default and range"
+        rows.append((name, kind.strip("-| "), m.group(1), m.group(2), m.group(4)))
+    return rows
+
+
+def _doc_value(kind: str, text: str):
+    import ast
+    return None if text == "automatic" else ast.literal_eval(text)
+
+
+def test_plugin_docstring_table_matches_the_parser():
+    """The parameter table of the integrator's docstring (Mitsuba plugin style) lists
+    every property each method accepts, no other, and for each the type, default and
+    allowed values that ``parse_options`` enforces: the default is what a method left at
+    its defaults gets, both ends of a documented range are accepted and the values past
+    them refused (naming the property), every documented choice is accepted and another
+    refused, and a value of another type is refused."""
+    import re
+    from mi_shadowmap import methods
+    from mi_shadowmap.options import GENERAL_PROPERTIES, SCOPES, EVERY, properties_for
+    rows = _docstring_rows()
+    general = {p.name for p in GENERAL_PROPERTIES}
+    problems = []
+    # which (property, method) pairs the table documents, against the parser's
+    documented = set()
+    for name, kind, dflt, rng, method in rows:
+        if method is None:
+            assert name in general, f"shared row {name!r} is no shared property"
+            documented |= {(name, m.name) for m in methods.records()
+                           if SCOPES[name] == EVERY or name in
+                           {p.name for p in properties_for(m.name)}}
+        else:
+            documented.add((name, method))
+    accepted = {(p.name, m.name) for m in methods.records() for p in properties_for(m.name)}
+    problems += [f"{n} of {m}: accepted, not in the docstring" for n, m in accepted - documented]
+    problems += [f"{n} of {m}: in the docstring, refused" for n, m in documented - accepted]
+    for name, kind, dflt, rng, method in rows:
+        targets = [method] if method else [m.name for m in methods.records()
+                                           if (name, m.name) in accepted]
+        own = {}
+        mo = re.fullmatch(r"(\S+) \((.*)\)", dflt)
+        if mo:      # "1.0 (second_depth: 0.0, vsm: 0.5)": per-method defaults
+            dflt = mo.group(1)
+            own = {k: float(v) for k, v in (i.split(": ") for i in mo.group(2).split(", "))}
+        for m in targets:
+            want = own.get(m, _doc_value(kind, dflt))
+            if want is None:        # automatic: resolved per scene or method
+                continue
+            got = getattr(parse_options({"method": m} if name != "method" else {}), name)
+            if name in ("slope_bias", "normal_bias"):
+                got = getattr(parse_options({"method": m}), name + "_texels")
+            if got != want:
+                problems.append(f"{name} of {m}: docstring default {want!r}, parsed {got!r}")
+        m0 = "hard" if "hard" in targets else targets[0]   # a map method for shared rows
+
+        def ok(value, extra=()):
+            try:
+                parse_options({"method": m0, name: value, **dict(extra)})
+                return True
+            except OptionError as e:
+                assert name in str(e), f"{name}={value!r}: the error does not name it: {e}"
+                return False
+        if name == "method":
+            continue
+        if rng.startswith("one of "):
+            choices = [_doc_value(kind, c) for c in rng[len("one of "):].split(", ")]
+            problems += [f"{name} of {m0}: choice {c!r} refused" for c in choices if not ok(c)]
+            other = "not-a-choice" if kind == "str" else max(choices) + 1
+            if ok(other):
+                problems.append(f"{name} of {m0}: {other!r} accepted, not a documented choice")
+            continue
+        for op, bound in re.findall(r"(>=|>|<=) (\S+)", rng):
+            b = float(bound) if kind in ("float", "pair") else int(bound)
+            side = "lo" if op[0] == ">" else "hi"
+            extra = _BOUND_COMPANIONS.get((name, side), {})
+            step = 1 if kind == "int" else max(abs(b) * 1e-3, 1e-3)
+            inside, past = (b, b - step) if op == ">=" else (b + step, b) if op == ">" else \
+                (b, b + step)
+            value = (lambda x: (x, x)) if kind == "pair" else (lambda x: x)
+            if not ok(value(inside), extra.items()):
+                problems.append(f"{name} of {m0}: {inside!r} refused, the docstring says {rng}")
+            if ok(value(past), extra.items()):
+                problems.append(f"{name} of {m0}: {past!r} accepted, the docstring says {rng}")
+        wrong = {"int": "1", "float": "x", "bool": 1, "str": 3, "pair": "x"}[kind]
+        if ok(wrong):
+            problems.append(f"{name} of {m0}: {wrong!r} accepted for a {kind}")
+    assert not problems, "plugin docstring vs options:\n  " + "\n  ".join(problems)
+
+
+def test_plugin_docstring_prose_names_real_properties():
+    """The hand-written part of the integrator's docstring names properties, methods and
+    ``name=value`` settings: each property it names exists and each setting parses
+    (a renamed or removed option fails here, not in a user's scene file)."""
+    import re
+    from mi_shadowmap import methods
+    from mi_shadowmap.integrator import ShadowMapIntegratorMixin
+    from mi_shadowmap.options import docs_table, known_names, methods_using
+    prose = ShadowMapIntegratorMixin.__doc__.replace(docs_table(), "")
+    mitsuba = {"emitter_samples", "bsdf_samples", "sampling_weight", "cutoff_angle"}
+    record_fields = {f for f in methods.Method.__dataclass_fields__}
+    names = {m.name for m in methods.records()}
+    problems = []
+    for token in re.findall(r"``([^`]+)``", prose):
+        for item in re.split(r",\s*", token):
+            m = re.fullmatch(r"(\w+)(?:=(.+))?", item.strip())
+            if m is None or m.group(1) in names | mitsuba | record_fields:
+                continue
+            name, value = m.groups()
+            if name not in known_names():
+                if "_" in name:
+                    problems.append(f"``{token}``: {name!r} is no property")
+                continue
+            if value is not None:
+                value = value.strip("'")
+                value = {"true": True, "false": False}.get(value, value)
+                users = list(methods_using(name)) or ["hard"]
+                try:
+                    parse_options({"method": "hard" if "hard" in users else users[0],
+                                   name: value})
+                except OptionError as e:
+                    problems.append(f"``{token}``: {e}")
+    assert not problems, "plugin docstring prose:\n  " + "\n  ".join(problems)

@@ -15,6 +15,7 @@ import argparse
 import contextlib
 import importlib.util
 import json
+import math
 import os
 import re
 import sys
@@ -77,6 +78,40 @@ ERROR_COLUMNS = ("vis_rmse", "vis_mae", "vis_misclassified", "vis_false_shadow",
 PLUGIN_HELP = ("a Python file run before the command (repeatable) that registers shadow "
                "methods with mi_shadowmap.register_method(...); they are then valid in "
                "--methods and --grid")
+
+
+def _ranged(kind: type, lo: float, hi: float | None = None, lo_open: bool = False,
+            hi_open: bool = True, allow_inf: bool = False):
+    """An argparse ``type``: an ``int``, or a ``float`` (finite unless ``allow_inf``),
+    from ``lo`` (``lo_open``: above it) up to ``hi`` (``hi_open``: below it), so that a
+    bad value is one line naming the option as typed (``argument --ref-spp: must be an
+    integer >= 1, got '0'``) and its allowed values; the harness named its parameter
+    (``'ref_spp'``), a name the command line does not have."""
+    what = "an integer" if kind is int else "a number"
+    if hi is None:
+        rng = ("> " if lo_open else ">= ") + f"{lo:g}"
+    else:
+        top = "2^32" if hi == 2 ** 32 else f"{hi:g}"
+        rng = ("in (" if lo_open else "in [") + f"{lo:g}, {top}" + (")" if hi_open else "]")
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        bad = value is None or math.isnan(value) or (math.isinf(value) and not allow_inf)
+        if not bad:
+            bad = (value <= lo if lo_open else value < lo) or (
+                hi is not None and (value >= hi if hi_open else value > hi))
+        if bad:
+            raise argparse.ArgumentTypeError(f"must be {what} {rng}, got {text!r}")
+        return value
+    parse.__name__ = kind.__name__
+    return parse
+
+
+_COUNT = _ranged(int, 1)                  # spp, repeats, reference spp and rays
+_SEED = _ranged(int, 0, 2 ** 32)          # Mitsuba's sampler seed
 
 
 class _Parser(argparse.ArgumentParser):
@@ -153,18 +188,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help=_methods_help("methods to compare, each 'name' or "
                                       "'name:prop=value,prop=value' (default: every "
                                       "registered method except raytraced)"))
-    c.add_argument("--spp", type=int, default=None,
+    c.add_argument("--spp", type=_COUNT, default=None,
                    help="samples per pixel (default: a scene file's sampler's "
                         "sample_count; 16 for the built-in scene)")
-    c.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
-    c.add_argument("--repeats", type=int, default=3,
+    c.add_argument("--seed", type=_SEED, default=0, help="sampler seed (default 0)")
+    c.add_argument("--repeats", type=_COUNT, default=3,
                    help="warm re-renders per method; the median is reported (default 3)")
     c.add_argument("--reference", default="auto",
                    help="'auto' (default), 'converged', or a method spec like 'raytraced'")
-    c.add_argument("--ref-spp", type=int, default=64,
+    c.add_argument("--ref-spp", type=_COUNT, default=64,
                    help="spp of --reference converged (default 64); the automatic reference "
                         "renders at --spp, with the methods' camera samples")
-    c.add_argument("--ref-shadow-rays", type=int, default=64,
+    c.add_argument("--ref-shadow-rays", type=_COUNT, default=64,
                    help="shadow rays of the converged reference of area lights and "
                         "environments (default 64)")
 
@@ -177,11 +212,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scene_args(s, out="out/sweep")
     s.add_argument("--grid", action="append", default=None, metavar="FILE|INLINE",
                    help=GRID_HELP)
-    s.add_argument("--spp", type=int, default=None,
+    s.add_argument("--spp", type=_COUNT, default=None,
                    help="spp of configurations that do not sweep spp (default: a scene "
                         "file's sampler's sample_count; 16 for the built-in scene)")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--repeats", type=int, default=3,
+    s.add_argument("--seed", type=_SEED, default=0)
+    s.add_argument("--repeats", type=_COUNT, default=3,
                    help="warm re-renders per configuration, median reported (default 3)")
     s.add_argument("--error", default="vis_rmse", choices=ERROR_COLUMNS, metavar="COLUMN",
                    help="error axis of the trade (lower is better): "
@@ -209,7 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "the choice and writes tune_pareto.png (the search's Pareto plot, pick "
                     "marked), tune.json and integrator.xml (a ready-to-paste <integrator>).")
     _add_scene_args(t, out="out/tune")
-    t.add_argument("--max-error", type=float, required=True, metavar="E",
+    t.add_argument("--max-error", type=_ranged(float, 0, lo_open=True), required=True,
+                   metavar="E",
                    help="the error budget (> 0) on --metric at the full size")
     t.add_argument("--metric", default="vis_rmse",
                    help="error metric, lower is better: " + ", ".join(ERROR_COLUMNS)
@@ -218,18 +254,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help=_methods_help("methods searched, 'name' or 'name:prop=value' (given "
                                       "properties stay fixed; default: every registered "
                                       "method)"))
-    t.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+    t.add_argument("--time-limit", type=_ranged(float, 0, lo_open=True, allow_inf=True),
+                   default=None, metavar="SECONDS",
                    help="stop searching after 60%% of it and verifying at 100%% (default: none)")
-    t.add_argument("--search-size", type=int, default=128, metavar="PIXELS",
+    t.add_argument("--search-size", type=_ranged(int, 8), default=128, metavar="PIXELS",
                    help="long side of the reduced film searched on (default 128)")
-    t.add_argument("--margin", type=float, default=0.05,
-                   help="the pick must meet max_error x (1 - margin) at full size "
-                        "(default 0.05)")
-    t.add_argument("--spp", type=int, default=None,
+    t.add_argument("--margin", type=_ranged(float, 0, 1), default=0.05,
+                   help="the pick must meet --max-error x (1 - margin) at full size, "
+                        "0 <= margin < 1 (default 0.05)")
+    t.add_argument("--spp", type=_COUNT, default=None,
                    help="fix the spp (default: searched, up to --max-spp)")
-    t.add_argument("--max-spp", type=int, default=1024, help="largest spp searched (1024)")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--repeats", type=int, default=3,
+    t.add_argument("--max-spp", type=_COUNT, default=1024, help="largest spp searched (1024)")
+    t.add_argument("--seed", type=_SEED, default=0)
+    t.add_argument("--repeats", type=_COUNT, default=3,
                    help="warm re-renders per configuration, median reported (default 3)")
     return p
 

@@ -77,10 +77,24 @@ def test_no_command_runs_compare_on_xml(tmp_path, capsys):
     (["sweep", "--error", "img_psnr"], "img_psnr"),        # higher-is-better: not a choice
     (["compare", "--spp", "many"], "spp"),               # argparse error, one line too
     # rendered at the sampler's count / failed in Mitsuba / accepted, before:
-    (["compare", "--spp", "0"], "'spp' must be an integer >= 1"),
-    (["compare", "--seed", "-1"], "'seed' must be an integer in [0, 2^32)"),
-    (["compare", "--repeats", "0"], "'repeats' must be an integer >= 1"),
-    (["compare", "--ref-spp", "-2"], "'ref_spp' must be an integer >= 1"),
+    # (named as the harness's parameters, 'ref_spp', before: the option as typed now)
+    (["compare", "--spp", "0"], "argument --spp: must be an integer >= 1, got '0'"),
+    (["compare", "--seed", "-1"], "argument --seed: must be an integer in [0, 2^32)"),
+    (["compare", "--seed", str(2 ** 32)], "argument --seed: must be an integer in [0, 2^32)"),
+    (["compare", "--repeats", "0"], "argument --repeats: must be an integer >= 1"),
+    (["compare", "--ref-spp", "-2"], "argument --ref-spp: must be an integer >= 1"),
+    (["compare", "--ref-shadow-rays", "0"], "argument --ref-shadow-rays: must be an integer >= 1"),
+    (["sweep", "--spp", "0"], "argument --spp: must be an integer >= 1"),
+    (["tune", "--max-error", "0"], "argument --max-error: must be a number > 0, got '0'"),
+    (["tune", "--max-error", "nan"], "argument --max-error: must be a number > 0"),
+    (["tune", "--max-error", "0.02", "--max-spp", "0"],
+     "argument --max-spp: must be an integer >= 1"),
+    (["tune", "--max-error", "0.02", "--search-size", "4"],
+     "argument --search-size: must be an integer >= 8"),
+    (["tune", "--max-error", "0.02", "--margin", "1"],
+     "argument --margin: must be a number in [0, 1)"),
+    (["tune", "--max-error", "0.02", "--time-limit", "0"],
+     "argument --time-limit: must be a number > 0"),
     # duplicates overwrote each other's files / the last one won, before:
     (["compare", "--methods", "hard", "pcf:num_samples=4", "pcf: num_samples = 4"],
      "'pcf num_samples=4' is listed more than once"),
@@ -91,8 +105,10 @@ def test_no_command_runs_compare_on_xml(tmp_path, capsys):
     (["compare", "--set", "spp=4"], "--set spp=4: compare's samples per pixel are --spp"),
     (["compare", "--width", "6", "--height", "6"], "the film is 6 x 6 pixels"),
     (["sweep", "--width", "8", "--height", "5"], "the film is 8 x 5 pixels"),
-    (["tune", "--max-error", "0.02", "--repeats", "0"], "'repeats' must be an integer >= 1"),
-    (["tune", "--max-error", "0.02", "--seed", "-1"], "'seed' must be an integer in [0, 2^32)"),
+    (["tune", "--max-error", "0.02", "--repeats", "0"],
+     "argument --repeats: must be an integer >= 1"),
+    (["tune", "--max-error", "0.02", "--seed", "-1"],
+     "argument --seed: must be an integer in [0, 2^32)"),
 ])
 def test_bad_input_one_line_error(argv, match, tmp_path, capsys):
     out_dir = tmp_path / "never"

@@ -779,3 +779,20 @@ def test_cuda_variant_without_a_gpu_says_so(capsys):
     assert code == 2 and "Traceback" not in err and "jit_init" not in err
     assert "'cuda_ad_mono' cannot be set on this machine" in err
     assert "no CUDA GPU" in err and "llvm_ad_mono" in err
+
+
+def test_ref_shadow_rays_sets_the_converged_references_image_only(capsys):
+    """``--ref-shadow-rays`` said "shadow rays of the converged reference"; they are its
+    image's: the visibility AOVs every vis_* metric is scored on average 1024 light
+    samples whatever it is. The help now says so, and it holds."""
+    from mi_shadowmap import scenes
+    scene = harness.load_scene(scenes.default_scene(width=16, height=16, light="area"))
+    runs = [harness.compare(scene, methods=["hard:resolution=64"], spp=2, repeats=1,
+                            measure_cached=False, ref_shadow_rays=n) for n in (1, 16)]
+    assert runs[0][1].metrics["vis_rmse"] == runs[1][1].metrics["vis_rmse"]
+    assert runs[0][1].metrics["img_rmse"] != runs[1][1].metrics["img_rmse"]
+    assert cli.main(["compare", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--ref-shadow-rays" in text
+    help_ = text.rsplit("--ref-shadow-rays REF_SHADOW_RAYS", 1)[1]   # its entry, not usage
+    assert "image" in help_ and "visibility AOVs average 1024 light samples" in help_

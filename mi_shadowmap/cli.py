@@ -218,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spp", type=_COUNT, default=None,
                    help="spp of configurations that do not sweep spp (default: a scene "
                         "file's sampler's sample_count; 16 for the built-in scene)")
-    s.add_argument("--seed", type=_SEED, default=0)
+    s.add_argument("--seed", type=_SEED, default=0, help="sampler seed (default 0)")
     s.add_argument("--repeats", type=_COUNT, default=3,
                    help="warm re-renders per configuration, median reported (default 3)")
     s.add_argument("--error", default="vis_rmse", choices=ERROR_COLUMNS, metavar="COLUMN",
@@ -268,7 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--spp", type=_COUNT, default=None,
                    help="fix the spp (default: searched, up to --max-spp)")
     t.add_argument("--max-spp", type=_COUNT, default=1024, help="largest spp searched (1024)")
-    t.add_argument("--seed", type=_SEED, default=0)
+    t.add_argument("--seed", type=_SEED, default=0,
+                   help="seed of the search's renders; the references and the verification "
+                        "renders derive their own from it (default 0)")
     t.add_argument("--repeats", type=_COUNT, default=3,
                    help="warm re-renders per configuration, median reported (default 3)")
     return p

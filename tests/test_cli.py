@@ -796,3 +796,13 @@ def test_ref_shadow_rays_sets_the_converged_references_image_only(capsys):
     assert "--ref-shadow-rays" in text
     help_ = text.rsplit("--ref-shadow-rays REF_SHADOW_RAYS", 1)[1]   # its entry, not usage
     assert "image" in help_ and "visibility AOVs average 1024 light samples" in help_
+
+
+def test_every_option_says_what_it_does():
+    """Each option of each command has a help text (``sweep --seed`` and ``tune --seed``
+    had none: ``--seed SEED`` alone in ``--help``)."""
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if a.choices and "compare" in a.choices)
+    bare = [f"{name} {opt.option_strings[-1]}" for name, p in sub.choices.items()
+            for opt in p._actions if opt.option_strings and not opt.help]
+    assert not bare, f"options without help: {bare}"

@@ -98,10 +98,15 @@ def receiver_mask(scene: mi.Scene, margin: int = 4, spp: int = 4) -> np.ndarray:
     return ~dilate(~ground, margin)
 
 
-def masked_mse(image, target, mask: np.ndarray, channels: int = 3):
+def masked_mse(image, target, mask: np.ndarray, channels: int | None = None):
     """Mean squared error of the first ``channels`` channels of ``image`` against
     ``target`` (a ``mi.TensorXf`` or numpy array of the same size, or with more
-    channels: only the image's first ones are read) over ``mask``."""
+    channels: only the image's first ones are read) over ``mask``. Default: the colour
+    channels of the current variant's film (3; 1 in a monochromatic variant), never the
+    AOVs behind them (in mono, 3 took the visibility AOV into the loss: ``vsm``'s
+    gradient of :func:`occluder_problem` was 9x rgb's, driven by the AOV)."""
+    if channels is None:
+        channels = 1 if mi.is_monochromatic else 3
     n_ch = image.shape[-1]
     target = np.asarray(target, np.float32)[..., :n_ch]
     w = np.zeros(mask.shape + (n_ch,), np.float32)

@@ -617,3 +617,28 @@ def test_a_dark_receiver_under_the_sky_is_not_reported_as_shadowed():
         black = np.asarray(mi.render(scene(0.0, method), seed=0))[..., -1]
         assert grey.mean() > 0.3
         np.testing.assert_allclose(black, grey, atol=1e-6, err_msg=method)
+
+
+@pytest.mark.parametrize("variant", LLVM)
+def test_the_inverse_loss_reads_the_colour_channels_only(variant):
+    """``inverse.masked_mse`` (the loss of ``optimize``, ``gradient`` and ``solve``)
+    compares the film's colour channels (3, or 1 in mono), not the visibility AOV that
+    follows them: its default of 3 channels took the AOV into the loss in mono (``vsm``'s
+    gradient of the occluder problem 9x rgb's: [0.0137, -0.0030] against [0.0015,
+    -0.0004])."""
+    mi.set_variant(variant)
+    from mi_shadowmap import inverse
+    scene = inverse.occluder_scene("point", 16, 4)
+    mask = inverse.receiver_mask(scene)
+    integ = mi.load_dict({"type": "shadowmap", "method": "vsm"})
+    target = np.asarray(mi.render(scene, integrator=mi.load_dict(
+        {"type": "shadowmap", "method": "raytraced"}), spp=4, seed=1))
+    img = mi.render(scene, integrator=integ, spp=4, seed=0)
+    n = 1 if variant.endswith("mono") else 3
+    assert target.shape[-1] == n + 1                      # colour channels and the AOV
+    a = np.asarray(img)
+    want = float((mask[..., None] * (a[..., :n] - target[..., :n]) ** 2).sum()
+                 / (mask.sum() * n))
+    got = float(inverse.masked_mse(img, target, mask)[0])
+    print(f"{variant}: loss {got:.6g}, colour channels' {want:.6g}")
+    assert want > 0 and got == pytest.approx(want, rel=1e-4)

@@ -642,3 +642,33 @@ def test_the_inverse_loss_reads_the_colour_channels_only(variant):
     got = float(inverse.masked_mse(img, target, mask)[0])
     print(f"{variant}: loss {got:.6g}, colour channels' {want:.6g}")
     assert want > 0 and got == pytest.approx(want, rel=1e-4)
+
+
+def test_multiview_lights_a_narrow_band_area_light():
+    """``multiview`` keeps an area light's points that emit; it tested their radiance at
+    eight fixed wavelengths, which miss a narrow band (an ``irregular`` spectrum between
+    400 and 440 nm): every point counted as dark, the image was black (mean -100 % of
+    ``raytraced``'s, the AOV 0). Now the points' own sampled wavelengths count too:
+    measured +0.07 %, the AOV (the whole light's visibility) 0.74."""
+    mi.set_variant("llvm_ad_spectral")
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "perspective", "fov": 40,
+                "to_world": T().look_at([0.2, 3.5, 4.9], [0.25, 0.25, 0], [0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                         "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4)},
+        "ball": {"type": "sphere", "center": [0, 0.6, 0], "radius": 0.6},
+        "light": {"type": "rectangle",
+                  "to_world": T().look_at([1.5, 3, 1], [0, 0, 0], [0, 1, 0]).scale(0.6),
+                  "emitter": {"type": "area", "radiance": {
+                      "type": "irregular", "wavelengths": "400, 420, 440",
+                      "values": "0, 80, 0"}}}})
+    ref, _ = render_np(scene, {"type": "shadowmap", "method": "raytraced"}, spp=16)
+    img, aovs = render_np(scene, {"type": "shadowmap", "method": "multiview"}, spp=16)
+    (aov,) = aovs.values()
+    bias = img.mean() / ref.mean() - 1
+    print(f"multiview: mean {bias:+.4f}, AOV mean {aov.mean():.3f}")
+    assert ref.mean() > 0 and abs(bias) < 0.03
+    assert 0.3 < aov.mean() and aov.max() <= 1.0

@@ -31,7 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from .procedural import box
-from .scenes import camera, mesh
+from .scenes import camera, load_scene, mesh
 from .specs import derived_seed
 
 T = mi.ScalarTransform4f
@@ -88,12 +88,19 @@ def occluder_scene(light: str = "area", image: int = 64, spp: int = 8,
     return mi.load_dict(d)
 
 
+def _current(scene):
+    """``scene`` if it is the current variant's ``mi.Scene``; another variant's (loaded
+    before ``mi.set_variant``) is an error naming both variants (``mi.render`` failed on
+    it with a bare AssertionError)."""
+    return scene if isinstance(scene, mi.Scene) else load_scene(scene)
+
+
 def receiver_mask(scene: mi.Scene, margin: int = 4, spp: int = 4) -> np.ndarray:
     """Ground pixels (``y = 0``) at least ``margin`` pixels from anything else on
     screen: ``(height, width)`` bool."""
     from .metrics import dilate
     integ = mi.load_dict({"type": "aov", "aovs": "p:position"})
-    img = np.asarray(mi.render(scene, integrator=integ, spp=spp, seed=0))
+    img = np.asarray(mi.render(_current(scene), integrator=integ, spp=spp, seed=0))
     ground = np.abs(img[..., 1]) < 1e-4
     return ~dilate(~ground, margin)
 
@@ -191,6 +198,7 @@ def optimize(param: Parameter, integrator, target, mask: np.ndarray, x0, steps: 
     given); a new seed every step (``seed + step`` within [0, 2^32),
     :func:`~mi_shadowmap.specs.derived_seed`). ``callback(step, history)`` after each step
     (e.g. a progress bar). The scene is left at the final value."""
+    _current(param.scene)
     opt = mi.ad.Adam(lr=lr)
     opt["x"] = mi.Float(np.asarray(x0, np.float32).ravel())
     hist = History()
@@ -223,7 +231,8 @@ def integrator(spec: dict) -> mi.Integrator:
 def render(scene: mi.Scene, spec: dict, spp: int = 16, seed: int = 0) -> np.ndarray:
     """``scene`` rendered by the integrator ``spec``: ``(height, width, channels)``
     numpy (``shadowmap`` adds a visibility channel to RGB)."""
-    return np.array(mi.render(scene, integrator=integrator(spec), spp=spp, seed=seed))
+    return np.array(mi.render(_current(scene), integrator=integrator(spec), spp=spp,
+                              seed=seed))
 
 
 #: The ground truth of every target: real shadow rays.
@@ -378,6 +387,7 @@ def gradient(problem: Problem, spec: dict, x=None, spp: int = 16, seed: int = 0)
     """The gradient of :func:`masked_mse` (plus ``problem.penalty``) with respect to
     ``x`` (default: the start), with the integrator ``spec``: numpy. Leaves the scene
     at the start."""
+    _current(problem.scene)
     x = mi.Float(np.asarray(problem.x0 if x is None else x, np.float32).ravel())
     dr.enable_grad(x)
     problem.param.set(x)

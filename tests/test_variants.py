@@ -672,3 +672,19 @@ def test_multiview_lights_a_narrow_band_area_light():
     print(f"multiview: mean {bias:+.4f}, AOV mean {aov.mean():.3f}")
     assert ref.mean() > 0 and abs(bias) < 0.03
     assert 0.3 < aov.mean() and aov.max() <= 1.0
+
+
+def test_an_inverse_problem_of_another_variant_is_named():
+    """An inverse problem (``mi_shadowmap.inverse``) built before ``mi.set_variant``:
+    ``render``, ``receiver_mask``, ``gradient`` and ``solve`` failed in ``mi.render``
+    with a bare AssertionError; now a ValueError names both variants."""
+    from mi_shadowmap import inverse
+    problem = inverse.light_problem(image=8, spp=1, target_spp=1)
+    mi.set_variant("llvm_ad_mono")
+    spec = {"type": "shadowmap", "method": "vsm"}
+    for call in (lambda: inverse.render(problem.scene, spec, spp=1),
+                 lambda: inverse.receiver_mask(problem.scene),
+                 lambda: inverse.gradient(problem, spec, spp=1),
+                 lambda: inverse.solve(problem, spec, steps=1)):
+        with pytest.raises(ValueError, match="'llvm_ad_rgb'.*'llvm_ad_mono'"):
+            call()

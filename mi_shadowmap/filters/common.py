@@ -122,6 +122,46 @@ DEPTH_ULPS = 4.0 * 2.0 ** -23
 GRAZING_OFFSET = 0.5
 
 
+@dataclass(frozen=True)
+class BiasReach:
+    """The texel-scaled receiver biases of :func:`receiver` (texels), for what they hide:
+    ``normal`` (``normal_bias``), ``slope`` (``slope_bias``), ``grazing`` (the normal
+    offset where the slope bias is clamped) and ``max_tan`` (``max_tan_slope``)."""
+    normal: float
+    slope: float
+    grazing: float
+    max_tan: float
+
+    @staticmethod
+    def of(opts) -> "BiasReach | None":
+        """The biases ``opts`` give :func:`receiver`; None where it adds none that scales
+        with the texel (then nothing is hidden that a finer level would show)."""
+        nb, sb = float(opts.normal_bias_texels), float(opts.slope_bias_texels)
+        if nb <= 0.0 and sb <= 0.0:
+            return None
+        return BiasReach(nb, sb, max(nb, GRAZING_OFFSET) if sb > 0 else nb,
+                         float(opts.max_tan_slope))
+
+    def texels(self, cos_nl, sin_nl):
+        """How far along the receiver (in texels of the lookup's level) the biases of
+        :func:`receiver` may lose an occluder's shadow, where the light meets the
+        receiver at ``cos_nl``, ``sin_nl`` (of the angle to its normal).
+
+        The normal offset lifts the point ``normal cos(theta)`` texels off the surface
+        (``grazing`` where ``tan(theta) > max_tan``), and the slope bias, ``slope
+        tan(theta)`` texels of depth along the light's ray, ``slope sin(theta)`` more
+        (``slope max_tan cos(theta)`` where clamped): an occluder that low over the
+        receiver is not seen. Its shadow falls ``tan(theta)`` times its height further
+        along the receiver, away from the light: that many texels of receiver are wrongly
+        lit behind it (``tan`` clamped at ``max_tan``, as the bias is). The constant
+        ``bias`` (world units) is not counted: no level makes it smaller."""
+        tan = sin_nl / dr.maximum(cos_nl, 1e-6)
+        clamped = tan > self.max_tan
+        height = dr.select(clamped, self.grazing + self.slope * self.max_tan * cos_nl,
+                          self.normal * cos_nl + self.slope * sin_nl)
+        return height * dr.minimum(tan, self.max_tan)
+
+
 def receiver(smap, lk: Lookup, opts) -> Receiver:
     """Project a shading point into ``smap`` with the configured biases.
 

@@ -17,9 +17,12 @@ rays through points of its lens). Each hit that can receive the
 light picks the level whose texel matches its pixel footprint projected into
 the light (:meth:`VirtualShadowMap.level_for`: ``floor(log2(w) + lod_bias)``
 for a footprint ``w`` level-0 texels wide; at the default ``lod_bias = -0.5``
-a texel is 0.35-0.7 footprint wide) and marks the tiles its lookup reads: those
+a texel is 0.35-0.7 footprint wide; finer where the light grazes the receiver, so that
+the texel-scaled receiver biases lose an occluder's shadow over at most
+``REACH_PIXELS`` footprints along it) and marks the tiles its lookup reads: those
 within the method's ``virtual_margin`` (its kernel's half-width) plus one texel
-(camera samples off the pixel centre) of it. Kernels up to ``page_size / 2``
+(camera samples off the pixel centre) of it, or, on such a finer level, plus up to
+``MAX_SPREAD`` texels (where the pixel's samples read). Kernels up to ``page_size / 2``
 texels stay inside the 2 x 2 pages a lookup binds (below); the taps of a wider kernel
 read their own pages through the page table (:attr:`VirtualShadowMap.far_taps`). A
 method whose kernels may filter coarser levels (``virtual_coarse_res``: a PCSS penumbra

@@ -16,6 +16,13 @@ from ..methods import MethodError
 from ..light_views.local import LocalView
 from .layout import ANISO, INVALID_SLOT, key_fields, padded_array
 from .store import PageStore
+from ..filters.common import BiasReach
+
+
+#: How many pixel footprints the receiver's texel-scaled biases may lose an occluder's
+#: shadow over along the receiver (:meth:`VirtualShadowMap.level_for` picks a finer level
+#: where the footprint's would lose more).
+REACH_PIXELS = 2.0
 
 
 def effective_lod_bias(lod_bias: float, page_size: int) -> float:
@@ -41,8 +48,11 @@ class VirtualShadowMap:
 
     def __init__(self, store: PageStore, stats: dict, lod_bias: float = -0.5,
                  margin: float = 2.0, coarse_res: int | None = None,
-                 frame: tuple | None = None):
+                 frame: tuple | None = None, reach: BiasReach | None = None):
         self.lod_bias = float(lod_bias)
+        # the method's receiver biases (level_for keeps the shadows they lose within
+        # REACH_PIXELS footprints); None: the footprint alone
+        self.reach = reach
         # the method's virtual_coarse_res: the coarser levels its marks built, which its
         # wide kernels may filter (None: its own level only)
         self.coarse_res = coarse_res
@@ -145,7 +155,7 @@ class VirtualShadowMap:
         return out
 
     # ----------------------------------------------------------- levels
-    def level_for(self, face, p64, dp_dx, dp_dy) -> mi.UInt32:
+    def level_for(self, face, p64, dp_dx, dp_dy, n=None) -> mi.UInt32:
         """Level whose texel matches the pixel footprint ``dp_dx``, ``dp_dy`` at
         ``p64`` on ``face``: ``floor(log2(w) + lod_bias)`` clamped to the levels,
         ``w`` the footprint in level-0 texels: the shorter side of its bounding box
@@ -153,8 +163,34 @@ class VirtualShadowMap:
         the longer side if larger (not the footprint ellipse's minor axis: a footprint
         turned to the map's axes reads a level up to sqrt(2) coarser; the minor axis,
         probed, bought about what ``lod_bias`` buys for the same texels); at
-        ``lod_bias = -0.5`` a texel is 0.35-0.7 of that. No footprint (no ray differentials): level 0, and the
-        lookup walks to the finest level built."""
+        ``lod_bias = -0.5`` a texel is 0.35-0.7 of that. No footprint (no ray
+        differentials): level 0, and the lookup walks to the finest level built.
+
+        With the receiver's normal ``n`` and the method's receiver biases
+        (``self.reach``, a :class:`~mi_shadowmap.filters.common.BiasReach`), no coarser
+        than the level at which the biases lose an occluder's shadow over at most
+        :data:`REACH_PIXELS` pixel footprints along the receiver (:meth:`_levels`). The
+        biases scale with the texel, and where the light grazes the receiver they hide
+        occluders up to about a texel above it, whose shadows fall ``tan(theta)`` times
+        as far along it: at the footprint's level alone a point light in a box floating
+        0.1 over a floor lit 2.4 % of a 64^2 image under ``hard`` (the coarsest level,
+        its slope bias 1.6 units against the box wall 1.2-1.6 units in front of the
+        floor; full maps of 64^2 texels a face: 0)."""
+        return self._levels(face, p64, dp_dx, dp_dy, n)[0]
+
+    def _levels(self, face, p64, dp_dx, dp_dy, n=None) -> tuple:
+        """``(level, spread)``: :meth:`level_for`'s level, and where the biases chose it
+        finer than the footprint's, half the footprint's bounding box in its texels
+        (``mi.Point2f``, else 0): how far from the pixel's centre the pixel's samples
+        read there, which the mark pass marks (:func:`~mi_shadowmap.virtual.marks._tile_range`).
+
+        The biases' level: ``floor(log2(REACH_PIXELS f / (r t0)) + lod_bias + 1/2)``,
+        ``r`` how many texels along the receiver the biases may lose a shadow over
+        (:meth:`~mi_shadowmap.filters.common.BiasReach.texels`, 0 for a receiver facing
+        the light), ``f`` the footprint's length along the receiver's direction towards
+        the light (the way a lost shadow runs) and ``t0`` a level-0 texel's world width
+        at the point; ``lod_bias`` moves it as it moves the footprint's level (at the
+        default the cap is exact)."""
         view, lay = self.view, self.layout
         p = mi.Point3f(p64)
         du_x = view.uv_differential(face, p, dp_dx)
@@ -165,9 +201,31 @@ class VirtualShadowMap:
         # floor(log2(w) + lod_bias) is the binary exponent of w 2^lod_bias, a normal float
         # or +inf (w >= 1, |lod_bias| <= 8): read from its bits, not through a log2
         # polynomial (about 1 ns of a lookup's 6-13)
-        scaled = w_eff * float(2.0 ** effective_lod_bias(self.lod_bias, lay.page_size))
+        lod_bias = effective_lod_bias(self.lod_bias, lay.page_size)
+        scaled = w_eff * float(2.0 ** lod_bias)
         level = mi.Int32(dr.reinterpret_array(mi.UInt32, scaled) >> 23) - 127
-        return mi.UInt32(dr.clip(level, 0, lay.coarsest))
+        spread = mi.Point2f(0.0)
+        reach = getattr(self, "reach", None)
+        if n is not None and reach is not None:
+            n = dr.normalize(mi.Vector3f(n))
+            to_light = view.direction_to_light(p)
+            c = dr.dot(n, to_light)
+            along = to_light - n * c            # towards the light along the receiver
+            sin_nl = dr.norm(along)
+            r = reach.texels(dr.clip(dr.abs(c), 1e-6, 1.0), sin_nl)
+            f = (dr.abs(dr.dot(dp_dx, along)) + dr.abs(dr.dot(dp_dy, along))) \
+                / dr.maximum(sin_nl, 1e-30)
+            t0 = view.texel_world_size(lay.res0, view.depth_of(p), p, n)
+            # level-0 texels a texel may span (the same exponent trick)
+            allowed = (REACH_PIXELS * 2.0 ** (lod_bias + 0.5)) * f / (r * t0)
+            cap = mi.Int32(dr.reinterpret_array(mi.UInt32, dr.maximum(allowed, 1.0)) >> 23) \
+                - 127
+            capped = dr.isfinite(allowed) & (f > 0) & (cap < level)
+            level = dr.select(capped, cap, level)
+            span = w * dr.exp2(-mi.Float(dr.clip(level, 0, lay.coarsest)))
+            spread = dr.select(capped & dr.isfinite(span.x) & dr.isfinite(span.y), 0.5 * span,
+                               mi.Point2f(0.0))
+        return mi.UInt32(dr.clip(level, 0, lay.coarsest)), spread
 
     def _block_entry(self, face, level, bx, by, active):
         """``(e, ok)``: where in ``dense`` the 2 x 2 pages whose lower-left page is
@@ -212,7 +270,7 @@ class VirtualShadowMap:
         p64 = mi.Point3d(lk.p_world)
         face, uv64, depth64, inside = self.view.project_f64(p64)
         active = mi.Bool(active) & inside
-        want = (self.level_for(face, p64, lk.dp_dx, lk.dp_dy) if level is None
+        want = (self.level_for(face, p64, lk.dp_dx, lk.dp_dy, lk.n_world) if level is None
                 else dr.minimum(mi.UInt32(level), mi.UInt32(lay.coarsest)))
 
         def block(level, act):

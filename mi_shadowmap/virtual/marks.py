@@ -16,6 +16,11 @@ from .camera import camera_frame, has_aperture
 from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
 from .lookup import VirtualShadowMap, effective_lod_bias
 
+#: Texels from its point up to which a point whose level the receiver biases chose finer
+#: than its footprint's marks the tiles its pixel's samples read there
+#: (:meth:`VirtualShadowMap.level_for`); farther ones are marked by neighbouring points.
+MAX_SPREAD = 4.0
+
 
 #: The mark pass of a camera with a lens (``thinlens``, ``aperture_radius`` > 0) traces
 #: each pixel through ``LENS_GRID``^2 points of its lens (cell centres of a square grid,
@@ -76,9 +81,11 @@ def camera_hits(scene, sensor, evaluate: bool = True):
 
 
 def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
-    """``(face, uv64, act, level)`` of the camera hits ``si`` a mark reads: their face and
-    float64 uv, which of them mark (valid, on a face, in front of a one-sided planar
-    light, and ``active(p, n)`` if given) and their footprint's level."""
+    """``(face, uv64, act, level, spread)`` of the camera hits ``si`` a mark reads: their
+    face and float64 uv, which of them mark (valid, on a face, in front of a one-sided
+    planar light, and ``active(p, n)`` if given), their level
+    (:meth:`VirtualShadowMap.level_for`) and how far from the point, in its texels, the
+    pixel's samples read where that level is finer than the footprint's (0 elsewhere)."""
     view = vmap_like.view
     p64 = mi.Point3d(si.p)
     face, uv64, _, inside = view.project_f64(p64)
@@ -87,7 +94,8 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
         act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
     if active is not None:
         act &= active(si.p, si.n)
-    return face, uv64, act, vmap_like.level_for(face, p64, dp_dx, dp_dy)
+    level, spread = vmap_like._levels(face, p64, dp_dx, dp_dy, si.n)
+    return face, uv64, act, level, spread
 
 
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
@@ -132,16 +140,26 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> t
     # lower end of its level's range (1 at the default lod_bias: finer levels put a
     # pixel's samples farther from its centre in texels)
     off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
+    if points is None:
+        points = marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
+    face, uv64, act, level = points[:4]
     m = min(float(margin) + off, 0.5 * P)
+    if getattr(vmap_like, "reach", None) is not None:
+        # a point whose level the biases made finer than its footprint's (level_for):
+        # its pixel's samples read up to ``spread`` texels from it, marked up to
+        # MAX_SPREAD (the blocks' size is fixed: a camera move compiles nothing)
+        spread = dr.minimum(points[4], MAX_SPREAD)
+        m_lane = mi.Point2d(dr.minimum(float(margin) + dr.maximum(off, spread), 0.5 * P))
+        m = min(float(margin) + max(off, MAX_SPREAD), 0.5 * P)
+    else:
+        m_lane = m
     per_axis = min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
-    face, uv64, act, level = (points if points is not None else
-                              marked_points(vmap_like, si, dp_dx, dp_dy, valid, active))
     res = mi.Float64(mi.UInt32(lay.res0) >> level)
     xy = uv64 * res
     n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1) \
         * lay.tiles_per_side
-    lo = mi.Point2i(dr.floor((xy - m) / T))
-    hi = mi.Point2i(dr.floor((xy + m) / T))
+    lo = mi.Point2i(dr.floor((xy - m_lane) / T))
+    hi = mi.Point2i(dr.floor((xy + m_lane) / T))
     return face, level, act, lo, hi, n_tiles, per_axis
 
 
@@ -205,7 +223,7 @@ def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
     lay = vmap_like.layout
     T = lay.tile_size
     face, uv64, act, level = (points if points is not None else
-                              marked_points(vmap_like, si, dp_dx, dp_dy, valid, active))
+                              marked_points(vmap_like, si, dp_dx, dp_dy, valid, active))[:4]
     k_max = coarser_levels(lay, level, coarse_res)
     keys, oks = [], []
     for k in range(1, min(MAX_COARSER, lay.coarsest) + 1):
@@ -344,9 +362,11 @@ class Marker:
     """The level choice of a :class:`VirtualShadowMap` without a store (mark pass);
     ``view``: the faces marked (default: the layout's view)."""
 
-    def __init__(self, layout, lod_bias: float, view=None):
+    def __init__(self, layout, lod_bias: float, view=None, reach=None):
         self.layout = layout
         self.view = layout.view if view is None else view
         self.lod_bias = float(lod_bias)
+        self.reach = reach      # the method's receiver biases (VirtualShadowMap.level_for)
 
     level_for = VirtualShadowMap.level_for
+    _levels = VirtualShadowMap._levels

@@ -16,6 +16,7 @@ from ..methods import virtual_coarse_res_of, virtual_margin_of
 from .camera import camera_state, clear_camera_states
 from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_unique,
                      with_keys)
+from ..filters.common import BiasReach
 from .lookup import VirtualShadowMap
 from .marks import (Marker, camera_hits, dedupe_many, dilate_tiles, expand_blocks,
                     mark_blocks, mark_coarser, marked_points, tile_pages)
@@ -142,7 +143,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         stores[i] = store
         margins[i] = virtual_margin_of(opts.record, opts, view)
         coarse[i] = virtual_coarse_res_of(opts.record, opts, view)
-    mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias) for i in stores}
+    reach = BiasReach.of(opts)
+    mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias, reach) for i in stores}
     # the mark pass: every light whose marks are stale, from one set of camera hits traced
     # in the same kernel as all their marks (a still camera reuses its marks)
     # a light whose radiance is exactly 0 lights no sample, so no lookup of its map
@@ -211,7 +213,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         # every light's marked points first (one kernel with the camera hits), then the
         # candidate tiles from them in each dedupe round (a few integer operations)
         for batch in ([every] if fused and plain else [[i] for i in plain]):
-            markers = [Marker(stores[i].layout, opts.lod_bias) for i in batch]
+            markers = [Marker(stores[i].layout, opts.lod_bias, reach=reach)
+                       for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
             dr.eval(*(x for pt in points for x in pt))
             groups = [marks(i, mk, pt) for i, mk, pt in zip(batch, markers, points)]
@@ -240,7 +243,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                        *(dr.gather(type(a), a, pt) for a in hits[1:]))
                 thr = dr.gather(mi.Bool, through, pt)
                 mark_view, mark_active = view.mark_lanes(local + dr.opaque(mi.UInt32, k0))
-                marker = Marker(stores[i].layout, opts.lod_bias, mark_view)
+                marker = Marker(stores[i].layout, opts.lod_bias, mark_view, reach)
                 points = marked_points(marker, *pts,
                                        active=lambda p, n, f=mark_active, t=thr: f(p, n, t))
                 dr.eval(*points)
@@ -356,7 +359,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             store.cast_seconds / max(store.cast_pages, 1))
         out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
                                     opts.lod_bias, margins[i], coarse.get(i),
-                                    frame=(needed, slots, masks)))
+                                    frame=(needed, slots, masks), reach=reach))
     if degraded_maps:
         # one warning a render, whatever the number of lights
         need = sum(plans[i][2] + plans[i][3] for i in uniq) * per_page + (

@@ -189,8 +189,8 @@ class VirtualShadowMap:
         (:meth:`~mi_shadowmap.filters.common.BiasReach.texels`, 0 for a receiver facing
         the light), ``f`` the footprint's length along the receiver's direction towards
         the light (the way a lost shadow runs) and ``t0`` a level-0 texel's world width
-        at the point; ``lod_bias`` moves it as it moves the footprint's level (at the
-        default the cap is exact)."""
+        at the point; a ``lod_bias`` other than the default -0.5 moves it as it moves the
+        footprint's level (``2^(lod_bias + 1/2)`` times the footprints)."""
         view, lay = self.view, self.layout
         p = mi.Point3f(p64)
         du_x = view.uv_differential(face, p, dp_dx)

@@ -120,6 +120,9 @@ def test_sample_counts_follow_figure_4():
         (0.2, 30, 16, 2): (2, 16),  # 6 texels: ns = 0 -> 2, nt = 30 -> 16
         (10, 10, 16, 1): (4, 4),
         (100, 1, 64, 2): (32, 2),   # nt = sqrt(64/100)+.5 -> 1 -> 2; ns = 64/2 = 32
+        # ns rounds too: nt = sqrt(4*17/6)+.5 = 3.87 -> 3; ns = 17/3+.5 = 6.17 -> 6 (a
+        # truncated 17/3 gives 5: mutation audit)
+        (6, 4, 17, 2): (6, 3),
     }
     for (ws, wt, n, m), want in cases.items():
         ns, nt = reeves_sample_counts(mi.Float(ws), mi.Float(wt), n, m)
@@ -147,6 +150,31 @@ def test_stochastic_bias_is_drawn_per_sample():
     assert abs(v.mean() - 0.5) < 0.02          # P(bias >= 0.015) = 1/2
     assert np.mean((v > 0) & (v < 1)) > 0.5    # per-sample draws: mostly partial values
     assert np.all(pcf_vis(smap, lookup(x, z=1.015), bias_range="0.02, 0.03", **base) == 1.0)
+    # a degenerate range [b, b] is the constant bias b on every sample (mutation audit:
+    # bias0 was dropped when bias1 == bias0)
+    assert np.all(pcf_vis(smap, lookup(x, z=1.015), bias_range="0.02, 0.02", **base) == 1.0)
+    assert np.all(pcf_vis(smap, lookup(x, z=1.015), bias_range="0.01, 0.01", **base) == 0.0)
+
+
+def test_footprint_is_the_bounding_box_of_a_turned_pixel():
+    """Reeves et al. 1987: the region is the bounding box of the shaded area's
+    projected corners. A pixel footprint of side 4 texels turned 45 degrees on a plane
+    facing the light spans 4 sqrt(2) texels per axis (``|e1| + |e2|`` per axis); its
+    equal-variance width is the side, 4 (``sqrt(e1^2 + e2^2)``). An axis-aligned
+    footprint cannot tell the bounding box from the larger edge (mutation audit)."""
+    from mi_shadowmap.filters.common import footprint_texels, receiver
+    smap = edge_map()
+    h = 4.0 * TEXEL / math.sqrt(2.0)
+    p = mi.Point3f(mi.Float([0.3]), mi.Float([0.01]), mi.Float([2.0]))
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(0, 1)
+    lk = Lookup(p, mi.Vector3f(0.0, 0.0, -1.0), mi.Vector3f(h, h, 0.0), mi.Vector3f(-h, h, 0.0),
+                None, None, sampler)
+    r = receiver(smap, lk, parse_options({"method": "pcf"}))
+    box = footprint_texels(smap, lk, r)
+    var = footprint_texels(smap, lk, r, equal_variance=True)
+    np.testing.assert_allclose([box.x[0], box.y[0]], [4.0 * math.sqrt(2.0)] * 2, rtol=1e-4)
+    np.testing.assert_allclose([var.x[0], var.y[0]], [4.0, 4.0], rtol=1e-4)
 
 
 def test_off_map_samples_are_lit():

@@ -508,3 +508,27 @@ def test_a_frosted_bulb_lit_from_inside_keeps_its_light():
         print(f"dx={dx}: image {imgs[1][..., :3].mean():.4f} vs {imgs[0][..., :3].mean():.4f}, "
               f"{wrong} pixels off")
         assert wrong <= 1
+
+
+@pytest.mark.parametrize("light", ["point", "spot"])
+def test_virtual_marks_cover_the_scaled_region(light, monkeypatch):
+    """On virtual maps ``pcf`` reads taps ``res_factor`` footprints wide around the
+    receiver; the record's ``virtual_margin`` (``4 res_factor`` texels of it) has the
+    mark pass build them. The render then equals one whose marks reach as far as the
+    2 x 2 pages a lookup binds (margin 14 at page size 32), as for mdsm's windows
+    (tests/test_mdsm.py). Mutation audit: the margin without its ``res_factor`` term
+    survived every test."""
+    from mi_shadowmap.scenes import default_scene
+    from mi_shadowmap.virtual import planner
+    scene = mi.load_dict(default_scene(width=64, height=64, spp=2, light=light))
+    props = {"type": "shadowmap", "method": "pcf", "res_factor": 2.5, "sampling": "regular",
+             "cache_maps": False}
+
+    def vis():
+        return np.asarray(mi.render(scene, integrator=mi.load_dict(props), spp=2,
+                                    seed=1))[..., -1]
+    own = vis()
+    monkeypatch.setattr(planner, "virtual_margin_of", lambda record, opts, view: 14.0)
+    wide = vis()
+    print("pixels that differ:", int(np.sum(own != wide)))
+    assert np.array_equal(own, wide)

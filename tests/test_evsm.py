@@ -450,3 +450,26 @@ def test_full_maps_do_not_shade_a_wall_a_spot_grazes(tilt):
     shaded = float(np.mean(vis(method="evsm", virtual=False)[lit] < 0.5))
     print(f"tilt {tilt}: {shaded:.2%} of the lit wall shaded")
     assert shaded <= 0.01
+
+
+def test_chebyshev_with_error_bounds_is_the_largest_bound_of_the_error_box():
+    """``chebyshev`` with the moments' error bounds ``err1``, ``err2`` must not read less
+    light than the plain bound of any moments within them (the guard of the
+    summed-area tables' rounding reads lit, never shadow): it is at least the largest
+    plain bound over a grid of ``(m1 + a err1, m2 + b err2)``, ``|a|, |b| <= 1``. A
+    large mean (the positive warp near a receiver) makes the ``2 |m1| err1`` term of the
+    variance's bound the one that matters. (Mutation audit: the variance's bound
+    without its ``m1`` terms survived every test.)"""
+    m1, m2, t = 100.0, 100.0 ** 2 + 50.0, 110.0
+    err1, err2 = 0.5, 1.0
+    a, b = np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41))
+    m1s, m2s = m1 + a.ravel() * err1, m2 + b.ravel() * err2
+    f64 = mi.Float64
+    plain = np.asarray(E.chebyshev(f64(m1s), f64(m2s), f64(np.full(m1s.size, t)), 0.0))
+    guarded = np.asarray(E.chebyshev(f64([m1]), f64([m2]), f64([t]), 0.0, 0.0, f64([err1]),
+                                     f64([err2])))[0]
+    print(f"plain at the centre {plain[m1s.size // 2]:.3f}, largest in the box "
+          f"{plain.max():.3f}, guarded {guarded:.3f}")
+    assert plain.max() > plain[m1s.size // 2] + 0.1      # the error box matters here
+    assert guarded >= plain.max() - 1e-12
+    assert guarded < 1.0                                 # and still a bound, not 'lit'

@@ -400,3 +400,16 @@ def test_renders_in_mono_and_spectral(variant):
         mis = metrics.misclassified(r, v)["misclassified"]
         print(f"{variant} {name}: misclassified {mis:.2%}")
         assert mis <= 0.03
+
+
+def test_receivers_behind_the_maps_deepest_texel_are_lit_where_it_is_empty():
+    """A map holding one occluder (depth 1) and empty texels (no surface: nothing
+    between the light and whatever lies behind them). Receivers deeper than every texel
+    of it -- outside the map's depth span, ``u > 1`` -- are shadowed behind the occluder
+    and lit where the map is empty, as a ray traced towards the light finds. (Mutation
+    audit: without the clamp of the receiver depth below the empty texels' ``u = 1``
+    every such receiver was shadowed, and no test saw it.)"""
+    smap = edge_map(left=1.0, right=np.inf)
+    x = np.array([-0.5, -0.3, 0.3, 0.5])
+    for z in (1.5, 3.0, 100.0):
+        assert vis(smap, lookup(x, z=z)).tolist() == pytest.approx([0, 0, 1, 1], abs=1e-6), z

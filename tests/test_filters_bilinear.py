@@ -287,3 +287,30 @@ def test_trapezoid_cdf_is_the_convolution_of_two_boxes(a, b):
     np.testing.assert_allclose(np.asarray(_trapezoid_cdf(mi.Float([0.0]), a,
                                                          mi.Float([b])).numpy()), [0.5],
                                atol=1e-6)
+
+
+def test_pixel_average_of_a_wide_footprint_is_the_trapezoid_mass_on_the_lit_side():
+    """``bilinear``'s pixel-centre run (``lk.centre``, ``soft_compare`` > 0) over a
+    straight edge: the ``k x k`` box convolved with the pixel's footprint, so the lit
+    fraction is the trapezoid's mass on the lit side, ``1 - F(-c)`` (``c`` the receiver's
+    distance from the edge in texels, ``F`` :func:`_trapezoid_cdf`). A footprint of 40
+    texels with ``k = 8`` spans 48 texels, read in groups of ``g = 3`` (``MAX_SIDE`` 16)
+    each by its middle texel's compare: off by at most one texel's mass (1 / 40) where
+    a group straddles the edge. (Mutation audit: groups read by their first texel, off
+    by two texels' mass, survived every test.)"""
+    from mi_shadowmap.filters.bilinear import _trapezoid_cdf
+    smap = edge_map()
+    foot, k = 40.0, 8
+    x = np.linspace(-6, 6, 97) * TEXEL + 1e-4
+    n = x.size
+    p = mi.Point3f(mi.Float(x), mi.Float(np.full(n, 0.01)), mi.Float(np.full(n, 2.0)))
+    lk = Lookup(p, mi.Vector3f(0, 0, -1), mi.Vector3f(foot * TEXEL, 0, 0),
+                mi.Vector3f(0, foot * TEXEL, 0), None, None, None, True)
+    v = vis("bilinear", smap, lk, kernel=k, soft_compare=0.5)
+    c = x / TEXEL                          # the edge is at x = 0 (texel column 32)
+    want = 1.0 - np.asarray(_trapezoid_cdf(mi.Float(-c), float(k - 1),
+                                           mi.Float(np.full(n, foot))).numpy())
+    err = np.abs(v - want)
+    print(f"largest error {err.max():.4f}, one texel's mass {1.0 / foot:.4f}")
+    assert err.max() <= 1.0 / foot + 1e-4
+    assert v[-1] - v[0] > 0.2               # lit side to the right (+x)

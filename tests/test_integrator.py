@@ -1476,3 +1476,43 @@ def test_a_sensor_index_of_any_integer_type_and_a_bad_one_named():
     with pytest.raises(TypeError, match="'sensor' is str"):
         integ.render(scene, "1", 0, 1)
     assert np.array_equal(np.asarray(integ.render(scene, 1, 0, 1)), want)
+
+
+def test_a_thin_lens_footprint_is_one_pixel_whatever_the_spp():
+    """A sensor without a pinhole (``thinlens``) gives footprints from its ray
+    differentials, which Mitsuba scales by ``1 / sqrt(spp)``; ``_footprint`` undoes that
+    for their origins and directions, so at 4 spp the footprint of a ray through the
+    lens centre is the step to the next pixel's hit on the floor (ray traced, first
+    order: the floor is a plane). (Mutation audit: the directions left at the sample's
+    share, half a pixel here, survived every test.)"""
+    W = 32
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "thinlens", "fov": 30, "aperture_radius": 0.05,
+                   "focus_distance": 9,
+                   "to_world": T().look_at(origin=[1, 5, 8.5], target=[1.0, 0, 0.5],
+                                           up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": W, "height": W,
+                            "rfilter": {"type": "box"}}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(20)},
+        "light": {"type": "spot", "cutoff_angle": 50, "intensity": 60,
+                  "to_world": T().look_at(origin=[2.5, 6, 2], target=[0, 0, 0],
+                                          up=[0, 1, 0])}})
+    integ = mi.load_dict({"type": "shadowmap", "method": "pcf", "resolution": 64})
+    mi.render(scene, integrator=integ, spp=4)
+    assert integ._pinhole is None and integ._diff_scale[0] == pytest.approx(2.0)
+    sensor = scene.sensors()[0]
+    px, py = np.array([5.5, 12.5, 20.5]), np.array([20.5, 16.5, 25.5])
+
+    def ray(dx, dy):
+        film = mi.Point2f(mi.Float((px + dx) / W), mi.Float((py + dy) / W))
+        return sensor.sample_ray_differential(0.0, 0.5, film, mi.Point2f(0.5, 0.5))[0]
+
+    def hit(r):
+        return np.array(scene.ray_intersect(mi.Ray3f(r)).p)
+    r0 = ray(0.0, 0.0)
+    step_x, step_y = hit(ray(1.0, 0.0)) - hit(r0), hit(ray(0.0, 1.0)) - hit(r0)
+    r0.scale_differential(0.5)                    # as Mitsuba's render at 4 spp
+    dp_dx, dp_dy = integ._footprint(r0, scene.ray_intersect(mi.Ray3f(r0)))
+    np.testing.assert_allclose(np.array(dp_dx), step_x, rtol=2e-3, atol=1e-4)
+    np.testing.assert_allclose(np.array(dp_dy), step_y, rtol=2e-3, atol=1e-4)

@@ -1516,3 +1516,32 @@ def test_a_thin_lens_footprint_is_one_pixel_whatever_the_spp():
     dp_dx, dp_dy = integ._footprint(r0, scene.ray_intersect(mi.Ray3f(r0)))
     np.testing.assert_allclose(np.array(dp_dx), step_x, rtol=2e-3, atol=1e-4)
     np.testing.assert_allclose(np.array(dp_dy), step_y, rtol=2e-3, atol=1e-4)
+
+
+@pytest.mark.parametrize("method", ["hard", "raytraced"])
+def test_a_spots_visibility_aov_is_zero_outside_its_cone(method):
+    """Outside a spot's cone no light arrives (its weight is 0): the visibility AOV
+    counts no light sample there and reads 0, as the converged reference
+    (:func:`~mi_shadowmap.reference.converged_visibility`) does, while the lit disc
+    keeps its visibility (a box's shadow in it). (Mutation audit: counting samples of
+    weight 0 read 1 on the whole dark floor and survived every test.)"""
+    from mi_shadowmap.reference import converged_visibility
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 60,
+                   "to_world": T().look_at(origin=[0, 6, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                            "rfilter": {"type": "box"}}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(6),
+                  "bsdf": {"type": "diffuse"}},
+        "box": {"type": "cube", "to_world": T().translate([0.3, 0.5, 0.2]).scale(0.3)},
+        "light": {"type": "spot", "cutoff_angle": 20, "intensity": 60,
+                  "to_world": T().look_at(origin=[0, 4, 0], target=[0, 0, 0], up=[0, 0, 1])}})
+    ref = next(iter(converged_visibility(scene, n_light=1, spp=4).values()))
+    img = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
+                                                               "method": method}),
+                               spp=4, seed=0))
+    vis, dark = img[..., -1], img[..., :3].max(-1) == 0
+    assert dark.sum() > 500 and np.all(ref[dark] == 0.0)
+    assert np.all(vis[dark] == 0.0)
+    assert 0.6 < vis[~dark].mean() < 0.95          # the box's shadow inside the disc

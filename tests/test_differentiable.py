@@ -1150,3 +1150,23 @@ def test_masked_mse_is_the_mean_squared_error_of_the_colour_channels_over_the_ma
     assert got == pytest.approx(want, rel=1e-5)
     assert float(inverse.masked_mse(mi.TensorXf(img), tgt, mask, channels=1)[0]) == \
         pytest.approx(float(np.mean((img[mask][:, 0] - tgt[mask][:, 0]) ** 2)), rel=1e-5)
+
+
+def test_optimize_leaves_the_scene_at_the_final_value():
+    """``optimize`` leaves the scene at the parameter of its last step (``hist.x[-1]``,
+    after the last Adam step), not at the value it rendered last. (Mutation audit:
+    without the final ``param.set`` the occluder stayed one step behind, and no test
+    looked.)"""
+    scene = inverse.occluder_scene("area", 32, 2)
+    mask = inverse.receiver_mask(scene)
+    target = mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
+                                                       "method": "raytraced"}), spp=4)
+    param = inverse.translate_shape(scene, axes="x")
+    base = np.array(param.base).reshape(-1, 3)
+    hist = inverse.optimize(param, _integ("vsm", resolution=128), target, mask,
+                            np.array([0.2]), steps=2, lr=0.05, spp=2)
+    x = hist.x[-1][0]
+    assert abs(x - 0.2) > 1e-3                       # the steps moved it
+    got = np.array(mi.traverse(scene)["occluder.vertex_positions"]).reshape(-1, 3)
+    np.testing.assert_allclose(got[:, 0], base[:, 0] + x, atol=1e-6)
+    np.testing.assert_allclose(got[:, 1:], base[:, 1:], atol=1e-6)

@@ -212,10 +212,10 @@ def test_cli_tune_writes_outputs_and_a_snippet_that_renders(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, match", [
-    (["tune", "--max-error", "0"], "max_error"),
+    (["tune", "--max-error", "0"], "argument --max-error"),
     (["tune", "--max-error", "0.1", "--metric", "psnr"], "vis_rmse"),
     (["tune", "--max-error", "0.1", "--methods", "nope"], "nope"),
-    (["tune", "--max-error", "0.1", "--time-limit", "-1"], "time_limit"),
+    (["tune", "--max-error", "0.1", "--time-limit", "-1"], "argument --time-limit"),
     (["tune"], "--max-error"),
 ])
 def test_cli_bad_input_one_line(argv, match, tmp_path, capsys):

@@ -205,3 +205,29 @@ def test_automatic_resolution_sees_cascaded_lights():
     mi.render(scene, integrator=integ, spp=1)
     opts = parse_options({"method": "hard", "cascades": 4, "split_lambda": 0.5})
     assert integ.resolution == opts.map_resolution((32, 32), 4, f)
+
+
+def test_a_cascades_texel_is_its_own_rectangles_texel(ground):
+    """The biases' texel (``texel_world_size``) of a point in cascade ``i`` is a texel
+    of that cascade's rectangle, ``2 h / res`` per side: the shorter side for a receiver
+    facing the sun (its depth does not change across the texel), between the two sides
+    along a ground's depth gradient. (Mutation audit: half of it, which halves every
+    cascade's slope and normal biases, survived every test.)"""
+    res = 64
+    integ = mi.load_dict({"type": "shadowmap", "method": "hard", "resolution": res,
+                          "cascades": 4, "split_lambda": 0.5})
+    mi.render(ground, integrator=integ, spp=1)
+    view = integ.views[0]
+    o, f = np.array(view.camera_origin), np.array(view.camera_forward)
+    splits = view.split_depths
+    pts = np.array([o + f * 0.5 * (a + b) for a, b in zip(splits, splits[1:])])
+    p = mi.Point3f(pts[:, 0], pts[:, 1], pts[:, 2])
+    assert list(view.cascade_of(p).numpy()) == [0, 1, 2, 3]
+    w = np.array([[2.0 * r[2] / res, 2.0 * r[3] / res] for r in view.rects])
+    to_sun = -np.array([0.8, -1.0, 0.35]) / np.linalg.norm([0.8, -1.0, 0.35])
+    facing = view.texel_world_size(res, mi.Float(np.ones(4)), p,
+                                   mi.Vector3f(*[float(c) for c in to_sun]))
+    np.testing.assert_allclose(facing.numpy(), w.min(axis=1), rtol=1e-5)
+    up = view.texel_world_size(res, mi.Float(np.ones(4)), p, mi.Vector3f(0.0, 1.0, 0.0))
+    assert np.all(up.numpy() >= w.min(axis=1) * (1 - 1e-5))
+    assert np.all(up.numpy() <= w.max(axis=1) * (1 + 1e-5))

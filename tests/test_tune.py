@@ -495,3 +495,38 @@ def test_the_pick_is_the_fastest_finalist_that_passes_at_full_size(order):
     best, result, tau = t.pick(0.04)
     assert result is min(full.values(), key=lambda r: r.times["warm"])
     assert best[2] == min(full, key=lambda c: full[c].times["warm"]) and tau == 0.04
+
+
+@pytest.mark.parametrize("metric", ["vis_rmse", "vis_mae", "vis_misclassified"])
+def test_error_bound_is_the_metric_plus_z_standard_errors(metric):
+    """``error_bound``: the metric plus ``z`` standard errors of the per-pixel terms it
+    averages (independent pixels): above the metric, by ``z sigma / sqrt(n)`` -- for the
+    RMSE on its square, for a misclassified rate the binomial ``sqrt(p (1 - p) / n)``.
+    Checked against numpy on random visibilities. (Mutation audit: the margin subtracted,
+    or dropped for the rates, survived every test: ``tune`` only compares it with the
+    budget.)"""
+    from mi_shadowmap.timing import MethodResult
+    tune_mod = sys.modules["mi_shadowmap.tune"]     # mi_shadowmap.tune is the function
+    rng = np.random.default_rng(5)
+    ref_v = (rng.uniform(0, 1, (32, 32)) > 0.4).astype(np.float32)
+    got_v = np.clip(ref_v + rng.normal(0, 0.2, ref_v.shape), 0, 1).astype(np.float32)
+
+    def result(v, ref=False):
+        return MethodResult(name="x", method="hard", params={}, image=None,
+                            visibility={"light": v}, times={}, is_reference=ref)
+    res, ref = result(got_v), result(ref_v, True)
+    d = (got_v.astype(np.float64) - ref_v).ravel()
+    z, n = tune_mod.CONFIDENCE_Z, d.size
+    if metric == "vis_rmse":
+        value = math.sqrt(np.mean(d ** 2))
+        want = math.sqrt(np.mean(d ** 2) + z * np.std(d ** 2, ddof=1) / math.sqrt(n))
+    elif metric == "vis_mae":
+        value = np.mean(np.abs(d))
+        want = value + z * np.std(np.abs(d), ddof=1) / math.sqrt(n)
+    else:
+        value = np.mean((got_v >= 0.5) != (ref_v >= 0.5))
+        want = value + z * math.sqrt(value * (1 - value) / n)
+    res.metrics = {metric: value}
+    got = tune_mod.error_bound(res, ref, metric)
+    assert z > 1.0 and value > 0.0
+    assert got == pytest.approx(want, rel=1e-6) and got > value

@@ -445,3 +445,20 @@ def test_renders_in_other_variants(variant):
     m = metrics.misclassified(r, v)
     print(f"{variant}: vsm misclassified {m['misclassified']:.2%}, false lit {m['false_lit']:.2%}")
     assert m["misclassified"] <= 0.03 and m["false_lit"] <= 0.01
+
+
+def test_receivers_behind_the_maps_deepest_texel_are_lit_where_it_is_empty():
+    """A map holding one occluder (depth 1) and empty texels (no surface: nothing
+    between the light and whatever lies behind them; ``z = 1``). Receivers far behind
+    every texel -- twice the map's depth span and more, ``t > 1`` -- are shadowed behind
+    the occluder and lit where the map is empty, as a ray traced towards the light finds
+    (a map too coarse to hold a surface is such a map). (Mutation audit: without the
+    clamp of ``t`` at the empty texels' 1 they were shadowed, and no test saw it.)"""
+    d = np.full((RES, RES), np.inf, np.float32)
+    d[:, : RES // 2] = 1.0
+    d[0, 0] = 1.5                       # a depth span of 0.5: t > 1 beyond depth 2
+    smap = vsm_map(d)
+    x = np.array([-0.5, -0.3, 0.3, 0.5])
+    for z in (1.9, 3.0, 100.0):
+        v = vis(smap, lookup(x, z=z))
+        assert np.all(v[:2] < 1e-3) and np.all(v[2:] == 1.0), (z, v)

@@ -155,7 +155,7 @@ class VirtualShadowMap:
         return out
 
     # ----------------------------------------------------------- levels
-    def level_for(self, face, p64, dp_dx, dp_dy, n=None) -> mi.UInt32:
+    def level_for(self, face, p64, dp_dx, dp_dy, n=None, p=None) -> mi.UInt32:
         """Level whose texel matches the pixel footprint ``dp_dx``, ``dp_dy`` at
         ``p64`` on ``face``: ``floor(log2(w) + lod_bias)`` clamped to the levels,
         ``w`` the footprint in level-0 texels: the shorter side of its bounding box
@@ -176,9 +176,9 @@ class VirtualShadowMap:
         0.1 over a floor lit 2.4 % of a 64^2 image under ``hard`` (the coarsest level,
         its slope bias 1.6 units against the box wall 1.2-1.6 units in front of the
         floor; full maps of 64^2 texels a face: 0)."""
-        return self._levels(face, p64, dp_dx, dp_dy, n)[0]
+        return self._levels(face, p64, dp_dx, dp_dy, n, p)[0]
 
-    def _levels(self, face, p64, dp_dx, dp_dy, n=None) -> tuple:
+    def _levels(self, face, p64, dp_dx, dp_dy, n=None, p=None) -> tuple:
         """``(level, spread)``: :meth:`level_for`'s level, and where the biases chose it
         finer than the footprint's, half the footprint's bounding box in its texels
         (``mi.Point2f``, else 0): how far from the pixel's centre the pixel's samples
@@ -190,9 +190,12 @@ class VirtualShadowMap:
         the light), ``f`` the footprint's length along the receiver's direction towards
         the light (the way a lost shadow runs) and ``t0`` a level-0 texel's world width
         at the point; a ``lod_bias`` other than the default -0.5 moves it as it moves the
-        footprint's level (``2^(lod_bias + 1/2)`` times the footprints)."""
+        footprint's level (``2^(lod_bias + 1/2)`` times the footprints). ``p``: ``p64`` in
+        float32 where the caller has it (:meth:`bind`: the lookup's point)."""
         view, lay = self.view, self.layout
-        p = mi.Point3f(p64)
+        # the lookup's own point: the variable the receiver's biases read, so that Dr.Jit
+        # computes the direction to the light once (the same value as from p64)
+        p = mi.Point3f(p64) if p is None else p
         du_x = view.uv_differential(face, p, dp_dx)
         du_y = view.uv_differential(face, p, dp_dy)
         w = (dr.abs(du_x) + dr.abs(du_y)) * float(lay.res0)
@@ -270,7 +273,8 @@ class VirtualShadowMap:
         p64 = mi.Point3d(lk.p_world)
         face, uv64, depth64, inside = self.view.project_f64(p64)
         active = mi.Bool(active) & inside
-        want = (self.level_for(face, p64, lk.dp_dx, lk.dp_dy, lk.n_world) if level is None
+        want = (self.level_for(face, p64, lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world)
+                if level is None
                 else dr.minimum(mi.UInt32(level), mi.UInt32(lay.coarsest)))
 
         def block(level, act):
@@ -363,7 +367,11 @@ class VirtualShadowMap:
                                     else _NoDraws(lk.sampler))
 
         def walked(vis):
-            return mi.Float(lookup(self.bind(again, retry, per_tap), again, opts, retry))
+            # the first run's wanted level (its level, unwalked): level_for is not traced
+            # again inside the conditional (Dr.Jit does not share values across it: the
+            # footprint and the biases' cap, about 180 of a hard lookup's 2000 operations)
+            return mi.Float(lookup(self.bind(again, retry, per_tap, level=first.level), again,
+                                   opts, retry))
 
         return if_stmt((vis,), retry, walked, lambda vis: vis,
                        label="virtual map: lookups whose page is missing", holds_loops=True)

@@ -431,6 +431,7 @@ def test_samples_off_the_pixel_centre_find_the_biases_level_built():
     assert n > 10000 and far <= 0.003 * n
 
 
+
 def test_a_hard_lookup_chooses_its_level_once(monkeypatch):
     """The biases' cap costs a lookup the direction to the light, the texel's width and
     a few divisions: ``hard``'s lookup traces :meth:`VirtualShadowMap.level_for` once (its
@@ -465,6 +466,31 @@ def test_a_hard_lookup_chooses_its_level_once(monkeypatch):
     assert on.sum() > 1000
     assert np.array_equal(a[0].numpy()[on], b[0].numpy()[on])
     assert np.array_equal(a[1].numpy()[:, on], b[1].numpy()[:, on])
+
+
+def test_the_mark_pass_dedupes_one_block_list_per_light(monkeypatch):
+    """The mark pass folds its blocks' shapes into their keys (:func:`marks.mark_blocks`
+    with :func:`marks.shape_bits`): one candidate list a light for ``hard``, where the
+    biases' spread made 9 (3 x 3 shapes; 4 without the biases), and the same marked tiles
+    as the lists of every shape (the boxed light's floor, most of its points capped)."""
+    groups = []
+    real = planner.dedupe_many
+
+    def spy(gs, *args, **kwargs):
+        groups.append(len(gs))
+        return real(gs, *args, **kwargs)
+
+    monkeypatch.setattr(planner, "dedupe_many", spy)
+    scene = boxed_light_scene()
+    marked = []
+    for fold in (True, False):
+        if not fold:
+            monkeypatch.setattr(planner, "shape_bits", lambda layout, per_axis: None)
+        integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+        vis_of(scene, integ, spp=1)
+        marked.append(np.asarray(integ.maps[0].store.last_mark[1]))
+    assert groups == [1, 9]
+    assert len(marked[0]) > 100 and np.array_equal(marked[0], marked[1])
 
 
 @pytest.mark.parametrize("method", ["hard", "pcf", "mdsm", "vsm", "evsm", "msm"])
@@ -2419,13 +2445,18 @@ def test_a_still_camera_plans_from_the_last_render(monkeypatch):
         assert planner._dark(light, store) is dark
 
 
+@pytest.mark.parametrize("fold", [False, True])
 @pytest.mark.parametrize("margin", [0.0, 2.0, 5.5, 9.0, 12.0, 40.0])
-def test_mark_blocks_give_the_candidate_tiles(margin):
+def test_mark_blocks_give_the_candidate_tiles(margin, fold):
     """The mark pass dedupes one block of tiles per point (:func:`marks.mark_blocks`,
     expanded on the host by :func:`marks.expand_blocks`) instead of every candidate
     tile of :func:`marks.mark_candidates`: the same tiles, for points anywhere on a
     face (its edges too: blocks clipped at 0 and at the level's last tile), at every
-    level, for kernels of every width (2 to 5 tiles a side)."""
+    level, for kernels of every width (2 to 5 tiles a side), with and without the
+    receiver biases' spread (``MAX_SPREAD`` texels around a capped point). With
+    ``fold`` (:func:`marks.shape_bits`) the blocks' shapes ride in their keys: one list,
+    not ``per_axis^2``."""
+    from mi_shadowmap.filters.common import BiasReach
     scene = mi.load_dict({"type": "scene", "sensor": {
         "type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}},
         "ground": {"type": "rectangle"},
@@ -2433,22 +2464,28 @@ def test_mark_blocks_give_the_candidate_tiles(margin):
     integ = mi.load_dict({"type": "shadowmap", "method": "hard"})
     mi.render(scene, integrator=integ, spp=1)
     lay = integ.maps[0].layout
-    marker = marks.Marker(lay, -0.5)
-    rng = np.random.default_rng(5)
-    n = 4000
-    uv = rng.random((2, n))
-    uv[:, :400] = rng.choice([0.0, 1e-9, 1.0 - 1e-9, 1.0], (2, 400))   # at the edges
-    level = rng.integers(0, lay.coarsest + 1, n)
-    points = (mi.UInt32(rng.integers(0, lay.view.n_faces, n)), mi.Point2d(uv[0], uv[1]),
-              mi.Bool(rng.random(n) < 0.9), mi.UInt32(level))
-    keys, oks = marks.mark_candidates(marker, None, None, None, None, margin=margin,
-                                      points=points)
-    want = np.unique(np.concatenate([k.numpy()[ok.numpy()] for k, ok in zip(keys, oks)]))
-    bkeys, boks = marks.mark_blocks(marker, points, margin=margin)
-    per_axis = math.isqrt(len(bkeys))
-    found = [k.numpy()[ok.numpy()] for k, ok in zip(bkeys, boks)]
-    got = np.unique(marks.expand_blocks(found, per_axis))
-    assert len(want) > 100 and np.array_equal(got, want)
+    for reach in (None, BiasReach.of(integ.opts)):
+        marker = marks.Marker(lay, -0.5, reach=reach)
+        rng = np.random.default_rng(5)
+        n = 4000
+        uv = rng.random((2, n))
+        uv[:, :400] = rng.choice([0.0, 1e-9, 1.0 - 1e-9, 1.0], (2, 400))   # at the edges
+        level = rng.integers(0, lay.coarsest + 1, n)
+        spread = np.where(rng.random((2, n)) < 0.5, 0.0, rng.random((2, n)) * 6.0)
+        points = (mi.UInt32(rng.integers(0, lay.view.n_faces, n)), mi.Point2d(uv[0], uv[1]),
+                  mi.Bool(rng.random(n) < 0.9), mi.UInt32(level),
+                  mi.Point2f(spread[0], spread[1]))
+        keys, oks = marks.mark_candidates(marker, None, None, None, None, margin=margin,
+                                          points=points)
+        want = np.unique(np.concatenate([k.numpy()[ok.numpy()] for k, ok in zip(keys, oks)]))
+        per_axis = marks.block_axis(marker, margin)
+        bits = marks.shape_bits(lay, per_axis) if fold else None
+        assert (bits is not None) == fold
+        bkeys, boks = marks.mark_blocks(marker, points, margin=margin, bits=bits)
+        assert len(bkeys) == (1 if fold else per_axis ** 2) and per_axis > 1
+        found = [k.numpy()[ok.numpy()] for k, ok in zip(bkeys, boks)]
+        got = np.unique(marks.expand_blocks(found, per_axis, bits))
+        assert len(want) > 100 and np.array_equal(got, want)
 
 
 def test_share_pages_splits_what_is_left_evenly_after_needs_and_held_pages():

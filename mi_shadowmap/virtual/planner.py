@@ -18,8 +18,9 @@ from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_uni
                      with_keys)
 from ..filters.common import BiasReach
 from .lookup import VirtualShadowMap
-from .marks import (Marker, camera_hits, dedupe_many, dilate_tiles, expand_blocks,
-                    mark_blocks, mark_coarser, marked_points, tile_pages)
+from .marks import (Marker, block_axis, camera_hits, dedupe_many, dilate_tiles,
+                    expand_blocks, mark_blocks, mark_coarser, marked_points, shape_bits,
+                    tile_pages)
 from .store import PageStore, page_bytes, page_layers
 
 
@@ -181,12 +182,17 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
             dr.eval(through)
+        shapes = {}     # per light: mark_blocks' (per_axis, bits), for expand_blocks
+
         def marks(i, marker, points):
             """The candidate lists of light ``i`` (its own levels', then the coarser
             levels' its kernels may filter, :func:`mark_coarser`) from its evaluated
             :func:`marked_points` ``points``."""
-            # its own levels' tiles as blocks (mark_blocks): one group per block shape
-            keys, oks = mark_blocks(marker, points, margin=margins[i])
+            # its own levels' tiles as blocks (mark_blocks): one group, the blocks' shapes
+            # in their keys (else one group per block shape)
+            per_axis = block_axis(marker, margins[i])
+            shapes[i] = (per_axis, shape_bits(marker.layout, per_axis))
+            keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1])
             out = [([k], [ok]) for k, ok in zip(keys, oks)]
             if coarse[i]:
                 out.append(mark_coarser(marker, None, None, None, None,
@@ -197,7 +203,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             """Light ``i``'s tile keys from its :func:`marks` groups' keys: ``(own levels',
             coarser levels')`` (the latter empty without ``virtual_coarse_res``)."""
             n = len(found) - bool(coarse[i])
-            own = expand_blocks(found[:n], math.isqrt(n))
+            own = expand_blocks(found[:n], *shapes[i])
             extra = (dilate_tiles(found[n], stores[i].layout, margins[i]) if coarse[i]
                      else np.zeros(0, np.uint64))
             return own, extra

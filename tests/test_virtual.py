@@ -352,6 +352,22 @@ def test_a_light_grazing_the_floor_from_a_floating_box_lights_none_of_it(method)
     assert lit_virt <= 2
 
 
+@pytest.mark.parametrize("method, lod_bias", [("hard", -4), ("hard", -2), ("pcf", -4)])
+def test_a_finer_lod_bias_keeps_the_boxed_lights_floor_dark(method, lod_bias):
+    """A finer ``lod_bias`` finer maps, not a wrong lit region: the biases' cap moved with
+    it chose levels up to 5 finer than its (already finer) footprint's, where a pixel
+    spans hundreds of texels, far more than the mark pass builds around its centre; the
+    floor's lookups walked to the coarsest level (16 % of them at -4, 3 % at -2) and lit
+    it (``hard`` 458 and 52 pixels of 4096, ``pcf`` 126; full maps 0, without the cap
+    3, 1, 0). Now the cap is the default's at finer biases: measured 3, 0, 0 lit."""
+    scene = boxed_light_scene()
+    integ = shadowmap(method=method, virtual=True, cache_maps=False, lod_bias=lod_bias)
+    virt = vis_of(scene, integ)
+    lit = int(np.sum(virt >= 0.5))
+    print(f"{method} lod_bias {lod_bias}: {lit} lit, texels {integ.stats.texels_built}")
+    assert lit <= 4
+
+
 def test_the_biases_cap_levels_where_the_light_grazes_only():
     """:meth:`VirtualShadowMap.level_for` with the receiver's normal: on the boxed light's
     floor finer than the footprint's level where the light grazes, and at that level the

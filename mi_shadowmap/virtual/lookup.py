@@ -184,13 +184,18 @@ class VirtualShadowMap:
         (``mi.Point2f``, else 0): how far from the pixel's centre the pixel's samples
         read there, which the mark pass marks (:func:`~mi_shadowmap.virtual.marks._tile_range`).
 
-        The biases' level: ``floor(log2(REACH_PIXELS f / (r t0)) + lod_bias + 1/2)``,
+        The biases' level: ``floor(log2(REACH_PIXELS f / (r t0)) + max(lod_bias + 1/2, 0))``,
         ``r`` how many texels along the receiver the biases may lose a shadow over
         (:meth:`~mi_shadowmap.filters.common.BiasReach.texels`, 0 for a receiver facing
         the light), ``f`` the footprint's length along the receiver's direction towards
         the light (the way a lost shadow runs) and ``t0`` a level-0 texel's world width
-        at the point; a ``lod_bias`` other than the default -0.5 moves it as it moves the
-        footprint's level (``2^(lod_bias + 1/2)`` times the footprints). ``p``: ``p64`` in
+        at the point; a ``lod_bias`` coarser than the default -0.5 moves it as it moves the
+        footprint's level (``2^(lod_bias + 1/2)`` times the footprints), a finer one does
+        not: its footprint's level is finer already, and a cap moved with it chose levels
+        up to 5 finer than that, on which a pixel spans hundreds of texels, far more than
+        the mark pass builds around its centre (at ``lod_bias`` -4 on the boxed light of
+        ``tests/test_virtual.py`` 16 % of the floor's lookups walked to the coarsest
+        level, ``hard`` lit 458 pixels of 4096, 3 without the cap; now 3). ``p``: ``p64`` in
         float32 where the caller has it (:meth:`bind`: the lookup's point)."""
         view, lay = self.view, self.layout
         # the lookup's own point: the variable the receiver's biases read, so that Dr.Jit
@@ -220,7 +225,7 @@ class VirtualShadowMap:
                 / dr.maximum(sin_nl, 1e-30)
             t0 = view.texel_world_size(lay.res0, view.depth_of(p), p, n)
             # level-0 texels a texel may span (the same exponent trick)
-            allowed = (REACH_PIXELS * 2.0 ** (lod_bias + 0.5)) * f / (r * t0)
+            allowed = (REACH_PIXELS * 2.0 ** max(lod_bias + 0.5, 0.0)) * f / (r * t0)
             cap = mi.Int32(dr.reinterpret_array(mi.UInt32, dr.maximum(allowed, 1.0)) >> 23) \
                 - 127
             capped = dr.isfinite(allowed) & (f > 0) & (cap < level)

@@ -167,9 +167,9 @@ import mitsuba as mi
 
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
-from .common import Lookup, Receiver, antialiased, box_means_of_depths, face_rect, \
-    has_layers, normalized_depth, prefilter_box, receiver, span_layer, span_of, \
-    virtual_depth_scale, virtual_variance_factor
+from .common import Lookup, Receiver, antialiased, box_means_of_depths, \
+    has_layers, narrow_to_face, normalized_depth, prefilter_box, receiver, span_layer, \
+    span_of, virtual_depth_scale, virtual_variance_factor
 
 #: Largest allowed exponent: exp(2 c) of u = 1 stays a finite float32 (2 c <= 88.7).
 MAX_EXPONENT = 42.0
@@ -287,13 +287,8 @@ def filter_box(smap, lk: Lookup, r: Receiver, filter_size: float):
     """``(lo, hi)`` in continuous texel coordinates: :func:`~.common.prefilter_box`
     (at least :data:`MIN_BOX` wide), narrowed symmetrically at the face border
     (keeping at least half a texel on each side of the receiver)."""
-    res = smap.resolution
     lo, hi = prefilter_box(smap, lk, r, max(float(filter_size), MIN_BOX))
-    centre = r.uv * res
-    f_lo, f_hi = face_rect(smap)         # [0, res] on a full map
-    border = dr.maximum(dr.minimum(centre - f_lo, f_hi - centre), 0.5 * MIN_BOX)
-    half = dr.minimum(0.5 * (hi - lo), border)
-    return dr.clip(centre - half, f_lo, f_hi), dr.clip(centre + half, f_lo, f_hi)
+    return narrow_to_face(smap, r, lo, hi, 0.5 * MIN_BOX)
 
 
 def evsm_bounds(smap, lk: Lookup, opts, active=True):

@@ -17,7 +17,7 @@ import mitsuba as mi
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
 from .common import (Lookup, antialiased, box_means_of_depths, has_layers,
-                     normalized_depth, prefilter_box, receiver, span_layer, span_of,
+                     narrow_to_face, normalized_depth, prefilter_box, receiver, span_layer, span_of,
                      virtual_depth_scale, virtual_variance_factor)
 
 #: The layers of a full map (virtual maps build none: see :func:`vsm_moments`).
@@ -60,7 +60,9 @@ def vsm_moments(smap, lk: Lookup, r, filter_size, active=True):
     ``min_variance`` (1 on full maps; :func:`~.common.virtual_variance_factor` on
     virtual maps)."""
     res = smap.resolution
-    lo, hi = prefilter_box(smap, lk, r, filter_size)
+    # narrowed symmetrically at a face border: a box clipped on one side shadowed
+    # inclined receivers along every cube seam (see narrow_to_face)
+    lo, hi = narrow_to_face(smap, r, *prefilter_box(smap, lk, r, filter_size))
     if not has_layers(smap, LAYERS):
         # virtual maps: the box's texels summed here, normalised over the scene's depth
         # span (virtual_depth_scale; the map's own extremes change with the pages built)
@@ -96,7 +98,10 @@ def vsm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     **Filter region.** A box centred on the receiver's (normal-offset)
     projection whose width per axis is the camera pixel's footprint in
     texels or ``filter_size`` texels, whichever is larger
-    (:func:`~.common.prefilter_box`), clipped to the face. Its means
+    (:func:`~.common.prefilter_box`), narrowed symmetrically about the receiver
+    where it would cross the face's border (:func:`~.common.narrow_to_face`: a box cut
+    on one side has a mean depth off the receiver's on an inclined plane, which
+    shadowed open walls along cube seams). Its means
     ``M1 = E[z]`` and ``M2 = E[z^2]`` come from 16 gathers per table
     (:func:`~mi_shadowmap.depth_maps.box_mean`; texels count by their covered
     fraction): O(1) whatever the box size.

@@ -55,7 +55,7 @@ def chebyshev_upper_bound(m1, m2, t, min_variance: float = 0.0,
 def vsm_moments(smap, lk: Lookup, r, filter_size, active=True):
     """``(m1, m2, t, floor)``: the means of ``z`` and ``z^2`` over the lookup's filter box
     (:func:`~.common.prefilter_box`: the pixel footprint, at least
-    ``filter_size`` texels, clipped to the receiver's face) and the receiver's
+    ``filter_size`` texels, narrowed symmetrically to the receiver's face) and the receiver's
     biased depth ``t``, all in normalised depth (``mi.Float64``), and the factor on
     ``min_variance`` (1 on full maps; :func:`~.common.virtual_variance_factor` on
     virtual maps)."""

@@ -405,7 +405,8 @@ def open_wall_scene(width: int = 48) -> mi.Scene:
 
 
 @pytest.mark.parametrize("method,props", [
-    ("vsm", {"resolution": 512}), ("vsm", {"lod_bias": -2.0}), ("evsm", {"resolution": 512})])
+    ("vsm", {"resolution": 512}), ("vsm", {"lod_bias": -2.0}), ("evsm", {"resolution": 512}),
+    ("msm", {"resolution": 512, "receiver_plane": False})])
 def test_open_wall_is_lit_along_the_cube_seams(method, props):
     """An open wall under a point light is lit everywhere, as under ``hard``. The filter
     box was clipped to the receiver's cube face on one side only, so near a seam its mean
@@ -413,14 +414,17 @@ def test_open_wall_is_lit_along_the_cube_seams(method, props):
     along every seam, wider as the maps got finer (48^2 image: 281 pixels under 0.99 on
     512^2 maps, 55 on virtual maps at ``lod_bias=-2``, against hard's 1; now 1 and 1. The
     visibility RMSE of a point light in a room rose from 0.021 to 0.033 as ``resolution``
-    went 128 -> 512); ``evsm`` narrowed its box symmetrically already, as ``vsm`` now does."""
+    went 128 -> 512); ``evsm`` narrowed its box symmetrically already, as ``vsm`` and
+    ``msm`` now do (``msm`` without its receiver plane: 49 pixels under 0.9, now 1; its
+    tolerance of inclined receivers is lower, so it is held to 0.9 here)."""
     scene = open_wall_scene()
+    level = 0.9 if method == "msm" else 0.99
 
     def dim(**kw):
         _, v = render_np(scene, {"type": "shadowmap", **kw}, spp=4, seed=1)
-        return int((v["vis_light"] < 0.99).sum())
+        return int((v["vis_light"] < level).sum())
     hard, m = dim(method="hard", resolution=512), dim(method=method, **props)
-    print(f"{method} {props}: {m} pixels under 0.99, hard {hard}")
+    print(f"{method} {props}: {m} pixels under {level}, hard {hard}")
     assert m <= hard + 4
 
 

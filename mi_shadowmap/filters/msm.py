@@ -136,7 +136,10 @@ Deviations from the paper, and why:
   where ``B`` is singular): the receiver is compared with the box's mean
   depth instead of returning NaN.
 * *Cube maps* (point and area lights): each face has its own tables; the box
-  is clipped at the face's border (it does not continue across seams).
+  is narrowed symmetrically about the receiver at the face's border (it does not
+  continue across seams; :func:`~.common.narrow_to_face`: clipped on one side, its
+  mean left an inclined receiver's, and with ``receiver_plane = false`` an open wall
+  under a point light read below 0.9 along the seams, 49 of 48^2 pixels at 512^2).
 * *Build.* The tables are :func:`~mi_shadowmap.depth_maps.summed_area_table`'s
   (float64, O(texels)).
 * *Virtual maps* (``virtual=true``, the default): pages hold depths only; the four
@@ -155,7 +158,7 @@ import mitsuba as mi
 from ..depth_maps import box_mean, summed_area_table
 from ..methods import Method, Prop
 from .common import Lookup, antialiased, box_means_of_depths, has_layers, \
-    normalized_depth, plane_depth_at, prefilter_box, receiver, receiver_plane, \
+    narrow_to_face, normalized_depth, plane_depth_at, prefilter_box, receiver, receiver_plane, \
     span_layer, span_of, virtual_depth_scale, virtual_variance_factor
 
 #: The four moment layers (summed-area tables of u^1 .. u^4).
@@ -291,8 +294,8 @@ def msm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """Peters & Klein (2015) moment shadow mapping over the pixel's footprint.
 
     The box of :func:`~.common.prefilter_box` (the footprint, at least
-    ``filter_size`` texels wide), four float64 SAT box means of the moments,
-    the receiver depth normalised as the map's (and lowered half-way
+    ``filter_size`` texels wide, narrowed symmetrically to the face), four float64 SAT
+    box means of the moments, the receiver depth normalised as the map's (and lowered half-way
     to its tangent plane's minimum over the box with ``receiver_plane``), then the
     Hamburger reconstruction with ``moment_bias`` (see the module
     documentation). Visibility ``1 - G``; points outside the map are lit.
@@ -300,7 +303,7 @@ def msm(smap, lk: Lookup, opts, active=True) -> mi.Float:
     res = smap.resolution
     r = receiver(smap, lk, opts)
     act = mi.Bool(active) & r.inside
-    lo, hi = prefilter_box(smap, lk, r, opts.filter_size)
+    lo, hi = narrow_to_face(smap, r, *prefilter_box(smap, lk, r, opts.filter_size))
     full = has_layers(smap, MOMENT_LAYERS + (SPAN_LAYER,))
     # full maps: normalised over the map's own depth span (its layer); virtual maps: over
     # the scene's depth span (virtual_depth_scale), their box's texels summed here

@@ -17,7 +17,7 @@ import mi_shadowmap
 from mi_shadowmap import cli, harness, metrics
 from mi_shadowmap.scenes import default_scene
 from mi_shadowmap.tune import (METRICS, TuneError, format_result, integrator_xml,
-                               result_json, search_grid, tune)
+                               resolution_ladder, result_json, search_grid, tune)
 
 from conftest import SCENES
 
@@ -168,6 +168,45 @@ def test_search_grid_main_parameters_and_fallback():
     finally:
         mi_shadowmap.unregister_method("tune_test_filter")
     assert METRICS == cli.ERROR_COLUMNS
+
+
+def test_search_grid_searches_the_views_of_multiview_where_lights_have_extent():
+    """``multiview``'s light points K are its path to the converged soft shadow: the
+    search held them at the default 32, so on a fence under a rectangle light (64^2) a
+    budget of 0.006 was "met by no configuration (best 0.0085, multiview
+    resolution=512 spp=256)" while K = 128 met it (0.0052 at 192 spp, 128^2 maps). They
+    are searched where a light has extent: an area light, or a spec giving delta lights
+    a size; not under delta lights alone nor for an environment's regions."""
+    spec = harness.method_spec("multiview")
+    grid = search_grid([spec], 64, 64, area_lights=True)
+    assert sorted({g["views"] for g in grid}) == [32, 128, 512]
+    assert len(grid) == len(resolution_ladder(64, 64)) * 3
+    for area, sized in ((False, False), (True, False)):      # delta lights; environment
+        grid = search_grid([spec], 64, 64, area_lights=area, sized_lights=sized)
+        assert all("views" not in g for g in grid)
+    sized = harness.method_spec("multiview:light_size=0.2")
+    grid = search_grid([sized], 64, 64, area_lights=False)
+    assert sorted({g["views"] for g in grid}) == [32, 128, 512]
+    fixed = harness.method_spec("multiview:views=8")          # a fixed property stays
+    assert {g["views"] for g in search_grid([fixed], 64, 64, area_lights=True)} == {8}
+
+
+def test_search_grid_searches_env_lights_under_an_environment():
+    """The median-cut regions K of an environment are the maps' path to its converged
+    shadow: the search held them at the default 16, so for a ball on a plane under a
+    constant sky (64^2) ``tune(..., max_error=0.015, methods=["hard"])`` found "no
+    configuration (best 0.0236, hard resolution=128 spp=256)"; searching K = 16 / 64 it
+    picks ``hard env_lights=64 resolution=128 spp=3`` (0.0128). Searched only with an
+    environment and for the methods that read ``env_lights`` (not ``raytraced``)."""
+    specs = [harness.method_spec(m) for m in ("hard", "raytraced", "pcss:env_lights=4")]
+    grid = search_grid(specs, 64, 64, area_lights=True, sized_lights=False, environment=True)
+    hard = [g for g in grid if g["method"] == "hard"]
+    assert sorted({g["env_lights"] for g in hard}) == [16, 64]
+    assert len(hard) == len(resolution_ladder(64, 64)) * 2
+    assert all("env_lights" not in g for g in grid if g["method"] == "raytraced")
+    assert {g["env_lights"] for g in grid if g["method"] == "pcss"} == {4}   # fixed
+    grid = search_grid(specs, 64, 64, area_lights=True)      # area lights, no environment
+    assert all("env_lights" not in g for g in grid if g["method"] == "hard")
 
 
 def test_integrator_xml_is_typed():

@@ -57,7 +57,7 @@ Deviations from the paper and why:
   bigger ``resolution``, or a virtual map's finer level under a larger film or a
   closer camera), and a penumbra many pixels wide came out as ``hard``. Below
   ``KERNEL_REF_RES`` texels a face the cap is still ``max_kernel`` texels, a larger share
-  of the face, so it halves in world units from 256 to 512 texels: a fence 1.8 under a
+  of the face, so it halves in world units from 256 to 512 texels: a fence 1.8 high under a
   1.6-wide rectangle light 3 above the ground (64^2, 16 spp, 2 seeds) has RMSE
   0.025 at 256 and 0.047 at 512-1024 (its penumbrae span 1/4 of the face; ``max_kernel``
   128: 0.025). Not changed: ``KERNEL_REF_RES`` 256 gives that scene 0.024 but raises

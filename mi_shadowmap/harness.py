@@ -80,7 +80,9 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
     Everything is validated before the first render, but what depends on the scene's
     maps (a ``resolution`` whose maps exceed ``memory_budget``) fails at the method's
     render: the error (and a Ctrl-C) then carries the results rendered before it,
-    scored, as ``exc.compare_results`` (reference first), which the CLI writes.
+    scored, as ``exc.compare_results`` (reference first), which the CLI writes; an
+    error of the configuration (:class:`~mi_shadowmap.options.OptionError`, a
+    ``ValueError``) is raised itself, not the ``RuntimeError`` ``mi.render`` wraps it in.
     """
     methods = _method_list(methods)           # one method; an iterator read once, here
     check_run_args(methods=methods, spp=spp, seed=seed, repeats=repeats, ref_spp=ref_spp,
@@ -138,6 +140,13 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         except Exception:    # the error that stopped the comparison is the one to raise
             pass
         e.compare_results = results
+        root = root_error(e)
+        if root is not e and isinstance(root, (ValueError, TypeError)):
+            # mi.render wraps the integrator's error (a map over memory_budget) in a
+            # RuntimeError ("error while performing a custom differentiable operation");
+            # the error naming the property is raised, as render() raises it
+            root.compare_results = results
+            raise root from None
         raise
     _score(scored, ref)
     return results

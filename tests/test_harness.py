@@ -959,3 +959,18 @@ def test_a_methods_times_are_its_own_not_the_references():
     r = out[1]
     assert r.method == "hard"
     assert all(v < 100.0 for v in r.times.values()), r.times
+
+
+def test_compare_raises_the_error_naming_the_property_of_a_map_over_budget():
+    """A method whose maps exceed memory_budget fails at its render: compare raised
+    Mitsuba's ``RuntimeError`` ("drjit.custom(...): error while performing a custom
+    differentiable operation. (see above)"), which names no property and which an
+    ``except OptionError`` misses; ``render`` raised the ``OptionError`` already. Now
+    compare raises it too, with the results rendered before it."""
+    scene = harness.load_scene(ROOM, **SMALL)
+    with pytest.raises(OptionError, match=r"'resolution' = 8192.*memory_budget") as info:
+        harness.compare(scene, methods=["hard:resolution=64", "hard:resolution=8192"],
+                        spp=1, measure_cached=False)
+    done = info.value.compare_results
+    assert [r.name for r in done[1:]] == ["hard resolution=64"]
+    assert all(r.metrics for r in done)        # scored

@@ -415,16 +415,33 @@ def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
     with ``plane``, the receiver plane's depth along that texel's ray through
     its centre (:func:`plane_depth_at`, same biases, clamped by the tap's
     lateral distance from the receiver: ``lateral_texels``, default the
-    texel centre's distance).
+    texel centre's distance). On a virtual map a tap whose page is not built reads
+    the coarsest level, whose texel holds the depth along its own ray: it is compared
+    with the nearer of the plane's depths at the tap's texel and at that ray's point.
     """
     f2, i, j, inside = smap.view.tap_texel(face, xy_texel, smap.resolution, cross_seams)
-    z_map = smap.fetch(smap.depth, f2, i, j, active & inside)
+    centre = None
+    if plane is not None and hasattr(smap, "fetch_centre"):
+        # a virtual map: a tap whose page is not built reads the coarsest level, whose
+        # texel (2^k of this level's wide) holds the depth along its own centre's ray;
+        # the plane through the tap's texel put an open wall in false shadow along
+        # cube seams and page borders (pcf, 64^2, lod_bias -4: 2105 of 4096 pixels)
+        z_map, centre = smap.fetch_centre(smap.depth, f2, i, j, active & inside)
+    else:
+        z_map = smap.fetch(smap.depth, f2, i, j, active & inside)
     if plane is not None:
         res = smap.resolution
         uv_c = texel_sample_uv(mi.Point2f(i, j), res)
         if lateral_texels is None:
             lateral_texels = dr.norm(dr.floor(xy_texel) + 0.5 - r.uv * res)
         z = plane_depth_at(smap, plane, f2, uv_c, lateral_texels * r.texel_world)
+        if centre is not None:
+            # the nearer of the plane's depths at the tap and where the read texel's ray
+            # crossed it: an open wall is lit, and so is a concave corner the plane at the
+            # coarse texel's point alone put in shadow
+            zc = plane_depth_at(smap, plane, f2, centre * (1.0 / res),
+                                lateral_texels * r.texel_world)
+            z = dr.select(dr.isfinite(zc), dr.minimum(z, zc), z)
     else:
         z = r.depth
     return z_map, z, inside

@@ -14,6 +14,7 @@ import numpy as np
 from ..control_flow import if_stmt
 from ..methods import MethodError
 from ..light_views.local import LocalView
+from ..light_views.base import TEXEL_SAMPLE
 from .layout import ANISO, INVALID_SLOT, key_fields, padded_array
 from .store import PageStore
 from ..filters.common import BiasReach
@@ -485,10 +486,22 @@ class BoundVirtualMap:
         shift = mi.Int32(lay.coarsest) - mi.Int32(self.level)
         cx, cy = gx >> shift, gy >> shift
         coarse_idx = (mi.UInt32(face) + 1) * (P * P) + mi.UInt32(cy) * P + mi.UInt32(cx)
+        ts = mi.Point2f(*TEXEL_SAMPLE)           # where each texel's ray crosses it
+        self._read_centre = dr.select(
+            fine, mi.Point2f(li, lj) + ts,
+            (mi.Point2f(cx, cy) + ts) * dr.power(2.0, mi.Float(shift)) - mi.Point2f(v.origin))
         return dr.select(fine, fine_idx, coarse_idx)
 
     def fetch(self, layer, face, i, j, active=True):
         return dr.gather(mi.Float, layer, self._index(face, i, j), active)
+
+    def fetch_centre(self, layer, face, i, j, active=True):
+        """``(value, point)``: :meth:`fetch` and the point, in this lookup's local
+        texel coordinates, whose ray gave the texel it read (``TEXEL_SAMPLE``): in the
+        texel itself where its page is built, else in the coarsest level's texel that
+        holds it (2^k texels wide)."""
+        z = self.fetch(layer, face, i, j, active)
+        return z, self._read_centre
 
     def texel_index(self, face, uv):
         ij = mi.Point2i(dr.floor(uv * self.resolution))

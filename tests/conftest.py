@@ -116,6 +116,21 @@ def frosted_bulb_scene(dx: float = 0.0, size: int = 48):
                   "intensity": {"type": "rgb", "value": 3.0}}})
 
 
+def open_wall_scene(width: int = 48) -> mi.Scene:
+    """A wall with nothing in front of it, under a point light (id ``light``) 0.8 in
+    front: lit everywhere; the cube map's seams cross it where |x| or |y| = 0.8, at 45
+    degrees to the light."""
+    t = mi.ScalarTransform4f()
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 60,
+                   "to_world": t.look_at(origin=[0.3, 0.2, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": width, "height": width},
+                   "sampler": {"type": "independent"}},
+        "wall": {"type": "rectangle", "to_world": t.scale(2.5), "bsdf": {"type": "diffuse"}},
+        "light": {"type": "point", "id": "light", "position": [0, 0, 0.8]}})
+
+
 def root_message(exc) -> str:
     """mi.render wraps Python errors (dr.custom); the cause holds our message."""
     while exc.__cause__ is not None:

@@ -22,7 +22,7 @@ from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import default_scene
 
-from conftest import SCENES
+from conftest import SCENES, open_wall_scene
 
 VIRTUAL_METHODS = ["hard", "pcf", "bilinear", "pcss", "second_depth", "mdsm", "vsm", "evsm",
                    "msm"]
@@ -2617,20 +2617,6 @@ def test_a_batch_of_unlike_cameras_takes_each_cameras_footprints(partner):
         assert mis <= 0.006, method
 
 
-def _open_wall(width: int = 64) -> mi.Scene:
-    """A wall with nothing in front of it under a point light 0.8 in front: lit
-    everywhere; the cube map's seams cross it at 45 degrees to the light."""
-    t = mi.ScalarTransform4f()
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 60,
-                   "to_world": t.look_at(origin=[0.3, 0.2, 4], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": width, "height": width},
-                   "sampler": {"type": "independent"}},
-        "wall": {"type": "rectangle", "to_world": t.scale(2.5), "bsdf": {"type": "diffuse"}},
-        "light": {"type": "point", "position": [0, 0, 0.8]}})
-
-
 @pytest.mark.parametrize("props", [{"method": "pcf"}, {"method": "pcf", "lod_bias": -2.0},
                                    {"method": "pcf", "lod_bias": -4.0},
                                    {"method": "bilinear", "kernel": 8, "lod_bias": -4.0}])
@@ -2644,7 +2630,7 @@ def test_taps_on_the_coarsest_level_keep_an_open_wall_lit(props):
     with the nearer of the plane's depths at its texel and at the coarse texel's point:
     0 / 0 / 460 and 186 (a point light in a room: pcf's RMSE at lod_bias -4 0.054 ->
     0.047, at -0.5 unchanged)."""
-    scene = _open_wall()
+    scene = open_wall_scene(64)
     img = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "shadowmap",
                                                                 **props}), spp=4, seed=1))
     dim = int((img[..., -1] < 0.99).sum())

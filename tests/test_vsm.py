@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import SCENE_FILES, full_map_scenes, SCENES, render_np
+from conftest import SCENE_FILES, full_map_scenes, SCENES, open_wall_scene, render_np
 from mi_shadowmap import methods, metrics
 from mi_shadowmap.depth_maps import ShadowMap, build_layer, summed_area_table as shared_sat
 from mi_shadowmap.filters import vsm as vsm_module
@@ -388,20 +388,6 @@ def test_full_maps_keep_the_shadows_of_a_spot_far_away(props):
     relative to twice the largest depth (sigma_min 6 units). Normalised over the map's
     own depth span: 0.20 %, no false lit."""
     assert_far_spot_keeps_shadows("vsm", props)
-
-
-def open_wall_scene(width: int = 48) -> mi.Scene:
-    """A wall with nothing in front of it, under a point light 0.8 in front: the cube
-    map's seams cross it where |x| or |y| = 0.8, at 45 degrees to the light."""
-    t = mi.ScalarTransform4f()
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 60,
-                   "to_world": t.look_at(origin=[0.3, 0.2, 4], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": width, "height": width},
-                   "sampler": {"type": "independent"}},
-        "wall": {"type": "rectangle", "to_world": t.scale(2.5), "bsdf": {"type": "diffuse"}},
-        "light": {"type": "point", "id": "light", "position": [0, 0, 0.8]}})
 
 
 @pytest.mark.parametrize("method,props", [

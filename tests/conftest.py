@@ -131,6 +131,24 @@ def open_wall_scene(width: int = 48) -> mi.Scene:
         "light": {"type": "point", "id": "light", "position": [0, 0, 0.8]}})
 
 
+def own_and_widest_marks(monkeypatch, light: str, props: dict) -> tuple:
+    """The last AOV (visibility) of the built-in scene under ``light`` at 64^2, 2 spp,
+    rendered with ``props`` (maps built every frame) twice: with the method's own
+    virtual margin, then with marks as wide as the 2 x 2 pages a lookup binds (margin 14
+    at page size 32). Equal where the method's margin covers what it reads."""
+    from mi_shadowmap.scenes import default_scene
+    from mi_shadowmap.virtual import planner
+    scene = mi.load_dict(default_scene(width=64, height=64, spp=2, light=light))
+    props = {"type": "shadowmap", **props, "cache_maps": False}
+
+    def vis():
+        return np.asarray(mi.render(scene, integrator=mi.load_dict(props), spp=2,
+                                    seed=1))[..., -1]
+    own = vis()
+    monkeypatch.setattr(planner, "virtual_margin_of", lambda record, opts, view: 14.0)
+    return own, vis()
+
+
 def root_message(exc) -> str:
     """mi.render wraps Python errors (dr.custom); the cause holds our message."""
     while exc.__cause__ is not None:

@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import SCENE_FILES, frosted_bulb_scene, render_np, vis_stack
+from conftest import SCENE_FILES, frosted_bulb_scene, own_and_widest_marks, render_np, vis_stack
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
 from mi_shadowmap import methods
@@ -518,17 +518,7 @@ def test_virtual_marks_cover_the_scaled_region(light, monkeypatch):
     2 x 2 pages a lookup binds (margin 14 at page size 32), as for mdsm's windows
     (tests/test_mdsm.py). Mutation audit: the margin without its ``res_factor`` term
     survived every test."""
-    from mi_shadowmap.scenes import default_scene
-    from mi_shadowmap.virtual import planner
-    scene = mi.load_dict(default_scene(width=64, height=64, spp=2, light=light))
-    props = {"type": "shadowmap", "method": "pcf", "res_factor": 2.5, "sampling": "regular",
-             "cache_maps": False}
-
-    def vis():
-        return np.asarray(mi.render(scene, integrator=mi.load_dict(props), spp=2,
-                                    seed=1))[..., -1]
-    own = vis()
-    monkeypatch.setattr(planner, "virtual_margin_of", lambda record, opts, view: 14.0)
-    wide = vis()
+    own, wide = own_and_widest_marks(monkeypatch, light, {"method": "pcf", "res_factor": 2.5,
+                                                          "sampling": "regular"})
     print("pixels that differ:", int(np.sum(own != wide)))
     assert np.array_equal(own, wide)

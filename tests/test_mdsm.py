@@ -18,7 +18,7 @@ from mi_shadowmap.metrics import dilate, distinct_levels, misclassified, rmse
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import camera
 
-from conftest import SCENE_FILES, render_np, vis_stack
+from conftest import SCENE_FILES, own_and_widest_marks, render_np, vis_stack
 
 T = mi.ScalarTransform4f
 DIFFUSE = {"type": "diffuse"}
@@ -285,18 +285,8 @@ def test_virtual_marks_cover_every_window_a_wide_search_reads(light, monkeypatch
     as the 2 x 2 pages a lookup binds (margin 14 at page size 32). Without the windows'
     radius in the margin (mutation audit) 1-2 pixels of a 64^2 view read tiles that were
     not cast, at ``search`` 9."""
-    from mi_shadowmap.scenes import default_scene
-    from mi_shadowmap.virtual import planner
-    scene = mi.load_dict(default_scene(width=64, height=64, spp=2, light=light))
-    props = {"type": "shadowmap", "method": "mdsm", "depths": 3, "search": 9,
-             "cache_maps": False}
-
-    def vis():
-        return np.asarray(mi.render(scene, integrator=mi.load_dict(props), spp=2,
-                                    seed=1))[..., -1]
-    own = vis()
-    monkeypatch.setattr(planner, "virtual_margin_of", lambda record, opts, view: 14.0)
-    wide = vis()
+    own, wide = own_and_widest_marks(monkeypatch, light,
+                                     {"method": "mdsm", "depths": 3, "search": 9})
     assert np.array_equal(own, wide)
 
 

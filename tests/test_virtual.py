@@ -313,15 +313,18 @@ def test_virtual_maps_agree_with_raytracing(light, method):
         assert virt <= max(1.5 * full, full + 0.004)
 
 
-def boxed_light_scene(light_y: float = 1.1):
+def boxed_light_scene(light_y: float = 1.1, orthographic: bool = False):
     """A closed unit cube floating 0.1 over a wide floor (y = 0.95), a point light inside
     it 0.05 over its bottom wall: nothing outside the cube is lit, and the light grazes
     the floor (tan(theta) of 3 to 20 and more, the cube's walls 0.5 from the light and
-    the floor behind them 1-3 away)."""
+    the floor behind them 1-3 away). ``orthographic``: the same view through an
+    orthographic camera 12 units wide."""
+    to_world = T().look_at(origin=[8, 5, 10], target=[0, 1, 0], up=[0, 1, 0])
+    sensor = ({"type": "orthographic", "to_world": to_world @ T().scale([6, 6, 1])}
+              if orthographic else {"type": "perspective", "fov": 50, "to_world": to_world})
     return mi.load_dict({
         "type": "scene",
-        "sensor": {"type": "perspective", "fov": 50,
-                   "to_world": T().look_at(origin=[8, 5, 10], target=[0, 1, 0], up=[0, 1, 0]),
+        "sensor": {**sensor,
                    "film": {"type": "hdrfilm", "width": 64, "height": 64,
                             "rfilter": {"type": "box"}}},
         "floor": {"type": "rectangle",
@@ -350,6 +353,43 @@ def test_a_light_grazing_the_floor_from_a_floating_box_lights_none_of_it(method)
           f"{integ.stats.level_histogram}, texels {integ.stats.texels_built}")
     assert lit_full == 0
     assert lit_virt <= 2
+
+
+def test_an_orthographic_view_of_the_boxed_light_finds_its_capped_level_built():
+    """Under an orthographic camera the boxed light's floor has footprints 1.4 x 54 texels
+    wide at the level the biases chose (:meth:`VirtualShadowMap.level_for`), long along
+    the light's direction, and the next row's pixel centres 27 texels away along it: the
+    mark pass marked 4 texels around each point (:data:`marks.MAX_SPREAD`, then) and left
+    gaps between rows where no level near the wanted one was built; 0.17 % of the floor's
+    samples walked to the coarsest level and ``hard`` lit 9 pixels of 4096 (full maps 0).
+    Marking each capped pixel's footprint box: 0 lit, no sample walking more than one
+    level coarser."""
+    from mi_shadowmap.filters.common import Lookup
+    scene = boxed_light_scene(orthographic=True)
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis = vis_of(scene, integ)
+    lit = int(np.sum(vis >= 0.5))
+    vmap = integ.maps[0]
+    sensor = scene.sensors()[0]
+    idx = dr.arange(mi.UInt32, 64 * 64)
+    n = far = 0
+    for off in [(0.04, 0.02), (0.81, 0.91), (0.61, 0.73), (0.5, 0.05), (0.05, 0.5),
+                (0.95, 0.95)]:
+        pos = mi.Point2f((mi.Float(idx % 64) + off[0]) / 64, (mi.Float(idx // 64) + off[1]) / 64)
+        ray, _ = sensor.sample_ray_differential(0.0, 0.5, pos, mi.Point2f(0.5))
+        si = scene.ray_intersect(ray)
+        dp_dx, dp_dy = integ._footprint(ray, si)
+        p64 = mi.Point3d(si.p)
+        want = vmap.level_for(vmap.view.project_f64(p64)[0], p64, dp_dx, dp_dy, si.n).numpy()
+        lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, None, None)
+        got = vmap.bind(lk, si.is_valid(), per_tap=False).level.numpy()
+        floor = (si.is_valid() & (si.p.y < 1.0)).numpy()
+        n += floor.sum()
+        far += np.sum(floor & (got > want + 1))
+    print(f"{lit} lit; {far} of {n} samples walked more than one level coarser; texels "
+          f"{integ.stats.texels_built}")
+    assert n > 10000 and far <= 0.0002 * n
+    assert lit == 0
 
 
 @pytest.mark.parametrize("method, lod_bias", [("hard", -4), ("hard", -2), ("pcf", -4)])
@@ -487,7 +527,7 @@ def test_a_hard_lookup_chooses_its_level_once(monkeypatch):
 def test_the_mark_pass_dedupes_one_block_list_per_light(monkeypatch):
     """The mark pass folds its blocks' shapes into their keys (:func:`marks.mark_blocks`
     with :func:`marks.shape_bits`): one candidate list a light for ``hard``, where the
-    biases' spread made 9 (3 x 3 shapes; 4 without the biases), and the same marked tiles
+    biases' spread made 81 (9 x 9 shapes; 4 without the biases), and the same marked tiles
     as the lists of every shape (the boxed light's floor, most of its points capped)."""
     groups = []
     real = planner.dedupe_many
@@ -505,7 +545,7 @@ def test_the_mark_pass_dedupes_one_block_list_per_light(monkeypatch):
         integ = shadowmap(method="hard", virtual=True, cache_maps=False)
         vis_of(scene, integ, spp=1)
         marked.append(np.asarray(integ.maps[0].store.last_mark[1]))
-    assert groups == [1, 9]
+    assert groups == [1, 81]
     assert len(marked[0]) > 100 and np.array_equal(marked[0], marked[1])
 
 

@@ -21,8 +21,9 @@ a texel is 0.35-0.7 footprint wide; finer where the light grazes the receiver, s
 the texel-scaled receiver biases lose an occluder's shadow over at most
 ``REACH_PIXELS`` footprints along it) and marks the tiles its lookup reads: those
 within the method's ``virtual_margin`` (its kernel's half-width) plus one texel
-(camera samples off the pixel centre) of it, or, on such a finer level, plus up to
-``MAX_SPREAD`` texels (where the pixel's samples read). Kernels up to ``page_size / 2``
+(camera samples off the pixel centre) of it, or, on such a finer level, at least the
+pixel's footprint box up to ``MAX_SPREAD`` texels from it (where the pixel's samples
+read). Kernels up to ``page_size / 2``
 texels stay inside the 2 x 2 pages a lookup binds (below); the taps of a wider kernel
 read their own pages through the page table (:attr:`VirtualShadowMap.far_taps`). A
 method whose kernels may filter coarser levels (``virtual_coarse_res``: a PCSS penumbra

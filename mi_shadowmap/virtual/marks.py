@@ -18,8 +18,20 @@ from .lookup import VirtualShadowMap, effective_lod_bias
 
 #: Texels from its point up to which a point whose level the receiver biases chose finer
 #: than its footprint's marks the tiles its pixel's samples read there
-#: (:meth:`VirtualShadowMap.level_for`); farther ones are marked by neighbouring points.
-MAX_SPREAD = 4.0
+#: (:meth:`VirtualShadowMap.level_for`): the pixel's footprint box at that level, whose
+#: half-width is the point's ``spread``. The neighbouring points do not fill in beyond
+#: it: a footprint the light grazes is long and thin in the map, and along its long axis
+#: the next pixel's centre is a whole footprint (``2 spread``) away. Marked up to 4
+#: texels (then the method's margin), the boxed light of ``tests/test_virtual.py`` under
+#: an orthographic camera (footprints 1.4 x 54 texels at the capped level, rows 27 texels
+#: apart) left gaps between rows where no level near the wanted one was built: 0.17 % of
+#: the floor's samples walked to the coarsest level and ``hard`` lit 9 pixels of 4096 (a
+#: perspective view 0.08 %, 1 pixel); marked up to 32, 0 and 0 (0.02 % of the
+#: perspective view's samples, whose level is finer than their pixel centre's), for 8.5 %
+#: and 7 % more texels. 32 (a page of the default 32^2) bounds a block's side (9 tiles of
+#: 8, 4 bits a side in its key, :func:`shape_bits`; the orthographic view's spreads reach
+#: 52, 99 % of them below 30).
+MAX_SPREAD = 32.0
 
 
 #: The mark pass of a camera with a lens (``thinlens``, ``aperture_radius`` > 0) traces
@@ -107,7 +119,9 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     texels around it (the method's kernel, plus half a pixel at the level's lower end for
     camera samples off the pixel centre: one texel at the default ``lod_bias``), capped at
     ``page_size / 2`` texels (what :meth:`VirtualShadowMap.bind`'s 2 x 2 pages serve):
-    ``ceil(2 m / tile_size) + 1`` tiles per axis at most (2 x 2 for ``hard``'s kernel).
+    ``ceil(2 m / tile_size) + 1`` tiles per axis at most (2 x 2 for ``hard``'s kernel);
+    where the receiver biases chose a level finer than the footprint's, at least the
+    pixel's footprint box there, up to :data:`MAX_SPREAD` texels.
     A wider tap (PCSS's kernel up to ``max_kernel / 2``) reads its own page through the
     page table (:meth:`BoundVirtualMap._index`), which the neighbouring points marked
     where the surface goes on, else the coarsest level. (Marking the whole kernel
@@ -146,14 +160,17 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> t
     m = min(float(margin) + off, 0.5 * P)
     if getattr(vmap_like, "reach", None) is not None:
         # a point whose level the biases made finer than its footprint's (level_for):
-        # its pixel's samples read up to ``spread`` texels from it, marked up to
-        # MAX_SPREAD (the blocks' size is fixed: a camera move compiles nothing)
+        # its pixel's samples read anywhere in its footprint's box, ``spread`` texels
+        # from it, marked up to MAX_SPREAD (the blocks' size is fixed: a camera move
+        # compiles nothing). The samples' kernels reaching beyond the box read the
+        # neighbouring pixels' boxes, which those mark; the kernel around the point
+        # itself, as everywhere.
         spread = dr.minimum(points[4], MAX_SPREAD)
-        m_lane = mi.Point2d(dr.minimum(float(margin) + dr.maximum(off, spread), 0.5 * P))
-        m = min(float(margin) + max(off, MAX_SPREAD), 0.5 * P)
+        m_lane = mi.Point2d(dr.maximum(m, spread))
+        m = max(m, MAX_SPREAD)
     else:
         m_lane = m
-    per_axis = min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
+    per_axis = int(math.ceil(2.0 * m / T)) + 1
     res = mi.Float64(mi.UInt32(lay.res0) >> level)
     xy = uv64 * res
     n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1) \
@@ -178,7 +195,7 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
     ``bits`` bits of its key's tile coordinates, read back by :func:`expand_blocks` with
     the same ``bits``. The ``per_axis^2`` lists were as many hash tables and scatters a
     point in every round of :func:`dedupe_many` (9 for ``hard`` with the biases' marks of
-    :data:`MAX_SPREAD` texels): on a camera move at 256^2 the dedupe kernels took 1.67 ->
+    4 texels, 81 with :data:`MAX_SPREAD`): on a camera move at 256^2 the dedupe kernels took 1.67 ->
     0.63 ms on large_world, 3.19 -> 0.51 ms on cbox_area (``pcss``: 8.05 -> 1.37 ms),
     5.09 -> 1.14 ms on room_two_points (medians of 10 moves each, interleaved)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
@@ -207,9 +224,10 @@ def block_axis(vmap_like, margin: float) -> int:
     lay = vmap_like.layout
     T, P = lay.tile_size, lay.page_size
     off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
-    extra = max(off, MAX_SPREAD) if getattr(vmap_like, "reach", None) is not None else off
-    m = min(float(margin) + extra, 0.5 * P)
-    return min(int(math.ceil(2.0 * m / T)) + 1, P // T + 1)
+    m = min(float(margin) + off, 0.5 * P)
+    if getattr(vmap_like, "reach", None) is not None:
+        m = max(m, MAX_SPREAD)
+    return int(math.ceil(2.0 * m / T)) + 1
 
 
 def shape_bits(layout, per_axis: int):

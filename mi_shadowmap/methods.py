@@ -194,6 +194,14 @@ class Method:
       tiles within ``virtual_margin`` of it on those levels too (at most
       :data:`~mi_shadowmap.virtual.MAX_COARSER` of them; ``pcss``). None (default): its
       own level only;
+    * ``virtual_edge`` -- ``fn(opts) -> texels``: how far across the light's rays the
+      lookup may misplace an occluder's edge on the receiver where no texel-scaled
+      receiver bias accounts for it (``second_depth``: half a texel, where the lit
+      fraction of its virtual samples crosses 1/2). Where the light grazes the receiver
+      that is ``1 / cos(theta)`` times as far along it, and a virtual map's level is kept
+      fine enough that it stays within ``REACH_PIXELS`` pixel footprints
+      (:class:`~mi_shadowmap.filters.common.BiasReach`). None (default): the receiver
+      biases' reach alone;
     * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
       slot from the page table (cheapest for a lookup that reads a texel or two, as
       ``hard`` does) instead of the 2 x 2 pages' four slots once per lookup (default:
@@ -223,6 +231,7 @@ class Method:
     virtual: bool = False
     virtual_margin: Callable | None = None
     virtual_coarse_res: Callable | None = None
+    virtual_edge: Callable | None = None
     virtual_per_tap: bool = False
     builtin: bool = False
 
@@ -306,7 +315,8 @@ def _check_record(m: Method) -> None:
                               f"False, got {getattr(m, flag)!r}")
     for name, sig in (("finalize", "fn(values, given) -> None"),
                       ("layers_for", "fn(opts) -> layer names"),
-                      ("virtual_coarse_res", "fn(opts, view) -> int or None")):
+                      ("virtual_coarse_res", "fn(opts, view) -> int or None"),
+                      ("virtual_edge", "fn(opts) -> texels")):
         if getattr(m, name) is not None and not callable(getattr(m, name)):
             raise MethodError(f"register_method('{m.name}'): {name} must be callable "
                               f"{sig} or None, got {getattr(m, name)!r}")
@@ -424,6 +434,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     view_properties=(), whole_light: bool = False, virtual: bool = False,
                     virtual_margin: Callable | None = None, virtual_per_tap: bool = False,
                     virtual_coarse_res: Callable | None = None,
+                    virtual_edge: Callable | None = None,
                     needs_curvature: bool = False, replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
@@ -436,7 +447,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
     ``needs_curvature``, ``view_properties``, ``virtual``, ``virtual_margin``,
-    ``virtual_coarse_res`` and ``virtual_per_tap``: see
+    ``virtual_coarse_res``, ``virtual_edge`` and ``virtual_per_tap``: see
     :class:`Method` (a
     lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
@@ -476,7 +487,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     finalize=finalize, view_for=view_for,
                     view_properties=tuple(view_properties or ()), whole_light=whole_light,
                     virtual=virtual, virtual_margin=virtual_margin,
-                    virtual_coarse_res=virtual_coarse_res,
+                    virtual_coarse_res=virtual_coarse_res, virtual_edge=virtual_edge,
                     virtual_per_tap=virtual_per_tap)
     return add(record, replace=replace)
 

@@ -126,21 +126,27 @@ GRAZING_OFFSET = 0.5
 class BiasReach:
     """The texel-scaled receiver biases of :func:`receiver` (texels), for what they hide:
     ``normal`` (``normal_bias``), ``slope`` (``slope_bias``), ``grazing`` (the normal
-    offset where the slope bias is clamped) and ``max_tan`` (``max_tan_slope``)."""
+    offset where the slope bias is clamped) and ``max_tan`` (``max_tan_slope``); and
+    ``edge``, the method's ``virtual_edge`` (texels; 0 without one): how far across the
+    light's rays its compares may misplace an occluder's edge on the receiver."""
     normal: float
     slope: float
     grazing: float
     max_tan: float
+    edge: float = 0.0
 
     @staticmethod
     def of(opts) -> "BiasReach | None":
-        """The biases ``opts`` give :func:`receiver`; None where it adds none that scales
-        with the texel (then nothing is hidden that a finer level would show)."""
+        """The biases ``opts`` give :func:`receiver` and its method's ``virtual_edge``;
+        None where neither scales with the texel (then nothing is lost that a finer level
+        would keep)."""
         nb, sb = float(opts.normal_bias_texels), float(opts.slope_bias_texels)
-        if nb <= 0.0 and sb <= 0.0:
+        fn = getattr(getattr(opts, "record", None), "virtual_edge", None)
+        edge = max(float(fn(opts)), 0.0) if fn is not None else 0.0
+        if nb <= 0.0 and sb <= 0.0 and edge <= 0.0:
             return None
         return BiasReach(nb, sb, max(nb, GRAZING_OFFSET) if sb > 0 else nb,
-                         float(opts.max_tan_slope))
+                         float(opts.max_tan_slope), edge)
 
     def texels(self, cos_nl, sin_nl):
         """How far along the receiver (in texels of the lookup's level) the biases of
@@ -154,12 +160,26 @@ class BiasReach:
         receiver is not seen. Its shadow falls ``tan(theta)`` times its height further
         along the receiver, away from the light: that many texels of receiver are wrongly
         lit behind it (``tan`` clamped at ``max_tan``, as the bias is). The constant
-        ``bias`` (world units) is not counted: no level makes it smaller."""
+        ``bias`` (world units) is not counted: no level makes it smaller.
+
+        ``edge`` texels across the light's rays are ``edge / cos(theta)`` texels along the
+        receiver (``tan`` clamped at ``max_tan`` here too: a receiver the light grazes
+        closer gets the level of ``max_tan``): a lookup whose compares place an
+        occluder's edge within ``edge`` texels of the map (``second_depth``: the lit
+        fraction of its virtual samples, Wang & Molnar 1994, sec. 3.2, crosses 1/2 within
+        half a texel of it) moves that shadow's edge over as much of the receiver, and
+        loses a lit gap between an occluder and the receiver narrower than that (the
+        paper's under-sampling, sec. 5: "the only solution is to increase the size of the
+        depth map"; this is how much larger where the light grazes)."""
         tan = sin_nl / dr.maximum(cos_nl, 1e-6)
         clamped = tan > self.max_tan
         height = dr.select(clamped, self.grazing + self.slope * self.max_tan * cos_nl,
                           self.normal * cos_nl + self.slope * sin_nl)
-        return height * dr.minimum(tan, self.max_tan)
+        tan_c = dr.minimum(tan, self.max_tan)
+        r = height * tan_c
+        if self.edge > 0.0:
+            r += self.edge * dr.sqrt(1.0 + tan_c * tan_c)
+        return r
 
 
 def receiver(smap, lk: Lookup, opts) -> Receiver:

@@ -127,6 +127,16 @@ Deviations from the paper, and why:
   (measured in ``tests/test_second_depth.py``).
 * **Off-map / face borders.** Lookups outside the map are lit; taps are
   clamped to the receiver's face (cube-map seams are not crossed).
+* **Virtual maps where the light grazes the receiver.** The paper's answer to
+  under-sampling (an occluder's edge, or a gap between occluder and receiver, finer
+  than the map's samples; sec. 5) is a larger map. Virtual maps choose a level per
+  pixel footprint, and their anisotropy clamp leaves texels many footprints long along
+  a receiver the light grazes; the lit fraction of the virtual samples places an edge
+  within half a texel of the map, ``1 / cos(theta)`` times that along the receiver, so
+  the method's ``virtual_edge`` (0.5 texel) keeps that within ``REACH_PIXELS`` pixel
+  footprints as the other methods' texel-scaled biases do
+  (:class:`~.common.BiasReach`). A floor lit through the 0.1-high gap under a cube by a
+  light 0.2 over it: 132 of 4096 pixels misclassified, now 4 (full maps 57).
 * ``virtual_samples=false`` skips step 3 (plain percentage-closer
   filtering of the second depths): used to show the paper's Figure 7
   failure on thin objects.
@@ -316,5 +326,6 @@ METHOD = Method(
     layers={"second_depth": second_depth_layer},
     bias_defaults={"slope_bias": 0.0, "normal_bias": 0.0},
     virtual_margin=lambda o: 2.0 + 0.5 * math.isqrt(o.pcf_samples),
+    virtual_edge=lambda o: 0.5,
     needs_curvature=True, virtual=True, builtin=True,
 )

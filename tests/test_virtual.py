@@ -2597,6 +2597,37 @@ def test_mark_blocks_give_the_candidate_tiles(margin, fold):
         assert len(want) > 100 and np.array_equal(got, want)
 
 
+def test_dilate_tiles_adds_every_tile_within_the_margin_inside_its_level():
+    """:func:`marks.dilate_tiles` (vectorised over its offsets): each tile and those
+    within ``ceil((margin + 1) / tile_size)`` tiles of it on its own level, clipped at the
+    level's grid (0 and its last tile, whose grid a coarse level's single page bounds),
+    sorted and distinct, as a loop over tiles and offsets gives them."""
+    class View:
+        n_faces = 6
+    rng = np.random.default_rng(8)
+    for res0, P, margin in [(1 << 12, 32, 0.0), (1 << 12, 32, 9.5), (1 << 20, 32, 34.0),
+                            (256, 8, 3.0), (1 << 10, 64, 20.0)]:
+        lay = layout.VirtualLayout(View(), P, res0, 0.0)
+        n = 300
+        lev = rng.integers(0, lay.coarsest + 1, n)
+        side = np.maximum(lay.pages_per_side(0) >> lev, 1) * lay.tiles_per_side
+        tx = (rng.random(n) * side).astype(np.int64)
+        ty = np.where(rng.random(n) < 0.3, side - 1, (rng.random(n) * side).astype(np.int64))
+        tx[:40] = 0                                           # at the grid's edges
+        face = rng.integers(0, 6, n)
+        keys = layout.page_key(face.astype(np.uint64), lev.astype(np.uint64),
+                               tx.astype(np.uint64), ty.astype(np.uint64))
+        r = int(np.ceil((margin + 1.0) / lay.tile_size))
+        want = {(int(f), int(lv), x, y)
+                for f, lv, a, b, s in zip(face, lev, tx, ty, side)
+                for x in range(a - r, a + r + 1) for y in range(b - r, b + r + 1)
+                if 0 <= x < s and 0 <= y < s}
+        want = np.sort(np.array([int(layout.page_key(*t)) for t in want], np.uint64))
+        got = marks.dilate_tiles(keys, lay, margin)
+        assert got.dtype == np.uint64 and np.array_equal(got, want)
+    assert len(marks.dilate_tiles(np.zeros(0, np.uint64), lay, 2.0)) == 0
+
+
 def test_share_pages_splits_what_is_left_evenly_after_needs_and_held_pages():
     """``planner.share_pages`` (docstring): everything fits -> each map gets its need, then
     the slots it holds already, then the rest evenly; it does not -> the maps below a

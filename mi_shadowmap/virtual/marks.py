@@ -327,22 +327,24 @@ def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
 
 def dilate_tiles(keys: np.ndarray, layout, margin: float) -> np.ndarray:
     """Tile keys ``keys`` and those within ``margin + 1`` texels of them on their level,
-    sorted, distinct."""
+    sorted, distinct. Every offset at once (a key times offset grid: a loop of one
+    selection per offset took 3.3 ms for the 506 tiles of a 256^2 cbox_area ``pcss``
+    frame, margin 34 texels: 121 offsets; 1.6 ms now, most of it the sort)."""
     keys = sorted_unique(keys)
     if len(keys) == 0:
         return keys
     T = layout.tile_size
     r = int(math.ceil((float(margin) + 1.0) / T))
     face, level, tx, ty = (f.astype(np.int64) for f in key_fields(keys))
-    n = np.maximum(layout.pages_per_side(0) >> level, 1) * layout.tiles_per_side
-    out = []
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            x, y = tx + dx, ty + dy
-            ok = (x >= 0) & (y >= 0) & (x < n) & (y < n)
-            out.append(page_key(face[ok].astype(np.uint64), level[ok].astype(np.uint64),
-                                x[ok].astype(np.uint64), y[ok].astype(np.uint64)))
-    return sorted_unique(np.concatenate(out).astype(np.uint64))
+    n = (np.maximum(layout.pages_per_side(0) >> level, 1) * layout.tiles_per_side)[:, None]
+    d = np.arange(-r, r + 1)
+    x = tx[:, None] + np.repeat(d, len(d))[None, :]
+    y = ty[:, None] + np.tile(d, len(d))[None, :]
+    ok = (x >= 0) & (y >= 0) & (x < n) & (y < n)
+    # the face's and level's bits, then the tile's (within its level's grid: in range)
+    fl = (keys & ~np.uint64((1 << 54) - 1))[:, None]
+    out = fl | (x.astype(np.uint64) << np.uint64(27)) | y.astype(np.uint64)
+    return sorted_unique(out[ok])
 
 
 def tile_pages(tiles: np.ndarray, layout) -> tuple:

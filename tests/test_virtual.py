@@ -2628,6 +2628,44 @@ def test_dilate_tiles_adds_every_tile_within_the_margin_inside_its_level():
     assert len(marks.dilate_tiles(np.zeros(0, np.uint64), lay, 2.0)) == 0
 
 
+def test_tile_pages_gives_each_page_of_the_tiles_with_its_tile_mask():
+    """:func:`marks.tile_pages` (a sort of the pages' keys and a reduction over their
+    runs): the distinct pages of tile keys, sorted, each with the bits of its tiles
+    (``tx + ty * tiles_per_side`` within the page), as a loop over the tiles gives them;
+    for sorted and unsorted tiles, repeated ones, every face and level, and none."""
+    class View:
+        n_faces = 6
+    rng = np.random.default_rng(11)
+    for res0, P in [(1 << 12, 32), (1 << 20, 32), (256, 8), (1 << 10, 64)]:
+        lay = layout.VirtualLayout(View(), P, res0, 0.0)
+        S = lay.tiles_per_side
+        n = 2000
+        lev = rng.integers(0, lay.coarsest + 1, n)
+        side = np.maximum(lay.pages_per_side(0) >> lev, 1) * S
+        # clustered (most pages hold several tiles) and anywhere on the level
+        near = rng.random(n) < 0.8
+        tx = np.where(near, rng.integers(0, 3 * S, n) % side, (rng.random(n) * side)
+                      .astype(np.int64))
+        ty = np.where(near, rng.integers(0, 3 * S, n) % side, (rng.random(n) * side)
+                      .astype(np.int64))
+        face = rng.integers(0, 6, n)
+        keys = layout.page_key(face.astype(np.uint64), lev.astype(np.uint64),
+                               tx.astype(np.uint64), ty.astype(np.uint64))
+        want = {}
+        for f, lv, x, y in zip(face, lev, tx, ty):
+            k = int(layout.page_key(int(f), int(lv), int(x) // S, int(y) // S))
+            want[k] = want.get(k, 0) | (1 << (int(x) % S + (int(y) % S) * S))
+        pages = np.array(sorted(want), np.uint64)
+        masks = np.array([want[int(k)] for k in pages], np.int64)
+        for tiles in (keys, np.sort(keys), np.unique(keys)):
+            got_pages, got_masks = marks.tile_pages(tiles, lay)
+            assert got_pages.dtype == np.uint64 and got_masks.dtype == np.int64
+            assert np.array_equal(got_pages, pages) and np.array_equal(got_masks, masks)
+        assert S == 1 or len(pages) < len(np.unique(keys))     # pages of several tiles
+    got_pages, got_masks = marks.tile_pages(np.zeros(0, np.uint64), lay)
+    assert len(got_pages) == 0 and len(got_masks) == 0 and got_masks.dtype == np.int64
+
+
 def test_share_pages_splits_what_is_left_evenly_after_needs_and_held_pages():
     """``planner.share_pages`` (docstring): everything fits -> each map gets its need, then
     the slots it holds already, then the rest evenly; it does not -> the maps below a

@@ -375,15 +375,24 @@ def dilate_tiles(keys: np.ndarray, layout, margin: float) -> np.ndarray:
 def tile_pages(tiles: np.ndarray, layout) -> tuple:
     """``(pages, masks)``: the distinct page keys of tile keys ``tiles`` (sorted) and
     each page's tile mask (bit ``tx + ty * tiles_per_side`` for tile ``(tx, ty)`` of
-    the page)."""
+    the page). By a sort of the pages' keys and one ``np.bitwise_or.reduceat`` over their
+    runs (``np.unique(return_inverse=True)``, which hashes in numpy 2.4, and
+    ``np.bitwise_or.at`` took 0.29 ms for the 3.4 k tiles of a 256^2 large_world camera
+    move, 0.42-0.48 ms for each light of room_two_points' 5-6 k; this 0.17 and 0.23-0.27
+    ms)."""
     S = np.uint64(layout.tiles_per_side)
     face, level, tx, ty = key_fields(np.asarray(tiles, np.uint64))
     pk = page_key(face, level, tx // S, ty // S)
-    pages, inv = np.unique(pk, return_inverse=True)
-    masks = np.zeros(len(pages), np.int64)
-    np.bitwise_or.at(masks, inv.reshape(-1), np.int64(1) << (tx % S + (ty % S) * S)
-                     .astype(np.int64))
-    return pages, masks
+    if len(pk) == 0:
+        return pk, np.zeros(0, np.int64)
+    bit = np.int64(1) << (tx % S + (ty % S) * S).astype(np.int64)
+    order = np.argsort(pk, kind="stable")
+    pk = pk[order]
+    first = np.empty(len(pk), bool)
+    first[0] = True
+    np.not_equal(pk[1:], pk[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    return pk[starts], np.bitwise_or.reduceat(bit[order], starts)
 
 
 def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list:

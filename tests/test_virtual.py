@@ -2525,6 +2525,33 @@ def test_lod_bias_finer_than_the_pages_hold_is_an_error():
     assert parse_options({"method": "hard", "lod_bias": -8.0, "virtual": False}).lod_bias == -8
 
 
+def test_a_moved_camera_finds_each_lights_pages_once(monkeypatch):
+    """A camera move's plan finds each light's pages and tile masks once
+    (:func:`marks.tile_pages`, kept in ``plan_memo``) and the budget check and the build
+    take them from there: two page counts of the same tiles (``_n_pages``) and a
+    ``tile_pages`` were 0.31 ms of a large_world camera move's host time. The same image
+    as a fresh integrator's at the moved pose."""
+    virtual.PAGE_CACHE.clear()
+    scene = many_lights_scene(1, 1)
+    integ = shadowmap(method="hard")
+    mi.render(scene, integrator=integ, spp=1)
+    params = mi.traverse(scene)
+    params["sensor.to_world"] = T().look_at(origin=[0.3, 1.3, 3.4], target=[0, 0.5, 0],
+                                            up=[0, 1, 0])
+    params.update()
+    calls = []
+    real_tile_pages, real_n_pages = planner.tile_pages, planner._n_pages
+    monkeypatch.setattr(planner, "tile_pages",
+                        lambda *a: calls.append("tile_pages") or real_tile_pages(*a))
+    monkeypatch.setattr(planner, "_n_pages", lambda *a: calls.append("n") or real_n_pages(*a))
+    moved = np.asarray(mi.render(scene, integrator=integ, spp=1))
+    assert calls == ["tile_pages", "tile_pages"]       # one per light, no page count
+    monkeypatch.undo()
+    virtual.PAGE_CACHE.clear()
+    fresh = np.asarray(mi.render(scene, integrator=shadowmap(method="hard"), spp=1))
+    assert np.array_equal(moved, fresh)
+
+
 def test_a_still_camera_plans_from_the_last_render(monkeypatch):
     """A still camera's frame takes its pages' plan from the last render: the planner's
     page counts (``_n_pages``: sorts of every marked tile) and each emitter's

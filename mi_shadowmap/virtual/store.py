@@ -364,8 +364,14 @@ class PageStore:
         keep = fits[run]
         px, py, slots, run = px[keep], py[keep], slots[keep], run[keep]
         lx0, ly0, e0, Wr = px - (x0[run] - 1), py - (y0[run] - 1), 4 * base[run], 4 * W[run]
+        # each entry's tile mask written with its slot (a gather over every entry of
+        # dense, most of them empty, took 0.14 ms of a large_world camera move's 0.69)
+        dense_tiles = np.zeros(len(dense), np.uint32)
+        page_tiles = slot_mask[slots].astype(np.uint32)
         for k in range(4):     # page (px, py) is corner k of block (px - k & 1, py - k >> 1)
-            dense[e0 + (ly0 - (k >> 1)) * Wr + 4 * (lx0 - (k & 1)) + k] = slots
+            at = e0 + (ly0 - (k >> 1)) * Wr + 4 * (lx0 - (k & 1)) + k
+            dense[at] = slots
+            dense_tiles[at] = page_tiles
         u32 = lambda a: a.astype(np.int64).astype(np.uint32).astype(np.uint64)  # noqa: E731
         words = np.stack([u32(header[:, 0]) | (u32(header[:, 1]) << np.uint64(32)),
                           u32(header[:, 2]) | (u32(header[:, 3]) << np.uint64(32))], -1)
@@ -374,8 +380,7 @@ class PageStore:
                  padded_array(mi.Float, self.face_near(lay.view.n_faces, slots,
                                                        slot_mask[slots])),
                  padded_array(mi.UInt32, slot_mask[:max(self.next_slot, 1)].astype(np.uint32)),
-                 padded_array(mi.UInt32, np.where(dense == INVALID_SLOT, 0, slot_mask[
-                     np.where(dense == INVALID_SLOT, 0, dense)]).astype(np.uint32)))
+                 padded_array(mi.UInt32, dense_tiles))
         self._table = (token, table)
         return table
 

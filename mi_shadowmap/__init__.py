@@ -82,11 +82,13 @@ mi.detail.add_variant_callback(_on_variant_change)
 from .integrator import integrator_class  # noqa: E402,F401
 from .variants import SUPPORTED_VARIANTS, UnsupportedVariantError  # noqa: E402,F401
 from .options import METHODS, OptionError  # noqa: E402,F401
-from .methods import Method, Prop, register_method, unregister_method  # noqa: E402,F401
+from .methods import (Method, MethodError, Prop, register_method,  # noqa: E402,F401
+                      unregister_method)
+from .light_views import UnsupportedEmitterError  # noqa: E402,F401
 from . import harness, metrics  # noqa: E402,F401
 from .harness import compare  # noqa: E402,F401
 from .map_manager import clear_caches  # noqa: E402,F401
-from .tune import tune  # noqa: E402,F401  (the function; helpers: from mi_shadowmap.tune import ...)
+from .tune import TuneError, tune  # noqa: E402,F401  (the function; helpers: from mi_shadowmap.tune import ...)
 
 
 def __getattr__(name):

@@ -403,3 +403,21 @@ def test_a_virtual_method_cannot_give_its_own_builder_for_a_layer_virtual_maps_b
     mi_shadowmap.register_method("own_second_full", look, virtual=False,
                                  layers={"second_depth": lambda scene, smap: smap.depth})
     mi_shadowmap.unregister_method("own_second_full")
+
+
+def test_every_error_a_user_can_catch_is_a_top_level_name():
+    """Every exception the package raises at a user (a rejected method record, property,
+    emitter, variant, tuner input, missing libLLVM) is importable from ``mi_shadowmap``
+    itself: ``except mi_shadowmap.MethodError`` needs no knowledge of the internal module
+    that raises it."""
+    import importlib
+    from mi_shadowmap import light_views, variants, _llvm
+    tune = importlib.import_module("mi_shadowmap.tune")   # the name is the function
+    expected = {"MethodError": methods.MethodError, "OptionError": methods.OptionError,
+                "UnsupportedEmitterError": light_views.UnsupportedEmitterError,
+                "UnsupportedVariantError": variants.UnsupportedVariantError,
+                "TuneError": tune.TuneError, "LLVMNotFoundError": _llvm.LLVMNotFoundError}
+    for name, cls in expected.items():
+        assert getattr(mi_shadowmap, name) is cls, name
+    with pytest.raises(mi_shadowmap.MethodError):
+        mi_shadowmap.register_method("hard", lambda smap, lk, opts, active: mi.Float(1.0))

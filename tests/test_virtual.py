@@ -2655,6 +2655,25 @@ def test_dilate_tiles_adds_every_tile_within_the_margin_inside_its_level():
     assert len(marks.dilate_tiles(np.zeros(0, np.uint64), lay, 2.0)) == 0
 
 
+def test_dilate_tiles_takes_tile_keys_of_any_integer_dtype():
+    """:func:`marks.dilate_tiles` reads the face and level bits of its keys with a uint64
+    mask: int64 keys (what ``np.array`` of Python ints gives, and what the loop over
+    offsets it replaced and the other host helpers -- ``key_fields``, ``tile_pages``,
+    ``expand_blocks`` -- accept) give the same tiles as uint64 ones, not a TypeError."""
+    class View:
+        n_faces = 6
+    lay = layout.VirtualLayout(View(), 32, 1 << 10, 0.0)
+    keys = layout.page_key(np.array([0, 5, 3], np.uint64), np.array([0, 1, lay.coarsest],
+                                                                    np.uint64),
+                           np.array([0, 40, 0], np.uint64), np.array([7, 63, 1], np.uint64))
+    want = marks.dilate_tiles(keys, lay, 9.0)
+    assert len(want) > 3
+    for given in (keys.astype(np.int64), [int(k) for k in keys]):
+        got = marks.dilate_tiles(given, lay, 9.0)
+        assert got.dtype == np.uint64 and np.array_equal(got, want)
+    assert marks.dilate_tiles(np.zeros(0, np.int64), lay, 9.0).dtype == np.uint64
+
+
 def test_tile_pages_gives_each_page_of_the_tiles_with_its_tile_mask():
     """:func:`marks.tile_pages` (a sort of the pages' keys and a reduction over their
     runs): the distinct pages of tile keys, sorted, each with the bits of its tiles

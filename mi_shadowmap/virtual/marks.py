@@ -350,27 +350,42 @@ def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
     return keys, oks
 
 
+#: (key, offset) pairs :func:`dilate_tiles` forms at once. Its margin is not capped (a
+#: ``pcss`` of ``max_kernel = 4096``: 2050 texels, 515^2 offsets of 8^2 tiles): one grid
+#: of every key and offset held 2.4 GB for 300 coarse-level tiles, and a 256^2 cbox_area
+#: frame's 506 tiles made the process 4.4 GB resident (1.2 GB for the loop over offsets
+#: the grid replaced); chunks of 2^20 pairs keep the grid's arrays near 40 MB (a frame of
+#: the default margin, 506 tiles x 121 offsets, is one chunk).
+DILATE_CHUNK = 1 << 20
+
+
 def dilate_tiles(keys: np.ndarray, layout, margin: float) -> np.ndarray:
     """Tile keys ``keys`` and those within ``margin + 1`` texels of them on their level,
     sorted, distinct. Every offset at once (a key times offset grid: a loop of one
     selection per offset took 3.3 ms for the 506 tiles of a 256^2 cbox_area ``pcss``
-    frame, margin 34 texels: 121 offsets; 1.6 ms now, most of it the sort). Keys of any
-    integer dtype, as uint64 (their face and level bits are masked as such)."""
+    frame, margin 34 texels: 121 offsets; 1.6 ms now, most of it the sort), in chunks of
+    keys of at most :data:`DILATE_CHUNK` (key, offset) pairs. Keys of any integer dtype,
+    as uint64 (their face and level bits are masked as such)."""
     keys = sorted_unique(np.asarray(keys).astype(np.uint64, copy=False))
     if len(keys) == 0:
         return keys
     T = layout.tile_size
     r = int(math.ceil((float(margin) + 1.0) / T))
     face, level, tx, ty = (f.astype(np.int64) for f in key_fields(keys))
-    n = (np.maximum(layout.pages_per_side(0) >> level, 1) * layout.tiles_per_side)[:, None]
+    n = np.maximum(layout.pages_per_side(0) >> level, 1) * layout.tiles_per_side
     d = np.arange(-r, r + 1)
-    x = tx[:, None] + np.repeat(d, len(d))[None, :]
-    y = ty[:, None] + np.tile(d, len(d))[None, :]
-    ok = (x >= 0) & (y >= 0) & (x < n) & (y < n)
+    dx, dy = np.repeat(d, len(d))[None, :], np.tile(d, len(d))[None, :]
     # the face's and level's bits, then the tile's (within its level's grid: in range)
-    fl = (keys & ~np.uint64((1 << 54) - 1))[:, None]
-    out = fl | (x.astype(np.uint64) << np.uint64(27)) | y.astype(np.uint64)
-    return sorted_unique(out[ok])
+    fl = keys & ~np.uint64((1 << 54) - 1)
+    step = max(1, DILATE_CHUNK // dx.size)
+    out = []
+    for s in range(0, len(keys), step):
+        c = slice(s, s + step)
+        x, y, nc = tx[c, None] + dx, ty[c, None] + dy, n[c, None]
+        ok = (x >= 0) & (y >= 0) & (x < nc) & (y < nc)
+        out.append(sorted_unique((fl[c, None] | (x.astype(np.uint64) << np.uint64(27))
+                                  | y.astype(np.uint64))[ok]))
+    return out[0] if len(out) == 1 else sorted_unique(np.concatenate(out))
 
 
 def tile_pages(tiles: np.ndarray, layout) -> tuple:

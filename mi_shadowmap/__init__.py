@@ -88,7 +88,8 @@ from .light_views import UnsupportedEmitterError  # noqa: E402,F401
 from . import harness, metrics  # noqa: E402,F401
 from .harness import compare  # noqa: E402,F401
 from .map_manager import clear_caches  # noqa: E402,F401
-from .tune import TuneError, tune  # noqa: E402,F401  (the function; helpers: from mi_shadowmap.tune import ...)
+# ``tune`` is the function (its helpers: ``from mi_shadowmap.tune import ...``)
+from .tune import TuneError, tune  # noqa: E402,F401
 
 
 def __getattr__(name):

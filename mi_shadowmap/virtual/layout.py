@@ -203,11 +203,21 @@ def _depth_range(view, lo, hi, dist) -> tuple:
 
 def sorted_unique(keys: np.ndarray) -> np.ndarray:
     """``np.unique(keys)`` by a sort (numpy 2.4's ``np.unique`` hashes, then sorts: 0.63
-    ms against 0.15 ms for 5 k page keys, a mark pass's per light)."""
+    ms against 0.15 ms for 5 k page keys, a mark pass's per light).
+
+    The distinct keys are taken by ``np.compress``, not a boolean index: numpy 2.4's
+    boolean indexing branches per element, and on a mask with no pattern (a sixth of the
+    expanded tiles distinct, the blocks of each shape among all) it took 0.10-0.14 ms
+    for 17.8 k uint64 where ``np.compress`` took 0.025 ms (the mark pass's selections on
+    the host use it for that: :func:`~.marks.expand_blocks`, :func:`~.marks.dedupe_many`,
+    :func:`~.marks.dilate_tiles`)."""
     s = np.sort(np.asarray(keys).reshape(-1))
     if len(s) < 2:
         return s
-    return s[np.concatenate(([True], s[1:] != s[:-1]))]
+    keep = np.empty(len(s), bool)
+    keep[0] = True
+    np.not_equal(s[1:], s[:-1], out=keep[1:])
+    return np.compress(keep, s)
 
 
 def with_keys(keys: np.ndarray, more: np.ndarray) -> np.ndarray:

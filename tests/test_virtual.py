@@ -2790,6 +2790,37 @@ def test_a_shrunk_store_frees_every_slot_it_does_not_use():
     assert len(st.free) == st.next_slot - fixed - int((st._slot_of >= fixed).sum()) > 0
 
 
+def test_a_build_keeps_every_keys_slot_and_a_lookup_is_kept_until_pages_change():
+    """A camera move's pages: the planner takes their slots from the build
+    (``PageStore.built_slots``), not from a lookup after it, and the build reuses the
+    planner's lookup of the same keys where nothing was evicted in between
+    (``PageStore.lookup`` keeps its last answer while the pages are the same): both
+    must be what a fresh lookup finds, and a lookup after the pages changed must not
+    return the kept answer."""
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_file(str(SCENES / "room_two_points.xml"), width=64, height=64)
+    integ = shadowmap(method="hard")
+    vis_of(scene, integ, spp=1)
+    params = mi.traverse(scene.sensors()[0])
+    params["to_world"] = type(params["to_world"])(params["to_world"]) @ T().translate([0.3, 0, 0])
+    params.update()
+    vis_of(scene, integ, spp=1)
+    for vmap in integ.maps:
+        st = vmap.store
+        keys, slots = st.built_slots
+        needed, frame_slots, _ = st.settled[3:6]
+        assert keys is needed and np.array_equal(frame_slots, slots)
+        st._sorted = st._looked = None            # a fresh lookup: the same slots
+        present, again = st.lookup(keys)
+        assert present.all() and np.array_equal(again, slots)
+        assert st.lookup(keys)[1] is again        # kept for the same keys ...
+        victim = keys[np.flatnonzero(slots > st.layout.view.n_faces)[0]]
+        st.evict(keys[keys != victim], 1 << 30)
+        present, after = st.lookup(keys)          # ... not once the pages changed
+        assert after is not again and (~present).sum() == 1
+        assert not present[keys == victim][0]
+
+
 @pytest.mark.parametrize("border", [False, True])
 def test_batch_footprints_in_the_render_are_each_cameras_own(border):
     """The render's footprint of a ``batch`` lane (a cone of its pixel's one-pixel step,

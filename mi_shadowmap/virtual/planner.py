@@ -349,8 +349,14 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             dt = time.perf_counter() - t0
             store.cast_seconds += dt
             store.cast_pages += n_cast
-            present, slots = store.lookup(needed)    # (all of them, once built)
-            needed, slots, masks = needed[present], slots[present], masks[present]
+            # every needed page is built now, in the slot the build gave it (a lookup
+            # after the build found the same, all of them present)
+            built = store.built_slots
+            if built is not None and built[0] is needed:
+                slots = built[1]
+            else:
+                present, slots = store.lookup(needed)
+                needed, slots, masks = needed[present], slots[present], masks[present]
             store.slot_frame[slots] = store.frame
             levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
             hist = np.bincount(levels, minlength=layout.n_levels)

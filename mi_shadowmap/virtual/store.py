@@ -44,6 +44,10 @@ class PageStore:
         self.frame = 0
         self.version = 0                             # changes whenever pages do
         self._sorted = None
+        self._looked = None       # the last lookup: (version, keys, present, slots)
+        # the last build's ``(keys, slots)``: every key's slot, once built (the planner
+        # reads its pages' slots there, not from a lookup after the build)
+        self.built_slots = None
         self._table = None
         self.lit_faces = None                        # faces a one-sided light shines through
         # the planner's last (marks, coarsest keys, tiles, pages) and (marks, tiles, budget,
@@ -155,13 +159,22 @@ class PageStore:
         return self._sorted[1], self._sorted[2]
 
     def lookup(self, keys: np.ndarray):
-        """``(present, slot)`` of each of ``keys`` (slot -1 where absent)."""
+        """``(present, slot)`` of each of ``keys`` (slot -1 where absent); the same arrays
+        again for the same ``keys`` object while the pages have not changed (a camera
+        move looks its pages up before evicting, then in the build: one lookup where
+        no page was evicted). Read-only: copy before writing to them."""
+        hit = self._looked
+        if hit is not None and hit[0] == self.version and hit[1] is keys:
+            return hit[2], hit[3]
         k, sl = self._index()
         if len(k) == 0:
-            return np.zeros(len(keys), bool), np.full(len(keys), -1, np.int64)
-        pos = np.clip(np.searchsorted(k, keys), 0, len(k) - 1)
-        present = k[pos] == keys
-        return present, np.where(present, sl[pos], -1)
+            out = np.zeros(len(keys), bool), np.full(len(keys), -1, np.int64)
+        else:
+            pos = np.clip(np.searchsorted(k, keys), 0, len(k) - 1)
+            present = k[pos] == keys
+            out = present, np.where(present, sl[pos], -1)
+        self._looked = (self.version, keys, *out)
+        return out
 
     def evict(self, keep: np.ndarray, n: int) -> int:
         """Free up to ``n`` slots of pages not in ``keep`` and not of the coarsest level
@@ -183,7 +196,9 @@ class PageStore:
         the store get free slots, and their other tiles the coarsest level's depths (what
         a tap beyond the lookup's 2 x 2 pages reads). Returns the texels ray-cast."""
         self.pages_cast = 0
+        self.built_slots = None
         if len(keys) == 0:
+            self.built_slots = (keys, np.zeros(0, np.int64))
             return 0
         lay = self.layout
         P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
@@ -193,6 +208,7 @@ class PageStore:
         coarse = ((keys >> np.uint64(54)) & np.uint64(31)) == np.uint64(lay.coarsest)
         masks = np.where(coarse, lay.full_mask, masks)     # the coarsest pages: whole
         present, slot_ids = self.lookup(keys)
+        slot_ids = slot_ids.copy()      # (the lookup's, kept for the same keys)
         new = ~present
         new_fine = new & ~coarse
         n_fine = int(new_fine.sum())
@@ -209,6 +225,8 @@ class PageStore:
             self.slot_mask[slot_ids[new]] = 0
             self.tile_min[slot_ids[new]] = np.inf
             self.page_face[slot_ids[new]] = (keys[new] >> np.uint64(59)).astype(np.int64)
+        # every key has its slot now (kept for the caller: no lookup after the build)
+        self.built_slots = (keys, slot_ids)
         cast = masks & ~self.slot_mask[slot_ids]
         # the tiles to cast: tile keys (page_key in tile units) and their slots
         bit = np.arange(S * S)

@@ -2821,6 +2821,52 @@ def test_a_build_keeps_every_keys_slot_and_a_lookup_is_kept_until_pages_change()
         assert not present[keys == victim][0]
 
 
+def test_two_lights_cast_their_tiles_in_one_kernel_as_each_alone(monkeypatch):
+    """A camera move's tiles of every light (``store.cast_tiles``): room_two_points' two
+    point lights in one kernel (``first_hit`` traced once, not once per light), their
+    pages, images and stats bit-identical to each light's tiles cast alone, and moves
+    after the first compile nothing (the kernel takes each light's lane range from
+    opaque offsets)."""
+    calls = []
+    first_hit = page_store.first_hit
+    monkeypatch.setattr(page_store, "first_hit",
+                        lambda *a, **k: calls.append(1) or first_hit(*a, **k))
+
+    def run():
+        virtual.PAGE_CACHE.clear()
+        scene = mi.load_file(str(SCENES / "room_two_points.xml"), width=64, height=64)
+        integ = shadowmap(method="hard")
+        params = mi.traverse(scene.sensors()[0])
+        start = type(params["to_world"])(params["to_world"])
+        out, traced = [], []
+        for dx in (0.0, 0.3, 0.3, 0.6, 0.0):    # a move, a still frame, two more
+            params["to_world"] = start @ T().translate([dx, 0, 0])
+            params.update()
+            del calls[:]
+            out.append(vis_of(scene, integ, spp=1))
+            traced.append(len(calls))
+            out.append(np.array([integ.stats[k] for k in ("texels_built", "pages_built",
+                                                         "pages_reused")]))
+        out += [m.store.pools["depth"].numpy()[:m.store.next_slot * 32 * 32]
+                for m in integ.maps]
+        return out, traced
+
+    together, traced = run()
+    assert traced[1] == traced[3] == 1 and traced[2] == 0, traced   # one cast a move
+    scene = mi.load_file(str(SCENES / "room_two_points.xml"), width=64, height=64)
+    compiled = _moves(scene, shadowmap(method="hard"), 4)
+    assert compiled[1:] == [0, 0, 0], compiled
+    alone = page_store._cast_alone
+    monkeypatch.setattr(page_store, "cast_tiles", lambda scene, jobs: [
+        alone(scene, j, "second_depth" in j.store.pools) for j in jobs if j.n_tiles])
+    monkeypatch.setattr(planner, "cast_tiles", page_store.cast_tiles)
+    apart, traced = run()
+    assert traced[1] == traced[3] == 2, traced
+    assert len(together) == len(apart)
+    for a, b in zip(together, apart):
+        assert a.shape == b.shape and np.array_equal(a, b)
+
+
 @pytest.mark.parametrize("border", [False, True])
 def test_batch_footprints_in_the_render_are_each_cameras_own(border):
     """The render's footprint of a ``batch`` lane (a cone of its pixel's one-pixel step,

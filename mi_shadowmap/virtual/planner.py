@@ -21,7 +21,7 @@ from .lookup import VirtualShadowMap
 from .marks import (Marker, block_axis, camera_hits, dedupe_many, dilate_tiles,
                     expand_blocks, mark_blocks, mark_coarser, marked_points, shape_bits,
                     tile_pages)
-from .store import PageStore, page_bytes, page_layers
+from .store import PageStore, cast_tiles, page_bytes, page_layers
 
 
 #: Most lanes of one environment mark kernel (regions x camera hits): an environment's
@@ -308,6 +308,33 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             spare -= plans[i][2] + fits[i][2] - alloc[k]
             alloc[k] = plans[i][2] + fits[i][2]
     budgets = {i: alloc[k] - plans[i][2] for k, i in enumerate(uniq)}
+    # every store whose pages changed: its pages planned (evictions, slots, the tiles to
+    # cast), then every light's tiles cast together (cast_tiles: one kernel where the
+    # lights allow it, on a camera move of room_two_points one for its two point lights)
+    builds = {}
+    for i in uniq:
+        store = stores[i]
+        mark, budget_pages = plans[i][0], budgets[i]
+        store.max_pages = budget_pages + plans[i][2]
+        settled = store.settled
+        if (settled is not None and settled[0] is mark and settled[1] == budget_pages
+                and settled[2] == store.version):
+            continue
+        tiles, degraded, _ = fits[i]
+        needed, masks = _tile_pages(store, tiles)
+        have, _ = store.lookup(needed)
+        over = store.n_pages + int((~have).sum()) - budget_pages
+        if over > 0:
+            store.evict(needed, over)
+        store.shrink(store.max_pages)   # a smaller budget, or share of it, than before
+        t0 = time.perf_counter()
+        builds[i] = (store.plan_build(needed, masks), needed, masks, degraded,
+                     time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    cast_tiles(scene, [b[0] for b in builds.values()])
+    dr.sync_thread()
+    cast_dt = time.perf_counter() - t0
+    cast_n = sum(b[0].n_tiles for b in builds.values())
     degraded_maps = []
     out = []
     for i, view in enumerate(views):
@@ -334,19 +361,14 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             dt = 0.0
             store.slot_frame[slots] = store.frame
         else:
-            tiles, degraded, _ = fits[i] if first else fits[i0]
-            needed, masks = _tile_pages(store, tiles)
-            have, _ = store.lookup(needed)
-            over = store.n_pages + int((~have).sum()) - budget_pages
-            if over > 0:
-                store.evict(needed, over)
-            store.shrink(store.max_pages)   # a smaller budget, or share of it, than before
+            job, needed, masks, degraded, dt = builds[i if first else i0]
             t0 = time.perf_counter()
-            stats.texels_built += store.build(scene, needed, masks)
+            stats.texels_built += store.finish_build(job)
             n_cast = store.pages_cast
             store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page
             dr.sync_thread()
-            dt = time.perf_counter() - t0
+            # its time: planning and finishing its build, and its share of the cast
+            dt += time.perf_counter() - t0 + cast_dt * job.n_tiles / max(cast_n, 1)
             store.cast_seconds += dt
             store.cast_pages += n_cast
             # every needed page is built now, in the slot the build gave it (a lookup

@@ -194,14 +194,24 @@ class PageStore:
         """Ray-cast the tiles ``masks`` (a bit per tile, :attr:`VirtualLayout.tile_size`;
         default: every tile) of the pages ``keys`` that are not built yet; pages not in
         the store get free slots, and their other tiles the coarsest level's depths (what
-        a tap beyond the lookup's 2 x 2 pages reads). Returns the texels ray-cast."""
+        a tap beyond the lookup's 2 x 2 pages reads). Returns the texels ray-cast.
+        (:meth:`plan_build`, :func:`cast_tiles` and :meth:`finish_build`: the planner
+        casts every light's tiles of a render in one kernel.)"""
+        job = self.plan_build(keys, masks)
+        cast_tiles(scene, [job])
+        return self.finish_build(job)
+
+    def plan_build(self, keys: np.ndarray, masks: np.ndarray | None = None) -> "TileCast":
+        """The first part of :meth:`build`: slots for the pages ``keys`` not in the store,
+        and the tiles to cast (a :class:`TileCast` for :func:`cast_tiles`)."""
         self.pages_cast = 0
         self.built_slots = None
+        job = TileCast(self)
         if len(keys) == 0:
             self.built_slots = (keys, np.zeros(0, np.int64))
-            return 0
+            return job
         lay = self.layout
-        P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
+        S = lay.tiles_per_side
         keys = np.asarray(keys, np.uint64)
         masks = (np.full(len(keys), lay.full_mask, np.int64) if masks is None
                  else np.asarray(masks, np.int64))
@@ -235,48 +245,59 @@ class PageStore:
         n_tiles = len(page_i)
         self.pages_cast = int(sel.any(axis=1).sum())
         if n_tiles == 0 and not new_fine.any():
-            return 0
+            return job
         self.version += 1
-        built = 0
-        second = "second_depth" in self.pools
+        job.keys, job.masks, job.slot_ids, job.new_fine = keys, masks, slot_ids, new_fine
         if n_tiles:
             f, lv, px, py = key_fields(keys[page_i])
-            tkeys = page_key(f, lv, px * np.uint64(S) + (tile_b % S).astype(np.uint64),
-                             py * np.uint64(S) + (tile_b // S).astype(np.uint64))
-            tslots = slot_ids[page_i]
-            tpt = T * T
-            idx = dr.arange(mi.UInt32, n_tiles * tpt)
-            tile = idx // tpt
-            local = idx - tile * tpt
-            ti, tj = morton_xy(local, T)   # 4 x 2 blocks of neighbours per vector
-            # one upload of the tile keys (decoded in the kernel) and one of the slots
-            f_l, lev, tx, ty = key_fields(dr.gather(mi.UInt64, padded_array(mi.UInt64, tkeys), tile))
-            gx, gy = tx * T + ti, ty * T + tj
-            res = mi.Float64(mi.UInt32(lay.res0) >> lev)
-            uv = mi.Point2d((mi.Float64(gx) + TEXEL_SAMPLE[0]) / res,
-                            (mi.Float64(gy) + TEXEL_SAMPLE[1]) / res)
-            o64, d64 = lay.view.ray_through_f64(f_l, uv)
-            # start near the scene: float32 stays exact (t0 opaque, as the lookups'
-            # depth_origin: a moved far light compiles no new kernel)
-            o = mi.Point3f(o64 + d64 * dr.opaque(mi.Float64, float(lay.t0))
-                           if lay.t0 > 0.0 else o64)
-            d = dr.normalize(mi.Vector3f(d64))
-            slot = dr.gather(mi.UInt32, padded_array(mi.UInt32, tslots.astype(np.uint32)), tile)
-            dst = slot * (P * P) + (gy & (P - 1)) * P + (gx & (P - 1))
-            # depths from the rays' start (t0 along them, VirtualLayout.t0)
-            depth = first_hit(scene, lay.view, o, d)
-            dr.scatter(self.pools["depth"], depth, dst)
-            if second:
-                sd = second_depth_along(scene, lay.view, o, d)
-                dr.scatter(self.pools["second_depth"], sd, dst)
-            # one kernel: the depths (kept: the tile minima read them) and the scatters
-            dr.eval(depth)
-            np.minimum.at(self.tile_min, (tslots, tile_b), page_minima(depth, tpt))
-            built = n_tiles * tpt * (1 + second)
-        self.slot_mask[slot_ids] |= masks
-        if new_fine.any():
-            self._fill_from_coarsest(keys[new_fine], slot_ids[new_fine], masks[new_fine])
+            job.tkeys = page_key(f, lv, px * np.uint64(S) + (tile_b % S).astype(np.uint64),
+                                 py * np.uint64(S) + (tile_b // S).astype(np.uint64))
+            job.tslots, job.tile_b = slot_ids[page_i], tile_b
+        return job
+
+    def finish_build(self, job: "TileCast") -> int:
+        """The last part of :meth:`build`, once :func:`cast_tiles` cast ``job``: the tiles'
+        minima, the pages' masks, the new pages' other tiles; the texels ray-cast."""
+        if job.keys is None:
+            return 0
+        built = 0
+        if job.n_tiles:
+            np.minimum.at(self.tile_min, (job.tslots, job.tile_b), job.minima)
+            tpt = self.layout.tile_size ** 2
+            built = job.n_tiles * tpt * (1 + ("second_depth" in self.pools))
+        self.slot_mask[job.slot_ids] |= job.masks
+        nf = job.new_fine
+        if nf.any():
+            self._fill_from_coarsest(job.keys[nf], job.slot_ids[nf], job.masks[nf])
         return built
+
+    def _tile_rays(self, tkeys, tslots, lane, active=True) -> tuple:
+        """``(o, d, dst)`` of lane ``lane`` of a cast of tiles ``tkeys`` into slots
+        ``tslots`` (``tile_size^2`` lanes a tile): the texel's ray (from ``t0`` along it,
+        :attr:`VirtualLayout.t0`) and where its depth goes in the pools."""
+        lay = self.layout
+        P, T = lay.page_size, lay.tile_size
+        tpt = T * T
+        tile = lane // tpt
+        local = lane - tile * tpt
+        ti, tj = morton_xy(local, T)   # 4 x 2 blocks of neighbours per vector
+        # one upload of the tile keys (decoded in the kernel) and one of the slots
+        f_l, lev, tx, ty = key_fields(dr.gather(mi.UInt64, padded_array(mi.UInt64, tkeys),
+                                                tile, active))
+        gx, gy = tx * T + ti, ty * T + tj
+        res = mi.Float64(mi.UInt32(lay.res0) >> lev)
+        uv = mi.Point2d((mi.Float64(gx) + TEXEL_SAMPLE[0]) / res,
+                        (mi.Float64(gy) + TEXEL_SAMPLE[1]) / res)
+        o64, d64 = lay.view.ray_through_f64(f_l, uv)
+        # start near the scene: float32 stays exact (t0 opaque, as the lookups'
+        # depth_origin: a moved far light compiles no new kernel)
+        o = mi.Point3f(o64 + d64 * dr.opaque(mi.Float64, float(lay.t0))
+                       if lay.t0 > 0.0 else o64)
+        d = dr.normalize(mi.Vector3f(d64))
+        slot = dr.gather(mi.UInt32, padded_array(mi.UInt32, tslots.astype(np.uint32)), tile,
+                         active)
+        dst = slot * (P * P) + (gy & (P - 1)) * P + (gx & (P - 1))
+        return o, d, dst
 
     def _fill_from_coarsest(self, keys, slots, masks) -> None:
         """The tiles of new pages that were not cast: the coarsest level's texel over
@@ -422,6 +443,103 @@ class PageStore:
         return out.astype(np.float32)
 
 
+class TileCast:
+    """One store's part of a build (:meth:`PageStore.plan_build`): its pages, their slots
+    and masks, the tiles to ray-cast (tile keys, slots, bit in the page), and the tiles'
+    nearest depths once cast (:func:`cast_tiles`). ``keys`` None: nothing to build."""
+
+    __slots__ = ("store", "keys", "masks", "slot_ids", "new_fine", "tkeys", "tslots",
+                 "tile_b", "minima")
+
+    def __init__(self, store):
+        self.store = store
+        self.keys = self.masks = self.slot_ids = self.new_fine = None
+        self.tkeys = self.tslots = self.tile_b = self.minima = None
+
+    @property
+    def n_tiles(self) -> int:
+        return 0 if self.tkeys is None else len(self.tkeys)
+
+
+def cast_tiles(scene, jobs: list) -> None:
+    """Ray-cast the tiles of ``jobs`` (:class:`TileCast`, one per store), setting each
+    one's ``minima``: the stores whose lights skip no shape of their own and keep the
+    same layers, together in one kernel (a lane range each, from opaque offsets: the
+    kernel is the same whatever each range's size, an empty one included, so that a
+    camera move compiles nothing); a store alone, as it always was.
+
+    The two point lights of room_two_points cast their tiles in one kernel, not two, on a
+    camera move: the rays' and the tracing's Python (``first_hit``'s loop, the pages'
+    rays) once, one kernel launch. A lane's ray, depth and texel are its store's own
+    (its range's values, selected), so the pages are bit-identical."""
+    groups = {}
+    for job in jobs:
+        st = job.store
+        shape = st.layout.view.ignore_shape
+        key = (None if shape is None else id(shape), "second_depth" in st.pools)
+        groups.setdefault(key, []).append(job)
+    for (shape, second), group in groups.items():
+        if shape is not None or len(group) == 1:
+            for job in group:
+                if job.n_tiles:
+                    _cast_alone(scene, job, second)
+            continue
+        live = group       # (a store with nothing to cast: an empty range)
+        tpts = [j.store.layout.tile_size ** 2 for j in live]
+        counts = [j.n_tiles * t for j, t in zip(live, tpts)]
+        total = sum(counts)
+        if total == 0:
+            continue
+        lane = dr.arange(mi.UInt32, total)
+        o = d = None
+        parts = []
+        at = 0
+        for job, n in zip(live, counts):
+            lo = dr.opaque(mi.UInt32, at)
+            inside = (lane >= lo) & (lane < dr.opaque(mi.UInt32, at + n))
+            tk = job.tkeys if job.tkeys is not None else np.zeros(0, np.uint64)
+            ts = job.tslots if job.tslots is not None else np.zeros(0, np.int64)
+            o_j, d_j, dst = job.store._tile_rays(tk, ts, lane - lo, inside)
+            o = o_j if o is None else dr.select(inside, o_j, o)
+            d = d_j if d is None else dr.select(inside, d_j, d)
+            parts.append((job, inside, dst, at, n))
+            at += n
+        view = live[0].store.layout.view
+        # depths from the rays' start (t0 along them, VirtualLayout.t0)
+        depth = first_hit(scene, view, o, d)
+        sd = second_depth_along(scene, view, o, d) if second else None
+        for job, inside, dst, _, _ in parts:
+            dr.scatter(job.store.pools["depth"], depth, dst, inside)
+            if second:
+                dr.scatter(job.store.pools["second_depth"], sd, dst, inside)
+        # one kernel: the depths (kept: the tile minima read them) and the scatters
+        dr.eval(depth)
+        host = dr.backend_v(depth) == dr.JitBackend.LLVM
+        values = depth.numpy() if host else None
+        for (job, _, _, at, n), tpt in zip(parts, tpts):
+            if n:
+                job.minima = (page_minima(values[at:at + n], tpt) if host else
+                              page_minima(dr.gather(mi.Float, depth, dr.arange(
+                                  mi.UInt32, n) + dr.opaque(mi.UInt32, at)), tpt))
+
+
+def _cast_alone(scene, job, second: bool) -> None:
+    """:func:`cast_tiles` of one store's tiles in a kernel of its own."""
+    st = job.store
+    tpt = st.layout.tile_size ** 2
+    lane = dr.arange(mi.UInt32, job.n_tiles * tpt)
+    o, d, dst = st._tile_rays(job.tkeys, job.tslots, lane)
+    # depths from the rays' start (t0 along them, VirtualLayout.t0)
+    depth = first_hit(scene, st.layout.view, o, d)
+    dr.scatter(st.pools["depth"], depth, dst)
+    if second:
+        sd = second_depth_along(scene, st.layout.view, o, d)
+        dr.scatter(st.pools["second_depth"], sd, dst)
+    # one kernel: the depths (kept: the tile minima read them) and the scatters
+    dr.eval(depth)
+    job.minima = page_minima(depth, tpt)
+
+
 def page_layers(opts) -> tuple:
     """The layers a virtual map's pages hold besides depth for ``opts``' method
     (``pcss_near`` is derived from the page table, not stored per page)."""
@@ -438,10 +556,12 @@ def page_minima(depth, tpp: int, on_host: bool | None = None) -> np.ndarray:
     +inf for a page with none), as numpy. ``on_host`` (default: on the CPU backend, which
     reads the depths in place): numpy; else a block reduction on the device, so that a
     GPU copies one value a page instead of the pages."""
-    if on_host is None:
+    if isinstance(depth, np.ndarray):       # read already (cast_tiles)
+        on_host, d = True, depth
+    elif on_host is None:
         on_host = dr.backend_v(depth) == dr.JitBackend.LLVM
     if on_host:
-        d = depth.numpy()
+        d = depth if isinstance(depth, np.ndarray) else depth.numpy()
         if len(d) == 0:
             return np.zeros(0, d.dtype)
         # the plain minimum first (np.minimum.reduceat over the pages' runs), the finite

@@ -2823,14 +2823,18 @@ def test_a_build_keeps_every_keys_slot_and_a_lookup_is_kept_until_pages_change()
 
 def test_two_lights_cast_their_tiles_in_one_kernel_as_each_alone(monkeypatch):
     """A camera move's tiles of every light (``store.cast_tiles``): room_two_points' two
-    point lights in one kernel (``first_hit`` traced once, not once per light), their
-    pages, images and stats bit-identical to each light's tiles cast alone, and moves
-    after the first compile nothing (the kernel takes each light's lane range from
-    opaque offsets)."""
-    calls = []
+    point lights in one kernel (``first_hit`` traced once, not once per light), and their
+    new pages' other tiles filled in one pair of kernels (``store.fill_new_pages``, not
+    ``_fill_from_coarsest`` per light); their pages, images and stats bit-identical to
+    each light's tiles cast and filled alone, and moves after the first compile nothing
+    (the kernels take each light's lane range from opaque offsets)."""
+    calls, fills = [], []
     first_hit = page_store.first_hit
     monkeypatch.setattr(page_store, "first_hit",
                         lambda *a, **k: calls.append(1) or first_hit(*a, **k))
+    fill = page_store.PageStore._fill_from_coarsest
+    monkeypatch.setattr(page_store.PageStore, "_fill_from_coarsest",
+                        lambda *a, **k: fills.append(1) or fill(*a, **k))
 
     def run():
         virtual.PAGE_CACHE.clear()
@@ -2842,9 +2846,9 @@ def test_two_lights_cast_their_tiles_in_one_kernel_as_each_alone(monkeypatch):
         for dx in (0.0, 0.3, 0.3, 0.6, 0.0):    # a move, a still frame, two more
             params["to_world"] = start @ T().translate([dx, 0, 0])
             params.update()
-            del calls[:]
+            del calls[:], fills[:]
             out.append(vis_of(scene, integ, spp=1))
-            traced.append(len(calls))
+            traced.append((len(calls), len(fills)))
             out.append(np.array([integ.stats[k] for k in ("texels_built", "pages_built",
                                                          "pages_reused")]))
         out += [m.store.pools["depth"].numpy()[:m.store.next_slot * 32 * 32]
@@ -2852,7 +2856,8 @@ def test_two_lights_cast_their_tiles_in_one_kernel_as_each_alone(monkeypatch):
         return out, traced
 
     together, traced = run()
-    assert traced[1] == traced[3] == 1 and traced[2] == 0, traced   # one cast a move
+    # a move: one cast, no fill of one light alone
+    assert traced[1] == traced[3] == (1, 0) and traced[2] == (0, 0), traced
     scene = mi.load_file(str(SCENES / "room_two_points.xml"), width=64, height=64)
     compiled = _moves(scene, shadowmap(method="hard"), 4)
     assert compiled[1:] == [0, 0, 0], compiled
@@ -2860,8 +2865,12 @@ def test_two_lights_cast_their_tiles_in_one_kernel_as_each_alone(monkeypatch):
     monkeypatch.setattr(page_store, "cast_tiles", lambda scene, jobs: [
         alone(scene, j, "second_depth" in j.store.pools) for j in jobs if j.n_tiles])
     monkeypatch.setattr(planner, "cast_tiles", page_store.cast_tiles)
+    monkeypatch.setattr(planner, "fill_new_pages", lambda jobs: [
+        j.store._fill_from_coarsest(j.keys[j.new_fine], j.slot_ids[j.new_fine],
+                                    j.masks[j.new_fine])
+        for j in jobs if j.keys is not None and j.new_fine.any()])
     apart, traced = run()
-    assert traced[1] == traced[3] == 2, traced
+    assert traced[1] == traced[3] == (2, 2), traced
     assert len(together) == len(apart)
     for a, b in zip(together, apart):
         assert a.shape == b.shape and np.array_equal(a, b)

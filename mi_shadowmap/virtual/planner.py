@@ -21,7 +21,8 @@ from .lookup import VirtualShadowMap
 from .marks import (Marker, block_axis, camera_hits, dedupe_many, dilate_tiles,
                     expand_blocks, mark_blocks, mark_coarser, marked_points, shape_bits,
                     tile_pages)
-from .store import PageStore, cast_tiles, page_bytes, page_layers
+from .store import (PageStore, TileCast, cast_tiles, fill_new_pages, page_bytes,
+                    page_layers)
 
 
 #: Most lanes of one environment mark kernel (regions x camera hits): an environment's
@@ -330,8 +331,12 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         t0 = time.perf_counter()
         builds[i] = (store.plan_build(needed, masks), needed, masks, degraded,
                      time.perf_counter() - t0)
+    # (every store a range, an empty one where its pages did not change: which lights
+    # build -- a camera move: all lit ones; a moved light: some -- shapes no kernel)
+    jobs = [builds[i][0] if i in builds else TileCast(stores[i]) for i in uniq]
     t0 = time.perf_counter()
-    cast_tiles(scene, [b[0] for b in builds.values()])
+    cast_tiles(scene, jobs)
+    fill_new_pages(jobs)
     dr.sync_thread()
     cast_dt = time.perf_counter() - t0
     cast_n = sum(b[0].n_tiles for b in builds.values())
@@ -363,7 +368,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         else:
             job, needed, masks, degraded, dt = builds[i if first else i0]
             t0 = time.perf_counter()
-            stats.texels_built += store.finish_build(job)
+            stats.texels_built += store.finish_build(job, fill=False)
             n_cast = store.pages_cast
             store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page
             dr.sync_thread()

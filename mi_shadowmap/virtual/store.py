@@ -255,9 +255,10 @@ class PageStore:
             job.tslots, job.tile_b = slot_ids[page_i], tile_b
         return job
 
-    def finish_build(self, job: "TileCast") -> int:
+    def finish_build(self, job: "TileCast", fill: bool = True) -> int:
         """The last part of :meth:`build`, once :func:`cast_tiles` cast ``job``: the tiles'
-        minima, the pages' masks, the new pages' other tiles; the texels ray-cast."""
+        minima, the pages' masks, the new pages' other tiles (``fill``; else by
+        :func:`fill_new_pages`, every store's at once); the texels ray-cast."""
         if job.keys is None:
             return 0
         built = 0
@@ -267,7 +268,7 @@ class PageStore:
             built = job.n_tiles * tpt * (1 + ("second_depth" in self.pools))
         self.slot_mask[job.slot_ids] |= job.masks
         nf = job.new_fine
-        if nf.any():
+        if fill and nf.any():
             self._fill_from_coarsest(job.keys[nf], job.slot_ids[nf], job.masks[nf])
         return built
 
@@ -303,29 +304,39 @@ class PageStore:
         """The tiles of new pages that were not cast: the coarsest level's texel over
         each (its page of face ``f`` is in slot ``f + 1``), as :meth:`BoundVirtualMap.
         fetch` reads beyond a lookup's 2 x 2 pages."""
+        if self.layout.tiles_per_side == 1:
+            return
+        lane = dr.arange(mi.UInt32, len(keys) * self.layout.page_size ** 2)
+        src, dst, empty = self._fill_lanes(keys, slots, masks, lane)
+        values = {name: dr.gather(mi.Float, pool, src, empty)
+                  for name, pool in self.pools.items()}
+        dr.eval(*values.values())     # read before the scatters write the same pools
+        for name, v in values.items():
+            dr.scatter(self.pools[name], v, dst, empty)
+        dr.eval(*self.pools.values())
+
+    def _fill_lanes(self, keys, slots, masks, lane, active=True) -> tuple:
+        """``(src, dst, empty)`` of lane ``lane`` of :meth:`_fill_from_coarsest` of pages
+        ``keys`` (``page_size^2`` lanes a page): the coarsest level's texel it reads,
+        the texel it writes, and whether that texel's tile is one not cast."""
         lay = self.layout
         P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
-        if S == 1:
-            return
         tpp = P * P
-        idx = dr.arange(mi.UInt32, len(keys) * tpp)
-        page = idx // tpp
-        local = idx - page * tpp
+        page = lane // tpp
+        local = lane - page * tpp
         ti, tj = local % P, local // P
-        face, lev, px, py = key_fields(dr.gather(mi.UInt64, padded_array(mi.UInt64, keys), page))
-        mask = dr.gather(mi.UInt32, padded_array(mi.UInt32, masks.astype(np.uint32)), page)
-        slot = dr.gather(mi.UInt32, padded_array(mi.UInt32, slots.astype(np.uint32)), page)
+        face, lev, px, py = key_fields(dr.gather(mi.UInt64, padded_array(mi.UInt64, keys), page,
+                                                 active))
+        mask = dr.gather(mi.UInt32, padded_array(mi.UInt32, masks.astype(np.uint32)), page,
+                         active)
+        slot = dr.gather(mi.UInt32, padded_array(mi.UInt32, slots.astype(np.uint32)), page,
+                         active)
         gx, gy = px * P + ti, py * P + tj
         shift = mi.UInt32(lay.coarsest) - lev
         src = (face + 1) * tpp + (gy >> shift) * P + (gx >> shift)
         b = (ti // T) + (tj // T) * S
         empty = ((mask >> b) & 1) == 0
-        values = {name: dr.gather(mi.Float, pool, src, empty)
-                  for name, pool in self.pools.items()}
-        dr.eval(*values.values())     # read before the scatters write the same pools
-        for name, v in values.items():
-            dr.scatter(self.pools[name], v, slot * tpp + local, empty)
-        dr.eval(*self.pools.values())
+        return src, slot * tpp + local, empty
 
     def table(self, frame: tuple | None = None):
         """The page table as Dr.Jit arrays ``(header, dense, face_near, tile_masks,
@@ -521,6 +532,59 @@ def cast_tiles(scene, jobs: list) -> None:
                 job.minima = (page_minima(values[at:at + n], tpt) if host else
                               page_minima(dr.gather(mi.Float, depth, dr.arange(
                                   mi.UInt32, n) + dr.opaque(mi.UInt32, at)), tpt))
+
+
+def fill_new_pages(jobs: list) -> None:
+    """:meth:`PageStore._fill_from_coarsest` of every new page of ``jobs`` (cast by
+    :func:`cast_tiles`): the stores with the same layers together, in one kernel that
+    reads the coarsest texels and one that writes them (a lane range per store from
+    opaque offsets, an empty one where a store has no new page: the same kernels every
+    camera move), not two kernels per light; a store alone as before. Each lane reads
+    and writes its own store's pools, so the pages are bit-identical."""
+    groups = {}
+    for job in jobs:        # (a store with nothing to build: an empty range)
+        st = job.store
+        if st.layout.tiles_per_side > 1:
+            groups.setdefault(tuple(st.pools), []).append(job)
+    for names, group in groups.items():
+        if len(group) == 1:
+            job = group[0]
+            nf = job.new_fine
+            if nf is not None and nf.any():
+                job.store._fill_from_coarsest(job.keys[nf], job.slot_ids[nf], job.masks[nf])
+            continue
+        counts = [0 if j.keys is None else
+                  int(j.new_fine.sum()) * j.store.layout.page_size ** 2 for j in group]
+        total = sum(counts)
+        if total == 0:
+            continue
+        lane = dr.arange(mi.UInt32, total)
+        values = dict.fromkeys(names)
+        parts = []
+        at = 0
+        for job, n in zip(group, counts):
+            lo = dr.opaque(mi.UInt32, at)
+            inside = (lane >= lo) & (lane < dr.opaque(mi.UInt32, at + n))
+            nf = (job.new_fine if job.keys is not None else np.zeros(0, bool))
+            keys, slots, masks = ((np.zeros(0, np.uint64), np.zeros(0, np.int64),
+                                   np.zeros(0, np.int64)) if job.keys is None else
+                                  (job.keys[nf], job.slot_ids[nf], job.masks[nf]))
+            src, dst, empty = job.store._fill_lanes(keys, slots, masks, lane - lo, inside)
+            act = inside & empty
+            for name in names:
+                # (no reference to a gather left past the loop: a pool read by a pending
+                # gather is copied whole before a scatter writes it, 1.5 MB here)
+                values[name] = (dr.gather(mi.Float, job.store.pools[name], src, act)
+                                if values[name] is None else
+                                dr.select(inside, dr.gather(mi.Float, job.store.pools[name],
+                                                            src, act), values[name]))
+            parts.append((job, act, dst))
+            at += n
+        dr.eval(*values.values())     # read before the scatters write the same pools
+        for job, act, dst in parts:
+            for name in names:
+                dr.scatter(job.store.pools[name], values[name], dst, act)
+        dr.eval(*(job.store.pools[name] for job in group for name in names))
 
 
 def _cast_alone(scene, job, second: bool) -> None:

@@ -2876,6 +2876,40 @@ def test_two_lights_cast_their_tiles_in_one_kernel_as_each_alone(monkeypatch):
         assert a.shape == b.shape and np.array_equal(a, b)
 
 
+def test_a_cast_and_fill_with_a_store_that_built_no_page_yet():
+    """``cast_tiles`` and ``fill_new_pages`` with a store that built no page yet among
+    the jobs (its keys none, its pools empty: an empty lane range): the other store's
+    pages are what its own build gives, and the empty store stays empty. Before, the
+    merged kernel scattered to (and the fill gathered from) the empty store's pools with
+    every lane masked off, which Dr.Jit refuses ("attempted to scatter to an empty
+    array"); a build alone of no keys was always fine."""
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_file(str(SCENES / "room_two_points.xml"), width=32, height=32)
+    integ = shadowmap(method="hard")
+    vis_of(scene, integ, spp=1)
+    a, b = (m.store for m in integ.maps[:2])
+    lay = a.layout
+    assert lay.tiles_per_side > 1
+    # every face's coarsest page, and a finer page with one tile cast (the rest filled)
+    keys = np.sort(np.array([layout.page_key(f, lay.coarsest, 0, 0)
+                             for f in range(lay.view.n_faces)]
+                            + [layout.page_key(0, lay.coarsest - 1, 0, 0)], np.uint64))
+    masks = np.ones(len(keys), np.int64)
+    ref = page_store.PageStore(lay, a.layers)
+    texels = ref.build(scene, keys, masks)
+    new = page_store.PageStore(lay, a.layers)
+    empty = page_store.PageStore(b.layout, b.layers)
+    jobs = [new.plan_build(keys, masks), empty.plan_build(np.zeros(0, np.uint64))]
+    page_store.cast_tiles(scene, jobs)
+    page_store.fill_new_pages(jobs)
+    assert new.finish_build(jobs[0], fill=False) == texels > 0
+    assert empty.finish_build(jobs[1], fill=False) == 0 and empty.capacity == 0
+    for name in ref.pools:
+        assert np.array_equal(new.pools[name].numpy(), ref.pools[name].numpy())
+    assert np.array_equal(new.tile_min, ref.tile_min)
+    assert np.array_equal(new.slot_mask, ref.slot_mask)
+
+
 @pytest.mark.parametrize("border", [False, True])
 def test_batch_footprints_in_the_render_are_each_cameras_own(border):
     """The render's footprint of a ``batch`` lane (a cone of its pixel's one-pixel step,

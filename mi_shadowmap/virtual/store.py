@@ -495,7 +495,10 @@ def cast_tiles(scene, jobs: list) -> None:
                 if job.n_tiles:
                     _cast_alone(scene, job, second)
             continue
-        live = group       # (a store with nothing to cast: an empty range)
+        # (a store with nothing to cast: an empty range; but none for a store that never
+        # built a page: its pools are empty, and Dr.Jit refuses a scatter to an empty
+        # array even with every lane masked off)
+        live = [j for j in group if _has_pool(j)]
         tpts = [j.store.layout.tile_size ** 2 for j in live]
         counts = [j.n_tiles * t for j, t in zip(live, tpts)]
         total = sum(counts)
@@ -547,6 +550,7 @@ def fill_new_pages(jobs: list) -> None:
         if st.layout.tiles_per_side > 1:
             groups.setdefault(tuple(st.pools), []).append(job)
     for names, group in groups.items():
+        group = [j for j in group if _has_pool(j)]     # (as cast_tiles: no empty pools)
         if len(group) == 1:
             job = group[0]
             nf = job.new_fine
@@ -585,6 +589,13 @@ def fill_new_pages(jobs: list) -> None:
             for name in names:
                 dr.scatter(job.store.pools[name], values[name], dst, act)
         dr.eval(*(job.store.pools[name] for job in group for name in names))
+
+
+def _has_pool(job) -> bool:
+    """Whether ``job``'s store has pools to gather from and scatter to: not a store that
+    built no page yet, whose lane range is empty (its build's keys none: a plan grows
+    the pools before any page is cast)."""
+    return dr.width(job.store.pools["depth"]) > 0
 
 
 def _cast_alone(scene, job, second: bool) -> None:

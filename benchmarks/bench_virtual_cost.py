@@ -10,7 +10,9 @@ equal time. One run, by hand:
    ``hard`` with virtual maps, both with ``cache_maps=false`` (every frame builds its
    maps), rendered interleaved in ``--rounds`` rounds (medians). The shadow cost of a
    method is its frame minus the unshadowed frame; the table gives each method's shadow
-   cost over ``raytraced``'s (issue 11's target for ``hard`` virtual: <= 0.7).
+   cost over ``raytraced``'s (issue 11's target for ``hard`` virtual: <= 0.7), from the
+   medians, and the same ratio within each round (median and range over the rounds: the
+   machine's speed drifts between rounds by more than a shadow cost).
 2. **PCSS at equal time, maps built.** ``scenes_xml/cbox_area.xml`` at ``--soft-image``^2,
    1 spp: ``pcss`` (full maps and virtual maps, maps rebuilt every frame) against
    ``raytraced`` with 1, 2, 4, 8, 16 shadow rays; visibility RMSE against the converged
@@ -54,7 +56,8 @@ def frame(scene, integ, spp, seed):
 
 
 def interleaved(scene, configs, spp, rounds):
-    """``{name: (median seconds, last image)}``, the configurations rendered in turn."""
+    """``{name: (median seconds, last image, integrator, per-round seconds)}``, the
+    configurations rendered in turn."""
     integs = {n: mi.load_dict({"type": "shadowmap", **p}) for n, p in configs.items()}
     for n, i in integs.items():          # compile and warm up
         frame(scene, i, spp, 0)
@@ -65,7 +68,7 @@ def interleaved(scene, configs, spp, rounds):
             t, img = frame(scene, i, spp, r + 1)
             times[n].append(t)
             last[n] = img
-    return {n: (statistics.median(times[n]), last[n], integs[n]) for n in configs}
+    return {n: (statistics.median(times[n]), last[n], integs[n], times[n]) for n in configs}
 
 
 def part_heavy(args):
@@ -82,16 +85,25 @@ def part_heavy(args):
         res = interleaved(scene, configs, args.spp, args.rounds)
     base = res["unshadowed"][0]
     rt = res["raytraced"][0] - base
+    # the same ratio within each round (its frames rendered a few seconds apart): this
+    # machine's speed drifts between rounds by more than a shadow cost, which moves the
+    # ratio of medians; the per-round ratios' median and range show how far
+    per_round = {n: [(t - u) / (r - u) if r > u else float("nan")
+                     for t, u, r in zip(res[n][3], res["unshadowed"][3], res["raytraced"][3])]
+                 for n in res}
     print(f"\n## 1. {args.triangles:,}-triangle mesh, {args.image}^2, {args.spp} spp "
           f"(median of {args.rounds} interleaved rounds)\n")
     print("| configuration | frame [ms] | shadow cost [ms] | shadow cost / raytraced's | "
-          "texels built |")
-    print("|---|---|---|---|---|")
-    for n, (t, _, integ) in res.items():
+          "per round: median (min-max) | texels built |")
+    print("|---|---|---|---|---|---|")
+    for n, (t, _, integ, _) in res.items():
         cost = t - base
         texels = integ.stats.get("texels_built", "-") if hasattr(integ, "stats") else "-"
         ratio = f"{cost / rt:.2f}" if n != "unshadowed" and rt > 0 else "-"
-        print(f"| {n} | {t * 1e3:.1f} | {cost * 1e3:.1f} | {ratio} | {texels} |")
+        pr = per_round[n]
+        spread = (f"{statistics.median(pr):.2f} ({min(pr):.2f}-{max(pr):.2f})"
+                  if n != "unshadowed" and all(x == x for x in pr) else "-")
+        print(f"| {n} | {t * 1e3:.1f} | {cost * 1e3:.1f} | {ratio} | {spread} | {texels} |")
 
 
 def part_soft(args):
@@ -106,7 +118,7 @@ def part_soft(args):
         configs[f"raytraced shadow_rays={k}"] = {"method": "raytraced", "shadow_rays": k}
     res = interleaved(scene, configs, 1, args.rounds)
     rows = {}
-    for n, (t, img, integ) in res.items():
+    for n, (t, img, integ, _) in res.items():
         a = np.asarray(img)
         vis = np.moveaxis(a[..., 3:], -1, 0)
         order = np.argsort(integ.aov_names())

@@ -518,16 +518,8 @@ def cast_tiles(scene, jobs: list) -> None:
             d = d_j if d is None else dr.select(inside, d_j, d)
             parts.append((job, inside, dst, at, n))
             at += n
-        view = live[0].store.layout.view
-        # depths from the rays' start (t0 along them, VirtualLayout.t0)
-        depth = first_hit(scene, view, o, d)
-        sd = second_depth_along(scene, view, o, d) if second else None
-        for job, inside, dst, _, _ in parts:
-            dr.scatter(job.store.pools["depth"], depth, dst, inside)
-            if second:
-                dr.scatter(job.store.pools["second_depth"], sd, dst, inside)
-        # one kernel: the depths (kept: the tile minima read them) and the scatters
-        dr.eval(depth)
+        depth = _cast_rays(scene, live[0].store.layout.view, o, d, second,
+                           [(job.store, dst, inside) for job, inside, dst, _, _ in parts])
         host = dr.backend_v(depth) == dr.JitBackend.LLVM
         values = depth.numpy() if host else None
         for (job, _, _, at, n), tpt in zip(parts, tpts):
@@ -604,15 +596,23 @@ def _cast_alone(scene, job, second: bool) -> None:
     tpt = st.layout.tile_size ** 2
     lane = dr.arange(mi.UInt32, job.n_tiles * tpt)
     o, d, dst = st._tile_rays(job.tkeys, job.tslots, lane)
-    # depths from the rays' start (t0 along them, VirtualLayout.t0)
-    depth = first_hit(scene, st.layout.view, o, d)
-    dr.scatter(st.pools["depth"], depth, dst)
-    if second:
-        sd = second_depth_along(scene, st.layout.view, o, d)
-        dr.scatter(st.pools["second_depth"], sd, dst)
-    # one kernel: the depths (kept: the tile minima read them) and the scatters
-    dr.eval(depth)
+    depth = _cast_rays(scene, st.layout.view, o, d, second, [(st, dst, True)])
     job.minima = page_minima(depth, tpt)
+
+
+def _cast_rays(scene, view, o, d, second: bool, writes: list):
+    """The depths along the rays ``(o, d)`` of ``view``'s texels (from ``t0`` along them,
+    :attr:`VirtualLayout.t0`), and the second depths with ``second``, scattered into each
+    ``(store, dst, active)`` of ``writes``: one kernel, evaluated (the tile minima read the
+    depths, returned)."""
+    depth = first_hit(scene, view, o, d)
+    sd = second_depth_along(scene, view, o, d) if second else None
+    for st, dst, active in writes:
+        dr.scatter(st.pools["depth"], depth, dst, active)
+        if second:
+            dr.scatter(st.pools["second_depth"], sd, dst, active)
+    dr.eval(depth)
+    return depth
 
 
 def page_layers(opts) -> tuple:

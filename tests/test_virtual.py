@@ -1787,6 +1787,31 @@ def test_local_taps_continue_off_the_face_as_in_float64(light):
         assert np.all(a[ins] == b[ins])
 
 
+def test_a_level_resolution_divides_as_its_exact_reciprocal_multiplies():
+    """Virtual lookups divide by a per-lane level resolution (a power of two) as a product
+    with its reciprocal built from the exponent bits (:func:`~mi_shadowmap.light_views.
+    base.divide_by_res`, :meth:`~mi_shadowmap.light_views.local.LocalView._to_local_uv`):
+    bit for bit the quotients' float32 and float64 values, for resolutions 2^0 to 2^30
+    and numerators from subnormals to the largest floats, signed zeros, infinities and
+    NaN; a full map's ``int`` resolution (not a power of two) still divides."""
+    from mi_shadowmap.light_views.base import divide_by_res, pow2_reciprocal
+    rng = np.random.default_rng(5)
+    k = np.repeat(np.arange(31), 400)
+    x = rng.uniform(1.0, 2.0, k.size) * 2.0 ** rng.integers(-149, 128, k.size)
+    x = np.where(rng.random(k.size) < 0.5, -x, x)
+    x[:8] = [0.0, -0.0, np.inf, -np.inf, np.nan, 3.4028235e38, 1e-45, -1e-45]
+    x32 = x.astype(np.float32)
+    res = mi.Int32((1 << k).astype(np.int32))
+    got = divide_by_res(mi.Float(x32), res).numpy()
+    want = (mi.Float(x32) / mi.Float(res)).numpy()
+    assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+    x64 = rng.uniform(-1.0, 1.0, k.size) * 2.0 ** rng.integers(-1074, 1000, k.size)
+    got64 = (mi.Float64(x64) * pow2_reciprocal(res, mi.Float64)).numpy()
+    want64 = (mi.Float64(x64) / mi.Float64(res)).numpy()
+    assert np.array_equal(got64.view(np.uint64), want64.view(np.uint64))
+    assert divide_by_res(mi.Float(1.0), 3)[0] == mi.Float(1.0 / 3.0)[0]
+
+
 @pytest.mark.parametrize("light", ["spot", "point", "area"])
 def test_reading_slots_per_tap_or_per_block_gives_the_same_image(light):
     """``virtual_per_tap`` is a speed hint only: ``hard`` (per-tap slot reads) and the
@@ -1913,11 +1938,11 @@ def test_box_means_of_depths_equal_the_summed_area_tables():
     hi = mi.Point2f(*(centre + 0.5 * width).T.astype(np.float32))
     face = mi.UInt32(np.zeros(n, np.uint32))
 
-    def per_texel(d):
+    def divide_by_res(d):
         zz = dr.select(dr.isfinite(d), mi.Float64(d) / 8.0, 1.0)
         return zz, zz * zz
 
-    (m1, m2), count = box_means_of_depths(smap, face, lo, hi, per_texel, 2)
+    (m1, m2), count = box_means_of_depths(smap, face, lo, hi, divide_by_res, 2)
     # the tables' means are differences of sums over the whole face: on the 1e-6 texel^2
     # boxes of boxes clipped away entirely their cancellation reaches 1e-7 (the direct
     # sums are exact there), elsewhere both agree to float64 rounding

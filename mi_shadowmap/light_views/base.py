@@ -297,14 +297,40 @@ def emitter_frame(T, origin) -> mi.ScalarTransform4f:
     return mi.ScalarTransform4f(m.tolist())
 
 
+def pow2_reciprocal(res, float_type=None):
+    """``1 / res`` for a per-lane power of two ``res`` (a Dr.Jit integer array, 1 to
+    2^126), exactly and without a division: ``2^k`` has the bits ``(bias + k) << m``,
+    so ``2^-k`` is ``(2 bias << m)`` minus them (``float_type``: ``mi.Float``, the
+    default, or ``mi.Float64``)."""
+    if float_type is mi.Float64:
+        bits = dr.reinterpret_array(mi.UInt64, mi.Float64(res))
+        return dr.reinterpret_array(mi.Float64, mi.UInt64(2046 << 52) - bits)
+    bits = dr.reinterpret_array(mi.UInt32, mi.Float(res))
+    return dr.reinterpret_array(mi.Float, mi.UInt32(254 << 23) - bits)
+
+
+def divide_by_res(x, res):
+    """``x / res`` for a map resolution ``res``: a full map's (a Python ``int``), or per
+    lane a virtual map's level resolution (a Dr.Jit integer array, always a power of
+    two: so are ``resolution`` and ``page_size``), as ``x`` times
+    :func:`pow2_reciprocal`. The same value: dividing by ``2^k`` and multiplying by
+    ``2^-k`` round the same exact quotient. A 16-lane float32 division holds the
+    divider for about 10 cycles; the level's divisions were 4 of the 26 divider
+    operations a packet of a directional light's virtual ``hard`` lookup (with
+    :meth:`~.local.LocalView._to_local_uv`'s; ``benchmarks/RESULTS.md``, 2026-12-06)."""
+    if isinstance(res, (int, np.integer)) or not dr.is_integral_v(res):
+        return x / res
+    return x * pow2_reciprocal(res)
+
+
 def axial_texel_size(view, res: int, face, p_world):
     """:meth:`LightView.texel_parallel_size` of a view projecting through a centre
     (perspective, cube): the texel width at the point's *axial* depth along the
     face's view axis, ``z_axial * 2 tan_half / res``."""
     o, axis = view.ray_through(face, mi.Point2f(0.5, 0.5))
     z_axial = dr.dot(mi.Point3f(p_world) - o, axis)
-    return z_axial * (opaque_scalar(2.0 * view.tan_half) / res)   # opaque: a spot's new
-    #                                                         cutoff compiles no kernel
+    # opaque: a spot's new cutoff compiles no kernel
+    return z_axial * divide_by_res(opaque_scalar(2.0 * view.tan_half), res)
 
 
 def transform_f64(m: np.ndarray, p, point: bool = True):

@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import light_matrix, transform_f64, unit_grid
+from .base import light_matrix, divide_by_res, transform_f64, unit_grid
 from .ortho import OrthoView
 
 
@@ -168,19 +168,20 @@ class CascadedView(OrthoView):
         the receiver's depth gradient (:meth:`OrthoView.texel_world_size`)."""
         if p_world is None:
             w = max(max(r[2], r[3]) for r in self.rects)
-            return dr.full(mi.Float, 2.0 * w / res, dr.width(depth))
+            return dr.full(mi.Float, divide_by_res(2.0 * w, res), dr.width(depth))
         face = self.project(p_world)[0] if self.catch_all else self.cascade_of(p_world)
         _, _, hx, hy = self._rect(face)
         if n_world is None:
-            return 2.0 * dr.maximum(hx, hy) / res
-        return self._texel_along(2.0 * hx / res, 2.0 * hy / res, n_world)
+            return divide_by_res(2.0 * dr.maximum(hx, hy), res)
+        return self._texel_along(divide_by_res(2.0 * hx, res), divide_by_res(2.0 * hy, res),
+                                 n_world)
 
     def texel_parallel_xy(self, res: int, face, p_world, texel_world):
         """Each cascade's own rectangle's texel sides (None if all are square)."""
         if all(r[2] == r[3] for r in self.rects):
             return None
         _, _, hx, hy = self._rect(mi.UInt32(face))
-        return 2.0 * hx / res, 2.0 * hy / res
+        return divide_by_res(2.0 * hx, res), divide_by_res(2.0 * hy, res)
 
     def map_width(self, p_world: np.ndarray) -> float:
         return 2.0 * max(max(r[2], r[3]) for r in self.rects)

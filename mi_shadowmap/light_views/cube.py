@@ -18,7 +18,7 @@ import numpy as np
 
 from ..control_flow import if_stmt
 from .base import (LightView, axial_texel_size, emitter_frame, opaque_point, position_np, scalar3,
-                   unit_grid)
+                   divide_by_res, unit_grid)
 
 
 def cube_dir(face, s, t) -> mi.Vector3f:
@@ -140,7 +140,7 @@ class CubeView(LightView):
         if p_world is not None:
             d = mi.Point3f(p_world) - opaque_point(self.position)
             depth = dr.maximum(dr.maximum(dr.abs(d.x), dr.abs(d.y)), dr.abs(d.z))
-        return depth * (2.0 * self.tan_half / res)
+        return depth * divide_by_res(2.0 * self.tan_half, res)
 
     def texel_parallel_size(self, res: int, face, p_world, texel_world):
         return axial_texel_size(self, res, face, p_world)

@@ -35,7 +35,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..control_flow import if_stmt
-from .base import opaque_point
+from .base import opaque_point, pow2_reciprocal
 
 #: Receiver depths are lowered by this many float32 roundoffs (2^-24 relative) of
 #: themselves: the map's and the receiver's float32 roundings together, with margin.
@@ -106,14 +106,18 @@ class LocalView:
         return self.inner.n_faces
 
     # ------------------------------------------------------ local <-> global
+    # Both through the level resolution's exact reciprocal (pow2_reciprocal): the same
+    # values as dividing (Dr.Jit divides a Point2d by a Float64 as a product with its
+    # reciprocal, 1 / 2^k, exact), without two float64 divisions a 16-lane packet.
     def _to_local_uv(self, uv64) -> mi.Point2f:
         res = mi.Float64(self.res_level)
         xy = mi.Point2d(uv64) * res - mi.Point2d(self.origin)
-        return mi.Point2f(xy / res)
+        return mi.Point2f(xy * pow2_reciprocal(self.res_level, mi.Float64))
 
     def _to_global_uv(self, uv_local) -> mi.Point2d:
         res = mi.Float64(self.res_level)
-        return (mi.Point2d(uv_local) * res + mi.Point2d(self.origin)) / res
+        return ((mi.Point2d(uv_local) * res + mi.Point2d(self.origin))
+                * pow2_reciprocal(self.res_level, mi.Float64))
 
     def _lowered(self, depth) -> mi.Float:
         depth = mi.Float(depth)

@@ -17,8 +17,8 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, light_matrix, look_along, look_along_np, position_np, scalar3,
-                   opaque_point, opaque_scalar, opaque_transform, scene_bounds,
-                   texel_width_along, transform_f64, unit_grid)
+                   opaque_point, opaque_scalar, opaque_transform, divide_by_res,
+                   scene_bounds, texel_width_along, transform_f64, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -124,9 +124,10 @@ class OrthoView(LightView):
         # ``res`` may be per lane (virtual maps' levels)
         zero = dr.zeros(mi.Float, dr.width(depth))
         if n_world is None:
-            return zero + 2.0 * opaque_scalar(max(self.half_extent)) / res
+            return zero + divide_by_res(2.0 * opaque_scalar(max(self.half_extent)), res)
         hx, hy = self._half()
-        return zero + self._texel_along(2.0 * hx / res, 2.0 * hy / res, n_world)
+        return zero + self._texel_along(divide_by_res(2.0 * hx, res),
+                                        divide_by_res(2.0 * hy, res), n_world)
 
     def _texel_along(self, w_x, w_y, n_world):
         """:func:`~.base.texel_width_along` in this light's image plane."""
@@ -143,7 +144,7 @@ class OrthoView(LightView):
             return None
         hx, hy = self._half()
         zero = dr.zeros(mi.Float, dr.width(texel_world))
-        return zero + 2.0 * hx / res, zero + 2.0 * hy / res
+        return zero + divide_by_res(2.0 * hx, res), zero + divide_by_res(2.0 * hy, res)
 
     def direction_to_light(self, p_world: mi.Point3f) -> mi.Vector3f:
         return -dr.normalize(self._forward())

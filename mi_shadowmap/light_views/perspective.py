@@ -18,8 +18,8 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, axial_texel_size, emitter_frame, light_matrix, look_along_np,
-                   opaque_point, opaque_scalar, opaque_transform, position_np, scalar3,
-                   texel_width_along, transform_f64, unit_grid)
+                   opaque_point, opaque_scalar, opaque_transform, divide_by_res, position_np,
+                   scalar3, texel_width_along, transform_f64, unit_grid)
 
 
 @dataclass(frozen=True)
@@ -148,13 +148,13 @@ class PerspectiveView(LightView):
         if p_world is not None:
             depth = dr.abs((opaque_transform(self.light_from_world) @ mi.Point3f(p_world)).z)
         if self.tan_half_y is None or n_world is None:
-            return depth * (opaque_scalar(2.0 * self.tan_half) / res)
+            return depth * divide_by_res(opaque_scalar(2.0 * self.tan_half), res)
         # the light's axes in the world: the rows of light_from_world's rotation (the
         # opaque matrix project() reads; tan_half_y a Python float, as tan_half: a numpy
         # float times a JIT array asks numpy to convert it, which a symbolic lookup refuses)
         m = opaque_transform(self.light_from_world).matrix
-        return texel_width_along(depth * (opaque_scalar(2.0 * self.tan_half) / res),
-                                 depth * (opaque_scalar(2.0 * self._tan_y) / res),
+        return texel_width_along(depth * divide_by_res(opaque_scalar(2.0 * self.tan_half), res),
+                                 depth * divide_by_res(opaque_scalar(2.0 * self._tan_y), res),
                                  dr.normalize(mi.Vector3f(m[0][0], m[0][1], m[0][2])),
                                  dr.normalize(mi.Vector3f(m[1][0], m[1][1], m[1][2])),
                                  mi.Vector3f(n_world))

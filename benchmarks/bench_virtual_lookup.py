@@ -12,7 +12,10 @@ points (``read``), so that each row's increment is what that step adds:
 
   read            the points, plus one add (the kernel's fixed cost, reading the input)
   project         the float64 projection into the light (``project_f64``)
-  level           + the level from the pixel footprint (``level_for``)
+  level           + the level from the pixel footprint (``level_for`` without the normal)
+  level, capped   + the biases' finer cap on it (``level_for`` with the receiver's normal,
+                  as ``bind`` calls it: the reach of ``hard``'s biases, mostly float32
+                  divisions and square roots)
   page table      + ``bind``: the 2 x 2 pages' table entry, the own page's slot, the
                   fallback for a missing page (``per_tap``, as ``hard`` binds)
   receiver        + ``receiver()`` through the bound local frame (biases, normal offset)
@@ -117,6 +120,9 @@ def bench_scene(name: str, args) -> list:
         ("project", lambda: vm.view.project_f64(mi.Point3d(lk.p_world))[1]),
         ("level", lambda: vm.level_for(*vm.view.project_f64(mi.Point3d(lk.p_world))[:1],
                                        mi.Point3d(lk.p_world), lk.dp_dx, lk.dp_dy)),
+        ("level, capped", lambda: vm.level_for(
+            *vm.view.project_f64(mi.Point3d(lk.p_world))[:1], mi.Point3d(lk.p_world),
+            lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world)),
         ("page table", lambda: (lambda b: (b.view.origin, b.level, b.entry[0]))(bound())),
         ("receiver", lambda: (lambda br: (br[1].uv, br[1].depth, br[0].entry[0]))(rec())),
         ("texel index", lambda: (lambda br: (br[0].texel_index(br[1].face, br[1].uv),

@@ -154,3 +154,24 @@ def root_message(exc) -> str:
     while exc.__cause__ is not None:
         exc = exc.__cause__
     return str(exc)
+
+
+def translated_scene(offset: float):
+    """A unit-sized ground, sphere and box under a point light, camera included, all
+    moved by ``offset`` (x), ``0.3 offset`` (y), ``-0.7 offset`` (z)."""
+    o = [offset, 0.3 * offset, -0.7 * offset]
+    T = mi.ScalarTransform4f
+    move = T().translate(o)
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": move @ T().look_at(origin=[0, 4, 5], target=[0, 0, 0],
+                                                  up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 64, "height": 64,
+                            "rfilter": {"type": "box"}}},
+        "ground": {"type": "rectangle", "to_world": move @ T().rotate([1, 0, 0], -90).scale(4)},
+        "sphere": {"type": "sphere", "center": [o[0] - 0.8, o[1] + 0.6, o[2]], "radius": 0.5},
+        "box": {"type": "cube", "to_world": move @ T().translate([0.8, 0.5, 0.3])
+                .rotate([0, 1, 0], 30).scale(0.4)},
+        "light": {"type": "point", "position": [o[0] + 1, o[1] + 3, o[2] + 1],
+                  "intensity": {"type": "rgb", "value": 50.0}}})

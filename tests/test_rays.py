@@ -9,6 +9,8 @@ import pytest
 
 from mi_shadowmap.rays import spawn_shadow_ray
 
+from conftest import translated_scene
+
 N = 32     # N x N receiver points
 
 
@@ -174,26 +176,6 @@ def test_a_huge_flat_ground_keeps_the_shadows_of_small_posts(ground):
     assert gap > 0.1 and err <= 1e-3
 
 
-def _translated_scene(offset: float):
-    """A unit-sized ground, sphere and box under a point light, camera included, all
-    moved by ``offset`` (x), ``0.3 offset`` (y), ``-0.7 offset`` (z)."""
-    o = [offset, 0.3 * offset, -0.7 * offset]
-    move = T().translate(o)
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": move @ T().look_at(origin=[0, 4, 5], target=[0, 0, 0],
-                                                  up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 64, "height": 64,
-                            "rfilter": {"type": "box"}}},
-        "ground": {"type": "rectangle", "to_world": move @ T().rotate([1, 0, 0], -90).scale(4)},
-        "sphere": {"type": "sphere", "center": [o[0] - 0.8, o[1] + 0.6, o[2]], "radius": 0.5},
-        "box": {"type": "cube", "to_world": move @ T().translate([0.8, 0.5, 0.3])
-                .rotate([0, 1, 0], 30).scale(0.4)},
-        "light": {"type": "point", "position": [o[0] + 1, o[1] + 3, o[2] + 1],
-                  "intensity": {"type": "rgb", "value": 50.0}}})
-
-
 def test_the_reference_keeps_its_shadows_far_from_the_origin():
     """A unit-sized scene 1e5 from the origin: ``raytraced``'s visibility against its own
     at the origin. With 64 roundoffs of the coordinates as the origin offset (0.38
@@ -205,8 +187,8 @@ def test_the_reference_keeps_its_shadows_far_from_the_origin():
                                                          "method": "raytraced"}),
                         spp=4, seed=1)
         return np.asarray(img)[..., 3]
-    at_origin = vis(_translated_scene(0.0))
-    far = vis(_translated_scene(1e5))
+    at_origin = vis(translated_scene(0.0))
+    far = vis(translated_scene(1e5))
     wrong = float(np.mean((at_origin >= 0.5) != (far >= 0.5)))
     print(f"misclassified at 1e5 against the origin: {wrong:.2%}")
     assert (at_origin < 0.5).mean() > 0.05 and wrong < 0.01

@@ -56,12 +56,14 @@ Deviations from the paper, and why:
   so "equal" means within ``_EQ_REL`` (1e-5) of the depth. The ray-traced
   depth's rounding also grows with the plane's own coordinates (a ground 1e4
   wide under a light 4 units above it: up to 2.9e-4 at depths of 4-11), so
-  the layer stores every depth raised by 16 units in the last place of the hit
-  triangle's largest coordinate (:data:`~mi_shadowmap.depth_maps.ROUNDING_ULPS`;
-  such a ground was 27 % shadowed by itself, 39 % at 1e6 wide, 0.01 % now; the
-  walls of a sphere room lit from inside, whose back faces are their own second
-  surface, 41 %).
-  These are rounding tolerances, not biases: closed solids never rely on them.
+  the layer stores a surface that is its own second surface (the first one its ray
+  reaches) raised by 16 units in the last place of the hit triangle's largest
+  coordinate (:data:`~mi_shadowmap.depth_maps.ROUNDING_ULPS`; such a ground was 27 %
+  shadowed by itself, 39 % at 1e6 wide, 0.01 % now; the walls of a sphere room lit
+  from inside, whose back faces are their own second surface, 41 %).
+  These are rounding tolerances, not biases: closed solids' back faces, stored past
+  their front faces, get none (with it, the shadows behind them lost a band 16 ulps
+  of the coordinates deep: 0.1 units 1e5 from the origin).
 * **Solids and non-solids** are told apart per shape when the map is
   built (closed, outward-oriented meshes and spheres are solids; see
   :func:`mi_shadowmap.depth_maps.shape_is_solid`): the paper assumes the

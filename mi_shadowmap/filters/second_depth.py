@@ -234,7 +234,9 @@ def rising_neighbours(lk: Lookup, n, to_light, active) -> list:
 
 def second_depth(smap, lk: Lookup, opts, active=True) -> mi.Float:
     """Wang & Molnar (1994), Figure 10: percent illumination of a shading point."""
-    r, active, k, side, i0 = nearest_block(smap, lk, opts, active)
+    # no rounding margin of the point's coordinates: the layer has it where a surface
+    # is its own second surface (see receiver)
+    r, active, k, side, i0 = nearest_block(smap, lk, opts, active, coordinate_margin=False)
     res = smap.resolution
     view = smap.view
     layer = smap.second_depth

@@ -338,10 +338,19 @@ _SOLID_LATEST: dict = {}
 
 def _weld(v: np.ndarray, decimals: int = 5) -> tuple:
     """``(index per vertex, count)`` of the distinct vertices of ``v`` at ``decimals``
-    decimals, numbered in lexicographic order: ``np.unique(..., axis=0,
-    return_inverse=True)``'s numbers, from one ``lexsort`` of the columns (the row
-    ``unique`` took 1.3-2.3 s of a 2M-triangle mesh's 2.3-3.6 s solidity; this 0.5 s)."""
-    r = np.round(np.asarray(v, np.float64).reshape(-1, 3), decimals)
+    decimals of the mesh's size where it is under a unit (its bounding box's largest
+    side; of a world unit otherwise), numbered in lexicographic order: ``np.unique(...,
+    axis=0, return_inverse=True)``'s numbers, from one ``lexsort`` of the columns (the
+    row ``unique`` took 1.3-2.3 s of a 2M-triangle mesh's 2.3-3.6 s solidity; this
+    0.5 s). (At 5 decimals of a world unit whatever the size, the repository's terrain
+    scaled by 1e-4 welded its 31,746 vertices into 2,964 and only 832 of its 63,232
+    faces stayed solid: ``second_depth`` misclassified 0.65 % of the view instead of
+    0.48 %, against the README's scale invariance.)"""
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    finite = v[np.all(np.isfinite(v), axis=1)]
+    size = float(np.max(np.ptp(finite, axis=0))) if len(finite) else 1.0
+    unit = size if 0.0 < size < 1.0 else 1.0
+    r = np.round(v * (10.0 ** decimals / unit))
     if not len(r):
         return np.zeros(0, np.int64), 0
     order = np.lexsort((r[:, 2], r[:, 1], r[:, 0]))

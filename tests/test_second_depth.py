@@ -19,7 +19,7 @@ from mi_shadowmap.procedural import check_closed
 from mi_shadowmap.scenes import camera
 from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 
-from conftest import (SCENE_FILES, frosted_bulb_scene, relative_rmse, render_np,
+from conftest import (SCENE_FILES, SCENES, frosted_bulb_scene, relative_rmse, render_np,
                       translated_scene, vis_stack)
 
 T = mi.ScalarTransform4f
@@ -1005,3 +1005,17 @@ def test_a_scene_1e6_from_the_origin_keeps_its_solids_shadows(virtual):
     print(f"virtual={virtual}: {r}")
     assert np.mean(ref < 0.5) > 0.05
     assert r["misclassified"] <= 0.015
+
+
+@pytest.mark.parametrize("scale", [1e-4, 1.0, 1e4])
+def test_solidity_of_a_mesh_does_not_depend_on_its_scale(scale):
+    """The repository's terrain (63,232 faces, closed parts): vertices were welded at 5
+    decimals of a world unit, so scaled by 1e-4 its 31,746 distinct vertices welded
+    into 2,964 and only 832 faces stayed solid (``second_depth`` on directional_mesh at
+    scale 1e-4: 0.65 % of a 128^2 view misclassified, 0.48 % at scale 1). Now at 5
+    decimals of the mesh's own size where it is under a unit."""
+    from mi_shadowmap.depth_maps import face_solidity
+    mesh = mi.load_dict({"type": "ply", "filename": str(SCENES / "meshes" / "terrain.ply"),
+                         "to_world": T().scale(scale)})
+    solid = face_solidity(mesh)
+    assert len(solid) == 63232 and solid.all()

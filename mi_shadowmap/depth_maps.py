@@ -872,7 +872,7 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
     active = dr.full(mi.Bool, True, n)
     entered = dr.zeros(mi.Bool, n)      # a solid's front face passed: inside a solid
     # the last hit (its shape, face and side) and the step's growth on hitting it again
-    last = (dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.Bool, n))
+    last = (dr.full(mi.UInt32, 0xFFFFFFFF, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.Bool, n))
     grow = dr.full(mi.Float, 1.0, n)
 
     def cond(ray, z_first, z_second, it, active, entered, last, grow):

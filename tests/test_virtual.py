@@ -900,6 +900,42 @@ def test_still_camera_reuses_its_marks_and_a_moved_one_marks_again(monkeypatch):
     assert len(traced) == 3
 
 
+def test_methods_rendered_in_turn_keep_their_own_marks(monkeypatch):
+    """``hard`` and ``pcf`` (different margins) share a light's store: rendered in turn
+    with a still camera, each marks once and then recalls its own mark (each re-marked
+    every frame before), and every image equals the one its first frame gave; a camera
+    move marks again for each, and moving back through new variables too."""
+    virtual.PAGE_CACHE.clear()
+    traced = []
+    real = virtual.camera_hits
+    monkeypatch.setattr(planner, "camera_hits", lambda *a, **k: traced.append(1) or real(*a, **k))
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=1))
+    integs = {m: shadowmap(method=m, virtual=True) for m in ("hard", "pcf", "pcss")}
+    first = {m: vis_of(scene, i, spp=1) for m, i in integs.items()}
+    stores = {id(i.maps[0].store) for i in integs.values()}
+    n = len(traced)         # a mark pass per distinct mark (pcss may share pcf's)
+    assert n >= 2 and len(stores) < 3          # at least two of them share a store
+    for _ in range(2):
+        for m, i in integs.items():
+            assert np.array_equal(vis_of(scene, i, spp=1), first[m])
+            assert i.stats["pages_built"] == 0
+    assert len(traced) == n
+    params = mi.traverse(scene)
+    start = T(params["sensor.to_world"].matrix.numpy()[..., 0])
+    params["sensor.to_world"] = T().translate([0.3, 0.0, 0.0]) @ start
+    params.update()
+    for i in integs.values():
+        vis_of(scene, i, spp=1)
+    assert len(traced) == 2 * n
+    params["sensor.to_world"] = start
+    params.update()
+    for m, i in integs.items():
+        assert np.array_equal(vis_of(scene, i, spp=1), first[m])
+    assert len(traced) == 3 * n
+    for m, i in integs.items():          # the moved-back camera's marks, recalled
+        assert np.array_equal(vis_of(scene, i, spp=1), first[m])
+    assert len(traced) == 3 * n
+
 def test_light_views_follow_an_emitter_edit():
     """The integrator keeps its light views while the scene's state is unchanged; a
     light moved through ``params.update()`` gets new views, and its render equals a

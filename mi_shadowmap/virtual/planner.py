@@ -157,7 +157,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             for i in stores}
     dark = {i: all(dark[j] for j in stores if stores[j] is stores[i]) for i in stores}
     stale = [i for i, st in stores.items() if cam is not None and not dark[i]
-             and (st.last_mark is None or st.last_mark[0] != mark_key[i])]
+             and not st.recall_mark(mark_key[i])]
     stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
              if all(stores[j] is not stores[i] for j in stale[:k])]
     if stale:
@@ -215,7 +215,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             own = sorted_unique(np.concatenate([p[0] for p in parts]))
             extra = sorted_unique(np.concatenate([p[1] for p in parts]))
             optional = np.setdiff1d(extra, own, assume_unique=True)
-            stores[i].last_mark = (mark_key[i], with_keys(own, optional), optional)
+            stores[i].remember_mark((mark_key[i], with_keys(own, optional), optional))
 
         # every light's marked points first (one kernel with the camera hits), then the
         # candidate tiles from them in each dedupe round (a few integer operations)

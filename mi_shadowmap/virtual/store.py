@@ -14,6 +14,10 @@ from ..light_views.base import TEXEL_SAMPLE
 from .layout import (MAX_TABLE, MAX_TABLE_SIDE, INVALID_SLOT, VirtualLayout, key_fields,
                      padded_array, page_key)
 
+#: Marks of different keys a store remembers (:meth:`PageStore.recall_mark`): methods of
+#: different margins rendered in turn on one store, still camera.
+MARK_MEMO = 4
+
 
 class PageStore:
     """The physical pages of one emitter's virtual map, kept across renders.
@@ -60,13 +64,36 @@ class PageStore:
         # face f's coarsest page (always built where the light shines; empty where a
         # one-sided light does not), so a lookup finds it without a gather
         self.next_slot = 1 + layout.view.n_faces
-        # ((camera state, margin, coarse_res, lod_bias), marked tile keys, those of them
-        # only coarser-level kernels read)
+        # ((camera state, margin, coarse_res, lod_bias, reach), marked tile keys, those of
+        # them only coarser-level kernels read)
         self.last_mark = None
+        # the last MARK_MEMO marks of different keys, the latest last (recall_mark)
+        self.recent_marks = []
         # the last render's (last_mark, budget, version, needed keys, their slots, level
         # histogram, pages degraded): a render with the same three reuses the rest
         self.settled = None
         self.max_pages = 1 << 62      # the memory budget's pages (set per render)
+
+    def recall_mark(self, key) -> bool:
+        """Make the remembered mark of ``key`` (camera state, margin, coarse_res,
+        lod_bias, reach) :attr:`last_mark`; False if none is remembered. A mark depends on
+        its key, the light's view and the scene's shapes alone (a store is keyed by the
+        latter two), so methods of different margins sharing this store (``hard`` and
+        ``pcf`` hold the same layers) each keep theirs: rendered in turn with a still
+        camera, each re-marked every frame before (a mark pass: 4 kernels and the camera
+        hits, a few ms at 256^2)."""
+        for k, mark in enumerate(self.recent_marks):
+            if mark[0] == key:
+                self.recent_marks.append(self.recent_marks.pop(k))
+                self.last_mark = mark
+                return True
+        return False
+
+    def remember_mark(self, mark) -> None:
+        """:attr:`last_mark` = ``mark``, remembered among the last :data:`MARK_MEMO`."""
+        self.recent_marks = [m for m in self.recent_marks if m[0] != mark[0]][
+            -(MARK_MEMO - 1):] + [mark]
+        self.last_mark = mark
 
     @property
     def n_pages(self) -> int:

@@ -902,8 +902,9 @@ def test_still_camera_reuses_its_marks_and_a_moved_one_marks_again(monkeypatch):
 
 def test_methods_rendered_in_turn_keep_their_own_marks(monkeypatch):
     """``hard`` and ``pcf`` (different margins) share a light's store: rendered in turn
-    with a still camera, each marks once and then recalls its own mark (each re-marked
-    every frame before), and every image equals the one its first frame gave; a camera
+    with a still camera, each marks once and then recalls its own mark and page table
+    (each re-marked every frame before, and rebuilt the table), and every image equals
+    the one its first frame gave; a camera
     move marks again for each, and moving back through new variables too."""
     virtual.PAGE_CACHE.clear()
     traced = []
@@ -915,10 +916,14 @@ def test_methods_rendered_in_turn_keep_their_own_marks(monkeypatch):
     stores = {id(i.maps[0].store) for i in integs.values()}
     n = len(traced)         # a mark pass per distinct mark (pcss may share pcf's)
     assert n >= 2 and len(stores) < 3          # at least two of them share a store
-    for _ in range(2):
+    dense = {}
+    for r in range(3):
         for m, i in integs.items():
             assert np.array_equal(vis_of(scene, i, spp=1), first[m])
             assert i.stats["pages_built"] == 0
+            if r:           # its page table kept (the first round's: no page built since)
+                assert i.maps[0].dense is dense[m]
+            dense[m] = i.maps[0].dense
     assert len(traced) == n
     params = mi.traverse(scene)
     start = T(params["sensor.to_world"].matrix.numpy()[..., 0])

@@ -17,6 +17,9 @@ from .layout import (MAX_TABLE, MAX_TABLE_SIDE, INVALID_SLOT, VirtualLayout, key
 #: Marks of different keys a store remembers (:meth:`PageStore.recall_mark`): methods of
 #: different margins rendered in turn on one store, still camera.
 MARK_MEMO = 4
+#: What a store's page tables other than the latest may hold together (bytes): a few are
+#: kept for those renders (:meth:`PageStore.table`).
+KEPT_TABLE_BYTES = 32 << 20
 
 
 class PageStore:
@@ -52,7 +55,8 @@ class PageStore:
         # the last build's ``(keys, slots)``: every key's slot, once built (the planner
         # reads its pages' slots there, not from a lookup after the build)
         self.built_slots = None
-        self._table = None
+        # the last MARK_MEMO tables, (token, arrays, bytes), latest last
+        self._tables = []
         self.lit_faces = None                        # faces a one-sided light shines through
         # the planner's last (marks, coarsest keys, tiles, pages) and (marks, tiles, budget,
         # fit): a still camera's frame plans from them (planner.prepare_virtual)
@@ -403,8 +407,13 @@ class PageStore:
         """
         token = (self.version,) if frame is None else (
             self.version, hash(frame[0].tobytes()), hash(frame[2].tobytes()))
-        if self._table is not None and self._table[0] == token:
-            return self._table[1]
+        # a few tables kept (methods of different margins rendered in turn, each its own
+        # frame: one kept table rebuilt both every frame, 2.8 ms of a 256^2 large_world
+        # frame); tables of an older pool version are dropped
+        for k, (tok, tab, _) in enumerate(self._tables):
+            if tok == token:
+                self._tables.append(self._tables.pop(k))
+                return tab
         lay = self.layout
         L = lay.n_levels
         if frame is None:
@@ -458,7 +467,16 @@ class PageStore:
                                                        slot_mask[slots])),
                  padded_array(mi.UInt32, slot_mask[:max(self.next_slot, 1)].astype(np.uint32)),
                  padded_array(mi.UInt32, dense_tiles))
-        self._table = (token, table)
+        # older ones kept while they hold at most KEPT_TABLE_BYTES together
+        size = 4 * 2 * len(dense) + words.nbytes
+        kept, held = [], 0
+        for t in reversed([t for t in self._tables if t[0][0] == self.version][
+                -(MARK_MEMO - 1):]):
+            held += t[2]
+            if held > KEPT_TABLE_BYTES:
+                break
+            kept.insert(0, t)
+        self._tables = kept + [(token, table, size)]
         return table
 
     def face_near(self, n_faces: int, slots: np.ndarray | None = None,

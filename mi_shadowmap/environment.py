@@ -541,7 +541,6 @@ class EnvironmentView(MultiView):
         counts = np.diff(np.append(reg.offset, len(reg.cdf)))
         return {"offset": mi.UInt32(reg.offset.astype(np.uint32)),
                 "count": mi.UInt32(counts.astype(np.uint32)),
-                "steps": int(np.ceil(np.log2(counts.max() + 1))) + 1,
                 "row": mi.UInt32(reg.tex_row.astype(np.uint32)),
                 "col": mi.Float(reg.tex_col.astype(np.float64)),
                 "pmf": mi.Float(reg.pmf), "cdf": mi.Float(reg.cdf),
@@ -746,6 +745,27 @@ def _region_ray64(rows, half, uv_light):
 _R2 = (0.7548776662466927, 0.5698402909980532)
 
 
+def _search_cond(lo, n):
+    return n > 0
+
+
+def _search_body(cdf, x):
+    """One step of the binary search for the first texel of ``[lo, lo + n)`` whose
+    ``cdf`` exceeds ``x`` (:func:`shade`'s texel of a region): a loop that runs until
+    every lane's range is empty, so a region of n texels takes ``ceil(log2(n + 1))``
+    steps, not the largest region's (a fixed count of them, as before, is also a new
+    kernel for each largest region size). On sky_sun (16 regions of 2-7110 texels) that
+    is 125 steps over the regions instead of 16 x 14: the render kernel of a ``hard``
+    frame (128^2, 16 spp, maps cached) 92.0 -> 80.8 ms, ``pcss`` 259.8 -> 251.3 ms
+    (medians of 8, alternated in one process; the same texels: images bit-identical)."""
+    def body(lo, n):
+        half = n >> 1
+        mid = lo + half
+        go = dr.gather(mi.Float, cdf, mid) <= x
+        return dr.select(go, mid + 1, lo), dr.select(go, n - half - 1, half)
+    return body
+
+
 #: The sun warp's band (:func:`_sun_warp`), in sun radii from the sun's centre: the
 #: directions within the inner radius turn with the sun, those past the outer stay.
 SUN_WARP_BAND = (2.0, 4.0)
@@ -830,13 +850,8 @@ def shade(smap, emitter, si, bsdf, active, sampler, dp_dx, dp_dy, opts):
         # direction uniform in the texel's solid angle
         off = dr.gather(mi.UInt32, t["offset"], k)
         n = dr.gather(mi.UInt32, t["count"], k)
-        lo = mi.UInt32(off)
-        for _ in range(t["steps"]):
-            half = n >> 1
-            mid = lo + half
-            go = (n > 0) & (dr.gather(mi.Float, t["cdf"], mid, n > 0) <= xi.x)
-            lo = dr.select(go, mid + 1, lo)
-            n = dr.select(go, n - half - 1, half)
+        lo, _ = dr.while_loop((mi.UInt32(off), n), _search_cond, _search_body(t["cdf"], xi.x),
+                              label="environment: a texel of the region")
         last = off + dr.gather(mi.UInt32, t["count"], k) - 1
         idx = dr.minimum(lo, last)
         prev = dr.select(idx > off, dr.gather(mi.Float, t["cdf"], idx - 1, idx > off), 0.0)

@@ -2688,6 +2688,48 @@ def test_mark_blocks_give_the_candidate_tiles(margin, fold):
         found = [k.numpy()[ok.numpy()] for k, ok in zip(bkeys, boks)]
         got = np.unique(marks.expand_blocks(found, per_axis, bits))
         assert len(want) > 100 and np.array_equal(got, want)
+        # painted per face and level (block_tiles): the same tiles, sorted and distinct
+        painted = marks.block_tiles(found, per_axis, bits)
+        assert painted.dtype == np.uint64 and np.array_equal(painted, want)
+
+
+@pytest.mark.parametrize("fold", [False, True])
+def test_block_tiles_are_every_tile_of_the_blocks(fold):
+    """:func:`marks.block_tiles` (blocks painted into a grid per face and level, not
+    expanded) gives every tile of every block, sorted and distinct, as a loop over the
+    blocks' tiles does: blocks of every shape up to 9 x 9 tiles, overlapping (many points
+    mark nearly the same block), at the top of the faces' and levels' bits and at tile 0,
+    on many faces and levels; blocks scattered far apart on one level (its grid would be
+    mostly empty: expanded and sorted instead) and small blocks (the same); no block."""
+    rng = np.random.default_rng(11)
+    for per_axis, n, spread in [(9, 3000, 60), (5, 2000, 1 << 20), (3, 500, 40),
+                                (2, 800, 30), (7, 1, 10), (4, 0, 10)]:
+        bits = max(int(per_axis - 1).bit_length(), 1)
+        top = 27 - bits
+        face = rng.integers(0, 31, n).astype(np.uint64)
+        level = rng.choice([0, 3, 30], n).astype(np.uint64)
+        x = rng.integers(0, spread, n)
+        y = rng.integers(0, spread, n)
+        x[:n // 10] = 0
+        # face 31, level 31: near the last tiles a key can hold
+        face[n // 10:n // 5] = level[n // 10:n // 5] = 31
+        x[n // 10:n // 5] = (1 << top) - per_axis - rng.integers(0, 9, n // 5 - n // 10)
+        y[n // 10:n // 5] = (1 << top) - per_axis - rng.integers(0, 9, n // 5 - n // 10)
+        w = rng.integers(1, per_axis + 1, n)
+        h = rng.integers(1, per_axis + 1, n)
+        want = np.array(sorted({int(layout.page_key(int(f), int(lv), a + i, b + j))
+                                for f, lv, a, b, ww, hh in zip(face, level, x, y, w, h)
+                                for i in range(ww) for j in range(hh)}), np.uint64)
+        if fold:
+            found = [layout.page_key(face, level, (x | ((w - 1) << top)).astype(np.uint64),
+                                     (y | ((h - 1) << top)).astype(np.uint64))]
+        else:
+            c = (w - 1) + (h - 1) * per_axis
+            found = [layout.page_key(face[c == k], level[c == k], x[c == k].astype(np.uint64),
+                                     y[c == k].astype(np.uint64))
+                     for k in range(per_axis * per_axis)]
+        got = marks.block_tiles(found, per_axis, bits if fold else None)
+        assert got.dtype == np.uint64 and np.array_equal(got, want)
 
 
 def test_dilate_tiles_adds_every_tile_within_the_margin_inside_its_level():

@@ -18,8 +18,8 @@ from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_uni
                      with_keys)
 from ..filters.common import BiasReach
 from .lookup import VirtualShadowMap
-from .marks import (Marker, block_axis, camera_hits, dedupe_many, dilate_tiles,
-                    expand_blocks, mark_blocks, mark_coarser, marked_points, shape_bits,
+from .marks import (Marker, block_axis, block_tiles, camera_hits, dedupe_many,
+                    dilate_tiles, mark_blocks, mark_coarser, marked_points, shape_bits,
                     tile_pages)
 from .store import (PageStore, TileCast, cast_tiles, fill_new_pages, page_bytes,
                     page_layers)
@@ -183,7 +183,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
             dr.eval(through)
-        shapes = {}     # per light: mark_blocks' (per_axis, bits), for expand_blocks
+        shapes = {}     # per light: mark_blocks' (per_axis, bits), for block_tiles
 
         def marks(i, marker, points):
             """The candidate lists of light ``i`` (its own levels', then the coarser
@@ -204,7 +204,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             """Light ``i``'s tile keys from its :func:`marks` groups' keys: ``(own levels',
             coarser levels')`` (the latter empty without ``virtual_coarse_res``)."""
             n = len(found) - bool(coarse[i])
-            own = expand_blocks(found[:n], *shapes[i])
+            own = block_tiles(found[:n], *shapes[i])
             extra = (dilate_tiles(found[n], stores[i].layout, margins[i]) if coarse[i]
                      else np.zeros(0, np.uint64))
             return own, extra
@@ -212,7 +212,9 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         def settle(i, parts):
             """Light ``i``'s mark: every tile, and those only the coarser levels' kernels
             read (a full budget drops them first)."""
-            own = sorted_unique(np.concatenate([p[0] for p in parts]))
+            # (each part's own tiles sorted and distinct already: block_tiles)
+            own = (parts[0][0] if len(parts) == 1 else
+                   sorted_unique(np.concatenate([p[0] for p in parts])))
             extra = sorted_unique(np.concatenate([p[1] for p in parts]))
             optional = np.setdiff1d(extra, own, assume_unique=True)
             stores[i].remember_mark((mark_key[i], with_keys(own, optional), optional))

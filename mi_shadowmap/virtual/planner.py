@@ -178,11 +178,13 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                  if not hasattr(stores[i].layout.view, "mark_views")
                  and all(stores[j] is not stores[i] for j in list(stores)[:k])]
         fused = plain == [i for i in every if not dark[i]]
-        hits = camera_hits(scene, sensor, evaluate=bool(multi) or not fused)
+        hits = camera_hits(scene, sensor, evaluate=not (multi or fused))
         if multi:
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
-            dr.eval(through)
+            # the hits and whether each one's BSDF transmits in one kernel (two kernels
+            # before: 2.0 + 0.9 ms at 256^2 under sky_sun)
+            dr.eval(si_m.p, si_m.n, hits[1], hits[2], valid_m, through)
         shapes = {}     # per light: mark_blocks' (per_axis, bits), for block_tiles
 
         def marks(i, marker, points):

@@ -18,6 +18,21 @@ against K on ``scenes_xml/sky_sun.xml`` (sky gradient + 6-degree sun). One run, 
 
 Relative RMSE = sqrt(mean((img - ref)^2)) / sqrt(mean(ref^2)) over all pixels and the
 three colour channels (background pixels included: they are exact in every method).
+
+**A camera moving under the environment** (``--moves``, instead of the above):
+
+    python benchmarks/bench_environment.py --moves [--image 128] [--spp 16] [--rounds 6]
+                                           [--move-methods raytraced hard pcf pcss]
+
+The scene at its defaults (virtual maps, maps cached), one integrator per method and one
+``unshadowed``, all in one process. Per round and method: a still frame (rendered twice,
+the second timed: the methods' integrators share the environment's page store, whose
+marks are the last method's), then a frame after a small camera move (0.05 units sideways
+times the move's index, 1 degree of yaw, as ``bench_virtual_move.py``; every move a new
+place, the camera put back after it), and ``unshadowed`` at the same moved view. Medians
+over the rounds; ratios over ``unshadowed`` of the same view (still or moved). With Dr.Jit's
+kernel history: the kernels of a moved frame, the render kernel's time (the largest),
+the other kernels' (mark pass, casts) and the host time (wall minus every kernel).
 """
 from __future__ import annotations
 
@@ -25,6 +40,9 @@ import argparse
 import json
 import pathlib
 import time
+
+import statistics
+import sys
 
 import mi_shadowmap  # noqa: F401  (LLVM set-up first)
 import drjit as dr
@@ -48,6 +66,73 @@ def render(scene, integ, spp, seed=0):
     return img, time.perf_counter() - t0
 
 
+def timed_frame(scene, integ, spp) -> tuple:
+    """``(wall ms, [(kernel ms, lanes, operations)])`` of one render (kernel history on)."""
+    dr.kernel_history()
+    dr.sync_thread()
+    t0 = time.perf_counter()
+    dr.eval(mi.render(scene, integrator=integ, spp=spp, seed=0))
+    dr.sync_thread()
+    wall = (time.perf_counter() - t0) * 1e3
+    ks = [(k.get("execution_time", 0.0), int(k.get("size", 0)), k.get("operation_count", 0))
+          for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT]
+    return wall, ks
+
+
+def camera_moves(args) -> None:
+    """``--moves``: the still and moved frames' table (see the module doc)."""
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+    from bench_virtual import move_camera, set_camera
+    from mi_shadowmap import harness
+    scene = harness.load_scene(str(SCENE), width=str(args.image), height=str(args.image))
+    methods = ["unshadowed"] + [m for m in args.move_methods if m != "unshadowed"]
+    integ = {m: mi.load_dict({"type": "shadowmap", "method": m}) for m in methods}
+    for _ in range(2):                      # compile, build, prime the caches
+        for i in integ.values():
+            timed_frame(scene, i, args.spp)
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    rows = {}
+    k = 0
+    try:
+        for _ in range(args.rounds):
+            for m, i in integ.items():
+                timed_frame(scene, i, args.spp)        # this method's marks again
+                rows.setdefault((m, "still"), []).append(timed_frame(scene, i, args.spp))
+                if m == "unshadowed":
+                    continue
+                old = move_camera(scene, 0.05 * (1 + k), 1.0)
+                k += 1
+                try:
+                    rows.setdefault((m, "move"), []).append(timed_frame(scene, i, args.spp))
+                    rows.setdefault(("unshadowed", "move"), []).append(
+                        timed_frame(scene, integ["unshadowed"], args.spp))
+                finally:
+                    set_camera(scene, old)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    med = statistics.median
+    print(f"# sky_sun at its defaults, {args.image}^2, {args.spp} spp, medians of "
+          f"{args.rounds} rounds; x: over unshadowed of the same view\n")
+    print("| method | frame | ms (x unsh.) | kernels | render kernel ms | other kernels ms "
+          "| host ms |")
+    print("|---|---|---|---|---|---|---|")
+    for m in methods:
+        for kind in ("still", "move"):
+            got = rows.get((m, kind))
+            if not got:
+                continue
+            unsh = med(w for w, _ in rows[("unshadowed", kind)])
+            wall = med(w for w, _ in got)
+            render = [max((e for e, _, _ in ks), default=0.0) for _, ks in got]
+            other = [sum(e for e, _, _ in ks) - r for (_, ks), r in zip(got, render)]
+            host = [w - sum(e for e, _, _ in ks) for w, ks in got]
+            n = sorted(len(ks) for _, ks in got)
+            print(f"| {m} | {'still' if kind == 'still' else 'moved'} | {wall:.1f} "
+                  f"({wall / unsh:.2f}) | {n[0]}-{n[-1]} | {med(render):.1f} | "
+                  f"{med(other):.1f} | {med(host):.1f} |", flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--image", type=int, default=256)
@@ -57,9 +142,16 @@ def main():
     ap.add_argument("--methods", nargs="+", default=["hard", "pcss"])
     ap.add_argument("--hi-spp", type=int, default=256, help="the second (low-noise) spp")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--moves", action="store_true",
+                    help="time still and moved frames instead (see the module doc)")
+    ap.add_argument("--move-methods", nargs="+", default=["raytraced", "hard", "pcf", "pcss"])
+    ap.add_argument("--rounds", type=int, default=6)
     args = ap.parse_args()
     if mi.variant() is None:
         mi.set_variant("llvm_ad_rgb")
+    if args.moves:
+        camera_moves(args)
+        return
     scene = mi.load_file(str(SCENE), width=args.image, height=args.image)
     ref, t_ref = render(scene, mi.load_dict(DIRECT), args.ref_spp, seed=1000)
     print(f"reference: direct @ {args.ref_spp} spp, {args.image}^2 ({t_ref:.1f} s)")

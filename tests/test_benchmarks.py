@@ -40,6 +40,13 @@ def test_bench_environment_names_the_default_maps():
     assert "None^2" not in out and "virtual maps" in out
 
 
+def test_bench_environment_times_camera_moves():
+    # --moves: the still and moved frames of each method under sky_sun, in one process
+    out = run_bench("bench_environment.py", "--moves", "--image", "16", "--spp", "1",
+                    "--rounds", "1", "--move-methods", "hard")
+    assert "| hard | moved |" in out and "| unshadowed | still |" in out
+
+
 def bench_module(name: str):
     sys.path.insert(0, str(ROOT / "benchmarks"))
     try:

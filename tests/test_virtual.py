@@ -1270,6 +1270,39 @@ def test_mark_dedupe_returns_every_distinct_key(bits):
     assert np.array_equal(layout.with_keys(np.zeros(0, np.uint64), more), more)
 
 
+def test_mark_dedupe_spills_per_partition(monkeypatch):
+    """:func:`~mi_shadowmap.virtual.marks.dedupe_many` with partitions (an environment's
+    regions, each with its own slots) keeps ``SPILL`` twice-lost candidates per partition,
+    not per list: a batch of regions whose candidates lose both slots a few hundred times
+    together, fewer than ``SPILL`` each, runs the dedupe's three kernels and no fourth
+    (at 256^2 under sky_sun each batch of 8 regions overflowed 4096 and read back all its
+    524 k candidates); every distinct key is returned, as with the fourth kernel."""
+    monkeypatch.setattr(marks, "SPILL", 64)
+    rng = np.random.default_rng(4)
+    n_parts, per = 12, 100
+    part = np.repeat(np.arange(n_parts), per).astype(np.uint32)
+    keys = rng.integers(0, 2 ** 62, (n_parts, 20), dtype=np.uint64)
+    k = keys[part, rng.integers(0, 20, n_parts * per)]
+    ok = rng.random(n_parts * per) < 0.9
+    want = np.unique(k[ok])
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        found = marks.dedupe_many([([mi.UInt64(k)], [mi.Bool(ok)])], bits=4,
+                                  parts=[(mi.UInt32(part), n_parts)])
+        kernels = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    assert np.array_equal(np.unique(found[0]), want)
+    assert len(kernels) == 3
+    # more than SPILL in one partition: the fourth kernel, and still every key
+    monkeypatch.setattr(marks, "SPILL", 2)
+    found = marks.dedupe_many([([mi.UInt64(k)], [mi.Bool(ok)])], bits=4,
+                              parts=[(mi.UInt32(part), n_parts)])
+    assert np.array_equal(np.unique(found[0]), want)
+
+
 def test_page_minima_on_the_host_and_on_the_device_agree():
     """Each page's nearest finite depth (+inf for an empty page), as the CPU backend
     computes it in numpy and a GPU would on the device: the same values."""

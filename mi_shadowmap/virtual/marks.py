@@ -35,7 +35,10 @@ MAX_SPREAD = 32.0
 
 
 #: Keys of candidates that lost their slot in both of :func:`dedupe_many`'s hash tables
-#: its kernel keeps per candidate list (more: one more kernel gives them all).
+#: its kernel keeps per candidate list, or per partition of one (an environment's region:
+#: each has its own slots; more: one more kernel gives them all). Per list, not per
+#: region, 4096 held fewer than a batch of 8 of sky_sun's regions lost at 256^2: an
+#: extra kernel a batch (0.8 ms) and the host reading all its 524 k candidates.
 SPILL = 4096
 
 
@@ -512,10 +515,10 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
     camera hits they come from) and scatters each list into its hash table of
     ``2^bits`` slots; a second finds the candidates whose key lost its slot to another
     key and scatters them into a second table (another hash); a third finds those that
-    lost there too and appends their keys to a buffer of :data:`SPILL` per list (an
-    atomic counter: the same kernel whether a frame has any; it had its own kernel,
-    launched in about half the frames of a 128^2 camera move on large_world and compiled
-    the first time one did). Per group, both tables' keys plus the twice-lost candidates are
+    lost there too and appends their keys to a buffer of :data:`SPILL` per list and
+    partition (an atomic counter: the same kernel whether a frame has any; it had its own
+    kernel, launched in about half the frames of a 128^2 camera move on large_world and
+    compiled the first time one did). Per group, both tables' keys plus the twice-lost candidates are
     returned (a superset of the distinct keys, with few repeats: with one table, about
     a seventh of 5 k keys lost their slot, and with them 40 k of the 260 k candidates,
     whose ``np.unique`` was a tenth of a camera move's frame). Which key wins a slot
@@ -568,14 +571,16 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
     # kernel: whether a frame has any does not launch (nor, the first time, compile) a
     # kernel of its own (a few candidates in half the frames of a 128^2 camera move)
     counts = [dr.zeros(mi.UInt32, 1) for _ in flat]
-    spills = [dr.zeros(mi.UInt64, SPILL) for _ in flat]
-    for (k, _), lo2, c, b in zip(flat, lost2, counts, spills):
+    caps = [SPILL * (1 if pt is None else int(pt[1])) for pt in flat_parts]
+    spills = [dr.zeros(mi.UInt64, cap) for cap in caps]
+    for (k, _), lo2, c, b, cap in zip(flat, lost2, counts, spills, caps):
         at = dr.scatter_inc(c, mi.UInt32(0), lo2)
-        dr.scatter(b, k, at, lo2 & (at < SPILL))
+        # (opaque: batches of other region counts run the same kernel)
+        dr.scatter(b, k, at, lo2 & (at < dr.opaque(mi.UInt32, cap)))
     dr.eval(*counts, *spills)
     counts = [int(c.numpy()[0]) for c in counts]
     overflow = None
-    if any(n > SPILL for n in counts):
+    if any(n > cap for n, cap in zip(counts, caps)):
         # more than the buffer holds (a table far too small for its keys): every list's
         # twice-lost keys from one more kernel
         overflow = [dr.select(lo2, k, NO_KEY) for (k, _), lo2 in zip(flat, lost2)]
@@ -597,7 +602,7 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
                 found.append(np.compress(keep, row))     # (as sorted_unique)
                 prev = row
         for i in idx:
-            if overflow is not None and counts[i] > SPILL:
+            if overflow is not None and counts[i] > caps[i]:
                 row = overflow[i].numpy()
                 found.append(row[row != np.uint64(NO_KEY)])
             elif counts[i] > 0:

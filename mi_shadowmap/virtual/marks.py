@@ -518,11 +518,11 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
     lost there too and appends their keys to a buffer of :data:`SPILL` per list and
     partition (an atomic counter: the same kernel whether a frame has any; it had its own
     kernel, launched in about half the frames of a 128^2 camera move on large_world and
-    compiled the first time one did). Per group, both tables' keys plus the twice-lost candidates are
-    returned (a superset of the distinct keys, with few repeats: with one table, about
-    a seventh of 5 k keys lost their slot, and with them 40 k of the 260 k candidates,
-    whose ``np.unique`` was a tenth of a camera move's frame). Which key wins a slot
-    does not matter: the returned set is the same. The selection is done on the host
+    compiled the first time one did). Per group, both tables' keys plus the twice-lost
+    candidates are returned (a superset of the distinct keys, with few repeats: with one
+    table, about a seventh of 5 k keys lost their slot, and with them 40 k of the 260 k
+    candidates, whose ``np.unique`` was a tenth of a camera move's frame). Which key wins
+    a slot does not matter: the returned set is the same. The selection is done on the host
     with numpy, so every frame runs the same kernels (a compress and gather would trace
     new ones whenever a frame first has 0, 1 or more lost keys).
 

@@ -799,7 +799,9 @@ def _search_body(cdf, x):
     def body(lo, n):
         half = n >> 1
         mid = lo + half
-        go = dr.gather(mi.Float, cdf, mid) <= x
+        # (masked as the loop masks it: an evaluated loop, SymbolicLoops off, may run the
+        # body on every lane, and an empty range's mid may be the table's end)
+        go = dr.gather(mi.Float, cdf, mid, n > 0) <= x
         return dr.select(go, mid + 1, lo), dr.select(go, n - half - 1, half)
     return body
 

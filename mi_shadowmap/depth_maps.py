@@ -871,8 +871,10 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
     it = dr.zeros(mi.UInt32, n)
     active = dr.full(mi.Bool, True, n)
     entered = dr.zeros(mi.Bool, n)      # a solid's front face passed: inside a solid
-    # the last hit (its shape, face and side) and the step's growth on hitting it again
-    last = (dr.full(mi.UInt32, 0xFFFFFFFF, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.Bool, n))
+    # the last hit (its shape, instance, face and side) and the step's growth on hitting
+    # it again
+    last = (dr.full(mi.UInt32, 0xFFFFFFFF, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n),
+            dr.zeros(mi.Bool, n))
     grow = dr.full(mi.Float, 1.0, n)
 
     def cond(ray, z_first, z_second, it, active, entered, last, grow):
@@ -920,10 +922,15 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
         # onto it). 1e-6 of the coordinates (16.8 ulps), before, was a unit at 1e6 from
         # the origin: it passed through unit boxes' back faces and their shadows were
         # lost (10.6 % of a view false lit). (STEP_ULPS of the depth too shadowed
-        # large_world's crates' edges: 0.25 -> 0.32 % false shadow.)
-        same = (raw == last[0]) & (si.prim_index == last[1]) & (back == last[2])
+        # large_world's crates' edges: 0.25 -> 0.32 % false shadow.) The same face is
+        # the same instance's too: a shape group's instances share their shapes' faces,
+        # and 24 instances of a cube nested in each other doubled the step on every shell
+        # (0.1 units by the 16th) and the rays jumped over the innermost's back face.
+        inst = dr.reinterpret_array(mi.UInt32, si.instance)
+        same = (raw == last[0]) & (inst == last[1]) & (si.prim_index == last[2]) \
+            & (back == last[3])
         grow = dr.select(hit & same, grow * 2.0, 1.0)
-        last = (raw, si.prim_index, back)
+        last = (raw, inst, si.prim_index, back)
         step = grow * ((STEP_ULPS * 2.0 ** -24) * dr.max(dr.abs(mi.Vector3f(si.p)))
                        + 1e-6 * dr.abs(z))
         ray = dr.select(active, mi.Ray3f(si.p + d * step, d), ray)

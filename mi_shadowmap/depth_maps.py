@@ -242,7 +242,7 @@ ROUNDING_ULPS = 16.0
 
 #: A second-depth ray continues this many units in the last place (2^-24) of the hit's
 #: coordinates (and 1e-6 of its depth) past each hit it passes (doubled on hitting the
-#: same face again).
+#: same face of the same instance again).
 STEP_ULPS = 4.0
 
 
@@ -844,8 +844,9 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     own shape (area lights) and hits numerically at the light (as in
     :func:`first_hit`) are skipped. Continuation rays start a relative step
     (:data:`STEP_ULPS` ulps of ``max|p|`` and ``1e-6 z``, doubled each time the same face
-    is hit again) past the hit (Mitsuba's ``spawn_ray`` offset has an absolute floor that broke
-    scale invariance); at most 64 hits per texel:
+    of the same instance is hit again from the same side) past the hit (Mitsuba's
+    ``spawn_ray`` offset has an absolute floor that broke scale invariance); at most 64
+    hits per texel:
     a ray that has not stored a second surface after 64 hits keeps ``+inf``
     (lit), which only a texel ray crossing more than 64 surfaces (e.g. 32
     nested closed shells or 64 stacked open sheets) can reach.

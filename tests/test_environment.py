@@ -919,3 +919,66 @@ def test_search_guide_brackets_every_texel_the_search_finds():
         assert np.all((lo <= want) & (want <= hi)), k
         assert int(scale[k]) <= 2 ** env.GUIDE_BITS
     assert scale[-1] == 2 ** env.GUIDE_BITS and int((guide >> np.uint64(32)).max()) > 1
+
+
+@pytest.mark.parametrize("symbolic", [True, False])
+def test_guided_search_finds_the_fixed_step_searchs_texel(symbolic):
+    """The shading's texel search (:func:`env.search_guide`'s bucket, then
+    :func:`env._search_body` until the range is empty) returns, in the kernel, the texel
+    the fixed-step search over the whole region returned (what the shading ran before),
+    in symbolic and evaluated loops: regions of 0, 1 and 2 texels, an all-zero pmf (cdf 0
+    up to the last texel's 1), one texel holding everything, float32 denormals in the cdf
+    (Dr.Jit's kernels flush them to 0; numpy, which builds the guide, does not), and more
+    texels than 2^GUIDE_BITS buckets; queries at random, at every cdf value, the float32
+    on either side of it, and the buckets' edges."""
+    rng = np.random.default_rng(5)
+    pmfs = [np.zeros(0), np.ones(1), np.array([0.3, 0.7]), np.zeros(9),
+            np.eye(1, 33, 20)[0], np.array([1e-43, 1e-40, 1e-39, 1.0, 0.0, 2.0]),
+            rng.random(5000) ** 12, np.exp(rng.normal(0.0, 9.0, 700))]
+    cdfs = []
+    for p in pmfs:
+        c = np.minimum(np.cumsum(p / p.sum() if p.sum() > 0 else p), 1.0)
+        if len(c):
+            c[-1] = 1.0
+        cdfs.append(c)
+    cdfs[5][:2] = [3.6e-43, 1.2e-40]            # denormal cdf values
+    count = np.array([len(c) for c in cdfs])
+    offset = np.concatenate([[0], np.cumsum(count)[:-1]])
+    cdf = np.concatenate(cdfs).astype(np.float32)
+    guide, g0, scale = env.search_guide(cdf, offset, count)
+    ks, xs = [], []
+    for k, (o, n) in enumerate(zip(offset, count)):
+        G = int(scale[k])
+        edges = (np.arange(G + 1) / G).astype(np.float32)
+        c = cdf[o:o + n]
+        x = np.concatenate([rng.random(3000).astype(np.float32), c, edges,
+                            np.float32([0.0, 1e-45, 1e-41])]
+                           + [np.nextafter(v, np.float32(d)) for v in (c, edges) for d in (0, 1)])
+        x = x[(x >= 0) & (x < 1)].astype(np.float32)
+        ks.append(np.full(len(x), k, np.uint32))
+        xs.append(x)
+    k, x = mi.UInt32(np.concatenate(ks)), mi.Float(np.concatenate(xs))
+    cdf_d = mi.Float(cdf)
+    flag = dr.flag(dr.JitFlag.SymbolicLoops)
+    dr.set_flag(dr.JitFlag.SymbolicLoops, symbolic)
+    try:
+        # the fixed-step search the shading ran before the guide
+        lo = dr.gather(mi.UInt32, mi.UInt32(offset.astype(np.uint32)), k)
+        n = dr.gather(mi.UInt32, mi.UInt32(count.astype(np.uint32)), k)
+        for _ in range(int(np.ceil(np.log2(count.max() + 1))) + 1):
+            half = n >> 1
+            mid = lo + half
+            go = (n > 0) & (dr.gather(mi.Float, cdf_d, mid, n > 0) <= x)
+            lo = dr.select(go, mid + 1, lo)
+            n = dr.select(go, n - half - 1, half)
+        # the guided search, as shade() runs it
+        s = dr.gather(mi.Float, mi.Float(scale), k)
+        bucket = mi.UInt32(dr.minimum(x * s, s - 1.0))
+        r = dr.gather(mi.UInt64, mi.UInt64(guide),
+                      dr.gather(mi.UInt32, mi.UInt32(g0), k) + bucket)
+        got, _ = dr.while_loop((mi.UInt32(r), mi.UInt32(r >> 32)), env._search_cond,
+                               env._search_body(cdf_d, x))
+        old, new = lo.numpy(), got.numpy()
+    finally:
+        dr.set_flag(dr.JitFlag.SymbolicLoops, flag)
+    assert len(new) > 40000 and np.array_equal(new, old)

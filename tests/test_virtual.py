@@ -941,6 +941,78 @@ def test_methods_rendered_in_turn_keep_their_own_marks(monkeypatch):
         assert np.array_equal(vis_of(scene, i, spp=1), first[m])
     assert len(traced) == 3 * n
 
+
+def test_recalled_marks_give_a_fresh_integrators_images():
+    """Integrators sharing a point light's store whose marks differ by ``lod_bias`` alone
+    (a key of the store's remembered marks, :meth:`PageStore.recall_mark`), one of them
+    degraded by a small ``memory_budget`` (the mark is the same, the pages kept fewer),
+    rendered in turn: with the light dark in between (its map keeps no marked page) and
+    lit again through a new variable, and after a camera move, each image and page table
+    (its pages and tiles) equals the one a fresh integrator renders of the same state
+    (page cache emptied)."""
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=1, light="point"))
+    kinds = {"hard": dict(method="hard"), "coarse": dict(method="hard", lod_bias=1.5),
+             "tight": dict(method="hard", memory_budget=0.06),
+             "pcf": dict(method="pcf")}
+    kinds = {k: dict(kw, virtual=True) for k, kw in kinds.items()}
+    integs = {k: shadowmap(**kw) for k, kw in kinds.items()}
+    degraded = []
+
+    def seen(i, img):
+        """The image and the page table's pages and tiles (not their slots)."""
+        m = i.maps[0]
+        return [img] + [np.array(a) for a in (m.header, m.dense_tiles, m.face_near)]
+
+    def frame():
+        out = {}
+        for k, i in integs.items():
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", RuntimeWarning)
+                out[k] = seen(i, vis_of(scene, i, spp=1))
+            degraded.extend(k for w in caught if "replaced by coarser" in str(w.message))
+        return out
+
+    def fresh(k):
+        virtual.PAGE_CACHE.clear()          # each alone: no other's pages or marks
+        i = shadowmap(**kinds[k])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return seen(i, vis_of(scene, i, spp=1))
+
+    def same(a, b):
+        return all(np.array_equal(x, y) for x, y in zip(a, b))
+
+    first = frame()
+    assert len({id(i.maps[0].store) for i in integs.values()}) == 1    # one shared store
+    assert degraded == ["tight"]
+    assert not same(first["hard"], first["coarse"])
+    params = mi.traverse(scene)
+    lit = [float(v[0]) for v in np.array(params["point.intensity.value"])]
+    params["point.intensity.value"] = mi.Color3f(0.0)
+    params.update()
+    frame()
+    params["point.intensity.value"] = mi.Color3f(*lit)
+    params.update()
+    again = frame()
+    frame()
+    for k in kinds:
+        assert same(again[k], first[k]), k
+        assert same(first[k], fresh(k)), k
+    virtual.PAGE_CACHE.clear()
+    integs = {k: shadowmap(**kw) for k, kw in kinds.items()}
+    frame()
+    params["sensor.to_world"] = (T().translate([0.2, 0.0, 0.1])
+                                 @ T(params["sensor.to_world"].matrix.numpy()[..., 0]))
+    params.update()
+    moved = frame()
+    moved_again = frame()
+    for k in kinds:
+        want = fresh(k)
+        assert same(moved[k], want), k
+        assert same(moved_again[k], want), k
+
+
 def test_light_views_follow_an_emitter_edit():
     """The integrator keeps its light views while the scene's state is unchanged; a
     light moved through ``params.update()`` gets new views, and its render equals a

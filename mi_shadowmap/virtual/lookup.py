@@ -338,14 +338,19 @@ class VirtualShadowMap:
     def _bound(self, lk, face, uv64, depth64, inside, res, level, bx, by, e, eok, per_tap,
                check_reads=False) -> "BoundVirtualMap":
         P = self.layout.page_size
-        slots = None
+        slots = tile_words = None
         if not per_tap:
             slots = [dr.select(eok, dr.gather(mi.UInt32, self.dense, e + k, eok), INVALID_SLOT)
                      for k in range(4)]
+            if self.layout.tiles_per_side > 1 and not check_reads:
+                tile_words = [dr.gather(mi.UInt32, self.dense_tiles, e + k, eok)
+                              for k in range(4)]
         origin = mi.Point2i(bx * P, by * P)
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside),
                           depth_origin=self.depth_origin)
-        return BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside)
+        bound = BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside)
+        bound.tile_words = tile_words
+        return bound
 
     def visibility(self, lookup, lk, opts, active=True, per_tap: bool = False) -> mi.Float:
         """``lookup(bound, lk, opts, active)`` (a method's lookup) on this map.
@@ -424,6 +429,9 @@ class BoundVirtualMap:
         # and ``missed`` collects the lanes where one is missing (None before a read)
         self.check_reads = check_reads
         self.missed = None
+        # the 2 x 2 pages' tile masks of this frame (VirtualShadowMap._bound, with
+        # ``slots``), or None: gathered per read
+        self.tile_words = None
         self._scope = dr.flag(dr.JitFlag.SymbolicScope)
         pools = vmap.store.pools
         self.depth = pools["depth"]
@@ -490,7 +498,25 @@ class BoundVirtualMap:
         self._read_centre = dr.select(
             fine, mi.Point2f(li, lj) + ts,
             (mi.Point2f(cx, cy) + ts) * dr.power(2.0, mi.Float(shift)) - mi.Point2f(v.origin))
-        return dr.select(fine, fine_idx, coarse_idx)
+        cast = fine
+        if not self.check_reads and lay.tiles_per_side > 1:
+            # a tile this frame did not mark reads the coarsest level's texel over it,
+            # what a new page holds there (PageStore._fill_from_coarsest), at its own
+            # texel's centre: not what an earlier frame may have cast into the slot (a
+            # ``pcf`` kernel reaching past the tiles its point marked read depths cast
+            # for another camera; a camera moved and put back changed pixels)
+            if self.tile_words is None:
+                tw = dr.gather(mi.UInt32, self.vmap.dense_tiles, e + mi.UInt32(q), m)
+            else:
+                tw = dr.select(q == 0, self.tile_words[0], dr.select(
+                    q == 1, self.tile_words[1], dr.select(q == 2, self.tile_words[2],
+                                                          self.tile_words[3])))
+            if self.vmap.far_taps:
+                tw = dr.select(far, dr.gather(mi.UInt32, self.vmap.dense_tiles, e2, ok2), tw)
+            S, T = lay.tiles_per_side, lay.tile_size
+            t = mi.UInt32(gx & (P - 1)) // T + mi.UInt32(gy & (P - 1)) // T * S
+            cast = fine & (((tw >> t) & 1) != 0)
+        return dr.select(cast, fine_idx, coarse_idx)
 
     def fetch(self, layer, face, i, j, active=True):
         return dr.gather(mi.Float, layer, self._index(face, i, j), active)

@@ -383,10 +383,11 @@ class PageStore:
         pool: the same image as a fresh integrator's. (Pages left by earlier renders made
         a pose rendered again differ from its first render on up to 4 % of pixels under
         a small ``memory_budget``, 0.6 % with PCSS's wide kernels on pages of 8^2, 7 %
-        through PCSS's near depth.) One exception is left: a filter tap of a method
-        without ``virtual_per_tap`` that reads a tile of a bound page outside the marks
-        (beyond the kernel margin of every pixel centre) reads whatever the pool holds
-        there, the coarsest level's copy or a depth an earlier render cast.
+        through PCSS's near depth.) A tap in a tile outside the marks (beyond the kernel
+        margin of every pixel centre; a walked ``hard`` read beside its point's tile)
+        reads the coarsest level's texel there (``dense_tiles``,
+        :meth:`~mi_shadowmap.virtual.lookup.BoundVirtualMap._index`), as a fresh pool
+        holds it, not a depth an earlier render cast into that tile.
         Default: every built page, every cast tile.
 
         Per (face, level) -- entry ``face * n_levels + level`` -- ``header`` holds

@@ -927,6 +927,17 @@ def test_a_smooth_tessellated_frosted_bulb_is_lit_on_virtual_maps(tmp_path, dx=0
     assert ratio > 0.98
 
 
+def _layer_and_texel_rays(scene, res: int = 64):
+    """``(second_depth map, texel ray origins, directions)`` (float64, one row a texel)
+    of the scene's first emitter at ``res``^2."""
+    view = make_light_view(scene.emitters()[0], scene, 0)
+    smap = build_depth_map(scene, view, res, methods.get("second_depth").layers)
+    o, d = view.texel_rays(res)
+    o = np.asarray(o, np.float64).reshape(3, -1).T if np.asarray(o).size == 3 \
+        else np.asarray(o, np.float64).T
+    return smap, o, np.asarray(d, np.float64).T
+
+
 def test_a_floating_box_1e6_from_the_origin_stores_its_back_face():
     """A box 0.6 thick floating over an open ground, spot light and all 1e6 from the
     origin (float32 coordinates 0.0625 apart): the layer holds the box's bottom face
@@ -945,13 +956,7 @@ def test_a_floating_box_1e6_from_the_origin_stores_its_back_face():
         "light": {"type": "spot", "cutoff_angle": 30,
                   "to_world": T().look_at((O + [0.3, 4, 0.2]).tolist(), O.tolist(),
                                           [0, 1, 0])}})
-    res = 64
-    view = make_light_view(scene.emitters()[0], scene, 0)
-    smap = build_depth_map(scene, view, res, methods.get("second_depth").layers)
-    o, d = view.texel_rays(res)
-    o = np.asarray(o, np.float64).reshape(3, -1).T if np.asarray(o).size == 3 \
-        else np.asarray(o, np.float64).T
-    d = np.asarray(d, np.float64).T
+    smap, o, d = _layer_and_texel_rays(scene)
     box = [s for s in scene.shapes() if s.id() == "box"][0]
     v = np.asarray(mi.traverse(box)["vertex_positions"], np.float64).reshape(-1, 3)
     lo, hi = v.min(axis=0), v.max(axis=0)        # axis-aligned: the float32 box itself
@@ -1041,13 +1046,7 @@ def test_nested_instances_store_the_innermost_back_face():
                               "to_world": T().translate([0, 1, 0])
                               .scale([0.5 - 0.005 * k, h, 0.5 - 0.005 * k])}
     scene = mi.load_dict(scene)
-    res = 64
-    view = make_light_view(scene.emitters()[0], scene, 0)
-    smap = build_depth_map(scene, view, res, methods.get("second_depth").layers)
-    o, d = view.texel_rays(res)
-    o = np.asarray(o, np.float64).reshape(3, -1).T if np.asarray(o).size == 3 \
-        else np.asarray(o, np.float64).T
-    d = np.asarray(d, np.float64).T
+    smap, o, d = _layer_and_texel_rays(scene)
     t_bottom = (1.0 - half[-1] - o[:, 1]) / d[:, 1]      # the innermost cube's bottom
     got = smap.to_numpy("second_depth").ravel()
     err = np.abs(got - t_bottom)

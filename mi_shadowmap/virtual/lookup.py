@@ -348,9 +348,8 @@ class VirtualShadowMap:
         origin = mi.Point2i(bx * P, by * P)
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside),
                           depth_origin=self.depth_origin)
-        bound = BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside)
-        bound.tile_words = tile_words
-        return bound
+        return BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside,
+                               tile_words)
 
     def visibility(self, lookup, lk, opts, active=True, per_tap: bool = False) -> mi.Float:
         """``lookup(bound, lk, opts, active)`` (a method's lookup) on this map.
@@ -417,7 +416,7 @@ class BoundVirtualMap:
     """
 
     def __init__(self, vmap: VirtualShadowMap, view: LocalView, res, level, entry,
-                 slots=None, check_reads: bool = False, inside=True):
+                 slots=None, check_reads: bool = False, inside=True, tile_words=None):
         self.vmap = vmap
         self.view = view
         self.resolution = res
@@ -431,7 +430,7 @@ class BoundVirtualMap:
         self.missed = None
         # the 2 x 2 pages' tile masks of this frame (VirtualShadowMap._bound, with
         # ``slots``), or None: gathered per read
-        self.tile_words = None
+        self.tile_words = tile_words
         self._scope = dr.flag(dr.JitFlag.SymbolicScope)
         pools = vmap.store.pools
         self.depth = pools["depth"]
@@ -460,8 +459,7 @@ class BoundVirtualMap:
             s = dr.select(m, dr.gather(mi.UInt32, self.vmap.dense, e + mi.UInt32(q), m),
                           INVALID_SLOT)
         else:
-            s = dr.select(q == 0, self.slots[0], dr.select(q == 1, self.slots[1],
-                          dr.select(q == 2, self.slots[2], self.slots[3])))
+            s = _pick(self.slots, q)
         fine = in_block & (s != INVALID_SLOT)
         if self.check_reads:     # and its tile ray-cast; else this lane runs again, walked
             if dr.flag(dr.JitFlag.SymbolicScope) and not self._scope:
@@ -508,9 +506,7 @@ class BoundVirtualMap:
             if self.tile_words is None:
                 tw = dr.gather(mi.UInt32, self.vmap.dense_tiles, e + mi.UInt32(q), m)
             else:
-                tw = dr.select(q == 0, self.tile_words[0], dr.select(
-                    q == 1, self.tile_words[1], dr.select(q == 2, self.tile_words[2],
-                                                          self.tile_words[3])))
+                tw = _pick(self.tile_words, q)
             if self.vmap.far_taps:
                 tw = dr.select(far, dr.gather(mi.UInt32, self.vmap.dense_tiles, e2, ok2), tw)
             S, T = lay.tiles_per_side, lay.tile_size
@@ -537,3 +533,9 @@ class BoundVirtualMap:
         v = self.view
         g = dr.clip(mi.Point2i(ij) + v.origin, 0, self.resolution - 1)
         return g - v.origin
+
+
+def _pick(words: list, q):
+    """``words[q]`` per lane, for the 2 x 2 pages' four words (``q`` 0-3)."""
+    return dr.select(q == 0, words[0], dr.select(q == 1, words[1],
+                     dr.select(q == 2, words[2], words[3])))

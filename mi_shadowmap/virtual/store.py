@@ -22,6 +22,16 @@ MARK_MEMO = 4
 KEPT_TABLE_BYTES = 32 << 20
 
 
+def _recall(entries: list, key):
+    """The entry of ``entries`` (tuples, ``key`` first; the latest last) whose key is
+    ``key``, moved to the end as the latest; None if none is."""
+    for k, entry in enumerate(entries):
+        if entry[0] == key:
+            entries.append(entries.pop(k))
+            return entry
+    return None
+
+
 class PageStore:
     """The physical pages of one emitter's virtual map, kept across renders.
 
@@ -68,10 +78,9 @@ class PageStore:
         # face f's coarsest page (always built where the light shines; empty where a
         # one-sided light does not), so a lookup finds it without a gather
         self.next_slot = 1 + layout.view.n_faces
+        # the last MARK_MEMO marks of different keys, the latest last (last_mark): each
         # ((camera state, margin, coarse_res, lod_bias, reach), marked tile keys, those of
         # them only coarser-level kernels read)
-        self.last_mark = None
-        # the last MARK_MEMO marks of different keys, the latest last (recall_mark)
         self.recent_marks = []
         # the last render's (last_mark, budget, version, needed keys, their slots, level
         # histogram, pages degraded): a render with the same three reuses the rest
@@ -86,18 +95,17 @@ class PageStore:
         ``pcf`` hold the same layers) each keep theirs: rendered in turn with a still
         camera, each re-marked every frame before (a mark pass: 4 kernels and the camera
         hits, a few ms at 256^2)."""
-        for k, mark in enumerate(self.recent_marks):
-            if mark[0] == key:
-                self.recent_marks.append(self.recent_marks.pop(k))
-                self.last_mark = mark
-                return True
-        return False
+        return _recall(self.recent_marks, key) is not None
 
     def remember_mark(self, mark) -> None:
         """:attr:`last_mark` = ``mark``, remembered among the last :data:`MARK_MEMO`."""
         self.recent_marks = [m for m in self.recent_marks if m[0] != mark[0]][
             -(MARK_MEMO - 1):] + [mark]
-        self.last_mark = mark
+
+    @property
+    def last_mark(self):
+        """The latest mark (:meth:`recall_mark`, :meth:`remember_mark`), or None."""
+        return self.recent_marks[-1] if self.recent_marks else None
 
     @property
     def n_pages(self) -> int:
@@ -411,10 +419,9 @@ class PageStore:
         # a few tables kept (methods of different margins rendered in turn, each its own
         # frame: one kept table rebuilt both every frame, 2.8 ms of a 256^2 large_world
         # frame); tables of an older pool version are dropped
-        for k, (tok, tab, _) in enumerate(self._tables):
-            if tok == token:
-                self._tables.append(self._tables.pop(k))
-                return tab
+        kept = _recall(self._tables, token)
+        if kept is not None:
+            return kept[1]
         lay = self.layout
         L = lay.n_levels
         if frame is None:

@@ -2573,6 +2573,39 @@ def test_pinhole_footprints_are_the_ray_differentials_hits(camera):
                                                                    err.max())
 
 
+def test_pinhole_frame_reads_its_values_after_one_kernel():
+    """``pinhole_frame`` evaluates the four rays' directions and the camera's transform
+    in one kernel and then reads them: after a camera move it launches one kernel (two
+    before: each array's ``np.array`` a ravel kernel of its own, each waited for), and
+    gives the values those reads gave."""
+    from mi_shadowmap.light_views import pinhole_frame
+    scene = mi.load_dict(default_scene(width=48, height=32))
+    sensor = scene.sensors()[0]
+    params = mi.traverse(sensor)
+    params["to_world"] = type(params["to_world"])(params["to_world"]) \
+        @ T().translate([0.1, 0.0, 0.0]) @ T().rotate([0, 1, 0], 3.0)
+    params.update()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        frame = pinhole_frame(sensor)
+        jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(jit) == 1, [(k["size"], k["operation_count"]) for k in jit]
+    pos = mi.Point2f(mi.Float([0.25, 0.75, 0.5, 0.5]), mi.Float([0.5, 0.5, 0.25, 0.75]))
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    d = np.array(ray.d, dtype=np.float64)
+    to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    fwd = to_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    fwd /= np.linalg.norm(fwd)
+    unit = d / (fwd @ d)
+    w, h = (int(x) for x in sensor.film().crop_size())
+    want = (to_world[:3, 3], fwd, (unit[:, 1] - unit[:, 0]) / (0.5 * w),
+            (unit[:, 3] - unit[:, 2]) / (0.5 * h))
+    assert frame == tuple(tuple(float(x) for x in v) for v in want)
+
+
 def test_environment_regions_moves_compile_nothing_and_share_one_mark_kernel():
     """An environment's 16 regions are marked by one kernel code (their values opaque:
     a region's mark kernel with literals compiled per region, and a kernel marking all

@@ -2606,6 +2606,61 @@ def test_pinhole_frame_reads_its_values_after_one_kernel():
     assert frame == tuple(tuple(float(x) for x in v) for v in want)
 
 
+def test_a_moves_build_waits_once_for_its_cast_and_fills(monkeypatch):
+    """A camera move's new pages: their tiles' cast and the fills of their other tiles
+    (``store.fill_new_pages``) are both launched before the host reads the cast's depths
+    for the tiles' minima (``store.read_minima``), so it waits once for the two, not
+    once for the cast and again for the fills; the pages are those of the cast's minima
+    read at once (``cast_tiles`` with ``minima`` True, as ``PageStore.build``)."""
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_file(str(SCENES / "large_world.xml"), width=64, height=64)
+    integ = shadowmap(method="hard")
+    vis_of(scene, integ, spp=1)
+    params = mi.traverse(scene.sensors()[0])
+    params["to_world"] = type(params["to_world"])(params["to_world"]) \
+        @ T().translate([0.4, 0.0, 0.0]) @ T().rotate([0, 1, 0], 4.0)
+    params.update()
+    launched = []
+    read = page_store.read_minima
+
+    def spy(jobs):
+        launched.append([k["size"] for k in dr.kernel_history()
+                         if k["type"] == dr.KernelType.JIT])
+        return read(jobs)
+    monkeypatch.setattr(planner, "read_minima", spy)
+    fills = []
+    fill = page_store.fill_new_pages
+    monkeypatch.setattr(planner, "fill_new_pages",
+                        lambda jobs: fills.append(sum(
+                            int(j.new_fine.sum()) for j in jobs if j.keys is not None))
+                        or fill(jobs))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        vis_of(scene, integ, spp=1)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert fills[0] > 0 and len(launched) == 1
+    # the cast (its tiles' texels) and the fill's two kernels (the new pages' texels)
+    # already launched when the depths are read
+    assert launched[0][-2:] == [fills[0] * 32 * 32] * 2, launched
+    # the same pages cast into two new stores, the minima read at once and later
+    st = integ.maps[0].store
+    keys = st._index()[0]
+    minima = []
+    for at_once in (True, False):
+        new = page_store.PageStore(st.layout, st.layers)
+        job = new.plan_build(keys)
+        page_store.cast_tiles(scene, [job], minima=at_once)
+        assert (job.minima is None) != at_once
+        if not at_once:
+            page_store.read_minima([job])
+        minima.append(job.minima)
+    assert len(minima[0]) == len(keys) * st.layout.tiles_per_side ** 2
+    assert np.isfinite(minima[0]).any()
+    assert np.array_equal(minima[0], minima[1])
+
+
 def test_environment_regions_moves_compile_nothing_and_share_one_mark_kernel():
     """An environment's 16 regions are marked by one kernel code (their values opaque:
     a region's mark kernel with literals compiled per region, and a kernel marking all
@@ -3162,8 +3217,14 @@ def test_two_lights_cast_their_tiles_in_one_kernel_as_each_alone(monkeypatch):
     compiled = _moves(scene, shadowmap(method="hard"), 4)
     assert compiled[1:] == [0, 0, 0], compiled
     alone = page_store._cast_alone
-    monkeypatch.setattr(page_store, "cast_tiles", lambda scene, jobs: [
-        alone(scene, j, "second_depth" in j.store.pools) for j in jobs if j.n_tiles])
+
+    def cast_alone(scene, jobs, minima=True):
+        for j in jobs:
+            if j.n_tiles:
+                alone(scene, j, "second_depth" in j.store.pools)
+        if minima:
+            page_store.read_minima(jobs)
+    monkeypatch.setattr(page_store, "cast_tiles", cast_alone)
     monkeypatch.setattr(planner, "cast_tiles", page_store.cast_tiles)
     monkeypatch.setattr(planner, "fill_new_pages", lambda jobs: [
         j.store._fill_from_coarsest(j.keys[j.new_fine], j.slot_ids[j.new_fine],

@@ -22,7 +22,7 @@ from .marks import (Marker, block_axis, block_tiles, camera_hits, dedupe_many,
                     dilate_tiles, mark_blocks, mark_coarser, marked_points, shape_bits,
                     tile_pages)
 from .store import (PageStore, TileCast, cast_tiles, fill_new_pages, page_bytes,
-                    page_layers)
+                    page_layers, read_minima)
 
 
 #: Most lanes of one environment mark kernel (regions x camera hits): an environment's
@@ -339,8 +339,12 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     # build -- a camera move: all lit ones; a moved light: some -- shapes no kernel)
     jobs = [builds[i][0] if i in builds else TileCast(stores[i]) for i in uniq]
     t0 = time.perf_counter()
-    cast_tiles(scene, jobs)
+    # the new pages' fills launched behind the cast before the host reads the cast's
+    # depths (the tiles' minima): one wait for both, not one for the cast and another
+    # for the fills (the fills read no minimum)
+    cast_tiles(scene, jobs, minima=False)
     fill_new_pages(jobs)
+    read_minima(jobs)
     dr.sync_thread()
     cast_dt = time.perf_counter() - t0
     cast_n = sum(b[0].n_tiles for b in builds.values())

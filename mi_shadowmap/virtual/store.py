@@ -510,24 +510,28 @@ class PageStore:
 class TileCast:
     """One store's part of a build (:meth:`PageStore.plan_build`): its pages, their slots
     and masks, the tiles to ray-cast (tile keys, slots, bit in the page), and the tiles'
-    nearest depths once cast (:func:`cast_tiles`). ``keys`` None: nothing to build."""
+    nearest depths once cast (:func:`cast_tiles`). ``keys`` None: nothing to build.
+    ``cast``: its tiles' depths until their minima are read (:func:`read_minima`):
+    ``(depth, start, texels, texels a tile)``, its range of the cast's depths."""
 
     __slots__ = ("store", "keys", "masks", "slot_ids", "new_fine", "tkeys", "tslots",
-                 "tile_b", "minima")
+                 "tile_b", "minima", "cast")
 
     def __init__(self, store):
         self.store = store
         self.keys = self.masks = self.slot_ids = self.new_fine = None
-        self.tkeys = self.tslots = self.tile_b = self.minima = None
+        self.tkeys = self.tslots = self.tile_b = self.minima = self.cast = None
 
     @property
     def n_tiles(self) -> int:
         return 0 if self.tkeys is None else len(self.tkeys)
 
 
-def cast_tiles(scene, jobs: list) -> None:
+def cast_tiles(scene, jobs: list, minima: bool = True) -> None:
     """Ray-cast the tiles of ``jobs`` (:class:`TileCast`, one per store), setting each
-    one's ``minima``: the stores whose lights skip no shape of their own and keep the
+    one's ``minima`` (``minima`` False: left to :func:`read_minima`, so that the host
+    waits for the cast once, after more kernels are launched): the stores whose lights
+    skip no shape of their own and keep the
     same layers, together in one kernel (a lane range each, from opaque offsets: the
     kernel is the same whatever each range's size, an empty one included, so that a
     camera move compiles nothing); a store alone, as it always was.
@@ -573,13 +577,31 @@ def cast_tiles(scene, jobs: list) -> None:
             at += n
         depth = _cast_rays(scene, live[0].store.layout.view, o, d, second,
                            [(job.store, dst, inside) for job, inside, dst, _, _ in parts])
-        host = dr.backend_v(depth) == dr.JitBackend.LLVM
-        values = depth.numpy() if host else None
         for (job, _, _, at, n), tpt in zip(parts, tpts):
             if n:
-                job.minima = (page_minima(values[at:at + n], tpt) if host else
-                              page_minima(dr.gather(mi.Float, depth, dr.arange(
-                                  mi.UInt32, n) + dr.opaque(mi.UInt32, at)), tpt))
+                job.cast = (depth, at, n, tpt)
+    if minima:
+        read_minima(jobs)
+
+
+def read_minima(jobs: list) -> None:
+    """Each cast job's ``minima`` from its depths (:func:`cast_tiles` with ``minima``
+    False): the nearest finite depth of each tile it cast (:func:`page_minima`). The
+    stores cast together share one read of their kernel's depths on the CPU backend."""
+    read = {}
+    for job in jobs:
+        if job.cast is None:
+            continue
+        depth, at, n, tpt = job.cast
+        job.cast = None
+        if dr.backend_v(depth) != dr.JitBackend.LLVM:
+            job.minima = page_minima(depth if at == 0 and n == dr.width(depth) else
+                                     dr.gather(mi.Float, depth, dr.arange(mi.UInt32, n)
+                                               + dr.opaque(mi.UInt32, at)), tpt)
+            continue
+        if id(depth) not in read:
+            read[id(depth)] = (depth, depth.numpy())
+        job.minima = page_minima(read[id(depth)][1][at:at + n], tpt)
 
 
 def fill_new_pages(jobs: list) -> None:
@@ -650,7 +672,7 @@ def _cast_alone(scene, job, second: bool) -> None:
     lane = dr.arange(mi.UInt32, job.n_tiles * tpt)
     o, d, dst = st._tile_rays(job.tkeys, job.tslots, lane)
     depth = _cast_rays(scene, st.layout.view, o, d, second, [(st, dst, True)])
-    job.minima = page_minima(depth, tpt)
+    job.cast = (depth, 0, dr.width(depth), tpt)
 
 
 def _cast_rays(scene, view, o, d, second: bool, writes: list):

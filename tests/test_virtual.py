@@ -2606,6 +2606,31 @@ def test_pinhole_frame_reads_its_values_after_one_kernel():
     assert frame == tuple(tuple(float(x) for x in v) for v in want)
 
 
+def test_a_moved_frame_reads_the_camera_state_once_for_its_marks(monkeypatch):
+    """The page planner reads the camera's state (``camera.camera_state``: every camera
+    parameter) once and gives it to its mark pass's camera hits (``camera_frame`` with
+    ``state``): a moved frame reads it twice (the planner, the render's own pinhole
+    frame), not three times, and marks what it marked before (the frame kept per state
+    is the same object)."""
+    from mi_shadowmap.virtual import camera
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_file(str(SCENES / "large_world.xml"), width=32, height=32)
+    integ = shadowmap(method="hard")
+    vis_of(scene, integ, spp=1)
+    reads = []
+    state = camera.camera_state
+    monkeypatch.setattr(camera, "camera_state", lambda s: reads.append(1) or state(s))
+    monkeypatch.setattr(planner, "camera_state", camera.camera_state)
+    params = mi.traverse(scene.sensors()[0])
+    params["to_world"] = type(params["to_world"])(params["to_world"]) \
+        @ T().translate([0.2, 0.0, 0.0])
+    params.update()
+    vis_of(scene, integ, spp=1)
+    assert integ.stats["pages_marked"] > 0 and len(reads) == 2, len(reads)
+    frame = camera.camera_frame(scene.sensors()[0])
+    assert frame is camera.camera_frame(scene.sensors()[0], state(scene.sensors()[0]))
+
+
 def test_a_moves_build_waits_once_for_its_cast_and_fills(monkeypatch):
     """A camera move's new pages: their tiles' cast and the fills of their other tiles
     (``store.fill_new_pages``) are both launched before the host reads the cast's depths

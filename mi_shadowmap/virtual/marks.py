@@ -51,13 +51,15 @@ SPILL = 4096
 LENS_GRID = 3
 
 
-def camera_hits(scene, sensor, evaluate: bool = True):
+def camera_hits(scene, sensor, evaluate: bool = True, state=None):
     """Camera hits at every pixel centre with their one-pixel footprints (where the next
     pixel's rays meet the tangent plane: a perspective camera's from its pinhole, as the
     render takes them, :func:`~mi_shadowmap.light_views.pinhole_footprint`; other
     sensors' from their ray differentials): ``(si, dp_dx, dp_dy, valid)``; unevaluated
-    with ``evaluate=False`` (the mark pass traces them in its own kernel)."""
-    frame = camera_frame(sensor)
+    with ``evaluate=False`` (the mark pass traces them in its own kernel). ``state``:
+    the sensor's :func:`~.camera.camera_state` if read already (:func:`~.camera.
+    camera_frame`)."""
+    frame = camera_frame(sensor, state)
     if frame is not None:    # plain rays: the footprints come from the frame, not differentials
         ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor, blocks=True),
                                    mi.Point2f(0.5))

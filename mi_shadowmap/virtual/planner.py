@@ -178,7 +178,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                  if not hasattr(stores[i].layout.view, "mark_views")
                  and all(stores[j] is not stores[i] for j in list(stores)[:k])]
         fused = plain == [i for i in every if not dark[i]]
-        hits = camera_hits(scene, sensor, evaluate=not (multi or fused))
+        hits = camera_hits(scene, sensor, evaluate=not (multi or fused), state=cam)
         if multi:
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)

@@ -21,6 +21,7 @@ Conventions shared by every view
 from __future__ import annotations
 
 import collections
+import weakref
 from dataclasses import dataclass
 
 import drjit as dr
@@ -397,6 +398,7 @@ def clear_memos() -> None:
     _MESH_MEMO.clear()
     _MESH_LATEST.clear()
     _OPAQUE.clear()
+    _VIEW_MEMO.clear()
 
 
 def triangle_magnitudes(shape) -> np.ndarray:
@@ -463,8 +465,59 @@ def scene_bounds(scene, exclude=None):
 
 
 def light_matrix(view) -> np.ndarray:
-    """``light_from_world`` as a float64 numpy 4x4 matrix."""
-    return np.array(view.light_from_world.matrix, dtype=np.float64)
+    """``light_from_world`` as a float64 numpy 4x4 matrix (read-only: kept per view,
+    :func:`view_memo`)."""
+    return view_memo(view, "light_matrix", lambda: _read_only(
+        np.array(view.light_from_world.matrix, dtype=np.float64)))
+
+
+def world_matrix(view) -> np.ndarray:
+    """The inverse of :func:`light_matrix` (``np.linalg.inv``; read-only, kept per view)."""
+    return view_memo(view, "world_matrix",
+                     lambda: _read_only(np.linalg.inv(light_matrix(view))))
+
+
+def opaque_light_from_world(view):
+    """:func:`opaque_transform` of the view's ``light_from_world``, kept per view."""
+    return view_memo(view, (mi.variant(), "light_from_world"),
+                     lambda: opaque_transform(view.light_from_world))
+
+
+def opaque_world_from_light(view):
+    """:func:`opaque_transform` of the inverse of the view's ``light_from_world``, kept
+    per view."""
+    return view_memo(view, (mi.variant(), "world_from_light"),
+                     lambda: opaque_transform(view.light_from_world.inverse()))
+
+
+#: Per light view (by ``id``; the view held weakly, its entry dropped with it): values
+#: derived from its (frozen) fields, :func:`view_memo`.
+_VIEW_MEMO: dict = {}
+
+
+def view_memo(view, name, make):
+    """``make()`` for ``view`` and ``name``, computed once per view object. A view is a
+    frozen dataclass whose transforms every lookup, mark and page cast reads while it
+    is traced: each conversion of a ``ScalarTransform4f`` to numpy, its inverse, and
+    :func:`opaque_transform`'s key took 8-20 us, 18-26 of them a camera move's frame
+    on large_world's directional light (the render kernel's 13 of them a still
+    frame's)."""
+    key = id(view)
+    slot = _VIEW_MEMO.get(key)
+    if slot is None or slot[0]() is not view:
+        def drop(ref, key=key):
+            if _VIEW_MEMO.get(key, (None,))[0] is ref:
+                del _VIEW_MEMO[key]
+        slot = _VIEW_MEMO[key] = (weakref.ref(view, drop), {})
+    memo = slot[1]
+    if name not in memo:
+        memo[name] = make()
+    return memo[name]
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
 
 
 def position_np(view) -> np.ndarray:

@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import light_matrix, divide_by_res, transform_f64, unit_grid
+from .base import light_matrix, divide_by_res, transform_f64, unit_grid, world_matrix
 from .ortho import OrthoView
 
 
@@ -151,7 +151,7 @@ class CascadedView(OrthoView):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
         cx, cy, hx, hy = self._rect(mi.UInt32(face), mi.Float64)
-        W = np.linalg.inv(light_matrix(self))
+        W = world_matrix(self)
         o = transform_f64(W, mi.Point3d(cx + s * hx, cy + t * hy, 0.0))
         d = transform_f64(W, mi.Vector3d(0.0, 0.0, 1.0), point=False)
         return o, dr.normalize(d)

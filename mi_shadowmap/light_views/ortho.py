@@ -16,9 +16,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import (LightView, light_matrix, look_along, look_along_np, position_np, scalar3,
-                   opaque_point, opaque_scalar, opaque_transform, divide_by_res,
-                   scene_bounds, texel_width_along, transform_f64, unit_grid)
+from .base import (LightView, light_matrix, look_along, look_along_np, scalar3,
+                   opaque_light_from_world, opaque_point, opaque_scalar,
+                   opaque_world_from_light, divide_by_res, scene_bounds,
+                   texel_width_along, transform_f64, unit_grid, world_matrix)
 
 
 @dataclass(frozen=True)
@@ -39,7 +40,7 @@ class OrthoView(LightView):
         return tuple(opaque_scalar(h, double) for h in self.half_extent)
 
     def _world_from_light(self):
-        return opaque_transform(self.light_from_world.inverse())
+        return opaque_world_from_light(self)
 
     def _forward(self):
         return self._world_from_light() @ mi.Vector3f(0, 0, 1)
@@ -61,7 +62,7 @@ class OrthoView(LightView):
 
     def project(self, p_world: mi.Point3f):
         p_world = mi.Point3f(p_world)
-        p_light = opaque_transform(self.light_from_world) @ p_world
+        p_light = opaque_light_from_world(self) @ p_world
         hx, hy = self._half()
         uv = mi.Point2f(0.5 * (p_light.x / hx + 1.0), 0.5 * (p_light.y / hy + 1.0))
         z = mi.Float(1.0)
@@ -80,7 +81,7 @@ class OrthoView(LightView):
         return mi.Point2d(0.5 * (p_light.x / hx + 1.0), 0.5 * (p_light.y / hy + 1.0))
 
     def uv_differential(self, face, p_world, dp_world):
-        dp = opaque_transform(self.light_from_world) @ mi.Vector3f(dp_world)
+        dp = opaque_light_from_world(self) @ mi.Vector3f(dp_world)
         hx, hy = self._half()
         return mi.Point2f(0.5 * dp.x / hx, 0.5 * dp.y / hy)
 
@@ -97,7 +98,7 @@ class OrthoView(LightView):
     def ray_through_f64(self, face, uv_light):
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
-        W = np.linalg.inv(light_matrix(self))
+        W = world_matrix(self)
         hx, hy = self._half(True)
         o = transform_f64(W, mi.Point3d(s * hx, t * hy, 0.0))
         d = transform_f64(W, mi.Vector3d(0.0, 0.0, 1.0), point=False)
@@ -111,7 +112,7 @@ class OrthoView(LightView):
     def _parallel_frame(self, hx, hy):
         """The parallel ray frame of a rectangle of half sizes ``hx``, ``hy`` (floats or
         per-lane ``mi.Float``) in the light's plane."""
-        R = np.linalg.inv(light_matrix(self))[:3, :3]
+        R = world_matrix(self)[:3, :3]
         d = R[:, 2] / np.linalg.norm(R[:, 2])
         # opaque (opaque_point): a turned light compiles no new kernel
         return (False, mi.Vector3f(opaque_point(d)), mi.Vector3f(opaque_point(2.0 * R[:, 0])) * hx,

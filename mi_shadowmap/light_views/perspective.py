@@ -18,8 +18,9 @@ import mitsuba as mi
 import numpy as np
 
 from .base import (LightView, axial_texel_size, emitter_frame, light_matrix, look_along_np,
-                   opaque_point, opaque_scalar, opaque_transform, divide_by_res, position_np,
-                   scalar3, texel_width_along, transform_f64, unit_grid)
+                   opaque_light_from_world, opaque_point, opaque_scalar,
+                   opaque_world_from_light, divide_by_res, position_np, scalar3,
+                   texel_width_along, transform_f64, unit_grid, world_matrix)
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,7 @@ class PerspectiveView(LightView):
         return 1
 
     def _world_from_light(self):
-        return opaque_transform(self.light_from_world.inverse())
+        return opaque_world_from_light(self)
 
     @property
     def _tan_y(self) -> float:
@@ -67,7 +68,7 @@ class PerspectiveView(LightView):
 
     def project(self, p_world: mi.Point3f):
         p_world = mi.Point3f(p_world)   # Point + Vector arithmetic may yield a Vector3f
-        p_light = opaque_transform(self.light_from_world) @ p_world
+        p_light = opaque_light_from_world(self) @ p_world
         z = p_light.z
         # relative clamp (as cube.face_uv): reverse mode's partials stay finite for
         # points at or behind the light's plane
@@ -99,7 +100,7 @@ class PerspectiveView(LightView):
                           0.5 * (p_light.y * inv_z / ty + 1.0))
 
     def uv_differential(self, face, p_world, dp_world):
-        L = opaque_transform(self.light_from_world)
+        L = opaque_light_from_world(self)
         p = L @ mi.Point3f(p_world)
         dp = L @ mi.Vector3f(dp_world)
         inv_z = dr.rcp(dr.maximum(p.z, 1e-30))
@@ -120,13 +121,13 @@ class PerspectiveView(LightView):
         t = uv_light.y * 2.0 - 1.0
         tx, ty = self._tans(True)
         d_light = mi.Vector3d(s * tx, t * ty, 1.0)
-        d = transform_f64(np.linalg.inv(light_matrix(self)), d_light, point=False)
+        d = transform_f64(world_matrix(self), d_light, point=False)
         return opaque_point(self.position, True), dr.normalize(d)
 
     def ray_frame_f64(self, face, uv_light):
         """(:attr:`~.base.LightView.ray_frame_f64`) Central rays: the unnormalised
         direction ``R (s tan_half, t tan_half_y, 1)``, ``s = 2 u - 1``, is affine in ``uv``."""
-        W = np.linalg.inv(light_matrix(self))
+        W = world_matrix(self)
         s = uv_light.x * 2.0 - 1.0
         t = uv_light.y * 2.0 - 1.0
         tx, ty = self._tans(True)
@@ -146,13 +147,13 @@ class PerspectiveView(LightView):
         receiver's depth gradient (:func:`~.base.texel_width_along`, as an orthographic
         rectangle's), else the longer side."""
         if p_world is not None:
-            depth = dr.abs((opaque_transform(self.light_from_world) @ mi.Point3f(p_world)).z)
+            depth = dr.abs((opaque_light_from_world(self) @ mi.Point3f(p_world)).z)
         if self.tan_half_y is None or n_world is None:
             return depth * divide_by_res(opaque_scalar(2.0 * self.tan_half), res)
         # the light's axes in the world: the rows of light_from_world's rotation (the
         # opaque matrix project() reads; tan_half_y a Python float, as tan_half: a numpy
         # float times a JIT array asks numpy to convert it, which a symbolic lookup refuses)
-        m = opaque_transform(self.light_from_world).matrix
+        m = opaque_light_from_world(self).matrix
         return texel_width_along(depth * divide_by_res(opaque_scalar(2.0 * self.tan_half), res),
                                  depth * divide_by_res(opaque_scalar(2.0 * self._tan_y), res),
                                  dr.normalize(mi.Vector3f(m[0][0], m[0][1], m[0][2])),

@@ -531,10 +531,10 @@ def cast_tiles(scene, jobs: list, minima: bool = True) -> None:
     """Ray-cast the tiles of ``jobs`` (:class:`TileCast`, one per store), setting each
     one's ``minima`` (``minima`` False: left to :func:`read_minima`, so that the host
     waits for the cast once, after more kernels are launched): the stores whose lights
-    skip no shape of their own and keep the
-    same layers, together in one kernel (a lane range each, from opaque offsets: the
-    kernel is the same whatever each range's size, an empty one included, so that a
-    camera move compiles nothing); a store alone, as it always was.
+    skip no shape of their own and keep the same layers, together in one kernel (a lane
+    range each, from opaque offsets: the kernel is the same whatever each range's size,
+    an empty one included, so that a camera move compiles nothing); a store alone, as it
+    always was.
 
     The two point lights of room_two_points cast their tiles in one kernel, not two, on a
     camera move: the rays' and the tracing's Python (``first_hit``'s loop, the pages'

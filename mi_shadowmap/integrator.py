@@ -120,6 +120,9 @@ screen is Mitsuba's projective integrators' job.
         self._sigint_before = None  # the SIGINT action before the render (sigint.py)
         self._sigint_after = None   # and the one the binding's scopes restore (render())
         self._nested = False        # sample() is called by another integrator (aov)
+        # the render's lookups know their film pixel (Lookup.pixel: _first_pass sets it)
+        self._pixels = False
+        self._pixel_lane = None     # that pixel, while sample() is traced
         self._names_given: list[str] = []   # aov_names() given outside a render
         self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
         # a user method's render: a one-element counter of lookups outside [0, 1] or NaN
@@ -320,7 +323,7 @@ screen is Mitsuba's projective integrators' job.
         """
         views = self._light_views(scene)   # the light views, built once per render
         self.maps = [None] * len(scene.emitters())   # no stale maps if preparing fails
-        prepared = prepare_maps(scene, sensor, self.opts, views)
+        prepared = prepare_maps(scene, sensor, self.opts, views, pixels=self._pixels)
         self.views, self.maps = prepared.views, prepared.maps
         self.resolution, self.stats = prepared.resolution, prepared.stats
         self.build_seconds = prepared.stats.build_seconds
@@ -483,7 +486,13 @@ screen is Mitsuba's projective integrators' job.
         scales ray differentials by 1/sqrt(spp); footprints use whole pixels; an opaque
         value, so a new spp compiles nothing) and a sensor's pixel step without ray
         differentials; a perspective camera's pinhole and pixel steps, from which its
-        footprints are taken (:func:`~mi_shadowmap.light_views.pinhole_footprint`)."""
+        footprints are taken (:func:`~mi_shadowmap.light_views.pinhole_footprint`).
+        Whether its lookups know their film pixel (``Lookup.pixel``: this integrator's own
+        render through a ``perspective`` camera, not nested) is set first: virtual maps'
+        marks decide the receiver biases' level per pixel then
+        (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.keeps`)."""
+        self._pixels = (self._in_render and not self._nested and sensor is not None
+                        and is_pinhole(sensor))
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
@@ -584,6 +593,13 @@ screen is Mitsuba's projective integrators' job.
         else:
             dp_dx = dp_dy = mi.Vector3f(0.0)
         p_centre = self._pixel_centre(si, dp_dx, dp_dy, valid) if gradient else None
+        # the film pixel of each sample, for virtual maps' per-pixel level choice
+        # (VirtualShadowMap.keeps): a perspective camera's, from the sample's point
+        self._pixel_lane = (self._film_pixel(si, valid)
+                            if self._pixels and opts.uses_map and opts.virtual
+                            and any(isinstance(m, VirtualShadowMap)
+                                    and m.keep is not None for m in self.maps)
+                            else None)
         aovs = []
         n_light = getattr(opts, record.shadow_rays) if record.shadow_rays else 1
         # A camera hit on a cylinder (or a non-mesh hit through an instance) found again
@@ -766,6 +782,8 @@ screen is Mitsuba's projective integrators' job.
             lk.tilted = tilted_frame(self._tilted_table, lk.si)
         if lk.solid_back is None and self._solid_faces is not None:
             lk.solid_back = self._solid_back(lk.si, self._light_outside.get(id(smap)))
+        if lk.pixel is None:
+            lk.pixel = self._pixel_lane
         if self.opts.record.whole_light:
             # its fraction counts the light points behind a solid's face as occluded
             # (Lookup.solid_back), and weights the light sample, wherever it lies
@@ -889,12 +907,24 @@ screen is Mitsuba's projective integrators' job.
         sensor = self._sensor
         if not is_pinhole(sensor):
             return si.p, None
-        ds, _ = sensor.sample_direction(dr.detach(si), mi.Point2f(0.5), active)
+        off, pixel = self._film_position(si, active)
+        return si.p + dp_dx * off.x + dp_dy * off.y, pixel
+
+    def _film_position(self, si, active):
+        """``(offset, pixel)`` of a ``perspective`` camera's hits ``si``: from the film
+        position of ``si.p`` (the sensor's ``sample_direction``), the offset from it to
+        its pixel's centre (pixels) and the pixel's id (``x + 65536 y`` in the crop)."""
+        ds, _ = self._sensor.sample_direction(dr.detach(si), mi.Point2f(0.5), active)
         uv = dr.detach(ds.uv)
         cell = dr.floor(uv)
         off = 0.5 - (uv - cell)
         pixel = mi.UInt32(dr.maximum(cell.x, 0.0)) + mi.UInt32(dr.maximum(cell.y, 0.0)) * 65536
-        return si.p + dp_dx * off.x + dp_dy * off.y, pixel
+        return off, pixel
+
+    def _film_pixel(self, si, active):
+        """The film pixel (``x + 65536 y``) of each hit ``si`` of a ``perspective``
+        camera (:meth:`_film_position`), for :attr:`~mi_shadowmap.filters.common.Lookup.pixel`."""
+        return self._film_position(si, active)[1]
 
     @staticmethod
     def _lookup(smap, si, dp_dx, dp_dy, ds, sampler, p=None, centre=False,

@@ -435,9 +435,12 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
     return smap
 
 
-def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
+def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
+                 pixels: bool = False) -> PreparedMaps:
     """First pass: one depth map per emitter (None for methods without a map and for
-    environment emitters): :func:`plan_maps`, then :func:`build_maps`.
+    environment emitters): :func:`plan_maps`, then :func:`build_maps`. ``pixels``: the
+    render's lookups know their film pixel (virtual maps,
+    :func:`~mi_shadowmap.virtual.prepare_virtual`).
 
     ``stats`` (a :class:`MapStats`) records what was built and reused, and
     ``build_seconds``, the time spent here (planning included).
@@ -470,7 +473,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None) -> PreparedMaps:
             "virtual" not in opts.given and _differentiated(scene, params)):
         # the automatic virtual=true: a scene being differentiated gets full maps (in the
         # AD graph), in its primal render too, so loss and gradient see the same maps
-        return _prepare_virtual(scene, sensor, opts, views, t0, params)
+        return _prepare_virtual(scene, sensor, opts, views, t0, params, pixels)
     plan = plan_maps(scene, sensor, opts, views, params)
     maps, stats = build_maps(scene, plan)
     if (opts.uses_map and virtual_lost_to_budget(opts)
@@ -558,7 +561,8 @@ def _differentiated(scene: mi.Scene, params=None) -> bool:
         return maps_need_gradients(scene, params)
 
 
-def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMaps:
+def _prepare_virtual(scene, sensor, opts, views, t0, params=None,
+                     pixels: bool = False) -> PreparedMaps:
     """``virtual=true``: virtual maps (:mod:`mi_shadowmap.virtual`) for the emitters whose
     view supports them; the others (an environment cut into more than 32 regions) get
     full maps as usual."""
@@ -596,7 +600,7 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None) -> PreparedMap
             _warn_full_for_budget(opts, wanted, res)
     full_bytes = sum(m.nbytes for m in maps if m is not None)
     virtual = prepare_virtual(scene, sensor, opts, virtual_views, stats, params,
-                              budget_bytes=opts.budget_bytes - full_bytes)
+                              budget_bytes=opts.budget_bytes - full_bytes, pixels=pixels)
     maps = [vm if vm is not None else m for vm, m in zip(virtual, maps)]
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0

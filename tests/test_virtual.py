@@ -161,10 +161,13 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
     vmap = integ.maps[0]
     store, lay = vmap.store, vmap.layout
     si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
-    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    pixel = virtual.camera_pixels(scene.sensors()[0])      # as the render's lookups
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None,
+                pixel=pixel)
     p64 = mi.Point3d(lk.p_world)
     face, uv64, _, inside = vmap.view.project_f64(p64)
-    want = vmap.level_for(face, p64, dp_dx, dp_dy, si.n).numpy()
+    want = vmap.level_for(face, p64, dp_dx, dp_dy, si.n, pixel=pixel,
+                          shape=si.shape).numpy()
     lit = (valid & inside).numpy()
     before = vmap.bind(lk, valid, per_tap=True).level.numpy()
     assert lit.sum() > 500 and np.all(before[lit] == want[lit])
@@ -183,8 +186,8 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
     assert present[0]
     store.slot_mask[slot[0]] &= ~(1 << (tx % S + (ty % S) * S))
     store.version += 1
-    after = virtual.VirtualShadowMap(store, {}, vmap.lod_bias, reach=vmap.reach).bind(
-        lk, valid, per_tap=True)
+    after = virtual.VirtualShadowMap(store, {}, vmap.lod_bias, reach=vmap.reach,
+                                     keep=vmap.keep).bind(lk, valid, per_tap=True)
     moved = after.level.numpy() != want
     inside_tile = lit & (tile == np.uint64(k))
     assert inside_tile.sum() == counts.max() > 0
@@ -205,10 +208,12 @@ def test_a_lookup_whose_level_is_not_built_walks_to_the_next_finer_first():
     vmap = integ.maps[0]
     lay = vmap.layout
     si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
-    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    pixel = virtual.camera_pixels(scene.sensors()[0])      # as the render's lookups
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None,
+                pixel=pixel)
     p64 = mi.Point3d(lk.p_world)
     face, _, _, inside = vmap.view.project_f64(p64)
-    want = vmap.level_for(face, p64, dp_dx, dp_dy, si.n)
+    want = vmap.level_for(face, p64, dp_dx, dp_dy, si.n, pixel=pixel, shape=si.shape)
     lit = (valid & inside).numpy() & (want.numpy() + 1 < lay.coarsest)
     assert np.all(vmap.bind(lk, valid, per_tap=True).level.numpy()[lit] == want.numpy()[lit])
     got = vmap.bind(lk, valid, per_tap=True, level=want + 1).level.numpy()[lit]
@@ -231,7 +236,8 @@ def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
     vmap, opts = integ.maps[0], integ.opts
     store, lay = vmap.store, vmap.layout
     si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
-    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None,
+                pixel=virtual.camera_pixels(scene.sensors()[0]))   # as the render's
     first = vmap.bind(lk, valid, per_tap=True, walk=False)
     hard(first, lk, opts, valid)
     assert not np.any((valid & first.inside & first.missed).numpy())   # all marked: built
@@ -247,7 +253,8 @@ def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
     t = int(tiles[np.argmax(counts)])
     store.slot_mask[t // (S * S)] &= ~(1 << (t % (S * S)))
     store.version += 1
-    vmap2 = virtual.VirtualShadowMap(store, {}, vmap.lod_bias, reach=vmap.reach)
+    vmap2 = virtual.VirtualShadowMap(store, {}, vmap.lod_bias, reach=vmap.reach,
+                                     keep=vmap.keep)
     first = vmap2.bind(lk, valid, per_tap=True, walk=False)
     hard(first, lk, opts, valid)
     missed = (valid & first.inside & first.missed).numpy()
@@ -514,9 +521,11 @@ def test_samples_off_the_pixel_centre_find_the_biases_level_built():
         ray, _ = sensor.sample_ray_differential(0.0, 0.5, pos, mi.Point2f(0.5))
         si = scene.ray_intersect(ray)
         dp_dx, dp_dy = integ._footprint(ray, si)
-        lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, None, None)
+        pixel = idx % W + idx // W * 65536          # as the render's lookups
+        lk = Lookup(si.p, si.n, dp_dx, dp_dy, si, None, None, pixel=pixel)
         p64 = mi.Point3d(si.p)
-        want = vmap.level_for(vmap.view.project_f64(p64)[0], p64, dp_dx, dp_dy, si.n).numpy()
+        want = vmap.level_for(vmap.view.project_f64(p64)[0], p64, dp_dx, dp_dy, si.n,
+                              pixel=pixel, shape=si.shape).numpy()
         got = vmap.bind(lk, si.is_valid(), per_tap=False).level.numpy()
         floor = (si.is_valid() & (si.p.y < 1.0)).numpy()
         n += floor.sum()
@@ -538,9 +547,9 @@ def test_a_hard_lookup_chooses_its_level_once(monkeypatch):
     calls = []
     real = virtual.VirtualShadowMap._levels
 
-    def spy(self, face, p64, dp_dx, dp_dy, n=None, p=None):
+    def spy(self, face, p64, dp_dx, dp_dy, n=None, p=None, **kwargs):
         calls.append(p is not None)
-        return real(self, face, p64, dp_dx, dp_dy, n, p)
+        return real(self, face, p64, dp_dx, dp_dy, n, p, **kwargs)
 
     scene = boxed_light_scene()
     integ = shadowmap(method="hard", virtual=True, cache_maps=False)

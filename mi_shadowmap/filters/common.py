@@ -72,6 +72,11 @@ class Lookup:
     #: lookup must count its light points behind the face as occluded itself. None:
     #: nowhere.
     solid_back: object = None
+    #: ``mi.UInt32``: the film pixel of the camera sample (``x + 65536 y`` in the crop;
+    #: the integrator's own render through a ``perspective`` camera), or None: unknown.
+    #: A virtual map reads there whether its mark kept the receiver biases' level for
+    #: that pixel (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.keeps`).
+    pixel: object = None
 
 
 @dataclass
@@ -180,6 +185,22 @@ class BiasReach:
         if self.edge > 0.0:
             r += self.edge * dr.sqrt(1.0 + tan_c * tan_c)
         return r
+
+    def height(self, cos_nl, sin_nl):
+        """How high over the receiver (texels of the lookup's level, along its normal) an
+        occluder may be and still be hidden by the biases (:meth:`texels`' ``height``):
+        ``normal cos(theta) + slope sin(theta)``, ``grazing + slope max_tan cos(theta)``
+        where ``tan(theta) > max_tan``."""
+        clamped = sin_nl / dr.maximum(cos_nl, 1e-6) > self.max_tan
+        return dr.select(clamped, self.grazing + self.slope * self.max_tan * cos_nl,
+                         self.normal * cos_nl + self.slope * sin_nl)
+
+    def edge_texels(self, cos_nl, sin_nl):
+        """The ``edge`` part of :meth:`texels` (None without a ``virtual_edge``)."""
+        if self.edge <= 0.0:
+            return None
+        tan_c = dr.minimum(sin_nl / dr.maximum(cos_nl, 1e-6), self.max_tan)
+        return self.edge * dr.sqrt(1.0 + tan_c * tan_c)
 
 
 def receiver(smap, lk: Lookup, opts, coordinate_margin: bool = True) -> Receiver:

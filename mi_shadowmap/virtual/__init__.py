@@ -138,5 +138,5 @@ from .layout import (MAX_COARSER, MAX_VIRTUAL_RES, SCENE_TEXELS, TILE_SIZE,  # n
 from .store import PageStore, page_bytes, page_layers, page_minima  # noqa: F401
 from .lookup import BoundVirtualMap, VirtualShadowMap  # noqa: F401
 from .camera import camera_frame, camera_state  # noqa: F401
-from .marks import camera_hits, coarser_levels, mark_candidates  # noqa: F401
+from .marks import camera_hits, camera_pixels, coarser_levels, mark_candidates  # noqa: F401
 from .planner import PAGE_CACHE, PageCache, prepare_virtual  # noqa: F401

@@ -49,8 +49,14 @@ class VirtualShadowMap:
 
     def __init__(self, store: PageStore, stats: dict, lod_bias: float = -0.5,
                  margin: float = 2.0, coarse_res: int | None = None,
-                 frame: tuple | None = None, reach: BiasReach | None = None):
+                 frame: tuple | None = None, reach: BiasReach | None = None,
+                 keep: tuple | None = None):
         self.lod_bias = float(lod_bias)
+        # per film pixel, where its lookups read the biases' level (:meth:`keeps`):
+        # ``(words, width, count)``, per pixel (``x + width y``) the shape whose level
+        # its mark dropped (0: none), the film's width and pixel count (opaque); None:
+        # the biases' level everywhere
+        self.keep = keep
         # the method's receiver biases (level_for keeps the shadows they lose within
         # REACH_PIXELS footprints); None: the footprint alone
         self.reach = reach
@@ -156,7 +162,8 @@ class VirtualShadowMap:
         return out
 
     # ----------------------------------------------------------- levels
-    def level_for(self, face, p64, dp_dx, dp_dy, n=None, p=None) -> mi.UInt32:
+    def level_for(self, face, p64, dp_dx, dp_dy, n=None, p=None, pixel=None,
+                  shape=None) -> mi.UInt32:
         """Level whose texel matches the pixel footprint ``dp_dx``, ``dp_dy`` at
         ``p64`` on ``face``: ``floor(log2(w) + lod_bias)`` clamped to the levels,
         ``w`` the footprint in level-0 texels: the shorter side of its bounding box
@@ -176,10 +183,14 @@ class VirtualShadowMap:
         as far along it: at the footprint's level alone a point light in a box floating
         0.1 over a floor lit 2.4 % of a 64^2 image under ``hard`` (the coarsest level,
         its slope bias 1.6 units against the box wall 1.2-1.6 units in front of the
-        floor; full maps of 64^2 texels a face: 0)."""
-        return self._levels(face, p64, dp_dx, dp_dy, n, p)[0]
+        floor; full maps of 64^2 texels a face: 0). ``pixel``, ``shape``: the lookups'
+        film pixels (``Lookup.pixel``) and shapes, whose mark may have dropped the
+        biases' level (:meth:`keeps`); None: the biases' level wherever it applies."""
+        keep = None if pixel is None else VirtualShadowMap.keeps(self, pixel, shape)
+        return self._levels(face, p64, dp_dx, dp_dy, n, p, keep=keep)[0]
 
-    def _levels(self, face, p64, dp_dx, dp_dy, n=None, p=None) -> tuple:
+    def _levels(self, face, p64, dp_dx, dp_dy, n=None, p=None, keep=None,
+                probe: bool = False) -> tuple:
         """``(level, spread)``: :meth:`level_for`'s level, and where the biases chose it
         finer than the footprint's, half the footprint's bounding box in its texels
         (``mi.Point2f``, else 0): how far from the pixel's centre the pixel's samples
@@ -197,7 +208,17 @@ class VirtualShadowMap:
         the mark pass builds around its centre (at ``lod_bias`` -4 on the boxed light of
         ``tests/test_virtual.py`` 16 % of the floor's lookups walked to the coarsest
         level, ``hard`` lit 458 pixels of 4096, 3 without the cap; now 3). ``p``: ``p64`` in
-        float32 where the caller has it (:meth:`bind`: the lookup's point)."""
+        float32 where the caller has it (:meth:`bind`: the lookup's point).
+
+        ``keep`` (``mi.Bool`` per lane; None: everywhere): where the biases' level applies;
+        elsewhere the level chosen without the biases' height (``fallback``: the
+        footprint's, or finer by the method's ``virtual_edge`` alone) and its spread. The
+        mark pass decides it per film pixel (:func:`~mi_shadowmap.virtual.marks.probe_keeps`)
+        and the lookups read that pixel's decision (:meth:`bind`, ``keep``). With
+        ``probe``: ``(level, spread, fallback, fallback_spread, length)``, ``level`` and
+        ``spread`` the biases' (``keep`` ignored), ``length`` where ``level`` is finer than
+        ``fallback``: how far (world units) along the ray towards the light an occluder
+        may lie and be hidden by the biases at ``fallback`` (0 elsewhere)."""
         view, lay = self.view, self.layout
         # the lookup's own point: the variable the receiver's biases read, so that Dr.Jit
         # computes the direction to the light once (the same value as from p64)
@@ -214,6 +235,7 @@ class VirtualShadowMap:
         scaled = w_eff * float(2.0 ** lod_bias)
         level = mi.Int32(dr.reinterpret_array(mi.UInt32, scaled) >> 23) - 127
         spread = mi.Point2f(0.0)
+        fallback, fb_spread, length = level, spread, mi.Float(0.0)
         reach = getattr(self, "reach", None)
         if n is not None and reach is not None:
             n = dr.normalize(mi.Vector3f(n))
@@ -221,20 +243,73 @@ class VirtualShadowMap:
             c = dr.dot(n, to_light)
             along = to_light - n * c            # towards the light along the receiver
             sin_nl = dr.norm(along)
-            r = reach.texels(dr.clip(dr.abs(c), 1e-6, 1.0), sin_nl)
+            cos_nl = dr.clip(dr.abs(c), 1e-6, 1.0)
             f = (dr.abs(dr.dot(dp_dx, along)) + dr.abs(dr.dot(dp_dy, along))) \
                 / dr.maximum(sin_nl, 1e-30)
             t0 = view.texel_world_size(lay.res0, view.depth_of(p), p, n)
-            # level-0 texels a texel may span (the same exponent trick)
-            allowed = (REACH_PIXELS * 2.0 ** max(lod_bias + 0.5, 0.0)) * f / (r * t0)
-            cap = mi.Int32(dr.reinterpret_array(mi.UInt32, dr.maximum(allowed, 1.0)) >> 23) \
-                - 127
-            capped = dr.isfinite(allowed) & (f > 0) & (cap < level)
-            level = dr.select(capped, cap, level)
-            span = w * dr.exp2(-mi.Float(dr.clip(level, 0, lay.coarsest)))
-            spread = dr.select(capped & dr.isfinite(span.x) & dr.isfinite(span.y), 0.5 * span,
-                               mi.Point2f(0.0))
-        return mi.UInt32(dr.clip(level, 0, lay.coarsest)), spread
+            scale = REACH_PIXELS * 2.0 ** max(lod_bias + 0.5, 0.0)
+
+            def capped_level(r, base):
+                """``(level, spread, capped)`` where a reach of ``r`` texels caps
+                ``base``, the level without it."""
+                # level-0 texels a texel may span (the same exponent trick)
+                allowed = scale * f / (r * t0)
+                cap = mi.Int32(dr.reinterpret_array(mi.UInt32, dr.maximum(allowed, 1.0))
+                               >> 23) - 127
+                capped = dr.isfinite(allowed) & (f > 0) & (cap < base)
+                lev = dr.select(capped, cap, base)
+                span = w * dr.exp2(-mi.Float(dr.clip(lev, 0, lay.coarsest)))
+                sp = dr.select(capped & dr.isfinite(span.x) & dr.isfinite(span.y),
+                               0.5 * span, mi.Point2f(0.0))
+                return lev, sp, capped
+
+            footprint = level
+            level, spread, capped = capped_level(reach.texels(cos_nl, sin_nl), footprint)
+            if keep is not None or probe:
+                # the level without the biases' height: the edge's cap alone (a lit gap
+                # puts nothing on a probe: not probed), else the footprint's
+                r_edge = reach.edge_texels(cos_nl, sin_nl)
+                if r_edge is not None:
+                    fallback, fb_spread, _ = capped_level(r_edge, footprint)
+                if probe:
+                    fb = dr.clip(fallback, 0, lay.coarsest)
+                    # the height the biases hide at the fallback, as a distance along
+                    # the ray towards the light
+                    length = dr.select(capped & (dr.clip(level, 0, lay.coarsest) < fb),
+                                       reach.height(cos_nl, sin_nl) * t0
+                                       * dr.exp2(mi.Float(fb)) / cos_nl, 0.0)
+                else:
+                    keep = mi.Bool(keep)
+                    level = dr.select(keep, level, fallback)
+                    spread = dr.select(keep, spread, fb_spread)
+        out = (mi.UInt32(dr.clip(level, 0, lay.coarsest)), spread)
+        if probe:
+            out += (mi.UInt32(dr.clip(fallback, 0, lay.coarsest)), fb_spread, length)
+        return out
+
+    def keeps(self, pixel, shape=None, active=True):
+        """Where lookups on ``shape`` (``si.shape``; None: unknown) in film pixels
+        ``pixel`` (``x + 65536 y``, :attr:`~mi_shadowmap.filters.common.Lookup.pixel`)
+        read the biases' level (:meth:`_levels`' ``keep``): everywhere but where the mark
+        pass dropped it for that pixel's centre (``self.keep``,
+        :func:`~mi_shadowmap.virtual.marks.probe_keeps`) on the same shape. A sample on
+        another shape than its pixel's centre (a silhouette's pixel) keeps it: the
+        centre's probe says nothing of it (read by the centre's decision, the boxed
+        light of ``tests/test_virtual.py`` lit 5 floor pixels of 4096 under ``mdsm``
+        beside the box's outline, against 2). None (the biases' level everywhere)
+        without a pixel or without the mark's words; a pixel outside the film the mark
+        saw keeps it."""
+        if pixel is None or getattr(self, "keep", None) is None:
+            return None
+        words, width, count = self.keep
+        pixel = mi.UInt32(pixel)
+        x, y = pixel & 0xFFFF, pixel >> 16
+        idx = x + y * width
+        known = mi.Bool(active) & (x < width) & (idx < count)
+        dropped = dr.gather(mi.UInt32, words, idx, known)
+        if shape is None:
+            return ~known | (dropped == 0)
+        return ~known | (dropped != dr.reinterpret_array(mi.UInt32, shape))
 
     def _block_entry(self, face, level, bx, by, active):
         """``(e, ok)``: where in ``dense`` the 2 x 2 pages whose lower-left page is
@@ -279,7 +354,9 @@ class VirtualShadowMap:
         p64 = mi.Point3d(lk.p_world)
         face, uv64, depth64, inside = self.view.project_f64(p64)
         active = mi.Bool(active) & inside
-        want = (self.level_for(face, p64, lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world)
+        want = (self._levels(face, p64, lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world,
+                             keep=self.keeps(getattr(lk, "pixel", None),
+                                             getattr(lk.si, "shape", None), active))[0]
                 if level is None
                 else dr.minimum(mi.UInt32(level), mi.UInt32(lay.coarsest)))
 

@@ -51,6 +51,15 @@ SPILL = 4096
 LENS_GRID = 3
 
 
+#: How many times the height the biases hide at the fallback level a mark's probe
+#: reaches along the ray towards the light (:func:`probe_keeps`): the pixel's samples
+#: sit up to half a footprint from its centre, and a lookup's normal offset moves its
+#: ray. At 1, the probes of 14 % of the capped floor samples of the orthographic boxed
+#: light (``tests/test_virtual.py``: a closed box, all of them shadowed) found no wall;
+#: at 2 none did (measured on branch ``wip/probe-cap``, 069460b).
+PROBE_MARGIN = 2.0
+
+
 def camera_hits(scene, sensor, evaluate: bool = True, state=None):
     """Camera hits at every pixel centre with their one-pixel footprints (where the next
     pixel's rays meet the tangent plane: a perspective camera's from its pinhole, as the
@@ -86,7 +95,7 @@ def camera_hits(scene, sensor, evaluate: bool = True, state=None):
     if frame is not None:       # as the render takes them (integrator._footprint)
         dp_dx, dp_dy = pinhole_footprint(si.p, si.n, frame)
         if evaluate:
-            dr.eval(si.p, si.n, dp_dx, dp_dy, valid)
+            dr.eval(si.p, si.n, si.shape, dp_dx, dp_dy, valid)
         return si, dp_dx, dp_dy, valid
     n = si.n
 
@@ -102,12 +111,27 @@ def camera_hits(scene, sensor, evaluate: bool = True, state=None):
     return si, dp_dx, dp_dy, valid
 
 
+def camera_pixels(sensor) -> mi.UInt32:
+    """The film pixel (``x + 65536 y`` in the crop, as ``Lookup.pixel``) of each of
+    :func:`camera_hits`' lanes through a camera without a lens (one a pixel, in
+    :func:`~mi_shadowmap.light_views.pixel_centres`' blocks; the blocks' filler lanes
+    repeat a pixel)."""
+    w, h = (int(x) for x in sensor.film().crop_size())
+    pos = pixel_centres(sensor, blocks=True)
+    return mi.UInt32(dr.floor(pos.x * w)) + mi.UInt32(dr.floor(pos.y * h)) * 65536
+
+
 def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
-    """``(face, uv64, act, level, spread)`` of the camera hits ``si`` a mark reads: their
-    face and float64 uv, which of them mark (valid, on a face, in front of a one-sided
-    planar light, and ``active(p, n)`` if given), their level
-    (:meth:`VirtualShadowMap.level_for`) and how far from the point, in its texels, the
-    pixel's samples read where that level is finer than the footprint's (0 elsewhere)."""
+    """``(face, uv64, act, level, spread, dropped)`` of the camera hits ``si`` a mark reads:
+    their face and float64 uv, which of them mark (valid, on a face, in front of a
+    one-sided planar light, and ``active(p, n)`` if given), their level
+    (:meth:`VirtualShadowMap.level_for`), how far from the point, in its texels, the
+    pixel's samples read where that level is finer than the footprint's (0 elsewhere),
+    and where the biases' level was dropped: with ``vmap_like.scene`` (a :class:`Marker`
+    of a render whose lookups know their film pixel), the points the biases capped whose
+    :func:`probe_keeps` does not keep it; they mark the level without the biases'
+    height, as their pixels' lookups on the same shape read it
+    (:meth:`VirtualShadowMap.keeps`); else nowhere (False)."""
     view = vmap_like.view
     p64 = mi.Point3d(si.p)
     face, uv64, _, inside = view.project_f64(p64)
@@ -116,8 +140,77 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
         act &= dr.dot(si.p - opaque_point(view.position), mi.Vector3f(*view.light_normal)) > 0
     if active is not None:
         act &= active(si.p, si.n)
-    level, spread = vmap_like._levels(face, p64, dp_dx, dp_dy, si.n)
-    return face, uv64, act, level, spread
+    scene = getattr(vmap_like, "scene", None)
+    if scene is None or getattr(vmap_like, "reach", None) is None:
+        level, spread = vmap_like._levels(face, p64, dp_dx, dp_dy, si.n)
+        return face, uv64, act, level, spread, mi.Bool(False)
+    level, spread, fallback, fb_spread, length = vmap_like._levels(
+        face, p64, dp_dx, dp_dy, si.n, probe=True)
+    capped = act & (length > 0)
+    keep = probe_keeps(scene, view, si.p, si.n, dp_dx, dp_dy, length, capped,
+                       getattr(si, "shape", None))
+    return (face, uv64, act, dr.select(keep, level, fallback),
+            dr.select(keep, spread, fb_spread), capped & ~keep)
+
+
+def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None):
+    """Whether a pixel whose centre ``p`` the biases capped (``active``; ``length``:
+    :meth:`VirtualShadowMap._levels`' probe length) keeps the biases' level: its lookups
+    and its mark read it (:func:`marked_points`, :meth:`VirtualShadowMap.keeps`). It
+    does where its probe towards the light finds an occluder within ``PROBE_MARGIN
+    length`` (the biases at the fallback level may hide it), or where a shadow's edge
+    crosses the pixel: the shadow rays from the corners of its footprint (``p +- dp_dx /
+    2 +- dp_dy / 2``, on the tangent plane) to the light do not all agree with the
+    centre's (the fallback's coarser texels move the edges of thin occluders' shadows;
+    a probe from the centre alone missed thin posts beside it). Elsewhere the fallback
+    level loses no shadow the biases' level keeps. Five rays per capped pixel centre, in
+    the mark kernel (``ray_intersect_preliminary``); the measurements are in
+    ``benchmarks/RESULTS.md`` (the forty-second and forty-fourth sessions).
+
+    ``shape``: the hits' shapes (``si.shape``), or None. Where the light is behind the
+    receiver's face (``n`` facing the camera) a probe's hit on the receiver's own shape
+    counts as none: such a point is in its own shape's shade, which no level changes,
+    and its lookups reach the image only through a shading frame tilted over the
+    terminator (and a solid's are 0 there, ``Lookup.solid_back``). Counted, the far
+    sides of thin posts grazed by the sun kept the biases' level everywhere
+    (``random_large_world`` seed 5 at 256^2: 2166 of the 5803 back-facing capped pixel
+    centres kept it, 241 of the 2821 facing the light)."""
+    own = None
+    if shape is not None:
+        own = dr.select(dr.dot(n, view.direction_to_light(p)) < 0, shape, mi.ShapePtr(None))
+    hit0 = probe_distance(scene, view, p, n, active, own)
+    keep = mi.Bool(active) & (hit0 < mi.Float(length) * PROBE_MARGIN)
+    shadowed = dr.isfinite(hit0)
+    for a in (-0.5, 0.5):
+        for b in (-0.5, 0.5):
+            corner = probe_distance(scene, view, p + dp_dx * a + dp_dy * b, n,
+                                    active & ~keep, own)
+            keep |= mi.Bool(active) & (dr.isfinite(corner) != shadowed)
+    return keep
+
+
+def probe_distance(scene, view, p, n, active, own=None):
+    """How far from ``p`` along its ray towards the light the first occluder lies (inf
+    where none does: the light's own shape, ``view.ignore_shape``, is none, and nothing
+    beyond a point or spot light's position counts). The ray leaves ``p`` offset along
+    its normal ``n`` to the light's side as Mitsuba's ``spawn_ray`` offsets it (the
+    surface itself is not hit). ``own`` (per lane, may be null): a shape whose hit
+    counts as none too."""
+    d = view.direction_to_light(p)
+    n = mi.Vector3f(n)
+    eps = (1.0 + dr.max(dr.abs(p))) * float(dr.epsilon(mi.Float)) * 89.0
+    o = p + n * dr.select(dr.dot(n, d) >= 0, eps, -eps)
+    ray = mi.Ray3f(o, d)
+    if view.rays_from_point and view.projection in ("perspective", "cube"):
+        # not beyond the light: what lies behind a point light does not shadow
+        ray.maxt = dr.norm(opaque_point(view.position) - o) * (1.0 - 1e-4)
+    pi = scene.ray_intersect_preliminary(ray, active=active)
+    hit = mi.Bool(active) & pi.is_valid()
+    if view.ignore_shape is not None:
+        hit &= pi.shape != mi.ShapePtr(view.ignore_shape)
+    if own is not None:
+        hit &= pi.shape != own
+    return dr.select(hit, pi.t, dr.inf)
 
 
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
@@ -617,11 +710,14 @@ class Marker:
     """The level choice of a :class:`VirtualShadowMap` without a store (mark pass);
     ``view``: the faces marked (default: the layout's view)."""
 
-    def __init__(self, layout, lod_bias: float, view=None, reach=None):
+    def __init__(self, layout, lod_bias: float, view=None, reach=None, scene=None):
         self.layout = layout
         self.view = layout.view if view is None else view
         self.lod_bias = float(lod_bias)
         self.reach = reach      # the method's receiver biases (VirtualShadowMap.level_for)
+        # the scene the probes of marked_points trace, where the render's lookups know
+        # their film pixel (None: the biases' level wherever it applies, no probe)
+        self.scene = scene
 
     level_for = VirtualShadowMap.level_for
     _levels = VirtualShadowMap._levels

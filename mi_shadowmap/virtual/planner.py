@@ -18,9 +18,9 @@ from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_uni
                      with_keys)
 from ..filters.common import BiasReach
 from .lookup import VirtualShadowMap
-from .marks import (Marker, block_axis, block_tiles, camera_hits, dedupe_many,
-                    dilate_tiles, mark_blocks, mark_coarser, marked_points, shape_bits,
-                    tile_pages)
+from .marks import (Marker, block_axis, block_tiles, camera_hits, camera_pixels,
+                    dedupe_many, dilate_tiles, mark_blocks, mark_coarser, marked_points,
+                    shape_bits, tile_pages)
 from .store import (PageStore, TileCast, cast_tiles, fill_new_pages, page_bytes,
                     page_layers, read_minima)
 
@@ -106,7 +106,7 @@ PAGE_CACHE = PageCache()
 
 
 def prepare_virtual(scene, sensor, opts, views, stats, params=None,
-                    budget_bytes: int | None = None) -> list:
+                    budget_bytes: int | None = None, pixels: bool = False) -> list:
     """First pass with ``virtual=true``: mark, build missing pages, return one
     :class:`VirtualShadowMap` per emitter whose view supports it (None elsewhere).
 
@@ -118,8 +118,14 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     (:func:`share_pages`); every pool is resized to its share, smaller ones too. Maps
     whose marked pages do not fit are degraded (finest levels replaced by coarser ones)
     with one warning naming them.
+    ``pixels``: the render's lookups know their film pixel (``Lookup.pixel``: the
+    integrator's own render through a ``perspective`` camera); its marks then decide per
+    pixel whether the receiver biases' level applies (:func:`~.marks.probe_keeps`), and
+    the maps carry that decision (:meth:`VirtualShadowMap.keeps`). Else it applies
+    wherever the biases ask for it.
     """
     from ..map_manager import MAP_CACHE
+    from ..light_views import is_pinhole
     layer_names = page_layers(opts)
     # the shapes' state: a store is keyed by its light's view too, so a moved light (new
     # view) rebuilds its own pages and keeps every other light's (retired below)
@@ -146,7 +152,11 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         margins[i] = virtual_margin_of(opts.record, opts, view)
         coarse[i] = virtual_coarse_res_of(opts.record, opts, view)
     reach = {i: reach_of(opts, stores[i].layout.view) for i in stores}
-    mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias, reach[i]) for i in stores}
+    # per-pixel decisions of the biases' level: a perspective camera's pixels (one camera
+    # hit a pixel, whose lane the lookups find from their point: Lookup.pixel)
+    probe = bool(pixels) and sensor is not None and is_pinhole(sensor)
+    mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias, reach[i], probe)
+                for i in stores}
     # the mark pass: every light whose marks are stale, from one set of camera hits traced
     # in the same kernel as all their marks (a still camera reuses its marks)
     # a light whose radiance is exactly 0 lights no sample, so no lookup of its map
@@ -211,29 +221,34 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                      else np.zeros(0, np.uint64))
             return own, extra
 
-        def settle(i, parts):
+        def settle(i, parts, keep=None):
             """Light ``i``'s mark: every tile, and those only the coarser levels' kernels
-            read (a full budget drops them first)."""
+            read (a full budget drops them first), and its pixels' ``keep``
+            (:meth:`VirtualShadowMap.keeps`; None: no probe)."""
             # (each part's own tiles sorted and distinct already: block_tiles)
             own = (parts[0][0] if len(parts) == 1 else
                    sorted_unique(np.concatenate([p[0] for p in parts])))
             extra = sorted_unique(np.concatenate([p[1] for p in parts]))
             optional = np.setdiff1d(extra, own, assume_unique=True)
-            stores[i].remember_mark((mark_key[i], with_keys(own, optional), optional))
+            stores[i].remember_mark((mark_key[i], with_keys(own, optional), optional, keep))
 
         # every light's marked points first (one kernel with the camera hits), then the
         # candidate tiles from them in each dedupe round (a few integer operations)
         for batch in ([every] if fused and plain else [[i] for i in plain]):
-            markers = [Marker(stores[i].layout, opts.lod_bias, reach=reach[i])
+            markers = [Marker(stores[i].layout, opts.lod_bias, reach=reach[i],
+                              scene=scene if probe and reach[i] is not None else None)
                        for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
-            dr.eval(*(x for pt in points for x in pt))
+            # each probed light's pixels' keep bits, in the same kernel
+            keeps = {i: _pixel_keeps(sensor, pt[5], hits[0].shape) for i, mk, pt in
+                     zip(batch, markers, points) if mk.scene is not None}
+            dr.eval(*(x for pt in points for x in pt), *(k[0] for k in keeps.values()))
             groups = [marks(i, mk, pt) for i, mk, pt in zip(batch, markers, points)]
             found = dedupe_many([g for gs in groups for g in gs])
             for i, gs in zip(batch, groups):
                 mine, found = found[:len(gs)], found[len(gs):]
                 if not dark[i]:
-                    settle(i, [tiles(i, mine)])
+                    settle(i, [tiles(i, mine)], keeps.get(i))
         # an environment's regions: every (region, camera hit) pair a lane, as many
         # regions a kernel as MARK_LANES lanes hold (16 regions of a 128^2 film: one
         # kernel, where one per region launched 48 kernels and 900 table memsets a
@@ -350,6 +365,10 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     cast_n = sum(b[0].n_tiles for b in builds.values())
     degraded_maps = []
     out = []
+    # a probed render's light without a mark (dark): no pixel keeps the biases' level,
+    # through bits of the same types (the render kernel is the one a lit light compiles)
+    no_keep = ((dr.zeros(mi.UInt32, 1), dr.opaque(mi.UInt32, 0), dr.opaque(mi.UInt32, 0))
+               if probe else None)
     for i, view in enumerate(views):
         if i not in stores:
             out.append(None)
@@ -409,9 +428,14 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         # at the store's mean time a page
         stats.naive_build_seconds += dt + (len(needed) - n_cast) * (
             store.cast_seconds / max(store.cast_pages, 1))
+        keep = mark[3] if mark is not None else None
+        if keep is None and probe and reach[i] is not None \
+                and not hasattr(view, "mark_views"):
+            keep = no_keep
         out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
                                     opts.lod_bias, margins[i], coarse.get(i),
-                                    frame=(needed, slots, masks), reach=reach[i]))
+                                    frame=(needed, slots, masks), reach=reach[i],
+                                    keep=keep))
     if degraded_maps:
         # one warning a render, whatever the number of lights
         need = sum(plans[i][2] + plans[i][3] for i in uniq) * per_page + (
@@ -623,3 +647,20 @@ def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
         degraded += len(sorted_unique(pages[sel]))
         tiles = sorted_unique(np.concatenate([tiles[~sel], parents.astype(np.uint64)]))
     return tiles, degraded
+
+
+def _pixel_keeps(sensor, dropped, shape) -> tuple:
+    """``(words, width, count)`` (:meth:`VirtualShadowMap.keeps`) of a mark pass's
+    ``dropped`` per camera hit (:func:`~.marks.marked_points`; the hits of
+    :func:`~.marks.camera_hits` through a pinhole: one a pixel, in
+    :func:`~mi_shadowmap.light_views.pixel_centres`' blocks, whose filler lanes repeat a
+    pixel with the same value) and the hits' ``shape``: per film pixel (``x + width y``,
+    unevaluated) the id of the shape whose biases' level its mark dropped (its
+    ``ShapePtr`` as ``mi.UInt32``), 0 where none; and the film's width and pixel count
+    as opaque values."""
+    w, h = (int(x) for x in sensor.film().crop_size())
+    pixel = camera_pixels(sensor)
+    words = dr.zeros(mi.UInt32, w * h)
+    dr.scatter(words, dr.select(dropped, dr.reinterpret_array(mi.UInt32, shape), 0),
+               (pixel & 0xFFFF) + (pixel >> 16) * w)
+    return words, dr.opaque(mi.UInt32, w), dr.opaque(mi.UInt32, w * h)

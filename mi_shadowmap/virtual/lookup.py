@@ -38,6 +38,13 @@ def effective_lod_bias(lod_bias: float, page_size: int) -> float:
     return max(float(lod_bias), 1.0 - math.log2(int(page_size)))
 
 
+#: The fields of a film pixel's word of :meth:`VirtualShadowMap.keeps`
+#: (:func:`~mi_shadowmap.virtual.planner._pixel_keeps`): the centre's shape id in the low
+#: bits, whether the centre's mark kept the biases' level, and whether samples on other
+#: shapes than the centre's (a silhouette's pixel) keep it.
+KEEP_SHAPE, KEEP_CENTRE, KEEP_OTHERS = (1 << 29) - 1, 1 << 30, 1 << 31
+
+
 class VirtualShadowMap:
     """One emitter's virtual map for one render: the page pool and its table.
 
@@ -290,13 +297,21 @@ class VirtualShadowMap:
     def keeps(self, pixel, shape=None, active=True):
         """Where lookups on ``shape`` (``si.shape``; None: unknown) in film pixels
         ``pixel`` (``x + 65536 y``, :attr:`~mi_shadowmap.filters.common.Lookup.pixel`)
-        read the biases' level (:meth:`_levels`' ``keep``): everywhere but where the mark
-        pass dropped it for that pixel's centre (``self.keep``,
-        :func:`~mi_shadowmap.virtual.marks.probe_keeps`) on the same shape. A sample on
-        another shape than its pixel's centre (a silhouette's pixel) keeps it: the
-        centre's probe says nothing of it (read by the centre's decision, the boxed
-        light of ``tests/test_virtual.py`` lit 5 floor pixels of 4096 under ``mdsm``
-        beside the box's outline, against 2). None (the biases' level everywhere)
+        read the biases' level (:meth:`_levels`' ``keep``), from the mark pass's word for
+        that pixel (``self.keep``, :func:`~mi_shadowmap.virtual.planner._pixel_keeps`):
+        on the shape of the pixel's centre, where the centre's mark kept it
+        (:func:`~mi_shadowmap.virtual.marks.probe_keeps`; a centre the biases did not cap
+        marked the footprint's level: samples of its pixel the biases would cap read
+        that level, which it built, where they had wanted one its neighbours had
+        dropped, and read what wider marks would build: ``pcf`` on the point light of
+        ``tests/test_filters_pcf.py``, 2 pixels of 4096); on another shape (a
+        silhouette's pixel, whose centre's probe says nothing of it), where a
+        neighbouring pixel whose centre is on another shape kept it. (Read by the
+        centre's decision alone, the boxed light of ``tests/test_virtual.py`` lit 5 floor
+        pixels of 4096 beside the box's outline under ``mdsm``, bound 2; with such
+        samples keeping it always, they wanted a level their neighbours had dropped and
+        read what wider marks would build: ``pcf``'s image moved on 2 pixels of 4096 with
+        wider marks, tests/test_filters_pcf.py.) None (the biases' level everywhere)
         without a pixel or without the mark's words; a pixel outside the film the mark
         saw keeps it."""
         if pixel is None or getattr(self, "keep", None) is None:
@@ -306,10 +321,12 @@ class VirtualShadowMap:
         x, y = pixel & 0xFFFF, pixel >> 16
         idx = x + y * width
         known = mi.Bool(active) & (x < width) & (idx < count)
-        dropped = dr.gather(mi.UInt32, words, idx, known)
+        word = dr.gather(mi.UInt32, words, idx, known)
         if shape is None:
-            return ~known | (dropped == 0)
-        return ~known | (dropped != dr.reinterpret_array(mi.UInt32, shape))
+            return ~known | ((word & KEEP_CENTRE) != 0)
+        same = (word & KEEP_SHAPE) == (dr.reinterpret_array(mi.UInt32, shape) & KEEP_SHAPE)
+        return ~known | ((word & dr.select(same, mi.UInt32(KEEP_CENTRE),
+                                           mi.UInt32(KEEP_OTHERS))) != 0)
 
     def _block_entry(self, face, level, bx, by, active):
         """``(e, ok)``: where in ``dense`` the 2 x 2 pages whose lower-left page is

@@ -122,8 +122,8 @@ def camera_pixels(sensor) -> mi.UInt32:
 
 
 def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
-    """``(face, uv64, act, level, spread, dropped)`` of the camera hits ``si`` a mark reads:
-    their face and float64 uv, which of them mark (valid, on a face, in front of a
+    """``(face, uv64, act, level, spread, dropped, kept)`` of the camera hits ``si`` a mark
+    reads: their face and float64 uv, which of them mark (valid, on a face, in front of a
     one-sided planar light, and ``active(p, n)`` if given), their level
     (:meth:`VirtualShadowMap.level_for`), how far from the point, in its texels, the
     pixel's samples read where that level is finer than the footprint's (0 elsewhere),
@@ -131,7 +131,7 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     of a render whose lookups know their film pixel), the points the biases capped whose
     :func:`probe_keeps` does not keep it; they mark the level without the biases'
     height, as their pixels' lookups on the same shape read it
-    (:meth:`VirtualShadowMap.keeps`); else nowhere (False)."""
+    (:meth:`VirtualShadowMap.keeps`); else nowhere (False); and those it keeps."""
     view = vmap_like.view
     p64 = mi.Point3d(si.p)
     face, uv64, _, inside = view.project_f64(p64)
@@ -143,14 +143,14 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     scene = getattr(vmap_like, "scene", None)
     if scene is None or getattr(vmap_like, "reach", None) is None:
         level, spread = vmap_like._levels(face, p64, dp_dx, dp_dy, si.n)
-        return face, uv64, act, level, spread, mi.Bool(False)
+        return face, uv64, act, level, spread, mi.Bool(False), mi.Bool(False)
     level, spread, fallback, fb_spread, length = vmap_like._levels(
         face, p64, dp_dx, dp_dy, si.n, probe=True)
     capped = act & (length > 0)
     keep = probe_keeps(scene, view, si.p, si.n, dp_dx, dp_dy, length, capped,
                        getattr(si, "shape", None))
     return (face, uv64, act, dr.select(keep, level, fallback),
-            dr.select(keep, spread, fb_spread), capped & ~keep)
+            dr.select(keep, spread, fb_spread), capped & ~keep, capped & keep)
 
 
 def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None):
@@ -265,6 +265,16 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> t
         # neighbouring pixels' boxes, which those mark; the kernel around the point
         # itself, as everywhere.
         m_lane = mi.Point2d(dr.maximum(m, dr.minimum(points[4], MAX_SPREAD)))
+        if getattr(vmap_like, "scene", None) is not None:
+            # with the per-pixel decision (marked_points' probe) the neighbouring pixels
+            # may have dropped the biases' level, and the uncapped pixels beside a point
+            # that kept it read it (VirtualShadowMap.keeps): a point that kept it marks
+            # its kernel beyond its box and the next pixel's box (``m + 2 spread``, up to
+            # m_block). Marked as the box alone, a pcf lookup's taps read what wider
+            # marks would cast (tests/test_filters_pcf.py: 1-2 pixels of 4096 differed)
+            spread = mi.Point2d(points[4])
+            m_lane = dr.select(mi.Bool(points[6]), dr.minimum(m + 2.0 * spread, m_block),
+                               m_lane)
     else:
         m_lane = m
     per_axis = int(math.ceil(2.0 * m_block / T)) + 1

@@ -17,7 +17,7 @@ from .camera import camera_state, clear_camera_states
 from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_unique,
                      with_keys)
 from ..filters.common import BiasReach
-from .lookup import VirtualShadowMap
+from .lookup import KEEP_CENTRE, KEEP_OTHERS, KEEP_SHAPE, VirtualShadowMap
 from .marks import (Marker, block_axis, block_tiles, camera_hits, camera_pixels,
                     dedupe_many, dilate_tiles, mark_blocks, mark_coarser, marked_points,
                     shape_bits, tile_pages)
@@ -240,8 +240,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                        for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
             # each probed light's pixels' keep bits, in the same kernel
-            keeps = {i: _pixel_keeps(sensor, pt[5], hits[0].shape) for i, mk, pt in
-                     zip(batch, markers, points) if mk.scene is not None}
+            keeps = {i: _pixel_keeps(sensor, pt[5], pt[6], hits[0].shape)
+                     for i, mk, pt in zip(batch, markers, points) if mk.scene is not None}
             dr.eval(*(x for pt in points for x in pt), *(k[0] for k in keeps.values()))
             groups = [marks(i, mk, pt) for i, mk, pt in zip(batch, markers, points)]
             found = dedupe_many([g for gs in groups for g in gs])
@@ -649,18 +649,54 @@ def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
     return tiles, degraded
 
 
-def _pixel_keeps(sensor, dropped, shape) -> tuple:
-    """``(words, width, count)`` (:meth:`VirtualShadowMap.keeps`) of a mark pass's
-    ``dropped`` per camera hit (:func:`~.marks.marked_points`; the hits of
-    :func:`~.marks.camera_hits` through a pinhole: one a pixel, in
-    :func:`~mi_shadowmap.light_views.pixel_centres`' blocks, whose filler lanes repeat a
-    pixel with the same value) and the hits' ``shape``: per film pixel (``x + width y``,
-    unevaluated) the id of the shape whose biases' level its mark dropped (its
-    ``ShapePtr`` as ``mi.UInt32``), 0 where none; and the film's width and pixel count
-    as opaque values."""
+def _pixel_keeps(sensor, dropped, kept, shape) -> tuple:
+    """``(words, width, count)`` (:meth:`VirtualShadowMap.keeps`) from a mark pass's
+    points (:func:`~.marks.marked_points`: which dropped the biases' level after its
+    probe, which kept it) and the hits' ``shape`` (the hits of :func:`~.marks.camera_hits` through a
+    pinhole: one a pixel, in :func:`~mi_shadowmap.light_views.pixel_centres`' blocks,
+    whose filler lanes repeat a pixel with the same values): per film pixel (``x +
+    width y``, unevaluated) a word of ``KEEP_SHAPE`` (the centre's shape id, its
+    ``ShapePtr`` as ``mi.UInt32``), ``KEEP_CENTRE`` (its mark kept the biases' level;
+    or the biases did not cap the centre and one of the 8 neighbouring pixels whose
+    centre is on its shape kept it) and ``KEEP_OTHERS`` (:mod:`.lookup`): one of the 8
+    neighbouring pixels whose centre is on another shape kept it. A sample whose own
+    centre says nothing of its level (uncapped, or on another shape: a silhouette's
+    pixel) reads beside its neighbours' marks: where they kept the biases' level it
+    keeps it too (built by their footprints' boxes), else it reads the level without
+    it, which they built. (Uncapped centres' samples keeping it always wanted a level
+    their neighbours had dropped and read what wider marks would build: ``pcf`` on the
+    point light of ``tests/test_filters_pcf.py``, 2 pixels of 4096 moved with wider
+    marks; dropping it always lit 4 floor pixels of the boxed light of
+    ``tests/test_virtual.py`` under ``mdsm`` where the cap's region begins, bound 2.)
+    And the film's width
+    and pixel count as opaque values. One more kernel (the neighbours' words) a mark
+    pass."""
     w, h = (int(x) for x in sensor.film().crop_size())
     pixel = camera_pixels(sensor)
-    words = dr.zeros(mi.UInt32, w * h)
-    dr.scatter(words, dr.select(dropped, dr.reinterpret_array(mi.UInt32, shape), 0),
+    ids = dr.reinterpret_array(mi.UInt32, shape) & KEEP_SHAPE
+    centre = dr.zeros(mi.UInt32, w * h)
+    zero = mi.UInt32(0)
+    dr.scatter(centre, ids | dr.select(kept, mi.UInt32(KEEP_CENTRE), zero)
+               | dr.select(dropped, mi.UInt32(KEEP_OTHERS), zero),     # (probed: capped)
                (pixel & 0xFFFF) + (pixel >> 16) * w)
+    idx = dr.arange(mi.UInt32, w * h)
+    y = idx // w
+    x = idx - y * w
+    own = dr.gather(mi.UInt32, centre, idx)
+    others_keep = same_keep = mi.Bool(False)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dx == 0 and dy == 0:
+                continue
+            nx, ny = mi.Int32(x) + dx, mi.Int32(y) + dy
+            ok = (nx >= 0) & (ny >= 0) & (nx < w) & (ny < h)
+            n = dr.gather(mi.UInt32, centre, mi.UInt32(ny * w + nx), ok)
+            n_kept = ok & ((n & KEEP_CENTRE) != 0)
+            same = (n & KEEP_SHAPE) == (own & KEEP_SHAPE)
+            others_keep |= n_kept & ~same
+            same_keep |= n_kept & same
+    capped = (own & (KEEP_CENTRE | KEEP_OTHERS)) != 0
+    words = (own & KEEP_SHAPE) | dr.select(((own & KEEP_CENTRE) != 0) | (~capped & same_keep),
+                                           mi.UInt32(KEEP_CENTRE), zero) \
+        | dr.select(others_keep, mi.UInt32(KEEP_OTHERS), zero)
     return words, dr.opaque(mi.UInt32, w), dr.opaque(mi.UInt32, w * h)

@@ -60,8 +60,8 @@ class VirtualShadowMap:
                  keep: tuple | None = None):
         self.lod_bias = float(lod_bias)
         # per film pixel, where its lookups read the biases' level (:meth:`keeps`):
-        # ``(words, width, count)``, per pixel (``x + width y``) the shape whose level
-        # its mark dropped (0: none), the film's width and pixel count (opaque); None:
+        # ``(words, width, count)``, a word per pixel (``x + width y``; KEEP_SHAPE,
+        # KEEP_CENTRE, KEEP_OTHERS), the film's width and pixel count (opaque); None:
         # the biases' level everywhere
         self.keep = keep
         # the method's receiver biases (level_for keeps the shadows they lose within
@@ -298,22 +298,16 @@ class VirtualShadowMap:
         """Where lookups on ``shape`` (``si.shape``; None: unknown) in film pixels
         ``pixel`` (``x + 65536 y``, :attr:`~mi_shadowmap.filters.common.Lookup.pixel`)
         read the biases' level (:meth:`_levels`' ``keep``), from the mark pass's word for
-        that pixel (``self.keep``, :func:`~mi_shadowmap.virtual.planner._pixel_keeps`):
-        on the shape of the pixel's centre, where the centre's mark kept it
-        (:func:`~mi_shadowmap.virtual.marks.probe_keeps`; a centre the biases did not cap
-        marked the footprint's level: samples of its pixel the biases would cap read
-        that level, which it built, where they had wanted one its neighbours had
-        dropped, and read what wider marks would build: ``pcf`` on the point light of
-        ``tests/test_filters_pcf.py``, 2 pixels of 4096); on another shape (a
-        silhouette's pixel, whose centre's probe says nothing of it), where a
-        neighbouring pixel whose centre is on another shape kept it. (Read by the
-        centre's decision alone, the boxed light of ``tests/test_virtual.py`` lit 5 floor
-        pixels of 4096 beside the box's outline under ``mdsm``, bound 2; with such
-        samples keeping it always, they wanted a level their neighbours had dropped and
-        read what wider marks would build: ``pcf``'s image moved on 2 pixels of 4096 with
-        wider marks, tests/test_filters_pcf.py.) None (the biases' level everywhere)
-        without a pixel or without the mark's words; a pixel outside the film the mark
-        saw keeps it."""
+        the pixel (``self.keep``, :func:`~mi_shadowmap.virtual.planner._pixel_keeps`): on
+        the shape of the pixel's centre where the centre's mark kept it after its probe
+        (:func:`~mi_shadowmap.virtual.marks.probe_keeps`), or where the biases did not
+        cap the centre and a neighbouring pixel on its shape kept it; on another shape
+        (a silhouette's pixel) where a neighbouring pixel on another shape kept it.
+        Marks and lookups then agree per pixel: a lookup wants a level its own pixel's
+        mark, or those of the neighbours its decision came from, built (the
+        forty-fourth session in ``benchmarks/RESULTS.md`` has the cases each rule
+        fixed). None (the biases' level everywhere) without a pixel or without the
+        mark's words; a pixel outside the film the mark saw keeps it."""
         if pixel is None or getattr(self, "keep", None) is None:
             return None
         words, width, count = self.keep

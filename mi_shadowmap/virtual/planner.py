@@ -652,9 +652,10 @@ def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
 def _pixel_keeps(sensor, dropped, kept, shape) -> tuple:
     """``(words, width, count)`` (:meth:`VirtualShadowMap.keeps`) from a mark pass's
     points (:func:`~.marks.marked_points`: which dropped the biases' level after its
-    probe, which kept it) and the hits' ``shape`` (the hits of :func:`~.marks.camera_hits` through a
-    pinhole: one a pixel, in :func:`~mi_shadowmap.light_views.pixel_centres`' blocks,
-    whose filler lanes repeat a pixel with the same values): per film pixel (``x +
+    probe, which kept it) and the hits' ``shape`` (the hits of
+    :func:`~.marks.camera_hits` through a pinhole: one a pixel, in
+    :func:`~mi_shadowmap.light_views.pixel_centres`' blocks, whose filler lanes repeat
+    a pixel with the same values): per film pixel (``x +
     width y``, unevaluated) a word of ``KEEP_SHAPE`` (the centre's shape id, its
     ``ShapePtr`` as ``mi.UInt32``), ``KEEP_CENTRE`` (its mark kept the biases' level;
     or the biases did not cap the centre and one of the 8 neighbouring pixels whose
@@ -668,16 +669,17 @@ def _pixel_keeps(sensor, dropped, kept, shape) -> tuple:
     point light of ``tests/test_filters_pcf.py``, 2 pixels of 4096 moved with wider
     marks; dropping it always lit 4 floor pixels of the boxed light of
     ``tests/test_virtual.py`` under ``mdsm`` where the cap's region begins, bound 2.)
-    And the film's width
-    and pixel count as opaque values. One more kernel (the neighbours' words) a mark
-    pass."""
+    And the film's width and pixel count as opaque values. One more kernel (the
+    neighbours' words) a mark pass."""
     w, h = (int(x) for x in sensor.film().crop_size())
     pixel = camera_pixels(sensor)
     ids = dr.reinterpret_array(mi.UInt32, shape) & KEEP_SHAPE
+    # each centre's own word first: its shape, KEEP_CENTRE where it kept the level, and
+    # (here) KEEP_OTHERS where it dropped it: either bit, the biases capped it
     centre = dr.zeros(mi.UInt32, w * h)
     zero = mi.UInt32(0)
     dr.scatter(centre, ids | dr.select(kept, mi.UInt32(KEEP_CENTRE), zero)
-               | dr.select(dropped, mi.UInt32(KEEP_OTHERS), zero),     # (probed: capped)
+               | dr.select(dropped, mi.UInt32(KEEP_OTHERS), zero),
                (pixel & 0xFFFF) + (pixel >> 16) * w)
     idx = dr.arange(mi.UInt32, w * h)
     y = idx // w
@@ -696,7 +698,7 @@ def _pixel_keeps(sensor, dropped, kept, shape) -> tuple:
             others_keep |= n_kept & ~same
             same_keep |= n_kept & same
     capped = (own & (KEEP_CENTRE | KEEP_OTHERS)) != 0
-    words = (own & KEEP_SHAPE) | dr.select(((own & KEEP_CENTRE) != 0) | (~capped & same_keep),
-                                           mi.UInt32(KEEP_CENTRE), zero) \
+    keep_own = ((own & KEEP_CENTRE) != 0) | (~capped & same_keep)
+    words = (own & KEEP_SHAPE) | dr.select(keep_own, mi.UInt32(KEEP_CENTRE), zero) \
         | dr.select(others_keep, mi.UInt32(KEEP_OTHERS), zero)
     return words, dr.opaque(mi.UInt32, w), dr.opaque(mi.UInt32, w * h)

@@ -239,10 +239,13 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                               scene=scene if probe and reach[i] is not None else None)
                        for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
-            # each probed light's pixels' keep bits, in the same kernel
-            keeps = {i: _pixel_keeps(sensor, pt[5], pt[6], hits[0].shape)
-                     for i, mk, pt in zip(batch, markers, points) if mk.scene is not None}
-            dr.eval(*(x for pt in points for x in pt), *(k[0] for k in keeps.values()))
+            # each probed light's centres' words, scattered in the same kernel, then
+            # their neighbours' in one small kernel (_pixel_keeps)
+            centres = {i: _centre_words(sensor, pt[5], pt[6], hits[0].shape)
+                       for i, mk, pt in zip(batch, markers, points) if mk.scene is not None}
+            dr.eval(*(x for pt in points for x in pt), *centres.values())
+            keeps = {i: _pixel_keeps(sensor, c) for i, c in centres.items()}
+            dr.eval(*(k[0] for k in keeps.values()))
             groups = [marks(i, mk, pt) for i, mk, pt in zip(batch, markers, points)]
             found = dedupe_many([g for gs in groups for g in gs])
             for i, gs in zip(batch, groups):
@@ -649,13 +652,30 @@ def _fit_budget(tiles: np.ndarray, budget_pages: int, layout) -> tuple:
     return tiles, degraded
 
 
-def _pixel_keeps(sensor, dropped, kept, shape) -> tuple:
-    """``(words, width, count)`` (:meth:`VirtualShadowMap.keeps`) from a mark pass's
-    points (:func:`~.marks.marked_points`: which dropped the biases' level after its
-    probe, which kept it) and the hits' ``shape`` (the hits of
+def _centre_words(sensor, dropped, kept, shape):
+    """Each film pixel's centre's word (``x + width y``, unevaluated: a scatter), from a
+    mark pass's points (:func:`~.marks.marked_points`: which dropped the biases' level
+    after its probe, which kept it) and the hits' ``shape`` (the hits of
     :func:`~.marks.camera_hits` through a pinhole: one a pixel, in
     :func:`~mi_shadowmap.light_views.pixel_centres`' blocks, whose filler lanes repeat
-    a pixel with the same values): per film pixel (``x +
+    a pixel with the same values): its shape, ``KEEP_CENTRE`` where it kept the level
+    and (here) ``KEEP_OTHERS`` where it dropped it: either bit, the biases capped it.
+    Scattered in the mark kernel: evaluated apart, it traced the camera rays and their
+    probes again (9.9 ms of a moved 256^2 large_world frame)."""
+    w, h = (int(x) for x in sensor.film().crop_size())
+    pixel = camera_pixels(sensor)
+    ids = dr.reinterpret_array(mi.UInt32, shape) & KEEP_SHAPE
+    centre = dr.zeros(mi.UInt32, w * h)
+    zero = mi.UInt32(0)
+    dr.scatter(centre, ids | dr.select(kept, mi.UInt32(KEEP_CENTRE), zero)
+               | dr.select(dropped, mi.UInt32(KEEP_OTHERS), zero),
+               (pixel & 0xFFFF) + (pixel >> 16) * w)
+    return centre
+
+
+def _pixel_keeps(sensor, centre) -> tuple:
+    """``(words, width, count)`` (:meth:`VirtualShadowMap.keeps`) from the centres'
+    words (:func:`_centre_words`, evaluated): per film pixel (``x +
     width y``, unevaluated) a word of ``KEEP_SHAPE`` (the centre's shape id, its
     ``ShapePtr`` as ``mi.UInt32``), ``KEEP_CENTRE`` (its mark kept the biases' level;
     or the biases did not cap the centre and one of the 8 neighbouring pixels whose
@@ -670,17 +690,9 @@ def _pixel_keeps(sensor, dropped, kept, shape) -> tuple:
     marks; dropping it always lit 4 floor pixels of the boxed light of
     ``tests/test_virtual.py`` under ``mdsm`` where the cap's region begins, bound 2.)
     And the film's width and pixel count as opaque values. One more kernel (the
-    neighbours' words) a mark pass."""
+    neighbours' words, 0.2 ms at 256^2) a mark pass."""
     w, h = (int(x) for x in sensor.film().crop_size())
-    pixel = camera_pixels(sensor)
-    ids = dr.reinterpret_array(mi.UInt32, shape) & KEEP_SHAPE
-    # each centre's own word first: its shape, KEEP_CENTRE where it kept the level, and
-    # (here) KEEP_OTHERS where it dropped it: either bit, the biases capped it
-    centre = dr.zeros(mi.UInt32, w * h)
     zero = mi.UInt32(0)
-    dr.scatter(centre, ids | dr.select(kept, mi.UInt32(KEEP_CENTRE), zero)
-               | dr.select(dropped, mi.UInt32(KEEP_OTHERS), zero),
-               (pixel & 0xFFFF) + (pixel >> 16) * w)
     idx = dr.arange(mi.UInt32, w * h)
     y = idx // w
     x = idx - y * w

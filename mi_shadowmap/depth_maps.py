@@ -28,7 +28,7 @@ import mitsuba as mi
 
 from .light_views import LightView
 from .light_views.base import remember_latest
-from .map_scene import map_scene, stand_in
+from .map_scene import map_scene, own_shapes_copy, stand_in
 from .options import _BYTES_PER_TEXEL   # the one definition (float32 texels)
 
 
@@ -166,15 +166,20 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
     :mod:`mi_shadowmap.antialias`.
     """
     own_shape = view.ignore_shape
+    own_copy = None
     if not (differentiable or return_hit):
-        original, scene = scene, map_scene(scene)   # cylinders as meshes (map_scene)
-        own_shape = stand_in(original, own_shape)   # a tube light's prism
+        own_copy = own_shapes_copy(scene)   # instances and cylinders: prisms beside them
+        if own_copy is None:
+            original, scene = scene, map_scene(scene)   # cylinders as meshes (map_scene)
+            own_shape = stand_in(original, own_shape)   # a tube light's prism
     o_ad = d_ad = None
     if pose is not None:
         o_ad, d_ad = pose.ray(o, d)
         o, d = dr.detach(o_ad), dr.detach(d_ad)
     ray = mi.Ray3f(o, d)
-    pi = scene.ray_intersect_preliminary(ray, coherent=COHERENT_RAYS)
+    query = (scene.ray_intersect_preliminary if own_copy is None else
+             _own_and_instanced(scene, *own_copy, own_shape))
+    pi = query(ray, coherent=COHERENT_RAYS)
     own = mi.ShapePtr(own_shape) if own_shape is not None else None
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     t_acc = mi.Float(0.0)
@@ -197,7 +202,7 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
                 + 1e-6 * dr.max(dr.abs(mi.Vector3f(ray.o))))
         t_acc = t_acc + step
         ray = mi.Ray3f(ray.o + ray.d * step, ray.d)
-        pi = scene.ray_intersect_preliminary(ray, coherent=COHERENT_RAYS)
+        pi = query(ray, coherent=COHERENT_RAYS)
         return ray, pi, t_acc, it + 1
 
     ray, pi, t_acc, it = dr.while_loop((ray, pi, t_acc, it), cond, body)
@@ -212,6 +217,56 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
         return (depth, dr.select(hit, pi.shape, dr.zeros(mi.ShapePtr, dr.width(hit))),
                 dr.select(hit, pi.prim_index, 0))
     return depth
+
+
+#: Hits on the scene's own shapes passed per ray looking for an instance's hit in front of
+#: the copy's (:func:`_own_and_instanced`): phantom hits on its float32 cylinders, or its
+#: surfaces rounding in front of their copies'.
+OWN_HITS_PASSED = 4
+
+
+def _own_and_instanced(scene, copy, stand_ins, own_shape):
+    """``ray_intersect_preliminary`` for a scene with instances and cylinders of its own
+    (:func:`~mi_shadowmap.map_scene.own_shapes_copy`): the first hit in ``copy`` (the
+    scene's own shapes, cylinders as prisms), unless the scene has a hit inside an
+    ``instance`` in front of it (the scene's first such hit, passing at most
+    :data:`OWN_HITS_PASSED` hits on its own shapes, which the copy holds). The light's
+    own shape (``own_shape``, a tube light's prism in the copy) is passed in the scene
+    like every own shape and reported as the copy's ``stand_ins`` entry, for the
+    caller's skip."""
+    own = stand_ins.get(id(own_shape)) if own_shape is not None else None
+    if own is not None:
+        own_ptr, prism_ptr = mi.ShapePtr(own_shape), mi.ShapePtr(own)
+
+    def query(ray, coherent=True):
+        pc = copy.ray_intersect_preliminary(ray, coherent=coherent)
+        limit = dr.select(pc.is_valid(), pc.t, ray.maxt)
+        r = mi.Ray3f(ray.o, ray.d, limit)
+        pi = scene.ray_intersect_preliminary(r, coherent=coherent)
+        t_acc = mi.Float(0.0)
+        k = dr.zeros(mi.UInt32, dr.width(limit))
+
+        def passing(r, pi, t_acc, k):
+            return pi.is_valid() & (dr.reinterpret_array(mi.UInt32, pi.instance) == 0) \
+                & (k < OWN_HITS_PASSED)
+
+        def past(r, pi, t_acc, k):
+            step = (pi.t * (1.0 + 1e-5) + 1e-7 * (t_acc + pi.t)
+                    + 1e-6 * dr.max(dr.abs(mi.Vector3f(r.o))))
+            t_acc = t_acc + step
+            r = mi.Ray3f(r.o + r.d * step, r.d, dr.maximum(r.maxt - step, 0.0))
+            return r, scene.ray_intersect_preliminary(r, coherent=coherent), t_acc, k + 1
+
+        r, pi, t_acc, k = dr.while_loop((r, pi, t_acc, k), passing, past)
+        inside = pi.is_valid() & (dr.reinterpret_array(mi.UInt32, pi.instance) != 0) \
+            & (t_acc + pi.t < limit)
+        out = dr.select(inside, pi, pc)
+        out.t = dr.select(inside, t_acc + pi.t, pc.t)
+        if own is not None:       # the caller skips its light's own shape by the scene's
+            out.shape = dr.select(out.shape == prism_ptr, own_ptr, out.shape)
+        return out
+
+    return query
 
 
 def shape_is_solid(shape) -> bool:

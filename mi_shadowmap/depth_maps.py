@@ -225,8 +225,9 @@ def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = Fal
 OWN_HITS_PASSED = 4
 
 
-def _own_and_instanced(scene, copy, stand_ins, own_shape):
-    """``ray_intersect_preliminary`` for a scene with instances and cylinders of its own
+def _own_and_instanced(scene, copy, stand_ins, own_shape, surface: bool = False):
+    """``ray_intersect_preliminary`` (``surface``: ``ray_intersect``'s minimal surface
+    interaction) for a scene with instances and cylinders of its own
     (:func:`~mi_shadowmap.map_scene.own_shapes_copy`): the first hit in ``copy`` (the
     scene's own shapes, cylinders as prisms), unless the scene has a hit inside an
     ``instance`` in front of it (the scene's first such hit, passing at most
@@ -238,11 +239,11 @@ def _own_and_instanced(scene, copy, stand_ins, own_shape):
     if own is not None:
         own_ptr, prism_ptr = mi.ShapePtr(own_shape), mi.ShapePtr(own)
 
-    def query(ray, coherent=True):
-        pc = copy.ray_intersect_preliminary(ray, coherent=coherent)
+    def query(ray, coherent=True, active=True):
+        pc = copy.ray_intersect_preliminary(ray, coherent=coherent, active=active)
         limit = dr.select(pc.is_valid(), pc.t, ray.maxt)
         r = mi.Ray3f(ray.o, ray.d, limit)
-        pi = scene.ray_intersect_preliminary(r, coherent=coherent)
+        pi = scene.ray_intersect_preliminary(r, coherent=coherent, active=active)
         t_acc = mi.Float(0.0)
         k = dr.zeros(mi.UInt32, dr.width(limit))
 
@@ -260,7 +261,11 @@ def _own_and_instanced(scene, copy, stand_ins, own_shape):
         r, pi, t_acc, k = dr.while_loop((r, pi, t_acc, k), passing, past)
         inside = pi.is_valid() & (dr.reinterpret_array(mi.UInt32, pi.instance) != 0) \
             & (t_acc + pi.t < limit)
-        out = dr.select(inside, pi, pc)
+        if surface:
+            out = dr.select(inside, pi.compute_surface_interaction(r, mi.RayFlags.Minimal),
+                            pc.compute_surface_interaction(ray, mi.RayFlags.Minimal))
+        else:
+            out = dr.select(inside, pi, pc)
         out.t = dr.select(inside, t_acc + pi.t, pc.t)
         if own is not None:       # the caller skips its light's own shape by the scene's
             out.shape = dr.select(out.shape == prism_ptr, own_ptr, out.shape)
@@ -913,8 +918,17 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
 def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
     """:func:`second_depth_layer` for given texel rays ``(o, d)`` (unit ``d``): the
     distance along each ray to its second surface (the virtual maps' pages use it)."""
-    original, scene = scene, map_scene(scene)   # cylinders as meshes (map_scene)
-    own_shape = stand_in(original, view.ignore_shape)   # a tube light's prism
+    own_copy = own_shapes_copy(scene)   # instances and cylinders: prisms beside them
+    if own_copy is None:
+        original, scene = scene, map_scene(scene)   # cylinders as meshes (map_scene)
+        own_shape = stand_in(original, view.ignore_shape)   # a tube light's prism
+        intersect = scene.ray_intersect
+    else:
+        own_shape = view.ignore_shape
+        query = _own_and_instanced(scene, *own_copy, own_shape, surface=True)
+
+        def intersect(ray, flags, coherent, active):   # (a prism's hit: no face table)
+            return query(ray, coherent, active)
     own = mi.ShapePtr(own_shape) if own_shape is not None else None
     eps_o = 1e-6 * dr.max(dr.abs(mi.Vector3f(o)))
     face_offset, face_mag, face_solid = _face_magnitudes(scene)
@@ -937,7 +951,7 @@ def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
         return active
 
     def body(ray, z_first, z_second, it, active, entered, last, grow):
-        si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True, active)
+        si = intersect(ray, mi.RayFlags.Minimal, True, active)
         hit = active & si.is_valid()
         hit_own = (hit & (si.shape == own)) if own is not None else mi.Bool(False)
         z = dr.dot(si.p - o, d)

@@ -40,10 +40,9 @@ Not replaced (the maps keep Mitsuba's cylinder there):
   scene with instances and cylinders keeps its cylinders, a warning says so (also
   where the only cylinders are inside shape groups: posts drawn through instances
   under a low sun over a 4 km ground, ``hard`` 13 % misclassified against 0.24 % for
-  the same posts as shapes). The first depths (every map's, :func:`~mi_shadowmap.
-  depth_maps.first_hit`) of such a scene take its own cylinders' prisms all the same,
-  from a copy of its shapes but the instances (:func:`own_shapes_copy`); ``second_depth``'s
-  layer and ``raytraced``'s shadow rays keep them;
+  the same posts as shapes). The maps' depths (first and second) of such a scene take
+  its own cylinders' prisms all the same, from a copy of its shapes but the instances
+  (:func:`own_shapes_copy`); ``raytraced``'s shadow rays keep them;
 * maps built with gradients or antialiased outlines (:func:`~mi_shadowmap.depth_maps.
   first_hit`'s ``differentiable``, ``return_hit``): their derivatives and outlines
   belong to the scene's own shapes.
@@ -213,9 +212,10 @@ def own_shapes_copy(scene: mi.Scene):
     stand_ins)``, a scene of its own shapes but the instances, every cylinder a prism
     (as :func:`map_scene`'s copy), and ``{id(area-light cylinder): its prism}``; None for
     any other scene (and where Mitsuba does not copy a shape, with :func:`map_scene`'s
-    warning). :func:`~mi_shadowmap.depth_maps.first_hit` takes a ray's first hit in the
-    copy, and in the scene the first hit inside an instance before it: the instances
-    come from the scene, its own cylinders from their prisms. Before it, such a scene's
+    warning). The maps' rays (:func:`~mi_shadowmap.depth_maps.first_hit`,
+    :func:`~mi_shadowmap.depth_maps.second_depth_along`) take a hit in the copy, and in
+    the scene the first hit inside an instance before it: the instances come from the
+    scene, its own cylinders from their prisms. Before it, such a scene's
     maps read Mitsuba's float32 cylinders, posts too (a random 4 km world with posts
     as cylinders and as instanced boxes, rocks instanced, the sun 8-40 degrees high:
     ``hard`` misclassified 1.91 % of a 128^2 view against ``raytraced``, 0.35 % with the

@@ -22,7 +22,7 @@ import pytest
 
 from mi_shadowmap.light_views import emitter_kind
 from mi_shadowmap.metrics import misclassified
-from mi_shadowmap.scenes import random_far_point, random_large_world
+from mi_shadowmap.scenes import random_far_point, random_large_world, random_terrain_world
 
 
 def visibility(scene_dict, **props):
@@ -47,6 +47,32 @@ def test_random_scenes_are_reproducible_and_differ_by_seed():
     assert len(shapes) == 1 + 4 + 6 + 5
     scene = mi.load_dict(random_large_world(0, width=16, spp=1))
     assert [emitter_kind(e) for e in scene.emitters()] == ["directional"]
+
+
+def test_random_terrain_worlds_are_reproducible_and_vary():
+    """``random_terrain_world``: the same seed the same scene (its terrain mesh's
+    vertices too); over seeds 0-11 every sun (2-5, 8-40, 80-89.5 degrees high) and every
+    view (eye height, a hill, a tower), and scenes with and without instances; each
+    loads with one directional light, its camera above the terrain."""
+    def vertices(d):
+        return np.asarray(mi.traverse(d["ground"])["vertex_positions"])
+    a, b = random_terrain_world(3, width=32), random_terrain_world(3, width=32)
+    assert str(a) == str(b)      # (meshes print their bounds, not their vertices)
+    assert np.array_equal(vertices(a), vertices(b))
+    assert not np.array_equal(vertices(a), vertices(random_terrain_world(4, width=32)))
+    elevations, towers, instanced = set(), 0, 0
+    for seed in range(12):
+        d = random_terrain_world(seed, width=16, spp=1)
+        sin_e = -d["sun"]["direction"][1] / np.linalg.norm(d["sun"]["direction"])
+        elevations.add(int(np.searchsorted([6.5, 60.0], np.degrees(np.arcsin(sin_e)))))
+        towers += "tower" in d
+        instanced += any(isinstance(v, dict) and v["type"] == "instance" for v in d.values())
+        scene = mi.load_dict(d)
+        assert [emitter_kind(e) for e in scene.emitters()] == ["directional"]
+        origin = np.array(scene.sensors()[0].world_transform().translation())
+        ray = mi.Ray3f(mi.Point3f(*origin), mi.Vector3f(0, -1, 0))
+        assert scene.ray_intersect(ray).is_valid()[0]     # the ground is below the camera
+    assert elevations == {0, 1, 2} and 0 < towers < 12 and 0 < instanced < 12
 
 
 @pytest.mark.parametrize("distance", [0, -1.0, float("inf"), float("nan"), "1e5"])

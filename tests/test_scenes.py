@@ -93,6 +93,21 @@ def test_random_large_worlds_meet_the_target_at_defaults(seed):
         assert mis <= 0.01, (seed, method, mis)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_terrain_worlds_meet_the_target_at_defaults(seed):
+    """Issue 11's 1 % on ``random_terrain_world`` (128^2, 16 spp; seeds 0-3 measured
+    at most 0.16 / 0.21 %, `hard` / `pcf`; the first seeds, all with the sun 8-40 or
+    80-89.5 degrees high: the drawn kinds, not chosen). It can fail: without the
+    biases (``slope_bias=0, normal_bias=0``) `hard` / `pcf` misclassify 27 / 1.1 %, 36 /
+    5.4 %, 20 / 1.2 % of these views, and `hard` with ``lod_bias=4`` 3.6 % of seed 1's."""
+    d = random_terrain_world(seed, width=128, spp=16)
+    ref = visibility(d, method="raytraced")
+    for method in ("hard", "pcf"):
+        mis = misclassified(ref, visibility(d, method=method))["misclassified"]
+        print(f"terrain world {seed} {method}: {mis:.3%}")
+        assert mis <= 0.01, (seed, method, mis)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("distance", [1e5, 1e6])
 def test_random_far_point_lights_meet_the_target_at_defaults(seed, distance):

@@ -95,11 +95,11 @@ def test_random_large_worlds_meet_the_target_at_defaults(seed):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_random_terrain_worlds_meet_the_target_at_defaults(seed):
-    """Issue 11's 1 % on ``random_terrain_world`` (128^2, 16 spp; seeds 0-3 measured
-    at most 0.16 / 0.21 %, `hard` / `pcf`; the first seeds, all with the sun 8-40 or
-    80-89.5 degrees high: the drawn kinds, not chosen). It can fail: without the
-    biases (``slope_bias=0, normal_bias=0``) `hard` / `pcf` misclassify 27 / 1.1 %, 36 /
-    5.4 %, 20 / 1.2 % of these views, and `hard` with ``lod_bias=4`` 3.6 % of seed 1's."""
+    """Issue 11's 1 % on ``random_terrain_world`` (128^2, 16 spp; the first seeds: eye
+    height under the sun 2-5, 8-40 and 80-89.5 degrees high; measured at most 0.14 / 0.50
+    %, `hard` / `pcf`). It can fail: full maps (``virtual=false``, 4096^2) misclassify
+    1.56 / 1.39 % of seed 1's view; without the biases (``slope_bias=0,
+    normal_bias=0``) `hard` / `pcf` 24 / 2.3 % of seed 1's, 28 / 4.1 % of seed 2's."""
     d = random_terrain_world(seed, width=128, spp=16)
     ref = visibility(d, method="raytraced")
     for method in ("hard", "pcf"):

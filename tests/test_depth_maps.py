@@ -131,7 +131,7 @@ def test_cube_faces_depth_is_distance_to_room_walls():
             walls[f"wall{a}{int(s)}"] = plane(q, nrm, size=h)
     _, view, smap = build({**walls, "lamp": {"type": "point", "position": c.tolist()}})
     assert smap.to_numpy().shape == (6, RES, RES)
-    o, d = c, cube_dirs_np(RES)
+    d = cube_dirs_np(RES)
     with np.errstate(divide="ignore"):
         t_axes = (np.sign(d) * h - c) / d
     expected = np.min(np.where(t_axes > 0, t_axes, np.inf), axis=1)

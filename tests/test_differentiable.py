@@ -234,7 +234,6 @@ def test_adam_recovers_the_translation_along_the_light():
     scene, integ = make("vsm")
     mask = receiver_mask(scene)
     corners = Corners(scene, ["box"])
-    ones = np.ones(corners.n)
     target = mi.TensorXf(mi.render(scene, integrator=integ, spp=SPP, seed=0))
     w = np.zeros(mask.shape + (target.shape[-1],), np.float32)
     w[..., :3] = mask[..., None]

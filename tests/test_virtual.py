@@ -172,7 +172,7 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
     before = vmap.bind(lk, valid, per_tap=True).level.numpy()
     assert lit.sum() > 500 and np.all(before[lit] == want[lit])
     # the tile of every lit lane at its level; take out the most common one
-    P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
+    T, S = lay.tile_size, lay.tiles_per_side
     res = (lay.res0 >> want).astype(np.float64)
     gx = np.floor(uv64.x.numpy() * res).astype(np.int64)
     gy = np.floor(uv64.y.numpy() * res).astype(np.int64)

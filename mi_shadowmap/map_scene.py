@@ -156,9 +156,12 @@ def _key(shapes) -> tuple:
     return tuple(key), held
 
 
-def map_scene(scene: mi.Scene) -> mi.Scene:
+def map_scene(scene: mi.Scene, who: str = "the scene's shadow maps") -> mi.Scene:
     """The scene the maps' rays query (see the module doc): ``scene`` itself unless it
-    holds cylinders."""
+    holds cylinders. ``who``: the rays that query it, as a scene kept with Mitsuba's
+    cylinders warns (``raytraced``'s shadow rays, :func:`~mi_shadowmap.rays.occlusion`:
+    its warning named the maps, which in a scene with instances take the scene's own
+    cylinders as prisms, :func:`own_shapes_copy`)."""
     hit = _MEMO.get(id(scene))
     if hit is not None and hit[0] is scene and hit[2] is scene and hit[1] is None:
         return scene                           # no cylinder: decided once per scene
@@ -167,7 +170,7 @@ def map_scene(scene: mi.Scene) -> mi.Scene:
     if not cylinders:
         if grouped_cylinders(scene):       # only inside instances: kept, with a warning
             return _keep(scene, None, [], "a copy of the scene with the cylinders as "
-                         "meshes cannot hold its instances")
+                         "meshes cannot hold its instances", who)
         _remember(scene, None, scene, [])
         return scene
     key, held = _key(shapes)
@@ -175,11 +178,11 @@ def map_scene(scene: mi.Scene) -> mi.Scene:
         return hit[2]
     if any(sh.class_name() == "Instance" for sh in shapes):
         return _keep(scene, key, held, "a copy of the scene with the cylinders as meshes "
-                     "cannot hold its instances")
+                     "cannot hold its instances", who)
     try:
         copy, stand_ins = _copy(scene, shapes)
     except RuntimeError as exc:      # a shape Mitsuba does not add to a second scene
-        return _keep(scene, key, held, f"Mitsuba did not copy the scene: {exc}")
+        return _keep(scene, key, held, f"Mitsuba did not copy the scene: {exc}", who)
     _remember(scene, key, copy, held, stand_ins)
     return copy
 
@@ -282,9 +285,10 @@ def grouped_cylinders(scene: mi.Scene) -> int:
     return sum(1 for sh in _grouped_shapes(scene, list(scene.shapes())) if is_cylinder(sh))
 
 
-def _keep(scene, key, held, why: str) -> mi.Scene:
-    """Keep ``scene`` for its maps' rays, with a warning (once per scene state)."""
-    warnings.warn("shadowmap: the scene's shadow maps keep Mitsuba's float32 cylinder "
+def _keep(scene, key, held, why: str, who: str = "the scene's shadow maps") -> mi.Scene:
+    """Keep ``scene`` for its maps' rays, with a warning (once per scene state) naming
+    ``who`` queries it."""
+    warnings.warn(f"shadowmap: {who} keep Mitsuba's float32 cylinder "
                   "intersection, which misses or invents hits on cylinders far thinner "
                   f"than their distance from the light ({why}; see "
                   "mi_shadowmap.map_scene)", RuntimeWarning, stacklevel=4)

@@ -324,7 +324,7 @@ def occlusion(scene):
     if r_min is None:
         return inside
     from .map_scene import DEVIATION, map_scene
-    copy = map_scene(scene)
+    copy = map_scene(scene, who="raytraced's shadow rays")
     if copy is scene:              # kept (instances): Mitsuba's cylinders, with a warning
         return inside
     # Cylinders: Mitsuba 3.9 intersects them in float32 in object space (see

@@ -174,6 +174,21 @@ def test_instances_keep_the_cylinders_with_a_warning():
         assert ms.map_scene(scene) is scene
 
 
+def test_the_warning_names_the_rays_that_keep_the_cylinders():
+    """Beside instances the maps take the scene's own cylinders as prisms
+    (``own_shapes_copy``), ``raytraced``'s shadow rays keep Mitsuba's: its warning said
+    "the scene's shadow maps keep" (found by the forty-fourth session's hunt); it names
+    the reference's rays now, and the maps' render warns of nothing."""
+    scene = post_scene(extra=BOX_INSTANCE)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mi.render(scene, integrator=mi.load_dict({"type": "shadowmap", "method": "hard"}),
+                  spp=1)
+    with pytest.warns(RuntimeWarning, match="raytraced's shadow rays keep"):
+        mi.render(scene, spp=1,
+                  integrator=mi.load_dict({"type": "shadowmap", "method": "raytraced"}))
+
+
 def test_a_tube_light_is_a_prism_in_the_other_lights_maps():
     """A cylinder that is an area light was kept as Mitsuba's cylinder in the maps'
     scene: in the sun's maps, whose rays start at the bounds of a ground 1e3 wide, a tube

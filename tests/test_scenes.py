@@ -85,12 +85,17 @@ def test_random_far_point_refuses_a_bad_distance(distance):
 def test_random_large_worlds_meet_the_target_at_defaults(seed):
     """Issue 11: `hard` and `pcf` at defaults misclassify <= 1 % on a large world
     (128^2, 16 spp, against `raytraced` with the same camera samples)."""
-    d = random_large_world(seed, width=128, spp=16)
+    _meets_one_percent(random_large_world(seed, width=128, spp=16), f"large world {seed}")
+
+
+def _meets_one_percent(d: dict, label: str) -> None:
+    """`hard` and `pcf` at defaults misclassify <= 1 % of scene ``d`` against
+    `raytraced` with the same camera samples."""
     ref = visibility(d, method="raytraced")
     for method in ("hard", "pcf"):
         mis = misclassified(ref, visibility(d, method=method))["misclassified"]
-        print(f"large world {seed} {method}: {mis:.3%}")
-        assert mis <= 0.01, (seed, method, mis)
+        print(f"{label} {method}: {mis:.3%}")
+        assert mis <= 0.01, (label, method, mis)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -100,12 +105,7 @@ def test_random_terrain_worlds_meet_the_target_at_defaults(seed):
     %, `hard` / `pcf`). It can fail: full maps (``virtual=false``, 4096^2) misclassify
     1.56 / 1.39 % of seed 1's view; without the biases (``slope_bias=0,
     normal_bias=0``) `hard` / `pcf` 24 / 2.3 % of seed 1's, 28 / 4.1 % of seed 2's."""
-    d = random_terrain_world(seed, width=128, spp=16)
-    ref = visibility(d, method="raytraced")
-    for method in ("hard", "pcf"):
-        mis = misclassified(ref, visibility(d, method=method))["misclassified"]
-        print(f"terrain world {seed} {method}: {mis:.3%}")
-        assert mis <= 0.01, (seed, method, mis)
+    _meets_one_percent(random_terrain_world(seed, width=128, spp=16), f"terrain world {seed}")
 
 
 @pytest.mark.parametrize("seed", [0, 1])

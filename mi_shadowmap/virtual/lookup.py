@@ -197,7 +197,7 @@ class VirtualShadowMap:
         return self._levels(face, p64, dp_dx, dp_dy, n, p, keep=keep)[0]
 
     def _levels(self, face, p64, dp_dx, dp_dy, n=None, p=None, keep=None,
-                probe: bool = False) -> tuple:
+                probe: bool = False, active=None) -> tuple:
         """``(level, spread)``: :meth:`level_for`'s level, and where the biases chose it
         finer than the footprint's, half the footprint's bounding box in its texels
         (``mi.Point2f``, else 0): how far from the pixel's centre the pixel's samples
@@ -225,7 +225,9 @@ class VirtualShadowMap:
         ``probe``: ``(level, spread, fallback, fallback_spread, length)``, ``level`` and
         ``spread`` the biases' (``keep`` ignored), ``length`` where ``level`` is finer than
         ``fallback``: how far (world units) along the ray towards the light an occluder
-        may lie and be hidden by the biases at ``fallback`` (0 elsewhere)."""
+        may lie and be hidden by the biases at ``fallback`` (0 elsewhere). ``active``
+        (``mi.Bool``; None: every lane): the lanes whose level is read; elsewhere any
+        level may be returned (see the conditional below)."""
         view, lay = self.view, self.layout
         # the lookup's own point: the variable the receiver's biases read, so that Dr.Jit
         # computes the direction to the light once (the same value as from p64)
@@ -245,50 +247,77 @@ class VirtualShadowMap:
         fallback, fb_spread, length = level, spread, mi.Float(0.0)
         reach = getattr(self, "reach", None)
         if n is not None and reach is not None:
-            n = dr.normalize(mi.Vector3f(n))
-            to_light = view.direction_to_light(p)
-            c = dr.dot(n, to_light)
-            along = to_light - n * c            # towards the light along the receiver
-            sin_nl = dr.norm(along)
-            cos_nl = dr.clip(dr.abs(c), 1e-6, 1.0)
-            f = (dr.abs(dr.dot(dp_dx, along)) + dr.abs(dr.dot(dp_dy, along))) \
-                / dr.maximum(sin_nl, 1e-30)
-            t0 = view.texel_world_size(lay.res0, view.depth_of(p), p, n)
-            scale = REACH_PIXELS * 2.0 ** max(lod_bias + 0.5, 0.0)
+            def biased(footprint):
+                """``(level, spread, capped, cos_nl, sin_nl, t0, capped_level)``: the
+                biases' level and spread, where they cap ``footprint`` (the footprint's
+                level), and what the fallback and the probe read."""
+                nn = dr.normalize(mi.Vector3f(n))
+                to_light = view.direction_to_light(p)
+                c = dr.dot(nn, to_light)
+                along = to_light - nn * c            # towards the light along the receiver
+                sin_nl = dr.norm(along)
+                cos_nl = dr.clip(dr.abs(c), 1e-6, 1.0)
+                f = (dr.abs(dr.dot(dp_dx, along)) + dr.abs(dr.dot(dp_dy, along))) \
+                    / dr.maximum(sin_nl, 1e-30)
+                t0 = view.texel_world_size(lay.res0, view.depth_of(p), p, nn)
+                scale = REACH_PIXELS * 2.0 ** max(lod_bias + 0.5, 0.0)
 
-            def capped_level(r, base):
-                """``(level, spread, capped)`` where a reach of ``r`` texels caps
-                ``base``, the level without it."""
-                # level-0 texels a texel may span (the same exponent trick)
-                allowed = scale * f / (r * t0)
-                cap = mi.Int32(dr.reinterpret_array(mi.UInt32, dr.maximum(allowed, 1.0))
-                               >> 23) - 127
-                capped = dr.isfinite(allowed) & (f > 0) & (cap < base)
-                lev = dr.select(capped, cap, base)
-                span = w * dr.exp2(-mi.Float(dr.clip(lev, 0, lay.coarsest)))
-                sp = dr.select(capped & dr.isfinite(span.x) & dr.isfinite(span.y),
-                               0.5 * span, mi.Point2f(0.0))
-                return lev, sp, capped
+                def capped_level(r, base):
+                    """``(level, spread, capped)`` where a reach of ``r`` texels caps
+                    ``base``, the level without it."""
+                    # level-0 texels a texel may span (the same exponent trick)
+                    allowed = scale * f / (r * t0)
+                    cap = mi.Int32(dr.reinterpret_array(mi.UInt32, dr.maximum(allowed, 1.0))
+                                   >> 23) - 127
+                    capped = dr.isfinite(allowed) & (f > 0) & (cap < base)
+                    lev = dr.select(capped, cap, base)
+                    span = w * dr.exp2(-mi.Float(dr.clip(lev, 0, lay.coarsest)))
+                    sp = dr.select(capped & dr.isfinite(span.x) & dr.isfinite(span.y),
+                                   0.5 * span, mi.Point2f(0.0))
+                    return lev, sp, capped
+
+                lev, sp, capped = capped_level(reach.texels(cos_nl, sin_nl), footprint)
+                return lev, sp, capped, cos_nl, sin_nl, t0, capped_level
 
             footprint = level
-            level, spread, capped = capped_level(reach.texels(cos_nl, sin_nl), footprint)
-            if keep is not None or probe:
-                # the level without the biases' height: the edge's cap alone (a lit gap
-                # puts nothing on a probe: not probed), else the footprint's
-                r_edge = reach.edge_texels(cos_nl, sin_nl)
-                if r_edge is not None:
-                    fallback, fb_spread, _ = capped_level(r_edge, footprint)
-                if probe:
-                    fb = dr.clip(fallback, 0, lay.coarsest)
-                    # the height the biases hide at the fallback, as a distance along
-                    # the ray towards the light
-                    length = dr.select(capped & (dr.clip(level, 0, lay.coarsest) < fb),
-                                       reach.height(cos_nl, sin_nl) * t0
-                                       * dr.exp2(mi.Float(fb)) / cos_nl, 0.0)
-                else:
-                    keep = mi.Bool(keep)
-                    level = dr.select(keep, level, fallback)
-                    spread = dr.select(keep, spread, fb_spread)
+            if (keep is not None and not probe and reach.edge <= 0.0
+                    and not dr.grad_enabled(n, p, dp_dx, dp_dy)):
+                # No virtual_edge: the fallback is the footprint's level, and the biases'
+                # level is computed in a conditional that only the vector packets with an
+                # active lane that keeps it enter (0-0.4 % of the pixels of the
+                # repository's scenes keep it; at 16 spp a packet of 16 lanes is one
+                # pixel's samples). An inactive lane's level is never read (its reads are
+                # masked, its result unused); ``keeps`` has such lanes keep, and with them
+                # every packet holding a background sample entered. Computed for every
+                # lane (a normal, a square root, 3 divisions) and thrown away nearly
+                # everywhere, it cost the render kernel of ``hard`` at 256^2, 16 spp
+                # (2 threads, medians of 16 alternated frames) 1.0 of far_point's 6.4 ms
+                # over the unshadowed kernel, 1.1 of large_world's 8.0, 1.5 of
+                # spot_sphere_box's 13; isolated lookups (one thread) 13-21 % of their time.
+                cond = mi.Bool(keep) if active is None else mi.Bool(keep) & active
+                level, spread = if_stmt(
+                    (footprint, spread), cond,
+                    lambda lev, sp: biased(lev)[:2], lambda lev, sp: (lev, sp),
+                    label="virtual map: the receiver biases' level")
+            else:
+                level, spread, capped, cos_nl, sin_nl, t0, capped_level = biased(footprint)
+                if keep is not None or probe:
+                    # the level without the biases' height: the edge's cap alone (a lit
+                    # gap puts nothing on a probe: not probed), else the footprint's
+                    r_edge = reach.edge_texels(cos_nl, sin_nl)
+                    if r_edge is not None:
+                        fallback, fb_spread, _ = capped_level(r_edge, footprint)
+                    if probe:
+                        fb = dr.clip(fallback, 0, lay.coarsest)
+                        # the height the biases hide at the fallback, as a distance along
+                        # the ray towards the light
+                        length = dr.select(capped & (dr.clip(level, 0, lay.coarsest) < fb),
+                                           reach.height(cos_nl, sin_nl) * t0
+                                           * dr.exp2(mi.Float(fb)) / cos_nl, 0.0)
+                    else:
+                        keep = mi.Bool(keep)
+                        level = dr.select(keep, level, fallback)
+                        spread = dr.select(keep, spread, fb_spread)
         out = (mi.UInt32(dr.clip(level, 0, lay.coarsest)), spread)
         if probe:
             out += (mi.UInt32(dr.clip(fallback, 0, lay.coarsest)), fb_spread, length)
@@ -367,7 +396,8 @@ class VirtualShadowMap:
         active = mi.Bool(active) & inside
         want = (self._levels(face, p64, lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world,
                              keep=self.keeps(getattr(lk, "pixel", None),
-                                             getattr(lk.si, "shape", None), active))[0]
+                                             getattr(lk.si, "shape", None), active),
+                             active=active)[0]
                 if level is None
                 else dr.minimum(mi.UInt32(level), mi.UInt32(lay.coarsest)))
 

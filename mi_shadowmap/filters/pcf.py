@@ -122,7 +122,13 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
         bias = 0.0
         if bias_range is not None:
             bias = b0 + rng.next_float32() * (b1 - b0) if b1 > b0 else b0
-        if soft_width is None:
+        if soft_width is None and own is not None:
+            z_map, z, inside = tap_depths(smap, r, face, xy, plane, active)
+            # NaN: the plane nearer than its clamp there; the receiver's own texel answers
+            lit = dr.select(dr.isnan(z), ~own[1] | (r.depth - bias <= own[0]),
+                            ~inside | (z - bias <= z_map))
+            n_lit = dr.select(lit, n_lit + 1, n_lit)
+        elif soft_width is None:
             lit = tap_lit(smap, r, face, xy, plane, bias, active)
             n_lit = dr.select(lit, n_lit + 1, n_lit)
         else:
@@ -139,6 +145,10 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
         last = col + 1 >= ns
         return k + 1, dr.select(last, 0, col + 1), dr.select(last, row + 1, row), rng, n_lit
 
+    own = None     # the receiver's own texel: (z_map, inside), for a near_fallback plane
+    if plane is not None and plane.near_fallback and soft_width is None:
+        z_own, _, in_own = tap_depths(smap, r, face, r.uv * res, None, active)
+        own = (z_own, in_own)
     smooth = smooth_taps(smap, soft_width)   # continuous in the receiver's position
     if soft_width is not None:
         n_lit = mi.Float(0.0)
@@ -223,7 +233,23 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
       large. By default each sample is instead compared with the depth of the
       receiver's tangent plane along that texel's ray (clamped at
       ``max_tan_slope``); ``receiver_plane=false`` gives the paper's
-      comparison.
+      comparison. A tap whose ray meets the plane nearer than the clamp allows
+      (``depth0 - lateral max_tan_slope``) takes the paper's comparison at the
+      receiver's own texel (``hard``'s, with the tap's stochastic bias; the smooth
+      compare keeps the clamp). Such a tap stands for the plane more than
+      ``max_tan_slope`` times its distance away, beyond what the plane is trusted for,
+      and the clamped depth, a point behind the plane, let surfaces behind it shadow
+      it: where the light grazes a wall (``n . l`` < 0.05) the wall lies within a texel
+      or two of its line in the map, and a kernel a texel wide (``min_size``) read the
+      wall's own roof there. Measured against ``raytraced`` (128^2, 16 spp, virtual
+      maps): 20 terrain worlds (``random_terrain_world``, seeds 0-29 with the sun 2-5
+      or 80-89.5 degrees high) 3.11 -> 2.83 % misclassified summed, none worse (a tower
+      under a sun 86 degrees high 0.18 -> 0.08 %, 355 -> 30 lit pixels below 0.9; one
+      3 degrees high 0.24 -> 0.17 %); the repository's scenes and random large worlds
+      as before or better (``benchmarks/RESULTS.md``, forty-fifth session). On a
+      4096^2 full map the first tower's wall under its ledge, truly shadowed, is now lit
+      like ``hard``'s (false lit 2.68 -> 2.92 %; ``hard`` 4.93 %): the clamp's false
+      shadow had covered ``hard``'s miss there.
     * *Several samples per pixel.* Every camera sample filters a whole pixel's
       footprint, and the film then averages the samples over the pixel, so at
       ``spp > 1`` the shadow edge is blurred over about two pixels. Measured
@@ -266,7 +292,8 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
     width = dr.maximum(width, opts.min_size)
     ns, nt = reeves_sample_counts(width.x, width.y, opts.num_samples, opts.min_samples)
     u_seed = lk.sampler.next_2d(active)
-    plane = receiver_plane(smap, lk, r, opts) if opts.receiver_plane else None
+    plane = (receiver_plane(smap, lk, r, opts, near_fallback=opts.soft_compare <= 0.0)
+             if opts.receiver_plane else None)
     lit = pcf_taps(smap, r, 0.5 * width, ns, nt, u_seed, opts.sampling, opts.bias_range,
                    plane, r.uv * res, active & r.inside,
                    soft_compare_width(r, opts.soft_compare))

@@ -632,6 +632,17 @@ def test_the_biases_level_is_kept_where_a_probe_finds_an_occluder_or_an_edge(
     assert err[0] <= 1.1 * err[1]
 
 
+def _posts_point_hits(crop=None):
+    """The posts under a point light (:func:`posts_scene`) rendered once with virtual
+    ``hard`` maps: ``(scene, integrator, its map, sensor, camera_hits, camera_pixels)``."""
+    scene = posts_scene(POSTS_LIGHTS["point"], crop=crop)
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    sensor = scene.sensors()[0]
+    return (scene, integ, integ.maps[0], sensor, virtual.camera_hits(scene, sensor),
+            virtual.camera_pixels(sensor))
+
+
 def test_marks_and_lookups_agree_on_the_biases_level_per_pixel():
     """Each pixel centre's lookup wants the level its mark chose
     (:func:`~mi_shadowmap.virtual.marks.marked_points`, with the probe) and finds it
@@ -643,14 +654,8 @@ def test_marks_and_lookups_agree_on_the_biases_level_per_pixel():
     With the pixel unknown (``Lookup.pixel`` None) the lookups want the biases' level
     everywhere, which the mark dropped at some centres (a lookup there walks)."""
     from mi_shadowmap.filters.common import Lookup
-    scene = posts_scene(POSTS_LIGHTS["point"], crop={
+    scene, integ, vmap, sensor, (si, dp_dx, dp_dy, valid), pixel = _posts_point_hits(crop={
         "crop_offset_x": 20, "crop_offset_y": 12, "crop_width": 40, "crop_height": 44})
-    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
-    vis_of(scene, integ, spp=1)
-    vmap = integ.maps[0]
-    sensor = scene.sensors()[0]
-    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, sensor)
-    pixel = virtual.camera_pixels(sensor)
     integ._sensor = sensor
     np.testing.assert_array_equal(integ._film_pixel(si, valid).numpy()[valid.numpy()],
                                   pixel.numpy()[valid.numpy()])
@@ -680,13 +685,7 @@ def test_the_biases_level_is_computed_where_a_pixel_keeps_it_only():
     pixel's samples at 16 spp. The levels of the active lanes are the same: the biases'
     where ``keep``, else the footprint's (an inactive lane's level is never read). Every
     lane of every packet computed it before, and kept it for 0.1 %."""
-    scene = posts_scene(POSTS_LIGHTS["point"])
-    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
-    vis_of(scene, integ, spp=1)
-    vmap = integ.maps[0]
-    sensor = scene.sensors()[0]
-    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, sensor)
-    pixel = virtual.camera_pixels(sensor)
+    scene, integ, vmap, sensor, (si, dp_dx, dp_dy, valid), pixel = _posts_point_hits()
     p64 = mi.Point3d(si.p)
     face = vmap.view.project_f64(p64)[0]
     keep = vmap.keeps(pixel, si.shape, valid)
@@ -833,7 +832,8 @@ def test_a_far_light_gets_one_face_aimed_at_the_scene():
         assert (lay.view.projection == "cube") == cube, distance
         if cube:
             continue
-        assert lay.view.n_faces == 1 and virtual.SCENE_TEXELS <= lay.res0 <= 16 * virtual.SCENE_TEXELS
+        assert lay.view.n_faces == 1
+        assert virtual.SCENE_TEXELS <= lay.res0 <= 16 * virtual.SCENE_TEXELS
         lo, hi = scene_bounds(scene)
         corners = np.array([[(lo, hi)[k >> a & 1][a] for a in range(3)] for k in range(8)])
         p = mi.Point3d(*(mi.Float64(corners[:, a].tolist()) for a in range(3)))
@@ -1523,8 +1523,9 @@ def test_a_small_budget_degrades_to_coarser_pages_never_lit():
 
 @pytest.mark.parametrize("T", [1, 2, 8, 16])
 def test_morton_order_visits_every_texel_of_a_tile_once(T):
-    """The page build's texel order (:func:`~mi_shadowmap.virtual.store.morton_xy`) is a permutation of the
-    tile's texels, whose first 8 are a 4 x 2 block (one vector of neighbours)."""
+    """The page build's texel order (:func:`~mi_shadowmap.virtual.store.morton_xy`) is a
+    permutation of the tile's texels, whose first 8 are a 4 x 2 block (one vector of
+    neighbours)."""
     i, j = page_store.morton_xy(dr.arange(mi.UInt32, T * T), T)
     i, j = i.numpy().astype(int), j.numpy().astype(int)
     assert sorted(zip(i, j)) == [(a, b) for a in range(T) for b in range(T)]
@@ -1534,10 +1535,10 @@ def test_morton_order_visits_every_texel_of_a_tile_once(T):
 
 @pytest.mark.parametrize("bits", [4, 14])
 def test_mark_dedupe_returns_every_distinct_key(bits):
-    """The mark pass's hash-table dedupe (:func:`~mi_shadowmap.virtual.marks.dedupe_many`) returns, per light,
-    exactly the distinct keys of its valid candidates (repeats allowed, none missed):
-    with tables of 2^14 slots (the default) and of 16 slots, where most keys lose their
-    slot in both rounds and come back as candidates. Then the sort-based helpers give
+    """The mark pass's hash-table dedupe (:func:`~mi_shadowmap.virtual.marks.dedupe_many`)
+    returns, per light, exactly the distinct keys of its valid candidates (repeats allowed,
+    none missed): with tables of 2^14 slots (the default) and of 16 slots, where most keys
+    lose their slot in both rounds and come back as candidates. Then the sort-based helpers give
     ``np.unique``'s answers."""
     rng = np.random.default_rng(11)
     groups, want = [], []

@@ -14,8 +14,11 @@ points (``read``), so that each row's increment is what that step adds:
   project         the float64 projection into the light (``project_f64``)
   level           + the level from the pixel footprint (``level_for`` without the normal)
   level, capped   + the biases' finer cap on it (``level_for`` with the receiver's normal,
-                  as ``bind`` calls it: the reach of ``hard``'s biases, mostly float32
-                  divisions and square roots)
+                  no film pixel: the reach of ``hard``'s biases, mostly float32
+                  divisions and square roots, computed for every lane)
+  level, per pixel  the same level as ``bind`` takes it in a render: the mark pass's
+                  word of the lane's film pixel says whether the cap applies, and only
+                  vector packets with a lane that keeps it compute it (a conditional)
   page table      + ``bind``: the 2 x 2 pages' table entry, the own page's slot, the
                   fallback for a missing page (``per_tap``, as ``hard`` binds)
   receiver        + ``receiver()`` through the bound local frame (biases, normal offset)
@@ -62,15 +65,18 @@ def kernel_ms(fn, repeats: int) -> float:
 
 
 def camera_samples(scene, spp: int):
-    """``virtual.camera_hits`` at the pixel centres (``spp`` 1), else ``spp`` uniformly
-    jittered camera samples per pixel, a pixel's samples in adjacent lanes as Mitsuba's
-    ``render()`` orders them, with one-pixel ray differentials."""
+    """``(virtual.camera_hits, film pixels)`` at the pixel centres (``spp`` 1), else
+    ``spp`` uniformly jittered camera samples per pixel, a pixel's samples in adjacent
+    lanes as Mitsuba's ``render()`` orders them, with one-pixel ray differentials; the
+    film pixel of each lane (``x + 65536 y``, as ``Lookup.pixel``), so that the lookups
+    read the mark pass's per-pixel decision of the biases' level as a render's do."""
     sensor = scene.sensors()[0]
     if spp <= 1:
-        return virtual.camera_hits(scene, sensor)
+        return virtual.camera_hits(scene, sensor), virtual.camera_pixels(sensor)
     w, h = (int(x) for x in sensor.film().crop_size())
     pixel = dr.arange(mi.UInt32, w * h * spp) // spp
     y = pixel // w
+    film_pixel = pixel - y * w + y * 65536
     rng = mi.PCG32(size=w * h * spp)
     pos = mi.Point2f((mi.Float(pixel - y * w) + rng.next_float32()) / w,
                      (mi.Float(y) + rng.next_float32()) / h)
@@ -82,7 +88,8 @@ def camera_samples(scene, spp: int):
         c = dr.dot(n, d)
         return o + d * (dr.dot(n, si.p - o) / dr.select(dr.abs(c) > 1e-12, c, 1e-12))
 
-    return si, hit(ray.o_x, ray.d_x) - si.p, hit(ray.o_y, ray.d_y) - si.p, si.is_valid()
+    return ((si, hit(ray.o_x, ray.d_x) - si.p, hit(ray.o_y, ray.d_y) - si.p, si.is_valid()),
+            film_pixel)
 
 
 def bench_scene(name: str, args) -> list:
@@ -101,10 +108,10 @@ def bench_scene(name: str, args) -> list:
               "multiview maps, whose lookups go through sub-views)", file=sys.stderr)
         return []
     fm = full.maps[virt.maps.index(vm)]
-    si, dp_dx, dp_dy, valid = camera_samples(scene, args.spp)
+    (si, dp_dx, dp_dy, valid), pixel = camera_samples(scene, args.spp)
     p = dr.select(valid, si.p, 0.0)
-    dr.eval(p, si.n, dp_dx, dp_dy, valid)
-    lk = Lookup(p, si.n, dp_dx, dp_dy, si, None, None)
+    dr.eval(p, si.n, si.shape, dp_dx, dp_dy, valid, pixel)
+    lk = Lookup(p, si.n, dp_dx, dp_dy, si, None, None, pixel=pixel)
     n = int(valid.numpy().sum())
     vo, fo = virt.opts, full.opts
 
@@ -123,6 +130,10 @@ def bench_scene(name: str, args) -> list:
         ("level, capped", lambda: vm.level_for(
             *vm.view.project_f64(mi.Point3d(lk.p_world))[:1], mi.Point3d(lk.p_world),
             lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world)),
+        ("level, per pixel", lambda: vm._levels(
+            *vm.view.project_f64(mi.Point3d(lk.p_world))[:1], mi.Point3d(lk.p_world),
+            lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world,
+            keep=vm.keeps(lk.pixel, si.shape, valid), active=valid)[0]),
         ("page table", lambda: (lambda b: (b.view.origin, b.level, b.entry[0]))(bound())),
         ("receiver", lambda: (lambda br: (br[1].uv, br[1].depth, br[0].entry[0]))(rec())),
         ("texel index", lambda: (lambda br: (br[0].texel_index(br[1].face, br[1].uv),

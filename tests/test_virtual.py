@@ -499,6 +499,46 @@ def test_the_biases_cap_levels_where_the_light_grazes_only():
         assert np.all(pixels[finer] > REACH_PIXELS / 2.0)      # the coarsest such level
 
 
+def _ledge_scene(n_l: float):
+    """A tower 8 wide and 60 high on a ground, with a 12-wide, 0.6-thick ledge at 24
+    turned 40 degrees (it overhangs the wall by 0.3-3.9), under a sun 86 degrees high
+    that grazes the wall facing the camera (``n . l`` = ``n_l``); the camera looks up
+    at the wall under the ledge (``random_terrain_world(17)``'s tower, simplified)."""
+    ce = math.cos(math.radians(86.0))
+    s = n_l / ce
+    to_light = [ce * math.sqrt(1.0 - s * s), math.sin(math.radians(86.0)), ce * s]
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": T().look_at(origin=[3, 8, 40], target=[0, 22, 4], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 64, "height": 64}},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(200)},
+        "tower": {"type": "cube", "to_world": T().translate([0, 30, 0]).scale([4, 30, 4])},
+        "ledge": {"type": "cube", "to_world": T().translate([0, 24, 0]).rotate([0, 1, 0], 40)
+                  .scale([6, 0.3, 6])},
+        "sun": {"type": "directional", "direction": [-c for c in to_light]}})
+
+
+@pytest.mark.parametrize("n_l", [0.001, 0.003])
+def test_a_ledge_shadows_the_wall_a_high_sun_grazes_under_it(n_l):
+    """Where the slope bias is clamped (``tan(theta) > max_tan_slope``) it hides
+    ``slope max_tan`` texels of depth along the light's ray, which on a wall the light
+    grazes runs along the wall: the biases' level must count that many texels of the wall
+    (:meth:`~mi_shadowmap.filters.common.BiasReach.texels`, the longer of that and the
+    grazing offset's). Counted as a height times
+    the clamped ``tan`` (10.2 texels at ``n . l`` = 0.001), the level was too coarse and
+    ``hard`` lit the wall up to 4 pixels under the ledge: 19-20 of the 3547 shadowed
+    pixels falsely lit (64^2, 4 spp), 0-1 now."""
+    scene = _ledge_scene(n_l)
+    ref = vis_of(scene, shadowmap(method="raytraced"))
+    v = vis_of(scene, shadowmap(method="hard", virtual=True, cache_maps=False))
+    shadowed = ref < 0.5
+    false_lit = int(np.sum(shadowed & (v >= 0.5)))
+    print(f"n.l {n_l}: {false_lit} of {shadowed.sum()} shadowed pixels lit")
+    assert shadowed.sum() > 3000
+    assert false_lit <= 2
+
+
 def test_samples_off_the_pixel_centre_find_the_biases_level_built():
     """A level the biases chose finer than the footprint's (``level_for``) puts a pixel's
     samples several texels from its centre: the mark pass marks up to ``MAX_SPREAD``

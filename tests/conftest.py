@@ -131,6 +131,40 @@ def open_wall_scene(width: int = 48) -> mi.Scene:
         "light": {"type": "point", "id": "light", "position": [0, 0, 0.8]}})
 
 
+def grazed_wall(eps: float, res: int = 64) -> tuple:
+    """``(smap, lk)``: a wall under a sun 89.8-89.9 degrees from its normal (``n . l`` =
+    ``eps``: a tower's side under a sun 80-89.5 degrees high,
+    ``scenes.random_terrain_world``), on a hand-made orthographic map over [-1, 1]^2
+    looking along +z, ``res`` texels a side. The whole wall, 2 deep, falls within one
+    texel column of the map, which its roof (depth 1, ending 0.6 into that column)
+    covers; beside it the ground (depth 3). Nothing lies in front of the wall, so it is
+    lit everywhere (``hard`` is). ``lk``: 128 receivers down the wall (16 each at 8
+    depths 1.2-2.6 below the light, i.e. 0.2-1.6 below the roof), a pixel's footprint 2
+    texels wide on it. The roof lies behind the wall's plane, but the plane's depth
+    clamped on its near side (``depth0 - lateral max_tan``) put the roof's texels in
+    front of it (:attr:`~mi_shadowmap.filters.common.ReceiverPlane.near_fallback`)."""
+    from mi_shadowmap.depth_maps import ShadowMap
+    from mi_shadowmap.filters.common import Lookup
+    from mi_shadowmap.light_views import OrthoView
+    texel = 2.0 / res
+    b = 0.6 * texel                                 # the roof's edge, in column res / 2
+    d = np.full((res, res), 3.0, np.float32)        # the ground
+    d[:, : res // 2 + 1] = 1.0                      # the roof (column res/2's ray is < b)
+    view = OrthoView("directional", mi.ScalarPoint3f(0, 0, 0), mi.ScalarTransform4f(),
+                     half_extent=(1.0, 1.0), label="unit")
+    smap = ShadowMap(view, res, mi.Float(d.ravel()))
+    z = np.repeat(np.linspace(1.2, 2.6, 8), 16)     # down the wall x = b + eps (z - 1)
+    n_lanes = z.size
+    p = mi.Point3f(mi.Float(b + eps * (z - 1.0)), mi.Float(np.full(n_lanes, 0.01)),
+                   mi.Float(z))
+    w = 2.0 * texel                                  # the pixel's footprint on the wall
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(0, n_lanes)
+    lk = Lookup(p, dr.normalize(mi.Vector3f(1.0, 0.0, -eps)), mi.Vector3f(0, w, 0),
+                mi.Vector3f(eps * w, 0, w), None, None, sampler)
+    return smap, lk
+
+
 def own_and_widest_marks(monkeypatch, light: str, props: dict) -> tuple:
     """The last AOV (visibility) of the built-in scene under ``light`` at 64^2, 2 spp,
     rendered with ``props`` (maps built every frame) twice: with the method's own

@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import SCENE_FILES, frosted_bulb_scene, render_np, vis_stack
+from conftest import SCENE_FILES, frosted_bulb_scene, grazed_wall, render_np
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
 from mi_shadowmap import methods
@@ -61,6 +61,19 @@ def test_edge_is_a_linear_ramp_of_width_kernel_minus_one(kernel, receiver_plane)
     np.testing.assert_allclose(v, np.clip(0.5 + offs / (kernel - 1), 0.0, 1.0), atol=1e-5)
     far = vis("bilinear", smap, lookup([-0.5, -0.6, 0.5, 0.6]), kernel=kernel)
     assert far.tolist() == [0.0, 0.0, 1.0, 1.0]      # exactly shadowed / lit
+
+
+@pytest.mark.parametrize("eps", [0.001, 0.003])
+def test_a_wall_the_light_grazes_is_not_shadowed_by_its_own_roof(eps):
+    """A wall under its roof a sun grazes (:func:`conftest.grazed_wall`), lit everywhere:
+    the 2x2 footprint's texel in the roof's column, compared with the receiver plane
+    clamped on its near side, shadowed the wall from 1.2 below the roof down (mean
+    visibility 0.65-0.77 at depths 2.2-2.6). Such a texel now takes the receiver's own
+    texel's compare (:attr:`~mi_shadowmap.filters.common.ReceiverPlane.near_fallback`)."""
+    smap, lk = grazed_wall(eps)
+    v = vis("bilinear", smap, lk)
+    print("bilinear visibility per depth:", v.reshape(8, 16).mean(axis=1).round(3))
+    assert np.all(v == 1.0)
 
 
 def test_kernel_1_is_the_nearest_texel_compare_on_a_hand_made_map():

@@ -11,7 +11,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import SCENE_FILES, frosted_bulb_scene, own_and_widest_marks, render_np, vis_stack
+from conftest import (SCENE_FILES, frosted_bulb_scene, grazed_wall, own_and_widest_marks,
+                      render_np, vis_stack)
 from mi_shadowmap import metrics
 from mi_shadowmap.depth_maps import ShadowMap
 from mi_shadowmap import methods
@@ -206,29 +207,11 @@ def test_receiver_plane_removes_self_shadowing_of_a_slope():
 
 @pytest.mark.parametrize("eps", [0.001, 0.003])
 def test_a_wall_the_light_grazes_is_not_shadowed_by_its_own_roof(eps):
-    """A wall under a sun 89.8-89.9 degrees from its normal (``n . l`` = ``eps``: a
-    tower's side under a sun 80-89.5 degrees high, ``scenes.random_terrain_world``): the
-    whole wall, 2 deep, falls within one texel column of the map, which its roof
-    (depth 1, ending 0.6 into that column) covers; beside it the ground (depth 3).
-    Nothing lies in front of the wall, so it is lit everywhere (``hard`` is). The roof
-    lies behind the wall's plane, but the plane's depth clamped on its near side
-    (``depth0 - lateral max_tan``) put the roof's texels in front of it: taps reaching
-    that column shadowed the wall from 1.2 below the roof down (mean visibility
-    0.69-0.91 at depths 2.2-2.6). Such taps now take the receiver's own texel's compare
-    (:attr:`~mi_shadowmap.filters.common.ReceiverPlane.near_fallback`)."""
-    b = 0.6 * TEXEL                                 # the roof's edge, in column RES / 2
-    d = np.full((RES, RES), 3.0, np.float32)        # the ground
-    d[:, : RES // 2 + 1] = 1.0                      # the roof (column RES/2's ray is < b)
-    smap = ortho_map(d)
-    z = np.repeat(np.linspace(1.2, 2.6, 8), 16)     # down the wall x = b + eps (z - 1)
-    n_lanes = z.size
-    p = mi.Point3f(mi.Float(b + eps * (z - 1.0)), mi.Float(np.full(n_lanes, 0.01)),
-                   mi.Float(z))
-    w = 2.0 * TEXEL                                  # the pixel's footprint on the wall
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(0, n_lanes)
-    lk = Lookup(p, dr.normalize(mi.Vector3f(1.0, 0.0, -eps)), mi.Vector3f(0, w, 0),
-                mi.Vector3f(eps * w, 0, w), None, None, sampler)
+    """A wall under its roof a sun grazes (:func:`conftest.grazed_wall`): taps reaching
+    the roof's texel column shadowed the wall from 1.2 below the roof down (mean
+    visibility 0.69-0.91 at depths 2.2-2.6). Such taps now take the receiver's own
+    texel's compare (:attr:`~mi_shadowmap.filters.common.ReceiverPlane.near_fallback`)."""
+    smap, lk = grazed_wall(eps)
     v = pcf_vis(smap, lk)
     hard = methods.get("hard").lookup(smap, lk, parse_options({"method": "hard"}), mi.Bool(True))
     print("pcf visibility per depth:", v.reshape(8, 16).mean(axis=1).round(3))

@@ -381,8 +381,9 @@ class ReceiverPlane:
     kappa: object = None
     #: where the plane's depth along a texel's ray is nearer than the clamp allows
     #: (``depth0 - lateral max_tan``), :func:`plane_depth_at` returns NaN instead of the
-    #: clamped depth, and the caller compares that tap otherwise (``pcf``: with the
-    #: receiver's own texel); False: the clamped depth
+    #: clamped depth, and the caller compares that tap otherwise (``pcf``, ``bilinear``,
+    #: ``pcss``: with the receiver's own texel, :func:`own_texel`); False: the clamped
+    #: depth
     near_fallback: bool = False
 
 
@@ -423,8 +424,12 @@ def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, later
     behind the plane, so a surface behind the plane can shadow it: ``pcf``'s kernel, a
     texel wide (``min_size``), read a grazed wall's own roof in the texels of the
     wall's line in the map (``n . l`` < 0.05; 273 of a lit tower wall's 470 pixels
-    below 0.9, ``random_terrain_world(17)`` at 128^2). With ``plane.near_fallback``
-    (``pcf``) such a tap gets NaN, and the caller compares it otherwise. Not the plane's
+    below 0.9, ``random_terrain_world(17)`` at 128^2; of the view's lit pixels,
+    ``hard`` 33 below 0.9, ``bilinear``'s 2x2 footprint 307, ``pcss`` under a sun 0.53
+    degrees wide 471). With ``plane.near_fallback`` (``pcf``, ``bilinear``, ``pcss``;
+    not the smooth compare) such a tap gets NaN, and the caller compares it otherwise
+    (the receiver's own texel, :func:`own_texel`); a texel behind a one-sided light
+    keeps -inf. Not the plane's
     own depth there: a tap a texel across such a line stands for the plane
     ``tan(theta)`` texels away, and answered for the plane past a contact shadow's end
     (a block beside a tower under a sun 3 degrees high, ``random_terrain_world(15)``:
@@ -443,7 +448,10 @@ def plane_depth_at(smap, plane: ReceiverPlane, face, uv_light: mi.Point2f, later
             near &= t_hit + smap.view.depth_origin > 0.0
     if plane.light_front is not None:   # behind a one-sided light: cannot occlude it
         d = smap.view.ray_through(face, uv_light)[1]
-        t = dr.select(dr.dot(d, mi.Vector3f(*plane.light_front)) > 0, t, -dr.inf)
+        front = dr.dot(d, mi.Vector3f(*plane.light_front)) > 0
+        t = dr.select(front, t, -dr.inf)
+        if near is not None:            # -inf wins: neither blocker nor shadowing tap
+            near &= front
     if plane.kappa is not None:
         # a receiver that rises towards the light (concave as the light sees it) lies in
         # front of its tangent plane by the plane's bend along the ray
@@ -565,13 +573,26 @@ def plane_z_at(smap, plane: ReceiverPlane | None, r: Receiver, lateral_texels=No
     return z_at
 
 
+def own_texel(smap, r: Receiver, face, active=True):
+    """``(z_map, inside)`` of the receiver's own texel (the nearest to ``r.uv``): what
+    a tap beyond a :attr:`ReceiverPlane.near_fallback` plane's near clamp (its plane
+    depth NaN) is compared with, ``r.depth`` against it (:func:`tap_lit`'s ``own``)."""
+    z_own, _, in_own = tap_depths(smap, r, face, r.uv * smap.resolution, None, active)
+    return z_own, in_own
+
+
 def tap_lit(smap, r: Receiver, face, xy_texel: mi.Point2f, plane: ReceiverPlane | None = None,
-            extra_bias=0.0, active=True) -> mi.Bool:
+            extra_bias=0.0, active=True, own=None) -> mi.Bool:
     """One percentage-closer comparison (:func:`tap_depths`): lit when the tap is
     off the map or ``z_receiver - extra_bias <= z_map`` (``extra_bias``: e.g.
-    Reeves' stochastic bias)."""
+    Reeves' stochastic bias). ``own`` (:func:`own_texel`, with a ``near_fallback``
+    plane): a tap whose plane depth is NaN (beyond the near clamp) takes the receiver's
+    own texel's compare, ``r.depth - extra_bias`` against it."""
     z_map, z, inside = tap_depths(smap, r, face, xy_texel, plane, active)
-    return ~inside | (z - extra_bias <= z_map)
+    lit = ~inside | (z - extra_bias <= z_map)
+    if own is None:
+        return lit
+    return dr.select(dr.isnan(z), ~own[1] | (r.depth - extra_bias <= own[0]), lit)
 
 
 def soft_compare_width(r: Receiver, soft_compare: float):

@@ -13,8 +13,9 @@ import drjit as dr
 import mitsuba as mi
 
 from ..methods import Method, Prop
-from .common import Lookup, ReceiverPlane, Receiver, footprint_texels, plane_z_at, \
-    receiver, receiver_plane, smooth_taps, soft_compare_width, soft_tap, tap_depths, tap_lit
+from .common import Lookup, ReceiverPlane, Receiver, footprint_texels, own_texel, \
+    plane_z_at, receiver, receiver_plane, smooth_taps, soft_compare_width, soft_tap, \
+    tap_depths, tap_lit
 
 
 def reeves_sample_counts(width_s, width_t, num_samples: int, min_samples: int):
@@ -122,14 +123,9 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
         bias = 0.0
         if bias_range is not None:
             bias = b0 + rng.next_float32() * (b1 - b0) if b1 > b0 else b0
-        if soft_width is None and own is not None:
-            z_map, z, inside = tap_depths(smap, r, face, xy, plane, active)
-            # NaN: the plane nearer than its clamp there; the receiver's own texel answers
-            lit = dr.select(dr.isnan(z), ~own[1] | (r.depth - bias <= own[0]),
-                            ~inside | (z - bias <= z_map))
-            n_lit = dr.select(lit, n_lit + 1, n_lit)
-        elif soft_width is None:
-            lit = tap_lit(smap, r, face, xy, plane, bias, active)
+        if soft_width is None:
+            # own: a tap beyond the plane's near clamp takes the receiver's own texel's
+            lit = tap_lit(smap, r, face, xy, plane, bias, active, own)
             n_lit = dr.select(lit, n_lit + 1, n_lit)
         else:
             z_map, z, inside = tap_depths(smap, r, face, xy, plane, active)
@@ -147,8 +143,7 @@ def pcf_taps(smap, r: Receiver, half_size: mi.Point2f, ns, nt, u_seed: mi.Point2
 
     own = None     # the receiver's own texel: (z_map, inside), for a near_fallback plane
     if plane is not None and plane.near_fallback and soft_width is None:
-        z_own, _, in_own = tap_depths(smap, r, face, r.uv * res, None, active)
-        own = (z_own, in_own)
+        own = own_texel(smap, r, face, active)
     smooth = smooth_taps(smap, soft_width)   # continuous in the receiver's position
     if soft_width is not None:
         n_lit = mi.Float(0.0)

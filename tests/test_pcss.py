@@ -16,7 +16,7 @@ from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.reference import converged_visibility
 from mi_shadowmap.scenes import default_scene
 
-from conftest import SCENES, render_np
+from conftest import SCENES, grazed_wall, render_np
 
 CONTACT = SCENES / "contact_hardening.xml"
 # contact_hardening.xml: square light of width W at height H; plate edges at heights h.
@@ -343,6 +343,23 @@ def test_walls_behind_a_grazed_receiver_are_no_blockers():
                           spp=4, repeats=1, measure_cached=False)
     m = res[1].metrics
     assert m["vis_misclassified"] < 0.0025 and m["vis_rmse"] < 0.135
+
+
+@pytest.mark.parametrize("eps,angular", [(0.001, 0.53), (0.003, 2.0)])
+def test_a_wall_the_light_grazes_is_not_shadowed_by_its_own_roof(eps, angular):
+    """A wall under its roof a sun grazes (:func:`conftest.grazed_wall`; nothing in front
+    of the wall), the sun ``angular`` degrees wide: the roof's texel column lies behind
+    the wall's plane, but the plane clamped on its near side put it in front, so the
+    search found the roof a blocker and the filter's taps there shadowed the wall from
+    1.0 below the roof down (depths 2.0-2.6: mean visibility 0.81-0.97 at 0.53 degrees;
+    from 0.8 below, 0.59-0.99, at 2). Taps beyond the near clamp now take the
+    receiver's own texel's compare in both steps
+    (:attr:`~mi_shadowmap.filters.common.ReceiverPlane.near_fallback`)."""
+    smap, lk = grazed_wall(eps)
+    opts = parse_options({"method": "pcss", "angular_diameter": angular})
+    v = np.asarray(methods.get("pcss").lookup(smap, lk, opts, mi.Bool(True)).numpy())
+    print("pcss visibility per depth:", v.reshape(8, 16).mean(axis=1).round(3))
+    assert np.all(v == 1.0)
 
 
 def test_wide_taps_read_their_own_pages_as_a_full_map_does():

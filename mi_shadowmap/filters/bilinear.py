@@ -122,7 +122,7 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
     acc = mi.Float(0.0)
     soft_width = soft_compare_width(r, opts.soft_compare)
     # a tap beyond the plane's near clamp: the receiver's own texel's compare
-    own = own_texel(smap, r, face, act) if plane is not None and step else None
+    own = own_texel(smap, r, face, act) if plane is not None and plane.near_fallback else None
 
     def cond(t, acc):
         return act & (t < n_taps)

@@ -7,7 +7,9 @@ Each kind is one small procedural scene (a floor, a box, a ball and a thin post,
 room) with one light or a few, built here as a Mitsuba dict: degenerate and extreme
 lights (a straight-down or horizontal sun, a 3-degree sun, an 80-degree spot, a spot
 with a scaled transform or a blocker just in front of it, a point light on the floor, a
-1e-4 or a very thin or very large area light, sphere and disk area lights), extreme
+1e-4 or a very thin or very large area light, a sliver 4 x 2e-4 (``second_depth``
+passed its own surface from a far-off point, forty-sixth session), sphere and disk area
+lights, a point light 1e-3 over the floor by the ball resting on it), extreme
 scales (1e-3 with Mitsuba's default ``near_clip``, so the near plane is most of the way
 to the scene; 1e4), other sensors (orthographic, thin lens, a crop window), instancing,
 a point light inside a closed room, three light types together, and environment light
@@ -131,6 +133,9 @@ def kinds(width: int, spp: int) -> dict:
                                           .scale(0.6), 20.0)}),
         "area_1e-4_wide": scene({"light": area("rectangle", rect_at @ T().scale(1e-4), 1e9)}),
         "area_thin": scene({"light": area("rectangle", rect_at @ T().scale([2, 1e-3, 1]), 50.0)}),
+        "area_sliver": scene({"light": area("rectangle", rect_at @ T().scale([2, 1e-4, 1]),
+                                            5e3)}),
+        "point_1e-3_over_floor": scene({"light": point([0.5, 1e-3, 2.5])}),
         "area_16_wide": scene({"light": area(
             "rectangle", T().look_at(origin=[0, 6, 0], target=[0, 0, 0], up=[0, 0, 1]).scale(8),
             1.0)}),

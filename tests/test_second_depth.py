@@ -1056,20 +1056,28 @@ def test_nested_instances_store_the_innermost_back_face():
     assert err.max() <= 1e-4
 
 
-def test_a_sliver_rectangle_light_does_not_shadow_the_ground_below_it():
+@pytest.mark.parametrize("instanced", [False, True])
+def test_a_sliver_rectangle_light_does_not_shadow_the_ground_below_it(instanced):
     """A rectangle area light 4 x 2e-4 over an open ground: the layer along rays from the
     light's centre to points of the ground holds the ground itself, no nearer than the
     points. Rays start on the light, whose own surface is passed; they continued from its
     hit's ``si.p``, which Mitsuba interpolates from barycentrics, and a sliver triangle's
     are far off for a ray starting on it (si.p up to 0.42 off the ray): the continued ray
     met the ground beside the point, up to 1.7e-4 nearer (19 % of a 64^2 view falsely
-    shadowed by ``second_depth``, against 1.5 % by ``hard``, the light's penumbrae)."""
+    shadowed by ``second_depth``, against 1.5 % by ``hard``, the light's penumbrae).
+    ``instanced``: a cylinder and an instance away from the rays, so that the layer
+    queries the copy of the scene's own shapes (``_own_and_instanced``)."""
     at = T().look_at(origin=[1, 4, 1], target=[0, 0, 0], up=[0, 1, 0])
-    scene = mi.load_dict({
-        "type": "scene",
-        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90) @ T().scale(10)},
-        "light": {"type": "rectangle", "to_world": at @ T().scale([2, 1e-4, 1]),
-                  "emitter": {"type": "area", "radiance": 1e4}}})
+    d = {"type": "scene",
+         "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90) @ T().scale(10)},
+         "light": {"type": "rectangle", "to_world": at @ T().scale([2, 1e-4, 1]),
+                   "emitter": {"type": "area", "radiance": 1e4}}}
+    if instanced:
+        d["post"] = {"type": "cylinder", "p0": [-8, 0, -8], "p1": [-8, 1, -8], "radius": 0.1}
+        d["group"] = {"type": "shapegroup", "c": {"type": "cube", "to_world": T().scale(0.2)}}
+        d["inst"] = {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                     "to_world": T().translate([8, 0.2, 8])}
+    scene = mi.load_dict(d)
     view = make_light_view(scene.emitters()[0], scene, 0, "light")
     g = np.linspace(-6, 6, 25)
     pts = np.stack([np.repeat(g, len(g)), np.zeros(g.size ** 2), np.tile(g, len(g))], 1)

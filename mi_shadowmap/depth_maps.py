@@ -902,7 +902,9 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     in front of a solid both work; interpenetrating solids are fine (the
     ray leaves the first solid it entered at its back face). The emitter's
     own shape (area lights) and hits numerically at the light (as in
-    :func:`first_hit`) are skipped. Continuation rays start a relative step
+    :func:`first_hit`) are skipped (the own shape from the ray's own point ``ray(t)``:
+    a sliver triangle's interpolated ``si.p`` lies far off a ray starting on it).
+    Continuation rays start a relative step
     (:data:`STEP_ULPS` ulps of ``max|p|`` and ``1e-6 z``, doubled each time the same face
     of the same instance is hit again from the same side) past the hit (Mitsuba's
     ``spawn_ray`` offset has an absolute floor that broke scale invariance); at most 64

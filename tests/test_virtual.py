@@ -264,6 +264,49 @@ def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
     np.testing.assert_array_equal(ours[valid.numpy()], walked[valid.numpy()])
 
 
+@pytest.mark.parametrize("light", ["spot", "point", "directional"])
+def test_the_second_run_binds_with_the_first_runs_projection(light):
+    """:meth:`VirtualShadowMap.visibility`'s second run binds with the first bind's float64
+    projection (``projected``) instead of projecting the point again inside its
+    conditional: the same face, ``uv``, depth and ``inside`` as a fresh projection, and
+    the same bound map and ``hard`` result, lane for lane, as a bind that projects."""
+    from mi_shadowmap.filters.common import Lookup
+    from mi_shadowmap.filters.hard import hard
+    scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light=light))
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap, opts = integ.maps[0], integ.opts
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None,
+                pixel=virtual.camera_pixels(scene.sensors()[0]))
+    first = vmap.bind(lk, valid, per_tap=True, walk=False)
+    fresh = vmap.view.project_f64(mi.Point3d(lk.p_world))
+    v = valid.numpy()
+
+    def lanes(x):
+        return np.broadcast_to(np.asarray(x.numpy()), v.shape)[v]
+
+    def same_projection(projected):
+        for a, b in zip(projected, fresh):
+            for x, y in zip(*(c if dr.depth_v(c) > 1 else [c] for c in (a, b))):
+                np.testing.assert_array_equal(lanes(x), lanes(y))
+
+    same_projection(first.projected)
+    # a level other than the wanted one, as the walk may pick (and the wanted one)
+    for level in (first.level, dr.minimum(first.level + 1, vmap.layout.coarsest)):
+        reused = vmap.bind(lk, valid, per_tap=True, level=level, projected=first.projected)
+        again = vmap.bind(lk, valid, per_tap=True, level=level)
+        same_projection(reused.projected)
+        same_projection((reused.view.face,) + tuple(reused.view._bound[1:]))   # its view's
+        for x, y in ((reused.level, again.level), (reused.resolution, again.resolution),
+                     (reused.view.origin.x, again.view.origin.x),
+                     (reused.view.origin.y, again.view.origin.y),
+                     (reused.entry[0], again.entry[0]), (reused.entry[1], again.entry[1]),
+                     (hard(reused, lk, opts, valid), hard(again, lk, opts, valid))):
+            np.testing.assert_array_equal(lanes(x), lanes(y))
+    assert v.sum() > 1000
+
+
 @pytest.mark.parametrize("misuse", ["draws", "loops"])
 def test_per_tap_lookups_that_draw_or_read_in_loops_are_refused(misuse):
     """A per-tap lookup may run twice for some lanes: one that draws random numbers or

@@ -378,7 +378,7 @@ class VirtualShadowMap:
         return out
 
     def bind(self, lk, active=True, per_tap: bool = False,
-             walk: bool = True, level=None) -> "BoundVirtualMap":
+             walk: bool = True, level=None, projected=None) -> "BoundVirtualMap":
         """The map as one batch of lookups reads it (see the module doc). With
         ``per_tap`` every read gathers its own page's slot (cheapest for lookups that
         read a texel or two: ``hard``); else the 2 x 2 pages' four slots are gathered
@@ -388,11 +388,18 @@ class VirtualShadowMap:
         ``missed`` (:meth:`visibility` runs those again, walked). ``level`` (per lane,
         clamped to the coarsest): the level wanted instead of the pixel footprint's (a
         PCSS kernel wider than ``max_kernel`` texels filters a coarser level); the walk
-        is the same."""
+        is the same. ``projected``: ``(face, uv64, depth64, inside)``, the float64
+        projection of ``lk.p_world`` an earlier bind of the same point made
+        (:attr:`BoundVirtualMap.projected`), not traced again (:meth:`visibility`'s second
+        run: inside its conditional Dr.Jit does not merge repeated operations; the
+        far_point render kernel of ``hard`` had 1725, now 1677; LLVM merged most of them
+        in the machine code already, so what this saves is the trace and Dr.Jit's code
+        generation of every frame)."""
         lay, P = self.layout, self.layout.page_size
         T, S = lay.tile_size, lay.tiles_per_side
-        p64 = mi.Point3d(lk.p_world)
-        face, uv64, depth64, inside = self.view.project_f64(p64)
+        p64 = mi.Point3d(lk.p_world) if projected is None or level is None else None
+        face, uv64, depth64, inside = (self.view.project_f64(p64) if projected is None
+                                       else projected)
         active = mi.Bool(active) & inside
         want = (self._levels(face, p64, lk.dp_dx, lk.dp_dy, lk.n_world, lk.p_world,
                              keep=self.keeps(getattr(lk, "pixel", None),
@@ -467,7 +474,7 @@ class VirtualShadowMap:
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside),
                           depth_origin=self.depth_origin)
         return BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside,
-                               tile_words)
+                               tile_words, projected=(face, uv64, depth64, inside))
 
     def visibility(self, lookup, lk, opts, active=True, per_tap: bool = False) -> mi.Float:
         """``lookup(bound, lk, opts, active)`` (a method's lookup) on this map.
@@ -498,8 +505,9 @@ class VirtualShadowMap:
             # the first run's wanted level (its level, unwalked): level_for is not traced
             # again inside the conditional (Dr.Jit does not share values across it: the
             # footprint and the biases' cap, about 180 of a hard lookup's 2000 operations)
-            return mi.Float(lookup(self.bind(again, retry, per_tap, level=first.level), again,
-                                   opts, retry))
+            # nor the point's projection (the same point: the same float64 values)
+            return mi.Float(lookup(self.bind(again, retry, per_tap, level=first.level,
+                                             projected=first.projected), again, opts, retry))
 
         return if_stmt((vis,), retry, walked, lambda vis: vis,
                        label="virtual map: lookups whose page is missing", holds_loops=True)
@@ -534,8 +542,12 @@ class BoundVirtualMap:
     """
 
     def __init__(self, vmap: VirtualShadowMap, view: LocalView, res, level, entry,
-                 slots=None, check_reads: bool = False, inside=True, tile_words=None):
+                 slots=None, check_reads: bool = False, inside=True, tile_words=None,
+                 projected=None):
         self.vmap = vmap
+        # (face, uv64, depth64, inside): the bound point's float64 projection (for
+        # VirtualShadowMap.bind's ``projected``)
+        self.projected = projected
         self.view = view
         self.resolution = res
         self.level = level

@@ -341,6 +341,47 @@ def test_per_tap_lookups_that_draw_or_read_in_loops_are_refused(misuse):
         unregister_method("per_tap_misuse")
 
 
+@pytest.mark.parametrize("light", ["spot", "point"])
+def test_a_per_tap_lookup_may_intersect_receiver_planes_in_loops(light):
+    """A per-tap lookup's binds make the bound point's ray frame (``LocalView._frame``,
+    the float32 path of ``ray_plane``) only where the lookup first asks for it (``hard``
+    never does): asked for inside a ``dr.while_loop`` and again after it, it gives the
+    values the same lookup registered with ``virtual_per_tap=False`` (whose binds make
+    it up front) gives, and a frame first made inside the loop is not kept for use
+    outside it (its variables belong to the loop)."""
+    from mi_shadowmap.filters.common import receiver
+    from mi_shadowmap.methods import register_method, unregister_method
+
+    def planes(smap, lk, opts, active=True):
+        r = receiver(smap, lk, opts)
+        z_map = dr.gather(mi.Float, smap.depth, smap.texel_index(r.face, r.uv),
+                          active & r.inside)
+
+        def body(k, acc):
+            uv = r.uv + mi.Point2f(mi.Float(k) - 1.0, 0.5) / mi.Float(smap.resolution)
+            t, _ = smap.view.ray_plane(r.face, uv, lk.p_world, lk.n_world, 0.05)
+            return k + 1, acc + t
+
+        _, acc = dr.while_loop((mi.UInt32(0), mi.Float(0.0)), lambda k, acc: k < 3, body)
+        t0, _ = smap.view.ray_plane(r.face, r.uv, lk.p_world, lk.n_world, 0.05)
+        lit = ~r.inside | (r.depth <= z_map)
+        # the planes' depths in the result (in [0, 1]): any change shows
+        tilt = (acc - 3.0 * t0) / dr.maximum(r.texel_world, 1e-20)
+        return dr.select(lit, 0.5, 0.0) + 0.25 + 0.25 * dr.tanh(tilt)
+
+    register_method("planes_per_tap", planes, virtual=True, virtual_per_tap=True)
+    register_method("planes_block", planes, virtual=True, virtual_per_tap=False)
+    try:
+        scene = mi.load_dict(default_scene(width=32, height=32, spp=2, light=light))
+        a = vis_of(scene, shadowmap(method="planes_per_tap", virtual=True), spp=2)
+        b = vis_of(scene, shadowmap(method="planes_block", virtual=True), spp=2)
+        assert np.unique(np.round(a, 3)).size > 20
+        np.testing.assert_array_equal(a, b)
+    finally:
+        unregister_method("planes_per_tap")
+        unregister_method("planes_block")
+
+
 # ---------------------------------------------------------- against the truth
 #: (light, method) -> measured misclassified at 64^2, 4 spp (virtual defaults); bounds x2.
 @pytest.mark.parametrize("light", LIGHTS)
@@ -2302,6 +2343,56 @@ def test_reading_slots_per_tap_or_per_block_gives_the_same_image(light):
                 np.testing.assert_array_equal(
                     np.where(valid.numpy(), per_tap._index(face, i, j).numpy(), 0),
                     np.where(valid.numpy(), block._index(face, i, j).numpy(), 0))
+
+
+@pytest.mark.parametrize("per_tap", [False, True])
+def test_fetch_centre_gives_the_point_whose_ray_cast_the_texel_read(per_tap):
+    """``BoundVirtualMap.fetch_centre``: the texel ``fetch`` reads, and the point (local
+    texel coordinates) whose ray gave it: the texel's own ``TEXEL_SAMPLE`` point where
+    its page and tile were cast at the bound level, else that point of the coarsest
+    level's texel over it, ``2^k`` texels wide (the receiver plane of ``pcf``,
+    ``bilinear`` and ``pcss`` is evaluated there). Checked for taps within and beyond
+    the bound pages, so that both kinds of read occur."""
+    from mi_shadowmap.filters.common import Lookup
+    scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light="spot"))
+    integ = shadowmap(method="pcf", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap = integ.maps[0]
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None)
+    bound = vmap.bind(lk, valid, per_tap=per_tap)
+    lay, P, v = vmap.layout, vmap.layout.page_size, valid.numpy()
+    ox, oy = (np.asarray(c.numpy())[v] for c in bound.view.origin)
+    level = np.broadcast_to(bound.level.numpy(), v.shape)[v]
+    shift = lay.coarsest - level.astype(np.int64)
+    ts = np.array(TEXEL_SAMPLE)
+    kinds = set()
+    for di in range(-2 * P, 4 * P, 11):
+        for dj in (-P, P // 2, 2 * P):
+            i, j = dr.opaque(mi.Int32, di), dr.opaque(mi.Int32, dj)    # one kernel
+            z, c = bound.fetch_centre(bound.depth, bound.view.face, i, j, valid)
+            np.testing.assert_array_equal(z.numpy()[v], bound.fetch(
+                bound.depth, bound.view.face, i, j, valid).numpy()[v])
+            # where the tap's page is built at the bound level (a tile of it this frame
+            # did not mark reads the coarsest level's depth, which a new page holds there,
+            # at its own point: PageStore._fill_from_coarsest)
+            own = np.broadcast_to(bound._read_at[0].numpy(), v.shape)[v] | (shift == 0)
+            cx, cy = (np.asarray(a.numpy())[v] for a in c)
+            res = np.broadcast_to(bound.resolution.numpy(), v.shape)[v]
+            gx, gy = np.clip(di + ox, 0, res - 1), np.clip(dj + oy, 0, res - 1)
+            # there the texel's own point (a tap clamped to the face; float32: within a
+            # thousandth of a texel)
+            close = dict(rtol=0.0, atol=1e-3)
+            np.testing.assert_allclose(cx[own], (gx - ox + ts[0])[own], **close)
+            np.testing.assert_allclose(cy[own], (gy - oy + ts[1])[own], **close)
+            # else the coarsest level's texel over it
+            w = 2.0 ** shift
+            np.testing.assert_allclose(cx[~own], (((gx >> shift) + ts[0]) * w - ox)[~own],
+                                       **close)
+            np.testing.assert_allclose(cy[~own], (((gy >> shift) + ts[1]) * w - oy)[~own],
+                                       **close)
+            kinds |= {bool(k) for k in np.unique(own)}
+    assert kinds == {True, False}
 
 
 @pytest.mark.parametrize("light", LIGHTS)

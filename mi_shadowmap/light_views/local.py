@@ -64,7 +64,8 @@ class LocalView:
 
     projection = "local"
 
-    def __init__(self, inner, face, res_level, origin, bound=None, depth_origin=None):
+    def __init__(self, inner, face, res_level, origin, bound=None, depth_origin=None,
+                 lazy_frame: bool = False):
         self.inner = inner
         self.face = mi.UInt32(face)
         self.res_level = mi.Int32(res_level)
@@ -76,15 +77,35 @@ class LocalView:
         # the light (see the module doc)
         self._depth_origin = depth_origin
         # the bound point's ray frame (ray_plane's float32 path), made here: outside the
-        # filters' symbolic tap loops (unused, it costs nothing in a kernel)
-        self._frame = None
-        frame = getattr(inner, "ray_frame_f64", None)
-        if bound is not None and frame is not None:
-            p0, uv64, depth64, _ = bound
-            central, base, a, b = frame(self.face, mi.Point2d(uv64))
-            self._frame = (central, mi.Vector3f(base), mi.Vector3f(a), mi.Vector3f(b),
-                           self._to_local_uv(uv64), mi.Float(depth64),
-                           self._from_origin(depth64))
+        # filters' symbolic tap loops (unused, it costs nothing in a kernel). With
+        # ``lazy_frame`` (a per-tap lookup's binds: ``hard`` never reads it) it is made
+        # where it is first read (:attr:`_frame`): unread, its ~40 operations cost the
+        # trace of every frame, twice a ``hard`` lookup (its two binds)
+        self._lazy = bool(lazy_frame)
+        self._bind_scoped = dr.flag(dr.JitFlag.SymbolicScope)
+        self._frame_made = None if self._lazy else self._make_frame()
+
+    def _make_frame(self):
+        frame = getattr(self.inner, "ray_frame_f64", None)
+        if self._bound is None or frame is None:
+            return None
+        p0, uv64, depth64, _ = self._bound
+        central, base, a, b = frame(self.face, mi.Point2d(uv64))
+        return (central, mi.Vector3f(base), mi.Vector3f(a), mi.Vector3f(b),
+                self._to_local_uv(uv64), mi.Float(depth64), self._from_origin(depth64))
+
+    @property
+    def _frame(self):
+        """The bound point's ray frame (see ``__init__``), or None. A lazy frame first
+        read inside a symbolic loop or conditional is made there again at every read
+        (the same values; kept, its variables would outlive their scope); it is kept
+        where both the bind and the read were outside every symbolic operation."""
+        if not self._lazy or self._frame_made is not None:
+            return self._frame_made
+        made = self._make_frame()
+        if not self._bind_scoped and not dr.flag(dr.JitFlag.SymbolicScope):
+            self._frame_made = made
+        return made
 
     @property
     def depth_origin(self):
@@ -164,9 +185,10 @@ class LocalView:
         """In float64; for central rays on the bound face (a one-sided area light's
         front test in PCSS's taps), from the bound point's ray frame in float32 (the
         unnormalised direction there plus the ``uv`` step's, normalised)."""
-        if self._frame is None or not self._frame[0]:
+        frame = self._frame
+        if frame is None or not frame[0]:
             return self._ray_through_f64(face, uv_light)
-        _, base, a, b, uv0 = self._frame[:5]
+        _, base, a, b, uv0 = frame[:5]
         duv = mi.Point2f(uv_light) - uv0
         o, d = opaque_point(self.inner.position), dr.normalize(base + a * duv.x + b * duv.y)
         if self.inner.n_faces == 1:
@@ -190,9 +212,10 @@ class LocalView:
         (:meth:`_plane_step`), exact up to float32 rounding of that change. Else, and
         for lanes of taps that crossed onto another face (a ``dr.if_stmt``), in float64:
         ``p_world - o`` in float32 would lose the light's distance's roundoff."""
-        if self._frame is None or not _same_point(p_world, self._bound[0]):
+        frame = self._frame
+        if frame is None or not _same_point(p_world, self._bound[0]):
             return self._ray_plane_f64(face, uv_light, p_world, n_world, cos_min)
-        t, c = self._plane_step(uv_light, n_world, cos_min)
+        t, c = self._plane_step(uv_light, n_world, cos_min, frame)
         if self.inner.n_faces == 1:
             return t, c
         return if_stmt(
@@ -208,7 +231,7 @@ class LocalView:
         t = dr.dot(n, mi.Point3d(p_world) - o) / dr.select(dr.abs(c) >= cos_min, c, cos_min)
         return self._lowered(self._from_origin(t)), mi.Float(c)
 
-    def _plane_step(self, uv_light, n_world, cos_min: float):
+    def _plane_step(self, uv_light, n_world, cos_min: float, frame=None):
         """:meth:`ray_plane` for the bound point's plane on the bound face, in float32.
 
         The receiver ``p`` lies on its own ray (through its float64 ``uv``, at its depth
@@ -221,7 +244,8 @@ class LocalView:
         (|D0| |D|)`` and ``|D| - |D0| = (2 D0.e + e.e) / (|D| + |D0|)``: no difference
         of two nearly equal float32 numbers. ``c`` below ``cos_min`` is clamped, as in
         float64."""
-        central, base, a, b, uv0, t0_light, t0_local = self._frame
+        central, base, a, b, uv0, t0_light, t0_local = (self._frame if frame is None
+                                                         else frame)
         n = mi.Vector3f(n_world)
         duv = mi.Point2f(uv_light) - uv0
         e = a * duv.x + b * duv.y

@@ -408,14 +408,18 @@ class VirtualShadowMap:
                 if level is None
                 else dr.minimum(mi.UInt32(level), mi.UInt32(lay.coarsest)))
 
-        def block(level, act):
+        def block(level, act, walked: bool = True):
             """The 2 x 2 pages around the point at ``level`` (their table entry), and
-            whether the page under it is built."""
+            whether the page under it is built (None unless ``walked``: only the walk
+            reads it; unread, its two gathers were no part of the kernel, but were traced
+            every frame)."""
             res = mi.Int32(mi.UInt32(lay.res0) >> level)
             xy = uv64 * mi.Float64(res)
             bx = mi.Int32(dr.floor((xy.x - 0.5 * P) / P))
             by = mi.Int32(dr.floor((xy.y - 0.5 * P) / P))
             e, eok = self._block_entry(face, level, bx, by, act)
+            if not walked:
+                return res, bx, by, e, eok, None
             cx = mi.Int32(dr.floor(xy.x / P)) > bx        # which of the 2 x 2 holds it
             cy = mi.Int32(dr.floor(xy.y / P)) > by
             q = mi.UInt32(dr.select(cx, 1, 0) + dr.select(cy, 2, 0))
@@ -431,7 +435,7 @@ class VirtualShadowMap:
         # the wanted level (nearly every lookup); else the next finer, else the next
         # coarser, else the coarsest (always built). The fallbacks run in a loop that
         # only lanes whose page is missing enter: most vector packets skip it.
-        res, bx, by, e, eok, ok = block(want, active)
+        res, bx, by, e, eok, ok = block(want, active, walk)
         level = mi.UInt32(want)
         if not walk:
             if not per_tap:
@@ -472,7 +476,7 @@ class VirtualShadowMap:
                               for k in range(4)]
         origin = mi.Point2i(bx * P, by * P)
         local = LocalView(self.view, face, res, origin, (lk.p_world, uv64, depth64, inside),
-                          depth_origin=self.depth_origin)
+                          depth_origin=self.depth_origin, lazy_frame=per_tap)
         return BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside,
                                tile_words, projected=(face, uv64, depth64, inside))
 
@@ -622,10 +626,9 @@ class BoundVirtualMap:
         shift = mi.Int32(lay.coarsest) - mi.Int32(self.level)
         cx, cy = gx >> shift, gy >> shift
         coarse_idx = (mi.UInt32(face) + 1) * (P * P) + mi.UInt32(cy) * P + mi.UInt32(cx)
-        ts = mi.Point2f(*TEXEL_SAMPLE)           # where each texel's ray crosses it
-        self._read_centre = dr.select(
-            fine, mi.Point2f(li, lj) + ts,
-            (mi.Point2f(cx, cy) + ts) * dr.power(2.0, mi.Float(shift)) - mi.Point2f(v.origin))
+        # where the texel read was cast (fetch_centre), for the read fetch_centre makes:
+        # traced there only (hard never asks)
+        self._read_at = (fine, li, lj, cx, cy, shift)
         cast = fine
         if not self.check_reads and lay.tiles_per_side > 1:
             # a tile this frame did not mark reads the coarsest level's texel over it,
@@ -653,7 +656,12 @@ class BoundVirtualMap:
         texel itself where its page is built, else in the coarsest level's texel that
         holds it (2^k texels wide)."""
         z = self.fetch(layer, face, i, j, active)
-        return z, self._read_centre
+        fine, li, lj, cx, cy, shift = self._read_at
+        ts = mi.Point2f(*TEXEL_SAMPLE)           # where each texel's ray crosses it
+        return z, dr.select(
+            fine, mi.Point2f(li, lj) + ts,
+            (mi.Point2f(cx, cy) + ts) * dr.power(2.0, mi.Float(shift))
+            - mi.Point2f(self.view.origin))
 
     def texel_index(self, face, uv):
         ij = mi.Point2i(dr.floor(uv * self.resolution))

@@ -385,7 +385,8 @@ class VirtualShadowMap:
         here, once per lookup (wide kernels). With ``walk`` False (``per_tap`` only) every
         lane stays at its wanted level and each read checks that its own page and tile
         are built there, collecting the lanes where one is not in the result's
-        ``missed`` (:meth:`visibility` runs those again, walked). ``level`` (per lane,
+        ``missed`` (:meth:`visibility` runs those again, walked; what such a read gives
+        is no texel's depth, and must not be used). ``level`` (per lane,
         clamped to the coarsest): the level wanted instead of the pixel footprint's (a
         PCSS kernel wider than ``max_kernel`` texels filters a coarser level); the walk
         is the same. ``projected``: ``(face, uv64, depth64, inside)``, the float64
@@ -621,14 +622,19 @@ class BoundVirtualMap:
             s = dr.select(far, dr.select(ok2, s2, INVALID_SLOT), s)
             fine = dr.select(far, s != INVALID_SLOT, fine)
         fine_idx = s * (P * P) + mi.UInt32(lj & (P - 1)) * P + mi.UInt32(li & (P - 1))
+        # where the texel read was cast (fetch_centre), for the read fetch_centre makes:
+        # traced there only (hard never asks)
+        self._read_at = (fine, li, lj, gx, gy)
+        if self.check_reads:
+            # a lane whose read is not here runs again, walked, and only that run's value
+            # is used (VirtualShadowMap.visibility): no coarsest-level index for it (9 of
+            # the hot path's operations); texel 0 of the pool, a valid address, instead
+            return dr.select(fine, fine_idx, 0)
         # elsewhere: the coarsest level (one page per face, always built, in slot
         # face + 1; an empty page where a one-sided light does not shine)
         shift = mi.Int32(lay.coarsest) - mi.Int32(self.level)
         cx, cy = gx >> shift, gy >> shift
         coarse_idx = (mi.UInt32(face) + 1) * (P * P) + mi.UInt32(cy) * P + mi.UInt32(cx)
-        # where the texel read was cast (fetch_centre), for the read fetch_centre makes:
-        # traced there only (hard never asks)
-        self._read_at = (fine, li, lj, cx, cy, shift)
         cast = fine
         if not self.check_reads and lay.tiles_per_side > 1:
             # a tile this frame did not mark reads the coarsest level's texel over it,
@@ -656,7 +662,9 @@ class BoundVirtualMap:
         texel itself where its page is built, else in the coarsest level's texel that
         holds it (2^k texels wide)."""
         z = self.fetch(layer, face, i, j, active)
-        fine, li, lj, cx, cy, shift = self._read_at
+        fine, li, lj, gx, gy = self._read_at
+        shift = mi.Int32(self.vmap.layout.coarsest) - mi.Int32(self.level)
+        cx, cy = gx >> shift, gy >> shift
         ts = mi.Point2f(*TEXEL_SAMPLE)           # where each texel's ray crosses it
         return z, dr.select(
             fine, mi.Point2f(li, lj) + ts,

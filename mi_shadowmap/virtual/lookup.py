@@ -392,9 +392,9 @@ class VirtualShadowMap:
         is the same. ``projected``: ``(face, uv64, depth64, inside)``, the float64
         projection of ``lk.p_world`` an earlier bind of the same point made
         (:attr:`BoundVirtualMap.projected`), not traced again (:meth:`visibility`'s second
-        run: inside its conditional Dr.Jit does not merge repeated operations; the
-        far_point render kernel of ``hard`` had 1725, now 1677; LLVM merged most of them
-        in the machine code already, so what this saves is the trace and Dr.Jit's code
+        run: inside its conditional Dr.Jit does not merge repeated operations: 48 of the
+        1725 of far_point's render kernel of ``hard``; LLVM merged most of them in the
+        machine code already, so what this saves is the trace and Dr.Jit's code
         generation of every frame)."""
         lay, P = self.layout, self.layout.page_size
         T, S = lay.tile_size, lay.tiles_per_side
@@ -627,8 +627,8 @@ class BoundVirtualMap:
         self._read_at = (fine, li, lj, gx, gy)
         if self.check_reads:
             # a lane whose read is not here runs again, walked, and only that run's value
-            # is used (VirtualShadowMap.visibility): no coarsest-level index for it (9 of
-            # the hot path's operations); texel 0 of the pool, a valid address, instead
+            # is used (VirtualShadowMap.visibility): no coarsest-level index for it (10
+            # operations every packet ran); texel 0 of the pool, a valid address, instead
             return dr.select(fine, fine_idx, 0)
         # elsewhere: the coarsest level (one page per face, always built, in slot
         # face + 1; an empty page where a one-sided light does not shine)

@@ -856,6 +856,87 @@ def test_an_unseen_world_builds_at_most_8_texels_a_pixel(method):
     assert mis <= 0.003
 
 
+def ripple_scene(width: int = 64):
+    """A ground of ridges 0.4 apart along x (facets 9 degrees steep, a triangle mesh) under
+    a sun 12 degrees high from +x, seen from above at an angle: the facets facing away
+    from the sun are lit at 3 degrees (their receiver biases capped), nothing is
+    shadowed (the sun is higher than any facet is steep), and in every valley the
+    tangent plane of a grazed facet runs under the facet before it."""
+    n, period, slope, elev = 80, 0.4, math.radians(9.0), math.radians(12.0)
+    xs = np.arange(n + 1) * period / 2 - n * period / 4
+    ys = np.where(np.arange(n + 1) % 2 == 0, 0.0, period / 2 * math.tan(slope))
+    v = np.array([[x, y, z] for z in (-10.0, 10.0) for x, y in zip(xs, ys)], np.float32)
+    f = np.array([t for i in range(n) for t in ([i, n + 1 + i, i + 1],
+                                                [i + 1, n + 1 + i, n + 2 + i])], np.uint32)
+    mesh = mi.Mesh("ripples", len(v), len(f))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(v.ravel())
+    params["faces"] = mi.UInt32(f.ravel())
+    params.update()
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at(origin=[0, 3, 6], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": width, "height": width,
+                            "rfilter": {"type": "box"}}},
+        "ground": mesh,
+        "sun": {"type": "directional", "irradiance": {"type": "rgb", "value": 3.0},
+                "direction": [-math.cos(elev), -math.sin(elev), 0.0]}})
+
+
+def test_a_footprint_corner_under_the_receivers_own_surface_finds_no_edge(monkeypatch):
+    """:func:`~mi_shadowmap.virtual.marks.probe_keeps`' corner probes leave the receiver's
+    tangent plane; where the surface bends up within the footprint (a valley of a mesh)
+    the corner lies under it, and its shadow ray hits the surface right there: an edge
+    found where there is none. A corner whose probe disagrees with the centre's is
+    probed again from the point the camera sees through it, on the receiver's own shape
+    (:func:`~mi_shadowmap.virtual.marks._surface_corner_differs`). On the ridges of
+    :func:`ripple_scene`, where nothing is shadowed, 184 of the 412 capped pixel centres
+    kept the biases' level from the plane's corners (672 pixels read it, with the
+    uncapped pixels beside them), none now; ``hard`` builds 26 % fewer texels (57,536 ->
+    42,688 at 64^2) for the same image. ``random_terrain_world`` seed 22 at 256^2:
+    4008 of its 4723 kept centres were such corners (the hit 0.05 footprints from the
+    corner, median), 10.16 -> 6.46 texels a pixel (``hard``)."""
+    scene = ripple_scene()
+    ref = reference("ripples", scene)
+    texels, kept = [], []
+    for again in (True, False):
+        if not again:
+            monkeypatch.setattr(marks, "_surface_corner_differs",
+                                lambda scene, view, c, differs, *a: differs, raising=False)
+        integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+        vis = vis_of(scene, integ)
+        vmap = integ.maps[0]
+        words = vmap.keep[0].numpy()
+        kept.append(int(np.sum((words & virtual.lookup.KEEP_CENTRE) != 0)))
+        texels.append(integ.stats["texels_built"])
+        # (the far edge of the ground, rows 5-7, is partly covered)
+        assert misclassified(vis[8:], ref[8:]) == 0.0
+        if again:
+            vis_again = vis
+    print(f"kept centres {kept}, texels {texels}")
+    assert np.all(ref[8:] >= 0.99)      # nothing shadowed below the far edge
+    assert kept[0] == 0 and kept[1] > 100
+    assert texels[0] < 0.8 * texels[1]
+    np.testing.assert_array_equal(vis_again, vis)
+
+
+def test_terrain_22_builds_at_most_8_texels_a_pixel():
+    """Issue 11's 8 texels per film pixel at 256^2 on ``random_terrain_world`` seed 22 (a
+    hill's view of rippled terrain under a sun 8-40 degrees high), outside
+    ``bench_unseen.py``'s seeds: ``hard`` built 10.16, the footprints' plane corners
+    under the terrain's own facets keeping the biases' level on 4008 pixels
+    (:func:`test_a_footprint_corner_under_the_receivers_own_surface_finds_no_edge`);
+    6.46 now, misclassified at 128^2 1.07 -> 1.08 % (``raytraced`` with another seed
+    1.25 %)."""
+    from mi_shadowmap.scenes import random_terrain_world
+    integ = shadowmap(method="hard")
+    vis_of(mi.load_dict(random_terrain_world(22, width=256, spp=16)), integ, spp=16, seed=0)
+    per_pixel = integ.stats["texels_built"] / 256 ** 2
+    print(f"{per_pixel:.2f} texels a pixel")
+    assert per_pixel <= 8.0
+
+
 def test_the_mark_pass_dedupes_one_block_list_per_light(monkeypatch):
     """The mark pass folds its blocks' shapes into their keys (:func:`marks.mark_blocks`
     with :func:`marks.shape_bits`): one candidate list a light for ``hard``, where the

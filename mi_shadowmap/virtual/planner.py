@@ -13,7 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..methods import virtual_coarse_res_of, virtual_margin_of
-from .camera import camera_state, clear_camera_states
+from .camera import camera_frame, camera_state, clear_camera_states
 from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_unique,
                      with_keys)
 from ..filters.common import BiasReach
@@ -235,8 +235,10 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         # every light's marked points first (one kernel with the camera hits), then the
         # candidate tiles from them in each dedupe round (a few integer operations)
         for batch in ([every] if fused and plain else [[i] for i in plain]):
+            eye = camera_frame(sensor, cam)[0] if probe else None
             markers = [Marker(stores[i].layout, opts.lod_bias, reach=reach[i],
-                              scene=scene if probe and reach[i] is not None else None)
+                              scene=scene if probe and reach[i] is not None else None,
+                              eye=eye)
                        for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
             # each probed light's centres' words, scattered in the same kernel, then

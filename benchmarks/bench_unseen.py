@@ -1,8 +1,11 @@
 """Issue 11's accuracy and texel targets on random scenes of its two kinds, not the
 repository's. One run, by hand:
 
-    python benchmarks/bench_unseen.py [--seeds 8] [--image 128] [--spp 16]
+    python benchmarks/bench_unseen.py [--seeds 8] [--first-seed 0] [--image 128] [--spp 16]
                                       [--kinds world 1e5 1e6 terrain] [--methods hard pcf]
+
+``--first-seed``: run seeds ``first .. first + seeds - 1`` (the unseen worlds beyond the
+default 0-7, e.g. ``--kinds terrain --first-seed 8 --seeds 22``).
 
 For each kind and seed, :func:`mi_shadowmap.scenes.random_large_world` (``world``),
 :func:`mi_shadowmap.scenes.random_terrain_world` (``terrain``: a terrain mesh, the sun
@@ -51,7 +54,9 @@ def visibility(scene, props: dict, seed: int):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", type=int, default=8, help="seeds 0 .. N-1 per kind")
+    ap.add_argument("--seeds", type=int, default=8, help="N seeds per kind")
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="the first seed (seeds first .. first + N - 1)")
     ap.add_argument("--image", type=int, default=128)
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--kinds", nargs="+", default=["world", "1e5", "1e6"],
@@ -62,6 +67,8 @@ def main(argv=None):
                          "e.g. normal_bias=0 (values: true/false, int, float or string)")
     args = ap.parse_args(argv)
     props = parse_assignments(args.set, "--set")
+    if args.seeds < 1 or args.first_seed < 0:
+        ap.error("--seeds must be at least 1 and --first-seed at least 0")
     for k in args.kinds:
         if k not in ("world", "terrain"):
             try:
@@ -70,7 +77,8 @@ def main(argv=None):
                 ap.error(f"--kinds {k!r}: expected 'world', 'terrain' or a point-light "
                          "distance")
     t_start = time.perf_counter()
-    print(f"# {args.image}^2, {args.spp} spp, seeds 0-{args.seeds - 1}, "
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    print(f"# {args.image}^2, {args.spp} spp, seeds {seeds[0]}-{seeds[-1]}, "
           f"variant {mi.variant()}, map methods with {props or 'defaults'}\n")
     head = "| scene | seed | rt noise | " + " | ".join(
         f"{m}: misclassified (false lit / false shadow) | {m}: texels / pixel"
@@ -81,7 +89,7 @@ def main(argv=None):
     texels = {(k, m): [] for k in args.kinds for m in args.methods}
     noise = {k: [] for k in args.kinds}
     for kind in args.kinds:
-        for seed in range(args.seeds):
+        for seed in seeds:
             d = scene_dict(kind, seed, args.image, args.spp)
             scene = mi.load_dict(d)
             ref, _ = visibility(scene, {"method": "raytraced"}, 0)

@@ -927,7 +927,7 @@ def test_terrain_22_builds_at_most_8_texels_a_pixel():
     ``bench_unseen.py``'s seeds: ``hard`` built 10.16, the footprints' plane corners
     under the terrain's own facets keeping the biases' level on 4008 pixels
     (:func:`test_a_footprint_corner_under_the_receivers_own_surface_finds_no_edge`);
-    6.46 now, misclassified at 128^2 1.07 -> 1.08 % (``raytraced`` with another seed
+    6.48 now, misclassified at 128^2 1.07 -> 1.06 % (``raytraced`` with another seed
     1.25 %)."""
     from mi_shadowmap.scenes import random_terrain_world
     integ = shadowmap(method="hard")

@@ -188,7 +188,11 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     8-40 degrees high) 4008 of the 4723 centres that kept the level did so from a lit
     centre through a corner whose hit lay 0.05 footprints from it (median): ``hard``
     10.16 -> 6.46 texels a film pixel, ``pcf`` 12.47 -> 8.21, misclassified at 128^2
-    1.07 -> 1.08 % and 1.29 -> 1.25 % (``raytraced`` with another seed 1.25 %).
+    1.07 -> 1.08 % and 1.29 -> 1.25 % (``raytraced`` with another seed 1.25 %; with
+    :func:`probe_distance` seeing instances too 6.48 / 8.24 texels, 1.06 / 1.23 %). Of
+    30 terrain worlds none builds more texels, two lost a pixel each at 128^2 (seed 3's
+    shadow edge at ``raytraced`` 0.625, which the four corners miss, and the plane's
+    corners under the hills had found by chance).
 
     ``shape``: the hits' shapes (``si.shape``), or None. Where the light is behind the
     receiver's face (``n`` facing the camera) a probe's hit on the receiver's own shape

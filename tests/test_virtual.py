@@ -903,7 +903,7 @@ def test_a_footprint_corner_under_the_receivers_own_surface_finds_no_edge(monkey
     for again in (True, False):
         if not again:
             monkeypatch.setattr(marks, "_surface_corner_differs",
-                                lambda scene, view, c, differs, *a: differs, raising=False)
+                                lambda scene, view, c, n, differs, *a: differs, raising=False)
         integ = shadowmap(method="hard", virtual=True, cache_maps=False)
         vis = vis_of(scene, integ)
         vmap = integ.maps[0]

@@ -896,7 +896,7 @@ def test_a_footprint_corner_under_the_receivers_own_surface_finds_no_edge(monkey
     uncapped pixels beside them), none now; ``hard`` builds 26 % fewer texels (57,536 ->
     42,688 at 64^2) for the same image. ``random_terrain_world`` seed 22 at 256^2:
     4008 of its 4723 kept centres were such corners (the hit 0.05 footprints from the
-    corner, median), 10.16 -> 6.46 texels a pixel (``hard``)."""
+    corner, median), 10.16 -> 6.64 texels a pixel (``hard``)."""
     scene = ripple_scene()
     ref = reference("ripples", scene)
     texels, kept = [], []
@@ -927,7 +927,7 @@ def test_terrain_22_builds_at_most_8_texels_a_pixel():
     ``bench_unseen.py``'s seeds: ``hard`` built 10.16, the footprints' plane corners
     under the terrain's own facets keeping the biases' level on 4008 pixels
     (:func:`test_a_footprint_corner_under_the_receivers_own_surface_finds_no_edge`);
-    6.48 now, misclassified at 128^2 1.07 -> 1.06 % (``raytraced`` with another seed
+    6.64 now, misclassified at 128^2 1.07 -> 1.06 % (``raytraced`` with another seed
     1.25 %)."""
     from mi_shadowmap.scenes import random_terrain_world
     integ = shadowmap(method="hard")

@@ -10,6 +10,7 @@ import mitsuba as mi
 import numpy as np
 
 from .. import depth_maps
+from ..control_flow import if_stmt
 from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
 from ..light_views.base import opaque_point
 from .camera import camera_frame, has_aperture
@@ -187,12 +188,11 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     ``random_terrain_world`` seed 22 at 256^2 (a hill's view of rippled terrain, a sun
     8-40 degrees high) 4008 of the 4723 centres that kept the level did so from a lit
     centre through a corner whose hit lay 0.05 footprints from it (median): ``hard``
-    10.16 -> 6.46 texels a film pixel, ``pcf`` 12.47 -> 8.21, misclassified at 128^2
-    1.07 -> 1.08 % and 1.29 -> 1.25 % (``raytraced`` with another seed 1.25 %; with
-    :func:`probe_distance` seeing instances too 6.48 / 8.24 texels, 1.06 / 1.23 %). Of
-    30 terrain worlds none builds more texels, two lost a pixel each at 128^2 (seed 3's
-    shadow edge at ``raytraced`` 0.625, which the four corners miss, and the plane's
-    corners under the hills had found by chance).
+    10.16 -> 6.64 texels a film pixel, ``pcf`` 12.47 -> 8.48, misclassified at 128^2
+    1.07 -> 1.06 % and 1.29 -> 1.24 % (``raytraced`` with another seed 1.25 %; with
+    :func:`probe_distance` seeing instances). Of 30 terrain worlds none builds more
+    texels or misclassifies more pixels at 128^2 (summed 793 -> 788 ``hard``, 944 -> 924
+    ``pcf``; ``benchmarks/RESULTS.md``, the forty-sixth session).
 
     ``shape``: the hits' shapes (``si.shape``), or None. Where the light is behind the
     receiver's face (``n`` facing the camera) a probe's hit on the receiver's own shape
@@ -214,11 +214,14 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
             corner = probe_distance(scene, view, c, n, active & ~keep, own)
             differs = mi.Bool(active) & ~keep & (dr.isfinite(corner) != shadowed)
             if eye is not None and shape is not None:
-                differs = dr.if_stmt(
+                # (nested in marked_points' conditional: control_flow's if_stmt names
+                # the symbolic mode, so Dr.Jit does not log forcing it)
+                differs = if_stmt(
                     (c, n, differs, shadowed, own, shape, eye), differs,
                     lambda c, n, d, s, o, sh, e: _surface_corner_differs(
                         scene, view, c, n, d, s, o, sh, e),
-                    lambda c, n, d, s, o, sh, e: d)
+                    lambda c, n, d, s, o, sh, e: d,
+                    label="virtual marks: a corner's edge from the surface")
             keep |= differs
     return keep
 

@@ -507,10 +507,11 @@ def _kept_columns(vmap_like, points, margin, face, level, ok, box, sx, sy, ex, e
     # the keys again in each of its rounds, and the bands are some 600 operations a lane
     # (unconditional, its 3 kernels took 1.1-1.3 ms each on a 256^2 large_world move
     # instead of 0.2-0.25, where few points keep the level)
-    out = dr.if_stmt(
+    out = if_stmt(
         (points[1], points[7][0], points[7][1], face, level, sx, sy, ex, ey), kept, bands,
         lambda *args: tuple(mi.UInt64(0) for _ in range(KEPT_BANDS))
-        + tuple(mi.Bool(False) for _ in range(KEPT_BANDS)))
+        + tuple(mi.Bool(False) for _ in range(KEPT_BANDS)),
+        label="virtual marks: the bands of points that kept the biases' level")
     keys, has = list(out[:KEPT_BANDS]), list(out[KEPT_BANDS:])
     keys[0] = dr.select(kept, keys[0], box)
     has = [kept & h for h in has]

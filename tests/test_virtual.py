@@ -756,12 +756,12 @@ def test_the_biases_level_is_kept_where_a_probe_finds_an_occluder_or_an_edge(
     assert err[0] <= 1.1 * err[1]
 
 
-def test_kept_points_mark_the_columns_their_footprints_meet_not_their_box(tmp_path,
+def test_kept_points_mark_the_bands_their_footprints_meet_not_their_box(tmp_path,
                                                                          monkeypatch):
     """A point that kept the biases' level marks, of the box around it that holds its own
     and its neighbours' footprints (``m + 2 spread``), only the tiles the parallelogram
     of 1.5 footprints around it meets, in 3 bands across the box
-    (:func:`~mi_shadowmap.virtual.marks._kept_columns`): a footprint the light grazes,
+    (:func:`~mi_shadowmap.virtual.marks._kept_bands`): a footprint the light grazes,
     turned to the map's axes, fills little of its box. The terrain-with-pillars mesh of
     ``benchmarks/bench_virtual_cost.py`` (20 k triangles here) under its spot, 64^2,
     16 spp, ``hard``: measured 70,016 -> 62,464 texels, images identical."""
@@ -782,9 +782,9 @@ def test_kept_points_mark_the_columns_their_footprints_meet_not_their_box(tmp_pa
                  "cutoff_angle": 45.0, "beam_width": 40.0}})
     ref = vis_of(scene, shadowmap(method="raytraced"), spp=16)
     texels, vis = [], []
-    for columns in (True, False):
-        if not columns:     # every kept point's whole box, as before
-            monkeypatch.setattr(marks, "_kept_columns", lambda *a: ([a[6]], [a[5]]))
+    for bands in (True, False):
+        if not bands:     # every kept point's whole box, as before
+            monkeypatch.setattr(marks, "_kept_bands", lambda *a: ([a[6]], [a[5]]))
         integ = shadowmap(method="hard", virtual=True, cache_maps=False)
         vis.append(vis_of(scene, integ, spp=16))
         texels.append(integ.stats.texels_built)
@@ -1041,7 +1041,7 @@ def test_the_mark_pass_dedupes_one_block_list_per_light(monkeypatch):
     marked = []
     for fold, bands in ((True, True), (True, False), (False, False)):
         if not bands:
-            monkeypatch.setattr(marks, "_kept_columns", lambda *a: ([a[6]], [a[5]]))
+            monkeypatch.setattr(marks, "_kept_bands", lambda *a: ([a[6]], [a[5]]))
         if not fold:
             monkeypatch.setattr(planner, "shape_bits", lambda layout, per_axis: None)
         integ = shadowmap(method="hard", virtual=True, cache_maps=False)

@@ -165,7 +165,7 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     level = dr.select(keep, level, fallback)
     # the pixel's footprint in its level's texels (the parallelogram its samples fill on
     # the tangent plane), for the marks of the points that kept the biases' level
-    # (:func:`mark_blocks`' columns); the same differentials as _levels' (one kernel)
+    # (:func:`mark_blocks`' bands); the same differentials as _levels' (one kernel)
     scale = float(vmap_like.layout.res0) * dr.exp2(-mi.Float(level))
     p = mi.Point3f(p64)
     axes = (view.uv_differential(face, p, dp_dx) * scale,
@@ -382,7 +382,7 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
     5.09 -> 1.14 ms on room_two_points (medians of 10 moves each, interleaved).
     Where the marks decide the biases' level per pixel (``vmap_like.scene``), a point
     that kept it marks :data:`KEPT_BANDS` bands of its box instead, one list each (the
-    first shared with every other point's box: :func:`_kept_columns`)."""
+    first shared with every other point's box: :func:`_kept_bands`)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
         vmap_like, None, None, None, None, margin, None, points)
     # the valid candidates of mark_candidates: lo + a (a < per_axis) in [0, n_tiles)
@@ -397,7 +397,7 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
                        mi.UInt32(sy) | (mi.UInt32(ey) << top))
         if len(points) < 8 or points[7] is None or per_axis < 2:
             return [box], [ok]
-        return _kept_columns(vmap_like, points, margin, face, level, ok, box, sx, sy,
+        return _kept_bands(vmap_like, points, margin, face, level, ok, box, sx, sy,
                              ex, ey, per_axis, top)
     key = page_key(face, level, sx, sy)
     keys, oks = [], []
@@ -407,18 +407,18 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
     return keys, oks
 
 
-#: How many pixel footprints from a kept point (:func:`marked_points`) its columns reach
-#: along each of the footprint's axes (:func:`_kept_columns`): its own pixel's samples
+#: How many pixel footprints from a kept point (:func:`marked_points`) its bands reach
+#: along each of the footprint's axes (:func:`_kept_bands`): its own pixel's samples
 #: (1/2) and its 8 neighbours' (3/2), whose lookups read the level it kept
 #: (:meth:`~.lookup.VirtualShadowMap.keeps`).
 KEPT_FOOTPRINTS = 1.5
 
-#: Bands a kept point's box is cut into (:func:`_kept_columns`): one candidate list each
+#: Bands a kept point's box is cut into (:func:`_kept_bands`): one candidate list each
 #: in :func:`dedupe_many`.
 KEPT_BANDS = 3
 
 
-def _kept_columns(vmap_like, points, margin, face, level, ok, box, sx, sy, ex, ey,
+def _kept_bands(vmap_like, points, margin, face, level, ok, box, sx, sy, ex, ey,
                   per_axis: int, top: int) -> tuple:
     """:func:`mark_blocks`' lists where points kept the biases' level: :data:`KEPT_BANDS`
     lists, the ``j``-th holding each kept point's band ``j`` of its box (the box cut

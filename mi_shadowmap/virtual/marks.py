@@ -436,7 +436,8 @@ def _kept_bands(vmap_like, points, margin, face, level, ok, box, sx, sy, ex, ey,
     980 kept points of 46,774 marked 3,298 of the frame's 7,416 tiles that no other point
     marked (levels 11-13 all of them), of which 64 camera samples a pixel read 4 % of the
     texels; with 3 bands 2,259 of 6,377 (474,624 -> 408,128 texels; 9 bands 377,984, 2
-    bands 426,880), images identical at 16 and 64 spp; ``pcf`` 612,992 -> 558,912, 27
+    bands 426,880; with the corner probes from the surface, 506,816 -> 426,496), images
+    identical at 16 and 64 spp; ``pcf`` 612,992 -> 558,912, 27
     pixels of 65,536 different at 64 spp, the same misclassified. Repository scenes at
     128^2 (``hard``, ``pcf``): 0-3 % fewer texels, images identical; 16 unseen worlds and
     terrains: up to 20 % fewer (terrain 3 ``hard`` 122,944 -> 99,008), misclassified

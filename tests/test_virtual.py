@@ -756,46 +756,6 @@ def test_the_biases_level_is_kept_where_a_probe_finds_an_occluder_or_an_edge(
     assert err[0] <= 1.1 * err[1]
 
 
-def test_kept_points_mark_the_bands_their_footprints_meet_not_their_box(tmp_path,
-                                                                         monkeypatch):
-    """A point that kept the biases' level marks, of the box around it that holds its own
-    and its neighbours' footprints (``m + 2 spread``), only the tiles the parallelogram
-    of 1.5 footprints around it meets, in 3 bands across the box
-    (:func:`~mi_shadowmap.virtual.marks._kept_bands`): a footprint the light grazes,
-    turned to the map's axes, fills little of its box. The terrain-with-pillars mesh of
-    ``benchmarks/bench_virtual_cost.py`` (20 k triangles here) under its spot, 64^2,
-    16 spp, ``hard``: measured 70,016 -> 62,464 texels, images identical."""
-    from mi_shadowmap import procedural
-    path = str(tmp_path / "pillars.ply")
-    procedural.big_mesh(20_000, path=path)
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 45,
-                   "to_world": T().look_at(origin=[0, 2.6, 4.2], target=[0, 0.2, 0],
-                                           up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 64, "height": 64,
-                            "rfilter": {"type": "box"}}},
-        "terrain": {"type": "ply", "filename": path},
-        "spot": {"type": "spot", "to_world": T().look_at(origin=[-2.5, 4.0, -2.0],
-                                                        target=[0, 0, 0], up=[0, 1, 0]),
-                 "intensity": {"type": "rgb", "value": 150.0},
-                 "cutoff_angle": 45.0, "beam_width": 40.0}})
-    ref = vis_of(scene, shadowmap(method="raytraced"), spp=16)
-    texels, vis = [], []
-    for bands in (True, False):
-        if not bands:     # every kept point's whole box, as before
-            monkeypatch.setattr(marks, "_kept_bands", lambda *a: ([a[6]], [a[5]]))
-        integ = shadowmap(method="hard", virtual=True, cache_maps=False)
-        vis.append(vis_of(scene, integ, spp=16))
-        texels.append(integ.stats.texels_built)
-    bad = [int(np.sum((v >= 0.5) != (ref >= 0.5))) for v in vis]
-    print(f"texels {texels[1]} -> {texels[0]}; misclassified {bad[1]} -> {bad[0]}; "
-          f"pixels differing {int(np.sum(vis[0] != vis[1]))}")
-    assert texels[0] < 0.95 * texels[1]
-    assert int(np.sum(vis[0] != vis[1])) <= 2
-    assert bad[0] <= bad[1] + 1
-
-
 def _posts_point_hits(crop=None):
     """The posts under a point light (:func:`posts_scene`) rendered once with virtual
     ``hard`` maps: ``(scene, integrator, its map, sensor, camera_hits, camera_pixels)``."""
@@ -824,8 +784,8 @@ def test_marks_and_lookups_agree_on_the_biases_level_per_pixel():
     np.testing.assert_array_equal(integ._film_pixel(si, valid).numpy()[valid.numpy()],
                                   pixel.numpy()[valid.numpy()])
     marker = marks.Marker(vmap.layout, vmap.lod_bias, reach=vmap.reach, scene=scene)
-    face, _, act, marked, _, dropped = marks.marked_points(marker, si, dp_dx, dp_dy,
-                                                              valid)[:6]
+    face, _, act, marked, _, dropped, _ = marks.marked_points(marker, si, dp_dx, dp_dy,
+                                                              valid)
     lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None,
                 pixel=pixel)
     on = act.numpy()
@@ -1023,12 +983,9 @@ def test_the_probes_see_instanced_occluders():
 
 def test_the_mark_pass_dedupes_one_block_list_per_light(monkeypatch):
     """The mark pass folds its blocks' shapes into their keys (:func:`marks.mark_blocks`
-    with :func:`marks.shape_bits`): one candidate list a light for ``hard`` (and one more
-    for each band of a point that kept the biases' level but the first,
-    :data:`marks.KEPT_BANDS`), where the biases' spread made 81 (9 x 9 shapes; 4 without
-    the biases), and the same marked tiles as the lists of every shape (the boxed light's
-    floor, most of its points capped); those lists mark a kept point's whole box, the
-    bands a subset of it."""
+    with :func:`marks.shape_bits`): one candidate list a light for ``hard``, where the
+    biases' spread made 81 (9 x 9 shapes; 4 without the biases), and the same marked tiles
+    as the lists of every shape (the boxed light's floor, most of its points capped)."""
     groups = []
     real = planner.dedupe_many
 
@@ -1039,17 +996,14 @@ def test_the_mark_pass_dedupes_one_block_list_per_light(monkeypatch):
     monkeypatch.setattr(planner, "dedupe_many", spy)
     scene = boxed_light_scene()
     marked = []
-    for fold, bands in ((True, True), (True, False), (False, False)):
-        if not bands:
-            monkeypatch.setattr(marks, "_kept_bands", lambda *a: ([a[6]], [a[5]]))
+    for fold in (True, False):
         if not fold:
             monkeypatch.setattr(planner, "shape_bits", lambda layout, per_axis: None)
         integ = shadowmap(method="hard", virtual=True, cache_maps=False)
         vis_of(scene, integ, spp=1)
         marked.append(np.asarray(integ.maps[0].store.last_mark[1]))
-    assert groups == [marks.KEPT_BANDS, 1, 81]
-    assert len(marked[1]) > 100 and np.array_equal(marked[1], marked[2])
-    assert len(np.setdiff1d(marked[0], marked[1])) == 0
+    assert groups == [1, 81]
+    assert len(marked[0]) > 100 and np.array_equal(marked[0], marked[1])
 
 
 @pytest.mark.parametrize("method", ["hard", "pcf", "mdsm", "vsm", "evsm", "msm"])

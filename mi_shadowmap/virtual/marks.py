@@ -123,19 +123,16 @@ def camera_pixels(sensor) -> mi.UInt32:
 
 
 def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
-    """``(face, uv64, act, level, spread, dropped, kept, axes)`` of the camera hits ``si``
-    a mark reads: their face and float64 uv, which of them mark (valid, on a face, in
-    front of a one-sided planar light, and ``active(p, n)`` if given), their level
+    """``(face, uv64, act, level, spread, dropped, kept)`` of the camera hits ``si`` a mark
+    reads: their face and float64 uv, which of them mark (valid, on a face, in front of a
+    one-sided planar light, and ``active(p, n)`` if given), their level
     (:meth:`VirtualShadowMap.level_for`), how far from the point, in its texels, the
     pixel's samples read where that level is finer than the footprint's (0 elsewhere),
     and where the biases' level was dropped: with ``vmap_like.scene`` (a :class:`Marker`
     of a render whose lookups know their film pixel), the points the biases capped whose
     :func:`probe_keeps` does not keep it; they mark the level without the biases'
     height, as their pixels' lookups on the same shape read it
-    (:meth:`VirtualShadowMap.keeps`); else nowhere (False); and those it keeps. ``axes``
-    (with ``vmap_like.scene``, else None): the pixel's footprint in its level's texels,
-    ``(du/dx, du/dy)`` (``mi.Point2f`` each: the parallelogram its samples fill on the
-    tangent plane, :func:`mark_blocks`)."""
+    (:meth:`VirtualShadowMap.keeps`); else nowhere (False); and those it keeps."""
     view = vmap_like.view
     p64 = mi.Point3d(si.p)
     face, uv64, _, inside = view.project_f64(p64)
@@ -147,7 +144,7 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     scene = getattr(vmap_like, "scene", None)
     if scene is None or getattr(vmap_like, "reach", None) is None:
         level, spread = vmap_like._levels(face, p64, dp_dx, dp_dy, si.n)
-        return face, uv64, act, level, spread, mi.Bool(False), mi.Bool(False), None
+        return face, uv64, act, level, spread, mi.Bool(False), mi.Bool(False)
     level, spread, fallback, fb_spread, length = vmap_like._levels(
         face, p64, dp_dx, dp_dy, si.n, probe=True)
     capped = act & (length > 0)
@@ -162,16 +159,8 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
         lambda p, n, dx, dy, ln, c, sh, e: probe_keeps(scene, view, p, n, dx, dy, ln, c, sh,
                                                        e),
         lambda p, n, dx, dy, ln, c, sh, e: mi.Bool(False))
-    level = dr.select(keep, level, fallback)
-    # the pixel's footprint in its level's texels (the parallelogram its samples fill on
-    # the tangent plane), for the marks of the points that kept the biases' level
-    # (:func:`mark_blocks`' bands); the same differentials as _levels' (one kernel)
-    scale = float(vmap_like.layout.res0) * dr.exp2(-mi.Float(level))
-    p = mi.Point3f(p64)
-    axes = (view.uv_differential(face, p, dp_dx) * scale,
-            view.uv_differential(face, p, dp_dy) * scale)
-    return (face, uv64, act, level, dr.select(keep, spread, fb_spread), capped & ~keep,
-            capped & keep, axes)
+    return (face, uv64, act, dr.select(keep, level, fallback),
+            dr.select(keep, spread, fb_spread), capped & ~keep, capped & keep)
 
 
 def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye=None):
@@ -379,10 +368,7 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
     point in every round of :func:`dedupe_many` (9 for ``hard`` with the biases' marks of
     4 texels, 81 with :data:`MAX_SPREAD`): on a camera move at 256^2 the dedupe kernels took 1.67 ->
     0.63 ms on large_world, 3.19 -> 0.51 ms on cbox_area (``pcss``: 8.05 -> 1.37 ms),
-    5.09 -> 1.14 ms on room_two_points (medians of 10 moves each, interleaved).
-    Where the marks decide the biases' level per pixel (``vmap_like.scene``), a point
-    that kept it marks :data:`KEPT_BANDS` bands of its box instead, one list each (the
-    first shared with every other point's box: :func:`_kept_bands`)."""
+    5.09 -> 1.14 ms on room_two_points (medians of 10 moves each, interleaved)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
         vmap_like, None, None, None, None, margin, None, points)
     # the valid candidates of mark_candidates: lo + a (a < per_axis) in [0, n_tiles)
@@ -393,131 +379,14 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
     ok = act & (ex >= 0) & (ey >= 0)
     if bits is not None:
         top = 27 - bits
-        box = page_key(face, level, mi.UInt32(sx) | (mi.UInt32(ex) << top),
-                       mi.UInt32(sy) | (mi.UInt32(ey) << top))
-        if len(points) < 8 or points[7] is None or per_axis < 2:
-            return [box], [ok]
-        return _kept_bands(vmap_like, points, margin, face, level, ok, box, sx, sy,
-                             ex, ey, per_axis, top)
+        return [page_key(face, level, mi.UInt32(sx) | (mi.UInt32(ex) << top),
+                         mi.UInt32(sy) | (mi.UInt32(ey) << top))], [ok]
     key = page_key(face, level, sx, sy)
     keys, oks = [], []
     for c in range(per_axis * per_axis):
         keys.append(key)
         oks.append(ok & (ex == c % per_axis) & (ey == c // per_axis))
     return keys, oks
-
-
-#: How many pixel footprints from a kept point (:func:`marked_points`) its bands reach
-#: along each of the footprint's axes (:func:`_kept_bands`): its own pixel's samples
-#: (1/2) and its 8 neighbours' (3/2), whose lookups read the level it kept
-#: (:meth:`~.lookup.VirtualShadowMap.keeps`).
-KEPT_FOOTPRINTS = 1.5
-
-#: Bands a kept point's box is cut into (:func:`_kept_bands`): one candidate list each
-#: in :func:`dedupe_many`.
-KEPT_BANDS = 3
-
-
-def _kept_bands(vmap_like, points, margin, face, level, ok, box, sx, sy, ex, ey,
-                  per_axis: int, top: int) -> tuple:
-    """:func:`mark_blocks`' lists where points kept the biases' level: :data:`KEPT_BANDS`
-    lists, the ``j``-th holding each kept point's band ``j`` of its box (the box cut
-    across its longer side into that many bands of whole tiles; of each band, the tiles
-    the parallelogram of :data:`KEPT_FOOTPRINTS` footprints around the point, widened by
-    the margin ``m``, meets), and list 0 every other point's box as before. A kept point
-    marked the box ``m + 2 spread`` around it (:func:`_tile_range`), the bounding box of
-    the footprints of its pixel and its neighbours; a footprint the light grazes is long
-    and thin, and turned to the map's axes it fills little of its box. The bands are a
-    subset of the box: never a tile more, and every tile a lookup of the pixel or of its
-    8 neighbours reads at that level on the point's tangent plane (lookups elsewhere --
-    another surface, a curved one -- may now walk where the box had their tile).
-
-    On the 1M-triangle mesh of ``benchmarks/bench_virtual_cost.py`` (256^2, ``hard``)
-    980 kept points of 46,774 marked 3,298 of the frame's 7,416 tiles that no other point
-    marked (levels 11-13 all of them), of which 64 camera samples a pixel read 4 % of the
-    texels; with 3 bands 2,259 of 6,377 (474,624 -> 408,128 texels; 9 bands 377,984, 2
-    bands 426,880; with the corner probes from the surface, 506,816 -> 426,496), images
-    identical at 16 and 64 spp; ``pcf`` 612,992 -> 558,912, 27
-    pixels of 65,536 different at 64 spp, the same misclassified. Repository scenes at
-    128^2 (``hard``, ``pcf``): 0-3 % fewer texels, images identical; 16 unseen worlds and
-    terrains: up to 20 % fewer (terrain 3 ``hard`` 122,944 -> 99,008), misclassified
-    identical. Each band is one more candidate list in :func:`dedupe_many`, whose
-    rounds compute the keys again: the bands' geometry (about 600 operations) runs in a
-    conditional that only vector packets holding a kept point enter."""
-    lay = vmap_like.layout
-    T = float(lay.tile_size)
-    m = _margins(vmap_like, margin)[0]
-    kept = ok & mi.Bool(points[6])
-
-    def bands(uv64, ax, ay, face, level, sx, sy, ex, ey):
-        """Each band's key (its tiles as a block, :func:`page_key` with its shape) and
-        whether it holds a tile."""
-        # the point in texels of its level, from the box's first tile (float32 exact)
-        res = mi.Float64(mi.UInt32(lay.res0) >> level)
-        c = mi.Point2f(uv64 * res - mi.Point2d(mi.Float64(sx), mi.Float64(sy)) * T)
-        a, b = mi.Point2f(ax) * KEPT_FOOTPRINTS, mi.Point2f(ay) * KEPT_FOOTPRINTS
-        # across the box's longer side (u) and along it (v): x and y swapped where the
-        # box is taller than wide
-        swap = ey > ex
-
-        def along(q):
-            return mi.Point2f(dr.select(swap, q.y, q.x), dr.select(swap, q.x, q.y))
-
-        c, a, b = along(c), along(a), along(b)
-        n = dr.select(swap, ey, ex) + 1              # tiles across
-        e_v = dr.select(swap, ex, ey)
-        width = (n + (KEPT_BANDS - 1)) // KEPT_BANDS  # tiles a band
-        verts = [c - a - b, c + a - b, c + a + b, c - a + b]
-        keys, has = [], []
-        for j in range(KEPT_BANDS):
-            # the band's strip (u in texels, widened by m) and the parallelogram's v over
-            # it: at its corners inside the strip and where its edges cross the strip's
-            # sides
-            u0 = width * j
-            u1 = dr.minimum(u0 + width, n) - 1       # the band's last tile
-            xa, xb = mi.Float(u0) * T - m, mi.Float(u1 + 1) * T + m
-            lo_v, hi_v = mi.Float(dr.inf), mi.Float(-dr.inf)
-            for v in verts:
-                inside = (v.x >= xa) & (v.x <= xb)
-                lo_v = dr.select(inside, dr.minimum(lo_v, v.y), lo_v)
-                hi_v = dr.select(inside, dr.maximum(hi_v, v.y), hi_v)
-            for k in range(4):
-                p0, p1 = verts[k], verts[(k + 1) % 4]
-                dx = p1.x - p0.x
-                for x in (xa, xb):
-                    t = (x - p0.x) / dr.select(dx != 0, dx, 1.0)
-                    cross = (dx != 0) & (t >= 0) & (t <= 1)
-                    y = dr.fma(t, p1.y - p0.y, p0.y)
-                    lo_v = dr.select(cross, dr.minimum(lo_v, y), lo_v)
-                    hi_v = dr.select(cross, dr.maximum(hi_v, y), hi_v)
-            met = lo_v <= hi_v
-            t0 = dr.maximum(mi.Int32(dr.floor((dr.select(met, lo_v, 0.0) - m) / T)), 0)
-            t1 = dr.minimum(mi.Int32(dr.floor((dr.select(met, hi_v, 0.0) + m) / T)), e_v)
-            has.append(met & (t0 <= t1) & (u0 <= u1))
-            t0 = dr.minimum(t0, dr.maximum(t1, 0))
-            du, dv = dr.maximum(u1 - u0, 0), dr.maximum(t1 - t0, 0)
-            keys.append(page_key(
-                face, level,
-                mi.UInt32(sx + dr.select(swap, t0, u0)) | (mi.UInt32(dr.select(swap, dv, du))
-                                                            << top),
-                mi.UInt32(sy + dr.select(swap, u0, t0)) | (mi.UInt32(dr.select(swap, du, dv))
-                                                            << top)))
-        return tuple(keys) + tuple(has)
-
-    # in a conditional that only packets holding a kept point enter: dedupe_many computes
-    # the keys again in each of its rounds, and the bands are some 600 operations a lane
-    # (unconditional, its 3 kernels took 1.1-1.3 ms each on a 256^2 large_world move
-    # instead of 0.2-0.25, where few points keep the level)
-    out = if_stmt(
-        (points[1], points[7][0], points[7][1], face, level, sx, sy, ex, ey), kept, bands,
-        lambda *args: tuple(mi.UInt64(0) for _ in range(KEPT_BANDS))
-        + tuple(mi.Bool(False) for _ in range(KEPT_BANDS)),
-        label="virtual marks: the bands of points that kept the biases' level")
-    keys, has = list(out[:KEPT_BANDS]), list(out[KEPT_BANDS:])
-    keys[0] = dr.select(kept, keys[0], box)
-    has = [kept & h for h in has]
-    has[0] = dr.select(kept, has[0], ok)
-    return keys, has
 
 
 def block_axis(vmap_like, margin: float) -> int:

@@ -216,10 +216,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             """Light ``i``'s tile keys from its :func:`marks` groups' keys: ``(own levels',
             coarser levels')`` (the latter empty without ``virtual_coarse_res``)."""
             n = len(found) - bool(coarse[i])
-            # (with the shapes in the keys, one list: mark_blocks' lists of kept
-            # points' columns hold keys of the same form)
-            own = block_tiles(found[:n] if shapes[i][1] is None or n == 1 else
-                              [np.concatenate(found[:n])], *shapes[i])
+            own = block_tiles(found[:n], *shapes[i])
             extra = (dilate_tiles(found[n], stores[i].layout, margins[i]) if coarse[i]
                      else np.zeros(0, np.uint64))
             return own, extra

@@ -695,14 +695,20 @@ def test_a_hard_lookup_chooses_its_level_once(monkeypatch):
     assert np.array_equal(a[1].numpy()[:, on], b[1].numpy()[:, on])
 
 
-def posts_scene(light: dict, width: int = 64, crop: dict | None = None):
+def posts_scene(light: dict, width: int = 64, crop: dict | None = None,
+                instanced: bool = False):
     """A floor (y = 0) grazed by ``light``, with a row of six thin posts (0.04 wide, 0.25
     tall) standing on it 1.5 to 3 from the light, seen from above at an angle: most of
     the floor has no occluder near it (after branch ``wip/probe-cap``). ``crop``: the
-    film's crop window (``crop_offset_x`` ...)."""
-    shapes = {f"post{k}": {"type": "cube",
-                           "to_world": T().translate([1.5 + 0.3 * k, 0.125, -0.6 + 0.25 * k])
-                           .scale([0.02, 0.125, 0.02])} for k in range(6)}
+    film's crop window (``crop_offset_x`` ...). ``instanced``: the posts are instances of
+    one cube (a ``shapegroup``)."""
+    post = ({"type": "instance", "shape": {"type": "ref", "id": "posts"}} if instanced
+            else {"type": "cube"})
+    shapes = {f"post{k}": post | {"to_world": T().translate([1.5 + 0.3 * k, 0.125,
+                                                             -0.6 + 0.25 * k])
+                                  .scale([0.02, 0.125, 0.02])} for k in range(6)}
+    if instanced:
+        shapes = {"posts": {"type": "shapegroup", "post": {"type": "cube"}}} | shapes
     return mi.load_dict({
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 45,
@@ -946,27 +952,10 @@ def test_the_probes_see_instanced_occluders():
     posts of :func:`posts_scene` under the point light as instances of one cube keep the
     biases' level on about as many pixels as the posts as cubes (64^2: 291 pixels read
     it with cubes, 293 with instances; 3 with instances before)."""
-    def scene(instanced):
-        group = {"type": "shapegroup", "post": {"type": "cube"}}
-        posts = {f"post{k}": ({"type": "instance", "shape": {"type": "ref", "id": "posts"}}
-                              if instanced else {"type": "cube"})
-                 | {"to_world": T().translate([1.5 + 0.3 * k, 0.125, -0.6 + 0.25 * k])
-                    .scale([0.02, 0.125, 0.02])} for k in range(6)}
-        return mi.load_dict({
-            "type": "scene",
-            "sensor": {"type": "perspective", "fov": 45,
-                       "to_world": T().look_at(origin=[2.5, 3.5, 4.5], target=[2.0, 0, 0],
-                                               up=[0, 1, 0]),
-                       "film": {"type": "hdrfilm", "width": 64, "height": 64,
-                                "rfilter": {"type": "box"}}},
-            "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(10)},
-            **({"posts": group} if instanced else {}), **posts,
-            "light": POSTS_LIGHTS["point"]})
-
     kept = []
     for instanced in (False, True):
         integ = shadowmap(method="hard", virtual=True, cache_maps=False)
-        s = scene(instanced)
+        s = posts_scene(POSTS_LIGHTS["point"], instanced=instanced)
         vis_of(s, integ, spp=1)
         words = integ.maps[0].keep[0].numpy()
         kept.append(int(np.sum((words & virtual.lookup.KEEP_CENTRE) != 0)))

@@ -234,8 +234,9 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
 
         # every light's marked points first (one kernel with the camera hits), then the
         # candidate tiles from them in each dedupe round (a few integer operations)
+        # the pinhole the probes' corners are seen from (marks.probe_keeps)
+        eye = camera_frame(sensor, cam)[0] if probe else None
         for batch in ([every] if fused and plain else [[i] for i in plain]):
-            eye = camera_frame(sensor, cam)[0] if probe else None
             markers = [Marker(stores[i].layout, opts.lod_bias, reach=reach[i],
                               scene=scene if probe and reach[i] is not None else None,
                               eye=eye)

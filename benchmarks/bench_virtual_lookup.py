@@ -2,6 +2,7 @@
 
     python benchmarks/bench_virtual_lookup.py [--scenes large_world far_point ...]
                                               [--image 1024] [--repeats 9] [--spp 1]
+                                              [--threads 1] [--unframed]
 
 For each scene, the camera's pixel-centre hits at ``--image``^2 (one lookup per pixel; with
 ``--spp`` N, N jittered samples per pixel in adjacent lanes, as a render orders them;
@@ -28,9 +29,26 @@ points (``read``), so that each row's increment is what that step adds:
                   unwalked, each read checking its page and tile; lanes that miss
                   run again, walked)
   full: hard      ``hard`` on the full map of ``virtual=false`` (same points)
+  shadow ray      one shadow ray towards a sample of the light (``raytraced``, as the
+                  integrator traces it), from the same hits
+
+and the ratio of one rendered lookup to one shadow ray (each over ``read``).
 
 Each row writes its outputs (a few arrays per lane), so increments are approximate; read
 the ``hard`` rows against each other. Times are this machine's (2 shared cores).
+
+**Stack frames.** The lookup keeps more values live than an AVX2 CPU has vector
+registers, and LLVM spills them (about 300 32-byte moves a packet of ``hard``). A
+render kernel realigns its stack frame (Mitsuba's calls hold 32-byte-aligned buffers),
+but a kernel of these rows alone does not, and where the calling thread's stack lay
+then decided whether half of its spills crossed cache lines: the same ``hard`` kernel
+took 21 or 35-37 ms (far_point, 256^2 x 16, one thread, AMD Zen 3; called at three
+stack depths), and a code change that only moved its frame size could look 1.7x
+faster or slower (``benchmarks/RESULTS.md``, forty-seventh session). Every row's
+kernel therefore holds a small aligned local array (:func:`framed`), as a render's
+does; ``--unframed`` leaves it out. With ``--threads 1`` a row's time is the CPU time
+of this thread, on which Dr.Jit then runs the kernels (steady on a shared machine:
+another process's time slices are not counted); else the kernels' wall time.
 """
 from __future__ import annotations
 
@@ -38,30 +56,48 @@ import argparse
 import pathlib
 import statistics
 import sys
+import time
 
 import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
 import drjit as dr
 import mitsuba as mi
 
 from mi_shadowmap import harness, virtual
-from mi_shadowmap.filters.common import Lookup, receiver
+from mi_shadowmap.filters.common import Lookup, RayTracedLight, receiver
 from mi_shadowmap.filters.hard import hard
+from mi_shadowmap.filters.raytraced import raytraced
 from mi_shadowmap.light_views import pixel_ray_differentials
 from mi_shadowmap.light_views.multi import MultiView
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-def kernel_ms(fn, repeats: int) -> float:
-    """Median execution time (ms) of the kernels that evaluating ``fn()`` launches."""
+def kernel_ms(fn, repeats: int, cpu: bool = False) -> float:
+    """Median time (ms) of the kernels that evaluating ``fn()`` launches: their execution
+    time, or with ``cpu`` this thread's CPU time while they run (one Dr.Jit thread: the
+    kernels run on the calling thread)."""
     times = []
     for _ in range(repeats + 2):
+        out = fn()
         dr.kernel_history()
-        dr.eval(fn())
+        c0 = time.thread_time_ns()
+        dr.eval(out)
         dr.sync_thread()
+        c1 = time.thread_time_ns()
         hist = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-        times.append(sum(k["execution_time"] for k in hist))
+        times.append((c1 - c0) * 1e-6 if cpu else sum(k["execution_time"] for k in hist))
     return statistics.median(times[2:])
+
+
+def framed(out, value):
+    """``(out, value)``, ``value`` (a ``mi.Float``) passed through a Dr.Jit local array
+    of 2 entries at two opaque indices: LLVM keeps the array (it cannot prove the indices
+    equal), and a frame holding an object aligned to the vector width is realigned, as a
+    render kernel's is (see the module doc). One store and one load a packet, and one
+    more output: in every row, ``read`` included."""
+    local = dr.alloc_local(mi.Float, 2)
+    local[dr.opaque(mi.UInt32, 0)] = value
+    return out, local[dr.opaque(mi.UInt32, 0)]
 
 
 def camera_samples(scene, spp: int):
@@ -114,6 +150,15 @@ def bench_scene(name: str, args) -> list:
     lk = Lookup(p, si.n, dp_dx, dp_dy, si, None, None, pixel=pixel)
     n = int(valid.numpy().sum())
     vo, fo = virt.opts, full.opts
+    # a light sample per hit and the integrator's shadow ray towards it
+    emitter = scene.emitters()[0]
+    rng = mi.PCG32(dr.width(valid))
+    ds, _ = emitter.sample_direction(si, mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                     valid)
+    dr.eval(ds)
+    lk_ray = Lookup(p, si.n, dp_dx, dp_dy, si, ds, None, pixel=pixel)
+    rt = RayTracedLight(scene, emitter)
+    rt_opts = mi.load_dict({"type": "shadowmap", "method": "raytraced"}).opts
 
     def bound():
         return vm.bind(lk, valid, per_tap=True)
@@ -141,11 +186,15 @@ def bench_scene(name: str, args) -> list:
         ("hard", lambda: hard(bound(), lk, vo, valid)),
         ("hard, rendered", lambda: vm.visibility(hard, lk, vo, valid, per_tap=True)),
         ("full: hard", lambda: hard(fm, lk, fo, valid)),
+        ("shadow ray", lambda: raytraced(rt, lk_ray, rt_opts, valid & (ds.pdf > 0))),
     ]
     rows = []
     base = None
+    cpu = args.threads == 1
     for label, fn in steps:
-        t = kernel_ms(fn, args.repeats)
+        if not args.unframed:
+            fn = (lambda f: lambda: framed(f(), lk.p_world.x))(fn)
+        t = kernel_ms(fn, args.repeats, cpu)
         base = t if base is None else base
         rows.append((name, label, t, (t - base) / max(n, 1) * 1e6))
     return rows
@@ -159,16 +208,33 @@ def main():
     ap.add_argument("--repeats", type=int, default=9)
     ap.add_argument("--spp", type=int, default=1,
                     help="jittered camera samples per pixel (1: the pixel centres)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="Dr.Jit's thread count (0: its default); 1: rows timed by CPU "
+                         "time, steadier on a shared machine")
+    ap.add_argument("--unframed", action="store_true",
+                    help="time the rows' kernels without the realigned frame (framed)")
     args = ap.parse_args()
     dr.set_flag(dr.JitFlag.KernelHistory, True)
+    if args.threads > 0:
+        dr.set_thread_count(args.threads)
     where = "pixel-centre hits" if args.spp <= 1 else f"hits, {args.spp} jittered per pixel"
-    print(f"`hard` lookups at {args.image}^2 {where}, kernel time, median of "
+    clock = "CPU time, one thread" if args.threads == 1 else "kernel time"
+    frames = "unframed kernels" if args.unframed else "kernels with a realigned frame"
+    print(f"`hard` lookups at {args.image}^2 {where}, {clock}, {frames}, median of "
           f"{args.repeats}; ns / lookup = (kernel - read) / hits\n")
     print("| scene | step | kernel [ms] | ns / lookup over `read` |")
     print("|---|---|---|---|")
+    ratios = []
     for name in args.scenes:
-        for scene, label, t, ns in bench_scene(name, args):
+        rows = bench_scene(name, args)
+        for scene, label, t, ns in rows:
             print(f"| {scene} | {label} | {t:.3f} | {ns:.2f} |")
+        ns = {label: v for _, label, _, v in rows}
+        if rows:
+            ratios.append((name, ns["hard, rendered"] / ns["shadow ray"],
+                           ns["full: hard"] / ns["shadow ray"]))
+    print("\none lookup / one shadow ray (each over `read`): "
+          + "; ".join(f"{n} {v:.2f} (full map {f:.2f})" for n, v, f in ratios))
 
 
 if __name__ == "__main__":

@@ -32,6 +32,42 @@ def test_bench_virtual_lookup_skips_an_environment_map():
     assert "| scene | step |" in out and "| sky_sun |" not in out
 
 
+def test_bench_virtual_lookup_times_realigned_kernels_and_a_shadow_ray():
+    # a row's kernel alone (no Mitsuba call, so no aligned stack object) did not realign
+    # its stack frame, and the same hard lookup took 21 or 35 ms by the caller's stack
+    # depth (benchmarks/RESULTS.md, forty-seventh session); the rows now realign it, as
+    # render kernels do, and the lookup is compared with a shadow ray of the same run
+    out = run_bench("bench_virtual_lookup.py", "--scenes", "far_point", "--image", "16",
+                    "--spp", "2", "--repeats", "1", "--threads", "1")
+    assert "kernels with a realigned frame" in out and "| far_point | shadow ray |" in out
+    assert "one lookup / one shadow ray (each over `read`): far_point" in out
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import re
+
+        import drjit as dr
+        import mitsuba as mi
+        from bench_virtual_lookup import framed
+    finally:
+        sys.path.pop(0)
+    if not mi.variant().startswith("llvm"):
+        return
+    x = dr.arange(mi.Float, 1000) * 0.37 - 5.0
+    dr.eval(x)
+    dr.kernel_history()   # clear
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        out, value = framed(x + 1.0, x)
+        dr.eval(out, value)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    ir = "".join(k["ir"].getvalue() for k in dr.kernel_history()
+                 if k["type"] == dr.KernelType.JIT)
+    assert max([int(a) for a in re.findall(r"= alloca [^\n]*, align (\d+)", ir)],
+               default=0) >= 32
+    assert (value.numpy() == x.numpy()).all()
+
+
 def test_bench_environment_names_the_default_maps():
     # the scene's defaults render virtual maps (integrator.resolution None): the
     # acceptance line printed "None^2 maps"

@@ -208,21 +208,36 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     hit0 = probe_distance(scene, view, p, n, active, own)
     keep = mi.Bool(active) & (hit0 < mi.Float(length) * PROBE_MARGIN)
     shadowed = dr.isfinite(hit0)
-    for a in (-0.5, 0.5):
-        for b in (-0.5, 0.5):
-            c = p + dp_dx * a + dp_dy * b
-            corner = probe_distance(scene, view, c, n, active & ~keep, own)
-            differs = mi.Bool(active) & ~keep & (dr.isfinite(corner) != shadowed)
-            if eye is not None and shape is not None:
-                # (nested in marked_points' conditional: control_flow's if_stmt names
-                # the symbolic mode, so Dr.Jit does not log forcing it)
-                differs = if_stmt(
-                    (c, n, differs, shadowed, own, shape, eye), differs,
-                    lambda c, n, d, s, o, sh, e: _surface_corner_differs(
-                        scene, view, c, n, d, s, o, sh, e),
-                    lambda c, n, d, s, o, sh, e: d,
-                    label="virtual marks: a corner's edge from the surface")
-            keep |= differs
+    surface = eye is not None and shape is not None
+
+    def corner_left(k, keep):
+        return (k < 4) & mi.Bool(active) & ~keep
+
+    def corner_probe(k, keep):
+        # corner k: (-, -), (-, +), (+, -), (+, +) halves of dp_dx and dp_dy, in the
+        # order the unrolled corners took (a lane that keeps the level probes no more)
+        a = dr.select(k < 2, mi.Float(-0.5), mi.Float(0.5))
+        b = dr.select((k & 1) == 0, mi.Float(-0.5), mi.Float(0.5))
+        c = p + dp_dx * a + dp_dy * b
+        corner = probe_distance(scene, view, c, n, active & ~keep, own)
+        differs = mi.Bool(active) & ~keep & (dr.isfinite(corner) != shadowed)
+        if surface:
+            # (nested in marked_points' conditional: control_flow's if_stmt names
+            # the symbolic mode, so Dr.Jit does not log forcing it)
+            differs = if_stmt(
+                (c, n, differs, shadowed, own, shape, eye), differs,
+                lambda c, n, d, s, o, sh, e: _surface_corner_differs(
+                    scene, view, c, n, d, s, o, sh, e),
+                lambda c, n, d, s, o, sh, e: d,
+                label="virtual marks: a corner's edge from the surface")
+        return k + 1, keep | differs
+
+    # the four corners in a loop, not unrolled: traced once (marked_points' tracing of a
+    # moved far_point frame about a third, the mark kernel 1616 -> 1059 operations,
+    # its code generation 0.60 -> 0.36 ms; marks bit-identical)
+    mode = "symbolic" if dr.flag(dr.JitFlag.SymbolicScope) else None
+    _, keep = dr.while_loop((mi.UInt32(0), keep), corner_left, corner_probe, mode=mode,
+                            label="virtual marks: the footprint's corners")
     return keep
 
 

@@ -691,7 +691,8 @@ def tile_pages(tiles: np.ndarray, layout) -> tuple:
     return pk[starts], np.bitwise_or.reduceat(bit[order], starts)
 
 
-def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list:
+def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(),
+                second=None) -> list:
     """For each ``(keys, oks)`` of ``groups`` (one per light), most of the keys
     ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
     65 k candidates hold a few thousand keys), so that the host sorts a few thousand keys
@@ -718,7 +719,14 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
     that repeat the previous table's in the same slot are left out (a group's tables
     share their slots: a key wins the same slot in each), one comparison per slot and
     table (comparing with every earlier table was quadratic in the lists: 300
-    comparisons a slot for a 25-list ``pcss`` mark pass)."""
+    comparisons a slot for a 25-list ``pcss`` mark pass).
+
+    ``first``: more variables evaluated in the first round's kernel (the mark pass's
+    points, from which the keys are traced unevaluated: one kernel computes them, stores
+    them and scatters their keys, where the first round read them back in a kernel of its
+    own). ``second``: None, or a function called once the first round is launched, whose
+    variables are evaluated in the second round's kernel (the pixels' words,
+    ``planner._pixel_keeps``, which gather what the first kernel scattered)."""
     # one table per candidate list: Dr.Jit puts scatters into different arrays in one
     # kernel (a second scatter into the same array would start a new kernel)
     flat = [(k, ok) for keys, oks in groups for k, ok in zip(keys, oks)]
@@ -740,7 +748,8 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
     # pass evaluates its points first, :func:`marked_points`), a few integer operations
     # where storing every candidate list (25 of a pcss mark under a 16-region sky, 60 MB)
     # and reading it back twice was bound by memory
-    dr.eval(*tables)
+    dr.eval(*tables, *first)
+    extra = list(second()) if second is not None else []
     # the second round, in one kernel with the first round's losers
     tables2 = [table(pt) for pt in flat_parts]
     slot2 = [slots_of(k, 0xC2B2AE3D27D4EB4F, pt) for (k, _), pt in zip(flat, flat_parts)]
@@ -748,7 +757,7 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None) -> list
             for t, (k, ok), s in zip(tables, flat, slot)]
     for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost):
         dr.scatter(t2, k, s2, lo)
-    dr.eval(*tables2, *lost)
+    dr.eval(*tables2, *lost, *extra)
     lost2 = [lo & (dr.gather(mi.UInt64, t2, s2, lo) != k)
              for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost)]
     # the twice-lost candidates' keys, appended to a small buffer per list in the same

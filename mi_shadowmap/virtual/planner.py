@@ -243,14 +243,22 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                        for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
             # each probed light's centres' words, scattered in the same kernel, then
-            # their neighbours' in one small kernel (_pixel_keeps)
+            # their neighbours' (_pixel_keeps) in the dedupe's second round
             centres = {i: _centre_words(sensor, pt[5], pt[6], hits[0].shape)
                        for i, mk, pt in zip(batch, markers, points) if mk.scene is not None}
-            dr.eval(*(x for pt in points for x in pt), *centres.values())
-            keeps = {i: _pixel_keeps(sensor, c) for i, c in centres.items()}
-            dr.eval(*(k[0] for k in keeps.values()))
             groups = [marks(i, mk, pt) for i, mk, pt in zip(batch, markers, points)]
-            found = dedupe_many([g for gs in groups for g in gs])
+            keeps = {}
+
+            def neighbours():
+                keeps.update((i, _pixel_keeps(sensor, c)) for i, c in centres.items())
+                return [k[0] for k in keeps.values()]
+
+            # the points evaluated in the dedupe's first kernel, which scatters their
+            # keys (one kernel, not two), the pixels' words in its second (not their
+            # own): a moved frame's kernels 11 -> 9
+            found = dedupe_many([g for gs in groups for g in gs],
+                                first=[x for pt in points for x in pt] + list(centres.values()),
+                                second=neighbours)
             for i, gs in zip(batch, groups):
                 mine, found = found[:len(gs)], found[len(gs):]
                 if not dark[i]:

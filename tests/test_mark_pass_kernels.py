@@ -1,0 +1,134 @@
+"""The mark pass of a camera move (virtual maps, issue 11): what it traces and how many
+kernels it launches, with the marks, texels and images it gave before."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_shadowmap import virtual
+from mi_shadowmap.control_flow import if_stmt
+from mi_shadowmap.virtual import marks, planner
+
+from conftest import SCENES
+
+T = mi.ScalarTransform4f
+
+
+def shadowmap(**kw):
+    return mi.load_dict({"type": "shadowmap", **kw})
+
+
+def _moved_scene(k: int = 1):
+    """far_point at 64^2 (a point light, the biases capped and probed per pixel), its
+    camera moved sideways and turned ``k`` times a small step."""
+    scene = mi.load_file(str(SCENES / "far_point.xml"), width=64, height=64)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world")
+               and isinstance(params.properties[k][2], mi.Sensor))
+    params[key] = type(params[key])(params[key]) @ T().translate([0.05 * k, 0, 0]) \
+        @ T().rotate([0, 1, 0], 1.0 * k)
+    params.update()
+    return scene
+
+
+def _probe_keeps_unrolled(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None,
+                          eye=None):
+    """:func:`marks.probe_keeps` as it was, its four corners unrolled (the reference)."""
+    own = None
+    if shape is not None:
+        own = dr.select(dr.dot(n, view.direction_to_light(p)) < 0, shape, mi.ShapePtr(None))
+    hit0 = marks.probe_distance(scene, view, p, n, active, own)
+    keep = mi.Bool(active) & (hit0 < mi.Float(length) * marks.PROBE_MARGIN)
+    shadowed = dr.isfinite(hit0)
+    for a in (-0.5, 0.5):
+        for b in (-0.5, 0.5):
+            c = p + dp_dx * a + dp_dy * b
+            corner = marks.probe_distance(scene, view, c, n, active & ~keep, own)
+            differs = mi.Bool(active) & ~keep & (dr.isfinite(corner) != shadowed)
+            if eye is not None and shape is not None:
+                differs = if_stmt(
+                    (c, n, differs, shadowed, own, shape, eye), differs,
+                    lambda c, n, d, s, o, sh, e: marks._surface_corner_differs(
+                        scene, view, c, n, d, s, o, sh, e),
+                    lambda c, n, d, s, o, sh, e: d)
+            keep |= differs
+    return keep
+
+
+def test_the_corner_probes_are_traced_once_with_the_same_marks(monkeypatch):
+    """The four corners of a pixel's footprint are probed in a loop, traced once: a
+    moved frame traced ``probe_distance`` nine times (the centre, four corners, four
+    corners again from the surface) and its mark kernel held 1616 operations on
+    far_point, 1059 now. Marks, texels and image are those of the unrolled corners."""
+    scene = _moved_scene()
+    calls = []
+    traced = marks.probe_distance
+
+    def counting(*args, **kw):
+        calls.append(1)
+        return traced(*args, **kw)
+
+    monkeypatch.setattr(marks, "probe_distance", counting)
+    virtual.PAGE_CACHE.clear()
+    looped = shadowmap(method="hard", cache_maps=False)
+    img = np.asarray(mi.render(scene, integrator=looped, spp=2))
+    n_traced = len(calls)
+    monkeypatch.setattr(marks, "probe_keeps", _probe_keeps_unrolled)
+    unrolled = shadowmap(method="hard", cache_maps=False)
+    ref = np.asarray(mi.render(scene, integrator=unrolled, spp=2))
+    print("probe_distance traced", n_traced, "times (unrolled:", len(calls) - n_traced, ")")
+    assert 0 < n_traced <= 3
+    assert np.array_equal(img, ref)
+    for key in ("texels_built", "pages_marked", "pages_built"):
+        assert looped.stats[key] == unrolled.stats[key], key
+
+
+def test_a_moves_mark_pass_launches_three_kernels_over_its_pixels(monkeypatch):
+    """The marked points are evaluated in the kernel that scatters their keys into the
+    dedupe's first tables, and the pixels' words (``planner._pixel_keeps``) in its
+    second round: a moved frame's mark pass (camera hits to the dedupe's host reads)
+    launches three kernels over its pixels, where it launched five (the points, the
+    words, three dedupe rounds). The image and texels are those of the kernels apart."""
+    scene = _moved_scene()
+    hits, tiles = planner.camera_hits, planner.block_tiles
+    seen = []
+
+    def hits_first(*args, **kw):
+        dr.kernel_history()                 # (emptied: the mark pass's kernels from here)
+        return hits(*args, **kw)
+
+    def tiles_after(*args, **kw):
+        if not seen:
+            seen.append([k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT])
+        return tiles(*args, **kw)
+
+    monkeypatch.setattr(planner, "camera_hits", hits_first)
+    monkeypatch.setattr(planner, "block_tiles", tiles_after)
+    virtual.PAGE_CACHE.clear()
+    integ = shadowmap(method="hard", cache_maps=False)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        img = np.asarray(mi.render(scene, integrator=integ, spp=2))
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    wide = [k for k in seen[0] if k["size"] >= 64 * 64]
+    print("mark pass kernels (size, operations):",
+          [(k["size"], k["operation_count"]) for k in seen[0]])
+    assert len(wide) == 3
+    # the reference: the points, then the words, each evaluated alone before the dedupe
+    dedupe = planner.dedupe_many
+
+    def apart(groups, bits=14, parts=None, first=(), second=None):
+        dr.eval(*first)
+        if second is not None:
+            dr.eval(*second())
+        return dedupe(groups, bits, parts)
+
+    monkeypatch.setattr(planner, "camera_hits", hits)
+    monkeypatch.setattr(planner, "block_tiles", tiles)
+    monkeypatch.setattr(planner, "dedupe_many", apart)
+    ref = shadowmap(method="hard", cache_maps=False)
+    assert np.array_equal(img, np.asarray(mi.render(scene, integrator=ref, spp=2)))
+    for key in ("texels_built", "pages_marked", "pages_built"):
+        assert ref.stats[key] == integ.stats[key], key

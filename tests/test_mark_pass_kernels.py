@@ -60,7 +60,8 @@ def test_the_corner_probes_are_traced_once_with_the_same_marks(monkeypatch):
     """The four corners of a pixel's footprint are probed in a loop, traced once: a
     moved frame traced ``probe_distance`` nine times (the centre, four corners, four
     corners again from the surface) and its mark kernel held 1616 operations on
-    far_point, 1059 now. Marks, texels and image are those of the unrolled corners."""
+    far_point at 256^2, 1059 with the corners looped. Marks, texels and image are those
+    of the unrolled corners."""
     scene = _moved_scene()
     calls = []
     traced = marks.probe_distance

@@ -745,9 +745,9 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     for t, (k, ok), s in zip(tables, flat, slot):
         dr.scatter(t, k, s, ok)
     # the keys are not stored: each round recomputes them from their inputs (the mark
-    # pass evaluates its points first, :func:`marked_points`), a few integer operations
-    # where storing every candidate list (25 of a pcss mark under a 16-region sky, 60 MB)
-    # and reading it back twice was bound by memory
+    # pass's points: evaluated before, or in this first round's kernel, ``first``), a few
+    # integer operations where storing every candidate list (25 of a pcss mark under a
+    # 16-region sky, 60 MB) and reading it back twice was bound by memory
     dr.eval(*tables, *first)
     extra = list(second()) if second is not None else []
     # the second round, in one kernel with the first round's losers

@@ -696,8 +696,8 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     """For each ``(keys, oks)`` of ``groups`` (one per light), most of the keys
     ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
     65 k candidates hold a few thousand keys), so that the host sorts a few thousand keys
-    (:func:`sorted_unique`) instead of all candidates: one kernel computes every light's keys (and the
-    camera hits they come from) and scatters each list into its hash table of
+    (:func:`sorted_unique`) instead of all candidates: one kernel computes every light's
+    keys (and the camera hits they come from) and scatters each list into its hash table of
     ``2^bits`` slots; a second finds the candidates whose key lost its slot to another
     key and scatters them into a second table (another hash); a third finds those that
     lost there too and appends their keys to a buffer of :data:`SPILL` per list and

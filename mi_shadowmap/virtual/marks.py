@@ -172,10 +172,17 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     crosses the pixel: the shadow rays from the corners of its footprint (``p +- dp_dx /
     2 +- dp_dy / 2``, on the tangent plane) to the light do not all agree with the
     centre's (the fallback's coarser texels move the edges of thin occluders' shadows;
-    a probe from the centre alone missed thin posts beside it). Elsewhere the fallback
-    level loses no shadow the biases' level keeps. Five rays per capped pixel centre, in
-    the mark kernel (``ray_intersect_preliminary``); the measurements are in
-    ``benchmarks/RESULTS.md`` (the forty-second and forty-fourth sessions).
+    a probe from the centre alone missed thin posts beside it), or where the ray from the
+    centre lifted along its normal by ``PROBE_MARGIN`` times the biases' height at the
+    fallback (``length cos(theta)``; the fallback's lookups are lifted by their normal
+    offset, at most that height) does not agree with the centre's: that ray meets
+    occluders the point's passes (a ball's bottom beside its contact shadow, under a
+    light 1e-3 to 0.05 over the floor: ``hard`` falsely shadowed 0.90 % of a 128^2 view
+    at the fallback, 0.36 % now, ``raytraced``'s own noise 0.31 %; the forty-seventh
+    session, helper D). Elsewhere the fallback level loses no shadow the biases' level
+    keeps and adds none. Up to six rays per capped pixel centre, in the mark kernel
+    (``ray_intersect_preliminary``); the measurements are in ``benchmarks/RESULTS.md``
+    (the forty-second, forty-fourth and forty-seventh sessions).
 
     ``eye``: the camera's pinhole (opaque), or None. A corner lies on the receiver's
     tangent plane, and where the surface bends up within the footprint (a valley of a
@@ -209,35 +216,45 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     keep = mi.Bool(active) & (hit0 < mi.Float(length) * PROBE_MARGIN)
     shadowed = dr.isfinite(hit0)
     surface = eye is not None and shape is not None
+    # the fallback's lookups compare along a ray lifted off the point by its normal
+    # offset (at most the biases' height, ``length cos``): where that ray meets an
+    # occluder the point's misses, or misses one it meets, the fallback moves a shadow's
+    # edge onto the pixel (a ball's contact shadow under a light 1e-3 over the floor)
+    c_nl = dr.dot(n, view.direction_to_light(p))
+    lift = mi.Float(length) * dr.clip(dr.abs(c_nl), 1e-6, 1.0) * PROBE_MARGIN
+    p_lifted = p + n * dr.select(c_nl >= 0, lift, -lift)
 
-    def corner_left(k, keep):
-        return (k < 4) & mi.Bool(active) & ~keep
+    def probe_left(k, keep):
+        return (k < 5) & mi.Bool(active) & ~keep
 
-    def corner_probe(k, keep):
-        # corner k: (-, -), (-, +), (+, -), (+, +) halves of dp_dx and dp_dy, in the
-        # order the unrolled corners took (a lane that keeps the level probes no more)
+    def probe(k, keep):
+        # probe k < 4: corner (-, -), (-, +), (+, -), (+, +) halves of dp_dx and dp_dy;
+        # k = 4: the lifted centre. A lane that keeps the level probes no more (keep is
+        # the OR of every probe's disagreement: the order changes nothing)
+        lifted = k == 4
         a = dr.select(k < 2, mi.Float(-0.5), mi.Float(0.5))
         b = dr.select((k & 1) == 0, mi.Float(-0.5), mi.Float(0.5))
-        c = p + dp_dx * a + dp_dy * b
+        c = dr.select(lifted, p_lifted, p + dp_dx * a + dp_dy * b)
         corner = probe_distance(scene, view, c, n, active & ~keep, own)
         differs = mi.Bool(active) & ~keep & (dr.isfinite(corner) != shadowed)
         if surface:
-            # (nested in marked_points' conditional: control_flow's if_stmt names
-            # the symbolic mode, so Dr.Jit does not log forcing it)
+            # a corner's disagreement checked from the surface the camera sees (not the
+            # lifted centre's). (Nested in marked_points' conditional: control_flow's
+            # if_stmt names the symbolic mode, so Dr.Jit does not log forcing it)
             differs = if_stmt(
-                (c, n, differs, shadowed, own, shape, eye), differs,
+                (c, n, differs, shadowed, own, shape, eye), differs & ~lifted,
                 lambda c, n, d, s, o, sh, e: _surface_corner_differs(
                     scene, view, c, n, d, s, o, sh, e),
                 lambda c, n, d, s, o, sh, e: d,
                 label="virtual marks: a corner's edge from the surface")
         return k + 1, keep | differs
 
-    # the four corners in a loop, not unrolled: traced once (marked_points' tracing of a
-    # moved far_point frame about a third, the mark kernel 1616 -> 1059 operations,
-    # its code generation 0.60 -> 0.36 ms; marks bit-identical)
+    # the probes in a loop, not unrolled: traced once (marked_points' tracing of a moved
+    # far_point frame about a third, the mark kernel 1616 -> 1059 operations, its code
+    # generation 0.60 -> 0.36 ms, with the four corners; marks bit-identical)
     mode = "symbolic" if dr.flag(dr.JitFlag.SymbolicScope) else None
-    _, keep = dr.while_loop((mi.UInt32(0), keep), corner_left, corner_probe, mode=mode,
-                            label="virtual marks: the footprint's corners")
+    _, keep = dr.while_loop((mi.UInt32(0), keep), probe_left, probe, mode=mode,
+                            label="virtual marks: the footprint's corners, the lifted centre")
     return keep
 
 

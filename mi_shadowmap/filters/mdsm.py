@@ -58,7 +58,19 @@ Deviations from the paper, and why:
   layers serves every ``search``. ``search = 1`` uses the base depth (the
   n-SM then equals a standard map).
 * Taps are clamped to the receiver's face (cube-map seams are not
-  crossed); lookups outside the map are lit.
+  crossed); lookups outside the map are lit. A block cut by the face's border reads
+  the border's texels again, and unlike ``second_depth``'s (whose compares of the
+  point's own depth against those texels all shadowed an open floor: no evidence,
+  see its module doc) each clamped tap here is a sound compare: the texel it reads
+  against the receiver's plane at that same texel. Its vote only counts twice, as a
+  box filter's weights do at an edge. Measured (forty-seventh session, 128^2, 16
+  spp; a floor, box, ball and post under a point light 4 or 0.3 over the floor, full
+  maps of 1-16 texels a face and virtual maps): 0.00-0.06 % false shadow (every bias
+  0: 0.01-0.23 % at 2-16 texels, 0.6 / 6.4 % at 1, where the face's one texel sees an
+  occluder; the 2.5-11 % false light of those maps is under-sampling, as ``hard``'s);
+  counting only the distinct in-face taps changed misclassified pixels by at most 0.14
+  points (none at 1 texel), and cbox_area, room_two_points and spectral_point
+  (virtual, 256, 1024) by none (RMSE identical to 4 digits).
 * Only the layers the options read are built (the record's ``layers_for``,
   :meth:`mi_shadowmap.methods.Method.layer_names`): none for ``depths = 1`` or
   ``search = 1``, ``mdsm_max`` for ``depths = 2``, both for ``depths = 3``.

@@ -35,7 +35,7 @@ import mitsuba as mi
 import numpy as np
 
 from .ground_truth import (converged_reference, has_area_lights, has_soft_lights,  # noqa: F401
-                           reference_follows_spp,
+                           reference_follows_spp, reference_sizes,
                            make_reference, score)
 from . import map_manager
 from .options import OptionError
@@ -70,7 +70,17 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         Default: every registered method except ``raytraced``
         (:func:`~mi_shadowmap.specs.default_methods`).
     reference : ``"auto"`` | ``"converged"`` | method name | spec dict | MethodResult
-        See :func:`~mi_shadowmap.ground_truth.make_reference`.
+        See :func:`~mi_shadowmap.ground_truth.make_reference`. The automatic and the
+        converged reference give delta lights the size the methods give them
+        (``light_size``, ``angular_diameter``): each method is scored against the light
+        it models, so methods that give it different sizes (``multiview:light_size=0.5``
+        and ``pcss``, whose default is no size) get one reference each, rendered with
+        that size (``raytraced`` with ``ref_shadow_rays`` shadow rays); a method without
+        the property (``hard``) is scored against the first size a method gives
+        (:func:`~mi_shadowmap.ground_truth.reference_sizes`). The first method's
+        reference comes first in the results; another method's is its
+        ``scored_against`` (its metrics' ``reference_spp`` says its spp). Give a reference
+        (a spec or a result) to score every method against one light.
     spp, seed, repeats
         Samples per pixel, seed (shared by all methods) and warm re-renders.
     **params
@@ -105,16 +115,22 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
     if progress:
         from .progress import bar
         iterator = bar(specs, desc="methods", unit="method", leave=False)
+    # the sizes each method gives the delta lights: its reference renders them so
+    sized = isinstance(reference, str) and reference in ("auto", "converged")
+    main_sizes, own_sizes = (reference_sizes(scene, specs) if sized
+                             else ({}, [{} for _ in specs]))
     ref = make_reference(scene, reference, spp=spp, seed=seed, ref_spp=ref_spp,
                          ref_shadow_rays=ref_shadow_rays, repeats=repeats,
-                         measure_cached=measure_cached)
+                         measure_cached=measure_cached, sizes=main_sizes)
     # a reference that shares the methods' camera samples (reference_follows_spp) holds
-    # no camera noise in their errors; a method with its own spp gets one at its spp
-    per_spp = {rendered_spp(scene, spp): ref}     # by the spp the sampler renders
+    # no camera noise in their errors; a method with its own spp gets one at its spp; a
+    # method that gives the lights another size, one with that size
+    base_spp = rendered_spp(scene, spp)    # the spp the sampler renders
+    per_key = {(base_spp, _size_key(main_sizes)): ref}
     matched = reference_follows_spp(scene, reference)
     results, scored = [ref], [(ref, ref)]
     try:
-        for spec in iterator:
+        for spec, sizes in zip(iterator, own_sizes):
             spec = dict(spec)
             own_spp = "spp" in spec
             m_spp = spec.pop("spp", spp)
@@ -122,14 +138,14 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
                            measure_cached=measure_cached, **spec)
             if own_spp:         # told apart from the same method at compare's spp
                 r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
-            r_ref = ref
-            if matched and r.spp not in per_spp:
-                per_spp[r.spp] = make_reference(scene, reference, spp=m_spp, seed=seed,
-                                                ref_spp=ref_spp,
-                                                ref_shadow_rays=ref_shadow_rays,
-                                                repeats=repeats, measure_cached=measure_cached)
-            if matched:
-                r_ref = per_spp[r.spp]
+            key = (r.spp if matched else base_spp, _size_key(sizes))
+            if key not in per_key:
+                per_key[key] = make_reference(scene, reference, spp=m_spp if matched else spp,
+                                              seed=seed, ref_spp=ref_spp,
+                                              ref_shadow_rays=ref_shadow_rays,
+                                              repeats=repeats, measure_cached=measure_cached,
+                                              sizes=sizes)
+            r_ref = per_key[key]
             results.append(r)
             scored.append((r, r_ref))
     except (Exception, KeyboardInterrupt) as e:
@@ -150,6 +166,11 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         raise
     _score(scored, ref)
     return results
+
+
+def _size_key(sizes: dict) -> tuple:
+    """A hashable key of a reference's light sizes (0 and None alike: no size)."""
+    return tuple(sorted((k, float(v)) for k, v in sizes.items() if v))
 
 
 def _score(scored, ref) -> None:

@@ -451,7 +451,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
                                                                                    params):
         _forget_gradient_resolutions(scene)    # gradients disabled since: follow the scene
     kinds = {emitter_kind(e) for e in scene.emitters()}
-    unused = unused_light_properties(opts, kinds) if opts.uses_map else []
+    unused = unused_light_properties(opts, kinds)   # raytraced's sizes too
     if unused:
         warnings.warn(
             f"shadowmap: {'property' if len(unused) == 1 else 'properties'} "

@@ -176,10 +176,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser(
         "compare", help="render the reference and each method, write images and metrics",
-        description="Render the reference (raytraced for delta lights; converged soft-shadow "
-                    "reference for area lights and environments) and each method with one seed (the "
-                    "reference too, unless --reference converged is given: that one has a "
-                    "seed of its own); print "
+        description="Render the reference (raytraced for delta lights, with the size the "
+                    "methods give them: light_size, angular_diameter; converged soft-shadow "
+                    "reference for area lights and environments) and each method with one "
+                    "seed (the reference too, unless --reference converged is given: that "
+                    "one has a seed of its own); print "
                     "the metrics table; write <out>/<method>.exr (RGB, vis_<emitter>, "
                     "err_<emitter>, img_err), PNG previews, contact_sheet.png, pareto.png, "
                     "metrics.csv and metrics.json.")
@@ -538,6 +539,10 @@ def cmd_compare(args) -> int:
                   f"{os.path.abspath(out)}", file=sys.stderr)
         raise
     print(harness.format_table(results))
+    # a method scored against a reference of its own (its own spp, another light size)
+    for r in results[1:]:
+        if r.scored_against is not None:
+            print(f"{r.name}: scored against {r.scored_against.name}")
     written = report.write_results(results, out)
     print(f"\nwrote {len(written['exr'])} EXR, {len(written['png'])} PNG, metrics.csv and "
           f"metrics.json to {os.path.abspath(out)}")

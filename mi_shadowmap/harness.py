@@ -214,13 +214,17 @@ def remeasure(scene, reference_info: dict, spec: dict, metric: str, seed: int) -
     (e.g. :func:`mi_shadowmap.tune`): a fresh reference of the kind and spp that
     ``reference_info`` describes (its ``method``: ``"converged"``, the converged
     reference with its ``light_samples``, as for area lights and environments; else
-    ``raytraced``) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
+    ``raytraced``; its ``sizes``, the delta lights' ``light_size`` / ``angular_diameter``,
+    if any) and a fresh render, with seeds ``seed + 1`` and ``seed``."""
+    sizes = reference_info.get("sizes") or {}   # delta lights given a size (tune_sizes)
     if reference_info.get("method") == "converged":
         ref = converged_reference(scene, spp=reference_info["spp"], seed=derived_seed(seed, 1),
-                                  shadow_rays=1, n_light=reference_info["light_samples"])
+                                  shadow_rays=1, n_light=reference_info["light_samples"],
+                                  sizes=sizes)
     else:
+        rays = {"shadow_rays": 16} if sizes else {}    # tune.SIZED_SHADOW_RAYS
         ref = run_method(scene, "raytraced", spp=reference_info["spp"], seed=derived_seed(seed, 1),
-                         measure_cached=False)
+                         measure_cached=False, **sizes, **rays)
     out = compare(scene, methods=[spec], reference=ref, seed=seed, measure_cached=False)
     return float(out[1].metrics[metric])
 

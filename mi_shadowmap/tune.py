@@ -70,7 +70,7 @@ import numpy as np
 
 from . import metrics
 from .ground_truth import (check_emitters, converged_reference, has_area_lights,
-                           has_soft_lights, make_reference, score)
+                           has_soft_lights, make_reference, reference_sizes, score)
 from .options import OptionError
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, available_methods, check_run_args, check_shared_params,
@@ -101,7 +101,8 @@ MAIN_PARAMETERS = {
     "multiview": {"views": (32, 128, 512)},
 }
 #: (method, parameter) pairs that change nothing under delta lights (searched only
-#: when the scene has an area light or an environment).
+#: when the scene has an area light or an environment, or the spec gives delta lights a
+#: size: ``light_size``, ``angular_diameter``).
 AREA_ONLY = {("raytraced", "shadow_rays"), ("pcss", "filter_samples")}
 #: (method, parameter) pairs that change nothing but for a light with extent: an area
 #: light, or a spec that gives delta lights a size (``light_size``, ``angular_diameter``);
@@ -114,6 +115,10 @@ SIZED_ONLY = {("multiview", "views")}
 #: 16 spp against the converged reference at the same camera samples: ``hard`` RMSE
 #: 0.0247 / 0.0096 at K = 16 / 64, ``pcss`` 0.0162 at 16).
 ENVIRONMENT_PARAMETERS = {"env_lights": (16, 64)}
+#: Shadow rays per camera sample of the reference where the methods give delta lights a
+#: size (``raytraced``'s ``light_size`` / ``angular_diameter``): its spp follow from its
+#: measured noise anyway.
+SIZED_SHADOW_RAYS = 16
 #: The spp at which every configuration is screened (the error/time model's two points).
 SCREEN_SPP = (1, 8)
 #: The reference's own noise is kept <= this fraction of the budget.
@@ -171,10 +176,10 @@ def search_grid(specs: list[dict], width: int, height: int, area_lights: bool,
         for k, values in MAIN_PARAMETERS.get(m, {}).items():
             if k in spec or not uses_property(m, k):
                 continue
-            if (m, k) in AREA_ONLY and not area_lights:
+            gives_size = any((spec.get(p) or 0) > 0 for p in ("light_size", "angular_diameter"))
+            if (m, k) in AREA_ONLY and not (area_lights or gives_size):
                 continue
-            if (m, k) in SIZED_ONLY and not (sized_lights or any(
-                    (spec.get(p) or 0) > 0 for p in ("light_size", "angular_diameter"))):
+            if (m, k) in SIZED_ONLY and not (sized_lights or gives_size):
                 continue
             axes[k] = values
         for k, values in (ENVIRONMENT_PARAMETERS.items() if environment else ()):
@@ -264,6 +269,24 @@ def check_inputs(max_error, metric="vis_rmse", methods=None, time_limit=None,
     rt = rt if rt is not None else method_spec(REFERENCE_METHOD, params)
     check_shared_params(specs + [rt], params)
     return specs, rt
+
+
+def tune_sizes(scene, specs: list[dict]) -> dict:
+    """The sizes (``light_size``, ``angular_diameter``; the non-zero ones) that the
+    methods tuned give the scene's delta lights, which the reference and the raytraced
+    configurations render (:func:`~mi_shadowmap.ground_truth.reference_sizes`). One
+    budget measures every method against one reference: methods that give the lights
+    different sizes are an error naming them (tune them one size at a time)."""
+    main, own = reference_sizes(scene, specs)
+    keys = {tuple(sorted(o.items())) for o in own}
+    if len(keys) > 1:
+        told = "; ".join(f"{spec_name(sp)}: " + ", ".join(f"{k}={v:g}" for k, v in o.items())
+                         for sp, o in zip(specs, own))
+        raise TuneError("shadowmap: tune: the methods give the lights different sizes "
+                        f"({told}); one budget is measured against one reference, whose "
+                        "lights have one size: give every method the same light_size / "
+                        "angular_diameter (a shared property), or tune them separately")
+    return {k: v for k, v in main.items() if v}
 
 
 # --------------------------------------------------------------------------- film
@@ -441,8 +464,10 @@ class _Config:
 class _Tuner:
     def __init__(self, scene, max_error, metric, specs, rt_spec, time_limit, search_size,
                  margin, seed, repeats, max_spp, max_ref_spp, ref_light_samples, spp,
-                 progress):
+                 progress, sizes=None):
         self.scene = scene
+        #: the delta lights' sizes the reference renders (tune_sizes)
+        self.sizes = dict(sizes or {})
         self.B, self.metric = float(max_error), metric
         self.margin, self.seed, self.repeats = margin, seed, repeats
         self.max_ref_spp, self.n_light = max_ref_spp, ref_light_samples
@@ -510,7 +535,10 @@ class _Tuner:
         if self.area:
             shadow_rays = 16 if self.metric.startswith("img_") else 1
             return converged_reference(self.scene, spp=spp, seed=seed, shadow_rays=shadow_rays,
-                                       n_light=self.n_light)
+                                       n_light=self.n_light, sizes=self.sizes)
+        if self.sizes:     # delta lights given a size: shadow rays to points of them
+            return _render_once(self.scene, REFERENCE_METHOD, spp, seed,
+                                shadow_rays=SIZED_SHADOW_RAYS, **self.sizes)
         return _render_once(self.scene, REFERENCE_METHOD, spp, seed)
 
     def _pilot_noise(self, size) -> float:
@@ -546,7 +574,8 @@ class _Tuner:
         capped = spp == self.max_ref_spp and need > spp
         spp = ref.spp      # the count rendered (the sampler may round it)
         if not self.area:
-            ref.name = f"reference (raytraced spp={spp})"
+            ref.name = f"reference (raytraced spp={spp}" + "".join(
+                f" {k}={v:g}" for k, v in sorted(self.sizes.items())) + ")"
         w, h = self.film.image_size(size)
         self._tick(f"reference at {w}x{h}")
         noise = m4 * 2.0 / math.sqrt(2.0 * spp)
@@ -554,6 +583,7 @@ class _Tuner:
             "name": ref.name, "method": REFERENCE_METHOD if not self.area else "converged",
             "spp": spp, "seed": seed, "size": list(self.film.image_size(size)),
             **({"light_samples": self.n_light} if self.area else {}),
+            **({"sizes": dict(self.sizes)} if self.sizes else {}),
             "noise": noise, "capped": capped}}
         return ref
 
@@ -1132,8 +1162,11 @@ def tune(scene, max_error: float, metric: str = "vis_rmse", methods=None,
     check_emitters(scene)
     check_scored_film(scene)
     check_search_size(scene, search_size)
+    sizes = tune_sizes(scene, specs)
+    rt_spec = {**{k: v for k, v in sizes.items() if k not in rt_spec}, **rt_spec}
     tuner = _Tuner(scene, max_error, metric, specs, rt_spec, time_limit, search_size, margin,
-                   seed, repeats, max_spp, max_ref_spp, ref_light_samples, spp, progress)
+                   seed, repeats, max_spp, max_ref_spp, ref_light_samples, spp, progress,
+                   sizes)
     return tuner.run()
 
 

@@ -279,3 +279,22 @@ def test_the_converged_reference_takes_the_size_for_delta_lights():
     changed = [lab for lab in labels
                if not np.array_equal(soft.visibility[lab], hard.visibility[lab])]
     assert len(changed) == 1
+
+
+def test_tune_renders_the_methods_size_or_names_a_disagreement():
+    """``tune`` measures every method against one reference: the size the methods give
+    the lights (the raytraced configurations get it too, with their ``shadow_rays``
+    searched), and methods giving different sizes are an error naming them."""
+    from mi_shadowmap.tune import TuneError, search_grid, tune, tune_sizes
+    scene = mi.load_dict(default_scene(light="point", width=32, height=32))
+    mv = "multiview:light_size=0.5"
+    assert tune_sizes(scene, [harness.method_spec(m) for m in ("hard", mv)]) == \
+        {"light_size": 0.5}
+    assert tune_sizes(scene, [harness.method_spec("pcss")]) == {}
+    with pytest.raises(TuneError, match=r"different sizes .*pcss: light_size=0.*"
+                                        r"multiview light_size=0.5: light_size=0.5"):
+        tune(scene, 0.05, methods=["pcss", mv])
+    grid = search_grid([{"method": "raytraced", "light_size": 0.5}], 32, 32, area_lights=False)
+    assert {g["shadow_rays"] for g in grid} == {1, 4, 16}
+    assert all("shadow_rays" not in g
+               for g in search_grid([{"method": "raytraced"}], 32, 32, area_lights=False))

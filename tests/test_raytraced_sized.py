@@ -298,3 +298,24 @@ def test_tune_renders_the_methods_size_or_names_a_disagreement():
     assert {g["shadow_rays"] for g in grid} == {1, 4, 16}
     assert all("shadow_rays" not in g
                for g in search_grid([{"method": "raytraced"}], 32, 32, area_lights=False))
+
+
+def test_the_part_of_a_sphere_light_below_the_horizon_is_not_counted():
+    """A sized point light just over a floor (a sphere of radius 0.5 at height 0.2: a part
+    of it is below every floor point's horizon, and rays there cross a second plane under
+    the floor): its points are drawn above the receiver's horizon, as an area light's are
+    with ``light_sample='independent'``, so the unoccluded floor reads 1 (min 0.84
+    where the rays to the part below counted)."""
+    floor = {"type": "rectangle", "to_world": T().scale(4)}
+    scene = mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "orthographic",
+                "to_world": T().look_at([0, 0, 0.1], [0, 0, 0], [0, 1, 0]).scale([2, 2, 1]),
+                "film": {"type": "hdrfilm", "width": 32, "height": 4,
+                         "rfilter": {"type": "box"}}},
+        "floor": floor, "under": {"type": "rectangle",
+                                  "to_world": T().translate([0, 0, -0.1]).scale(4)},
+        "light": {**POINT, "position": [0, 0, 0.2]}})
+    v = aov(scene, spp=4, method="raytraced", light_size=1.0, shadow_rays=16)
+    print(f"floor under a low sphere light: min {v.min():.4f}")
+    assert v.min() > 0.999

@@ -176,15 +176,30 @@ def _sized_target(lk: Lookup, active, shape: SizedShape) -> mi.Point3f:
     first of :data:`HORIZON_TRIES` draws there, else the light's own sample (only where
     the light barely clears the horizon). So the shadow rays estimate the fraction of
     the light's part above the horizon that is unoccluded, the quantity a map's compare
-    measures; the light's own sample, which is shaded, is above it where it counts."""
+    measures; the light's own sample, which is shaded, is above it where it counts.
+
+    The draws are a ``dr.while_loop`` that a lane leaves at its first draw above the
+    horizon (nearly all do): unrolled as in :func:`_independent_target`, the eight draws
+    made 64 sized shadow rays 2.9x (point) and 1.9x (sun) the time of 64 hard ones on
+    the default scene at 64^2, the loop 1.26x and 1.22x. Each draw is independent (the
+    sampler's): the integrator's stratified light sample is the delta light's own point,
+    which carries no point of the size, so the error falls as 1 / sqrt(shadow_rays)."""
     si = lk.si
     viewer = dr.sign(si.wi.z)
-    target, found = mi.Point3f(lk.ds.p), mi.Bool(False)
-    for _ in range(HORIZON_TRIES):   # unrolled: the draws stay outside any loop
-        q = sized_point(lk, shape, lk.sampler.next_2d(active))
-        ok = active & ~found & (si.to_local(q - si.p).z * viewer > 0)
-        target = dr.select(ok, q, target)
-        found |= ok
+    active = mi.Bool(active)
+
+    def cond(i, found, target, sampler):
+        return active & ~found & (i < HORIZON_TRIES)
+
+    def body(i, found, target, sampler):
+        q = sized_point(lk, shape, sampler.next_2d(active & ~found))
+        ok = ~found & (si.to_local(q - si.p).z * viewer > 0)
+        return i + 1, found | ok, dr.select(ok, q, target), sampler
+
+    _, _, target, _ = dr.while_loop((mi.UInt32(0), mi.Bool(False), mi.Point3f(lk.ds.p),
+                                     lk.sampler), cond, body,
+                                    labels=("i", "found", "target", "sampler"),
+                                    label="raytraced sized light draws")
     return target
 
 

@@ -77,10 +77,11 @@ def compare(scene, methods=None, reference="auto", spp: int = 16, seed: int = 0,
         and ``pcss``, whose default is no size) get one reference each, rendered with
         that size (``raytraced`` with ``ref_shadow_rays`` shadow rays); a method without
         the property (``hard``) is scored against the first size a method gives
-        (:func:`~mi_shadowmap.ground_truth.reference_sizes`). The first method's
-        reference comes first in the results; another method's is its
-        ``scored_against`` (its metrics' ``reference_spp`` says its spp). Give a reference
-        (a spec or a result) to score every method against one light.
+        (:func:`~mi_shadowmap.ground_truth.reference_sizes`). The reference of the
+        first size given (no size where none is) comes first in the results; a method
+        scored against another has it as ``scored_against`` (its metrics'
+        ``reference_spp`` says its spp). Give a reference (a spec or a result) to score
+        every method against one light.
     spp, seed, repeats
         Samples per pixel, seed (shared by all methods) and warm re-renders.
     **params

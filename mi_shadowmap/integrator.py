@@ -663,7 +663,7 @@ screen is Mitsuba's projective integrators' job.
                     u = shifted_grid_point(s, n_light, shift)
                 ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx, u, shade)
                 vis, whole = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit,
-                                                     shade, emitter)
+                                                     shade, emitter, u)
                 if sampled:
                     result += dr.select(lit, unshadowed * vis, 0.0) / n_light
                 vis_sum += vis if counts is lit else dr.select(counts, vis, 0.0)
@@ -674,15 +674,17 @@ screen is Mitsuba's projective integrators' job.
             result += _delta_lobe_term(scene, si, bsdf, sampler, valid)
         return result, valid, aovs if (self._film_takes_aovs or self._nested) else []
 
-    def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade, emitter):
+    def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade, emitter,
+                           u_light=None):
         """``(visibility, whole)`` of one light sample of ``emitter`` (see
-        :meth:`_visibility`); 1 and None without a map (``smap`` None: an environment
-        emitter lit without shadows)."""
+        :meth:`_visibility`), drawn from the 2D sample ``u_light`` (``Lookup.u_light``);
+        1 and None without a map (``smap`` None: an environment emitter lit without
+        shadows)."""
         if smap is None:
             return mi.Float(1.0), None
-        return self._visibility(
-            smap, self._lookup(smap, si, dp_dx, dp_dy, ds, sampler, emitter=emitter), lit,
-            shade)
+        lk = self._lookup(smap, si, dp_dx, dp_dy, ds, sampler, emitter=emitter)
+        lk.u_light = u_light
+        return self._visibility(smap, lk, lit, shade)
 
     def _light_samples(self, scene, smap, emitter, si, bsdf, ctx, shade, sampler, dp_dx,
                        dp_dy, n: int):
@@ -701,10 +703,10 @@ screen is Mitsuba's projective integrators' job.
             return k < n
 
         def body(k, result, vis_sum, contributes, sampler):
-            ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx,
-                                                        shifted_grid_point(k, n, shift), shade)
+            u = shifted_grid_point(k, n, shift)
+            ds, unshadowed, lit, counts = _light_sample(emitter, si, bsdf, ctx, u, shade)
             vis, _ = self._sample_visibility(smap, si, dp_dx, dp_dy, ds, sampler, lit, shade,
-                                             emitter)
+                                             emitter, u)
             return (k + 1, result + dr.select(lit, unshadowed * vis, 0.0) / n,
                     vis_sum + (vis if counts is lit else dr.select(counts, vis, 0.0)),
                     contributes | counts, sampler)

@@ -77,6 +77,12 @@ class Lookup:
     #: A virtual map reads there whether its mark kept the receiver biases' level for
     #: that pixel (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.keeps`).
     pixel: object = None
+    #: ``mi.Point2f``: the 2D sample the integrator drew the light sample ``ds`` from
+    #: (one point of a stratified grid over ``shadow_rays``), or None: unknown (a
+    #: gradient render's ``pixel_centre`` runs, an environment's regions). A delta
+    #: light's sample does not use it; ``raytraced`` draws a sized delta light's first
+    #: point from it, so its shadow rays are stratified as the light samples are.
+    u_light: object = None
 
 
 @dataclass

@@ -22,7 +22,8 @@ import warnings
 import numpy as np
 
 from . import metrics
-from .ground_truth import has_soft_lights, make_reference, score
+from .ground_truth import (has_soft_lights, make_reference, reference_sizes, score,
+                           sized_labels)
 from .options import OptionError, parse_options
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_args,
@@ -327,7 +328,15 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     ``max(ref_spp, every spp of the grid)`` spp for delta lights (so that no
     configuration is compared with a noisier version of itself), and the
     converged reference for area lights and environments (see
-    :func:`~mi_shadowmap.ground_truth.make_reference`).
+    :func:`~mi_shadowmap.ground_truth.make_reference`). As in
+    :func:`~mi_shadowmap.harness.compare`, ``"auto"`` and ``"converged"`` give delta
+    lights the size the configurations give them (``light_size``,
+    ``angular_diameter``; :func:`~mi_shadowmap.ground_truth.reference_sizes`): each
+    row is scored against the light it models, rendered with ``ref_shadow_rays``
+    shadow rays, one reference per size (a grid of ``pcss:light_size=0.5`` was scored
+    against the hard shadow); a method without the property (``hard``) takes the
+    first size given. The reference of that first size is the table's
+    ``reference``; each row's ``scored_against`` names its own.
 
     ``time_key`` is the time axis: ``"time_warm"`` (a frame with the depth maps
     rebuilt: geometry or lights changed) or ``"time_cached"`` (maps reused: only
@@ -358,8 +367,24 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
     check_keys(scene, time_key, error_key)
     specs, asked = rendered_specs(scene, specs)
     max_spp = max(s["spp"] for s in specs)
-    if reference == "auto" and not has_soft_lights(scene):
-        reference = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}
+    # the sizes each configuration gives the delta lights: its reference renders them so
+    sized = isinstance(reference, str) and reference in ("auto", "converged")
+    main_sizes, own_sizes = (reference_sizes(scene, specs) if sized
+                             else ({}, [{} for _ in specs]))
+    auto_spec = reference == "auto" and not has_soft_lights(scene)
+
+    def reference_of(sizes: dict, step=None) -> MethodResult:
+        given = reference
+        if auto_spec:
+            given = {"method": REFERENCE_METHOD, "spp": max(ref_spp, max_spp)}
+            if sized_labels(scene, sizes):
+                given.update({k: v for k, v in sizes.items() if v},
+                             shadow_rays=ref_shadow_rays)
+        return make_reference(scene, given, spp=max(ref_spp, max_spp),
+                              seed=derived_seed(seed, 1), ref_spp=ref_spp,
+                              ref_shadow_rays=ref_shadow_rays, step=step,
+                              measure_cached=False,    # its times are not used
+                              sizes=None if auto_spec else sizes)
     from .progress import bar
     # the reference (the converged one of area lights and environments can take longer
     # than the whole grid) in a bar of its own: it rendered before the sweep's bar began,
@@ -378,19 +403,17 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
         ref_bar[0].set_postfix_str(what)
 
     try:
-        ref = make_reference(scene, reference, spp=max(ref_spp, max_spp),
-                             seed=derived_seed(seed, 1), ref_spp=ref_spp,
-                             ref_shadow_rays=ref_shadow_rays, step=step,
-                             measure_cached=False)   # its times are not used
+        ref = reference_of(main_sizes, step)
         if ref_bar:
             ref_bar[0].update(ref_bar[0].total - ref_bar[0].n)
     finally:
         if ref_bar:
             ref_bar[0].close()
+    per_size = {_size_key(main_sizes): ref}
     rows, results, failed = [], [], []
     try:
-        for spec, spp_asked in bar(list(zip(specs, asked)), desc="sweep", unit="config",
-                                   disable=not progress):
+        for spec, spp_asked, sizes in bar(list(zip(specs, asked, own_sizes)), desc="sweep",
+                                          unit="config", disable=not progress):
             spec = dict(spec)
             s_spp = spec.pop("spp")
             method = spec.pop("method")
@@ -409,11 +432,16 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
                 failed.append(f"{name}: {message}")
                 continue
             r.name = spec_name({"method": r.method, **r.params, "spp": r.spp})
-            r.metrics = score(r, ref)
+            if _size_key(sizes) not in per_size:
+                per_size[_size_key(sizes)] = reference_of(sizes)
+            r_ref = per_size[_size_key(sizes)]
+            r.metrics = score(r, r_ref)
+            if r_ref is not ref:
+                r.scored_against = r_ref     # its error layers and heat map too
             row = r.row()
             row["spp_requested"] = spp_asked
             # what every error is against: sweep.csv/json did not say (its spp, kind)
-            row["scored_against"], row["reference_spp"] = ref.name, ref.spp
+            row["scored_against"], row["reference_spp"] = r_ref.name, r_ref.spp
             rows.append(row)
             if not keep_images:
                 r.image, r.visibility = None, {}
@@ -431,3 +459,8 @@ def sweep(scene, grid=None, spp: int = 16, seed: int = 0, repeats: int = 3,
                       stacklevel=2)
     return SweepTable(analyse(rows, time_key, error_key), results, time_key, error_key, ref)
 
+
+def _size_key(sizes: dict) -> tuple:
+    """A hashable key of a reference's light sizes (0 and None alike: no size), as
+    :func:`~mi_shadowmap.harness.compare` keys its references."""
+    return tuple(sorted((k, float(v)) for k, v in sizes.items() if v))

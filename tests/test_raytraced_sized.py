@@ -13,6 +13,8 @@ from mi_shadowmap import harness
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.reference import converged_visibility
 from mi_shadowmap.scenes import default_scene
+from mi_shadowmap.specs import derived_seed
+from mi_shadowmap.timing import run_method
 
 from conftest import render_np
 
@@ -347,3 +349,37 @@ def test_sized_shadow_rays_are_stratified(light, half_width, props):
     print(f"{props}: RMSE 16 rays {e16:.5f}, 256 rays {e256:.5f}, ratio {e16 / e256:.2f}")
     assert e16 / e256 > 6.0
 
+
+def test_a_sweep_scores_each_row_against_the_light_it_models():
+    """``sweep``'s automatic reference gives the lights the size the rows give them, as
+    ``compare``'s does: ``pcss:light_size=0.5``, ``multiview:light_size=0.5`` and ``hard``
+    (no such property: the first size given) against a sized ``raytraced``, ``pcss``
+    without a size against the hard one. The sized reference is ``raytraced`` with the
+    size at the sweep's reference spp and seed, bit for bit."""
+    scene = mi.load_dict(default_scene(light="point", width=32, height=32))
+    mv = {"method": "multiview", "light_size": 0.5, "views": 32, "resolution": 128}
+    table = harness.sweep(scene, [{"method": "pcss", "light_size": [0.5, 0.0]}, mv,
+                                  {"method": "hard"}], spp=16, repeats=1, ref_spp=16,
+                          ref_shadow_rays=16, progress=False)
+    by_name = {row["name"]: row for row in table.rows}
+    assert "light_size=0.5" in table.reference.name
+    assert "shadow_rays=16" in table.reference.name
+    unsized = next(r for r in table.results
+                   if r.method == "pcss" and not r.params.get("light_size"))
+    hard_ref = unsized.scored_against
+    assert hard_ref is not None and "light_size" not in hard_ref.name
+    assert by_name[unsized.name]["scored_against"] == hard_ref.name
+    for r in table.results:
+        if r is not unsized:
+            assert by_name[r.name]["scored_against"] == table.reference.name, r.name
+    # the reference is raytraced with the size, at the sweep's reference spp and seed
+    sized_ref = run_method(scene, "raytraced", spp=16, seed=derived_seed(0, 1),
+                           light_size=0.5, shadow_rays=16)
+    assert all(np.array_equal(sized_ref.visibility[k], v)
+               for k, v in table.reference.visibility.items())
+    multiview = next(r for r in table.results if r.method == "multiview")
+    assert multiview.metrics["vis_rmse"] == harness.score(multiview, sized_ref)["vis_rmse"]
+    own = multiview.metrics["vis_penumbra_rmse"]
+    against_hard = harness.score(multiview, hard_ref)["vis_penumbra_rmse"]
+    print(f"multiview light_size=0.5: penumbra RMSE {own:.4f} against its reference, "
+          f"{against_hard:.4f} against the hard one")

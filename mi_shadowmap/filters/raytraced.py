@@ -181,9 +181,10 @@ def _sized_target(lk: Lookup, active, shape: SizedShape, n: int) -> mi.Point3f:
     The first draw is in the stratum of ``lk.u_light``, the integrator's stratified
     light sample (a delta light's own point does not use it; :func:`_in_stratum`), so the
     ``shadow_rays`` points are stratified over the light: on the default scene (64^2,
-    4 spp, a point light of size 1, RMSE to 4096 rays) 0.0152 / 0.0077 / 0.0039 with
-    independent draws (1 / sqrt(rays)) fell to about 1 / rays^(3/4) of it at 16 / 64 /
-    256 rays (benchmarks/RESULTS.md, forty-seventh session, helper H). Without it (None:
+    4 spp, a point light of size 1, RMSE to 4096 rays at 16 / 64 / 256 rays) 0.0152 /
+    0.0079 / 0.0040 with independent draws (1 / sqrt(rays)) fell to 0.0111 / 0.0039 /
+    0.0015, about 1 / rays^(3/4) (benchmarks/RESULTS.md, forty-seventh session, helper
+    H). Without it (None:
     a gradient render's ``pixel_centre`` runs) the first draw is the sampler's. Later
     draws, for the few lanes whose first is below the horizon, are the sampler's, in a
     ``dr.while_loop`` a lane leaves at its first draw above the horizon: unrolled as in

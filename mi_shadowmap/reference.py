@@ -113,7 +113,8 @@ class _ConvergedVisibilityMixin:
                 lit = reaches & (dr.max(w) > 0)
                 if self.occlusion:
                     occluded = query(    # not ray_test alone: spheres, cylinders
-                        spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter), p_surface),
+                        spawn_shadow_ray(si, ds.p, scene, is_infinite(emitter), p_surface,
+                                         emitter, ds.n),
                         lit, on_cyl, si)
                 else:
                     occluded = mi.Bool(False)

@@ -39,14 +39,14 @@ def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
     light drawn above the receiver's horizon (:func:`_sized_target`): the visibility,
     averaged over ``shadow_rays``, is the fraction of that light the point sees.
     """
-    target = lk.ds.p
+    target, n_target = lk.ds.p, lk.ds.n
     shape = sized_shape(smap.emitter, opts)
-    if shape is not None:
+    if shape is not None:     # (a delta light: its ray ends short by rounding alone)
         target = _sized_target(lk, active, shape, opts.shadow_rays)
     elif opts.light_sample == "independent":
-        target = _independent_target(lk, active, smap.emitter)
+        target, n_target = _independent_target(lk, active, smap.emitter)
     ray = spawn_shadow_ray(lk.si, target, smap.scene, is_infinite(smap.emitter),
-                           getattr(smap, "p_surface", None))
+                           getattr(smap, "p_surface", None), smap.emitter, n_target)
     occluded = smap.occlusion(ray, active,     # not ray_test alone: spheres, cylinders
                               on_cylinder(lk.si, smap.scene), lk.si)
     return dr.select(occluded, 0.0, 1.0)
@@ -56,7 +56,7 @@ def raytraced(smap: RayTracedLight, lk: Lookup, opts, active=True) -> mi.Float:
 HORIZON_TRIES = 8
 
 
-def _independent_target(lk: Lookup, active, emitter) -> mi.Point3f:
+def _independent_target(lk: Lookup, active, emitter) -> tuple:
     """A light point drawn independently of the shaded sample ``lk.ds``, from the part
     of its emitter on the viewer's side of the receiver's surface (where the shaded
     sample lies, as it is shaded): the first of :data:`HORIZON_TRIES` draws that is
@@ -69,19 +69,21 @@ def _independent_target(lk: Lookup, active, emitter) -> mi.Point3f:
     the light itself, which made the image 37 % too dark under a cube light.
     ``emitter`` is the light's own object, called directly: through the samples'
     emitter pointer every live emitter of the process was traced, and one on a shape
-    Mitsuba cannot sample (a curve) in another scene made the render fail."""
+    Mitsuba cannot sample (a curve) in another scene made the render fail. Returns the
+    point and the light's normal there (``ds.n``, for the ray's end)."""
     si = lk.si
     infinite = is_infinite(emitter)
     viewer = dr.sign(si.wi.z)
-    target, found = mi.Point3f(lk.ds.p), mi.Bool(False)
+    target, normal, found = mi.Point3f(lk.ds.p), mi.Vector3f(lk.ds.n), mi.Bool(False)
     for _ in range(HORIZON_TRIES):   # unrolled: the draws stay outside any loop
         ds, _ = emitter.sample_direction(si, lk.sampler.next_2d(active), active)
         ok = active & ~found & (ds.pdf > 0) & (si.to_local(ds.d).z * viewer > 0)
         if not infinite:     # the emitter's front (Mitsuba's area lights are one-sided)
             ok &= dr.dot(ds.d, ds.n) < 0
         target = dr.select(ok, ds.p, target)
+        normal = dr.select(ok, ds.n, normal)
         found |= ok
-    return target
+    return target, normal
 
 
 # ------------------------------------------------------------ delta lights given a size

@@ -209,9 +209,10 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     sides of thin posts grazed by the sun kept the biases' level everywhere
     (``random_large_world`` seed 5 at 256^2: 2166 of the 5803 back-facing capped pixel
     centres kept it, 241 of the 2821 facing the light)."""
+    c_nl = dr.dot(n, view.direction_to_light(p))     # cos of the light at the receiver
     own = None
     if shape is not None:
-        own = dr.select(dr.dot(n, view.direction_to_light(p)) < 0, shape, mi.ShapePtr(None))
+        own = dr.select(c_nl < 0, shape, mi.ShapePtr(None))
     hit0 = probe_distance(scene, view, p, n, active, own)
     keep = mi.Bool(active) & (hit0 < mi.Float(length) * PROBE_MARGIN)
     shadowed = dr.isfinite(hit0)
@@ -220,7 +221,6 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     # offset (at most the biases' height, ``length cos``): where that ray meets an
     # occluder the point's misses, or misses one it meets, the fallback moves a shadow's
     # edge onto the pixel (a ball's contact shadow under a light 1e-3 over the floor)
-    c_nl = dr.dot(n, view.direction_to_light(p))
     lift = mi.Float(length) * dr.clip(dr.abs(c_nl), 1e-6, 1.0) * PROBE_MARGIN
     p_lifted = p + n * dr.select(c_nl >= 0, lift, -lift)
 

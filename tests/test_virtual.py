@@ -195,8 +195,8 @@ def test_a_lookup_whose_tile_is_not_cast_reads_another_level():
 
 
 def test_a_lookup_whose_level_is_not_built_walks_to_the_next_finer_first():
-    """The walk's order (``bind``): the wanted level, else the next finer, else the next
-    coarser, else the coarsest. Asked one level coarser than their pixels' (``level``),
+    """The walk's order (``bind``): the wanted level, else the next finer, else the
+    nearest coarser one built. Asked one level coarser than their pixels' (``level``),
     the lanes whose page is not built there must read their own level, one finer (built:
     the render marked it), not walk on to coarser ones (mutation audit: a walk trying
     ``want + 1`` first passed all of this module; here its 359 walked lanes read levels
@@ -221,6 +221,79 @@ def test_a_lookup_whose_level_is_not_built_walks_to_the_next_finer_first():
     walked = got != w + 1
     assert lit.sum() > 500 and walked.sum() > 100, (lit.sum(), walked.sum())
     np.testing.assert_array_equal(got[walked], w[walked])
+
+
+def _built(vmap, face, level, uv):
+    """Whether the page and tile under ``uv`` (numpy, per lane) are built at ``level``
+    on ``face`` (per lane), from the store's records (what ``bind``'s walk reads)."""
+    rec, lay = vmap.page_records(), vmap.layout
+    P, T, S = lay.page_size, lay.tile_size, lay.tiles_per_side
+    masks = {(int(f), int(lv), int(x), int(y)): int(vmap.store.slot_mask[s])
+             for f, lv, x, y, s in zip(rec["face"], rec["level"], rec["px"], rec["py"],
+                                       rec["slot"])}
+    out = np.zeros(len(level), bool)
+    for k, (f, lv) in enumerate(zip(face, level)):
+        g = np.floor(uv[k] * (lay.res0 >> int(lv))).astype(np.int64)
+        m = masks.get((int(f), int(lv), int(g[0] // P), int(g[1] // P)))
+        out[k] = m is not None and (m >> int((g[0] % P) // T + (g[1] % P) // T * S)) & 1
+    return out
+
+
+def test_a_lookup_whose_level_is_not_built_walks_to_the_nearest_coarser_level_built():
+    """Past the next finer level the walk (``bind``) tries the coarser levels one at a
+    time, up to the coarsest: the nearest built one hides the least under the biases,
+    which scale with the texel. Asked two levels finer than their pixels' (not built
+    there), every lane reads the first level built of ``want - 3``, ``want - 1``,
+    ``want``, ``want + 1``, ...: its own level or the next finer, which the render built
+    (a walk from ``want - 1`` straight to the coarsest, as before, read the coarsest for
+    most of them)."""
+    from mi_shadowmap.filters.common import Lookup
+    scene = mi.load_dict(default_scene(width=48, height=48, spp=1, light="spot"))
+    integ = shadowmap(method="hard", virtual=True, cache_maps=False)
+    vis_of(scene, integ, spp=1)
+    vmap = integ.maps[0]
+    lay = vmap.layout
+    si, dp_dx, dp_dy, valid = virtual.camera_hits(scene, scene.sensors()[0])
+    pixel = virtual.camera_pixels(scene.sensors()[0])
+    lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None,
+                pixel=pixel)
+    p64 = mi.Point3d(lk.p_world)
+    face, uv64, _, inside = vmap.view.project_f64(p64)
+    want = vmap.level_for(face, p64, dp_dx, dp_dy, si.n, pixel=pixel, shape=si.shape)
+    w = want.numpy().astype(np.int64)
+    lanes = np.flatnonzero((valid & inside).numpy() & (w >= 3) & (w < lay.coarsest))
+    got = vmap.bind(lk, valid, per_tap=True, level=want - 2).level.numpy()[lanes]
+    faces = np.broadcast_to(np.asarray(face.numpy()).ravel(), w.shape)[lanes]
+    uv = np.asarray(uv64.numpy()).T[lanes] if np.ndim(uv64.numpy()) == 2 \
+        else np.asarray(uv64.numpy())[lanes]
+    expected = np.full(len(lanes), lay.coarsest)
+    left = np.ones(len(lanes), bool)
+    for step in [-3, -2] + list(range(-1, lay.coarsest)):
+        lev = np.minimum(w[lanes] + step, lay.coarsest)
+        here = left & _built(vmap, faces, lev, uv)
+        expected[here], left = lev[here], left & ~here
+    assert len(lanes) > 500 and np.all(got < lay.coarsest), np.sum(got == lay.coarsest)
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_a_grazed_tower_wall_beyond_the_marks_spread_stays_shadowed():
+    """``random_terrain_world(15)``: a tower wall that a sun 2.8 degrees high grazes
+    (``n . l`` = 0.05) in the shadow of the objects before it. The receiver biases keep
+    the wall's pixels 5 levels finer than their footprints, where a pixel spans about
+    140 texels of the map's finer axis, more than the marks build around its centre
+    (``marks.MAX_SPREAD``): the samples beyond walked to the coarsest level (its slope
+    bias 3 km) and read lit where both references are dark (64^2: 14 pixels of ``hard``
+    at 0.375-0.69, 12 of ``pcf``; now none above 0.19 / 0.23). The levels 2-7 coarser
+    than the wanted one are built there (by the neighbouring pixels): the walk reads the
+    nearest, and they stay dark."""
+    from mi_shadowmap.scenes import random_terrain_world
+    scene = mi.load_dict(random_terrain_world(15, width=64, spp=16))
+    ref = [vis_of(scene, shadowmap(method="raytraced"), spp=16, seed=s) for s in (0, 5)]
+    dark = (ref[0] == 0) & (ref[1] == 0)
+    assert dark.sum() > 300
+    for method in ("hard", "pcf"):
+        v = vis_of(scene, shadowmap(method=method), spp=16, seed=0)
+        assert np.sum(dark & (v >= 0.375)) == 0, (method, np.sum(dark & (v >= 0.375)))
 
 
 def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():

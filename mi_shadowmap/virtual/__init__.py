@@ -45,9 +45,11 @@ per film pixel for ``hard``, 8^2 tiles 3.1-6.5, with the same misclassified pixe
 **Lookups** (:meth:`VirtualShadowMap.bind`): the integrator binds the map to
 each batch of lookups. The level is chosen per lane the same way; if the
 page under the receiver is missing at that level, or its tile there is not ray-cast
-(a camera sample off the pixel centre) it takes the next finer level, else the next coarser one, else
-the coarsest level (one page per face), which is always built, so no point is
-lit for want of a page (a loop that only lanes with a missing page enter). The
+(a camera sample off the pixel centre) it takes the next finer level, else the nearest
+coarser one built there, up to the coarsest level (one page per face), which is always
+built, so no point is lit for want of a page (a loop that only lanes with a missing page
+enter). The nearest: the biases scale with the texel, and the coarsest level's hid whole
+occluders (a wall the sun grazes, read 2^13 times coarser than its neighbours had built). The
 lookup of a method with ``virtual_per_tap`` (``hard``) does not wait for that walk: it
 reads at its wanted level, each read checking its own page and tile, and only the lanes
 where one is missing run again, walked (:meth:`VirtualShadowMap.visibility`). The

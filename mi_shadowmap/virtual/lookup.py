@@ -433,9 +433,16 @@ class VirtualShadowMap:
                 built &= ((tiles >> (ix + iy * S)) & 1) != 0
             return res, bx, by, e, eok, built
 
-        # the wanted level (nearly every lookup); else the next finer, else the next
-        # coarser, else the coarsest (always built). The fallbacks run in a loop that
-        # only lanes whose page is missing enter: most vector packets skip it.
+        # the wanted level (nearly every lookup); else the next finer, else the nearest
+        # coarser level built there, one level at a time up to the coarsest (always
+        # built). The biases scale with the texel, so the nearest coarser level is the
+        # one that hides the least: where the marks had not built the wanted level under
+        # a sample (a pixel's footprint longer than the marks' MAX_SPREAD at the biases'
+        # level: a tower wall the sun grazes, ``random_terrain_world(15)``), the walk
+        # skipped the levels 2 to 12 coarser that its neighbours had built and read the
+        # coarsest, whose slope bias (3 km there) lit occluded samples: 5 pixels of that
+        # wall shadowed in both references read 0.25-0.63. The fallbacks run in a loop
+        # that only lanes whose page is missing enter: most vector packets skip it.
         res, bx, by, e, eok, ok = block(want, active, walk)
         level = mi.UInt32(want)
         if not walk:
@@ -450,9 +457,9 @@ class VirtualShadowMap:
             return active & ~ok
 
         def body(step, level, res, bx, by, e, eok, ok):
+            # step 0: the next finer level; step k > 0: k levels coarser
             lev = dr.select(step == 0, dr.maximum(want_i - 1, 0),
-                            dr.select(step == 1, dr.minimum(want_i + 1, lay.coarsest),
-                                      mi.Int32(lay.coarsest)))
+                            dr.minimum(want_i + mi.Int32(step), lay.coarsest))
             r2, bx2, by2, e2, eok2, ok2 = block(mi.UInt32(lev), mi.Bool(True))
             take = ok2 | (lev == lay.coarsest)
             return (step + 1, dr.select(take, mi.UInt32(lev), level),

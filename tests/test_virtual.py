@@ -264,8 +264,7 @@ def test_a_lookup_whose_level_is_not_built_walks_to_the_nearest_coarser_level_bu
     lanes = np.flatnonzero((valid & inside).numpy() & (w >= 3) & (w < lay.coarsest))
     got = vmap.bind(lk, valid, per_tap=True, level=want - 2).level.numpy()[lanes]
     faces = np.broadcast_to(np.asarray(face.numpy()).ravel(), w.shape)[lanes]
-    uv = np.asarray(uv64.numpy()).T[lanes] if np.ndim(uv64.numpy()) == 2 \
-        else np.asarray(uv64.numpy())[lanes]
+    uv = uv64.numpy().T[lanes]                   # (lanes, 2)
     expected = np.full(len(lanes), lay.coarsest)
     left = np.ones(len(lanes), bool)
     for step in [-3, -2] + list(range(-1, lay.coarsest)):

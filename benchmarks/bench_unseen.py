@@ -3,6 +3,7 @@ repository's. One run, by hand:
 
     python benchmarks/bench_unseen.py [--seeds 8] [--first-seed 0] [--image 128] [--spp 16]
                                       [--kinds world 1e5 1e6 terrain] [--methods hard pcf]
+                                      [--texels-only]
 
 ``--first-seed``: run seeds ``first .. first + seeds - 1`` (the unseen worlds beyond the
 default 0-7, e.g. ``--kinds terrain --first-seed 8 --seeds 22``).
@@ -17,6 +18,10 @@ each builds its own first frame) against ``raytraced`` with the same seed, miscl
 at threshold 0.5 (false lit / false shadow), and texels built per film pixel in that
 first frame. ``rt noise`` is ``raytraced`` with another seed against the same reference:
 how much the reference itself misclassifies from its camera samples alone.
+
+``--texels-only``: no reference and no misclassified, only each method's texels per film
+pixel, rendered at 1 spp (the mark pass reads the pixels' centres, so the texels do not
+depend on the spp): a scan of many seeds at 256^2 for the texel target.
 
 Targets (issue 11, defaults only): misclassified <= 1 % on the large world (both
 kinds), <= 0.3 % under the point light 1e5 and 1e6 away; <= 8 texels per film pixel per
@@ -52,6 +57,34 @@ def visibility(scene, props: dict, seed: int):
     return img[..., 3], integ
 
 
+def texel_scan(args, seeds, props: dict):
+    """``--texels-only``: one row per kind and seed, each method's texels per film pixel."""
+    t_start = time.perf_counter()
+    print(f"# {args.image}^2, texels only (1 spp), seeds {seeds[0]}-{seeds[-1]}, "
+          f"variant {mi.variant()}, map methods with {props or 'defaults'}\n")
+    print("| scene | seed | " + " | ".join(f"{m}: texels / pixel" for m in args.methods)
+          + " |")
+    print("|" + "---|" * (2 + len(args.methods)))
+    texels = {(k, m): [] for k in args.kinds for m in args.methods}
+    for kind in args.kinds:
+        for seed in seeds:
+            d = scene_dict(kind, seed, args.image, 1)
+            cells = []
+            for m in args.methods:
+                _, integ = visibility(mi.load_dict(d), {"method": m, **props}, 0)
+                tpp = integ.stats["texels_built"] / (args.image * args.image)
+                texels[(kind, m)].append(tpp)
+                cells.append(f"{tpp:.2f}")
+            print(f"| {kind} | {seed} | " + " | ".join(cells) + " |", flush=True)
+    print("\n| scene | method | texels / pixel: max (median) | over 8 |")
+    print("|---|---|---|---|")
+    for (kind, m), t in texels.items():
+        t = np.array(t)
+        print(f"| {kind} | {m} | {t.max():.2f} ({np.median(t):.2f}) | {int(np.sum(t > 8))} "
+              f"of {len(t)} |")
+    print(f"\n# total {time.perf_counter() - t_start:.0f} s")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=8, help="N seeds per kind")
@@ -62,6 +95,8 @@ def main(argv=None):
     ap.add_argument("--kinds", nargs="+", default=["world", "1e5", "1e6"],
                     help="'world', 'terrain' and/or point-light distances")
     ap.add_argument("--methods", nargs="+", default=["hard", "pcf"])
+    ap.add_argument("--texels-only", action="store_true",
+                    help="texels per pixel only (1 spp, no reference): a fast scan")
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
                     help="integrator properties for the map methods (not the reference), "
                          "e.g. normal_bias=0 (values: true/false, int, float or string)")
@@ -78,6 +113,9 @@ def main(argv=None):
                          "distance")
     t_start = time.perf_counter()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
+    if args.texels_only:
+        texel_scan(args, seeds, props)
+        return
     print(f"# {args.image}^2, {args.spp} spp, seeds {seeds[0]}-{seeds[-1]}, "
           f"variant {mi.variant()}, map methods with {props or 'defaults'}\n")
     head = "| scene | seed | rt noise | " + " | ".join(

@@ -148,3 +148,21 @@ def test_bench_unseen_starts_at_the_first_seed_given():
     rows = [line for line in out.splitlines() if line.startswith("| terrain | ")]
     assert [r.split("|")[2].strip() for r in rows[:2]] == ["22", "23"]
     assert "seeds 22-23" in out
+
+
+def test_bench_unseen_texels_only_gives_each_methods_first_frame_texels():
+    # --texels-only: the scan of many seeds for issue 11's texel target (no reference);
+    # its numbers are the first frame's texels_built per film pixel of a real render
+    import mitsuba as mi
+    from mi_shadowmap.scenes import random_terrain_world
+    out = run_bench("bench_unseen.py", "--texels-only", "--kinds", "terrain", "--first-seed",
+                    "22", "--seeds", "1", "--image", "32", "--methods", "hard", "pcf")
+    row = next(line for line in out.splitlines() if line.startswith("| terrain | 22 |"))
+    got = [float(c) for c in row.split("|")[3:5]]
+    want = []
+    for m in ("hard", "pcf"):
+        integ = mi.load_dict({"type": "shadowmap", "method": m})
+        mi.render(mi.load_dict(random_terrain_world(22, width=32, spp=1)), integrator=integ)
+        want.append(round(integ.stats["texels_built"] / 32 ** 2, 2))
+    assert got == want and want[1] > want[0] > 0
+    assert "rt noise" not in out and "over 8" in out

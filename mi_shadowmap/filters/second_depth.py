@@ -160,6 +160,14 @@ Deviations from the paper, and why:
   footprints as the other methods' texel-scaled biases do
   (:class:`~.common.BiasReach`). A floor lit through the 0.1-high gap under a cube by a
   light 0.2 over it: 132 of 4096 pixels misclassified, now 4 (full maps 57).
+  That level is kept only by the pixels the mark pass probes keep it for
+  (:func:`~mi_shadowmap.virtual.marks.marked_points`): a shadow's edge within reach, or
+  the receiver's surface in front of its tangent plane where the footprint's level's
+  farthest taps meet the plane (a rippled open receiver, whose virtual samples there
+  lie behind it: the method's own false shadow, which the finer level's nearer taps
+  avoid); elsewhere the footprint's. Kept everywhere, it built 27.5 texels a film pixel
+  on ``random_terrain_world(15)`` at 256^2 (a sun 2-5 degrees high; ``hard`` 5.5), 5.6
+  probed, with misclassified pixels unchanged on 6 terrains at 128^2.
 * ``virtual_samples=false`` skips step 3 (plain percentage-closer
   filtering of the second depths): used to show the paper's Figure 7
   failure on thin objects.

@@ -217,15 +217,26 @@ class VirtualShadowMap:
         level, ``hard`` lit 458 pixels of 4096, 3 without the cap; now 3). ``p``: ``p64`` in
         float32 where the caller has it (:meth:`bind`: the lookup's point).
 
-        ``keep`` (``mi.Bool`` per lane; None: everywhere): where the biases' level applies;
-        elsewhere the level chosen without the biases' height (``fallback``: the
-        footprint's, or finer by the method's ``virtual_edge`` alone) and its spread. The
-        mark pass decides it per film pixel (:func:`~mi_shadowmap.virtual.marks.probe_keeps`)
-        and the lookups read that pixel's decision (:meth:`bind`, ``keep``). With
-        ``probe``: ``(level, spread, fallback, fallback_spread, length)``, ``level`` and
-        ``spread`` the biases' (``keep`` ignored), ``length`` where ``level`` is finer than
-        ``fallback``: how far (world units) along the ray towards the light an occluder
-        may lie and be hidden by the biases at ``fallback`` (0 elsewhere). ``active``
+        ``keep`` (``mi.Bool`` per lane; None: everywhere): where the biases' level applies
+        (with the method's ``virtual_edge``); elsewhere the footprint's level
+        (``fallback``). The mark pass decides it per film pixel
+        (:func:`~mi_shadowmap.virtual.marks.probe_keeps`) and the lookups read that
+        pixel's decision (:meth:`bind`, ``keep``). With ``probe``: ``(level, spread,
+        fallback, fallback_spread, length, edge)``, ``level`` and ``spread`` the biases'
+        (``keep`` ignored), ``length`` where ``level`` is finer than ``fallback``: how far
+        (world units) along the ray towards the light an occluder may lie and be hidden by
+        the biases at ``fallback`` (0 elsewhere), and ``edge`` where the ``virtual_edge``
+        alone chooses a level finer than ``fallback``: how far (world units) along the
+        receiver its compares may move an occluder's edge at ``fallback`` (0 elsewhere;
+        :func:`~mi_shadowmap.virtual.marks.marked_points` probes that far for an edge).
+
+        The edge's level was the fallback, unprobed, until the forty-eighth session: where
+        the light grazes the receiver (``tan(theta)`` up to ``max_tan_slope`` 20) it is up
+        to 3 levels finer than the footprint's everywhere, edge or not, and
+        ``second_depth`` built 27.5 texels a film pixel on ``random_terrain_world(15)`` at
+        256^2 (sun 2-5 degrees; the footprint's level alone: 2.4; probed: 5.6); see
+        ``benchmarks/RESULTS.md``, the forty-seventh session, helper F, and the
+        forty-eighth, helper A. ``active``
         (``mi.Bool``; None: every lane): the lanes whose level is read; elsewhere any
         level may be returned (see the conditional below)."""
         view, lay = self.view, self.layout
@@ -245,6 +256,7 @@ class VirtualShadowMap:
         level = mi.Int32(dr.reinterpret_array(mi.UInt32, scaled) >> 23) - 127
         spread = mi.Point2f(0.0)
         fallback, fb_spread, length = level, spread, mi.Float(0.0)
+        edge = mi.Float(0.0)
         reach = getattr(self, "reach", None)
         if n is not None and reach is not None:
             def biased(footprint):
@@ -280,9 +292,9 @@ class VirtualShadowMap:
                 return lev, sp, capped, cos_nl, sin_nl, t0, capped_level
 
             footprint = level
-            if (keep is not None and not probe and reach.edge <= 0.0
+            if (keep is not None and not probe
                     and not dr.grad_enabled(n, p, dp_dx, dp_dy)):
-                # No virtual_edge: the fallback is the footprint's level, and the biases'
+                # The fallback is the footprint's level, and the biases'
                 # level is computed in a conditional that only the vector packets with an
                 # active lane that keeps it enter (0-0.4 % of the pixels of the
                 # repository's scenes keep it; at 16 spp a packet of 16 lanes is one
@@ -300,27 +312,27 @@ class VirtualShadowMap:
                     lambda lev, sp: biased(lev)[:2], lambda lev, sp: (lev, sp),
                     label="virtual map: the receiver biases' level")
             else:
-                level, spread, capped, cos_nl, sin_nl, t0, capped_level = biased(footprint)
-                if keep is not None or probe:
-                    # the level without the biases' height: the edge's cap alone (a lit
-                    # gap puts nothing on a probe: not probed), else the footprint's
-                    r_edge = reach.edge_texels(cos_nl, sin_nl)
-                    if r_edge is not None:
-                        fallback, fb_spread, _ = capped_level(r_edge, footprint)
-                    if probe:
-                        fb = dr.clip(fallback, 0, lay.coarsest)
-                        # the height the biases hide at the fallback, as a distance along
-                        # the ray towards the light
-                        length = dr.select(capped & (dr.clip(level, 0, lay.coarsest) < fb),
-                                           reach.height(cos_nl, sin_nl) * t0
-                                           * dr.exp2(mi.Float(fb)) / cos_nl, 0.0)
-                    else:
-                        keep = mi.Bool(keep)
-                        level = dr.select(keep, level, fallback)
-                        spread = dr.select(keep, spread, fb_spread)
+                level, spread, capped, cos_nl, sin_nl, t0, _ = biased(footprint)
+                if probe:
+                    fb = dr.clip(fallback, 0, lay.coarsest)
+                    finer = capped & (dr.clip(level, 0, lay.coarsest) < fb)
+                    t_fb = t0 * dr.exp2(mi.Float(fb))
+                    # the height the biases hide at the fallback, as a distance along
+                    # the ray towards the light
+                    length = dr.select(finer, reach.height(cos_nl, sin_nl) * t_fb / cos_nl,
+                                       0.0)
+                    if reach.edge > 0.0:
+                        # how far the edge's compares move a shadow's edge along the
+                        # receiver at the fallback (``edge / cos(theta)`` texels: not
+                        # clamped at ``max_tan`` as the level is), in world units
+                        edge = dr.select(finer, reach.edge * t_fb / cos_nl, 0.0)
+                elif keep is not None:
+                    keep = mi.Bool(keep)
+                    level = dr.select(keep, level, fallback)
+                    spread = dr.select(keep, spread, fb_spread)
         out = (mi.UInt32(dr.clip(level, 0, lay.coarsest)), spread)
         if probe:
-            out += (mi.UInt32(dr.clip(fallback, 0, lay.coarsest)), fb_spread, length)
+            out += (mi.UInt32(dr.clip(fallback, 0, lay.coarsest)), fb_spread, length, edge)
         return out
 
     def keeps(self, pixel, shape=None, active=True):

@@ -145,9 +145,16 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     if scene is None or getattr(vmap_like, "reach", None) is None:
         level, spread = vmap_like._levels(face, p64, dp_dx, dp_dy, si.n)
         return face, uv64, act, level, spread, mi.Bool(False), mi.Bool(False)
-    level, spread, fallback, fb_spread, length = vmap_like._levels(
+    level, spread, fallback, fb_spread, length, edge = vmap_like._levels(
         face, p64, dp_dx, dp_dy, si.n, probe=True)
     capped = act & (length > 0)
+    plane = None
+    if vmap_like.reach.edge > 0.0:
+        # the method's virtual_edge chose the level: probed as far as it moves an edge,
+        # from the tangent plane its virtual samples lie on (see probe_keeps' ``plane``)
+        capped = act & ((length > 0) | (edge > 0))
+        plane = capped & (length <= 0)
+        dp_dx, dp_dy = _edge_probe_frame(view, si.p, si.n, dp_dx, dp_dy, edge)
     # the five probe rays in a conditional: Dr.Jit's LLVM backend skips a branch that no
     # lane of a packet takes, where each masked ray query (all lanes inactive) still
     # cost about 0.7 ms a 256^2 film: far_point's moved frame's mark kernel 4.1 -> 1.8
@@ -155,15 +162,63 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     # methods, a first frame, a move and back)
     eye = getattr(vmap_like, "eye", None)
     keep = dr.if_stmt(
-        (si.p, si.n, dp_dx, dp_dy, length, capped, getattr(si, "shape", None), eye), capped,
-        lambda p, n, dx, dy, ln, c, sh, e: probe_keeps(scene, view, p, n, dx, dy, ln, c, sh,
-                                                       e),
-        lambda p, n, dx, dy, ln, c, sh, e: mi.Bool(False))
+        (si.p, si.n, dp_dx, dp_dy, length, capped, getattr(si, "shape", None), eye, plane),
+        capped,
+        lambda p, n, dx, dy, ln, c, sh, e, pl: probe_keeps(scene, view, p, n, dx, dy, ln, c,
+                                                           sh, e, pl),
+        lambda p, n, dx, dy, ln, c, sh, e, pl: mi.Bool(False))
     return (face, uv64, act, dr.select(keep, level, fallback),
             dr.select(keep, spread, fb_spread), capped & ~keep, capped & keep)
 
 
-def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye=None):
+#: How far either side of a pixel's centre (in units of the ``edge`` of
+#: :func:`_edge_probe_frame`) the corners' probes look for a shadow's edge where a method's
+#: ``virtual_edge`` chose the level. A lit gap the footprint's level loses is wider than
+#: the edge's move: under the grazed gap of ``tests/test_virtual.py`` (64^2,
+#: ``second_depth``), 1: 96 pixels misclassified, 1.5: 45, 2: 5 (the edge's level
+#: everywhere: 4; the footprint's: 132). At 2 the corners are where the rays of the
+#: fallback's farthest taps meet the tangent plane (a 2 x 2 block's texel centres lie
+#: within a texel of the point in the map: ``2 edge`` along the receiver for
+#: ``second_depth``'s half texel), so the corners' probes from the plane
+#: (:func:`probe_keeps`' ``plane``) see what those taps' virtual samples compare.
+EDGE_PROBE = 2.0
+
+
+def _edge_probe_frame(view, p, n, dp_dx, dp_dy, edge):
+    """The footprint ``(dp_dx, dp_dy)`` whose corners :func:`probe_keeps` probes, where a
+    method's ``virtual_edge`` chose a level finer than the footprint's (``edge`` > 0:
+    :meth:`~mi_shadowmap.virtual.lookup.VirtualShadowMap._levels`' ``edge``, how far
+    along the receiver towards the light its compares move a shadow's edge at the
+    footprint's level). There the footprint stretched along that direction to at least
+    ``2 EDGE_PROBE edge`` (its corners :data:`EDGE_PROBE` ``edge`` either side of the
+    centre), across it the footprint's own width; elsewhere ``(dp_dx, dp_dy)``.
+
+    A shadow's edge farther than ``edge`` from the pixel is not moved onto it at the
+    footprint's level, and a lit gap that level loses has an edge within ``EDGE_PROBE
+    edge`` of each of its pixels (measured, :data:`EDGE_PROBE`): where no corner's probe
+    disagrees with the centre's, the footprint's level classifies the pixel as the
+    edge's does. Unprobed (the edge's level everywhere the light grazes), ``second_depth``
+    built 27.5 texels a film pixel on ``random_terrain_world(15)`` at 256^2 (sun 2-5
+    degrees), ``hard`` 5.5 (``benchmarks/RESULTS.md``, the forty-seventh session, helper
+    F)."""
+    nn = dr.normalize(mi.Vector3f(n))
+    to_light = view.direction_to_light(p)
+    along = to_light - nn * dr.dot(nn, to_light)
+    ok = dr.norm(along) > 1e-6
+    a = dr.select(ok, dr.normalize(along), dr.normalize(mi.Vector3f(dp_dx)))
+    b = dr.cross(nn, a)
+    ext_a = dr.abs(dr.dot(dp_dx, a)) + dr.abs(dr.dot(dp_dy, a))
+    ext_b = dr.abs(dr.dot(dp_dx, b)) + dr.abs(dr.dot(dp_dy, b))
+    on = (edge > 0) & ok
+    # across the light's direction the compares move an edge ``edge cos(theta)`` (the
+    # map's texels are not stretched there)
+    cos_nl = dr.abs(dr.dot(nn, to_light))
+    return (dr.select(on, a * dr.maximum(2.0 * EDGE_PROBE * edge, ext_a), dp_dx),
+            dr.select(on, b * dr.maximum(2.0 * EDGE_PROBE * edge * cos_nl, ext_b), dp_dy))
+
+
+def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye=None,
+                plane=None):
     """Whether a pixel whose centre ``p`` the biases capped (``active``; ``length``:
     :meth:`VirtualShadowMap._levels`' probe length) keeps the biases' level: its lookups
     and its mark read it (:func:`marked_points`, :meth:`VirtualShadowMap.keeps`). It
@@ -200,6 +255,20 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
     :func:`probe_distance` seeing instances). Of 30 terrain worlds none builds more
     texels or misclassifies more pixels at 128^2 (summed 793 -> 788 ``hard``, 944 -> 924
     ``pcf``; ``benchmarks/RESULTS.md``, the forty-sixth session).
+
+    ``plane`` (per lane, or None: nowhere): the pixels whose level a method's
+    ``virtual_edge`` alone capped (:func:`marked_points`, ``second_depth``): their corners
+    are not retried from the surface. Those lookups compare the map's depths with
+    virtual samples on the receiver's tangent plane (Wang & Molnar), and a corner under
+    the surface (a valley, a terrain's facets rising towards the light) is where, at the
+    fallback's coarser texels, a tap's ray meets the surface in front of the plane and
+    shadows the point: the method's own false shadow on a rippled open receiver, which
+    the edge's finer level keeps away (its taps stay nearer the point). Retried from the
+    surface, as for the biases' level, those pixels dropped the edge's level and
+    ``random_terrain_world`` seed 22 misclassified 273 pixels of 128^2, 259 with the edge's
+    level everywhere (``raytraced`` with another seed: 205); from the plane 259, with
+    texels at 256^2 9.47 -> 9.32 a film pixel (seed 15: 27.46 -> 5.55; the forty-eighth
+    session, helper A).
 
     ``shape``: the hits' shapes (``si.shape``), or None. Where the light is behind the
     receiver's face (``n`` facing the camera) a probe's hit on the receiver's own shape
@@ -241,8 +310,9 @@ def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye
             # a corner's disagreement checked from the surface the camera sees (not the
             # lifted centre's). (Nested in marked_points' conditional: control_flow's
             # if_stmt names the symbolic mode, so Dr.Jit does not log forcing it)
+            retry = differs & ~lifted if plane is None else differs & ~lifted & ~plane
             differs = if_stmt(
-                (c, n, differs, shadowed, own, shape, eye), differs & ~lifted,
+                (c, n, differs, shadowed, own, shape, eye), retry,
                 lambda c, n, d, s, o, sh, e: _surface_corner_differs(
                     scene, view, c, n, d, s, o, sh, e),
                 lambda c, n, d, s, o, sh, e: d,
@@ -361,7 +431,7 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> t
         # neighbouring pixels' boxes, which those mark; the kernel around the point
         # itself, as everywhere.
         m_lane = mi.Point2d(dr.maximum(m, dr.minimum(points[4], MAX_SPREAD)))
-        if getattr(vmap_like, "scene", None) is not None:
+        if getattr(vmap_like, "scene", None) is not None and _kept_by_biases(vmap_like):
             # with the per-pixel decision (marked_points' probe) the neighbouring pixels
             # may have dropped the biases' level, and the uncapped pixels beside a point
             # that kept it read it (VirtualShadowMap.keeps): a point that kept it marks
@@ -381,6 +451,19 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> t
     lo = mi.Point2i(dr.floor((xy - m_lane) / T))
     hi = mi.Point2i(dr.floor((xy + m_lane) / T))
     return face, level, act, lo, hi, n_tiles, per_axis
+
+
+def _kept_by_biases(vmap_like) -> bool:
+    """Whether a point that kept its level (:func:`marked_points`) may have kept it for
+    the receiver biases' height, whose level the samples of its uncapped neighbours read
+    (``m + 2 spread``, :func:`_tile_range`); False where the method's biases have no
+    height (``second_depth`` at its defaults: its ``virtual_edge`` alone caps the level).
+    An uncapped pixel's centre has the footprint's level there, and its own mark built
+    what its samples read before the edge's level was probed (forty-seventh session,
+    helper F: far_point's ``second_depth`` at 128^2 97,792 texels before, 109,568 with the
+    wider box, 97,152 without)."""
+    reach = vmap_like.reach
+    return reach.normal > 0.0 or reach.slope > 0.0
 
 
 def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:

@@ -161,12 +161,15 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     # ms (1.5 before the probes); marks, texels and images bit-identical (6 scenes x 5
     # methods, a first frame, a move and back)
     eye = getattr(vmap_like, "eye", None)
+
+    def probe(p, n, dx, dy, ln, c, sh, e, pl):
+        # (``plane`` passed only where a virtual_edge set it: the biases' probe as before)
+        return probe_keeps(scene, view, p, n, dx, dy, ln, c, sh, e,
+                           **({} if pl is None else {"plane": pl}))
+
     keep = dr.if_stmt(
         (si.p, si.n, dp_dx, dp_dy, length, capped, getattr(si, "shape", None), eye, plane),
-        capped,
-        lambda p, n, dx, dy, ln, c, sh, e, pl: probe_keeps(scene, view, p, n, dx, dy, ln, c,
-                                                           sh, e, pl),
-        lambda p, n, dx, dy, ln, c, sh, e, pl: mi.Bool(False))
+        capped, probe, lambda p, n, dx, dy, ln, c, sh, e, pl: mi.Bool(False))
     return (face, uv64, act, dr.select(keep, level, fallback),
             dr.select(keep, spread, fb_spread), capped & ~keep, capped & keep)
 

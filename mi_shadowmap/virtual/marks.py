@@ -161,6 +161,10 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     # ms (1.5 before the probes); marks, texels and images bit-identical (6 scenes x 5
     # methods, a first frame, a move and back)
     eye = getattr(vmap_like, "eye", None)
+    shape = getattr(si, "shape", None)
+    # no lookup reads the biases' level where the light is on the surface's far side
+    # (_light_behind): the probes are skipped there and the point marks the fallback
+    probed = capped & ~_light_behind(scene, view, si.p, si.n, shape, eye, capped)
 
     def probe(p, n, dx, dy, ln, c, sh, e, pl):
         # (``plane`` passed only where a virtual_edge set it: the biases' probe as before)
@@ -168,8 +172,8 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
                            **({} if pl is None else {"plane": pl}))
 
     keep = dr.if_stmt(
-        (si.p, si.n, dp_dx, dp_dy, length, capped, getattr(si, "shape", None), eye, plane),
-        capped, probe, lambda p, n, dx, dy, ln, c, sh, e, pl: mi.Bool(False))
+        (si.p, si.n, dp_dx, dp_dy, length, probed, shape, eye, plane),
+        probed, probe, lambda p, n, dx, dy, ln, c, sh, e, pl: mi.Bool(False))
     return (face, uv64, act, dr.select(keep, level, fallback),
             dr.select(keep, spread, fb_spread), capped & ~keep, capped & keep)
 
@@ -218,6 +222,106 @@ def _edge_probe_frame(view, p, n, dp_dx, dp_dy, edge):
     cos_nl = dr.abs(dr.dot(nn, to_light))
     return (dr.select(on, a * dr.maximum(2.0 * EDGE_PROBE * edge, ext_a), dp_dx),
             dr.select(on, b * dr.maximum(2.0 * EDGE_PROBE * edge * cos_nl, ext_b), dp_dy))
+
+
+#: Emitter kinds whose light reaches a receiver from one point or direction, the one
+#: :meth:`~mi_shadowmap.light_views.base.LightView.direction_to_light` gives
+#: (:func:`_light_behind`).
+DELTA_KINDS = ("point", "spot", "projector", "directional")
+
+#: :func:`_shape_tilts`' tables of the last few scenes (``id(scene)``: ``(scene, table)``;
+#: the scene is held so that its id is not reused while cached).
+_TILTS: dict = {}
+_TILTS_HELD = 4
+
+
+def _light_behind(scene, view, p, n, shape, eye, active) -> mi.Bool:
+    """Where the light is behind the surface the camera sees at ``p`` (``n``: its
+    geometric normal, facing the camera) so that no lookup there reads a map: light
+    from behind a reflecting surface reaches no viewer (the integrator looks up a light
+    sample only where the BSDF reaches it, ``variants.bsdf_eval_reaches``). Exact for
+    delta lights (one direction, :data:`DELTA_KINDS`) and for area lights whose whole
+    bounding box lies behind (the lit cone is convex: its 8 corners decide). Never where
+    the shape's BSDF transmits (``BSDFFlags.Transmission``: dielectrics, ``mask``,
+    ``null``, blends of those) or perturbs its shading normal (``normalmap``,
+    ``bumpmap``), on shapes that are not the scene's own (an ``instance``'s), nor for
+    environment lights. A mesh's vertex normals tilt the shading frame by at most the
+    largest angle ``a`` between a vertex normal and its face's normal (an interpolated
+    normal stays in that cap): there the light must lie more than ``a`` below the plane
+    and the camera more than ``a`` above it (a ``twosided`` BSDF flips a shading frame
+    the camera sees from below, and then reflects the light from below), ``eye`` (the
+    camera's pinhole) giving the camera's side; without it only untilted shapes."""
+    if shape is None:
+        return mi.Bool(False)
+    kind = getattr(view, "kind", None)
+    if kind in DELTA_KINDS:
+        corners = [None]
+    elif kind == "area" and view.ignore_shape is not None:
+        box = view.ignore_shape.bbox()
+        corners = [mi.Point3f(*[float((box.max if (k >> a) & 1 else box.min)[a])
+                                for a in range(3)]) for k in range(8)]
+    else:
+        return mi.Bool(False)
+    table = _shape_tilts(scene)
+    idx = dr.reinterpret_array(mi.UInt32, shape)
+    inside = idx < dr.width(table)
+    s = dr.select(inside, dr.gather(mi.Float, table, idx, active & inside), 2.0)
+    behind = mi.Bool(active) & (s <= 1.0)
+    for q in corners:
+        d = view.direction_to_light(p) if q is None else dr.normalize(q - p)
+        behind &= dr.dot(n, d) < -s
+    if eye is not None:
+        behind &= (s == 0.0) | (dr.dot(n, dr.normalize(eye - p)) > s)
+    else:
+        behind &= s == 0.0
+    return behind
+
+
+def _shape_tilts(scene) -> mi.Float:
+    """Per shape registry index (``si.shape`` as a ``UInt32``), the sine of the largest
+    angle its shading normal can tilt from its geometric normal (0: none; 2: never
+    drop, :func:`_light_behind`: a transmitting or normal-mapping BSDF; indices of no
+    shape of ``scene.shapes()``, e.g. an ``instance``'s shapes, are 2 too). Cached per
+    scene (:data:`_TILTS`): a mesh's vertex normals edited after its first mark are not
+    seen."""
+    hit = _TILTS.get(id(scene))
+    if hit is not None and hit[0] is scene:
+        return hit[1]
+    shapes = list(scene.shapes())
+    ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]) for sh in shapes]
+    table = np.full(max(ids, default=0) + 1, 2.0, np.float32)
+    for i, sh in zip(ids, shapes):
+        table[i] = _tilt_of(sh)
+    out = mi.Float(table)
+    dr.make_opaque(out)
+    while len(_TILTS) >= _TILTS_HELD:
+        _TILTS.pop(next(iter(_TILTS)))
+    _TILTS[id(scene)] = (scene, out)
+    return out
+
+
+def _tilt_of(shape) -> float:
+    """:func:`_shape_tilts`' value of one shape."""
+    bsdf = shape.bsdf()
+    if bsdf is None or mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission):
+        return 2.0
+    text = str(bsdf)
+    if "NormalMap" in text or "BumpMap" in text:
+        return 2.0
+    if not (shape.is_mesh() and shape.has_vertex_normals()):
+        return 0.0
+    v = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+    vn = np.array(shape.vertex_normals_buffer(), np.float64).reshape(-1, 3)
+    f = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return 0.0
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+    vn = vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+    cos = np.einsum("ij,ij->i", np.repeat(fn, 3, axis=0), vn[f.reshape(-1)])
+    if not np.all(np.isfinite(cos)) or cos.min() <= 0.0:
+        return 2.0    # a vertex normal at or past 90 degrees from its face: anything
+    return float(np.sqrt(max(0.0, 1.0 - float(cos.min()) ** 2)))
 
 
 def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye=None,

@@ -244,8 +244,7 @@ def _light_behind(scene, view, p, n, shape, eye, active) -> mi.Bool:
     bounding box lies behind (the lit cone is convex: its 8 corners decide). Never where
     the shape's BSDF transmits (``BSDFFlags.Transmission``: dielectrics, ``mask``,
     ``null``, blends of those) or perturbs its shading normal (``normalmap``,
-    ``bumpmap``), on shapes that are not the scene's own (an ``instance``'s), nor for
-    environment lights. A mesh's vertex normals tilt the shading frame by at most the
+    ``bumpmap``), nor for environment lights. A mesh's vertex normals tilt the shading frame by at most the
     largest angle ``a`` between a vertex normal and its face's normal (an interpolated
     normal stays in that cap): there the light must lie more than ``a`` below the plane
     and the camera more than ``a`` above it (a ``twosided`` BSDF flips a shading frame
@@ -281,16 +280,20 @@ def _shape_tilts(scene) -> mi.Float:
     """Per shape registry index (``si.shape`` as a ``UInt32``), the sine of the largest
     angle its shading normal can tilt from its geometric normal (0: none; 2: never
     drop, :func:`_light_behind`: a transmitting or normal-mapping BSDF; indices of no
-    shape of ``scene.shapes()``, e.g. an ``instance``'s shapes, are 2 too). Cached per
+    shape the scene's traversal reaches are 2 too). Cached per
     scene (:data:`_TILTS`): a mesh's vertex normals edited after its first mark are not
     seen."""
     hit = _TILTS.get(id(scene))
     if hit is not None and hit[0] is scene:
         return hit[1]
-    shapes = list(scene.shapes())
-    ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]) for sh in shapes]
-    table = np.full(max(ids, default=0) + 1, 2.0, np.float32)
-    for i, sh in zip(ids, shapes):
+    # the scene's shapes and those its traversal reaches: an instance's shape group's
+    # shapes, which the camera's hits name (``si.shape``), are not in scene.shapes()
+    shapes = {}
+    for sh in list(scene.shapes()) + [v[2] for v in mi.traverse(scene).properties.values()]:
+        if isinstance(sh, mi.Shape):
+            shapes[int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0])] = sh
+    table = np.full(max(shapes, default=0) + 1, 2.0, np.float32)
+    for i, sh in shapes.items():
         table[i] = _tilt_of(sh)
     out = mi.Float(table)
     dr.make_opaque(out)

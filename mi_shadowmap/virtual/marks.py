@@ -13,6 +13,7 @@ from .. import depth_maps
 from ..control_flow import if_stmt
 from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
 from ..light_views.base import opaque_point
+from ..map_manager import scene_token
 from .camera import camera_frame, has_aperture
 from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
 from .lookup import VirtualShadowMap, effective_lod_bias
@@ -229,10 +230,10 @@ def _edge_probe_frame(view, p, n, dp_dx, dp_dy, edge):
 #: (:func:`_light_behind`).
 DELTA_KINDS = ("point", "spot", "projector", "directional")
 
-#: :func:`_shape_tilts`' tables of the last few scenes (``id(scene)``: ``(scene, table)``;
-#: the scene is held so that its id is not reused while cached).
+#: :func:`_shape_tilts`' tables of the last few scenes (``id(scene)``: ``(token, table)``,
+#: the scene's :func:`~mi_shadowmap.map_manager.scene_token`, which does not hold it).
 _TILTS: dict = {}
-_TILTS_HELD = 4
+_TILTS_HELD = 8
 
 
 def _light_behind(scene, view, p, n, shape, eye, active) -> mi.Bool:
@@ -283,8 +284,9 @@ def _shape_tilts(scene) -> mi.Float:
     shape the scene's traversal reaches are 2 too). Cached per
     scene (:data:`_TILTS`): a mesh's vertex normals edited after its first mark are not
     seen."""
+    token = scene_token(scene)
     hit = _TILTS.get(id(scene))
-    if hit is not None and hit[0] is scene:
+    if hit is not None and hit[0] is token:
         return hit[1]
     # the scene's shapes and those its traversal reaches: an instance's shape group's
     # shapes, which the camera's hits name (``si.shape``), are not in scene.shapes()
@@ -299,7 +301,7 @@ def _shape_tilts(scene) -> mi.Float:
     dr.make_opaque(out)
     while len(_TILTS) >= _TILTS_HELD:
         _TILTS.pop(next(iter(_TILTS)))
-    _TILTS[id(scene)] = (scene, out)
+    _TILTS[id(scene)] = (token, out)
     return out
 
 

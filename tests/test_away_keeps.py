@@ -20,9 +20,14 @@ LIGHT = {"type": "point", "position": [-0.5, 0.5, -6], "intensity": {"type": "rg
                                                                       "value": 10.0}}
 
 
-def _wall_scene(wall_bsdf: dict):
+#: A 0.2-wide square area light there, facing the posts: wholly behind the wall's plane
+AREA = {"type": "rectangle", "to_world": T().translate([-0.5, 0.5, -6]).scale(0.1),
+        "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 100.0}}}
+
+
+def _wall_scene(wall_bsdf: dict, light: dict = LIGHT):
     """A 2-high wall in the ``x = 0`` plane the camera sees at grazing incidence from
-    its ``+x`` side (64^2), posts on its ``-x`` side, :data:`LIGHT` on that side."""
+    its ``+x`` side (64^2), posts on its ``-x`` side, ``light`` on that side."""
     return mi.load_dict({
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 40,
@@ -35,7 +40,7 @@ def _wall_scene(wall_bsdf: dict):
                  "to_world": T().translate([0, 1, 0]).rotate([0, 1, 0], 90).scale([4, 1, 1])},
         **{f"post{i}": {"type": "cube", "to_world": T().translate([-0.4, 1, -3 + 0.8 * i])
                         .scale([0.05, 1, 0.05])} for i in range(8)},
-        "light": LIGHT})
+        "light": light})
 
 
 def _render(scene, method, today: bool, monkeypatch):
@@ -59,17 +64,19 @@ def _render(scene, method, today: bool, monkeypatch):
     return img, integ.stats.texels_built, int(capped.sum()), int((out[6].numpy() & on).sum())
 
 
+@pytest.mark.parametrize("light", ["point", "area"])
 @pytest.mark.parametrize("method", ["hard", "pcf"])
-def test_a_wall_lit_from_behind_keeps_no_biases_level(method, monkeypatch):
+def test_a_wall_lit_from_behind_keeps_no_biases_level(method, light, monkeypatch):
     """A diffuse wall seen from the side the light does not reach: its pixels' lookups
     are never made (the BSDF reaches no light from behind), so the mark drops the
     biases' level there (measured 64^2 ``hard``: 220 of the wall's 241 capped centres
     kept it before, texels 31616 -> 28032; ``pcf`` 48192 -> 42752), and the image is
-    bit-identical to the one with every probe's decision."""
-    scene = _wall_scene({"type": "diffuse"})
+    bit-identical to the one with every probe's decision. Likewise under a small area
+    light wholly behind the wall's plane."""
+    scene = _wall_scene({"type": "diffuse"}, LIGHT if light == "point" else AREA)
     img, texels, capped, kept = _render(scene, method, False, monkeypatch)
     img0, texels0, capped0, kept0 = _render(scene, method, True, monkeypatch)
-    print(f"{method}: wall capped {capped}, kept {kept0} -> {kept}; texels {texels0} -> "
+    print(f"{method} {light}: wall capped {capped}, kept {kept0} -> {kept}; texels {texels0} -> "
           f"{texels}")
     assert capped == capped0 > 100 and kept0 > 0.5 * capped0
     assert kept == 0
@@ -87,5 +94,18 @@ def test_a_transmitting_wall_lit_from_behind_keeps_todays_marks(bsdf, monkeypatc
     img, texels, capped, kept = _render(scene, "hard", False, monkeypatch)
     img0, texels0, capped0, kept0 = _render(scene, "hard", True, monkeypatch)
     assert capped > 100 and kept0 > 0.5 * capped0
+    assert (capped, kept) == (capped0, kept0)
+    np.testing.assert_array_equal(img, img0)
+
+
+def test_an_area_light_across_the_walls_plane_keeps_todays_marks(monkeypatch):
+    """An area light reaching across the wall's plane lights its camera side in part:
+    the wall's marks and the image are today's."""
+    across = {**AREA, "to_world": T().translate([0.0, 0.5, -6]).scale([0.5, 0.1, 0.1])}
+    scene = _wall_scene({"type": "diffuse"}, across)
+    img, _, capped, kept = _render(scene, "hard", False, monkeypatch)
+    img0, _, capped0, kept0 = _render(scene, "hard", True, monkeypatch)
+    print(f"wall capped {capped0}, kept {kept0} -> {kept}")
+    assert capped > 100 and kept0 > 0
     assert (capped, kept) == (capped0, kept0)
     np.testing.assert_array_equal(img, img0)

@@ -245,12 +245,14 @@ def _light_behind(scene, view, p, n, shape, eye, active) -> mi.Bool:
     bounding box lies behind (the lit cone is convex: its 8 corners decide). Never where
     the shape's BSDF transmits (``BSDFFlags.Transmission``: dielectrics, ``mask``,
     ``null``, blends of those) or perturbs its shading normal (``normalmap``,
-    ``bumpmap``), nor for environment lights. A mesh's vertex normals tilt the shading frame by at most the
-    largest angle ``a`` between a vertex normal and its face's normal (an interpolated
-    normal stays in that cap): there the light must lie more than ``a`` below the plane
-    and the camera more than ``a`` above it (a ``twosided`` BSDF flips a shading frame
-    the camera sees from below, and then reflects the light from below), ``eye`` (the
-    camera's pinhole) giving the camera's side; without it only untilted shapes."""
+    ``bumpmap``), nor for environment lights. A mesh's vertex normals tilt the shading
+    frame by at most the largest angle ``a`` between a vertex normal and its face's
+    normal (an interpolated normal stays in that cap): there the light must lie more
+    than ``a`` below the plane and the camera more than ``a`` above it (a ``twosided``
+    BSDF flips a shading frame the camera sees from below, and then reflects the light
+    from below), ``eye`` (the camera's pinhole) giving the camera's side; without it
+    only untilted shapes. The area light's corners are opaque: a moved light compiles
+    no new mark kernel."""
     if shape is None:
         return mi.Bool(False)
     kind = getattr(view, "kind", None)
@@ -258,8 +260,9 @@ def _light_behind(scene, view, p, n, shape, eye, active) -> mi.Bool:
         corners = [None]
     elif kind == "area" and view.ignore_shape is not None:
         box = view.ignore_shape.bbox()
-        corners = [mi.Point3f(*[float((box.max if (k >> a) & 1 else box.min)[a])
-                                for a in range(3)]) for k in range(8)]
+        corners = [opaque_point(mi.ScalarPoint3f(
+            *[float((box.max if (k >> a) & 1 else box.min)[a]) for a in range(3)]))
+            for k in range(8)]
     else:
         return mi.Bool(False)
     table = _shape_tilts(scene)
@@ -281,9 +284,8 @@ def _shape_tilts(scene) -> mi.Float:
     """Per shape registry index (``si.shape`` as a ``UInt32``), the sine of the largest
     angle its shading normal can tilt from its geometric normal (0: none; 2: never
     drop, :func:`_light_behind`: a transmitting or normal-mapping BSDF; indices of no
-    shape the scene's traversal reaches are 2 too). Cached per
-    scene (:data:`_TILTS`): a mesh's vertex normals edited after its first mark are not
-    seen."""
+    shape the scene's traversal reaches are 2 too). Cached per scene (:data:`_TILTS`):
+    a mesh's vertex normals edited after its first mark are not seen."""
     token = scene_token(scene)
     hit = _TILTS.get(id(scene))
     if hit is not None and hit[0] is token:

@@ -290,12 +290,11 @@ def _shape_tilts(scene) -> mi.Float:
     hit = _TILTS.get(id(scene))
     if hit is not None and hit[0] is token:
         return hit[1]
-    # the scene's shapes and those its traversal reaches: an instance's shape group's
-    # shapes, which the camera's hits name (``si.shape``), are not in scene.shapes()
-    shapes = {}
-    for sh in list(scene.shapes()) + [v[2] for v in mi.traverse(scene).properties.values()]:
-        if isinstance(sh, mi.Shape):
-            shapes[int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0])] = sh
+    # the scene's shapes and its shape groups' (an instance's, which the camera's hits
+    # name, ``si.shape``, are not in scene.shapes())
+    listed = list(scene.shapes())
+    shapes = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): sh
+              for sh in listed + depth_maps._grouped_shapes(scene, listed)}
     table = np.full(max(shapes, default=0) + 1, 2.0, np.float32)
     for i, sh in shapes.items():
         table[i] = _tilt_of(sh)
@@ -312,8 +311,10 @@ def _tilt_of(shape) -> float:
     bsdf = shape.bsdf()
     if bsdf is None or mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission):
         return 2.0
-    text = str(bsdf)
-    if "NormalMap" in text or "BumpMap" in text:
+    from ..integrator import TILTING_BSDFS    # (the integrator imports this package)
+    nodes = mi.traverse(bsdf).hierarchy
+    names = {bsdf.class_name()} | {n.class_name() for n in nodes if hasattr(n, "class_name")}
+    if names & TILTING_BSDFS:
         return 2.0
     if not (shape.is_mesh() and shape.has_vertex_normals()):
         return 0.0

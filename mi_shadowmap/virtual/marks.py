@@ -318,18 +318,26 @@ def _tilt_of(shape) -> float:
         return 2.0
     if not (shape.is_mesh() and shape.has_vertex_normals()):
         return 0.0
-    v = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
-    vn = np.array(shape.vertex_normals_buffer(), np.float64).reshape(-1, 3)
-    f = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
-    if len(f) == 0:
+    n_faces = int(shape.face_count())
+    if n_faces == 0:
         return 0.0
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
-    vn = vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
-    cos = np.einsum("ij,ij->i", np.repeat(fn, 3, axis=0), vn[f.reshape(-1)])
-    if not np.all(np.isfinite(cos)) or cos.min() <= 0.0:
+    # one kernel over the faces (numpy took 2.3-3.6 s for a million of them)
+    faces, v = shape.faces_buffer(), shape.vertex_positions_buffer()
+    vn = shape.vertex_normals_buffer()
+    idx = dr.arange(mi.UInt32, n_faces) * 3
+    i = [dr.gather(mi.UInt32, faces, idx + k) for k in range(3)]
+    p = [dr.gather(mi.Point3f, v, i[k]) for k in range(3)]
+    n_face = dr.normalize(dr.cross(p[1] - p[0], p[2] - p[0]))
+    cos = mi.Float(1.0)
+    for k in range(3):
+        cos = dr.minimum(cos, dr.dot(n_face, dr.normalize(dr.gather(mi.Vector3f, vn, i[k]))))
+    # a degenerate face (no normal) is never hit; a NaN vertex normal: anything
+    bad = dr.isnan(cos) & dr.all(dr.isfinite(n_face))
+    lowest = float(dr.min(dr.select(dr.isnan(cos), 1.0, cos))[0])
+    if bool(dr.any(bad)[0]) or not lowest > 0.0:
         return 2.0    # a vertex normal at or past 90 degrees from its face: anything
-    return float(np.sqrt(max(0.0, 1.0 - float(cos.min()) ** 2)))
+    # (+1e-3: float32's rounding of the normals, here and in the shading frame)
+    return min(1.0, math.sqrt(max(0.0, 1.0 - lowest * lowest)) + 1e-3)
 
 
 def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye=None,

@@ -131,8 +131,9 @@ def marked_points(vmap_like, si, dp_dx, dp_dy, valid, active=None) -> tuple:
     pixel's samples read where that level is finer than the footprint's (0 elsewhere),
     and where the biases' level was dropped: with ``vmap_like.scene`` (a :class:`Marker`
     of a render whose lookups know their film pixel), the points the biases capped whose
-    :func:`probe_keeps` does not keep it; they mark the level without the biases'
-    height, as their pixels' lookups on the same shape read it
+    :func:`probe_keeps` does not keep it, and those where the light is behind the
+    surface (:func:`_light_behind`: no lookup there, no probe); they mark the level
+    without the biases' height, as their pixels' lookups on the same shape read it
     (:meth:`VirtualShadowMap.keeps`); else nowhere (False); and those it keeps."""
     view = vmap_like.view
     p64 = mi.Point3d(si.p)
@@ -293,11 +294,12 @@ def _shape_tilts(scene) -> mi.Float:
     # the scene's shapes and its shape groups' (an instance's, which the camera's hits
     # name, ``si.shape``, are not in scene.shapes())
     listed = list(scene.shapes())
-    shapes = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): sh
-              for sh in listed + depth_maps._grouped_shapes(scene, listed)}
+    grouped = depth_maps._grouped_shapes(scene, listed)
+    shapes = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): (sh, k >= len(listed))
+              for k, sh in enumerate(listed + grouped)}
     table = np.full(max(shapes, default=0) + 1, 2.0, np.float32)
-    for i, sh in shapes.items():
-        table[i] = _tilt_of(sh)
+    for i, (sh, in_group) in shapes.items():
+        table[i] = _tilt_of(sh, in_group)
     out = mi.Float(table)
     dr.make_opaque(out)
     while len(_TILTS) >= _TILTS_HELD:
@@ -306,8 +308,11 @@ def _shape_tilts(scene) -> mi.Float:
     return out
 
 
-def _tilt_of(shape) -> float:
-    """:func:`_shape_tilts`' value of one shape."""
+def _tilt_of(shape, in_group: bool = False) -> float:
+    """:func:`_shape_tilts`' value of one shape. ``in_group``: a shape group's, whose
+    buffers are in its object space: an ``instance``'s non-uniform scale may widen the
+    angle between its vertex and face normals, so only normals equal to their faces'
+    (which stay equal) count as untilted there."""
     bsdf = shape.bsdf()
     if bsdf is None or mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission):
         return 2.0
@@ -336,8 +341,11 @@ def _tilt_of(shape) -> float:
     lowest = float(dr.min(dr.select(dr.isnan(cos), 1.0, cos))[0])
     if bool(dr.any(bad)[0]) or not lowest > 0.0:
         return 2.0    # a vertex normal at or past 90 degrees from its face: anything
+    sin_tilt = math.sqrt(max(0.0, 1.0 - lowest * lowest))
+    if in_group and sin_tilt > 1e-4:
+        return 2.0
     # (+1e-3: float32's rounding of the normals, here and in the shading frame)
-    return min(1.0, math.sqrt(max(0.0, 1.0 - lowest * lowest)) + 1e-3)
+    return min(1.0, sin_tilt + 1e-3)
 
 
 def probe_keeps(scene, view, p, n, dp_dx, dp_dy, length, active, shape=None, eye=None,

@@ -37,7 +37,7 @@ from .light_views.base import scene_bounds
 from .methods import MethodError, whole_light_values
 from .rays import occlusion, surface_point
 from .variants import (SUPPORTED_VARIANTS, bsdf_eval_reaches, bsdf_to_world, check_variant,
-                       unpolarized, variant_class)
+                       tilts_shading_frame, unpolarized, variant_class)
 from .virtual import VirtualShadowMap, camera_frame
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
                           _differentiated, prepare_maps, scene_lease, scene_token)
@@ -1219,13 +1219,10 @@ def has_delta_bsdf(scene) -> bool:
     return False
 
 
-#: Mitsuba BSDFs that tilt the shading frame per point (:attr:`Lookup.tilted`).
-TILTING_BSDFS = frozenset({"NormalMap", "BumpMap"})
-
-
 def tilted_frame_table(scene):
     """``mi.Bool`` by BSDF registry id: whether that BSDF of ``scene`` (its shapes', a
-    shape group's too) is or nests one of :data:`TILTING_BSDFS`; None where none does.
+    shape group's too) is or nests one of
+    :data:`~mi_shadowmap.variants.TILTING_BSDFS`; None where none does.
 
     Such a BSDF reflects light only from above both its shading frame's horizon and the
     tilted frame's (Mitsuba's ``normalmap`` and ``bumpmap`` evaluate the nested BSDF in
@@ -1241,10 +1238,7 @@ def tilted_frame_table(scene):
         if key in seen:
             continue
         seen.add(key)
-        nodes = mi.traverse(bsdf).hierarchy
-        names = {bsdf.class_name()} | {n.class_name() for n in nodes
-                                       if hasattr(n, "class_name")}
-        if names & TILTING_BSDFS:
+        if tilts_shading_frame(bsdf):
             bsdfs.append(key)
     if not bsdfs:
         return None

@@ -63,6 +63,19 @@ def bsdf_eval_reaches(bsdf, ctx, si, wo_local, active):
     return value, mi.Bool(active) & ((dr.max(unpolarized(value)) > 0) | (pdf > 0))
 
 
+#: Mitsuba BSDFs that tilt the shading frame per point
+#: (:attr:`~mi_shadowmap.filters.common.Lookup.tilted`).
+TILTING_BSDFS = frozenset({"NormalMap", "BumpMap"})
+
+
+def tilts_shading_frame(bsdf) -> bool:
+    """Whether ``bsdf`` is or nests (in its ``mi.traverse`` hierarchy) one of
+    :data:`TILTING_BSDFS`: it then evaluates light in a shading frame tilted per point."""
+    nodes = mi.traverse(bsdf).hierarchy
+    names = {bsdf.class_name()} | {n.class_name() for n in nodes if hasattr(n, "class_name")}
+    return bool(names & TILTING_BSDFS)
+
+
 def bsdf_to_world(si, value, wo_local):
     """A BSDF value (or sample weight) at ``si`` for light arriving from local direction
     ``wo_local`` and leaving along ``si.wi``, with its Mueller matrix in world space

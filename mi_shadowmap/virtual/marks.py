@@ -14,6 +14,7 @@ from ..control_flow import if_stmt
 from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
 from ..light_views.base import opaque_point
 from ..map_manager import scene_token
+from ..variants import tilts_shading_frame
 from .camera import camera_frame, has_aperture
 from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
 from .lookup import VirtualShadowMap, effective_lod_bias
@@ -316,10 +317,7 @@ def _tilt_of(shape, in_group: bool = False) -> float:
     bsdf = shape.bsdf()
     if bsdf is None or mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission):
         return 2.0
-    from ..integrator import TILTING_BSDFS    # (the integrator imports this package)
-    nodes = mi.traverse(bsdf).hierarchy
-    names = {bsdf.class_name()} | {n.class_name() for n in nodes if hasattr(n, "class_name")}
-    if names & TILTING_BSDFS:
+    if tilts_shading_frame(bsdf):
         return 2.0
     if not (shape.is_mesh() and shape.has_vertex_normals()):
         return 0.0

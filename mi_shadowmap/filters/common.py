@@ -219,13 +219,6 @@ class BiasReach:
         return dr.select(clamped, self.grazing + self.slope * self.max_tan * cos_nl,
                          self.normal * cos_nl + self.slope * sin_nl)
 
-    def edge_texels(self, cos_nl, sin_nl):
-        """The ``edge`` part of :meth:`texels` (None without a ``virtual_edge``)."""
-        if self.edge <= 0.0:
-            return None
-        tan_c = dr.minimum(sin_nl / dr.maximum(cos_nl, 1e-6), self.max_tan)
-        return self.edge * dr.sqrt(1.0 + tan_c * tan_c)
-
 
 def receiver(smap, lk: Lookup, opts, coordinate_margin: bool = True) -> Receiver:
     """Project a shading point into ``smap`` with the configured biases.

@@ -891,7 +891,10 @@ def test_marks_and_lookups_agree_on_the_biases_level_per_pixel():
     integ._sensor = sensor
     np.testing.assert_array_equal(integ._film_pixel(si, valid).numpy()[valid.numpy()],
                                   pixel.numpy()[valid.numpy()])
-    marker = marks.Marker(vmap.layout, vmap.lod_bias, reach=vmap.reach, scene=scene)
+    # the render's marker: its probes and its rule for lights behind a smooth mesh
+    # (marks._light_behind) see the camera's pinhole
+    marker = marks.Marker(vmap.layout, vmap.lod_bias, reach=vmap.reach, scene=scene,
+                          eye=virtual.camera_frame(sensor)[0])
     face, _, act, marked, _, dropped, _ = marks.marked_points(marker, si, dp_dx, dp_dy,
                                                               valid)
     lk = Lookup(dr.select(valid, si.p, 0.0), si.n, dp_dx, dp_dy, si, None, None,

@@ -109,8 +109,9 @@ Deviations from the paper, and why:
   with the plane running behind it, and shadows the point: the more taps the coarser the
   texels against the faces, as on virtual maps, whose level follows the pixel footprint.
   So a mesh hit also takes virtual samples on the planes of the faces that share an edge
-  with its face, rise towards the light (their third vertex more than 1e-3 rad off the
-  face's plane, on the light's side) and turn the same side to it
+  with its face, rise towards the light (folded more than 1e-3 rad off the face's plane,
+  on the light's side: the third vertex's height over it against its distance from the
+  shared edge) and turn the same side to it
   (:func:`rising_neighbours`, from Mitsuba's directed edges, which the integrator builds
   for this method; a neighbour seen from its other side is in the layer where the
   light's rays leave a solid, as a ridge's far slope over the valley it shadows: with
@@ -137,10 +138,41 @@ Deviations from the paper, and why:
   false shadows (0.14 / 0.24 % there), where one wall's plane runs behind the next;
   ``bias`` removes them. ``slope_bias`` and ``normal_bias`` also default to 0 here and
   are applied like everywhere else (see :func:`~.common.receiver`) when set.
+  The fold is measured from the shared edge, not from the shading point: a ramp's faces
+  0.2 wide and 40 long (flat-shaded, its slope growing 0.5 degree a face to 5 degrees,
+  open, all lit by a sun 6 degrees high) read their 0.5-degree folds as 5e-5 rad from a
+  point 36 units along the edge, no neighbour counted, and 186 of 4096 pixels were
+  falsely shadowed at 64^2 (314 of 16384 at 128^2; ``hard`` 0): 73 (79) now.
+* **Beyond the neighbouring faces: the paper's bias.** The neighbours' planes are one
+  ring of faces. Where a level's texels span several faces of a surface that keeps
+  rising off every face's plane (the ramp above, its texels 1.7 units long on it at the
+  coarse levels of pixels 20 units away), a 2 x 2 block's taps see faces two to five
+  folds away, in front of the neighbours' planes too, and the virtual samples shadow a
+  lit point: those 73 pixels. That is the paper's own limit (sec. 3.3: a curved
+  two-sided surface "will need a bias"; sec. 3.2, Figure 9: the tangent plane leaves a
+  curved surface), and its remedy works: ``bias`` 0.1 leaves 15, 0.3 none; so does a
+  map whose texels stay within a fold (``lod_bias`` -2: 10; a full 512^2 map: 0).
+  A flat-shaded tessellation has no curvature to bend the plane by (above), and an
+  isotropic allowance from the folds' angles would also light occluders lying on such
+  a surface, so the bias stays the user's (``tests/test_second_depth_extremes.py``).
 * **Thin objects** (the paper's Figure 7) remain a failure case where the
   surface is curved: virtual samples remove the false shadows but the
   tangent plane can still miss the surface by more than its thickness
   (measured in ``tests/test_second_depth.py``).
+* **Thin objects under a grazing light: between the texel rows.** A plate 1e-3 thick,
+  1e-3 over a floor, under a point light 0.01 over the floor 4-7 units away, shadows a
+  band of the floor that the light sees within 7e-4 rad of elevation, about one texel
+  row of a 1024^2 cube face: the rows pass over and under the plate, and the floor's
+  shadow is lit (1012 of 16384 pixels at 128^2 on a full 1024^2 map, 933 on virtual
+  maps; a sun 0.05 degrees high: 388 / 408). Sample by sample, 99.6 % (full map) / 95 %
+  (virtual) of those lookups' 2 x 2 blocks hold no texel whose ray meets the plate: their
+  compares disagree (rows before the plate and far beyond it), and the virtual samples
+  on the floor's plane, its own second surface, agree with every tap. ``hard`` reads the
+  same rows' first depths and lights the same pixels (1012 on the full map; 699 on
+  virtual maps, whose level it keeps finer for its biases' reach; a sun 0.05 degrees
+  high 398 / 419). The paper's sec. 4.1: errors occur "if objects in the scene fit
+  between depth-map samples ... the only solution is to increase the size of the depth
+  map" (4096^2: 856; the sun's 4096^2: 193, ``hard`` 232).
 * **Off-map / face borders.** Lookups outside the map are lit; taps are
   clamped to the receiver's face (cube-map seams are not crossed). A block cut by the
   face's border (within ``side / 2`` texels of it; on a face of one texel everywhere)
@@ -242,8 +274,9 @@ def facet_centre(lk: Lookup, p, n, active) -> mi.Point3f:
 
 def rising_neighbours(lk: Lookup, n, to_light, active) -> list:
     """The planes of the mesh faces that share an edge with the hit's face, rise off its
-    plane towards the light (their third vertex on the light's side of it) and turn the
-    same side to the light as it does: three
+    plane towards the light (folded more than 1e-3 rad across the shared edge, their
+    third vertex on the light's side of it) and turn the same side to the light as it
+    does: three
     ``(point, normal, valid)``, ``valid`` False for other edges, open edges (and edges
     whose faces share positions but not vertices), non-mesh hits, hits through an
     ``instance`` and lookups at another point than the hit's. Read through Mitsuba's
@@ -274,11 +307,18 @@ def rising_neighbours(lk: Lookup, n, to_light, active) -> list:
         nb = dr.normalize(dr.cross(v[1] - v[0], v[2] - v[0]))
         c_opp = (de % 3 + 2) % 3                     # the vertex not on the shared edge
         opp = dr.select(c_opp == 0, v[0], dr.select(c_opp == 1, v[1], v[2]))
-        # rising by more than 1e-3 rad (not a coplanar neighbour's rounding), and turned
-        # to the light as the hit face is: a neighbour seen from its other side is in
-        # the layer as where the light's rays leave a solid (a ridge's far slope over a
-        # valley in its shadow), not as a lit surface
-        valid &= (toward * dr.dot(n, opp - p) > 1e-3 * dr.norm(opp - p)) \
+        e0 = dr.select(c_opp == 0, v[1], dr.select(c_opp == 1, v[2], v[0]))
+        e1 = dr.select(c_opp == 0, v[2], dr.select(c_opp == 1, v[0], v[1]))
+        # rising by more than 1e-3 rad (not a coplanar neighbour's rounding): the dihedral
+        # angle, the third vertex's height over the plane against its distance from the
+        # shared edge (not from p: along a long edge, p 36 units from the third vertex of
+        # a ramp's 0.2-wide facet, a 0.5-degree fold read as 5e-5 rad), and turned to the
+        # light as the hit face is: a neighbour seen from its other side is in the layer
+        # as where the light's rays leave a solid (a ridge's far slope over a valley in its
+        # shadow), not as a lit surface
+        edge = e1 - e0
+        off_edge = dr.norm(dr.cross(opp - e0, edge)) / dr.norm(edge)
+        valid &= (toward * dr.dot(n, opp - p) > 1e-3 * off_edge) \
             & (side_a * dr.dot(nb, to_light) > 0) & dr.all(dr.isfinite(nb))
         out.append((mi.Point3f(v[0]), mi.Vector3f(nb), valid))
     return out

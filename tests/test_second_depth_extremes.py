@@ -68,8 +68,8 @@ def test_a_concave_flat_shaded_ramp_needs_the_papers_bias_beyond_its_neighbours(
     """The paper's documented limit (Wang & Molnar 1994, sec. 3.3: a curved two-sided
     surface "will need a bias"; sec. 3.2, Figure 9): where the level's texels are
     several facets long on the ramp (a pixel 20 units away spans about 2 units of it
-    from eye height 2), a 2 x 2 block's taps see faces two to five folds away, in front
-    of both the point's plane and its neighbours' (the surface rises above every face's
+    from eye height 2), a 2 x 2 block's taps see faces up to 15 folds away, in front of
+    both the point's plane and its neighbours' (the surface rises above every face's
     plane), and the virtual samples shadow a lit point. Pinned: at the defaults some
     1-3 % of the view stays falsely shadowed (73 of 4096; 186 before the neighbours'
     rise was measured from their shared edge); the paper's remedy, a ``bias`` (world
@@ -113,7 +113,7 @@ def test_a_thin_plate_under_a_grazing_light_falls_between_the_texel_rows():
     the scene fit between depth-map samples ... the only solution is to increase the size
     of the depth map"), shared by every depth-map method. Under a point light 0.01 over
     the floor the plate's shadow on the floor spans elevations 0.0011-0.0018 rad from the
-    light, about a texel row of a 1024^2 cube face: 99.6 % of the falsely lit samples'
+    light, less than a texel row of a 1024^2 cube face: 99.6 % of the falsely lit samples'
     2 x 2 blocks have no texel whose ray meets the plate (their rows see the floor before
     the plate and far beyond it; the ordinary compares disagree, and the virtual samples
     on the floor's plane, its own second surface, agree with every tap). ``hard`` reads

@@ -145,10 +145,10 @@ Deviations from the paper, and why:
   falsely shadowed at 64^2 (314 of 16384 at 128^2; ``hard`` 0): 73 (79) now.
 * **Beyond the neighbouring faces: the paper's bias.** The neighbours' planes are one
   ring of faces. Where a level's texels span several faces of a surface that keeps
-  rising off every face's plane (the ramp above, its texels 1.7 units long on it at the
-  coarse levels of pixels 20 units away), a 2 x 2 block's taps see faces two to five
-  folds away, in front of the neighbours' planes too, and the virtual samples shadow a
-  lit point: those 73 pixels. That is the paper's own limit (sec. 3.3: a curved
+  rising off every face's plane (the ramp above, its texels 0.8-3.4 units long on it at
+  the footprint's levels of pixels 20 units away), a 2 x 2 block's taps see faces up to
+  15 folds away, in front of the neighbours' planes too, and the virtual samples shadow
+  a lit point: those 73 pixels. That is the paper's own limit (sec. 3.3: a curved
   two-sided surface "will need a bias"; sec. 3.2, Figure 9: the tangent plane leaves a
   curved surface), and its remedy works: ``bias`` 0.1 leaves 15, 0.3 none; so does a
   map whose texels stay within a fold (``lod_bias`` -2: 10; a full 512^2 map: 0).
@@ -161,9 +161,9 @@ Deviations from the paper, and why:
   (measured in ``tests/test_second_depth.py``).
 * **Thin objects under a grazing light: between the texel rows.** A plate 1e-3 thick,
   1e-3 over a floor, under a point light 0.01 over the floor 4-7 units away, shadows a
-  band of the floor that the light sees within 7e-4 rad of elevation, about one texel
-  row of a 1024^2 cube face: the rows pass over and under the plate, and the floor's
-  shadow is lit (1012 of 16384 pixels at 128^2 on a full 1024^2 map, 933 on virtual
+  band of the floor that the light sees within 7e-4 rad of elevation, less than a 1024^2
+  cube face's rows are apart (1.7e-3 rad there): the rows pass over and under the plate,
+  and the shadow is lit (1012 of 16384 pixels at 128^2 on a full 1024^2 map, 933 on virtual
   maps; a sun 0.05 degrees high: 388 / 408). Sample by sample, 99.6 % (full map) / 95 %
   (virtual) of those lookups' 2 x 2 blocks hold no texel whose ray meets the plate: their
   compares disagree (rows before the plate and far beyond it), and the virtual samples

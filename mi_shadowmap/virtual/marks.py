@@ -4,6 +4,7 @@ ray per pixel centre.
 from __future__ import annotations
 
 import math
+import weakref
 
 import drjit as dr
 import mitsuba as mi
@@ -13,7 +14,7 @@ from .. import depth_maps
 from ..control_flow import if_stmt
 from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
 from ..light_views.base import opaque_point
-from ..map_manager import scene_token
+from ..map_manager import scene_lease
 from ..variants import tilts_shading_frame
 from .camera import camera_frame, has_aperture
 from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
@@ -232,10 +233,13 @@ def _edge_probe_frame(view, p, n, dp_dx, dp_dy, edge):
 #: (:func:`_light_behind`).
 DELTA_KINDS = ("point", "spot", "projector", "directional")
 
-#: :func:`_shape_tilts`' tables of the last few scenes (``id(scene)``: ``(token, table)``,
-#: the scene's :func:`~mi_shadowmap.map_manager.scene_token`, which does not hold it).
-_TILTS: dict = {}
-_TILTS_HELD = 8
+#: :func:`_shape_tilts`' memo of each scene, keyed by its
+#: :func:`~mi_shadowmap.map_manager.scene_lease` (weakly: it goes when the package lets the
+#: scene go, ``clear_caches()`` too): ``[shapes, keys, tilts, table, held]``, the scene's
+#: shapes as ``(registry id, shape, in a shape group)``, what :func:`_tilt_of` read of each
+#: (:func:`_tilt_state`), its value per shape, the table and the buffers read (held, so
+#: that their JIT indices are not reused while the memo compares them).
+_TILTS = weakref.WeakKeyDictionary()
 
 
 def _light_behind(scene, view, p, n, shape, eye, active) -> mi.Bool:
@@ -286,27 +290,58 @@ def _shape_tilts(scene) -> mi.Float:
     """Per shape registry index (``si.shape`` as a ``UInt32``), the sine of the largest
     angle its shading normal can tilt from its geometric normal (0: none; 2: never
     drop, :func:`_light_behind`: a transmitting or normal-mapping BSDF; indices of no
-    shape the scene's traversal reaches are 2 too). Cached per scene (:data:`_TILTS`):
-    a mesh's vertex normals edited after its first mark are not seen."""
-    token = scene_token(scene)
-    hit = _TILTS.get(id(scene))
-    if hit is not None and hit[0] is token:
-        return hit[1]
-    # the scene's shapes and its shape groups' (an instance's, which the camera's hits
-    # name, ``si.shape``, are not in scene.shapes())
-    listed = list(scene.shapes())
-    grouped = depth_maps._grouped_shapes(scene, listed)
-    shapes = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): (sh, k >= len(listed))
-              for k, sh in enumerate(listed + grouped)}
-    table = np.full(max(shapes, default=0) + 1, 2.0, np.float32)
-    for i, (sh, in_group) in shapes.items():
-        table[i] = _tilt_of(sh, in_group)
+    shape the scene's traversal reaches are 2 too). Kept per scene (:data:`_TILTS`)
+    while what :func:`_tilt_of` reads of each shape is unchanged (:func:`_tilt_state`:
+    a mesh's buffers, its BSDF's flags); a shape whose state changed through
+    ``params.update()`` (or a write into its buffer) is read again, the others are not.
+    Before, the table was kept per scene: a mesh's vertex normals bent after its first
+    mark were not seen, and the mark dropped the biases' level that its lookups then
+    read (a smooth wall lit through its bent normals from just behind its plane, posts
+    beside it: 60 of 4096 pixels differed from a fresh integrator's, 53 of them across
+    1/2, ``tests/test_cache_edits.py``). Called by the mark pass only (a still camera
+    reuses its marks): a few Python calls a shape when it runs."""
+    lease = scene_lease(scene)
+    memo = _TILTS.get(lease)
+    if memo is None:
+        # the scene's shapes and its shape groups' (an instance's, which the camera's
+        # hits name, ``si.shape``, are not in scene.shapes()); a loaded scene's shapes
+        # are fixed
+        listed = list(scene.shapes())
+        grouped = depth_maps._grouped_shapes(scene, listed)
+        shapes = [(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]), sh,
+                   k >= len(listed)) for k, sh in enumerate(listed + grouped)]
+        memo = _TILTS[lease] = [shapes, None, {}, None, None]
+    shapes, keys, tilts = memo[0], memo[1], memo[2]
+    states = [_tilt_state(sh) for _, sh, _ in shapes]
+    now = [st[0] for st in states]
+    if now == keys:
+        return memo[3]
+    for k, (i, sh, in_group) in enumerate(shapes):
+        if keys is None or now[k] != keys[k]:
+            tilts[i] = _tilt_of(sh, in_group)
+    table = np.full(max(tilts, default=0) + 1, 2.0, np.float32)
+    for i, value in tilts.items():
+        table[i] = value
     out = mi.Float(table)
     dr.make_opaque(out)
-    while len(_TILTS) >= _TILTS_HELD:
-        _TILTS.pop(next(iter(_TILTS)))
-    _TILTS[id(scene)] = (token, out)
+    memo[1], memo[3], memo[4] = now, out, [st[1] for st in states]
     return out
+
+
+def _tilt_state(shape) -> tuple:
+    """``(key, held)``: what :func:`_tilt_of` reads of ``shape`` that ``params.update()``
+    may change, and the JIT buffers the key names. The key holds its BSDF's flags
+    (Mitsuba's ``principled`` gains ``GlossyTransmission`` when its ``spec_trans`` is set
+    above 0: light from behind then reaches the camera through it) and a mesh's
+    vertex, face and vertex-normal buffers' JIT indices (a new index is a new value
+    while the old buffer is held: a value written in place gets a new variable)."""
+    bsdf = shape.bsdf()
+    flags = None if bsdf is None else int(bsdf.flags())
+    if not shape.is_mesh():
+        return (flags,), ()
+    held = (shape.vertex_positions_buffer(), shape.faces_buffer(),
+            shape.vertex_normals_buffer())
+    return (flags,) + tuple(b.index for b in held), held
 
 
 def _tilt_of(shape, in_group: bool = False) -> float:

@@ -795,6 +795,27 @@ class ParamWatch:
         return (tuple(dr.detail.collect_indices(jit)), scalars), values
 
 
+#: Classes of the BSDFs whose flags ``params.update()`` changes (Mitsuba 3.9's
+#: ``parameters_changed``; every other BSDF plugin's flags were checked fixed, each float
+#: parameter set to 0, 0.5 and 1): ``principled`` gains ``GlossyTransmission`` where
+#: ``spec_trans`` becomes > 0 (``Anisotropic`` with ``anisotropic``), ``principledthin``
+#: likewise. The mark pass reads a BSDF's flags (a transmitting one takes light from
+#: behind: :func:`~mi_shadowmap.virtual.marks._light_behind`).
+FLAG_CHANGING_BSDFS = ("Principled", "PrincipledThin")
+
+
+def _flag_changing_bsdfs(params) -> list:
+    """The BSDFs of a ``mi.traverse`` result ``params`` whose flags may change
+    (:data:`FLAG_CHANGING_BSDFS`): their flags are part of the scene state, so that a
+    page store's marks (kept for a still camera) are made again when they change."""
+    seen = {}
+    for value in params.properties.values():
+        node = value[2] if len(value) > 2 else None
+        if isinstance(node, mi.BSDF) and node.class_name() in FLAG_CHANGING_BSDFS:
+            seen[id(node)] = node
+    return list(seen.values())
+
+
 def _environment_scale(params, name: str) -> bool:
     """Whether parameter ``name`` is an environment emitter's ``scale``."""
     owner = params.properties[name][2]
@@ -885,7 +906,10 @@ class MapCache:
       ``params.update()`` calls ``parameters_changed`` on the C++ objects,
       which a Python plugin cannot observe, and JIT variable indices are
       recycled, so the values themselves are hashed. Camera, film, BSDF and texture
-      parameters are not part of it, so changing them keeps the maps.
+      parameters are not part of it, so changing them keeps the maps; the flags of the
+      BSDFs that ``params.update()`` may give new flags are (:data:`FLAG_CHANGING_BSDFS`:
+      ``principled`` given ``spec_trans`` > 0 transmits, and the mark pass treats a
+      transmitting surface's light from behind as seen; one read per such BSDF a render).
       JIT arrays are hashed once per JIT variable (:func:`param_digest`), so an
       unchanged scene costs a read of its parameters' variable indices per render
       (and ``mi.traverse(scene)`` is kept per scene: :meth:`traverse`).
@@ -915,7 +939,9 @@ class MapCache:
         self.max_scenes = max_scenes
         self._scenes = collections.OrderedDict()   # id(scene) -> [scene, state, {key: entry}]
         # id(scene) -> [scene, {param: (held value, JIT ids, digest)}, its mi.traverse,
-        #               (ParamWatch of its shape and emitter parameters, last state)]
+        #               [ParamWatch of its shape and emitter parameters, last state,
+        #                an environment's scales' watch, their signs, the BSDFs whose
+        #                flags count (_flag_changing_bsdfs)]]
         self._memo = collections.OrderedDict()
         self._views = {}        # id(scene) -> {"state": state, (label, ...): [fingerprints]}
         self.hits = 0
@@ -959,8 +985,9 @@ class MapCache:
             # luminance): only whether it is > 0 counts (environment.emitter_regions)
             scales = [name for name in names if _environment_scale(params, name)]
             slot[3] = [ParamWatch(params, [n for n in names if n not in scales]), None,
-                       ParamWatch(params, scales) if scales else None, None]
-        watch, last, scale_watch, signs = slot[3]
+                       ParamWatch(params, scales) if scales else None, None,
+                       _flag_changing_bsdfs(params)]
+        watch, last, scale_watch, signs, flagged = slot[3]
         if scale_watch is not None:
             s_token, s_values = scale_watch.read()
             if signs is None or signs[0] != s_token:
@@ -970,6 +997,8 @@ class MapCache:
                     scale_watch.held(s_values))
         suffix = "" if scale_watch is None else "/" + signs[1]
         token, values = watch.read()
+        if flagged:       # (none in most scenes: nothing read)
+            token = (token, tuple(int(b.flags()) for b in flagged))
         if last is not None and last[0] == token:    # the same variables and values
             return last[2] if shapes_only else last[1] + suffix
         memo = slot[1]
@@ -978,6 +1007,9 @@ class MapCache:
         counts = f"{len(scene.shapes())}/{len(scene.emitters())}".encode()
         h.update(counts)
         hs.update(counts)
+        if flagged:
+            for hh in (h, hs):
+                hh.update(repr(token[1]).encode())
         for name, value in zip(watch.names, values):
             digest = param_digest(memo, name, value)
             for hh in ((h, hs) if isinstance(watch.params.properties[name][2], mi.Shape)

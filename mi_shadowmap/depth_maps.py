@@ -587,9 +587,14 @@ def solid_face_tables(scene: mi.Scene):
     occluding: its instances' placements are read every render). Remembered while the
     shapes and their buffers are the same."""
     shapes, use, glass, n_listed = _solid_candidates(scene)
-    held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer())
+    # the vertex normals too: which faces are flat-shaded (_flat_shaded_faces) follows
+    # them (kept by vertices and faces alone, a ball's normals smoothed through
+    # params.update() kept its flat faces' empty table, and the terminator's faces
+    # facing away from a point light were lit: 14 of 4096 pixels misclassified against
+    # raytraced, a fresh integrator 4; tests/test_cache_edits.py)
+    held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(), sh.vertex_normals_buffer())
             for sh, m in zip(shapes, use) if m]
-    key = tuple((id(sh), v.index, f.index) for sh, v, f in held)
+    key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)
     if _SOLID_TABLES_MEMO[0] is not None and _SOLID_TABLES_MEMO[0][0] == key:
         return _SOLID_TABLES_MEMO[1]
     tables = None

@@ -14,7 +14,7 @@ from .. import depth_maps
 from ..control_flow import if_stmt
 from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
 from ..light_views.base import opaque_point
-from ..map_manager import scene_lease
+from ..map_manager import FLAG_CHANGING_BSDFS, MAP_CACHE, ParamWatch, scene_lease
 from ..variants import tilts_shading_frame
 from .camera import camera_frame, has_aperture
 from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
@@ -233,12 +233,9 @@ def _edge_probe_frame(view, p, n, dp_dx, dp_dy, edge):
 #: (:func:`_light_behind`).
 DELTA_KINDS = ("point", "spot", "projector", "directional")
 
-#: :func:`_shape_tilts`' memo of each scene, keyed by its
+#: :func:`_shape_tilts`' memo of each scene (:class:`_TiltWatch`), keyed by its
 #: :func:`~mi_shadowmap.map_manager.scene_lease` (weakly: it goes when the package lets the
-#: scene go, ``clear_caches()`` too): ``[shapes, keys, tilts, table, held]``, the scene's
-#: shapes as ``(registry id, shape, in a shape group)``, what :func:`_tilt_of` read of each
-#: (:func:`_tilt_state`), its value per shape, the table and the buffers read (held, so
-#: that their JIT indices are not reused while the memo compares them).
+#: scene go, ``clear_caches()`` too).
 _TILTS = weakref.WeakKeyDictionary()
 
 
@@ -291,50 +288,81 @@ def _shape_tilts(scene) -> mi.Float:
     angle its shading normal can tilt from its geometric normal (0: none; 2: never
     drop, :func:`_light_behind`: a transmitting or normal-mapping BSDF; indices of no
     shape the scene's traversal reaches are 2 too). Kept per scene (:data:`_TILTS`)
-    while what :func:`_tilt_of` reads of each shape is unchanged (:func:`_tilt_state`:
-    a mesh's buffers, its BSDF's flags); a shape whose state changed through
-    ``params.update()`` (or a write into its buffer) is read again, the others are not.
-    Before, the table was kept per scene: a mesh's vertex normals bent after its first
-    mark were not seen, and the mark dropped the biases' level that its lookups then
-    read (a smooth wall lit through its bent normals from just behind its plane, posts
-    beside it: 60 of 4096 pixels differed from a fresh integrator's, 53 of them across
-    1/2, ``tests/test_cache_edits.py``). Called by the mark pass only (a still camera
-    reuses its marks): a few Python calls a shape when it runs."""
+    while what :func:`_tilt_of` reads that ``params.update()`` may change is unchanged
+    (:class:`_TiltWatch`: the meshes' buffers, the flags of BSDFs whose flags change);
+    then the shapes whose state changed (:func:`_tilt_state`) are read again, the others
+    are not. Before, the table was kept per scene: a mesh's vertex normals bent after
+    its first mark were not seen, and the mark dropped the biases' level that its
+    lookups then read (a smooth wall lit through its bent normals from just behind its
+    plane, posts beside it: 60 of 4096 pixels differed from a fresh integrator's, 53 of
+    them across 1/2, ``tests/test_cache_edits.py``). Called by the mark pass only (a
+    still camera reuses its marks): one read of the watched parameters' JIT indices."""
     lease = scene_lease(scene)
     memo = _TILTS.get(lease)
     if memo is None:
+        memo = _TILTS[lease] = _TiltWatch(scene)
+    token, values = memo.read()
+    if token == memo.token:
+        return memo.table
+    keys = [_tilt_state(sh) for _, sh, _ in memo.shapes]
+    for k, (i, sh, in_group) in enumerate(memo.shapes):
+        if memo.keys is None or keys[k][0] != memo.keys[k][0]:
+            memo.tilts[i] = _tilt_of(sh, in_group)
+    table = np.full(max(memo.tilts, default=0) + 1, 2.0, np.float32)
+    for i, value in memo.tilts.items():
+        table[i] = value
+    memo.table = mi.Float(table)
+    dr.make_opaque(memo.table)
+    memo.keys, memo.token = keys, token
+    memo.held = memo.watch.held(values)
+    return memo.table
+
+
+class _TiltWatch:
+    """:func:`_shape_tilts`' memo of one scene: its shapes as ``(registry id, shape, in a
+    shape group)`` (a loaded scene's shapes are fixed), a
+    :class:`~mi_shadowmap.map_manager.ParamWatch` of its meshes' ``vertex_positions``,
+    ``faces`` and ``vertex_normals`` (read through the map cache's kept traversal; not a
+    ``rectangle``'s ``to_world``, a mesh in Mitsuba 3.9: an affine map keeps its normals
+    its face's, and reading a transform's bytes took 40 us), the BSDFs whose flags ``params.update()`` changes
+    (:data:`~mi_shadowmap.map_manager.FLAG_CHANGING_BSDFS`), the last token read, each
+    shape's :func:`_tilt_state` then, its tilt, the table and the values held (so that
+    their JIT indices are not reused while compared). Reading per shape instead (its
+    buffers and BSDF flags, :func:`_tilt_state`) took 29-60 us a mark pass on the
+    repository's scenes of 5-6 shapes; the watch's read 3-8 us."""
+
+    def __init__(self, scene):
         # the scene's shapes and its shape groups' (an instance's, which the camera's
-        # hits name, ``si.shape``, are not in scene.shapes()); a loaded scene's shapes
-        # are fixed
+        # hits name, ``si.shape``, are not in scene.shapes())
         listed = list(scene.shapes())
         grouped = depth_maps._grouped_shapes(scene, listed)
-        shapes = [(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]), sh,
-                   k >= len(listed)) for k, sh in enumerate(listed + grouped)]
-        memo = _TILTS[lease] = [shapes, None, {}, None, None]
-    shapes, keys, tilts = memo[0], memo[1], memo[2]
-    states = [_tilt_state(sh) for _, sh, _ in shapes]
-    now = [st[0] for st in states]
-    if now == keys:
-        return memo[3]
-    for k, (i, sh, in_group) in enumerate(shapes):
-        if keys is None or now[k] != keys[k]:
-            tilts[i] = _tilt_of(sh, in_group)
-    table = np.full(max(tilts, default=0) + 1, 2.0, np.float32)
-    for i, value in tilts.items():
-        table[i] = value
-    out = mi.Float(table)
-    dr.make_opaque(out)
-    memo[1], memo[3], memo[4] = now, out, [st[1] for st in states]
-    return out
+        self.shapes = [(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]), sh,
+                        k >= len(listed)) for k, sh in enumerate(listed + grouped)]
+        params = MAP_CACHE.traverse(scene)
+        meshes = {id(sh) for _, sh, _ in self.shapes if sh.is_mesh()}
+        self.watch = ParamWatch(params, [
+            name for name in params.keys() if id(params.properties[name][2]) in meshes
+            and name.rsplit(".", 1)[-1] in ("vertex_positions", "faces", "vertex_normals")])
+        bsdfs = {id(b): b for b in (sh.bsdf() for _, sh, _ in self.shapes)
+                 if b is not None and b.class_name() in FLAG_CHANGING_BSDFS}
+        self.flagged = list(bsdfs.values())
+        self.token = self.keys = self.table = self.held = None
+        self.tilts = {}
+
+    def read(self) -> tuple:
+        """``(token, values)``: the watch's, its token with the watched BSDFs' flags."""
+        token, values = self.watch.read()
+        if self.flagged:
+            token = (token, tuple(int(b.flags()) for b in self.flagged))
+        return token, values
 
 
 def _tilt_state(shape) -> tuple:
     """``(key, held)``: what :func:`_tilt_of` reads of ``shape`` that ``params.update()``
-    may change, and the JIT buffers the key names. The key holds its BSDF's flags
-    (Mitsuba's ``principled`` gains ``GlossyTransmission`` when its ``spec_trans`` is set
-    above 0: light from behind then reaches the camera through it) and a mesh's
-    vertex, face and vertex-normal buffers' JIT indices (a new index is a new value
-    while the old buffer is held: a value written in place gets a new variable)."""
+    may change, and the JIT buffers the key names: its BSDF's flags (Mitsuba's
+    ``principled`` gains ``GlossyTransmission`` when its ``spec_trans`` is set above 0:
+    light from behind then reaches the camera through it) and a mesh's vertex, face and
+    vertex-normal buffers' JIT indices (held with the key: a new index is a new value)."""
     bsdf = shape.bsdf()
     flags = None if bsdf is None else int(bsdf.flags())
     if not shape.is_mesh():

@@ -324,7 +324,8 @@ class _TiltWatch:
     :class:`~mi_shadowmap.map_manager.ParamWatch` of its meshes' ``vertex_positions``,
     ``faces`` and ``vertex_normals`` (read through the map cache's kept traversal; not a
     ``rectangle``'s ``to_world``, a mesh in Mitsuba 3.9: an affine map keeps its normals
-    its face's, and collecting a transform's JIT indices took 17-26 us), the BSDFs whose flags ``params.update()`` changes
+    its face's, and collecting a transform's JIT indices took 17-26 us), the BSDFs whose
+    flags ``params.update()`` changes
     (:data:`~mi_shadowmap.map_manager.FLAG_CHANGING_BSDFS`), the last token read, each
     shape's :func:`_tilt_state` then, its tilt, the table and the values held (so that
     their JIT indices are not reused while compared). Reading per shape instead (its

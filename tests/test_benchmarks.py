@@ -166,3 +166,37 @@ def test_bench_unseen_texels_only_gives_each_methods_first_frame_texels():
         want.append(round(integ.stats["texels_built"] / 32 ** 2, 2))
     assert got == want and want[1] > want[0] > 0
     assert "rt noise" not in out and "over 8" in out
+
+
+def test_bench_virtual_cost_cpu_mode_times_each_frames_parts_on_one_thread():
+    # issue 11's single frame with maps built: wall-clock rounds on this shared machine
+    # varied by more than the shadow cost; --cpu times each frame by one thread's CPU
+    # time, cut into parts, every kernel of a frame inside its timed region
+    out = run_bench("bench_virtual_cost.py", "--cpu", "--triangles", "2000", "--image", "16",
+                    "--spp", "2", "--rounds", "2")
+    assert "one thread's CPU time" in out
+    assert "kernels launched outside the timed frames: 0;" in out
+    names = ("unshadowed", "raytraced", "hard full (built)", "hard virtual (built)")
+    lines = out.splitlines()
+    head = lines.index("| configuration | marks | plan | build | first pass | render | frame |")
+    parts = {}
+    for line in lines[head + 2:head + 2 + len(names)]:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        parts[cells[0]] = cells[1:]
+    assert set(parts) == set(names)
+    for name, cells in parts.items():
+        assert float(cells[-1]) > 0.0
+        # a part: "kernels / host [JIT kernels, the longest one's lanes]", or "-"
+        virtual = name == "hard virtual (built)"
+        for part, cell in zip(("marks", "plan", "build"), cells):
+            assert (cell != "-") == virtual, (name, part, cell)
+        render = cells[4]
+        kern, host = (float(x) for x in render.split("[")[0].split("/"))
+        assert kern > 0.0 and host >= 0.0
+        assert render.endswith(", 512]")          # the render kernel: 16^2 pixels x 2 spp
+    # the virtual frame's build: its cast kernel, at least one JIT kernel
+    assert int(parts["hard virtual (built)"][2].split("[")[1].split(",")[0]) >= 1
+    frames = [line for line in lines if line.startswith("| hard virtual (built) |")]
+    assert frames and all("nan" not in line and "inf" not in line for line in frames)
+    lookup = [line for line in lines if line.startswith("Render part over the unshadowed")]
+    assert lookup and "of a ray" in lookup[0] and "nan" not in lookup[0]

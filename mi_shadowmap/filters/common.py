@@ -70,7 +70,9 @@ class Lookup:
     #: shading frame reflects near the terminator. The integrator gives light samples
     #: behind the face (``dot(n_world, d) < 0``) visibility 0 there; a ``whole_light``
     #: lookup must count its light points behind the face as occluded itself. None:
-    #: nowhere.
+    #: nowhere. For a lookup that is not ``whole_light`` the integrator computes it only
+    #: where ``ds`` lies behind the geometric face (False elsewhere, where it decides
+    #: nothing): such a lookup should not read it in front of the face.
     solid_back: object = None
     #: ``mi.UInt32``: the film pixel of the camera sample (``x + 65536 y`` in the crop;
     #: the integrator's own render through a ``perspective`` camera), or None: unknown.

@@ -460,13 +460,18 @@ screen is Mitsuba's projective integrators' job.
         cache), else for the sensor being rendered (:func:`_nested_sensor`: the one whose
         film's pixel count fits the render's wavefront, and if several do, whose ray
         through its first pixel is nearest the render's first ray); footprints take the
-        spp from the render's sampler."""
+        spp from the render's sampler. Its lookups know their film pixel as a plain
+        render's do (the pinhole projection of their hit, :meth:`_film_pixel`) where the
+        sensor is known: the one our render just used, or one whose film fits the
+        wavefront; the maps then carry the same per-pixel words, and a nested render
+        reads the levels a plain one reads (``aov``'s colour is the plain image's)."""
         rendered = self._last_render is scene_token(scene)     # aov: our render() just ran
         if rendered and self._sensor is not None:
-            sensor = self._sensor
+            sensor, known = self._sensor, True
         else:
             sensor = _nested_sensor(scene, sampler, ray)
-        self._first_pass(scene, sensor, max(sampler.sample_count(), 1))
+            known = sensor is not None and _film_fits(sensor, sampler)
+        self._first_pass(scene, sensor, max(sampler.sample_count(), 1), known)
         missing = [n for n in self._names() if n not in self._names_given]
         # after our own render() of this scene (Mitsuba's aov merges that image, whose
         # visibility AOVs are all there) nothing is missing; stokes only calls sample()
@@ -481,7 +486,7 @@ screen is Mitsuba's projective integrators' job.
                 "needed under Mitsuba's aov, which adds this integrator's own render)",
                 RuntimeWarning, stacklevel=2)
 
-    def _first_pass(self, scene, sensor, spp: int):
+    def _first_pass(self, scene, sensor, spp: int, nested_pixels: bool = False):
         """What ``sample()`` reads of a render, set before it is traced: the maps for
         ``sensor``, whether the delta-lobe term applies, the footprints' scale (Mitsuba
         scales ray differentials by 1/sqrt(spp); footprints use whole pixels; an opaque
@@ -489,10 +494,12 @@ screen is Mitsuba's projective integrators' job.
         differentials; a perspective camera's pinhole and pixel steps, from which its
         footprints are taken (:func:`~mi_shadowmap.light_views.pinhole_footprint`).
         Whether its lookups know their film pixel (``Lookup.pixel``: this integrator's own
-        render through a ``perspective`` camera, not nested) is set first: virtual maps'
+        render through a ``perspective`` camera, or a nested ``sample()`` whose sensor is
+        known, ``nested_pixels``, see :meth:`_prepare_nested`) is set first: virtual maps'
         marks decide the receiver biases' level per pixel then
         (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.keeps`)."""
-        self._pixels = (self._in_render and not self._nested and sensor is not None
+        own = self._in_render and not self._nested
+        self._pixels = ((own or (self._nested and nested_pixels)) and sensor is not None
                         and is_pinhole(sensor))
         self.prepare_maps(scene, sensor)
         self._sensor = sensor
@@ -1082,8 +1089,8 @@ def _warn_if_enclosing(scene, view, method: str) -> None:
 def _nested_sensor(scene, sampler, ray):
     """The sensor a render that calls our ``sample()`` alone (Mitsuba's ``moment``,
     ``stokes``) is rendering: Mitsuba does not pass it. Its sampler's wavefront holds
-    ``spp`` samples per pixel of that sensor's film (its crop and a sampled border),
-    which rules out sensors of other sizes; among several (or none) of that size, the
+    ``spp`` samples per pixel of that sensor's film (its crop and a sampled border,
+    :func:`_film_fits`), which rules out sensors of other sizes; among several (or none) of that size, the
     one whose ray through the centre of its first pixel is nearest to the wavefront's
     first ray (Mitsuba's lane 0: that pixel, one jittered sample). Before, the scene's
     first sensor was taken: a ``moment`` render of ``sensor=1`` built its maps for sensor
@@ -1095,14 +1102,7 @@ def _nested_sensor(scene, sampler, ray):
     def border(film):    # a film with sample_border also samples its filter's border
         return film.rfilter().border_size() if film.sample_border() else 0
 
-    def pixels(s):
-        film = s.film()
-        size, b = film.crop_size(), border(film)
-        return (int(size[0]) + 2 * b) * (int(size[1]) + 2 * b)
-
-    fits = [s for s in sensors
-            if pixels(s) > 0 and wavefront % pixels(s) == 0
-            and spp % (wavefront // pixels(s)) == 0]
+    fits = [s for s in sensors if _film_fits(s, sampler)]
     if not fits:
         warnings.warn(
             "shadowmap: nested in another integrator that calls its sample() alone "
@@ -1135,6 +1135,18 @@ def _nested_sensor(scene, sampler, ray):
         if err < best_err:
             best, best_err = s, err
     return best
+
+
+def _film_fits(sensor, sampler) -> bool:
+    """Whether the render's wavefront holds a whole number of samples per pixel of
+    ``sensor``'s film (its crop and a sampled border; :func:`_nested_sensor`'s test)."""
+    film = sensor.film()
+    b = film.rfilter().border_size() if film.sample_border() else 0
+    size = film.crop_size()
+    pixels = (int(size[0]) + 2 * b) * (int(size[1]) + 2 * b)
+    wavefront, spp = sampler.wavefront_size(), max(sampler.sample_count(), 1)
+    return (pixels > 0 and wavefront % pixels == 0
+            and spp % max(wavefront // pixels, 1) == 0)
 
 
 class _PixelSteps:

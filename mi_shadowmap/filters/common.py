@@ -75,9 +75,10 @@ class Lookup:
     #: nothing): such a lookup should not read it in front of the face.
     solid_back: object = None
     #: ``mi.UInt32``: the film pixel of the camera sample (``x + 65536 y`` in the crop;
-    #: the integrator's own render through a ``perspective`` camera), or None: unknown.
-    #: A virtual map reads there whether its mark kept the receiver biases' level for
-    #: that pixel (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.keeps`).
+    #: a ``perspective`` camera's, in the integrator's own render or nested in another
+    #: integrator's whose sensor it knows), or None: unknown. A virtual map reads there
+    #: whether its mark kept the receiver biases' level for that pixel
+    #: (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.keeps`).
     pixel: object = None
     #: ``mi.Point2f``: the 2D sample the integrator drew the light sample ``ds`` from
     #: (one point of a stratified grid over ``shadow_rays``), or None: unknown (a

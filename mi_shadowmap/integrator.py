@@ -1090,12 +1090,13 @@ def _nested_sensor(scene, sampler, ray):
     """The sensor a render that calls our ``sample()`` alone (Mitsuba's ``moment``,
     ``stokes``) is rendering: Mitsuba does not pass it. Its sampler's wavefront holds
     ``spp`` samples per pixel of that sensor's film (its crop and a sampled border,
-    :func:`_film_fits`), which rules out sensors of other sizes; among several (or none) of that size, the
-    one whose ray through the centre of its first pixel is nearest to the wavefront's
-    first ray (Mitsuba's lane 0: that pixel, one jittered sample). Before, the scene's
-    first sensor was taken: a ``moment`` render of ``sensor=1`` built its maps for sensor
-    0's view. A sensor that is not the scene's (``mi.render(scene, sensor=obj)``) cannot
-    be found: where no film of the scene fits, a warning says so."""
+    :func:`_film_fits`), which rules out sensors of other sizes; among several (or none)
+    of that size, the one whose ray through the centre of its first pixel is nearest to
+    the wavefront's first ray (Mitsuba's lane 0: that pixel, one jittered sample).
+    Before, the scene's first sensor was taken: a ``moment`` render of ``sensor=1``
+    built its maps for sensor 0's view. A sensor that is not the scene's
+    (``mi.render(scene, sensor=obj)``) cannot be found: where no film of the scene fits,
+    a warning says so."""
     sensors = list(scene.sensors())
     wavefront, spp = sampler.wavefront_size(), max(sampler.sample_count(), 1)
 

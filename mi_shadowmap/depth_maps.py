@@ -20,6 +20,7 @@ needs and caches them.
 from __future__ import annotations
 
 import collections
+from itertools import compress
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -477,7 +478,7 @@ def clear_memos() -> None:
     _FACE_MEMO[:] = [None, None]
     _SOLID_TABLES_MEMO[:] = [None, None]
     _PART_BOUNDS[:] = [None, None, None]
-    _CANDIDATES[:] = [None, None]
+    _CANDIDATES[:] = [None, None, None]
     _OUTSIDE_MEMO.clear()
     _EDGES_MEMO.clear()
     from . import map_scene as ms
@@ -529,9 +530,10 @@ def _transmits(shape) -> bool:
     return bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
 
 
-#: ``[key, answer]`` of the last :func:`_solid_candidates` (the answer holds the shapes:
-#: their ids, in the key, are not reused while it lives).
-_CANDIDATES: list = [None, None]
+#: ``[key, answer, watched]`` of the last :func:`_solid_candidates` (the answer holds the
+#: shapes: their ids, in the key, are not reused while it lives; ``watched``: what
+#: ``params.update()`` may change of the answer, :func:`_candidates_edited`).
+_CANDIDATES: list = [None, None, None]
 
 
 def _solid_candidates(scene: mi.Scene) -> tuple:
@@ -540,20 +542,46 @@ def _solid_candidates(scene: mi.Scene) -> tuple:
     instance's hits name: as in _face_tables, an instance maps a solid's outside to its
     outside, and Mitsuba turns the normals), whether each is a mesh with vertex normals
     or a BSDF that transmits (``use``), and whether that BSDF transmits (``glass``).
-    Remembered while the scene lists the same shapes (none of this changes with
-    ``params.update()``): every render of every map method asks, and the shapegroups'
-    meshes take a ``mi.traverse`` of the scene (a warm frame of 300 cubes and an
-    instance: 25k Python calls against 7.6k before every map method asked)."""
+    Remembered while the scene lists the same shapes and none of what ``params.update()``
+    may change of it has changed (:func:`_candidates_edited`): every render of every map
+    method asks, and the shapegroups' meshes take a ``mi.traverse`` of the scene (a warm
+    frame of 300 cubes and an instance: 25k Python calls against 7.6k before every map
+    method asked). Keyed by the shapes alone, a mesh given vertex normals through
+    ``params.update()`` stayed flat (its smoothed terminator lit: 20 of 4096 pixels unlike
+    a fresh integrator), a ``principled`` mesh given ``spec_trans`` stayed opaque
+    (``second_depth`` lit a glass ball's far side behind its near side: the image 1.28x
+    ``raytraced``'s, a fresh integrator 1.00x), and a mesh whose normals were removed
+    raised an ``IndexError`` (``tests/test_cache_edits.py``)."""
     listed = list(scene.shapes())
     key = (id(scene), tuple(id(sh) for sh in listed))
-    if _CANDIDATES[0] != key:
+    if _CANDIDATES[0] != key or _candidates_edited(_CANDIDATES[2]):
+        from .map_manager import FLAG_CHANGING_BSDFS
         shapes = listed + _grouped_shapes(scene, listed)
         meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
         glass = [m and _transmits(sh) for sh, m in zip(shapes, meshes)]
         use = [m and (g or sh.has_vertex_normals())
                for sh, m, g in zip(shapes, meshes, glass)]
-        _CANDIDATES[:] = [key, (shapes, use, glass, len(listed))]
+        bsdfs = [sh.bsdf() if m else None for sh, m in zip(shapes, meshes)]
+        flagged = [(b, int(b.flags())) for b in bsdfs
+                   if b is not None and b.class_name() in FLAG_CHANGING_BSDFS]
+        plain = [sh for sh, m, u in zip(shapes, meshes, use) if m and not u]
+        _CANDIDATES[:] = [key, (shapes, use, glass, len(listed)), (plain, flagged)]
     return _CANDIDATES[1]
+
+
+def _candidates_edited(watched) -> bool:
+    """Whether ``params.update()`` changed what :func:`_solid_candidates` answered from
+    (``watched``: ``(plain, flagged)``): a mesh it found without vertex normals or a
+    transmitting BSDF now has normals, or a BSDF whose flags an update changes
+    (``map_manager.FLAG_CHANGING_BSDFS``, ``principled`` given ``spec_trans``) has other
+    flags. A call per such mesh and BSDF a render (none in the repository's scenes: their
+    meshes have normals); a mesh whose normals are removed is seen by
+    :func:`solid_face_tables`, which reads its normals' buffer anyway."""
+    if watched is None:
+        return True
+    plain, flagged = watched
+    return (any(sh.has_vertex_normals() for sh in plain)
+            or any(int(b.flags()) != f for b, f in flagged))
 
 
 def solid_face_tables(scene: mi.Scene):
@@ -594,6 +622,13 @@ def solid_face_tables(scene: mi.Scene):
     # raytraced, a fresh integrator 4; tests/test_cache_edits.py)
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(), sh.vertex_normals_buffer())
             for sh, m in zip(shapes, use) if m]
+    if any(n.index == 0 and not g for (_, _, _, n), g in zip(held, compress(glass, use))):
+        # a mesh listed for its normals has none now (params.update() removed them;
+        # _flat_shaded_faces indexed the empty buffer): the candidates again
+        _CANDIDATES[0] = None
+        shapes, use, glass, n_listed = _solid_candidates(scene)
+        held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(),
+                 sh.vertex_normals_buffer()) for sh, m in zip(shapes, use) if m]
     key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)
     if _SOLID_TABLES_MEMO[0] is not None and _SOLID_TABLES_MEMO[0][0] == key:
         return _SOLID_TABLES_MEMO[1]

@@ -132,16 +132,17 @@ def test_a_principled_wall_given_transmission_is_marked_again():
     np.testing.assert_array_equal(kept, fresh)
 
 
-def _ball_scene():
-    """A flat-shaded icosphere (every face its own vertices, normals its face's) on a
-    floor, a point light low at its side, the terminator in view."""
+def _ball_scene(normals: bool = True):
+    """A flat-shaded icosphere (every face its own vertices, normals its face's, or no
+    normals) on a floor, a point light low at its side, the terminator in view."""
     v, f = procedural._icosphere(2)
-    vf, ff, normals = procedural._flat(v, f)
-    mesh = mi.Mesh("ball", len(vf), len(ff), has_vertex_normals=True)
+    vf, ff, flat = procedural._flat(v, f)
+    mesh = mi.Mesh("ball", len(vf), len(ff), has_vertex_normals=normals)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float((vf * 0.8 + [0, 0.8, 0]).astype(np.float32).ravel())
     params["faces"] = mi.UInt32(ff.astype(np.uint32).ravel())
-    params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
+    if normals:
+        params["vertex_normals"] = mi.Float(flat.astype(np.float32).ravel())
     params.update()
     scene = mi.load_dict({
         "type": "scene",
@@ -174,6 +175,85 @@ def test_a_balls_normals_smoothed_are_seen_by_the_solid_faces_table(method):
     before, kept, fresh = _kept_and_fresh(scene, method, smoothen)
     assert not np.array_equal(before, kept)
     np.testing.assert_array_equal(kept, fresh)
+
+
+def test_a_mesh_given_vertex_normals_is_seen_by_the_solid_faces_table():
+    """A ball loaded without vertex normals, given smooth ones through ``params.update()``
+    (Mitsuba allows it): the candidates of the solid faces' table
+    (``depth_maps._solid_candidates``) were kept by the scene's shapes alone, so the ball
+    stayed a mesh without normals, no table, and its terminator was lit (``hard``: 20
+    pixels unlike a fresh integrator)."""
+    scene, smooth = _ball_scene(normals=False)
+
+    def smoothen(params):
+        params["ball.vertex_normals"] = mi.Float(smooth.astype(np.float32).ravel())
+        params.update()
+
+    before, kept, fresh = _kept_and_fresh(scene, "hard", smoothen)
+    assert not np.array_equal(before, kept)
+    np.testing.assert_array_equal(kept, fresh)
+
+
+def test_vertex_normals_removed_render_as_a_fresh_integrator_does():
+    """A ``cube``'s vertex normals removed through ``params.update()`` (an empty buffer;
+    ``has_vertex_normals()`` is then False): the kept candidates still listed it for its
+    normals, and ``solid_face_tables`` indexed the empty buffer (``IndexError`` in the
+    render). Now the candidates are found again and the kept integrator renders as a
+    fresh one."""
+    def remove(params):
+        params["box.vertex_normals"] = mi.Float([])
+        params.update()
+
+    scene = _edit_scene("point")
+    _, kept, fresh = _kept_and_fresh(scene, "hard", remove)
+    assert not [sh for sh in scene.shapes() if sh.id() == "box"][0].has_vertex_normals()
+    np.testing.assert_array_equal(kept, fresh)
+
+
+def _glass_ball_scene():
+    """A flat-shaded ``principled`` icosphere (opaque: ``spec_trans`` 0, no vertex
+    normals) beside a point light, seen from its far side (as
+    ``test_second_depth.py``'s glass solid lit from outside)."""
+    v, f = procedural._icosphere(2)
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict({"type": "principled", "spec_trans": 0.0, "roughness": 0.3})
+    mesh = mi.Mesh("ball", len(v), len(f), props)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float((0.6 * np.asarray(v)).astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(np.asarray(f).astype(np.uint32).ravel())
+    params.update()
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at(origin=[-4, 0.5, 0.9], target=[0, 0, 0.7],
+                                           up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 48, "height": 48,
+                            "rfilter": {"type": "box"}}},
+        "ball": mesh,
+        "floor": {"type": "rectangle",
+                  "to_world": T().translate([0, -0.7, 0]).rotate([1, 0, 0], -90).scale(4)},
+        "light": {"type": "point", "position": [3, 1, 0],
+                  "intensity": {"type": "rgb", "value": 20.0}}})
+
+
+def test_a_principled_ball_given_transmission_is_a_glass_solid():
+    """A ``principled`` ball given ``spec_trans`` 0.9 through ``params.update()``
+    transmits: its far side, seen by the camera, is shaded by light from behind its
+    faces, which its near side shadows (``raytraced``). The solid faces' candidates were
+    kept by the scene's shapes alone (the ball opaque and without normals: no table),
+    and ``second_depth``, which finds the far side as the light's second surface, lit it:
+    312 of 2304 pixels unlike a fresh integrator, the image 1.28x ``raytraced``'s (a
+    fresh integrator 1.00x)."""
+    def transmit(params):
+        params["ball.bsdf.spec_trans.value"] = 0.9
+        params.update()
+
+    scene = _glass_ball_scene()
+    _, kept, fresh = _kept_and_fresh(scene, "second_depth", transmit)
+    np.testing.assert_array_equal(kept, fresh)
+    ref = _render(scene, _integrator("raytraced"))
+    mi_shadowmap.clear_caches()
+    assert abs(kept.mean() / ref.mean() - 1.0) < 0.02
 
 
 def _scale(value, k: float):

@@ -554,7 +554,7 @@ def _solid_candidates(scene: mi.Scene) -> tuple:
     raised an ``IndexError`` (``tests/test_cache_edits.py``)."""
     listed = list(scene.shapes())
     key = (id(scene), tuple(id(sh) for sh in listed))
-    if _CANDIDATES[0] != key or _candidates_edited(_CANDIDATES[2]):
+    if _CANDIDATES[0] != key or (_CANDIDATES[2] and _candidates_edited(*_CANDIDATES[2])):
         from .map_manager import FLAG_CHANGING_BSDFS
         shapes = listed + _grouped_shapes(scene, listed)
         meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
@@ -565,21 +565,19 @@ def _solid_candidates(scene: mi.Scene) -> tuple:
         flagged = [(b, int(b.flags())) for b in bsdfs
                    if b is not None and b.class_name() in FLAG_CHANGING_BSDFS]
         plain = [sh for sh, m, u in zip(shapes, meshes, use) if m and not u]
-        _CANDIDATES[:] = [key, (shapes, use, glass, len(listed)), (plain, flagged)]
+        _CANDIDATES[:] = [key, (shapes, use, glass, len(listed)),
+                          (plain, flagged) if plain or flagged else ()]
     return _CANDIDATES[1]
 
 
-def _candidates_edited(watched) -> bool:
-    """Whether ``params.update()`` changed what :func:`_solid_candidates` answered from
-    (``watched``: ``(plain, flagged)``): a mesh it found without vertex normals or a
-    transmitting BSDF now has normals, or a BSDF whose flags an update changes
-    (``map_manager.FLAG_CHANGING_BSDFS``, ``principled`` given ``spec_trans``) has other
-    flags. A call per such mesh and BSDF a render (none in the repository's scenes: their
-    meshes have normals); a mesh whose normals are removed is seen by
-    :func:`solid_face_tables`, which reads its normals' buffer anyway."""
-    if watched is None:
-        return True
-    plain, flagged = watched
+def _candidates_edited(plain: list, flagged: list) -> bool:
+    """Whether ``params.update()`` changed what :func:`_solid_candidates` answered from:
+    a mesh it found without vertex normals or a transmitting BSDF (``plain``) now has
+    normals, or a BSDF whose flags an update changes (``flagged``, ``(bsdf, flags)``,
+    ``map_manager.FLAG_CHANGING_BSDFS``: ``principled`` given ``spec_trans``) has other
+    flags. A call per such mesh and BSDF a render, none where there are none (the
+    repository's scenes: their meshes have normals); a mesh whose normals are removed is
+    seen by :func:`solid_face_tables`, whose key holds its normals' buffer."""
     return (any(sh.has_vertex_normals() for sh in plain)
             or any(int(b.flags()) != f for b, f in flagged))
 
@@ -622,16 +620,17 @@ def solid_face_tables(scene: mi.Scene):
     # raytraced, a fresh integrator 4; tests/test_cache_edits.py)
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(), sh.vertex_normals_buffer())
             for sh, m in zip(shapes, use) if m]
+    key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)
+    if _SOLID_TABLES_MEMO[0] is not None and _SOLID_TABLES_MEMO[0][0] == key:
+        return _SOLID_TABLES_MEMO[1]
     if any(n.index == 0 and not g for (_, _, _, n), g in zip(held, compress(glass, use))):
-        # a mesh listed for its normals has none now (params.update() removed them;
-        # _flat_shaded_faces indexed the empty buffer): the candidates again
+        # a mesh listed for its normals has none now (params.update() removed them:
+        # _flat_shaded_faces indexed the empty buffer, an IndexError): the candidates again
         _CANDIDATES[0] = None
         shapes, use, glass, n_listed = _solid_candidates(scene)
         held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(),
                  sh.vertex_normals_buffer()) for sh, m in zip(shapes, use) if m]
-    key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)
-    if _SOLID_TABLES_MEMO[0] is not None and _SOLID_TABLES_MEMO[0][0] == key:
-        return _SOLID_TABLES_MEMO[1]
+        key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)
     tables = None
     if held:
         ids = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)).numpy().astype(np.int64)

@@ -611,7 +611,8 @@ def solid_face_tables(scene: mi.Scene):
     (:func:`lights_outside`; a shapegroup's transmitting mesh, hit through instances, in
     every instance's placement; a shapegroup's mesh that does not transmit is taken as
     occluding: its instances' placements are read every render). Remembered while the
-    shapes and their buffers are the same."""
+    candidates (:func:`_solid_candidates`) and their vertex, face and vertex-normal
+    buffers are the same."""
     shapes, use, glass, n_listed = _solid_candidates(scene)
     # the vertex normals too: which faces are flat-shaded (_flat_shaded_faces) follows
     # them (kept by vertices and faces alone, a ball's normals smoothed through

@@ -909,7 +909,9 @@ class MapCache:
       parameters are not part of it, so changing them keeps the maps; the flags of the
       BSDFs that ``params.update()`` may give new flags are (:data:`FLAG_CHANGING_BSDFS`:
       ``principled`` given ``spec_trans`` > 0 transmits, and the mark pass treats a
-      transmitting surface's light from behind as seen; one read per such BSDF a render).
+      transmitting surface's light from behind as seen; each such BSDF's flags are read
+      at every :meth:`scene_state`, two a render: the light views' and the maps' or
+      pages').
       JIT arrays are hashed once per JIT variable (:func:`param_digest`), so an
       unchanged scene costs a read of its parameters' variable indices per render
       (and ``mi.traverse(scene)`` is kept per scene: :meth:`traverse`).

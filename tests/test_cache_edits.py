@@ -242,8 +242,8 @@ def test_a_principled_ball_given_transmission_is_a_glass_solid():
     faces, which its near side shadows (``raytraced``). The solid faces' candidates were
     kept by the scene's shapes alone (the ball opaque and without normals: no table),
     and ``second_depth``, which finds the far side as the light's second surface, lit it:
-    312 of 2304 pixels unlike a fresh integrator, the image 1.28x ``raytraced``'s (a
-    fresh integrator 1.00x)."""
+    312 of 2304 pixels unlike a fresh integrator, 283 misclassified against
+    ``raytraced`` (a fresh integrator 1)."""
     def transmit(params):
         params["ball.bsdf.spec_trans.value"] = 0.9
         params.update()
@@ -253,7 +253,8 @@ def test_a_principled_ball_given_transmission_is_a_glass_solid():
     np.testing.assert_array_equal(kept, fresh)
     ref = _render(scene, _integrator("raytraced"))
     mi_shadowmap.clear_caches()
-    assert abs(kept.mean() / ref.mean() - 1.0) < 0.02
+    # the visibility AOV (the last channel): the far side is dark, as in raytraced
+    assert np.sum((ref[..., -1] >= 0.5) != (kept[..., -1] >= 0.5)) <= 4
 
 
 def _scale(value, k: float):

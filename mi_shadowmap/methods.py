@@ -202,6 +202,12 @@ class Method:
       fine enough that it stays within ``REACH_PIXELS`` pixel footprints
       (:class:`~mi_shadowmap.filters.common.BiasReach`). None (default): the receiver
       biases' reach alone;
+    * ``virtual_border`` -- the virtual map's mark pass marks a film-border pixel's point
+      half a pixel footprint farther than ``virtual_margin`` (its samples half a pixel
+      outwards, which no pixel beyond the film marks around): for a margin that bounds
+      the kernel at the point and leaves the samples' offsets within their pixel to the
+      neighbouring pixels' marks (``pcf``; :func:`~mi_shadowmap.virtual.marks._margins`).
+      False (default): a border sample whose tile is missing reads a coarser level;
     * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
       slot from the page table (cheapest for a lookup that reads a texel or two, as
       ``hard`` does) instead of the 2 x 2 pages' four slots once per lookup (default:
@@ -233,6 +239,7 @@ class Method:
     virtual_coarse_res: Callable | None = None
     virtual_edge: Callable | None = None
     virtual_per_tap: bool = False
+    virtual_border: bool = False
     builtin: bool = False
 
     def layer_names(self, opts) -> tuple:
@@ -308,8 +315,8 @@ def _check_record(m: Method) -> None:
         raise MethodError(f"register_method('{m.name}'): whole_light=True lookups read "
                           "full maps only (their lookup averages the whole light over its "
                           "views itself); set virtual=False")
-    for flag in ("virtual_per_tap", "virtual", "needs_footprint", "needs_curvature",
-                 "uses_map", "whole_light"):
+    for flag in ("virtual_per_tap", "virtual_border", "virtual", "needs_footprint",
+                 "needs_curvature", "uses_map", "whole_light"):
         if not isinstance(getattr(m, flag), bool):
             raise MethodError(f"register_method('{m.name}'): {flag} must be True or "
                               f"False, got {getattr(m, flag)!r}")
@@ -434,7 +441,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     view_properties=(), whole_light: bool = False, virtual: bool = False,
                     virtual_margin: Callable | None = None, virtual_per_tap: bool = False,
                     virtual_coarse_res: Callable | None = None,
-                    virtual_edge: Callable | None = None,
+                    virtual_edge: Callable | None = None, virtual_border: bool = False,
                     needs_curvature: bool = False, replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
@@ -447,7 +454,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
     ``needs_curvature``, ``view_properties``, ``virtual``, ``virtual_margin``,
-    ``virtual_coarse_res``, ``virtual_edge`` and ``virtual_per_tap``: see
+    ``virtual_coarse_res``, ``virtual_edge``, ``virtual_border`` and ``virtual_per_tap``: see
     :class:`Method` (a
     lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
@@ -488,7 +495,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     view_properties=tuple(view_properties or ()), whole_light=whole_light,
                     virtual=virtual, virtual_margin=virtual_margin,
                     virtual_coarse_res=virtual_coarse_res, virtual_edge=virtual_edge,
-                    virtual_per_tap=virtual_per_tap)
+                    virtual_per_tap=virtual_per_tap, virtual_border=virtual_border)
     return add(record, replace=replace)
 
 

@@ -120,11 +120,12 @@ def test_a_moves_mark_pass_launches_three_kernels_over_its_pixels(monkeypatch):
     # the reference: the points, then the words, each evaluated alone before the dedupe
     dedupe = planner.dedupe_many
 
-    def apart(groups, bits=14, parts=None, first=(), second=None):
+    def apart(groups, bits=14, parts=None, first=(), second=None, late=None):
         dr.eval(*first)
         if second is not None:
             dr.eval(*second())
-        return dedupe(groups, bits, parts)
+        # the kept points' rings (planner._kept_read) as groups of the first round
+        return dedupe(groups + (list(late()) if late is not None else []), bits, parts)
 
     monkeypatch.setattr(planner, "camera_hits", hits)
     monkeypatch.setattr(planner, "block_tiles", tiles)

@@ -308,6 +308,31 @@ def _finalize(values: dict, given) -> None:
         values["min_samples"] = min(values["min_samples"], values["num_samples"])
 
 
+def _virtual_margin(opts) -> float:
+    """How far from a receiver's texel, at its pixel footprint's level, the taps of its
+    region reach (the mark pass's margin, :mod:`mi_shadowmap.virtual`): ``hard``'s 2
+    texels (the nearest texel, the normal offset), half of ``min_size`` and half the
+    region, ``res_factor`` times the footprint's longer side. A level's texel is over
+    ``2^(lod_bias - 1)`` of the footprint's shorter side, or of half its longer one if
+    that is more (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.level_for`, ``ANISO``
+    2; at level 0 the footprint is under ``2^(1 - lod_bias)`` texels too), so the longer
+    side spans under ``2^(2 - lod_bias)`` texels there: half the region is under
+    ``res_factor 2^(1 - lod_bias)`` texels, 2.83 at the default ``lod_bias`` -0.5
+    (``4 res_factor`` before: 1.4x that at the default, short of it at a ``lod_bias``
+    finer than -1; ``lod_bias`` as :func:`~mi_shadowmap.virtual.lookup.
+    effective_lod_bias` reads it). The camera samples' offsets within a pixel are the
+    mark pass's (:func:`mi_shadowmap.virtual.marks._margins`): beside a pixel's centre
+    the neighbouring pixels' marks reach as far, and a film-border pixel's marks reach
+    half its footprint farther (``virtual_border``). A
+    level the receiver biases chose finer than the footprint's is marked from the
+    footprint's box there (``spread``, :func:`~mi_shadowmap.virtual.marks._tile_range`).
+    ``random_terrain_world(22)`` at 256^2: 8.03 -> 7.61 texels a film pixel
+    (``benchmarks/RESULTS.md``, the forty-ninth session, helper A)."""
+    from ..virtual.lookup import effective_lod_bias
+    lod_bias = effective_lod_bias(opts.lod_bias, opts.page_size)
+    return 2.0 + opts.res_factor * 2.0 ** (1.0 - lod_bias) + 0.5 * opts.min_size
+
+
 SOFT_COMPARE = Prop(
     "soft_compare", "float", 0.0,
     "Smooth depth compare for gradients (issue 13): 0 = the step (exactly as without it); "
@@ -347,6 +372,7 @@ METHOD = Method(
     needs_footprint=True,
     needs_curvature=True,      # the receiver plane's bend on concave receivers
     finalize=_finalize,
-    virtual_margin=lambda o: 2.0 + 4.0 * o.res_factor + 0.5 * o.min_size,
+    virtual_margin=_virtual_margin,
+    virtual_border=True,       # the margin leaves the samples' offsets to the neighbours
     virtual=True, builtin=True,
 )

@@ -573,7 +573,7 @@ def probe_distance(scene, view, p, n, active, own=None):
 
 
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
-                    active=None, points=None) -> tuple:
+                    active=None, points=None, ring=None, border=None) -> tuple:
     """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
     (unevaluated): the tiles the lookups at ``si`` read (see the module doc): at each
     point's level, the tiles (:attr:`VirtualLayout.tile_size` texels wide; keys as
@@ -592,9 +592,10 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     ``active(p, n)``: which points to mark (``n`` the normal facing the camera), or
     None: every point the view sees. ``points``: the points' :func:`marked_points`
     (evaluated: then each key is a few integer operations on them, cheap to recompute
-    in every round of :func:`dedupe_many`), or None: computed here."""
+    in every round of :func:`dedupe_many`), or None: computed here. ``ring``: the kept
+    points' rings instead; ``border``: the film's border pixels (:func:`_tile_range`)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
-        vmap_like, si, dp_dx, dp_dy, valid, margin, active, points)
+        vmap_like, si, dp_dx, dp_dy, valid, margin, active, points, ring, border)
     # per_axis^2 candidates per point, all in one kernel; only the valid ones leave
     # Dr.Jit (most points read one tile or two)
     keys, oks = [], []
@@ -606,17 +607,22 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     return keys, oks
 
 
-def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> tuple:
+def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points,
+                ring=None, border=None) -> tuple:
     """``(face, level, act, lo, hi, n_tiles, per_axis)`` of :func:`mark_candidates`: the
     tiles ``lo`` to ``hi`` (per axis, at most ``per_axis`` from ``lo``) around each point
-    at its level, of ``n_tiles`` per side there."""
+    at its level, of ``n_tiles`` per side there. ``ring`` (``mi.Bool`` per point, or
+    None): instead, the rings of the points that kept the biases' level and whose
+    neighbours read it (``ring`` True there), ``m + 2 spread``; no other point marks.
+    ``border`` (``mi.Bool`` per point, or None): the points of the film's border pixels,
+    which mark ``m_edge`` (:func:`_margins`) where others mark ``m``."""
     lay = vmap_like.layout
     T = lay.tile_size
     if points is None:
         points = marked_points(vmap_like, si, dp_dx, dp_dy, valid, active)
     face, uv64, act, level = points[:4]
-    m, m_block = _margins(vmap_like, margin)
-    if m_block > m:
+    m, m_block, m_edge = _margins(vmap_like, margin, border is not None)
+    if getattr(vmap_like, "reach", None) is not None:
         # a point whose level the biases made finer than its footprint's (level_for):
         # its pixel's samples read anywhere in its footprint's box, ``spread`` texels
         # from it, marked up to MAX_SPREAD (the blocks' size is fixed: a camera move
@@ -625,17 +631,32 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points) -> t
         # itself, as everywhere.
         m_lane = mi.Point2d(dr.maximum(m, dr.minimum(points[4], MAX_SPREAD)))
         if getattr(vmap_like, "scene", None) is not None and _kept_by_biases(vmap_like):
-            # with the per-pixel decision (marked_points' probe) the neighbouring pixels
-            # may have dropped the biases' level, and the uncapped pixels beside a point
-            # that kept it read it (VirtualShadowMap.keeps): a point that kept it marks
-            # its kernel beyond its box and the next pixel's box (``m + 2 spread``, up to
-            # m_block). Marked as the box alone, a pcf lookup's taps read what wider
-            # marks would cast (tests/test_filters_pcf.py: 1-2 pixels of 4096 differed)
+            # with the per-pixel decision (marked_points' probe) a point that kept the
+            # biases' level marks its own samples' kernels beyond its box (``m +
+            # spread``, up to m_block). Marked as the box alone, a pcf lookup's taps read
+            # what wider marks would cast (tests/test_filters_pcf.py: 1-2 pixels of 4096
+            # differed). Its neighbours may have dropped the level, and those whose
+            # samples read it through its word (VirtualShadowMap.keeps: an uncapped
+            # centre on its shape, a centre on another) read their own boxes there, a
+            # footprint farther: ``ring`` marks that ring, ``m + 2 spread``
+            # (planner._kept_read says which points have such a neighbour)
             spread = mi.Point2d(points[4])
-            m_lane = dr.select(mi.Bool(points[6]), dr.minimum(m + 2.0 * spread, m_block),
-                               m_lane)
+            kept = mi.Bool(points[6])
+            m_lane = dr.select(kept, dr.minimum(m + (1.0 if ring is None else 2.0) * spread,
+                                                m_block), m_lane)
+            if ring is not None:
+                act = act & kept & ring
+        elif ring is not None:
+            act = mi.Bool(False)
     else:
         m_lane = m
+        if ring is not None:
+            act = mi.Bool(False)
+    if border is not None and m_edge > m:
+        # a film-border pixel's samples half a pixel outwards: no pixel beyond the film
+        # marks around them (m_edge, _margins)
+        m_lane = dr.minimum(m_lane + dr.select(mi.Bool(border), mi.Float64(m_edge - m),
+                                               mi.Float64(0.0)), m_block)
     per_axis = int(math.ceil(2.0 * m_block / T)) + 1
     res = mi.Float64(mi.UInt32(lay.res0) >> level)
     xy = uv64 * res
@@ -659,7 +680,8 @@ def _kept_by_biases(vmap_like) -> bool:
     return reach.normal > 0.0 or reach.slope > 0.0
 
 
-def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
+def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, ring=None,
+                border=None) -> tuple:
     """:func:`mark_candidates`' tiles as one block per point: ``(keys, oks)``, one list
     per block shape ``(w, h)`` (``w = c % per_axis + 1``, ``h = c // per_axis + 1`` for
     list ``c``), holding the same key in every list -- the block's first tile (as
@@ -676,9 +698,16 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
     point in every round of :func:`dedupe_many` (9 for ``hard`` with the biases' marks of
     4 texels, 81 with :data:`MAX_SPREAD`): on a camera move at 256^2 the dedupe kernels took 1.67 ->
     0.63 ms on large_world, 3.19 -> 0.51 ms on cbox_area (``pcss``: 8.05 -> 1.37 ms),
-    5.09 -> 1.14 ms on room_two_points (medians of 10 moves each, interleaved)."""
+    5.09 -> 1.14 ms on room_two_points (medians of 10 moves each, interleaved).
+
+    ``ring`` (``mi.Bool`` per point, or None): the blocks of the rings of the points that
+    kept the biases' level where ``ring`` is True, instead (:func:`_tile_range`): which
+    points need them is known only once every pixel centre's word is
+    (``planner._kept_read``), so they are deduplicated from :func:`dedupe_many`'s
+    second round (``late``). ``border``: which points are on the film's border
+    (:func:`_tile_range`)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
-        vmap_like, None, None, None, None, margin, None, points)
+        vmap_like, None, None, None, None, margin, None, points, ring, border)
     # the valid candidates of mark_candidates: lo + a (a < per_axis) in [0, n_tiles)
     # and at most hi, i.e. the range [max(lo, 0), min(hi, lo + per_axis - 1, n_tiles - 1)]
     sx, sy = dr.maximum(lo.x, 0), dr.maximum(lo.y, 0)
@@ -697,24 +726,37 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None) -> tuple:
     return keys, oks
 
 
-def block_axis(vmap_like, margin: float) -> int:
+def block_axis(vmap_like, margin: float, border: bool = False) -> int:
     """The largest block side (tiles) :func:`mark_blocks` gives for ``margin`` (its
-    ``per_axis``)."""
-    return int(math.ceil(2.0 * _margins(vmap_like, margin)[1] / vmap_like.layout.tile_size)) + 1
+    ``per_axis``; ``border``: with its ``border`` given)."""
+    m_block = _margins(vmap_like, margin, border)[1]
+    return int(math.ceil(2.0 * m_block / vmap_like.layout.tile_size)) + 1
 
 
-def _margins(vmap_like, margin: float) -> tuple:
-    """``(m, m_block)`` in texels: how far around a point its marks reach (the method's
-    ``margin`` plus the camera samples' offset from the pixel centre: half a pixel,
-    2^(-1 - lod_bias) texels at the lower end of its level's range, 1 at the default
-    ``lod_bias``, since finer levels put a pixel's samples farther from its centre in
-    texels; at most half a page), and how far a block reaches for any point (up to
-    :data:`MAX_SPREAD` with the receiver biases' cap, else ``m``)."""
+def _margins(vmap_like, margin: float, border: bool = False) -> tuple:
+    """``(m, m_block, m_edge)`` in texels: how far around a point its marks reach (the
+    method's ``margin`` plus the camera samples' offset from the pixel centre: half a
+    pixel, 2^(-1 - lod_bias) texels at the lower end of its level's range, 1 at the
+    default ``lod_bias``, since finer levels put a pixel's samples farther from its
+    centre in texels; at most half a page), how far a block reaches for any point (up to
+    :data:`MAX_SPREAD` with the receiver biases' cap, else ``m_edge``), and how far a
+    film-border pixel's point marks (:func:`_tile_range`'s ``border``; ``m`` unless
+    ``border``: the method's ``virtual_border``).
+
+    A sample off its pixel's centre reads its kernel beside the neighbouring pixel's
+    centre, whose marks reach ``m`` from there. A border pixel has no neighbour beyond
+    the film: its own marks reach the kernel plus half its footprint's longer side, under
+    ``2^(1 - lod_bias)`` texels at its level (:meth:`VirtualShadowMap.level_for`: a
+    texel is over ``2^(lod_bias - 1)`` of the footprint's shorter side, or of half its
+    longer one, ``ANISO`` 2), 2.83 at the default; ``m_edge`` is ``margin`` plus that."""
     P = vmap_like.layout.page_size
-    off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
+    lod_bias = effective_lod_bias(vmap_like.lod_bias, P)
+    off = max(1.0, 2.0 ** (-1.0 - lod_bias))
     m = min(float(margin) + off, 0.5 * P)
+    m_edge = min(float(margin) + max(off, 2.0 ** (1.0 - lod_bias)), 0.5 * P) if border \
+        else m
     capped = getattr(vmap_like, "reach", None) is not None
-    return m, (max(m, MAX_SPREAD) if capped else m)
+    return m, (max(m_edge, MAX_SPREAD) if capped else m_edge), m_edge
 
 
 def shape_bits(layout, per_axis: int):
@@ -985,7 +1027,7 @@ def tile_pages(tiles: np.ndarray, layout) -> tuple:
 
 
 def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(),
-                second=None) -> list:
+                second=None, late=None) -> list:
     """For each ``(keys, oks)`` of ``groups`` (one per light), most of the keys
     ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
     65 k candidates hold a few thousand keys), so that the host sorts a few thousand keys
@@ -1019,7 +1061,14 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     them and scatters their keys, where the first round read them back in a kernel of its
     own). ``second``: None, or a function called once the first round is launched, whose
     variables are evaluated in the second round's kernel (the pixels' words,
-    ``planner._pixel_keeps``, which gather what the first kernel scattered)."""
+    ``planner._pixel_keeps``, which gather what the first kernel scattered).
+
+    ``late``: None, or a function called once the first round is launched (after
+    ``second``) that gives more groups, whose candidates may read what the first kernel
+    scattered (the kept points' rings, :func:`mark_blocks`' ``ring``): the second round
+    scatters them into both of their tables (each its own hash) and stores which are
+    candidates, and the third spills those that lost their slot in both, so a frame
+    launches no more kernels. Their keys follow the groups' in the result."""
     # one table per candidate list: Dr.Jit puts scatters into different arrays in one
     # kernel (a second scatter into the same array would start a new kernel)
     flat = [(k, ok) for keys, oks in groups for k, ok in zip(keys, oks)]
@@ -1050,9 +1099,26 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
             for t, (k, ok), s in zip(tables, flat, slot)]
     for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost):
         dr.scatter(t2, k, s2, lo)
-    dr.eval(*tables2, *lost, *extra)
+    # the late groups: both tables in this round (their candidates known only now)
+    late = list(late()) if late is not None else []
+    flat_late = [(k, mi.Bool(ok)) for keys, oks in late for k, ok in zip(keys, oks)]
+    late1 = [table(None) for _ in flat_late]
+    late2 = [table(None) for _ in flat_late]
+    for t1, t2, (k, ok) in zip(late1, late2, flat_late):
+        dr.scatter(t1, k, slots_of(k, 0x9E3779B97F4A7C15, None), ok)
+        dr.scatter(t2, k, slots_of(k, 0xC2B2AE3D27D4EB4F, None), ok)
+    dr.eval(*tables2, *lost, *extra, *late1, *late2, *(ok for _, ok in flat_late))
     lost2 = [lo & (dr.gather(mi.UInt64, t2, s2, lo) != k)
              for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost)]
+    for t1, t2, (k, ok) in zip(late1, late2, flat_late):
+        s1, s2 = (slots_of(k, mult, None) for mult in (0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F))
+        lost2.append(ok & (dr.gather(mi.UInt64, t1, s1, ok) != k)
+                     & (dr.gather(mi.UInt64, t2, s2, ok) != k))
+    groups = list(groups) + late
+    flat = flat + flat_late
+    flat_parts = flat_parts + [None] * len(flat_late)
+    tables = tables + late1
+    tables2 = tables2 + late2
     # the twice-lost candidates' keys, appended to a small buffer per list in the same
     # kernel: whether a frame has any does not launch (nor, the first time, compile) a
     # kernel of its own (a few candidates in half the frames of a 128^2 camera move)

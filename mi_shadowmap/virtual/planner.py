@@ -18,9 +18,9 @@ from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_uni
                      with_keys)
 from ..filters.common import BiasReach
 from .lookup import KEEP_CENTRE, KEEP_OTHERS, KEEP_SHAPE, VirtualShadowMap
-from .marks import (Marker, block_axis, block_tiles, camera_hits, camera_pixels,
-                    dedupe_many, dilate_tiles, mark_blocks, mark_coarser, marked_points,
-                    shape_bits, tile_pages)
+from .marks import (Marker, _kept_by_biases, block_axis, block_tiles, camera_hits,
+                    camera_pixels, dedupe_many, dilate_tiles, mark_blocks, mark_coarser,
+                    marked_points, shape_bits, tile_pages)
 from .store import (PageStore, TileCast, cast_tiles, fill_new_pages, page_bytes,
                     page_layers, read_minima)
 
@@ -197,26 +197,41 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             dr.eval(si_m.p, si_m.n, hits[1], hits[2], valid_m, through)
         shapes = {}     # per light: mark_blocks' (per_axis, bits), for block_tiles
 
-        def marks(i, marker, points):
+        def marks(i, marker, points, border=None):
             """The candidate lists of light ``i`` (its own levels', then the coarser
             levels' its kernels may filter, :func:`mark_coarser`) from its evaluated
             :func:`marked_points` ``points``."""
             # its own levels' tiles as blocks (mark_blocks): one group, the blocks' shapes
             # in their keys (else one group per block shape)
-            per_axis = block_axis(marker, margins[i])
+            per_axis = block_axis(marker, margins[i], border is not None)
             shapes[i] = (per_axis, shape_bits(marker.layout, per_axis))
-            keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1])
+            keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1],
+                                    border=border)
             out = [([k], [ok]) for k, ok in zip(keys, oks)]
             if coarse[i]:
                 out.append(mark_coarser(marker, None, None, None, None,
                                         coarse_res=coarse[i], points=points))
             return out
 
-        def tiles(i, found):
-            """Light ``i``'s tile keys from its :func:`marks` groups' keys: ``(own levels',
-            coarser levels')`` (the latter empty without ``virtual_coarse_res``)."""
+        def rings(i, marker, points, centre, border):
+            """Light ``i``'s blocks of its kept points' rings (:func:`mark_blocks`'
+            ``ring``) where a neighbour reads their level (:func:`_kept_read`), from
+            its centres' words ``centre`` (evaluated): a group per block shape list, as
+            :func:`marks`' own."""
+            read = _kept_read(sensor, centre, points[6])
+            keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1],
+                                    ring=read, border=border)
+            return [([k], [ok]) for k, ok in zip(keys, oks)]
+
+        def tiles(i, found, ring=None):
+            """Light ``i``'s tile keys from its :func:`marks` groups' keys (and its
+            :func:`rings`' group's, blocks of the same shapes): ``(own levels', coarser
+            levels')`` (the latter empty without ``virtual_coarse_res``)."""
             n = len(found) - bool(coarse[i])
-            own = block_tiles(found[:n], *shapes[i])
+            blocks = found[:n]
+            if ring is not None:
+                blocks = [np.concatenate([a, b]) for a, b in zip(blocks, ring)]
+            own = block_tiles(blocks, *shapes[i])
             extra = (dilate_tiles(found[n], stores[i].layout, margins[i]) if coarse[i]
                      else np.zeros(0, np.uint64))
             return own, extra
@@ -246,28 +261,52 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             # their neighbours' (_pixel_keeps) in the dedupe's second round
             centres = {i: _centre_words(sensor, pt[5], pt[6], hits[0].shape)
                        for i, mk, pt in zip(batch, markers, points) if mk.scene is not None}
-            groups = [marks(i, mk, pt) for i, mk, pt in zip(batch, markers, points)]
+            edge = _film_border(sensor, dr.width(hits[3])) if opts.record.virtual_border \
+                else None
+            groups = [marks(i, mk, pt, edge) for i, mk, pt in zip(batch, markers, points)]
             keeps = {}
 
             def neighbours():
                 keeps.update((i, _pixel_keeps(sensor, c)) for i, c in centres.items())
                 return [k[0] for k in keeps.values()]
 
+            # the kept points' rings where a neighbour reads their level: known from the
+            # centres' words, so deduplicated from the second round on (dedupe_many's
+            # late), in the kernels it launches anyway
+            ringed = [i for i, mk in zip(batch, markers)
+                      if mk.scene is not None and _kept_by_biases(mk)]
+
+            n_ring = {}
+
+            def late():
+                out = []
+                for i, mk, pt in zip(batch, markers, points):
+                    if i in ringed:
+                        gs = rings(i, mk, pt, centres[i], edge)
+                        n_ring[i] = len(gs)
+                        out += gs
+                return out
+
             # the points evaluated in the dedupe's first kernel, which scatters their
             # keys (one kernel, not two), the pixels' words in its second (not their
             # own): a moved frame's kernels 11 -> 9
             found = dedupe_many([g for gs in groups for g in gs],
                                 first=[x for pt in points for x in pt] + list(centres.values()),
-                                second=neighbours)
+                                second=neighbours, late=late)
+            ring_found = {}
+            for i in reversed(ringed):
+                found, ring_found[i] = found[:-n_ring[i]], found[-n_ring[i]:]
             for i, gs in zip(batch, groups):
                 mine, found = found[:len(gs)], found[len(gs):]
                 if not dark[i]:
-                    settle(i, [tiles(i, mine)], keeps.get(i))
+                    settle(i, [tiles(i, mine, ring_found.get(i))], keeps.get(i))
         # an environment's regions: every (region, camera hit) pair a lane, as many
         # regions a kernel as MARK_LANES lanes hold (16 regions of a 128^2 film: one
         # kernel, where one per region launched 48 kernels and 900 table memsets a
         # camera move); each region keeps its own hash slots (dedupe_many's parts)
         n_pts = dr.width(hits[3])
+        edge_m = (_film_border(sensor, n_pts) if multi and opts.record.virtual_border
+                  else None)
         for i in multi:
             view = stores[i].layout.view
             n_regions = view.n_views
@@ -287,7 +326,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                 points = marked_points(marker, *pts,
                                        active=lambda p, n, f=mark_active, t=thr: f(p, n, t))
                 dr.eval(*points)
-                gs = marks(i, marker, points)
+                gs = marks(i, marker, points,
+                           None if edge_m is None else dr.gather(mi.Bool, edge_m, pt))
                 parts.append(tiles(i, dedupe_many(gs, parts=[(local, nk)] * len(gs))))
             settle(i, parts)
     # memory: the budget's pages shared by need (share_pages), then the pages each map's
@@ -725,3 +765,46 @@ def _pixel_keeps(sensor, centre) -> tuple:
     words = (own & KEEP_SHAPE) | dr.select(keep_own, mi.UInt32(KEEP_CENTRE), zero) \
         | dr.select(others_keep, mi.UInt32(KEEP_OTHERS), zero)
     return words, dr.opaque(mi.UInt32, w), dr.opaque(mi.UInt32, w * h)
+
+
+def _kept_read(sensor, centre, kept) -> mi.Bool:
+    """Per camera hit of a mark pass (:func:`~.marks.camera_hits` through a pinhole, one
+    a pixel), whether it kept the biases' level (``kept``, :func:`~.marks.marked_points`)
+    and a neighbouring pixel's samples read that level through their word
+    (:func:`_pixel_keeps`, :meth:`VirtualShadowMap.keeps`): one of the 8 neighbours'
+    centres (``centre``, :func:`_centre_words`, evaluated) is on another shape (its
+    samples on the kept point's shape read ``KEEP_OTHERS``), or on the same shape and
+    uncapped (its ``KEEP_CENTRE`` comes from its kept neighbours). Only there does a kept
+    point mark the ring its neighbours' footprint boxes read (``m + 2 spread``,
+    :func:`~.marks.mark_blocks`' ``ring``); elsewhere its own samples' (``m + spread``).
+    Modelled on ``random_terrain_world(22)``: 687 of 1428 kept points have such a
+    neighbour (``benchmarks/RESULTS.md``, the forty-eighth session, helper B).
+    Unevaluated: 8 gathers on the kept lanes."""
+    w, h = (int(x) for x in sensor.film().crop_size())
+    pixel = camera_pixels(sensor)
+    x, y = mi.Int32(pixel & 0xFFFF), mi.Int32(pixel >> 16)
+    kept = mi.Bool(kept)
+    own = dr.gather(mi.UInt32, centre, mi.UInt32(x + y * w), kept) & KEEP_SHAPE
+    read = mi.Bool(False)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dx == 0 and dy == 0:
+                continue
+            nx, ny = x + dx, y + dy
+            ok = kept & (nx >= 0) & (ny >= 0) & (nx < w) & (ny < h)
+            n = dr.gather(mi.UInt32, centre, mi.UInt32(ny * w + nx), ok)
+            uncapped = (n & (KEEP_CENTRE | KEEP_OTHERS)) == 0
+            read |= ok & (((n & KEEP_SHAPE) != own) | uncapped)
+    return read
+
+
+def _film_border(sensor, n: int) -> mi.Bool:
+    """Whether each of the ``n`` camera hits of :func:`~.marks.camera_hits` is in a
+    pixel on the film's border (:func:`~.marks._margins`' ``m_edge``): one hit a pixel,
+    or ``LENS_GRID``^2 through a lens, pixel after pixel's set (unevaluated)."""
+    w, h = (int(x) for x in sensor.film().crop_size())
+    pixel = camera_pixels(sensor)
+    if n != dr.width(pixel):
+        pixel = dr.gather(mi.UInt32, pixel, dr.arange(mi.UInt32, n) % dr.width(pixel))
+    x, y = pixel & 0xFFFF, pixel >> 16
+    return (x == 0) | (y == 0) | (x == w - 1) | (y == h - 1)

@@ -202,12 +202,16 @@ class Method:
       fine enough that it stays within ``REACH_PIXELS`` pixel footprints
       (:class:`~mi_shadowmap.filters.common.BiasReach`). None (default): the receiver
       biases' reach alone;
-    * ``virtual_border`` -- the virtual map's mark pass marks a film-border pixel's point
-      half a pixel footprint farther than ``virtual_margin`` (its samples half a pixel
-      outwards, which no pixel beyond the film marks around): for a margin that bounds
-      the kernel at the point and leaves the samples' offsets within their pixel to the
-      neighbouring pixels' marks (``pcf``; :func:`~mi_shadowmap.virtual.marks._margins`).
-      False (default): a border sample whose tile is missing reads a coarser level;
+    * ``virtual_footprint`` -- ``fn(opts) -> footprints``, or None (default): the
+      lookup's kernel reaches that many halves of the pixel footprint's longer side
+      (``pcf``: ``res_factor``), and ``virtual_margin`` bounds it at the footprint's
+      level, ``footprints 2^(1 - lod_bias)`` texels
+      (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.level_for`). The mark pass then
+      widens the kernel where the receiver biases keep a finer level (``footprints``
+      times the footprint there), and marks a film-border pixel's point half a footprint
+      farther (its samples half a pixel outwards, which no pixel beyond the film marks
+      around: the margin leaves those offsets to the neighbouring pixels' marks;
+      :func:`~mi_shadowmap.virtual.marks._margins`);
     * ``virtual_per_tap`` -- a hint for virtual maps: each read gathers its own page's
       slot from the page table (cheapest for a lookup that reads a texel or two, as
       ``hard`` does) instead of the 2 x 2 pages' four slots once per lookup (default:
@@ -239,7 +243,7 @@ class Method:
     virtual_coarse_res: Callable | None = None
     virtual_edge: Callable | None = None
     virtual_per_tap: bool = False
-    virtual_border: bool = False
+    virtual_footprint: Callable | None = None
     builtin: bool = False
 
     def layer_names(self, opts) -> tuple:
@@ -315,15 +319,16 @@ def _check_record(m: Method) -> None:
         raise MethodError(f"register_method('{m.name}'): whole_light=True lookups read "
                           "full maps only (their lookup averages the whole light over its "
                           "views itself); set virtual=False")
-    for flag in ("virtual_per_tap", "virtual_border", "virtual", "needs_footprint",
-                 "needs_curvature", "uses_map", "whole_light"):
+    for flag in ("virtual_per_tap", "virtual", "needs_footprint", "needs_curvature",
+                 "uses_map", "whole_light"):
         if not isinstance(getattr(m, flag), bool):
             raise MethodError(f"register_method('{m.name}'): {flag} must be True or "
                               f"False, got {getattr(m, flag)!r}")
     for name, sig in (("finalize", "fn(values, given) -> None"),
                       ("layers_for", "fn(opts) -> layer names"),
                       ("virtual_coarse_res", "fn(opts, view) -> int or None"),
-                      ("virtual_edge", "fn(opts) -> texels")):
+                      ("virtual_edge", "fn(opts) -> texels"),
+                      ("virtual_footprint", "fn(opts) -> footprints")):
         if getattr(m, name) is not None and not callable(getattr(m, name)):
             raise MethodError(f"register_method('{m.name}'): {name} must be callable "
                               f"{sig} or None, got {getattr(m, name)!r}")
@@ -441,7 +446,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     view_properties=(), whole_light: bool = False, virtual: bool = False,
                     virtual_margin: Callable | None = None, virtual_per_tap: bool = False,
                     virtual_coarse_res: Callable | None = None,
-                    virtual_edge: Callable | None = None, virtual_border: bool = False,
+                    virtual_edge: Callable | None = None,
+                    virtual_footprint: Callable | None = None,
                     needs_curvature: bool = False, replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
@@ -454,7 +460,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     :func:`~mi_shadowmap.harness.sweep` and the CLI's ``--methods`` accept it,
     in every variant, with the same property validation as the built-ins.
     ``needs_curvature``, ``view_properties``, ``virtual``, ``virtual_margin``,
-    ``virtual_coarse_res``, ``virtual_edge``, ``virtual_border`` and ``virtual_per_tap``: see
+    ``virtual_coarse_res``, ``virtual_edge``, ``virtual_footprint`` and
+    ``virtual_per_tap``: see
     :class:`Method` (a
     lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
@@ -495,7 +502,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     view_properties=tuple(view_properties or ()), whole_light=whole_light,
                     virtual=virtual, virtual_margin=virtual_margin,
                     virtual_coarse_res=virtual_coarse_res, virtual_edge=virtual_edge,
-                    virtual_per_tap=virtual_per_tap, virtual_border=virtual_border)
+                    virtual_per_tap=virtual_per_tap, virtual_footprint=virtual_footprint)
     return add(record, replace=replace)
 
 

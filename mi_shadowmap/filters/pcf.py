@@ -323,9 +323,10 @@ def _virtual_margin(opts) -> float:
     effective_lod_bias` reads it). The camera samples' offsets within a pixel are the
     mark pass's (:func:`mi_shadowmap.virtual.marks._margins`): beside a pixel's centre
     the neighbouring pixels' marks reach as far, and a film-border pixel's marks reach
-    half its footprint farther (``virtual_border``). A
-    level the receiver biases chose finer than the footprint's is marked from the
-    footprint's box there (``spread``, :func:`~mi_shadowmap.virtual.marks._tile_range`).
+    half its footprint farther (``virtual_footprint``). A level the receiver biases chose
+    finer than the footprint's is marked from the footprint's box there (``spread``),
+    with the region ``res_factor`` times that box
+    (:func:`~mi_shadowmap.virtual.marks._tile_range`).
     ``random_terrain_world(22)`` at 256^2: 8.03 -> 7.61 texels a film pixel
     (``benchmarks/RESULTS.md``, the forty-ninth session, helper A)."""
     from ..virtual.lookup import effective_lod_bias
@@ -373,6 +374,6 @@ METHOD = Method(
     needs_curvature=True,      # the receiver plane's bend on concave receivers
     finalize=_finalize,
     virtual_margin=_virtual_margin,
-    virtual_border=True,       # the margin leaves the samples' offsets to the neighbours
+    virtual_footprint=lambda o: o.res_factor,     # the region: res_factor footprints
     virtual=True, builtin=True,
 )

@@ -573,7 +573,8 @@ def probe_distance(scene, view, p, n, active, own=None):
 
 
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
-                    active=None, points=None, ring=None, border=None) -> tuple:
+                    active=None, points=None, ring=None, border=None,
+                    footprints: float = 0.0) -> tuple:
     """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
     (unevaluated): the tiles the lookups at ``si`` read (see the module doc): at each
     point's level, the tiles (:attr:`VirtualLayout.tile_size` texels wide; keys as
@@ -593,9 +594,11 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     None: every point the view sees. ``points``: the points' :func:`marked_points`
     (evaluated: then each key is a few integer operations on them, cheap to recompute
     in every round of :func:`dedupe_many`), or None: computed here. ``ring``: the kept
-    points' rings instead; ``border``: the film's border pixels (:func:`_tile_range`)."""
+    points' rings instead; ``border``: the film's border pixels; ``footprints``: the
+    kernel's footprints (:func:`_tile_range`)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
-        vmap_like, si, dp_dx, dp_dy, valid, margin, active, points, ring, border)
+        vmap_like, si, dp_dx, dp_dy, valid, margin, active, points, ring, border,
+        footprints)
     # per_axis^2 candidates per point, all in one kernel; only the valid ones leave
     # Dr.Jit (most points read one tile or two)
     keys, oks = [], []
@@ -608,14 +611,16 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
 
 
 def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points,
-                ring=None, border=None) -> tuple:
+                ring=None, border=None, footprints: float = 0.0) -> tuple:
     """``(face, level, act, lo, hi, n_tiles, per_axis)`` of :func:`mark_candidates`: the
     tiles ``lo`` to ``hi`` (per axis, at most ``per_axis`` from ``lo``) around each point
     at its level, of ``n_tiles`` per side there. ``ring`` (``mi.Bool`` per point, or
     None): instead, the rings of the points that kept the biases' level and whose
     neighbours read it (``ring`` True there), ``m + 2 spread``; no other point marks.
     ``border`` (``mi.Bool`` per point, or None): the points of the film's border pixels,
-    which mark ``m_edge`` (:func:`_margins`) where others mark ``m``."""
+    which mark ``m_edge`` (:func:`_margins`) where others mark ``m``. ``footprints``:
+    the method's ``virtual_footprint``, how many footprint half-sides its kernel reaches
+    (0: a kernel of fixed texels)."""
     lay = vmap_like.layout
     T = lay.tile_size
     if points is None:
@@ -635,17 +640,22 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points,
             # biases' level marks its own samples' kernels beyond its box (``m +
             # spread``, up to m_block). Marked as the box alone, a pcf lookup's taps read
             # what wider marks would cast (tests/test_filters_pcf.py: 1-2 pixels of 4096
-            # differed). Its neighbours may have dropped the level, and those whose
-            # samples read it through its word (VirtualShadowMap.keeps: an uncapped
-            # centre on its shape, a centre on another) read their own boxes there, a
-            # footprint farther: ``ring`` marks that ring, ``m + 2 spread``
-            # (planner._kept_read says which points have such a neighbour)
+            # differed). A kernel of ``footprints`` footprints (pcf's region) is wider
+            # at that level than ``m`` bounds it at the footprint's: ``footprints
+            # spread`` where ``m`` holds ``footprints 2^(1 - lod_bias)`` (_margins). Its
+            # neighbours may have dropped the level, and those whose samples read it
+            # through its word (VirtualShadowMap.keeps: an uncapped centre on its shape,
+            # a centre on another) read their own boxes there, a footprint farther:
+            # ``ring`` marks that ring, ``m + 2 spread`` (planner._kept_read says which
+            # points have such a neighbour; before, every kept point marked it)
             spread = mi.Point2d(points[4])
             kept = mi.Bool(points[6])
-            m_lane = dr.select(kept, dr.minimum(m + (1.0 if ring is None else 2.0) * spread,
-                                                m_block), m_lane)
+            bound = _footprint_texels(vmap_like)
+            box = m + spread + footprints * dr.maximum(spread - bound, 0.0)
             if ring is not None:
+                box = dr.maximum(box, m + 2.0 * spread)
                 act = act & kept & ring
+            m_lane = dr.select(kept, dr.minimum(box, m_block), m_lane)
         elif ring is not None:
             act = mi.Bool(False)
     else:
@@ -681,7 +691,7 @@ def _kept_by_biases(vmap_like) -> bool:
 
 
 def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, ring=None,
-                border=None) -> tuple:
+                border=None, footprints: float = 0.0) -> tuple:
     """:func:`mark_candidates`' tiles as one block per point: ``(keys, oks)``, one list
     per block shape ``(w, h)`` (``w = c % per_axis + 1``, ``h = c // per_axis + 1`` for
     list ``c``), holding the same key in every list -- the block's first tile (as
@@ -704,10 +714,10 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, ring=None,
     kept the biases' level where ``ring`` is True, instead (:func:`_tile_range`): which
     points need them is known only once every pixel centre's word is
     (``planner._kept_read``), so they are deduplicated from :func:`dedupe_many`'s
-    second round (``late``). ``border``: which points are on the film's border
-    (:func:`_tile_range`)."""
+    second round (``late``). ``border``: which points are on the film's border;
+    ``footprints``: the kernel's footprints (:func:`_tile_range`)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
-        vmap_like, None, None, None, None, margin, None, points, ring, border)
+        vmap_like, None, None, None, None, margin, None, points, ring, border, footprints)
     # the valid candidates of mark_candidates: lo + a (a < per_axis) in [0, n_tiles)
     # and at most hi, i.e. the range [max(lo, 0), min(hi, lo + per_axis - 1, n_tiles - 1)]
     sx, sy = dr.maximum(lo.x, 0), dr.maximum(lo.y, 0)
@@ -741,7 +751,7 @@ def _margins(vmap_like, margin: float, border: bool = False) -> tuple:
     centre in texels; at most half a page), how far a block reaches for any point (up to
     :data:`MAX_SPREAD` with the receiver biases' cap, else ``m_edge``), and how far a
     film-border pixel's point marks (:func:`_tile_range`'s ``border``; ``m`` unless
-    ``border``: the method's ``virtual_border``).
+    ``border``: the method's ``virtual_footprint`` is given).
 
     A sample off its pixel's centre reads its kernel beside the neighbouring pixel's
     centre, whose marks reach ``m`` from there. A border pixel has no neighbour beyond
@@ -750,13 +760,20 @@ def _margins(vmap_like, margin: float, border: bool = False) -> tuple:
     texel is over ``2^(lod_bias - 1)`` of the footprint's shorter side, or of half its
     longer one, ``ANISO`` 2), 2.83 at the default; ``m_edge`` is ``margin`` plus that."""
     P = vmap_like.layout.page_size
-    lod_bias = effective_lod_bias(vmap_like.lod_bias, P)
-    off = max(1.0, 2.0 ** (-1.0 - lod_bias))
+    off = max(1.0, 2.0 ** (-1.0 - effective_lod_bias(vmap_like.lod_bias, P)))
     m = min(float(margin) + off, 0.5 * P)
-    m_edge = min(float(margin) + max(off, 2.0 ** (1.0 - lod_bias)), 0.5 * P) if border \
-        else m
+    m_edge = min(float(margin) + max(off, _footprint_texels(vmap_like)), 0.5 * P) \
+        if border else m
     capped = getattr(vmap_like, "reach", None) is not None
     return m, (max(m_edge, MAX_SPREAD) if capped else m_edge), m_edge
+
+
+def _footprint_texels(vmap_like) -> float:
+    """The bound on half a pixel footprint's longer side, in texels of its level:
+    ``2^(1 - lod_bias)`` (:meth:`VirtualShadowMap.level_for`: a texel is over
+    ``2^(lod_bias - 1)`` of the footprint's shorter side, or of half its longer one,
+    ``ANISO`` 2; at level 0 the footprint is smaller still), 2.83 at the default."""
+    return 2.0 ** (1.0 - effective_lod_bias(vmap_like.lod_bias, vmap_like.layout.page_size))
 
 
 def shape_bits(layout, per_axis: int):

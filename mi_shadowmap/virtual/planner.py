@@ -196,6 +196,9 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             # before: 2.0 + 0.9 ms at 256^2 under sky_sun)
             dr.eval(si_m.p, si_m.n, hits[1], hits[2], valid_m, through)
         shapes = {}     # per light: mark_blocks' (per_axis, bits), for block_tiles
+        # a kernel of so many footprints (Method.virtual_footprint: pcf's region), or None
+        footprints = (None if opts.record.virtual_footprint is None
+                      else float(opts.record.virtual_footprint(opts)))
 
         def marks(i, marker, points, border=None):
             """The candidate lists of light ``i`` (its own levels', then the coarser
@@ -206,7 +209,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             per_axis = block_axis(marker, margins[i], border is not None)
             shapes[i] = (per_axis, shape_bits(marker.layout, per_axis))
             keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1],
-                                    border=border)
+                                    border=border, footprints=footprints or 0.0)
             out = [([k], [ok]) for k, ok in zip(keys, oks)]
             if coarse[i]:
                 out.append(mark_coarser(marker, None, None, None, None,
@@ -220,7 +223,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             :func:`marks`' own."""
             read = _kept_read(sensor, centre, points[6])
             keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1],
-                                    ring=read, border=border)
+                                    ring=read, border=border, footprints=footprints or 0.0)
             return [([k], [ok]) for k, ok in zip(keys, oks)]
 
         def tiles(i, found, ring=None):
@@ -261,7 +264,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             # their neighbours' (_pixel_keeps) in the dedupe's second round
             centres = {i: _centre_words(sensor, pt[5], pt[6], hits[0].shape)
                        for i, mk, pt in zip(batch, markers, points) if mk.scene is not None}
-            edge = _film_border(sensor, dr.width(hits[3])) if opts.record.virtual_border \
+            edge = _film_border(sensor, dr.width(hits[3])) if footprints is not None \
                 else None
             groups = [marks(i, mk, pt, edge) for i, mk, pt in zip(batch, markers, points)]
             keeps = {}
@@ -305,7 +308,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         # kernel, where one per region launched 48 kernels and 900 table memsets a
         # camera move); each region keeps its own hash slots (dedupe_many's parts)
         n_pts = dr.width(hits[3])
-        edge_m = (_film_border(sensor, n_pts) if multi and opts.record.virtual_border
+        edge_m = (_film_border(sensor, n_pts) if multi and footprints is not None
                   else None)
         for i in multi:
             view = stores[i].layout.view

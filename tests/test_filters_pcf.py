@@ -528,7 +528,8 @@ def test_a_frosted_bulb_lit_from_inside_keeps_its_light():
 @pytest.mark.parametrize("light", ["point", "spot"])
 def test_virtual_marks_cover_the_scaled_region(light, monkeypatch):
     """On virtual maps ``pcf`` reads taps ``res_factor`` footprints wide around the
-    receiver; the record's ``virtual_margin`` (``4 res_factor`` texels of it) has the
+    receiver; the record's ``virtual_margin`` (``res_factor 2^(1 - lod_bias)`` texels of
+    it, the region's bound at the footprint's level; ``4 res_factor`` before) has the
     mark pass build them. The render then equals one whose marks reach as far as the
     2 x 2 pages a lookup binds (margin 14 at page size 32), as for mdsm's windows
     (tests/test_mdsm.py). Mutation audit: the margin without its ``res_factor`` term

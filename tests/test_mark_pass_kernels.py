@@ -90,7 +90,9 @@ def test_a_moves_mark_pass_launches_three_kernels_over_its_pixels(monkeypatch):
     dedupe's first tables, and the pixels' words (``planner._pixel_keeps``) in its
     second round: a moved frame's mark pass (camera hits to the dedupe's host reads)
     launches three kernels over its pixels, where it launched five (the points, the
-    words, three dedupe rounds). The image and texels are those of the kernels apart."""
+    words, three dedupe rounds). The kept points' rings, which read the words, ride in
+    the second and third (``dedupe_many``'s ``late``). The image and texels are those of
+    the kernels apart."""
     scene = _moved_scene()
     hits, tiles = planner.camera_hits, planner.block_tiles
     seen = []

@@ -327,8 +327,10 @@ def _virtual_margin(opts) -> float:
     finer than the footprint's is marked from the footprint's box there (``spread``),
     with the region ``res_factor`` times that box
     (:func:`~mi_shadowmap.virtual.marks._tile_range`).
-    ``random_terrain_world(22)`` at 256^2: 8.03 -> 7.61 texels a film pixel
-    (``benchmarks/RESULTS.md``, the forty-ninth session, helper A)."""
+    With the kept points' rings only where a neighbour reads their level,
+    ``random_terrain_world(22)`` at 256^2: 8.48 -> 7.91 texels a film pixel, 123: 9.45 ->
+    8.62, misclassified as before but for one pixel at 0.5 (``benchmarks/RESULTS.md``,
+    the forty-ninth session, helper A)."""
     from ..virtual.lookup import effective_lod_bias
     lod_bias = effective_lod_bias(opts.lod_bias, opts.page_size)
     return 2.0 + opts.res_factor * 2.0 ** (1.0 - lod_bias) + 0.5 * opts.min_size

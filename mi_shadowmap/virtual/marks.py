@@ -1124,7 +1124,7 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     for t1, t2, (k, ok) in zip(late1, late2, flat_late):
         dr.scatter(t1, k, slots_of(k, 0x9E3779B97F4A7C15, None), ok)
         dr.scatter(t2, k, slots_of(k, 0xC2B2AE3D27D4EB4F, None), ok)
-    dr.eval(*tables2, *lost, *extra, *late1, *late2, *(ok for _, ok in flat_late))
+    dr.eval(*tables2, *lost, *extra, *late1, *late2, *(x for pair in flat_late for x in pair))
     lost2 = [lo & (dr.gather(mi.UInt64, t2, s2, lo) != k)
              for t2, (k, _), s2, lo in zip(tables2, flat, slot2, lost)]
     for t1, t2, (k, ok) in zip(late1, late2, flat_late):

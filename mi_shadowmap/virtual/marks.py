@@ -1083,9 +1083,9 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     ``late``: None, or a function called once the first round is launched (after
     ``second``) that gives more groups, whose candidates may read what the first kernel
     scattered (the kept points' rings, :func:`mark_blocks`' ``ring``): the second round
-    scatters them into both of their tables (each its own hash) and stores which are
-    candidates, and the third spills those that lost their slot in both, so a frame
-    launches no more kernels. Their keys follow the groups' in the result."""
+    scatters them into both of their tables (each its own hash) and stores their keys
+    and which are candidates, and the third spills those that lost their slot in both,
+    so a frame launches no more kernels. Their keys follow the groups' in the result."""
     # one table per candidate list: Dr.Jit puts scatters into different arrays in one
     # kernel (a second scatter into the same array would start a new kernel)
     flat = [(k, ok) for keys, oks in groups for k, ok in zip(keys, oks)]

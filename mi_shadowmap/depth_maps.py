@@ -556,31 +556,30 @@ def _solid_candidates(scene: mi.Scene) -> tuple:
     listed = list(scene.shapes())
     key = (id(scene), tuple(id(sh) for sh in listed))
     if _CANDIDATES[0] != key or (_CANDIDATES[2] and _candidates_edited(*_CANDIDATES[2])):
-        from .map_manager import FLAG_CHANGING_BSDFS
+        from .map_manager import bsdf_flags, flag_changing_bsdfs
         shapes = listed + _grouped_shapes(scene, listed)
         meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
         glass = [m and _transmits(sh) for sh, m in zip(shapes, meshes)]
         use = [m and (g or sh.has_vertex_normals())
                for sh, m, g in zip(shapes, meshes, glass)]
-        bsdfs = [sh.bsdf() if m else None for sh, m in zip(shapes, meshes)]
-        flagged = [(b, int(b.flags())) for b in bsdfs
-                   if b is not None and b.class_name() in FLAG_CHANGING_BSDFS]
+        flagged = flag_changing_bsdfs(sh.bsdf() for sh, m in zip(shapes, meshes) if m)
         plain = [sh for sh, m, u in zip(shapes, meshes, use) if m and not u]
         _CANDIDATES[:] = [key, (shapes, use, glass, len(listed)),
-                          (plain, flagged) if plain or flagged else ()]
+                          (plain, flagged, bsdf_flags(flagged)) if plain or flagged else ()]
     return _CANDIDATES[1]
 
 
-def _candidates_edited(plain: list, flagged: list) -> bool:
+def _candidates_edited(plain: list, flagged: list, flags: tuple) -> bool:
     """Whether ``params.update()`` changed what :func:`_solid_candidates` answered from:
     a mesh it found without vertex normals or a transmitting BSDF (``plain``) now has
-    normals, or a BSDF whose flags an update changes (``flagged``, ``(bsdf, flags)``,
-    ``map_manager.FLAG_CHANGING_BSDFS``: ``principled`` given ``spec_trans``) has other
+    normals, or a BSDF whose flags an update changes (``flagged``, their ``flags`` then,
+    ``map_manager.flag_changing_bsdfs``: ``principled`` given ``spec_trans``) has other
     flags. A call per such mesh and BSDF a render, none where there are none (the
     repository's scenes: their meshes have normals); a mesh whose normals are removed is
     seen by :func:`solid_face_tables`, whose key holds its normals' buffer."""
+    from .map_manager import bsdf_flags     # (map_manager imports this module)
     return (any(sh.has_vertex_normals() for sh in plain)
-            or any(int(b.flags()) != f for b, f in flagged))
+            or bsdf_flags(flagged) != flags)
 
 
 def solid_face_tables(scene: mi.Scene):

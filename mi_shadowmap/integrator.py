@@ -1100,8 +1100,6 @@ def _nested_sensor(scene, sampler, ray):
     sensors = list(scene.sensors())
     wavefront, spp = sampler.wavefront_size(), max(sampler.sample_count(), 1)
 
-    def border(film):    # a film with sample_border also samples its filter's border
-        return film.rfilter().border_size() if film.sample_border() else 0
 
     fits = [s for s in sensors if _film_fits(s, sampler)]
     if not fits:
@@ -1127,7 +1125,7 @@ def _nested_sensor(scene, sampler, ray):
     for s in fits:
         film = s.film()
         size, offset = film.size(), film.crop_offset()
-        first = [offset[0] - border(film) + 0.5, offset[1] - border(film) + 0.5]
+        first = [offset[0] - _film_border(film) + 0.5, offset[1] - _film_border(film) + 0.5]
         uv = mi.Point2f(first[0] / size[0], first[1] / size[1])
         r, _ = s.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5))
         o_s, d_s = lane0(r.o), lane0(r.d)
@@ -1138,11 +1136,17 @@ def _nested_sensor(scene, sampler, ray):
     return best
 
 
+def _film_border(film) -> int:
+    """The pixels a film samples beyond its crop on each side: its filter's border where
+    it has ``sample_border``, else 0."""
+    return film.rfilter().border_size() if film.sample_border() else 0
+
+
 def _film_fits(sensor, sampler) -> bool:
     """Whether the render's wavefront holds a whole number of samples per pixel of
     ``sensor``'s film (its crop and a sampled border; :func:`_nested_sensor`'s test)."""
     film = sensor.film()
-    b = film.rfilter().border_size() if film.sample_border() else 0
+    b = _film_border(film)
     size = film.crop_size()
     pixels = (int(size[0]) + 2 * b) * (int(size[1]) + 2 * b)
     wavefront, spp = sampler.wavefront_size(), max(sampler.sample_count(), 1)

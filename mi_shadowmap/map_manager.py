@@ -804,16 +804,29 @@ class ParamWatch:
 FLAG_CHANGING_BSDFS = ("Principled", "PrincipledThin")
 
 
+def flag_changing_bsdfs(objects) -> list:
+    """The BSDFs among ``objects`` (any objects, None too; each BSDF once) whose flags
+    ``params.update()`` may change (:data:`FLAG_CHANGING_BSDFS`): the scene state, the
+    marks' tilt table and the solid faces' candidates read their flags
+    (:func:`bsdf_flags`) to see such an edit."""
+    seen = {}
+    for b in objects:
+        if isinstance(b, mi.BSDF) and b.class_name() in FLAG_CHANGING_BSDFS:
+            seen[id(b)] = b
+    return list(seen.values())
+
+
+def bsdf_flags(bsdfs) -> tuple:
+    """The flags of ``bsdfs`` now (:func:`flag_changing_bsdfs`), as a comparable tuple."""
+    return tuple(int(b.flags()) for b in bsdfs)
+
+
 def _flag_changing_bsdfs(params) -> list:
     """The BSDFs of a ``mi.traverse`` result ``params`` whose flags may change
-    (:data:`FLAG_CHANGING_BSDFS`): their flags are part of the scene state, so that a
+    (:func:`flag_changing_bsdfs`): their flags are part of the scene state, so that a
     page store's marks (kept for a still camera) are made again when they change."""
-    seen = {}
-    for value in params.properties.values():
-        node = value[2] if len(value) > 2 else None
-        if isinstance(node, mi.BSDF) and node.class_name() in FLAG_CHANGING_BSDFS:
-            seen[id(node)] = node
-    return list(seen.values())
+    return flag_changing_bsdfs(value[2] for value in params.properties.values()
+                               if len(value) > 2)
 
 
 def _environment_scale(params, name: str) -> bool:
@@ -1000,7 +1013,7 @@ class MapCache:
         suffix = "" if scale_watch is None else "/" + signs[1]
         token, values = watch.read()
         if flagged:       # (none in most scenes: nothing read)
-            token = (token, tuple(int(b.flags()) for b in flagged))
+            token = (token, bsdf_flags(flagged))
         if last is not None and last[0] == token:    # the same variables and values
             return last[2] if shapes_only else last[1] + suffix
         memo = slot[1]

@@ -14,7 +14,8 @@ from .. import depth_maps
 from ..control_flow import if_stmt
 from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
 from ..light_views.base import opaque_point
-from ..map_manager import FLAG_CHANGING_BSDFS, MAP_CACHE, ParamWatch, scene_lease
+from ..map_manager import (MAP_CACHE, ParamWatch, bsdf_flags, flag_changing_bsdfs,
+                           scene_lease)
 from ..variants import tilts_shading_frame
 from .camera import camera_frame, has_aperture
 from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
@@ -344,9 +345,7 @@ class _TiltWatch:
         self.watch = ParamWatch(params, [
             name for name in params.keys() if id(params.properties[name][2]) in meshes
             and name.rsplit(".", 1)[-1] in ("vertex_positions", "faces", "vertex_normals")])
-        bsdfs = {id(b): b for b in (sh.bsdf() for _, sh, _ in self.shapes)
-                 if b is not None and b.class_name() in FLAG_CHANGING_BSDFS}
-        self.flagged = list(bsdfs.values())
+        self.flagged = flag_changing_bsdfs(sh.bsdf() for _, sh, _ in self.shapes)
         self.token = self.keys = self.table = self.held = None
         self.tilts = {}
 
@@ -354,7 +353,7 @@ class _TiltWatch:
         """``(token, values)``: the watch's, its token with the watched BSDFs' flags."""
         token, values = self.watch.read()
         if self.flagged:
-            token = (token, tuple(int(b.flags()) for b in self.flagged))
+            token = (token, bsdf_flags(self.flagged))
         return token, values
 
 

@@ -264,6 +264,8 @@ def test_a_lookup_returning_another_type_is_an_error_naming_the_method():
     ({"finalize": 5}, "finalize must be callable"),
     ({"layers_for": 5}, "layers_for must be callable"),
     ({"virtual_coarse_res": 512}, "virtual_coarse_res must be callable"),
+    ({"virtual_edge": 2.0}, "virtual_edge must be callable"),
+    ({"virtual_footprint": 1.0}, "virtual_footprint must be callable"),
     ({"bias_defaults": {"slope_bias": "x"}}, r"bias_defaults\['slope_bias'\] must be a finite"),
     ({"bias_defaults": {"normal_bias": float("nan")}}, "normal_bias.*finite"),
     ({"bias_defaults": {"slope_bias": -1.0}}, "slope_bias.*>= 0"),

@@ -89,6 +89,10 @@ class ShadowMap:
     #: The light's pose delta (:mod:`mi_shadowmap.light_views.pose`) when its
     #: pose has gradients enabled, else None; lookups go through it.
     pose: object = None
+    #: What the build ray-cast (:func:`build_depth_map`): faces holding a traced texel
+    #: and texels traced; None for a map made otherwise (culled, cached).
+    faces_built: int | None = None
+    texels_built: int | None = None
 
     @property
     def second_depth(self) -> mi.Float | None:
@@ -1075,48 +1079,67 @@ def build_depth_map(scene: mi.Scene, view: LightView, resolution: int,
     (``{name: builder}``, e.g. a method record's ``layers``); ``differentiable``:
     depths attached to the AD graph (:func:`first_hit`), moving with the light's
     ``pose`` if given; ``antialias``: silhouettes antialiased
-    (:mod:`mi_shadowmap.antialias`)."""
-    o, d = view.texel_rays(resolution)
-    if not antialias:
+    (:mod:`mi_shadowmap.antialias`). A view that no lookup reads whole
+    (:meth:`LightView.built_texels`: a one-sided light's cube maps) has only the
+    texels it names traced, the others +inf (antialiased maps: all of them, as the
+    coverage reads every neighbour)."""
+    n_faces, n = view.n_faces, resolution * resolution
+    part = None if antialias else view.built_texels(resolution)
+    if part is not None:
+        idx, faces = part
+        depth = trace_texels(scene, view, resolution, idx, differentiable, pose)
+        smap = ShadowMap(view=view, resolution=resolution, depth=depth, pose=pose,
+                         faces_built=faces, texels_built=dr.width(idx))
+    elif not antialias:
+        o, d = view.texel_rays(resolution)
         depth = first_hit(scene, view, o, d, differentiable, pose)
         dr.eval(depth)
-        smap = ShadowMap(view=view, resolution=resolution, depth=depth, pose=pose)
+        smap = ShadowMap(view=view, resolution=resolution, depth=depth, pose=pose,
+                         faces_built=n_faces, texels_built=n_faces * n)
     else:
         from . import antialias as aa
+        o, d = view.texel_rays(resolution)
         aa.prepare_meshes(scene)
         raw, shape, prim = first_hit(scene, view, o, d, differentiable, pose, return_hit=True)
         cov = aa.silhouette_coverage(view, resolution, dr.detach(raw), shape, prim, pose)
         depth = aa.blend(raw, cov, view.n_faces, resolution, finite_only=True)
         dr.eval(raw, cov, depth)
         smap = ShadowMap(view=view, resolution=resolution, depth=depth, coverage=cov,
-                         raw_depth=raw, pose=pose)
+                         raw_depth=raw, pose=pose, faces_built=n_faces,
+                         texels_built=n_faces * n)
     for name, builder in (layers or {}).items():
         smap.extra[name] = build_layer(scene, smap, name, builder)
     return smap
+
+
+def trace_texels(scene, view, res: int, idx, differentiable: bool = False,
+                 pose=None) -> mi.Float:
+    """First-surface depth of the texels ``idx`` of ``view`` (``mi.UInt32`` flat
+    indices, maybe unevaluated), +inf in the others: only their rays are computed
+    (:meth:`LightView.texel_rays_at`), traced by :func:`first_hit` and scattered into a
+    map of every texel, in one kernel. ``differentiable``, ``pose``: as in
+    :func:`first_hit`."""
+    o, d = view.texel_rays_at(res, idx)
+    depth = dr.full(mi.Float, dr.inf, view.n_faces * res * res)
+    dr.scatter(depth, first_hit(scene, view, o, d, differentiable, pose), idx)
+    dr.eval(depth)
+    return depth
 
 
 def build_culled_depth(scene, view, res: int, faces, differentiable: bool = False,
                        pose=None) -> mi.Float:
     """First-surface depth of the ``faces`` of a cube view; +inf in the others.
 
-    Only the needed faces' texel rays are traced (gathered out of
-    :meth:`LightView.texel_rays`, traced by :func:`first_hit`,
-    scattered back into a full-size array). No face needed: all +inf, no
-    ray traced. ``differentiable``: as in :func:`first_hit`.
+    Only the needed faces' texel rays are computed and traced (:func:`trace_texels`).
+    No face needed: all +inf, no ray traced. ``differentiable``: as in
+    :func:`first_hit`.
     """
     n = res * res
     if not any(faces):
         return dr.full(mi.Float, dr.inf, view.n_faces * n)
     idx = mi.UInt32(np.concatenate([np.arange(f * n, (f + 1) * n, dtype=np.uint32)
                                     for f in range(view.n_faces) if faces[f]]))
-    o, d = view.texel_rays(res)
-    if dr.width(o) > 1:
-        o = dr.gather(mi.Point3f, o, idx)
-    d = dr.gather(mi.Vector3f, d, idx)
-    depth_sub = first_hit(scene, view, o, d, differentiable, pose)
-    depth = dr.full(mi.Float, dr.inf, view.n_faces * n)
-    dr.scatter(depth, depth_sub, idx)
-    dr.eval(depth)
+    depth = trace_texels(scene, view, res, idx, differentiable, pose)
     dr.sync_thread()
     return depth
 

@@ -404,15 +404,16 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
                              depth=build_culled_depth(scene, view, res, p.faces, **diff),
                              pose=p.pose)
             n_built = sum(p.faces)
-        else:
+            n_texels = n_built * res * res
+        else:   # what it traced: a one-sided light's multiview maps skip its back
             smap = build_depth_map(scene, view, res, antialias=p.antialias, **diff)
-            n_built = view.n_faces
+            n_built, n_texels = smap.faces_built, smap.texels_built
         dr.sync_thread()
         dt = time.perf_counter() - t0
         stats.maps_built += 1
         stats.faces_built += n_built
         stats.faces_culled += view.n_faces - n_built
-        stats.texels_built += n_built * res * res
+        stats.texels_built += n_texels
         stats.naive_build_seconds += dt
         if state is not None:
             MAP_CACHE.put(scene, state, p.key, p.depth_key, smap.depth, dt)

@@ -223,6 +223,16 @@ class BiasReach:
                          self.normal * cos_nl + self.slope * sin_nl)
 
 
+def largest_normal_offset(opts) -> float:
+    """The largest normal offset :func:`receiver` gives a point, in texels of its
+    view's :meth:`~mi_shadowmap.light_views.LightView.texel_world_size` there: the
+    full ``normal_bias`` where the slope bias is clamped, and with a slope bias at
+    least :data:`GRAZING_OFFSET` texels (the margin the clamp takes away); elsewhere
+    ``normal_bias`` times ``cos(theta)``, less."""
+    nb = opts.normal_bias_texels
+    return max(nb, GRAZING_OFFSET) if opts.slope_bias_texels > 0 else nb
+
+
 def receiver(smap, lk: Lookup, opts, coordinate_margin: bool = True) -> Receiver:
     """Project a shading point into ``smap`` with the configured biases.
 
@@ -279,9 +289,7 @@ def receiver(smap, lk: Lookup, opts, coordinate_margin: bool = True) -> Receiver
     texel = view.texel_world_size(res, view.depth_of(p), p, lk.n_world)
     clamped = sin_nl > opts.max_tan_slope * cos_nl
     nb = opts.normal_bias_texels
-    # where the slope bias is clamped: the full offset, and with a slope bias at least
-    # GRAZING_OFFSET texels (the margin the clamp takes away)
-    full = max(nb, GRAZING_OFFSET) if opts.slope_bias_texels > 0 else nb
+    full = largest_normal_offset(opts)
     if full > 0:
         # times cos(theta) elsewhere (see above)
         scale = dr.select(clamped, full, nb * cos_nl)

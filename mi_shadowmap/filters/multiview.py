@@ -75,6 +75,7 @@ views fit (see the README).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import drjit as dr
 import mitsuba as mi
@@ -83,7 +84,7 @@ import numpy as np
 from ..variants import bsdf_eval_reaches, unpolarized
 from ..light_views.multi import as_multi_view, multi_view, stratified_points
 from ..methods import Method, Prop
-from .common import Lookup, receiver, receiver_plane, tap_lit
+from .common import Lookup, largest_normal_offset, receiver, receiver_plane, tap_lit
 from .hard import hard
 
 
@@ -359,9 +360,18 @@ def _cone_subset(view, smap, lk, opts, act, L, shift2, test, si, bsdf, ctx, abov
     return n_lit / L, n_above / L, ratio
 
 
+#: How far beyond the receiver's nearest texel each test's taps reach, in texels
+#: (``bilinear2``: the 2x2 texel centres around it, within one texel on each axis).
+_TAP_REACH = {"hard": 0.0, "bilinear": math.sqrt(2.0)}
+
+
 def _views(view, emitter, scene, opts):
-    """The record's ``view_for``: K views of the light in one map (None: no extent)."""
-    return multi_view(view, emitter, scene, opts.views, opts.light_size, opts.angular_diameter)
+    """The record's ``view_for``: K views of the light in one map (None: no extent). A
+    one-sided light's build skips the texels behind it, which no lookup here reads: the
+    lookups' reach (``MultiView.lookup_reach``) is the normal offset of ``receiver`` and
+    the test's taps."""
+    return multi_view(view, emitter, scene, opts.views, opts.light_size, opts.angular_diameter,
+                      lookup_reach=(largest_normal_offset(opts), _TAP_REACH[opts.filter]))
 
 
 METHOD = Method(

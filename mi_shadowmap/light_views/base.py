@@ -86,6 +86,23 @@ class LightView:
         ``n_faces * res * res`` entries in flat texel order (the map builders' input)."""
         raise NotImplementedError
 
+    def texel_rays_at(self, res: int, idx):
+        """The rays of :meth:`texel_rays` of the texels ``idx`` only (``mi.UInt32`` flat
+        texel indices): bit-identical values. This default gathers them out of every
+        texel's rays; views whose rays follow from the index compute only these."""
+        o, d = self.texel_rays(res)
+        if dr.width(o) > 1:
+            o = dr.gather(mi.Point3f, o, idx)
+        return o, dr.gather(mi.Vector3f, d, idx)
+
+    def built_texels(self, res: int):
+        """The texels a build of this view ray-casts, where not all of them:
+        ``(idx, faces)``, ``idx`` their flat indices (``mi.UInt32``, maybe unevaluated)
+        and ``faces`` how many faces hold at least one; None: every texel. The others
+        are +inf and no lookup reads them (:class:`~.multi.MultiView`: the texels
+        behind a one-sided light)."""
+        return None
+
     def project(self, p_world: mi.Point3f):
         """``p_world`` -> ``(face, uv_light, depth, inside)``; ``uv_light`` in [0, 1]^2
         on the face when ``inside``."""
@@ -615,7 +632,13 @@ def texel_sample_uv(ij, res: int) -> mi.Point2f:
 def unit_grid(face_count: int, res: int):
     """``(face, s, t)`` of every texel's ray (its centre moved by
     :data:`TEXEL_SAMPLE`), ``s, t`` in [-1, 1] across the face."""
-    idx = dr.arange(mi.UInt32, face_count * res * res)
+    return unit_grid_at(dr.arange(mi.UInt32, face_count * res * res), res)
+
+
+def unit_grid_at(idx, res: int):
+    """``(face, s, t)`` of the rays of the texels ``idx`` (``mi.UInt32`` flat texel
+    indices), as :func:`unit_grid` gives them: a build of some texels computes their
+    rays only (the same values, bit for bit)."""
     face = idx // (res * res)
     rem = idx - face * (res * res)
     j = rem // res

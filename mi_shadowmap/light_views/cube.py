@@ -18,7 +18,7 @@ import numpy as np
 
 from ..control_flow import if_stmt
 from .base import (LightView, axial_texel_size, emitter_frame, opaque_point, position_np, scalar3,
-                   divide_by_res, unit_grid)
+                   divide_by_res, unit_grid, unit_grid_at)
 
 
 def cube_dir(face, s, t) -> mi.Vector3f:
@@ -110,6 +110,10 @@ class CubeView(LightView):
 
     def texel_rays(self, res: int):
         face, s, t = unit_grid(6, res)
+        return opaque_point(self.position), dr.normalize(cube_dir(face, s, t))
+
+    def texel_rays_at(self, res: int, idx):
+        face, s, t = unit_grid_at(idx, res)
         return opaque_point(self.position), dr.normalize(cube_dir(face, s, t))
 
     def ray_through(self, face, uv_light: mi.Point2f):

@@ -49,7 +49,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..variants import unpolarized
-from .base import LightView, look_along_np, opaque_point, opaque_scalar, position_np, unit_grid
+from .base import (LightView, look_along_np, opaque_point, opaque_scalar, position_np,
+                   unit_grid_at)
 
 #: Seed of the light points' jitter: fixed, so the views (and maps) are cacheable.
 SEED = 0
@@ -199,6 +200,10 @@ class MultiView(LightView):
     * ``dark`` -- an area light whose radiance is 0 at every point while its value tracks
       gradients: ``radiant`` then holds every valid point (the derivative image it lights
       reads them as a lit light's), and the lookup's visibility AOV is 0.
+    * ``lookup_reach`` -- ``(offset, taps)`` in texels of a one-sided planar light's cube
+      sub-views: the lookup's largest normal offset and how far its taps reach beyond the
+      nearest texel; the build then skips the texels no lookup reads, those behind the
+      light's plane (:meth:`built_texels`). None: every texel is built.
     """
     sub: LightView | None = None
     positions: tuple = ()
@@ -212,6 +217,7 @@ class MultiView(LightView):
     sphere: tuple = ()
     cells: tuple = ()
     dark: bool = False
+    lookup_reach: tuple | None = None
 
     projection = "multi-view"
 
@@ -357,9 +363,40 @@ class MultiView(LightView):
 
     # ------------------------------------------------------------ the interface
     def texel_rays(self, res: int):
-        face, s, t = unit_grid(self.n_faces, res)
+        return self.texel_rays_at(res, dr.arange(mi.UInt32, self.n_faces * res * res))
+
+    def texel_rays_at(self, res: int, idx):
+        face, s, t = unit_grid_at(idx, res)
         k, f = self._split(face)
         return self.lane(k).ray_through(f, mi.Point2f(0.5 * (s + 1.0), 0.5 * (t + 1.0)))
+
+    def built_texels(self, res: int):
+        """The texels the lookup can read, where not all (:meth:`LightView.built_texels`):
+        for a one-sided planar light's cube sub-views (``lookup_reach``), the texels in
+        front of its plane, the same in every sub-view (:func:`front_texels`).
+
+        Why no lookup reads the others: ``multiview`` looks view ``k`` up only where its
+        point emits towards the receiver ``p`` (:meth:`emits_towards`: ``n . (p - x_k) >
+        0``, ``n`` the shared normal, ``x_k`` the point). In face coordinates ``(s, t)`` of
+        cube face ``f`` the direction ``cube_dir(f, s, t)`` has ``A_f(s, t) = n .
+        cube_dir(f, s, t)``, affine in ``(s, t)`` with a gradient of norm <= 1. The
+        receiver moved by its normal offset (at most ``offset`` texels of ``2 m / res``,
+        ``m`` the major component of ``p - x_k``) projects where ``A_f > -2 offset / (res
+        - 2 offset)``; a tap of ``taps`` texels more lies at most ``2 taps / res`` farther
+        (off the face, re-projected onto a neighbour: ``A`` divided by a major >= 1,
+        nearer 0). A texel whose corners all have ``A_f <= -eta`` (that bound plus
+        1e-4 for rounding) is never read, and is not traced (+inf)."""
+        if self.lookup_reach is None:
+            return None
+        F = self.sub.n_faces
+        local, faces = front_texels(self.normals[0], res, *self.lookup_reach)
+        if len(local) == F * res * res:
+            return None
+        K, T = self.n_views, len(local)
+        table = mi.UInt32(local)
+        q = dr.arange(mi.UInt32, K * T)
+        k = q // T
+        return k * (F * res * res) + dr.gather(mi.UInt32, table, q - k * T), K * faces
 
     def ray_through(self, face, uv_light: mi.Point2f):
         k, f = self._split(face)
@@ -404,8 +441,8 @@ class MultiView(LightView):
 
     # Camera-independent: no fitting, no cascades, no face culling. ``cull_faces`` would
     # decide the faces of K views per render (K passes over the camera's points, which
-    # costs more than a cached frame) and the culled build gathers the texel rays of
-    # every face (24 bytes per texel, 6x the map); the K views are built whole.
+    # costs more than a cached frame); the K views are built but for the texels behind a
+    # one-sided light, which no camera's lookup reads (:meth:`built_texels`).
     def needs_camera_points(self, opts) -> bool:
         return False
 
@@ -480,6 +517,41 @@ def as_multi_view(view: LightView) -> MultiView:
                      view.ignore_shape, view.light_normal, view.label, sub=view,
                      positions=(tuple(float(c) for c in view.position),),
                      samples=((0.5, 0.5),))
+
+
+# --------------------------------------------------- texels in front of the light
+#: Added to :func:`front_texels`' bound (in units of ``A``, a cube face's half width):
+#: float32 rounding of the lookup's projection and of its emission test, about 1e-6.
+FRONT_SLACK = 1e-4
+
+
+@functools.lru_cache(maxsize=4)
+def front_texels(normal: tuple, res: int, offset: float, taps: float):
+    """``(local, faces)``: the flat indices (``numpy`` uint32, read-only) of the texels
+    of a cube view's six faces that a lookup of a light point emitting along ``normal``
+    can read (:meth:`MultiView.built_texels`), and how many faces hold any. A texel is
+    kept where the largest ``A_f = normal . cube_dir(f, s, t)`` at its corners exceeds
+    ``-(2 offset / (res - 2 offset) + 2 taps / res +`` :data:`FRONT_SLACK` ``)``
+    (``offset``, ``taps``: :attr:`MultiView.lookup_reach`); every texel where ``res <=
+    2 offset``. The face looking behind the light (``A_f`` < 0 at its four corners)
+    holds none, its four sides about half."""
+    n = res * res
+    if res <= 2.0 * offset:
+        return np.arange(6 * n, dtype=np.uint32), 6
+    eta = 2.0 * offset / (res - 2.0 * offset) + 2.0 * taps / res + FRONT_SLACK
+    nrm = np.asarray(normal, dtype=np.float64)
+    edges = np.arange(res + 1, dtype=np.float64) * (2.0 / res) - 1.0   # texel corners
+    kept = []
+    for f in range(6):
+        a, sign = f // 2, 1.0 if f % 2 == 0 else -1.0
+        n_s, n_t = nrm[(a + 1) % 3], nrm[(a + 2) % 3]
+        # A_f is affine in (s, t): its largest corner value, per column and per row
+        best_s = np.maximum(n_s * edges[:-1], n_s * edges[1:])
+        best_t = np.maximum(n_t * edges[:-1], n_t * edges[1:])
+        kept.append((sign * nrm[a] + best_t[:, None] + best_s[None, :]).ravel() > -eta)
+    local = np.flatnonzero(np.concatenate(kept)).astype(np.uint32)
+    local.setflags(write=False)
+    return local, int(sum(bool(k.any()) for k in kept))
 
 
 # ------------------------------------------------------------------ the factory
@@ -607,11 +679,16 @@ def _tracks_gradients(emitter) -> bool:
 
 
 def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
-               angular_diameter: float = 0.0) -> MultiView | None:
+               angular_diameter: float = 0.0, lookup_reach=None) -> MultiView | None:
     """The :class:`MultiView` of ``views`` light points of an emitter whose ordinary
     view is ``view`` (see the module doc), or None for a light without extent
     (point/spot/projector with ``light_size`` 0 or None, directional with
-    ``angular_diameter`` 0): its ordinary map is then the one view."""
+    ``angular_diameter`` 0): its ordinary map is then the one view. ``lookup_reach``
+    (``(offset, taps)`` in texels, see :attr:`MultiView.lookup_reach`): kept for a
+    planar area light (one normal, which every area emitter of Mitsuba 3.9 emits along
+    only: it has no two-sided one) with cube sub-views, whose build then skips what is
+    behind it; other lights (spheres, curved or closed meshes: their points' views are
+    read behind their normals) build every texel."""
     from .ortho import directional_view
     K = int(views)
     u = stratified_points(K)
@@ -670,10 +747,15 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
         dark = not any(radiant) and _tracks_gradients(emitter)
         if dark:   # a tracked 0: every valid point, for the derivative image
             radiant = tuple(bool(x) for x in np.broadcast_to(ps.pdf.numpy() > 0, (K,)))
+        normals = _normals(n)
+        planar_cube = (len(normals) == 1 and not sphere and sub.projection == "cube"
+                       and sub.n_faces == 6)
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
-                         normals=_normals(n), samples=samples, radiant=radiant, dark=dark,
+                         normals=normals, samples=samples, radiant=radiant, dark=dark,
                          count_all=not cone_sampled,
-                         cone=cone, inside_only=inside, sphere=sp, cells=cells)
+                         cone=cone, inside_only=inside, sphere=sp, cells=cells,
+                         lookup_reach=(None if lookup_reach is None or not planar_cube
+                                       else tuple(float(x) for x in lookup_reach)))
     if view.kind in ("point", "spot", "projector"):
         size = float(light_size or 0.0)
         if size <= 0.0:

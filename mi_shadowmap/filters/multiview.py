@@ -70,7 +70,12 @@ It converges to the reference as K grows (up to the maps' resolution and
 biases); K, the resolution and ``lookups`` trade speed for accuracy. Memory:
 K x (faces of one view) x resolution^2 texels, which the planner checks
 against ``memory_budget``; the automatic resolution is lowered so that all K
-views fit (see the README).
+views fit (see the README). Built: all of them but, under a one-sided planar
+area light seen through cube maps, the texels behind its plane, which no lookup
+reads (it tests a view only where its point emits towards the receiver; the
+margin is the lookup's reach, ``_views``): the face looking behind it and half
+of each side face, about half the texels
+(:meth:`~mi_shadowmap.light_views.multi.MultiView.built_texels`).
 """
 from __future__ import annotations
 

@@ -220,6 +220,11 @@ class Method:
       missing, so it must read the map outside symbolic loops and conditionals and must
       not draw random numbers (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.visibility`;
       either raises a :class:`MethodError` at the first render);
+    * ``reads_depth`` -- the lookup reads the first-depth layer (``smap.depth``); False
+      (``second_depth``, which compares with its second depths alone, as the paper's
+      map holds only them): a virtual map's pages with a second depth cast no first
+      depth (:func:`~mi_shadowmap.virtual.store.casts_first_depth`; their ``depth``
+      pool holds NaN there). Full maps build it either way;
     * ``builtin`` -- shipped with the package.
     """
     name: str
@@ -244,6 +249,7 @@ class Method:
     virtual_edge: Callable | None = None
     virtual_per_tap: bool = False
     virtual_footprint: Callable | None = None
+    reads_depth: bool = True
     builtin: bool = False
 
     def layer_names(self, opts) -> tuple:

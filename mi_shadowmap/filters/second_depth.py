@@ -435,5 +435,5 @@ METHOD = Method(
     bias_defaults={"slope_bias": 0.0, "normal_bias": 0.0},
     virtual_margin=lambda o: 2.0 + 0.5 * math.isqrt(o.pcf_samples),
     virtual_edge=lambda o: 0.5,
-    needs_curvature=True, virtual=True, builtin=True,
+    needs_curvature=True, virtual=True, reads_depth=False, builtin=True,
 )

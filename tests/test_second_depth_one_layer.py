@@ -1,0 +1,132 @@
+"""``second_depth``'s virtual pages cast its second depths alone
+(:func:`mi_shadowmap.virtual.store.casts_first_depth`): its lookups read no first depth
+(Wang & Molnar's map holds the second surface only), so a page's texel casts one depth,
+not two, and ``texels_built`` counts one. A method that reads both layers keeps both."""
+from __future__ import annotations
+
+import dataclasses
+
+import mitsuba as mi
+import numpy as np
+
+import mi_shadowmap
+from mi_shadowmap import methods, virtual
+from mi_shadowmap.depth_maps import second_depth_layer
+from mi_shadowmap.scenes import random_terrain_world
+
+from conftest import SCENES
+
+T = mi.ScalarTransform4f
+
+
+def _render(scene, spp=4, **props):
+    integ = mi.load_dict({"type": "shadowmap", **props})
+    img = np.asarray(mi.render(scene, integrator=integ, spp=spp, seed=0))
+    assert np.isfinite(img).all()
+    return img[..., 3], integ
+
+
+def _copy(name: str, of: str, **changes):
+    """A user method that is ``of`` with ``changes`` (registered; unregister after)."""
+    return methods.add(dataclasses.replace(methods.get(of), name=name, builtin=False,
+                                           **changes))
+
+
+def test_second_depth_pages_cast_one_depth_a_texel_and_render_as_with_both():
+    """A rippled terrain with towers under a sun (``random_terrain_world(22)``, the issue's
+    worst ``second_depth`` world, 9.25 texels a pixel at 256^2 counted with both depths),
+    64^2: the same method with its first depths cast too (a user copy that reads them,
+    ``reads_depth`` True) renders the same image bit for bit, and casts twice the
+    texels. Before, both cast both (18.8 texels a pixel each); now ``second_depth`` 9.4.
+    Its pages' first-depth pool holds NaN where cast: nothing reads it."""
+    d = random_terrain_world(22, width=64, spp=4)
+    _copy("second_depth_both_layers", "second_depth", reads_depth=True)
+    try:
+        both, integ_both = _render(mi.load_dict(d), method="second_depth_both_layers",
+                                   cache_maps=False)
+    finally:
+        mi_shadowmap.unregister_method("second_depth_both_layers")
+    one, integ = _render(mi.load_dict(d), method="second_depth", cache_maps=False)
+    texels, texels_both = integ.stats["texels_built"], integ_both.stats["texels_built"]
+    print(f"texels a pixel: second depths alone {texels / 64 ** 2:.2f}, both "
+          f"{texels_both / 64 ** 2:.2f}; {int(np.sum(one != both))} pixels differ")
+    assert np.array_equal(one, both)
+    assert 2 * texels == texels_both > 0
+    stores = [m.store for m in integ.maps if hasattr(m, "store")]
+    assert stores
+    for st in stores:
+        cast = st.pools["second_depth"].numpy()
+        first = st.pools["depth"].numpy()
+        written = np.isfinite(cast)
+        assert written.any() and np.isnan(first[written]).all()
+
+
+def test_a_method_reading_both_layers_keeps_its_first_depths():
+    """A user method registered with the ``second_depth`` layer whose lookup reads the
+    first depths (here ``hard``'s compare) gets them cast, in stores of its own
+    (:func:`~mi_shadowmap.virtual.store.page_layers` lists ``depth`` for it): its image
+    is ``hard``'s, bit for bit, also rendered after ``second_depth`` on the same scene
+    (whose stores hold no first depth), and it casts both depths a texel."""
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_file(str(SCENES / "spot_sphere_box.xml"), width=64, height=64)
+    _copy("hard_with_second", "hard", layers={"second_depth": second_depth_layer})
+    try:
+        _render(scene, method="second_depth")
+        mixed, integ = _render(scene, method="hard_with_second")
+    finally:
+        mi_shadowmap.unregister_method("hard_with_second")
+    hard, integ_hard = _render(scene, method="hard")
+    print(f"{int(np.sum(mixed != hard))} pixels differ; texels {integ.stats['texels_built']}"
+          f" against hard's {integ_hard.stats['texels_built']}")
+    assert np.array_equal(mixed, hard)
+    virtual.PAGE_CACHE.clear()
+    _, integ_hard = _render(scene, method="hard", cache_maps=False)
+    _, integ = _render(scene, method="second_depth", cache_maps=False)
+    assert integ.stats["texels_built"] > 0
+    _copy("hard_with_second", "hard", layers={"second_depth": second_depth_layer})
+    try:
+        _, integ_mixed = _render(scene, method="hard_with_second", cache_maps=False)
+    finally:
+        mi_shadowmap.unregister_method("hard_with_second")
+    assert integ_mixed.stats["texels_built"] == 2 * integ_hard.stats["texels_built"]
+
+
+def test_second_depth_camera_move_casts_second_depths_and_renders_as_afresh():
+    """Two point lights (``room_two_points``: their tiles cast together in one kernel),
+    64^2: after a camera move the new tiles get their second depths (the moved frame is
+    the frame a fresh integrator renders there, bit for bit), a move casts at most a
+    quarter of the first frame's texels, and the moves after the first compile nothing."""
+    import drjit as dr
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_file(str(SCENES / "room_two_points.xml"), width=64, height=64)
+    integ = mi.load_dict({"type": "shadowmap", "method": "second_depth"})
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world")
+               and isinstance(params.properties[k][2], mi.Sensor))
+    start = T(params[key].matrix.numpy()[..., 0])
+    mi.render(scene, integrator=integ, spp=2, seed=0)
+    first = integ.stats["texels_built"]
+    built, compiled = [], []
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        seen = set()
+        for j in range(3):
+            params[key] = start @ T().translate([0.05 * (j + 1), 0, 0]) \
+                @ T().rotate([0, 1, 0], 1.0 * (j + 1))
+            params.update()
+            dr.kernel_history()
+            moved = np.asarray(mi.render(scene, integrator=integ, spp=2, seed=0))[..., 3]
+            hashes = {k["hash"] for k in dr.kernel_history()
+                      if k["type"] == dr.KernelType.JIT}
+            compiled.append(len(hashes - seen))
+            seen |= hashes
+            built.append(integ.stats["texels_built"])
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    fresh, _ = _render(scene, spp=2, method="second_depth", cache_maps=False)
+    print(f"first frame {first} texels; moves built {built}, compiled {compiled}; "
+          f"{int(np.sum(moved != fresh))} pixels differ from a fresh render")
+    assert 0 < max(built) and all(b <= 0.25 * first for b in built)
+    assert compiled[1:] == [0, 0]
+    assert np.array_equal(moved, fresh)

@@ -4,8 +4,11 @@ Y. Wang and S. Molnar, "Second-Depth Shadow Mapping", UNC Chapel Hill
 TR94-019, 1994 (``shared/papers/001``). The map stores the depth of the
 **second** surface from the light (built by
 :func:`mi_shadowmap.depth_maps.second_depth_layer`, layer ``second_depth``,
-only when this method is used); the lookup is the per-pixel algorithm of
-the paper's Figure 10:
+only when this method is used; virtual maps' pages cast that layer alone: the lookup
+reads no first depth, ``reads_depth=False``, and the paper's Pass 1 keeps none either,
+"at the end of the pass, the front surface can be discarded";
+:func:`mi_shadowmap.virtual.store.casts_first_depth`); the lookup is the per-pixel
+algorithm of the paper's Figure 10:
 
 1. compare the camera sample's depth ``z`` with the second depth
    ``z_second`` of every nearby texel (``z <= z_second``: lit);

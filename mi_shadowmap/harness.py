@@ -315,14 +315,15 @@ def describe_map(smap) -> str:
 
 def _same_map(a, b) -> bool:
     """Whether two methods' maps of one emitter are the same map (their layers can be
-    merged): the same view (every field), resolution and depths."""
+    merged): the same view (every field), resolution and depths (virtual maps: first
+    depths cast in both or neither; ``second_depth``'s pages hold none)."""
     if type(a) is not type(b) or getattr(a, "resolution", None) != getattr(
             b, "resolution", None):
         return False
     if map_manager.view_fingerprint(a.view) != map_manager.view_fingerprint(b.view):
         return False
-    if isinstance(a, VirtualShadowMap):
-        return True
+    if isinstance(a, VirtualShadowMap):   # (second_depth's pages hold no first depth)
+        return a.store.casts_depth == b.store.casts_depth
     return a.depth is b.depth or np.array_equal(np.asarray(a.depth.numpy()),
                                                 np.asarray(b.depth.numpy()))
 

@@ -8,11 +8,12 @@ import dataclasses
 
 import mitsuba as mi
 import numpy as np
+import pytest
 
 import mi_shadowmap
-from mi_shadowmap import methods, virtual
+from mi_shadowmap import harness, methods, virtual
 from mi_shadowmap.depth_maps import second_depth_layer
-from mi_shadowmap.scenes import random_terrain_world
+from mi_shadowmap.scenes import default_scene, random_terrain_world
 
 from conftest import SCENES
 
@@ -130,3 +131,18 @@ def test_second_depth_camera_move_casts_second_depths_and_renders_as_afresh():
     assert 0 < max(built) and all(b <= 0.25 * first for b in built)
     assert compiled[1:] == [0, 0]
     assert np.array_equal(moved, fresh)
+
+
+def test_the_harness_does_not_give_hard_second_depths_virtual_map():
+    """``harness.prepare_maps`` / ``emitter_maps`` with ``virtual=True`` merged ``hard``'s
+    map into ``second_depth``'s (a virtual map was "the same map" whatever its pages):
+    ``hard`` then got pages whose first depths are not cast (NaN). Now they are two maps,
+    ``hard``'s with its first depths, and ``prepare_maps`` refuses to give one map."""
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=2))
+    maps = harness.emitter_maps(scene, ["hard", "second_depth"], virtual=True)
+    assert sorted(m.methods[0] for m in maps) == ["hard", "second_depth"]
+    st = next(m.map.store for m in maps if m.methods == ["hard"])
+    depth = st.pools["depth"].numpy()[:st.next_slot * st.texels_per_page]
+    assert not np.isnan(depth).any()
+    with pytest.raises(ValueError, match="different maps"):
+        harness.prepare_maps(scene, ["hard", "second_depth"], virtual=True)

@@ -307,10 +307,14 @@ def emitter_maps(scene, methods=None, sensor=None, **params) -> list[EmitterMap]
 
 
 def describe_map(smap) -> str:
-    """``"CubeView, 6 face(s) of 32^2"``: a map's view and size, for messages."""
+    """``"CubeView, 6 face(s) of 32^2"``: a map's view and size, for messages (a virtual
+    map whose pages hold second depths alone says so: ``second_depth``'s)."""
     res = getattr(smap, "resolution", None)
+    store = getattr(smap, "store", None)      # a virtual map's pages: which depths
+    pages = ("" if store is None or store.casts_depth
+             else ", pages of second depths only")
     return (f"{type(smap.view).__name__}, {smap.view.n_faces} face(s)"
-            + (f" of {res}^2" if res is not None else ""))
+            + (f" of {res}^2" if res is not None else "") + pages)
 
 
 def _same_map(a, b) -> bool:

@@ -144,5 +144,5 @@ def test_the_harness_does_not_give_hard_second_depths_virtual_map():
     st = next(m.map.store for m in maps if m.methods == ["hard"])
     depth = st.pools["depth"].numpy()[:st.next_slot * st.texels_per_page]
     assert not np.isnan(depth).any()
-    with pytest.raises(ValueError, match="different maps"):
+    with pytest.raises(ValueError, match="different maps.*second depths only"):
         harness.prepare_maps(scene, ["hard", "second_depth"], virtual=True)

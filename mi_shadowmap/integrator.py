@@ -39,7 +39,7 @@ from .methods import MethodError, whole_light_values
 from .rays import occlusion, surface_point
 from .variants import (SUPPORTED_VARIANTS, bsdf_eval_reaches, bsdf_to_world, check_variant,
                        tilts_shading_frame, unpolarized, variant_class)
-from .virtual import VirtualShadowMap, camera_frame
+from .virtual import VirtualShadowMap, camera_frame, camera_state
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
                           _differentiated, prepare_maps, scene_lease, scene_token)
 
@@ -315,16 +315,19 @@ screen is Mitsuba's projective integrators' job.
                 dr.forward_to(image)
             return dr.grad(image)
 
-    def prepare_maps(self, scene: mi.Scene, sensor=None) -> list[ShadowMap]:
+    def prepare_maps(self, scene: mi.Scene, sensor=None, camera=None) -> list[ShadowMap]:
         """First pass: one depth map per emitter (None for ``raytraced``).
 
         Delegates to :func:`mi_shadowmap.map_manager.prepare_maps` (resolution,
         memory budget, cascades, fitting, culling, cache); sets ``views``,
-        ``maps``, ``resolution``, ``stats`` and ``build_seconds``.
+        ``maps``, ``resolution``, ``stats`` and ``build_seconds``. ``camera``:
+        ``sensor``'s :func:`~mi_shadowmap.virtual.camera_state` read in this render
+        (default: read where needed).
         """
         views = self._light_views(scene)   # the light views, built once per render
         self.maps = [None] * len(scene.emitters())   # no stale maps if preparing fails
-        prepared = prepare_maps(scene, sensor, self.opts, views, pixels=self._pixels)
+        prepared = prepare_maps(scene, sensor, self.opts, views, pixels=self._pixels,
+                                camera=camera)
         self.views, self.maps = prepared.views, prepared.maps
         self.resolution, self.stats = prepared.resolution, prepared.stats
         self.build_seconds = prepared.stats.build_seconds
@@ -501,7 +504,11 @@ screen is Mitsuba's projective integrators' job.
         own = self._in_render and not self._nested
         self._pixels = ((own or (self._nested and nested_pixels)) and sensor is not None
                         and is_pinhole(sensor))
-        self.prepare_maps(scene, sensor)
+        # the camera's state, read once a render: the page planner's (are its marks
+        # stale?) and the pinhole frame's below (each read of every camera parameter is
+        # about 0.1 ms of a moved frame)
+        cam = camera_state(sensor) if sensor is not None else None
+        self.prepare_maps(scene, sensor, camera=cam)
         self._sensor = sensor
         self._delta_term = self._scene_has_delta(scene)
         memo = self._tilted_memo
@@ -533,7 +540,7 @@ screen is Mitsuba's projective integrators' job.
             directed_edges(scene)
         self._diff_scale, self._diff_spp = dr.opaque(mi.Float, math.sqrt(spp)), spp
         self._pixel_step = self._sensor_pixel_step(sensor)
-        self._pinhole = camera_frame(sensor)   # shared with the mark pass
+        self._pinhole = camera_frame(sensor, cam)   # shared with the mark pass
 
     def _scene_has_delta(self, scene) -> bool:
         """:func:`has_delta_bsdf`, kept per scene (a scene's shapes and their BSDFs'

@@ -437,11 +437,13 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
 
 
 def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
-                 pixels: bool = False) -> PreparedMaps:
+                 pixels: bool = False, camera=None) -> PreparedMaps:
     """First pass: one depth map per emitter (None for methods without a map and for
     environment emitters): :func:`plan_maps`, then :func:`build_maps`. ``pixels``: the
     render's lookups know their film pixel (virtual maps,
-    :func:`~mi_shadowmap.virtual.prepare_virtual`).
+    :func:`~mi_shadowmap.virtual.prepare_virtual`). ``camera``: ``sensor``'s
+    :func:`~mi_shadowmap.virtual.camera_state` where the caller read it in this render
+    (virtual maps; default: read there).
 
     ``stats`` (a :class:`MapStats`) records what was built and reused, and
     ``build_seconds``, the time spent here (planning included).
@@ -460,7 +462,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
             f"in this scene, whose lights are {', '.join(sorted(kinds))}", RuntimeWarning,
             stacklevel=3)
     if sensor is None and len(scene.sensors()) > 0:
-        sensor = scene.sensors()[0]
+        sensor, camera = scene.sensors()[0], None
     if opts.uses_map and opts.virtual and sensor is not None and not aims_by_film(sensor):
         if "virtual" in opts.given:
             raise OptionError(
@@ -474,7 +476,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
             "virtual" not in opts.given and _differentiated(scene, params)):
         # the automatic virtual=true: a scene being differentiated gets full maps (in the
         # AD graph), in its primal render too, so loss and gradient see the same maps
-        return _prepare_virtual(scene, sensor, opts, views, t0, params, pixels)
+        return _prepare_virtual(scene, sensor, opts, views, t0, params, pixels, camera)
     plan = plan_maps(scene, sensor, opts, views, params)
     maps, stats = build_maps(scene, plan)
     if (opts.uses_map and virtual_lost_to_budget(opts)
@@ -563,7 +565,7 @@ def _differentiated(scene: mi.Scene, params=None) -> bool:
 
 
 def _prepare_virtual(scene, sensor, opts, views, t0, params=None,
-                     pixels: bool = False) -> PreparedMaps:
+                     pixels: bool = False, camera=None) -> PreparedMaps:
     """``virtual=true``: virtual maps (:mod:`mi_shadowmap.virtual`) for the emitters whose
     view supports them; the others (an environment cut into more than 32 regions) get
     full maps as usual."""
@@ -578,7 +580,7 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None,
     if views is None:
         views = scene_views(scene, opts)
     if sensor is None and len(scene.sensors()) > 0:
-        sensor = scene.sensors()[0]
+        sensor, camera = scene.sensors()[0], None
     if opts.cascades > 1:
         views = _virtual_cascades(scene, sensor, opts, views)
     wanted = [v if v is not None and getattr(v, "supports_virtual", False) else None
@@ -601,7 +603,8 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None,
             _warn_full_for_budget(opts, wanted, res)
     full_bytes = sum(m.nbytes for m in maps if m is not None)
     virtual = prepare_virtual(scene, sensor, opts, virtual_views, stats, params,
-                              budget_bytes=opts.budget_bytes - full_bytes, pixels=pixels)
+                              budget_bytes=opts.budget_bytes - full_bytes, pixels=pixels,
+                              camera=camera)
     maps = [vm if vm is not None else m for vm, m in zip(virtual, maps)]
     dr.sync_thread()
     stats.build_seconds = time.perf_counter() - t0

@@ -107,7 +107,8 @@ PAGE_CACHE = PageCache()
 
 
 def prepare_virtual(scene, sensor, opts, views, stats, params=None,
-                    budget_bytes: int | None = None, pixels: bool = False) -> list:
+                    budget_bytes: int | None = None, pixels: bool = False,
+                    camera=None) -> list:
     """First pass with ``virtual=true``: mark, build missing pages, return one
     :class:`VirtualShadowMap` per emitter whose view supports it (None elsewhere).
 
@@ -124,6 +125,9 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     pixel whether the receiver biases' level applies (:func:`~.marks.probe_keeps`), and
     the maps carry that decision (:meth:`VirtualShadowMap.keeps`). Else it applies
     wherever the biases ask for it.
+    ``camera``: ``sensor``'s :func:`~.camera.camera_state` where the caller read it in
+    this render (the integrator's first pass, which shares it with the render's pinhole
+    frame: one read of every camera parameter a render, not two); default: read here.
     """
     from ..map_manager import MAP_CACHE
     from ..light_views import is_pinhole
@@ -132,7 +136,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     # view) rebuilds its own pages and keeps every other light's (retired below)
     state = (MAP_CACHE.scene_state(scene, params, shapes_only=True) if opts.cache_maps
              else None)
-    cam = camera_state(sensor) if sensor is not None else None
+    cam = (camera if camera is not None else camera_state(sensor)) if sensor is not None \
+        else None
     margins, coarse, stores = {}, {}, {}
     for i, view in enumerate(views):
         if view is None or not getattr(view, "supports_virtual", False):

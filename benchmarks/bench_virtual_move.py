@@ -3,7 +3,7 @@ interleaved, against the unshadowed frame. One run, by hand:
 
     python benchmarks/bench_virtual_move.py [--scenes large_world far_point ...]
                                             [--method hard] [--image 256] [--spp 16]
-                                            [--rounds 3]
+                                            [--rounds 3] [--profile N]
 
 ``bench_virtual.py`` times one camera move per configuration, after the others, against
 an unshadowed frame timed once per scene, so its move ratios drift with the machine's
@@ -17,15 +17,33 @@ same run. Every move goes to a new place, so each builds the pages it has not se
 A moved view costs a little more or less to render than the still one, so each moved
 frame is also timed ``unshadowed`` at the same moved camera, right after it (2 frames,
 their median); the last column divides by that frame of the same view.
+
+``--profile N`` (instead of the timing rounds): where a moved frame's time goes, per
+scene. ``N`` moved frames of ``--method`` (virtual maps) and, after each at the same
+moved camera, an unshadowed frame, under ``cProfile`` with the main thread's CPU clock
+(``time.thread_time_ns``: what the host runs, and the kernels' share the main thread
+executes while it waits for them; other processes on the machine do not inflate it as
+they inflate wall time). Printed: each frame's median CPU time, the functions whose own
+time (``tottime``, Dr.Jit's tracing calls and numpy's included in the Python function
+that makes them) grows most from the unshadowed frame to the moved one, and the last
+frames' kernel history (launches by type; per JIT kernel its width, operations, code
+generation and execution in ms, and whether it compiled). ``timing.py:render_timed``'s
+own time is Mitsuba's C++ render and the main thread's wait for (and share of) the
+render kernel; ``marks.py:<listcomp>``'s, the host reads after the mark kernels, their
+wait. The profiler adds about 1 us a Python call.
 """
 from __future__ import annotations
 
 import argparse
+import cProfile
 import pathlib
+import pstats
 import statistics
 import sys
+import time
 
 import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
+import drjit as dr
 import mitsuba as mi
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
@@ -69,6 +87,78 @@ def bench_scene(name, args) -> dict:
     return {"scene": name, **med}
 
 
+def _own_times(prof, n: int) -> dict:
+    """Each profiled function's own CPU time (ms) per frame, by ``file:function``."""
+    out = {}
+    for (path, _, func), (_, _, tottime, _, _) in pstats.Stats(prof).stats.items():
+        key = f"{path.split('/mi_shadowmap/')[-1].split('/')[-1]}:{func}"
+        out[key] = out.get(key, 0.0) + tottime * 1e3 / n
+    return out
+
+
+def _kernels(history) -> str:
+    """One frame's kernel history: launches by type, then each JIT kernel."""
+    kinds = {}
+    for k in history:
+        kinds[str(k["type"]).split(".")[-1]] = kinds.get(str(k["type"]).split(".")[-1], 0) + 1
+    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
+    rows = "; ".join(f"{k['size']} wide: {k['operation_count']} ops, codegen "
+                     f"{k.get('codegen_time', 0.0):.2f}, exec {k.get('execution_time', 0.0):.2f}"
+                     + ("" if k.get("cache_hit") else ", COMPILED") for k in jit)
+    return f"{len(history)} launches {kinds}\n    JIT kernels: {rows}"
+
+
+def profile_scene(name, args) -> None:
+    """``--profile``: see the module doc."""
+    scene = harness.load_scene(str(ROOT / "scenes_xml" / f"{name}.xml"),
+                               width=str(args.image), height=str(args.image))
+    integ = {k: mi.load_dict({"type": "shadowmap", "method": m})
+             for k, m in (("unshadowed", "unshadowed"), ("virtual", args.method))}
+    for j in range(3):       # compile, build; the first move compiles its kernels
+        old = move_camera(scene, 0.05 * (1 + j), 1.0)
+        for i in integ.values():
+            render_timed(scene, i, args.spp, 0)
+        set_camera(scene, old)
+        render_timed(scene, integ["virtual"], args.spp, 0)
+    profs = {k: cProfile.Profile(time.thread_time_ns, 1e-9) for k in integ}
+    cpu = {k: [] for k in integ}
+    history = {}
+
+    def frame(k):
+        dr.kernel_history()                       # (emptied: this frame's from here)
+        t0 = time.thread_time_ns()
+        profs[k].enable()
+        render_timed(scene, integ[k], args.spp, 0)
+        profs[k].disable()
+        cpu[k].append((time.thread_time_ns() - t0) * 1e-6)
+        history[k] = dr.kernel_history()
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for j in range(args.profile):
+            old = move_camera(scene, 0.05 * (4 + j), 1.0)
+            try:
+                frame("virtual")
+                frame("unshadowed")
+            finally:
+                set_camera(scene, old)
+            render_timed(scene, integ["virtual"], args.spp, 0)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    moved, unsh = (_own_times(profs[k], args.profile) for k in ("virtual", "unshadowed"))
+    print(f"## {name}: moved frame {statistics.median(cpu['virtual']):.1f} ms CPU, "
+          f"unshadowed {statistics.median(cpu['unshadowed']):.1f} ms (medians of "
+          f"{args.profile}; main thread, profiled)\n")
+    print("| function (own time) | moved [ms] | unshadowed [ms] | extra [ms] |")
+    print("|---|---|---|---|")
+    for key in sorted(moved, key=lambda k: unsh.get(k, 0.0) - moved[k])[:args.top]:
+        print(f"| {key} | {moved[key]:.2f} | {unsh.get(key, 0.0):.2f} | "
+              f"{moved[key] - unsh.get(key, 0.0):+.2f} |")
+    for k in ("virtual", "unshadowed"):
+        print(f"\n{k}: {_kernels(history[k])}")
+    print(flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=SCENES)
@@ -76,7 +166,14 @@ def main(argv=None) -> int:
     ap.add_argument("--image", type=int, default=256)
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="profile N moved frames instead (see the module doc)")
+    ap.add_argument("--top", type=int, default=25, help="--profile: functions listed")
     args = ap.parse_args(argv)
+    if args.profile:
+        for name in args.scenes:
+            profile_scene(name, args)
+        return 0
     print(f"# {args.method}, {args.image}^2, {args.spp} spp, median of {args.rounds} "
           "interleaved rounds; ratios over the unshadowed frame\n")
     print("| scene | unshadowed [ms] | full, cached (x unsh.) | virtual, still camera "

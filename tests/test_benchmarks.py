@@ -200,3 +200,19 @@ def test_bench_virtual_cost_cpu_mode_times_each_frames_parts_on_one_thread():
     assert frames and all("nan" not in line and "inf" not in line for line in frames)
     lookup = [line for line in lines if line.startswith("Render part over the unshadowed")]
     assert lookup and "of a ray" in lookup[0] and "nan" not in lookup[0]
+
+
+def test_bench_virtual_move_profiles_a_moved_frame():
+    # --profile: per function the moved frame's own CPU time against the unshadowed
+    # frame's at the same camera, and both frames' kernels; a move compiles nothing
+    out = run_bench("bench_virtual_move.py", "--profile", "2", "--scenes", "far_point",
+                    "--image", "32", "--spp", "1", "--top", "8")
+    lines = out.splitlines()
+    assert lines[0].startswith("## far_point: moved frame")
+    rows = [line for line in lines if line.startswith("| ") and "[ms]" not in line]
+    assert len(rows) == 8
+    assert any(row.startswith("| planner.py:prepare_virtual |") for row in rows)
+    extra = [float(row.strip("|").split("|")[3]) for row in rows]
+    assert extra == sorted(extra, reverse=True)
+    kernels = [line for line in lines if "JIT kernels:" in line]
+    assert len(kernels) == 2 and "COMPILED" not in out

@@ -70,9 +70,10 @@ def test_a_wall_lit_from_behind_keeps_no_biases_level(method, light, monkeypatch
     """A diffuse wall seen from the side the light does not reach: its pixels' lookups
     are never made (the BSDF reaches no light from behind), so the mark drops the
     biases' level there (measured 64^2 ``hard``: 220 of the wall's 241 capped centres
-    kept it before, texels 31616 -> 28032; ``pcf`` 48192 -> 42752), and the image is
-    bit-identical to the one with every probe's decision. Likewise under a small area
-    light wholly behind the wall's plane."""
+    kept it before, texels 31616 -> 28032; ``pcf`` 48192 -> 42752; since the kept
+    points mark their bands, not their boxes, ``marks.kept_tiles``: ``hard`` 31424 ->
+    27840, ``pcf`` 45056 -> 40576), and the image is bit-identical to the one with every
+    probe's decision. Likewise under a small area light wholly behind the wall's plane."""
     scene = _wall_scene({"type": "diffuse"}, LIGHT if light == "point" else AREA)
     img, texels, capped, kept = _render(scene, method, False, monkeypatch)
     img0, texels0, capped0, kept0 = _render(scene, method, True, monkeypatch)
@@ -80,7 +81,7 @@ def test_a_wall_lit_from_behind_keeps_no_biases_level(method, light, monkeypatch
           f"{texels}")
     assert capped == capped0 > 100 and kept0 > 0.5 * capped0
     assert kept == 0
-    assert texels < 0.9 * texels0
+    assert texels < 0.92 * texels0
     np.testing.assert_array_equal(img, img0)
 
 

@@ -3,6 +3,7 @@ ray per pixel centre.
 """
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 
@@ -12,7 +13,8 @@ import numpy as np
 
 from .. import depth_maps
 from ..control_flow import if_stmt
-from ..light_views import pinhole_footprint, pixel_centres, pixel_ray_differentials
+from ..light_views import (PIXEL_BLOCK, pinhole_footprint, pixel_centres,
+                           pixel_ray_differentials)
 from ..light_views.base import opaque_point
 from ..map_manager import (MAP_CACHE, ParamWatch, bsdf_flags, flag_changing_bsdfs,
                            scene_lease)
@@ -572,7 +574,7 @@ def probe_distance(scene, view, p, n, active, own=None):
 
 
 def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
-                    active=None, points=None, ring=None, border=None,
+                    active=None, points=None, border=None,
                     footprints: float = 0.0) -> tuple:
     """``(keys, oks)``, lists of candidate tile keys per point and whether each is one
     (unevaluated): the tiles the lookups at ``si`` read (see the module doc): at each
@@ -592,12 +594,11 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
     ``active(p, n)``: which points to mark (``n`` the normal facing the camera), or
     None: every point the view sees. ``points``: the points' :func:`marked_points`
     (evaluated: then each key is a few integer operations on them, cheap to recompute
-    in every round of :func:`dedupe_many`), or None: computed here. ``ring``: the kept
-    points' rings instead; ``border``: the film's border pixels; ``footprints``: the
-    kernel's footprints (:func:`_tile_range`)."""
+    in every round of :func:`dedupe_many`), or None: computed here. ``border``: the
+    film's border pixels; ``footprints``: the kernel's footprints (:func:`_tile_range`)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
-        vmap_like, si, dp_dx, dp_dy, valid, margin, active, points, ring, border,
-        footprints)
+        vmap_like, si, dp_dx, dp_dy, valid, margin, active, points, border=border,
+        footprints=footprints)
     # per_axis^2 candidates per point, all in one kernel; only the valid ones leave
     # Dr.Jit (most points read one tile or two)
     keys, oks = [], []
@@ -610,16 +611,16 @@ def mark_candidates(vmap_like, si, dp_dx, dp_dy, valid, margin: float = 2.0,
 
 
 def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points,
-                ring=None, border=None, footprints: float = 0.0) -> tuple:
+                border=None, footprints: float = 0.0, host_kept: bool = False) -> tuple:
     """``(face, level, act, lo, hi, n_tiles, per_axis)`` of :func:`mark_candidates`: the
     tiles ``lo`` to ``hi`` (per axis, at most ``per_axis`` from ``lo``) around each point
-    at its level, of ``n_tiles`` per side there. ``ring`` (``mi.Bool`` per point, or
-    None): instead, the rings of the points that kept the biases' level and whose
-    neighbours read it (``ring`` True there), ``m + 2 spread``; no other point marks.
-    ``border`` (``mi.Bool`` per point, or None): the points of the film's border pixels,
-    which mark ``m_edge`` (:func:`_margins`) where others mark ``m``. ``footprints``:
-    the method's ``virtual_footprint``, how many footprint half-sides its kernel reaches
-    (0: a kernel of fixed texels)."""
+    at its level, of ``n_tiles`` per side there. ``border`` (``mi.Bool`` per point, or
+    None): the points of the film's border pixels, which mark ``m_edge``
+    (:func:`_margins`) where others mark ``m``. ``footprints``: the method's
+    ``virtual_footprint``, how many footprint half-sides its kernel reaches (0: a kernel
+    of fixed texels). ``host_kept``: the points that kept the biases' level (where the
+    marks decide it per pixel) do not mark here: the host marks their bands
+    (:func:`kept_tiles`)."""
     lay = vmap_like.layout
     T = lay.tile_size
     if points is None:
@@ -637,30 +638,18 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points,
         if getattr(vmap_like, "scene", None) is not None and _kept_by_biases(vmap_like):
             # with the per-pixel decision (marked_points' probe) a point that kept the
             # biases' level marks its own samples' kernels beyond its box (``m +
-            # spread``, up to m_block). Marked as the box alone, a pcf lookup's taps read
-            # what wider marks would cast (tests/test_filters_pcf.py: 1-2 pixels of 4096
-            # differed). A kernel of ``footprints`` footprints (pcf's region) is wider
-            # at that level than ``m`` bounds it at the footprint's: ``footprints
-            # spread`` where ``m`` holds ``footprints 2^(1 - lod_bias)`` (_margins). Its
-            # neighbours may have dropped the level, and those whose samples read it
-            # through its word (VirtualShadowMap.keeps: an uncapped centre on its shape,
-            # a centre on another) read their own boxes there, a footprint farther:
-            # ``ring`` marks that ring, ``m + 2 spread`` (planner._kept_read says which
-            # points have such a neighbour; before, every kept point marked it)
+            # spread``, up to m_block), and pcf's wider kernel at that level: the
+            # bounding box of kept_tiles' own band (where a neighbour reads the level,
+            # kept_tiles marks the ring too)
             spread = mi.Point2d(points[4])
             kept = mi.Bool(points[6])
             bound = _footprint_texels(vmap_like)
             box = m + spread + footprints * dr.maximum(spread - bound, 0.0)
-            if ring is not None:
-                box = dr.maximum(box, m + 2.0 * spread)
-                act = act & kept & ring
             m_lane = dr.select(kept, dr.minimum(box, m_block), m_lane)
-        elif ring is not None:
-            act = mi.Bool(False)
+            if host_kept:
+                act = act & ~kept
     else:
         m_lane = m
-        if ring is not None:
-            act = mi.Bool(False)
     if border is not None and m_edge > m:
         # a film-border pixel's samples half a pixel outwards: no pixel beyond the film
         # marks around them (m_edge, _margins)
@@ -689,8 +678,8 @@ def _kept_by_biases(vmap_like) -> bool:
     return reach.normal > 0.0 or reach.slope > 0.0
 
 
-def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, ring=None,
-                border=None, footprints: float = 0.0) -> tuple:
+def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, border=None,
+                footprints: float = 0.0, host_kept: bool = False) -> tuple:
     """:func:`mark_candidates`' tiles as one block per point: ``(keys, oks)``, one list
     per block shape ``(w, h)`` (``w = c % per_axis + 1``, ``h = c // per_axis + 1`` for
     list ``c``), holding the same key in every list -- the block's first tile (as
@@ -709,14 +698,12 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, ring=None,
     0.63 ms on large_world, 3.19 -> 0.51 ms on cbox_area (``pcss``: 8.05 -> 1.37 ms),
     5.09 -> 1.14 ms on room_two_points (medians of 10 moves each, interleaved).
 
-    ``ring`` (``mi.Bool`` per point, or None): the blocks of the rings of the points that
-    kept the biases' level where ``ring`` is True, instead (:func:`_tile_range`): which
-    points need them is known only once every pixel centre's word is
-    (``planner._kept_read``), so they are deduplicated from :func:`dedupe_many`'s
-    second round (``late``). ``border``: which points are on the film's border;
-    ``footprints``: the kernel's footprints (:func:`_tile_range`)."""
+    ``border``: which points are on the film's border; ``footprints``: the kernel's
+    footprints (:func:`_tile_range`). ``host_kept``: the points that kept the biases'
+    level left out (:func:`kept_tiles` marks their bands on the host)."""
     face, level, act, lo, hi, n_tiles, per_axis = _tile_range(
-        vmap_like, None, None, None, None, margin, None, points, ring, border, footprints)
+        vmap_like, None, None, None, None, margin, None, points, border, footprints,
+        host_kept)
     # the valid candidates of mark_candidates: lo + a (a < per_axis) in [0, n_tiles)
     # and at most hi, i.e. the range [max(lo, 0), min(hi, lo + per_axis - 1, n_tiles - 1)]
     sx, sy = dr.maximum(lo.x, 0), dr.maximum(lo.y, 0)
@@ -733,6 +720,168 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, ring=None,
         keys.append(key)
         oks.append(ok & (ex == c % per_axis) & (ey == c // per_axis))
     return keys, oks
+
+
+def kept_axes(vmap_like, si, dp_dx, dp_dy, points) -> tuple:
+    """``(du_dx, du_dy)``: the pixel footprint's two sides in the map (``d uv_light``,
+    ``mi.Point2f`` each, unevaluated) at the camera hits ``si`` whose points
+    (:func:`marked_points`) kept the biases' level: the parallelogram whose bounding box
+    is their ``spread``, as :meth:`VirtualShadowMap._levels` takes them), 0 elsewhere.
+    :func:`kept_tiles` reads them on the host. In a conditional that only the vector
+    packets holding a kept point enter (2-8 % of a film's points keep the level, in
+    blocks of the film): a view's differentials are not shared with ``_levels``' (its
+    opaque position is another variable), some 55 operations in the mark kernel."""
+    view = vmap_like.view
+
+    def sides(p_world, face, dx, dy):
+        p_world = mi.Point3f(p_world)
+        return view.uv_differential(face, p_world, dx), view.uv_differential(face, p_world,
+                                                                             dy)
+
+    return if_stmt((si.p, points[0], dp_dx, dp_dy), mi.Bool(points[6]), sides,
+                   lambda p_world, face, dx, dy: (mi.Point2f(0.0), mi.Point2f(0.0)),
+                   label="virtual marks: the kept points' footprint sides")
+
+
+#: How far along its footprint's sides ``a`` and ``b`` (:func:`kept_axes`) from a kept
+#: point its band holds its own pixel's samples (:func:`kept_tiles`): ``p + s a + t b``,
+#: ``|s|, |t| <= 1/2``, the parallelogram whose bounding box is its ``spread``.
+KEPT_SAMPLES = 0.5
+
+#: How far its band holds its neighbours' centres where a neighbour reads its level
+#: (:func:`kept_tiles`): ``p + i a + j b``, ``|i|, |j| <= 1``, whose bounding box is
+#: ``2 spread``.
+KEPT_NEIGHBOURS = 1.0
+
+
+def kept_tiles(vmap_like, points, axes, read, margin: float, footprints: float = 0.0,
+               film=None) -> np.ndarray:
+    """The tile keys (sorted, distinct; ``np.uint64``) of the points that kept the biases'
+    level (:func:`marked_points`' ``kept``, evaluated; :func:`mark_blocks` with
+    ``host_kept`` leaves them out), computed on the host from their lanes alone (2-8 %
+    of a film's points keep the level): each one's band, the tiles its lookups read on
+    its tangent plane at that level, not the box around it.
+
+    A pixel's samples lie in the parallelogram ``p + s a + t b``, ``|s|, |t| <= 1/2``
+    (``a``, ``b`` its footprint's sides in texels of the level, :func:`kept_axes`; its
+    bounding box is ``spread``), and each reads the method's kernel around it: ``m``
+    texels (:func:`_margins`), and for a kernel of ``footprints`` footprints (``pcf``'s
+    region) ``footprints max(spread - 2^(1 - lod_bias), 0)`` more, as the box
+    ``m + spread + ...`` of :func:`_tile_range` holds. Where a neighbouring pixel reads
+    the level through the kept point's word (``read``, ``planner._kept_read``), the
+    neighbours' centres ``p + i a + j b`` (``|i|, |j| <= 1``) and the kernel ``m``
+    around them too: the ring ``m + 2 spread`` was their bounding box. A tile is
+    marked where it meets that region: a box (the tile widened by the kernel) against a
+    parallelogram, separated on neither the map's axes nor the parallelogram's sides'
+    normals. A footprint the light grazes is long and thin in the map, and turned to its
+    axes fills little of its box. Only tiles of the box (clamped as there, up to
+    ``m_block``) are candidates, so a band is a subset of it; a point with a
+    non-finite side keeps its box.
+
+    ``axes``: :func:`kept_axes`, evaluated; ``read``: ``mi.Bool`` per lane (or one);
+    ``film``: the film's ``(width, height)`` where a film-border pixel's point marks
+    ``m_edge`` (:func:`_margins`; the method's ``virtual_footprint`` given), else None."""
+    kept = np.asarray(points[6].numpy(), bool).reshape(-1)
+    idx = np.flatnonzero(kept)
+    if len(idx) == 0:
+        return np.zeros(0, np.uint64)
+    lay = vmap_like.layout
+    T = float(lay.tile_size)
+    m, m_block, m_edge = _margins(vmap_like, margin, film is not None)
+
+    def lanes(x, dtype):
+        """The kept lanes of ``x`` (a literal, one lane, repeated): ``(..., n)``."""
+        v = np.asarray(x.numpy())
+        return (v[..., idx] if v.shape[-1] > 1 else
+                np.repeat(v, len(idx), axis=-1)).astype(dtype)
+
+    face, level = lanes(points[0], np.uint64), lanes(points[3], np.int64)
+    uv, spread = lanes(points[1], np.float64), lanes(points[4], np.float64)
+    ring = lanes(read, bool)
+    # in texels of each point's level (as _tile_range and VirtualShadowMap._levels)
+    xy = uv * (np.int64(lay.res0) >> level).astype(np.float64)
+    scale = float(lay.res0) * np.exp2(-np.clip(level, 0, lay.coarsest).astype(np.float64))
+    a, b = (lanes(ax, np.float64) * scale for ax in axes)
+    # the box of _tile_range, in its order of operations; the own band's kernel
+    wide = footprints * np.maximum(spread - _footprint_texels(vmap_like), 0.0)
+    pad = m + wide
+    box = m + spread + wide
+    box = np.where(ring, np.maximum(box, m + 2.0 * spread), box)
+    box = np.minimum(box, m_block)
+    extra = np.zeros(len(idx))
+    if film is not None and m_edge > m:
+        x, y = _lane_pixels(*film)
+        w, h = film
+        x, y = x[idx], y[idx]
+        edge = (x == 0) | (y == 0) | (x == w - 1) | (y == h - 1)
+        extra = np.where(edge, m_edge - m, 0.0)
+        box = np.minimum(box + extra, m_block)
+    per_axis = int(math.ceil(2.0 * m_block / T)) + 1
+    lo = np.floor((xy - box) / T).astype(np.int64)
+    hi = np.floor((xy + box) / T).astype(np.int64)
+    n_tiles = np.maximum(np.int64(lay.pages_per_side(0)) >> level, 1) * lay.tiles_per_side
+    start = np.maximum(lo, 0)
+    end = np.minimum(np.minimum(hi, lo + (per_axis - 1)), n_tiles - 1)
+    size = np.maximum(end - start + 1, 0)
+    # every candidate tile of every box: a point's columns, then each column's tiles
+    n_w, n_h = size[0], size[1]
+    col = np.repeat(np.arange(len(idx)), n_w)
+    first = np.cumsum(n_w) - n_w
+    dx = np.arange(len(col)) - np.repeat(first, n_w)
+    n_hc = n_h[col]
+    k = np.repeat(col, n_hc)
+    first = np.cumsum(n_hc) - n_hc
+    dy = np.arange(len(k)) - np.repeat(first, n_hc)
+    tx = start[0][k] + np.repeat(dx, n_hc)
+    ty = start[1][k] + dy
+    # from the point to the tile's centre, and the tile's half sides
+    d = np.stack([(tx + 0.5) * T - xy[0][k], (ty + 0.5) * T - xy[1][k]])
+    half = 0.5 * T + extra[k]
+    ak, bk = a[:, k], b[:, k]
+
+    def meets(sa, sb, kernel):
+        """Whether each tile widened by ``kernel`` meets the parallelogram ``sa a + sb b``
+        around its point (separating axes)."""
+        hx, hy = half + kernel[0], half + kernel[1]
+        pa, pb = sa * ak, sb * bk
+        tol = 1e-9 * T
+        ok = (np.abs(d[0]) <= hx + np.abs(pa[0]) + np.abs(pb[0]) + tol) \
+            & (np.abs(d[1]) <= hy + np.abs(pa[1]) + np.abs(pb[1]) + tol)
+        for u, v in ((pa, pb), (pb, pa)):
+            nx, ny = -u[1], u[0]        # the normal of the sides along u
+            ok &= (np.abs(d[0] * nx + d[1] * ny)
+                   <= np.abs(v[0] * nx + v[1] * ny) + hx * np.abs(nx) + hy * np.abs(ny)
+                   + tol * (np.abs(nx) + np.abs(ny)))
+        return ok
+
+    finite = np.isfinite(ak).all(axis=0) & np.isfinite(bk).all(axis=0)
+    hit = ~finite | meets(KEPT_SAMPLES, KEPT_SAMPLES, pad[:, k])
+    hit |= ring[k] & meets(KEPT_NEIGHBOURS, KEPT_NEIGHBOURS, np.full((2, 1), m))
+    return sorted_unique(page_key(face[k][hit], level[k][hit].astype(np.uint64),
+                                  tx[hit].astype(np.uint64), ty[hit].astype(np.uint64)))
+
+
+@functools.lru_cache(maxsize=8)
+def _lane_pixels(w: int, h: int) -> tuple:
+    """The film pixel ``(x, y)`` (``np.int64`` arrays) of each of :func:`camera_hits`'
+    lanes through a camera without a lens: :func:`camera_pixels` on the host
+    (:func:`~mi_shadowmap.light_views.pixel_centres`' blocks, whose filler lanes repeat
+    the last column or row)."""
+    B = PIXEL_BLOCK
+    bw, bh = -(-w // B), -(-h // B)
+    idx = np.arange(bw * bh * B * B, dtype=np.int64)
+    block, local = idx // (B * B), idx & (B * B - 1)
+    by = block // bw
+    bx = block - by * bw
+    i = np.zeros_like(idx)
+    j = np.zeros_like(idx)
+    for s in range(B.bit_length() - 1):      # even bits of local: i, odd bits: j
+        i |= ((local >> (2 * s)) & 1) << s
+        j |= ((local >> (2 * s + 1)) & 1) << s
+    x, y = np.minimum(bx * B + i, w - 1), np.minimum(by * B + j, h - 1)
+    x.setflags(write=False)
+    y.setflags(write=False)
+    return x, y
 
 
 def block_axis(vmap_like, margin: float, border: bool = False) -> int:
@@ -1081,7 +1230,7 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
 
     ``late``: None, or a function called once the first round is launched (after
     ``second``) that gives more groups, whose candidates may read what the first kernel
-    scattered (the kept points' rings, :func:`mark_blocks`' ``ring``): the second round
+    scattered (the kept points' rings did, forty-ninth session): the second round
     scatters them into both of their tables (each its own hash) and stores their keys
     and which are candidates, and the third spills those that lost their slot in both,
     so a frame launches no more kernels. Their keys follow the groups' in the result."""

@@ -20,8 +20,8 @@ from .layout import (VirtualLayout, key_fields, layout_for, page_key, sorted_uni
 from ..filters.common import BiasReach
 from .lookup import KEEP_CENTRE, KEEP_OTHERS, KEEP_SHAPE, VirtualShadowMap
 from .marks import (Marker, _kept_by_biases, block_axis, block_tiles, camera_hits,
-                    camera_pixels, dedupe_many, dilate_tiles, mark_blocks, mark_coarser,
-                    marked_points, shape_bits, tile_pages)
+                    camera_pixels, dedupe_many, dilate_tiles, kept_axes, kept_tiles,
+                    mark_blocks, mark_coarser, marked_points, shape_bits, tile_pages)
 from .store import (PageStore, TileCast, cast_tiles, fill_new_pages, page_bytes,
                     page_layers, read_minima)
 
@@ -211,36 +211,31 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             levels' its kernels may filter, :func:`mark_coarser`) from its evaluated
             :func:`marked_points` ``points``."""
             # its own levels' tiles as blocks (mark_blocks): one group, the blocks' shapes
-            # in their keys (else one group per block shape)
+            # in their keys (else one group per block shape); the points that kept the
+            # biases' level (where the marks decide it per pixel) marked on the host
+            # (kept_tiles), from their footprints' sides evaluated with the points
             per_axis = block_axis(marker, margins[i], border is not None)
             shapes[i] = (per_axis, shape_bits(marker.layout, per_axis))
+            apart = marker.scene is not None and _kept_by_biases(marker)
+            if apart:
+                axes[i] = kept_axes(marker, *hits[:3], points)
             keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1],
-                                    border=border, footprints=footprints or 0.0)
+                                    border=border, footprints=footprints or 0.0,
+                                    host_kept=apart)
             out = [([k], [ok]) for k, ok in zip(keys, oks)]
             if coarse[i]:
                 out.append(mark_coarser(marker, None, None, None, None,
                                         coarse_res=coarse[i], points=points))
             return out
 
-        def rings(i, marker, points, centre, border):
-            """Light ``i``'s blocks of its kept points' rings (:func:`mark_blocks`'
-            ``ring``) where a neighbour reads their level (:func:`_kept_read`), from
-            its centres' words ``centre`` (evaluated): a group per block shape list, as
-            :func:`marks`' own."""
-            read = _kept_read(sensor, centre, points[6])
-            keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1],
-                                    ring=read, border=border, footprints=footprints or 0.0)
-            return [([k], [ok]) for k, ok in zip(keys, oks)]
-
-        def tiles(i, found, ring=None):
-            """Light ``i``'s tile keys from its :func:`marks` groups' keys (and its
-            :func:`rings`' group's, blocks of the same shapes): ``(own levels', coarser
-            levels')`` (the latter empty without ``virtual_coarse_res``)."""
+        def tiles(i, found, kept=None):
+            """Light ``i``'s tile keys from its :func:`marks` groups' keys (and its kept
+            points' tiles, :func:`kept_tiles`): ``(own levels', coarser levels')`` (the
+            latter empty without ``virtual_coarse_res``)."""
             n = len(found) - bool(coarse[i])
-            blocks = found[:n]
-            if ring is not None:
-                blocks = [np.concatenate([a, b]) for a, b in zip(blocks, ring)]
-            own = block_tiles(blocks, *shapes[i])
+            own = block_tiles(found[:n], *shapes[i])
+            if kept is not None and len(kept):
+                own = sorted_unique(np.concatenate([own, kept]))
             extra = (dilate_tiles(found[n], stores[i].layout, margins[i]) if coarse[i]
                      else np.zeros(0, np.uint64))
             return own, extra
@@ -272,43 +267,33 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                        for i, mk, pt in zip(batch, markers, points) if mk.scene is not None}
             edge = _film_border(sensor, dr.width(hits[3])) if footprints is not None \
                 else None
+            axes = {}
             groups = [marks(i, mk, pt, edge) for i, mk, pt in zip(batch, markers, points)]
-            keeps = {}
+            keeps, read = {}, {}
 
             def neighbours():
                 keeps.update((i, _pixel_keeps(sensor, c)) for i, c in centres.items())
-                return [k[0] for k in keeps.values()]
+                # the kept points that a neighbour reads through its word (_kept_read),
+                # from the centres' words the first kernel scattered
+                read.update((i, _kept_read(sensor, centres[i], points[batch.index(i)][6]))
+                            for i in axes)
+                return [k[0] for k in keeps.values()] + list(read.values())
 
-            # the kept points' rings where a neighbour reads their level: known from the
-            # centres' words, so deduplicated from the second round on (dedupe_many's
-            # late), in the kernels it launches anyway
-            ringed = [i for i, mk in zip(batch, markers)
-                      if mk.scene is not None and _kept_by_biases(mk)]
-
-            n_ring = {}
-
-            def late():
-                out = []
-                for i, mk, pt in zip(batch, markers, points):
-                    if i in ringed:
-                        gs = rings(i, mk, pt, centres[i], edge)
-                        n_ring[i] = len(gs)
-                        out += gs
-                return out
-
-            # the points evaluated in the dedupe's first kernel, which scatters their
-            # keys (one kernel, not two), the pixels' words in its second (not their
-            # own): a moved frame's kernels 11 -> 9
+            # the points (and the kept points' footprints' sides) evaluated in the
+            # dedupe's first kernel, which scatters their keys (one kernel, not two), the
+            # pixels' words in its second (not their own): a moved frame's kernels 11 -> 9
             found = dedupe_many([g for gs in groups for g in gs],
-                                first=[x for pt in points for x in pt] + list(centres.values()),
-                                second=neighbours, late=late)
-            ring_found = {}
-            for i in reversed(ringed):
-                found, ring_found[i] = found[:-n_ring[i]], found[-n_ring[i]:]
-            for i, gs in zip(batch, groups):
+                                first=[x for pt in points for x in pt] + list(centres.values())
+                                + [x for ax in axes.values() for x in ax],
+                                second=neighbours)
+            film = (tuple(int(x) for x in sensor.film().crop_size())
+                    if edge is not None else None)
+            for i, mk, pt, gs in zip(batch, markers, points, groups):
                 mine, found = found[:len(gs)], found[len(gs):]
                 if not dark[i]:
-                    settle(i, [tiles(i, mine, ring_found.get(i))], keeps.get(i))
+                    kept = (kept_tiles(mk, pt, axes[i], read[i], margins[i],
+                                       footprints or 0.0, film) if i in axes else None)
+                    settle(i, [tiles(i, mine, kept)], keeps.get(i))
         # an environment's regions: every (region, camera hit) pair a lane, as many
         # regions a kernel as MARK_LANES lanes hold (16 regions of a 128^2 film: one
         # kernel, where one per region launched 48 kernels and 900 table memsets a
@@ -784,12 +769,14 @@ def _kept_read(sensor, centre, kept) -> mi.Bool:
     centres (``centre``, :func:`_centre_words`, evaluated) is on another shape (its
     samples on the kept point's shape read ``KEEP_OTHERS``), or on the same shape and
     uncapped (its ``KEEP_CENTRE`` comes from its kept neighbours). Only there does a kept
-    point mark the ring its neighbours' footprint boxes read (``m + 2 spread``,
-    :func:`~.marks.mark_blocks`' ``ring``); elsewhere its own samples' (``m + spread``,
-    and ``pcf``'s region at that level). On ``random_terrain_world(123)`` at 64^2, 99 of
-    203 kept points have such a neighbour; at 256^2 ``pcf`` builds 9.45 -> 8.62 texels a
-    film pixel with the images those of every ring (``benchmarks/RESULTS.md``, the
-    forty-ninth session, helper A). Unevaluated: 8 gathers on the kept lanes."""
+    point's band hold its neighbours' centres with the kernel around them
+    (:func:`~.marks.kept_tiles`; the ring ``m + 2 spread`` bounds them); elsewhere its
+    own samples' (the box ``m + spread`` bounds them, with ``pcf``'s region at that
+    level). On ``random_terrain_world(123)`` at 64^2, 99 of 203 kept points have such a
+    neighbour; at 256^2 the ring where read took ``pcf`` 9.45 -> 8.62 texels a film pixel
+    with the images those of every ring (``benchmarks/RESULTS.md``, the forty-ninth
+    session, helper A). Unevaluated: 8 gathers on the kept lanes, in the dedupe's second
+    kernel (:func:`prepare_virtual`); read on the host."""
     w, h = (int(x) for x in sensor.film().crop_size())
     kept = mi.Bool(kept)
 

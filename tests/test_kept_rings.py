@@ -30,8 +30,9 @@ def test_a_kept_point_marks_its_ring_only_where_a_neighbour_reads_its_level(meth
     """``random_terrain_world(123)`` at 64^2 (sun 2-5 degrees, looking up at a tower):
     of the 203 points that kept the biases' level, 99 have a neighbouring pixel whose
     samples read it (an uncapped centre on their shape, or a centre on another). Only
-    they mark the ring out to ``m + 2 spread``; the others mark their own samples'
-    kernels (``m + spread``, and ``pcf``'s region at their level). Fewer texels than
+    they mark the ring (their neighbours' centres with the kernel, ``marks.kept_tiles``;
+    ``m + 2 spread`` bounds it); the others mark their own samples' kernels (``m +
+    spread`` bounds them, with ``pcf``'s region at their level). Fewer texels than
     every kept point's ring (at 256^2 ``pcf`` 9.45 -> 7.91 texels a film pixel), more
     than none, and the image is bit-identical to the one with every ring: the rings
     left out were read by no lookup (against ``raytraced``: the same pixels

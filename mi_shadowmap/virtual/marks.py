@@ -838,26 +838,28 @@ def kept_tiles(vmap_like, points, axes, read, margin: float, footprints: float =
     tx = start[0][k] + (np.arange(len(k)) - np.repeat(first, n_w))
     finite = np.isfinite(a).all(axis=0) & np.isfinite(b).all(axis=0)
     a, b = np.where(finite, a, 0.0), np.where(finite, b, 0.0)
-    y_lo, y_hi = start[1][k], end[1][k]
-    spans = [_band_rows(tx, k, xy, KEPT_SAMPLES * a, KEPT_SAMPLES * b, pad + extra, T,
-                        ~finite)]
+    # the own bands' parallelograms (points 0 .. n - 1), then the rings' (n .. 2n - 1),
+    # every column's rows at once (one pass of a few dozen numpy calls: at a few kept
+    # points their fixed cost is the time)
+    n = len(idx)
     r = np.flatnonzero(ring[k])
-    if len(r):
-        spans.append(_band_rows(tx[r], k[r], xy, KEPT_NEIGHBOURS * a, KEPT_NEIGHBOURS * b,
-                                m + extra + np.zeros((2, 1)), T, ~finite) + (r,))
-    keys = []
-    for span in spans:
-        t0, t1 = span[0], span[1]
-        sel = span[2] if len(span) > 2 else slice(None)
-        t0, t1 = np.maximum(t0, y_lo[sel]), np.minimum(t1, y_hi[sel])
-        n_h = np.maximum(t1 - t0 + 1, 0)
-        c = np.repeat(np.arange(len(n_h)), n_h)
-        first = np.cumsum(n_h) - n_h
-        ty = t0[c] + (np.arange(len(c)) - np.repeat(first, n_h))
-        kc = k[sel][c]
-        keys.append(page_key(face[kc], level[kc].astype(np.uint64),
-                             tx[sel][c].astype(np.uint64), ty.astype(np.uint64)))
-    return np.concatenate(keys)
+    col = np.concatenate([k, k[r] + n])
+    tx = np.concatenate([tx, tx[r]])
+    t0, t1 = _band_rows(
+        tx, col, np.concatenate([xy, xy], axis=1),
+        np.concatenate([KEPT_SAMPLES * a, KEPT_NEIGHBOURS * a], axis=1),
+        np.concatenate([KEPT_SAMPLES * b, KEPT_NEIGHBOURS * b], axis=1),
+        np.concatenate([pad + extra, m + extra + np.zeros((2, 1))], axis=1), T,
+        np.concatenate([~finite, ~finite]))
+    k = col % n
+    t0, t1 = np.maximum(t0, start[1][k]), np.minimum(t1, end[1][k])
+    n_h = np.maximum(t1 - t0 + 1, 0)
+    c = np.repeat(np.arange(len(n_h)), n_h)
+    first = np.cumsum(n_h) - n_h
+    ty = t0[c] + (np.arange(len(c)) - np.repeat(first, n_h))
+    kc = k[c]
+    return page_key(face[kc], level[kc].astype(np.uint64), tx[c].astype(np.uint64),
+                    ty.astype(np.uint64))
 
 
 def _band_rows(tx, k, centre, u, v, kernel, T: float, whole) -> tuple:

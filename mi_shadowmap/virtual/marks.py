@@ -668,8 +668,9 @@ def _tile_range(vmap_like, si, dp_dx, dp_dy, valid, margin, active, points,
 def _kept_by_biases(vmap_like) -> bool:
     """Whether a point that kept its level (:func:`marked_points`) may have kept it for
     the receiver biases' height, whose level the samples of its uncapped neighbours read
-    (``m + 2 spread``, :func:`_tile_range`); False where the method's biases have no
-    height (``second_depth`` at its defaults: its ``virtual_edge`` alone caps the level).
+    (its band, :func:`kept_tiles`, marked on the host); False where the method's biases
+    have no height (``second_depth`` at its defaults: its ``virtual_edge`` alone caps the
+    level).
     An uncapped pixel's centre has the footprint's level there, and its own mark built
     what its samples read before the edge's level was probed (forty-seventh session,
     helper F: far_point's ``second_depth`` at 128^2 97,792 texels before, 109,568 with the

@@ -726,12 +726,13 @@ def mark_blocks(vmap_like, points, margin: float = 2.0, bits=None, border=None,
 def kept_axes(vmap_like, si, dp_dx, dp_dy, points) -> tuple:
     """``(du_dx, du_dy)``: the pixel footprint's two sides in the map (``d uv_light``,
     ``mi.Point2f`` each, unevaluated) at the camera hits ``si`` whose points
-    (:func:`marked_points`) kept the biases' level: the parallelogram whose bounding box
+    (:func:`marked_points`) kept the biases' level (the parallelogram whose bounding box
     is their ``spread``, as :meth:`VirtualShadowMap._levels` takes them), 0 elsewhere.
     :func:`kept_tiles` reads them on the host. In a conditional that only the vector
     packets holding a kept point enter (2-8 % of a film's points keep the level, in
     blocks of the film): a view's differentials are not shared with ``_levels``' (its
-    opaque position is another variable), some 55 operations in the mark kernel."""
+    opaque position is another variable): 64 more operations in the mark kernel
+    (far_point at 64^2: 1205 -> 1269)."""
     view = vmap_like.view
 
     def sides(p_world, face, dx, dy):
@@ -780,9 +781,9 @@ def kept_tiles(vmap_like, points, axes, read, margin: float, footprints: float =
 
     Measured on ``random_terrain_world(123)`` at 256^2 (2531 kept points):
     ``pcf`` 8.62 -> 7.70 texels a film pixel, ``hard`` 6.00 -> 4.23; terrain 87 ``hard``
-    5.46 -> 3.18 (``benchmarks/RESULTS.md``, the fiftieth session, helper A). The same
-    tiles as testing every tile of every box against the region (separating axes), in
-    half its host time.
+    5.46 -> 3.18 (``benchmarks/RESULTS.md``, the fiftieth session, helper A); the host
+    time 2.1-3.2 ms a moved frame there. The same tiles as testing every tile of every
+    box against the region (separating axes), which took 7.5-14 ms.
 
     ``axes``: :func:`kept_axes`, evaluated; ``read``: ``mi.Bool`` per lane (or one);
     ``film``: the film's ``(width, height)`` where a film-border pixel's point marks
@@ -873,8 +874,8 @@ def _band_rows(tx, k, centre, u, v, kernel, T: float, whole) -> tuple:
     lines that bound it from above (concave), highest at its top corner ``x*``: over an
     interval, at ``x*`` clamped into it; its lower edge is the upper one turned about
     the centre (``y_lo(x) = -y_hi(-x)``). About 30 array operations a column, where
-    clipping its four sides to every column took some 130 (1.9 against 4.5 ms for the
-    columns of ``random_terrain_world(123)``'s ``pcf`` marks at 256^2)."""
+    clipping its four sides to every column took some 130 (2.7-2.9 against 4.4-4.6 ms
+    for ``random_terrain_world(123)``'s kept points at 256^2, the same tiles)."""
     # per point: the x half-range, the top corner, and each side's line over it
     # (``y = c + g x``; none where the side is vertical or the parallelogram flat)
     x_half = np.abs(u[0]) + np.abs(v[0])

@@ -824,8 +824,10 @@ screen is Mitsuba's projective integrators' job.
         # a light sample that reaches the hit only through its solid (see _into_solid)
         lit = mi.Bool(lit) & ~self._into_solid(lk)
         if isinstance(smap, VirtualShadowMap):
+            # the built-in per-tap lookup (hard) runs only in packets with a lit lane
             vis = smap.visibility(vis_fn, lk, opts, lit,
-                                  per_tap=self.opts.record.virtual_per_tap)
+                                  per_tap=self.opts.record.virtual_per_tap,
+                                  only_active=self.opts.record.builtin)
         else:
             vis = vis_fn(smap, lk, opts, lit)
         self._count_out_of_range((vis,), lit)

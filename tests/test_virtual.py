@@ -336,6 +336,36 @@ def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
     np.testing.assert_array_equal(ours[valid.numpy()], walked[valid.numpy()])
 
 
+@pytest.mark.parametrize("light", ["spot", "point"])
+def test_hard_looks_up_only_in_packets_with_a_lit_sample(monkeypatch, light):
+    """The built-in per-tap lookup (``hard``) runs, binds and all, inside a symbolic
+    conditional on its lit lanes (:meth:`VirtualShadowMap.visibility`'s ``only_active``):
+    a vector packet without a lit sample (outside the spot's cone, a face turned away
+    from the light) skips it. The image is the one every packet looking up gives, bit for
+    bit."""
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=4, light=light))
+    binds = []
+    bind = virtual.VirtualShadowMap.bind
+
+    def spied(self, *args, **kwargs):
+        binds.append(dr.flag(dr.JitFlag.SymbolicScope))
+        return bind(self, *args, **kwargs)
+
+    monkeypatch.setattr(virtual.VirtualShadowMap, "bind", spied)
+    img = np.asarray(mi.render(scene, integrator=shadowmap(method="hard", virtual=True),
+                               spp=4, seed=3))
+    assert len(binds) >= 2 and all(binds), binds       # the first run's bind too
+    dark = np.all(img[..., :3] == 0.0, axis=-1)          # no lit sample in the pixel
+    assert 0 < dark.sum() < dark.size - 100
+    visibility = virtual.VirtualShadowMap.visibility
+    monkeypatch.setattr(virtual.VirtualShadowMap, "visibility",
+                        lambda self, *args, only_active=False, **kwargs:
+                        visibility(self, *args, **kwargs))
+    every = np.asarray(mi.render(scene, integrator=shadowmap(method="hard", virtual=True),
+                                 spp=4, seed=3))
+    np.testing.assert_array_equal(img, every)
+
+
 @pytest.mark.parametrize("light", ["spot", "point", "directional"])
 def test_the_second_run_binds_with_the_first_runs_projection(light):
     """:meth:`VirtualShadowMap.visibility`'s second run binds with the first bind's float64

@@ -27,7 +27,8 @@ points (``read``), so that each row's increment is what that step adds:
   hard            the whole lookup bound with the walk: + the depth gather and the compare
   hard, rendered  the lookup as the integrator runs it (``VirtualShadowMap.visibility``:
                   unwalked, each read checking its page and tile; lanes that miss
-                  run again, walked)
+                  run again, walked; all of it only in vector packets with a hit,
+                  ``only_active``, as the render skips packets without a lit sample)
   full: hard      ``hard`` on the full map of ``virtual=false`` (same points)
   shadow ray      one shadow ray towards a sample of the light (``raytraced``, as the
                   integrator traces it), from the same hits
@@ -184,7 +185,8 @@ def bench_scene(name: str, args) -> list:
         ("texel index", lambda: (lambda br: (br[0].texel_index(br[1].face, br[1].uv),
                                              br[1].depth))(rec())),
         ("hard", lambda: hard(bound(), lk, vo, valid)),
-        ("hard, rendered", lambda: vm.visibility(hard, lk, vo, valid, per_tap=True)),
+        ("hard, rendered", lambda: vm.visibility(hard, lk, vo, valid, per_tap=True,
+                                                 only_active=True)),
         ("full: hard", lambda: hard(fm, lk, fo, valid)),
         ("shadow ray", lambda: raytraced(rt, lk_ray, rt_opts, valid & (ds.pdf > 0))),
     ]

@@ -824,7 +824,7 @@ screen is Mitsuba's projective integrators' job.
         # a light sample that reaches the hit only through its solid (see _into_solid)
         lit = mi.Bool(lit) & ~self._into_solid(lk)
         if isinstance(smap, VirtualShadowMap):
-            # the built-in per-tap lookup (hard) runs only in packets with a lit lane
+            # a built-in method's lookup runs only in packets with a lit lane
             vis = smap.visibility(vis_fn, lk, opts, lit,
                                   per_tap=self.opts.record.virtual_per_tap,
                                   only_active=self.opts.record.builtin)

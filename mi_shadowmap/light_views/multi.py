@@ -748,8 +748,10 @@ def multi_view(view: LightView, emitter, scene, views: int, light_size=None,
         if dark:   # a tracked 0: every valid point, for the derivative image
             radiant = tuple(bool(x) for x in np.broadcast_to(ps.pdf.numpy() > 0, (K,)))
         normals = _normals(n)
+        # (a light of zero area has no normal: NaN; it keeps every texel, as before)
         planar_cube = (len(normals) == 1 and not sphere and sub.projection == "cube"
-                       and sub.n_faces == 6)
+                       and sub.n_faces == 6 and np.all(np.isfinite(normals[0]))
+                       and abs(np.linalg.norm(normals[0]) - 1.0) < 1e-3)
         return MultiView(**base, sub=sub, positions=tuple(map(tuple, p.tolist())),
                          normals=normals, samples=samples, radiant=radiant, dark=dark,
                          count_all=not cone_sampled,

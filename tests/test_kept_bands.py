@@ -51,3 +51,20 @@ def test_kept_points_mark_their_bands_not_their_boxes(method, monkeypatch):
     assert bands[1] < 0.95 * boxes[1]
     assert np.array_equal(bands[0], boxes[0])
     assert mis[0] == mis[1] == mis[2]
+
+
+@pytest.mark.parametrize("size", [(64, 64), (37, 21), (8, 100)])
+def test_host_lane_pixels_are_the_mark_pass_camera_pixels(size):
+    """``marks._lane_pixels`` (which film-border pixels' kept points widen their bands on
+    the host) gives each camera-hit lane the pixel ``marks.camera_pixels`` gives it in
+    Dr.Jit (both through ``light_views.block_pixels``), filler lanes of a crop that is not
+    a multiple of the blocks included."""
+    from mi_shadowmap.virtual.marks import _lane_pixels, camera_pixels
+    w, h = size
+    sensor = mi.load_dict({"type": "perspective",
+                           "film": {"type": "hdrfilm", "width": w, "height": h}})
+    word = np.asarray(camera_pixels(sensor).numpy(), np.int64)
+    x, y = _lane_pixels(w, h)
+    assert len(x) == len(word) >= w * h
+    assert np.array_equal(x + 65536 * y, word)
+    assert x.max() == w - 1 and y.max() == h - 1

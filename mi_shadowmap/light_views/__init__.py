@@ -45,7 +45,8 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "emitter_labels", "unique_labels",
            "emitter_class",
            "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
-           "footprint_ratio", "PIXEL_BLOCK", "pixel_centres", "pixel_ray_differentials",
+           "footprint_ratio", "PIXEL_BLOCK", "block_pixels", "pixel_centres",
+           "pixel_ray_differentials",
            "pixel_step", "pixel_steps",
            "is_pinhole", "aims_by_film", "pinhole", "differential_origins", "pinhole_frame",
            "pinhole_footprint",
@@ -254,18 +255,26 @@ def pixel_centres(sensor, blocks: bool = False) -> mi.Point2f:
         x = idx - y * w
         return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
     B = PIXEL_BLOCK
-    bw, bh = -(-w // B), -(-h // B)
-    idx = dr.arange(mi.UInt32, bw * bh * B * B)
+    n = -(-w // B) * -(-h // B) * B * B     # whole blocks
+    x, y = block_pixels(dr.arange(mi.UInt32, n), w, h, dr.minimum)
+    return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+
+
+def block_pixels(idx, w: int, h: int, minimum) -> tuple:
+    """The film pixel ``(x, y)`` of each lane ``idx`` of :func:`pixel_centres`' blocks
+    (``blocks=True``), for Dr.Jit (``mi.UInt32``, ``minimum=dr.minimum``) or numpy
+    (integers, ``minimum=np.minimum``) lanes alike: the mark pass reads them on the host
+    too (``marks._lane_pixels``)."""
+    B = PIXEL_BLOCK
+    bw = -(-w // B)
     block, local = idx // (B * B), idx & (B * B - 1)
     by = block // bw
     bx = block - by * bw
-    i, j = mi.UInt32(0), mi.UInt32(0)
+    i = j = 0
     for b in range(B.bit_length() - 1):    # even bits of local: i, odd bits: j
-        i |= ((local >> (2 * b)) & 1) << b
-        j |= ((local >> (2 * b + 1)) & 1) << b
-    x = dr.minimum(bx * B + i, w - 1)
-    y = dr.minimum(by * B + j, h - 1)
-    return mi.Point2f((mi.Float(x) + 0.5) / w, (mi.Float(y) + 0.5) / h)
+        i = i | (((local >> (2 * b)) & 1) << b)
+        j = j | (((local >> (2 * b + 1)) & 1) << b)
+    return minimum(bx * B + i, w - 1), minimum(by * B + j, h - 1)
 
 
 #: the side of :func:`pixel_centres`'s blocks (a power of two)

@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import depth_maps
 from ..control_flow import if_stmt
-from ..light_views import (PIXEL_BLOCK, pinhole_footprint, pixel_centres,
+from ..light_views import (PIXEL_BLOCK, block_pixels, pinhole_footprint, pixel_centres,
                            pixel_ray_differentials)
 from ..light_views.base import opaque_point
 from ..map_manager import (MAP_CACHE, ParamWatch, bsdf_flags, flag_changing_bsdfs,
@@ -915,20 +915,11 @@ def _band_rows(tx, k, centre, u, v, kernel, T: float, whole) -> tuple:
 def _lane_pixels(w: int, h: int) -> tuple:
     """The film pixel ``(x, y)`` (``np.int64`` arrays) of each of :func:`camera_hits`'
     lanes through a camera without a lens: :func:`camera_pixels` on the host
-    (:func:`~mi_shadowmap.light_views.pixel_centres`' blocks, whose filler lanes repeat
-    the last column or row)."""
+    (:func:`~mi_shadowmap.light_views.block_pixels`, whose filler lanes repeat the last
+    column or row)."""
     B = PIXEL_BLOCK
-    bw, bh = -(-w // B), -(-h // B)
-    idx = np.arange(bw * bh * B * B, dtype=np.int64)
-    block, local = idx // (B * B), idx & (B * B - 1)
-    by = block // bw
-    bx = block - by * bw
-    i = np.zeros_like(idx)
-    j = np.zeros_like(idx)
-    for s in range(B.bit_length() - 1):      # even bits of local: i, odd bits: j
-        i |= ((local >> (2 * s)) & 1) << s
-        j |= ((local >> (2 * s + 1)) & 1) << s
-    x, y = np.minimum(bx * B + i, w - 1), np.minimum(by * B + j, h - 1)
+    n = -(-w // B) * -(-h // B) * B * B     # whole blocks
+    x, y = block_pixels(np.arange(n, dtype=np.int64), w, h, np.minimum)
     x.setflags(write=False)
     y.setflags(write=False)
     return x, y

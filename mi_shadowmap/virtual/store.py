@@ -469,11 +469,11 @@ class PageStore:
         m32 = np.uint64(0xFFFFFFFF)
         low = lambda a: a.view(np.uint64) & m32    # noqa: E731  (int64: two's complement)
         words = np.zeros((lay.view.n_faces * L, 2), np.uint64)
-        if len(keys):
-            sel = groups if every else groups[fits]
-            pick = (lambda a: a) if every else (lambda a: a[fits])  # noqa: E731
-            words[sel, 0] = low(pick(x0 - 1)) | (low(pick(y0 - 1)) << np.uint64(32))
-            words[sel, 1] = low(pick(W | (H << 16))) | (low(pick(base)) << np.uint64(32))
+        if len(keys):       # (one row per (face, level): a few dozen)
+            words[groups[fits], 0] = (low((x0 - 1)[fits])
+                                      | (low((y0 - 1)[fits]) << np.uint64(32)))
+            words[groups[fits], 1] = (low((W | (H << 16))[fits])
+                                      | (low(base[fits]) << np.uint64(32)))
         dense = np.full(4 * total + 4, INVALID_SLOT, np.uint32)   # + 4: one empty entry
         page_tiles = slot_mask[slots].astype(np.uint32)
         slots_in = slots           # the pages in the table (a level too wide keeps out)

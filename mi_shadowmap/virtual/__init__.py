@@ -137,7 +137,7 @@ Modules (data flows down the list; each imports only those above it):
 """
 from .layout import (MAX_COARSER, MAX_VIRTUAL_RES, SCENE_TEXELS, TILE_SIZE,  # noqa: F401
                      VirtualLayout, key_fields, layout_for, page_key)
-from .store import PageStore, page_bytes, page_layers, page_minima  # noqa: F401
+from .store import PageStore, page_bytes, page_layers, page_minima, page_pools  # noqa: F401
 from .lookup import BoundVirtualMap, VirtualShadowMap  # noqa: F401
 from .camera import camera_frame, camera_state  # noqa: F401
 from .marks import camera_hits, camera_pixels, coarser_levels, mark_candidates  # noqa: F401

@@ -626,7 +626,7 @@ class BoundVirtualMap:
         self.tile_words = tile_words
         self._scope = dr.flag(dr.JitFlag.SymbolicScope)
         pools = vmap.store.pools
-        self.depth = pools["depth"]
+        self.depth = pools.get("depth", mi.Float())   # (none: read, an error as traced)
         self.extra = {k: v for k, v in pools.items() if k != "depth"}
         self.extra["pcss_near"] = vmap.face_near
         self.depth_bounds = vmap.depth_bounds

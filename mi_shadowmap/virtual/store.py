@@ -36,7 +36,8 @@ class PageStore:
     """The physical pages of one emitter's virtual map, kept across renders.
 
     ``slots``: page key -> slot (a view of the built pages, kept as two arrays); the
-    pool of each layer holds ``capacity``
+    pool of each layer (``pools``, :func:`page_pools`: no ``depth`` pool where the
+    pages cast no first depth) holds ``capacity``
     pages of ``page_size^2`` float32 texels; ``slot_frame``: the frame each slot was
     last read in (least recently used pages are evicted first).
     """
@@ -49,10 +50,11 @@ class PageStore:
         self._slot_of = np.zeros(0, np.int64)
         self.free: list = []
         self.capacity = 0
-        self.pools = {name: mi.Float() for name in ("depth",) + self.layers}
         # whether the pages' first depths are ray-cast (not for a method that reads its
-        # second depths alone: casts_first_depth)
+        # second depths alone: casts_first_depth); the pools are the layers held, no
+        # first-depth pool without (page_pools)
         self.casts_depth = casts_first_depth(self.layers)
+        self.pools = {name: mi.Float() for name in page_pools(self.layers)}
         # nearest finite depth per slot and tile (its tiles ray-cast so far; +inf else;
         # the second depths where no first depth is cast)
         self.tile_min = np.zeros((0, layout.tiles_per_side ** 2), np.float64)
@@ -687,7 +689,7 @@ def _has_pool(job) -> bool:
     """Whether ``job``'s store has pools to gather from and scatter to: not a store that
     built no page yet, whose lane range is empty (its build's keys none: a plan grows
     the pools before any page is cast)."""
-    return dr.width(job.store.pools["depth"]) > 0
+    return dr.width(next(iter(job.store.pools.values()))) > 0
 
 
 def _cast_alone(scene, job, second: bool, first: bool = True) -> None:
@@ -704,13 +706,14 @@ def _cast_rays(scene, view, o, d, second: bool, writes: list, first: bool = True
     """The depths along the rays ``(o, d)`` of ``view``'s texels (from ``t0`` along them,
     :attr:`VirtualLayout.t0`), and the second depths with ``second``, scattered into each
     ``(store, dst, active)`` of ``writes``: one kernel, evaluated (the tile minima read the
-    depths, returned). ``first`` False (with ``second``): no first depth is cast, the
-    ``depth`` pool gets NaN (never read: :func:`casts_first_depth`) and the second depths
+    depths, returned). ``first`` False (with ``second``): no first depth is cast (the
+    stores have no ``depth`` pool: :func:`casts_first_depth`) and the second depths
     are returned (the tile minima then bound the second depths)."""
     depth = first_hit(scene, view, o, d) if first else None
     sd = second_depth_along(scene, view, o, d) if second else None
     for st, dst, active in writes:
-        dr.scatter(st.pools["depth"], depth if first else dr.nan, dst, active)
+        if first:
+            dr.scatter(st.pools["depth"], depth, dst, active)
         if second:
             dr.scatter(st.pools["second_depth"], sd, dst, active)
     out = depth if first else sd
@@ -734,8 +737,8 @@ def casts_first_depth(layers: tuple) -> bool:
     """Whether pages holding ``layers`` (:func:`page_layers`) ray-cast first depths: not
     where they hold second depths for a method that reads those alone
     (``second_depth``: Wang & Molnar's Pass 1 discards the front surface). Its lookups
-    never read a first depth (that pool filled with NaN: 5 terrain and world images
-    bit-identical). Second depths only where a lookup needs them would need first
+    never read a first depth (measured with that pool filled with NaN: 5 terrain and
+    world images bit-identical). Second depths only where a lookup needs them would need first
     depths everywhere else: with the first depth in place of the second, 0-0.4 % of the
     lookups changed (3 terrains, 4 worlds, 256^2), but which tiles those are is not
     known before the second depth is: with +inf (missing) in its place 2.6-99.9 % of
@@ -743,9 +746,21 @@ def casts_first_depth(layers: tuple) -> bool:
     return "second_depth" not in layers or "depth" in layers
 
 
+def page_pools(layers: tuple) -> tuple:
+    """The pools of pages holding ``layers`` (:func:`page_layers`): ``depth`` first where
+    they cast first depths (:func:`casts_first_depth`), then the layers, each once.
+    ``second_depth``'s pages hold its second depths alone: no first-depth pool (a lookup
+    that read one anyway, through ``smap.depth``, fails as its kernel is traced,
+    gathering from an empty array), and a page costs one float32 a texel, not two."""
+    return tuple(dict.fromkeys((("depth",) if casts_first_depth(layers) else ())
+                               + tuple(layers)))
+
+
 def page_bytes(opts) -> int:
-    """Bytes of one page in the pool: depth and :func:`page_layers`, float32 each."""
-    return opts.page_size ** 2 * 4 * len({"depth", *page_layers(opts)})
+    """Bytes of one page in the pools (:func:`page_pools` of :func:`page_layers`),
+    float32 each: ``memory_budget`` holds twice the pages of ``second_depth``, whose
+    pages hold one depth a texel, as those of ``hard``."""
+    return opts.page_size ** 2 * 4 * len(page_pools(page_layers(opts)))
 
 
 def page_minima(depth, tpp: int, on_host: bool | None = None) -> np.ndarray:

@@ -76,7 +76,10 @@ def array_nbytes(x) -> int:
 
 @dataclass
 class ShadowMap:
-    """Depth layers of one emitter's map faces."""
+    """Depth layers of one emitter's map faces. ``depth``: the first depths, or an empty
+    array where the method reads none (:func:`~mi_shadowmap.methods.builds_first_depth`:
+    ``second_depth``'s map holds its second depths alone; a lookup reading ``depth``
+    then fails as its kernel is traced)."""
     view: LightView
     resolution: int
     depth: mi.Float
@@ -93,11 +96,19 @@ class ShadowMap:
     #: and texels traced; None for a map made otherwise (culled, cached).
     faces_built: int | None = None
     texels_built: int | None = None
+    #: The faces the map was built for where not all (``cull_faces``: a bool per face),
+    #: else None: the ``second_depth`` layer traces those alone (+inf in the others).
+    faces: tuple | None = None
 
     @property
     def second_depth(self) -> mi.Float | None:
         """The ``second_depth`` layer, or None when it was not built."""
         return self.extra.get("second_depth")
+
+    @property
+    def has_depth(self) -> bool:
+        """Whether the first depths were built (not for a method that reads none)."""
+        return dr.width(self.depth) > 0
 
     @property
     def n_texels(self) -> int:
@@ -129,14 +140,15 @@ class ShadowMap:
 
     def to_numpy(self, layer: str = "depth"):
         """The layer as a ``(n_faces, res, res)`` float32 numpy array (row j, column i)."""
-        data = self.depth if layer == "depth" else self.extra.get(layer)
+        data = (self.depth if self.has_depth else None) if layer == "depth" \
+            else self.extra.get(layer)
         if data is None:
             raise KeyError(f"layer '{layer}' was not built for emitter '{self.view.label}'; "
                            f"built: {', '.join(self.layers())}")
         return data.numpy().reshape(self.view.n_faces, self.resolution, self.resolution)
 
     def layers(self) -> list[str]:
-        return ["depth"] + list(self.extra)
+        return ["depth"] * self.has_depth + list(self.extra)
 
 
 def first_hit(scene: mi.Scene, view: LightView, o, d, differentiable: bool = False,
@@ -956,9 +968,20 @@ def second_depth_layer(scene: mi.Scene, smap: "ShadowMap") -> mi.Float:
     a ray that has not stored a second surface after 64 hits keeps ``+inf``
     (lit), which only a texel ray crossing more than 64 surfaces (e.g. 32
     nested closed shells or 64 stacked open sheets) can reach.
+
+    A map built for some faces only (``smap.faces``, ``cull_faces``) gets its second
+    depths on those faces, +inf (lit) on the others, as its first depths.
     """
-    o, d = smap.view.texel_rays(smap.resolution)
-    return second_depth_along(scene, smap.view, o, d)
+    if smap.faces is None:
+        o, d = smap.view.texel_rays(smap.resolution)
+        return second_depth_along(scene, smap.view, o, d)
+    n = smap.resolution ** 2            # the faces culled: +inf there, nothing traced
+    out = dr.full(mi.Float, dr.inf, smap.view.n_faces * n)
+    if any(smap.faces):
+        idx = _face_texels(smap.faces, n)
+        o, d = smap.view.texel_rays_at(smap.resolution, idx)
+        dr.scatter(out, second_depth_along(scene, smap.view, o, d), idx)
+    return out
 
 
 def second_depth_along(scene: mi.Scene, view: LightView, o, d) -> mi.Float:
@@ -1137,11 +1160,16 @@ def build_culled_depth(scene, view, res: int, faces, differentiable: bool = Fals
     n = res * res
     if not any(faces):
         return dr.full(mi.Float, dr.inf, view.n_faces * n)
-    idx = mi.UInt32(np.concatenate([np.arange(f * n, (f + 1) * n, dtype=np.uint32)
-                                    for f in range(view.n_faces) if faces[f]]))
+    idx = _face_texels(faces, n)
     depth = trace_texels(scene, view, res, idx, differentiable, pose)
     dr.sync_thread()
     return depth
+
+
+def _face_texels(faces, n: int) -> mi.UInt32:
+    """Flat indices of every texel of the ``faces`` (a bool per face) with ``n`` each."""
+    return mi.UInt32(np.concatenate([np.arange(f * n, (f + 1) * n, dtype=np.uint32)
+                                     for f, on in enumerate(faces) if on]))
 
 
 def write_exr(smap: ShadowMap, path: str, layer: str = "depth") -> None:

@@ -328,6 +328,8 @@ def _same_map(a, b) -> bool:
         return False
     if isinstance(a, VirtualShadowMap):   # (second_depth's pages hold no first depth)
         return a.store.casts_depth == b.store.casts_depth
+    if not (a.has_depth and b.has_depth):   # (second_depth's full map: its layers alone)
+        return True
     return a.depth is b.depth or np.array_equal(np.asarray(a.depth.numpy()),
                                                 np.asarray(b.depth.numpy()))
 
@@ -363,6 +365,8 @@ def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
                 groups[i].append(EmitterMap(i, theirs.view.label, theirs, [names[k]]))
                 continue
             mine.methods.append(names[k])
+            if not getattr(mine.map, "has_depth", True) and theirs.has_depth:
+                mine.map.depth = theirs.depth     # (second_depth's map went first)
             missing = [n for n in theirs.extra if n not in mine.map.extra]
             if missing and isinstance(mine.map, VirtualShadowMap):
                 raise ValueError(f"prepare_maps: the virtual map of '{mine.label}' holds "

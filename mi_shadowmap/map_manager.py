@@ -30,7 +30,7 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
                          build_layer)
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
-from .methods import OptionError
+from .methods import OptionError, builds_first_depth
 from .options import (camera_fit_pins, unused_light_properties, virtual_cube_bytes,
                       virtual_lost_to_budget)
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
@@ -115,6 +115,7 @@ class MapPlan:
     differentiable: bool = False         # build in the AD graph (maps_need_gradients)
     pose: object = None                  # the light's pose delta (light_views.pose)
     antialias: bool = False              # silhouette antialiasing (mi_shadowmap.antialias)
+    first_depth: bool = True             # the first depths built (builds_first_depth)
 
 
 @dataclasses.dataclass
@@ -246,12 +247,20 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
         footprint = footprint_ratio(scene, sensor, [
             v if v is None else v.refine_for_footprint(opts, scene, sensor, visible)
             for v in views])
-    # Raises (naming the memory needed) before any map is allocated.
-    cost = 1.0 + sum(record.layer_cost.get(name, 1.0) for name in layer_names)
-    res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint, budget_bytes)
     params = params if params is not None else _traverse(scene, opts)
     diff = maps_need_gradients(scene, params)
-    if opts.resolution is None and (diff or _differentiated(scene, params)):
+    aa = getattr(opts, "antialias", "never")
+    aa = aa == "always" or (aa == "gradients" and diff)
+    differentiated = diff or _differentiated(scene, params)
+    # no first depth for a method that reads its second depths alone (second_depth);
+    # antialiased maps and those of a scene being differentiated keep it (a gradient
+    # render's lookups follow its gradients, Integrator._gradient_render; both passes
+    # plan the same memory, so the same resolution)
+    first = builds_first_depth(record, layer_names) or aa or differentiated
+    # Raises (naming the memory needed) before any map is allocated.
+    cost = float(first) + sum(record.layer_cost.get(name, 1.0) for name in layer_names)
+    res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint, budget_bytes)
+    if opts.resolution is None and differentiated:
         res = _gradient_resolution(scene, sensor, film_size, math.ceil(n_faces * cost),
                                    opts.budget_bytes if budget_bytes is None else budget_bytes,
                                    res)
@@ -261,8 +270,6 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
             views[k], gain = view.refine(opts, scene, sensor, visible, res)
             if gain is not None:
                 gains.append(gain)
-    aa = getattr(opts, "antialias", "never")
-    aa = aa == "always" or (aa == "gradients" and diff)
     # the cache holds detached, plain depths: neither read nor written for gradients
     # or antialiased maps
     # the shapes' state: maps are keyed by their light's view too, so a moved light (new
@@ -271,7 +278,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
              if opts.cache_maps and not (diff or aa) else None)
     layers = {name: record.layers[name] for name in layer_names}
     poses = [None] * len(views)
-    if diff or _differentiated(scene, params):
+    if differentiated:
         # a light whose pose has gradients: its reference view and pose delta, attached
         # in the gradient pass and detached in mi.render's primal pass (under
         # dr.suspend_grad), so that neither holds the moving light as kernel literals
@@ -283,7 +290,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     # be the reference view's
     maps = [None if v is None else _plan_one(scene, state if pose is None else None, v, res,
                                              layers, v.faces_needed(opts, visible, res),
-                                             diff, pose, aa)
+                                             diff, pose, aa, first)
             for v, pose in zip(views, poses)]
     return RenderPlan(views, maps, res, state, gains)
 
@@ -347,7 +354,7 @@ def _held_lru(table: collections.OrderedDict, key, held: tuple, make, limit: int
 
 
 def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose=None,
-              antialias=False) -> MapPlan:
+              antialias=False, first_depth=True) -> MapPlan:
     """One emitter's plan. A culled depth (``faces``) is cached under
     ``("depth", faces)`` and its layers under ``("layer", name, builder, faces)`` --
     the face set of the depth they were built from -- so a layer is never taken from a
@@ -355,26 +362,30 @@ def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose
     depth, or a culled one with a superset of the faces, serves any face set.
     ``differentiable`` plans come with ``state`` None: no cache;
     ``pose``: the light's pose delta (gradients); ``antialias``: silhouette
-    antialiasing (all faces are built, culling skipped; comes with ``state`` None)."""
+    antialiasing (all faces are built, culling skipped; comes with ``state`` None);
+    ``first_depth`` False: no first depth is built (:func:`~.methods.builds_first_depth`),
+    nor read from the cache (the layers keep their keys, ``faces`` included)."""
     key = (view_fingerprint(view), res)
     if antialias:
         faces = None
     if state is not None:
         MAP_CACHE.retire(scene, state, (view.label, type(view).__name__, view.n_faces),
                          key[0])
-    cached = MAP_CACHE.get(scene, state, key, "depth") if state is not None else None
+    cached = (MAP_CACHE.get(scene, state, key, "depth") if state is not None and first_depth
+              else None)
     if faces is not None:
         faces = tuple(bool(f) for f in faces)
         if all(faces) or cached is not None:
             faces = None
-        elif state is not None:
+        elif state is not None and first_depth:
             for layer, entry in MAP_CACHE.entries(scene, state, key):
                 if (isinstance(layer, tuple) and layer[0] == "depth"
                         and all(h or not f for h, f in zip(layer[1], faces))):
                     cached, faces = entry, layer[1]
                     break
     depth_key = "depth" if faces is None else ("depth", faces)
-    return MapPlan(view, faces, layers, key, cached, depth_key, differentiable, pose, antialias)
+    return MapPlan(view, faces, layers, key, cached, depth_key, differentiable, pose, antialias,
+                   first_depth)
 
 
 def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
@@ -392,8 +403,12 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
         # view: neither its depth nor its layers may be cached (the scene state of the
         # shapes does not change with the pose)
         state = None
-    if p.cached_depth is not None:
-        smap = ShadowMap(view=view, resolution=res, depth=p.cached_depth[0])
+    layers_before = stats.layers_built
+    if not p.first_depth:     # its layers alone (second_depth's; an empty first depth)
+        smap = ShadowMap(view=view, resolution=res, depth=mi.Float(), pose=p.pose,
+                         faces=p.faces)
+    elif p.cached_depth is not None:     # (the layers follow its face set, p.faces)
+        smap = ShadowMap(view=view, resolution=res, depth=p.cached_depth[0], faces=p.faces)
         stats.maps_reused += 1
         stats.naive_build_seconds += p.cached_depth[1]
     else:
@@ -402,7 +417,7 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
         if p.faces is not None:   # no face needed: a map of +inf, nothing traced
             smap = ShadowMap(view=view, resolution=res,
                              depth=build_culled_depth(scene, view, res, p.faces, **diff),
-                             pose=p.pose)
+                             pose=p.pose, faces=p.faces)
             n_built = sum(p.faces)
             n_texels = n_built * res * res
         else:   # what it traced: a one-sided light's multiview maps skip its back
@@ -433,6 +448,13 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
             stats.texels_built += dr.width(data)
         stats.naive_build_seconds += entry[1]
         smap.extra[name] = entry[0]
+    if not p.first_depth:     # built where a layer was (on the faces p.faces), else reused
+        built = stats.layers_built > layers_before
+        n_built = view.n_faces if p.faces is None else sum(p.faces)
+        stats.maps_built += built
+        stats.maps_reused += not built
+        stats.faces_built += n_built * built
+        stats.faces_culled += (view.n_faces - n_built) * built
     return smap
 
 
@@ -626,20 +648,20 @@ def _within_budget(opts, views: list) -> list:
     maps was sized by the whole budget too: 1.9x it); ``virtual=true`` given raises,
     naming what it needs. (The options check a cube map's 6 faces; an environment's
     regions are up to 32 faces.)"""
-    from .virtual import page_layers
+    from .virtual import page_layers, page_pools
     live = [v for v in views if v is not None]
     need = _virtual_minimum(opts, live)
     if not live or need <= opts.budget_bytes:
         return views
     if "virtual" in opts.given:
-        layers = page_layers(opts)
+        layers = page_layers(opts)      # (their pools: page_pools)
         faces = ", ".join(f"'{v.label}' ({v.n_faces} faces)" for v in live[:4]) + (
             f", ... ({len(live)} maps)" if len(live) > 4 else "")
         raise OptionError(
             f"shadowmap: property 'memory_budget' = {opts.memory_budget:g} MiB cannot hold "
             f"the coarsest levels of the virtual maps ({faces}; one page "
             f"per face and an empty page per map, page_size^2 = {opts.page_size}^2 texels, "
-            f"{1 + len(layers)} layer(s)): at least {need / 2 ** 20:.3g} MiB; raise it, "
+            f"{len(page_pools(layers))} layer(s)): at least {need / 2 ** 20:.3g} MiB; raise it, "
             "lower page_size, or set virtual=false")
     return [None] * len(views)
 

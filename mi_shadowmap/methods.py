@@ -222,9 +222,12 @@ class Method:
       either raises a :class:`MethodError` at the first render);
     * ``reads_depth`` -- the lookup reads the first-depth layer (``smap.depth``); False
       (``second_depth``, which compares with its second depths alone, as the paper's
-      map holds only them): a virtual map's pages with a second depth cast no first
-      depth (:func:`~mi_shadowmap.virtual.store.casts_first_depth`; their ``depth``
-      pool holds NaN there). Full maps build it either way;
+      map holds only them; the record must have the ``second_depth`` layer): its maps
+      hold no first depth. A virtual map's pages cast the second depth alone and have
+      no ``depth`` pool (:func:`~mi_shadowmap.virtual.store.casts_first_depth`,
+      :func:`~mi_shadowmap.virtual.store.page_pools`), a full map builds its layers
+      alone (:func:`builds_first_depth`); ``smap.depth`` is then an empty array, which
+      a lookup reading it anyway fails to gather from as its kernel is traced;
     * ``builtin`` -- shipped with the package.
     """
     name: str
@@ -260,6 +263,15 @@ class Method:
 
     def property(self, name: str) -> Prop | None:
         return next((p for p in self.properties if p.name == name), None)
+
+
+def builds_first_depth(record, layer_names) -> bool:
+    """Whether a full map of ``record`` (a :class:`Method`) with the layers
+    ``layer_names`` is built with its first depths: not where it holds second depths
+    for a lookup that reads those alone (``reads_depth`` False; ``second_depth``). A
+    virtual map's pages follow the same rule
+    (:func:`~mi_shadowmap.virtual.store.casts_first_depth`)."""
+    return bool(record.reads_depth) or "second_depth" not in layer_names
 
 
 #: The layers virtual maps (:mod:`mi_shadowmap.virtual`) can build: per page, ray-cast
@@ -326,7 +338,7 @@ def _check_record(m: Method) -> None:
                           "full maps only (their lookup averages the whole light over its "
                           "views itself); set virtual=False")
     for flag in ("virtual_per_tap", "virtual", "needs_footprint", "needs_curvature",
-                 "uses_map", "whole_light"):
+                 "uses_map", "whole_light", "reads_depth"):
         if not isinstance(getattr(m, flag), bool):
             raise MethodError(f"register_method('{m.name}'): {flag} must be True or "
                               f"False, got {getattr(m, flag)!r}")
@@ -341,6 +353,11 @@ def _check_record(m: Method) -> None:
     if m.virtual_margin is not None and not callable(m.virtual_margin):
         raise MethodError(f"register_method('{m.name}'): virtual_margin must be callable "
                           "fn(opts) -> texels or fn(opts, view) -> texels")
+    if not m.reads_depth and "second_depth" not in m.layers:
+        raise MethodError(f"register_method('{m.name}'): reads_depth=False builds maps of "
+                          "second depths alone, and its layers have none; give it the "
+                          "'second_depth' layer (layers={'second_depth': mi_shadowmap."
+                          "depth_maps.second_depth_layer}) or leave reads_depth True")
     if m.view_for is not None and not callable(m.view_for):
         raise MethodError(f"register_method('{m.name}'): view_for must be callable "
                           "fn(view, emitter, scene, opts) -> LightView | None")
@@ -403,11 +420,13 @@ def _takes_view(fn) -> bool:
         return False
 
 
-def _checked_lookup(name: str, lookup: Callable, whole_light) -> Callable:
+def _checked_lookup(name: str, lookup: Callable, whole_light, reads_depth=True) -> Callable:
     """``lookup`` raising a :class:`MethodError` naming the method when it returns
     something other than one visibility per lane (an ``mi.Float`` or a number; a pair
     of them for ``whole_light``): a ``mi.Vector3f`` failed inside Dr.Jit with "Could
-    not construct from sequence", naming nothing."""
+    not construct from sequence", naming nothing. With ``reads_depth`` False, also when
+    it gathers from the empty first depth (``smap.depth``) as it is traced: Dr.Jit's
+    "attempted to gather from an empty array" named neither the method nor the cause."""
     if not callable(lookup):
         return lookup              # refused by name in _check_record
 
@@ -418,9 +437,24 @@ def _checked_lookup(name: str, lookup: Callable, whole_light) -> Callable:
         return isinstance(v, (int, float)) or (dr.is_array_v(v) and dr.depth_v(v) == 1
                                                and not dr.is_mask_v(v))
 
+    def read_no_depth(err) -> bool:
+        while err is not None:
+            if "gather from an empty array" in str(err):
+                return True
+            err = err.__cause__ or err.__context__
+        return False
+
     @functools.wraps(lookup)
     def checked(*args, **kwargs):
-        out = lookup(*args, **kwargs)
+        try:
+            out = lookup(*args, **kwargs)
+        except RuntimeError as e:
+            if reads_depth is not False or not read_no_depth(e):
+                raise
+            raise MethodError(
+                f"shadowmap: method '{name}' was registered with reads_depth=False, so its "
+                "maps hold no first depth, and its lookup read one (smap.depth); register "
+                "it with reads_depth=True") from e
         values = out if whole_light is True and isinstance(out, tuple) \
             and len(out) in (2, 3) else (out,)
         if not all(ok(v) for v in values):
@@ -454,7 +488,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     virtual_coarse_res: Callable | None = None,
                     virtual_edge: Callable | None = None,
                     virtual_footprint: Callable | None = None,
-                    needs_curvature: bool = False, replace: bool = False) -> Method:
+                    needs_curvature: bool = False, reads_depth: bool = True,
+                    replace: bool = False) -> Method:
     """Register a user-defined shadow method; it is then usable everywhere a built-in is.
 
     ``lookup(smap, lk, opts, active) -> mi.Float`` has the built-ins' signature
@@ -471,6 +506,21 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
     :class:`Method` (a
     lookup that reads the
     map only through ``smap.fetch``/``texel_index``/``view`` works on virtual maps).
+
+    .. pluginparameters::
+
+     * - reads_depth
+       - |bool|
+       - Whether the lookup reads the first-depth layer, ``smap.depth`` (default: true).
+         False for a lookup that reads second depths alone (``smap.second_depth``, as
+         the built-in ``second_depth``): it needs the ``second_depth`` layer (a
+         :class:`MethodError` naming ``reads_depth`` else), and its maps then hold no
+         first depth, so a map costs one float32 a texel, not two (virtual pages cast
+         the second depth alone; full maps build that layer alone, except in the AD
+         graph or antialiased). A lookup that reads ``smap.depth`` anyway fails as its
+         kernel is traced, with a :class:`MethodError` naming it and ``reads_depth``,
+         not with a wrong image.
+
     Returns the :class:`Method` record. Raises :class:`MethodError` for a bad
     record or a name already taken (``replace=True`` replaces a user method).
     """
@@ -497,7 +547,7 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
         raise MethodError(f"register_method: method '{name}': view_properties must be "
                           f"names of its own properties ({', '.join(sorted(own)) or 'none'}), "
                           f"got {view_properties!r}")
-    record = Method(name=name, lookup=_checked_lookup(name, lookup, whole_light),
+    record = Method(name=name, lookup=_checked_lookup(name, lookup, whole_light, reads_depth),
                     summary=summary,
                     properties=tuple(properties or ()), layers=dict(layers or {}),
                     layers_for=layers_for, layer_cost=dict(layer_cost or {}),
@@ -508,7 +558,8 @@ def register_method(name: str, lookup: Callable, properties=None, layers=None,
                     view_properties=tuple(view_properties or ()), whole_light=whole_light,
                     virtual=virtual, virtual_margin=virtual_margin,
                     virtual_coarse_res=virtual_coarse_res, virtual_edge=virtual_edge,
-                    virtual_per_tap=virtual_per_tap, virtual_footprint=virtual_footprint)
+                    virtual_per_tap=virtual_per_tap, virtual_footprint=virtual_footprint,
+                    reads_depth=reads_depth)
     return add(record, replace=replace)
 
 

@@ -39,7 +39,7 @@ def test_second_depth_pages_cast_one_depth_a_texel_and_render_as_with_both():
     64^2: the same method with its first depths cast too (a user copy that reads them,
     ``reads_depth`` True) renders the same image bit for bit, and casts twice the
     texels. Before, both cast both (18.8 texels a pixel each); now ``second_depth`` 9.4.
-    Its pages' first-depth pool holds NaN where cast: nothing reads it."""
+    Its stores hold no first-depth pool (nothing reads it), the copy's both."""
     d = random_terrain_world(22, width=64, spp=4)
     _copy("second_depth_both_layers", "second_depth", reads_depth=True)
     try:
@@ -56,10 +56,10 @@ def test_second_depth_pages_cast_one_depth_a_texel_and_render_as_with_both():
     stores = [m.store for m in integ.maps if hasattr(m, "store")]
     assert stores
     for st in stores:
-        cast = st.pools["second_depth"].numpy()
-        first = st.pools["depth"].numpy()
-        written = np.isfinite(cast)
-        assert written.any() and np.isnan(first[written]).all()
+        assert tuple(st.pools) == ("second_depth",)
+        assert np.isfinite(st.pools["second_depth"].numpy()).any()
+    for st in (m.store for m in integ_both.maps if hasattr(m, "store")):
+        assert tuple(st.pools) == ("depth", "second_depth")
 
 
 def test_a_method_reading_both_layers_keeps_its_first_depths():
@@ -146,3 +146,109 @@ def test_the_harness_does_not_give_hard_second_depths_virtual_map():
     assert not np.isnan(depth).any()
     with pytest.raises(ValueError, match="different maps.*second depths only"):
         harness.prepare_maps(scene, ["hard", "second_depth"], virtual=True)
+
+
+def _second_hard(smap, lk, opts, active=True):
+    """A user lookup that reads the second depths alone: ``hard``'s nearest-texel compare,
+    with the second depth (Wang & Molnar's compare without their virtual samples)."""
+    import drjit as dr
+    from mi_shadowmap.filters.common import receiver
+    r = receiver(smap, lk, opts)
+    z = dr.gather(mi.Float, smap.second_depth, smap.texel_index(r.face, r.uv), active & r.inside)
+    return dr.select(~r.inside | (r.depth <= z), 1.0, 0.0)
+
+
+def test_second_depth_page_bytes_and_its_budget_hold_one_depth_a_texel():
+    """``second_depth``'s pages hold no first-depth pool, so a page costs ``hard``'s bytes
+    (one float32 a texel; 2 before) and ``memory_budget`` holds twice the pages it held.
+    Terrain 22 at 64^2 marks 77 pages of 32^2: under 0.5 MiB (128 pages of one depth, 64 of
+    two) it rendered degraded before (a warning naming the map; the image changed), and
+    now renders as without a budget, with no warning."""
+    import warnings
+    d = random_terrain_world(22, width=64, spp=4)
+    free, _ = _render(mi.load_dict(d), method="second_depth", cache_maps=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")      # (the degraded map's warning)
+        tight, integ = _render(mi.load_dict(d), method="second_depth", cache_maps=False,
+                               memory_budget=0.5)
+    st = next(m.store for m in integ.maps if hasattr(m, "store"))
+    print(f"pages {st.n_pages}, capacity {st.capacity}, {st.nbytes} bytes")
+    assert st.nbytes <= 0.5 * 2 ** 20 and st.nbytes == st.capacity * 32 ** 2 * 4
+    assert np.array_equal(free, tight)
+    opts = {m: mi_shadowmap.options.parse_options({"method": m})
+            for m in ("hard", "second_depth")}
+    assert virtual.page_bytes(opts["second_depth"]) == virtual.page_bytes(opts["hard"]) \
+        == opts["hard"].page_size ** 2 * 4
+
+
+@pytest.mark.parametrize("virtual_maps", [True, False])
+def test_a_user_method_that_reads_second_depths_alone(virtual_maps):
+    """``register_method(..., reads_depth=False)``: a user's lookup that reads the second
+    depths alone (``_second_hard``) gets maps without first depths (virtual: no ``depth``
+    pool, one depth a texel cast; full: the ``second_depth`` layer alone, half the bytes
+    and texels), and renders bit for bit as the same lookup registered with
+    ``reads_depth=True`` (both layers). A lookup that reads ``smap.depth`` anyway
+    (``hard``'s) fails as it is traced, not with a wrong image: a MethodError naming it
+    and ``reads_depth``. spot_sphere_box, 32^2."""
+    scene = mi.load_file(str(SCENES / "spot_sphere_box.xml"), width=32, height=32)
+    layers = {"second_depth": second_depth_layer}
+    kinds = {"second_hard_one": False, "second_hard_both": True}
+    for name, reads in kinds.items():
+        mi_shadowmap.register_method(name, _second_hard, layers=layers, virtual=True,
+                                     reads_depth=reads)
+    mi_shadowmap.register_method("hard_misread", methods.get("hard").lookup, layers=layers,
+                                 virtual=True, reads_depth=False)
+    try:
+        out = {name: _render(scene, method=name, virtual=virtual_maps, cache_maps=False)
+               for name in kinds}
+        with pytest.raises(Exception) as err:
+            _render(scene, method="hard_misread", virtual=virtual_maps, cache_maps=False)
+    finally:
+        for name in (*kinds, "hard_misread"):
+            mi_shadowmap.unregister_method(name)
+    chain, e = [], err.value          # (mi.render wraps it: "error while performing ...")
+    while e is not None:
+        chain.append(str(e))
+        e = e.__cause__ or e.__context__
+    print(chain)
+    assert any("'hard_misread' was registered with reads_depth=False" in c for c in chain)
+    (one, integ), (both, integ_both) = out["second_hard_one"], out["second_hard_both"]
+    assert 0.2 < one.mean() < 0.8
+    assert np.array_equal(one, both)
+    assert 2 * integ.stats["texels_built"] == integ_both.stats["texels_built"] > 0
+    bytes_one = sum(m.nbytes for m in integ.maps if m is not None)
+    assert 2 * bytes_one == sum(m.nbytes for m in integ_both.maps if m is not None)
+    smap = next(m for m in integ.maps if m is not None)
+    assert smap.layers() == ["second_depth"]
+    if not virtual_maps:
+        assert not smap.has_depth and smap.to_numpy("second_depth").size > 0
+
+
+def test_reads_depth_is_validated_by_name():
+    """``reads_depth`` must be a bool, and False needs the ``second_depth`` layer (the
+    maps then hold second depths alone): both refused naming ``reads_depth``."""
+    with pytest.raises(methods.MethodError, match="reads_depth must be True or False"):
+        mi_shadowmap.register_method("bad_reads", _second_hard, reads_depth="no",
+                                     layers={"second_depth": second_depth_layer})
+    with pytest.raises(methods.MethodError, match="reads_depth=False.*'second_depth' layer"):
+        mi_shadowmap.register_method("bad_reads", _second_hard, reads_depth=False)
+    assert "bad_reads" not in mi_shadowmap.methods.METHODS
+
+
+def test_second_depth_full_maps_hold_no_first_depth_and_the_harness_merges_them():
+    """``virtual=false``: ``second_depth``'s map builds its second depths alone (half the
+    texels and bytes of both), renders as before, and the harness still gives ``hard`` and
+    ``second_depth`` one map per emitter, in either order, with ``hard``'s first depths
+    (the map without them is the same view and resolution; ``hard``'s depth is added)."""
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=2))
+    hard = harness.prepare_maps(scene, ["hard"])
+    alone = harness.prepare_maps(scene, ["second_depth"])
+    assert alone[0].layers() == ["second_depth"] and not alone[0].has_depth
+    with pytest.raises(KeyError, match="not built"):
+        alone[0].to_numpy("depth")
+    for order in (["hard", "second_depth"], ["second_depth", "hard"]):
+        both = harness.prepare_maps(scene, order)
+        assert both[0].layers() == ["depth", "second_depth"]
+        assert np.array_equal(both[0].to_numpy("depth"), hard[0].to_numpy("depth"))
+        assert np.array_equal(both[0].to_numpy("second_depth"),
+                              alone[0].to_numpy("second_depth"))

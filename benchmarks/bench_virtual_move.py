@@ -31,6 +31,18 @@ generation and execution in ms, and whether it compiled). ``timing.py:render_tim
 own time is Mitsuba's C++ render and the main thread's wait for (and share of) the
 render kernel; ``marks.py:<listcomp>``'s, the host reads after the mark kernels, their
 wait. The profiler adds about 1 us a Python call.
+
+``--cpu N`` (instead of the timing rounds): a moved frame's work on one thread
+(``dr.set_thread_count(1)``: the kernels run on the calling thread), which other processes
+on the machine do not inflate as they inflate wall time: ``N`` moves, each a moved frame of
+``--method`` (virtual maps) and the unshadowed frame at the same camera, timed by the
+thread's CPU time and cut into the mark pass (tracing its camera hits to the dedupe's host
+reads, its kernels included), the rest of the integrator's first pass (plan, casts, page
+tables) and the render (``sample()`` traced, the render kernel, the film); medians. Then
+the mark pass's camera rays alone, as kernels of their own (one thread, medians of
+``N``): their closest hits (``ray_intersect_preliminary``), with their surface interaction
+(``ray_intersect``, ``RayFlags.Minimal``) and with their footprints
+(``marks.camera_hits``), against the whole mark pass.
 """
 from __future__ import annotations
 
@@ -159,6 +171,119 @@ def profile_scene(name, args) -> None:
     print(flush=True)
 
 
+def _cpu_frame(scene, integ, spp: int) -> tuple:
+    """One frame on the calling thread: ``(CPU ms, first pass ms, mark pass ms, kernels
+    compiled)`` (the first pass: the integrator's maps and marks; the mark pass: from
+    tracing its camera hits to the dedupe's host reads, which wait for its kernels)."""
+    from mi_shadowmap.virtual import planner
+    ticks = {}
+
+    def timed(label, f):
+        def call(*a, **kw):
+            ticks.setdefault(label + "0", time.thread_time_ns())
+            try:
+                return f(*a, **kw)
+            finally:
+                ticks[label + "1"] = time.thread_time_ns()
+        return call
+
+    saved = planner.camera_hits, planner.dedupe_many, integ._first_pass
+    planner.camera_hits = timed("mark", saved[0])
+    planner.dedupe_many = timed("dedupe", saved[1])
+    integ._first_pass = timed("first", saved[2])
+    try:
+        dr.sync_thread()
+        dr.kernel_history()                   # (emptied: this frame's from here)
+        t0 = time.thread_time_ns()
+        render_timed(scene, integ, spp, 0)
+        dr.sync_thread()
+        cpu = (time.thread_time_ns() - t0) * 1e-6
+    finally:
+        planner.camera_hits, planner.dedupe_many = saved[:2]
+        del integ._first_pass
+    jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    first = (ticks["first1"] - ticks["first0"]) * 1e-6
+    mark = (ticks["dedupe1"] - ticks["mark0"]) * 1e-6 if "mark0" in ticks else 0.0
+    return cpu, first, mark, sum(not k.get("cache_hit") for k in jit)
+
+
+def _mark_rays(scene, sensor, n: int) -> list:
+    """Median one-thread CPU ms of the mark pass's camera rays as kernels of their own:
+    closest hits, with their surface interaction, with their footprints (the hits as
+    :func:`~mi_shadowmap.virtual.marks.camera_hits` traces them)."""
+    from mi_shadowmap import depth_maps
+    from mi_shadowmap.light_views import pixel_centres
+    from mi_shadowmap.virtual import camera_hits
+
+    def parts(k):
+        if k == 2:
+            hits = camera_hits(scene, sensor, evaluate=False)
+            return hits[0].p, hits[0].n, hits[0].shape, hits[1], hits[2], hits[3]
+        ray, _ = sensor.sample_ray(0.0, 0.5, pixel_centres(sensor, blocks=True),
+                                   mi.Point2f(0.5))
+        if k == 0:
+            pi = scene.ray_intersect_preliminary(ray, coherent=depth_maps.COHERENT_RAYS)
+            return pi.t, pi.prim_index, pi.shape
+        si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal,
+                                 coherent=depth_maps.COHERENT_RAYS)
+        return si.p, si.n, si.shape, si.is_valid()
+
+    times = [[], [], []]
+    for r in range(n + 1):
+        for k in (0, 1, 2) if r % 2 else (2, 1, 0):
+            out = parts(k)
+            dr.sync_thread()
+            t0 = time.thread_time_ns()
+            dr.eval(*out)
+            dr.sync_thread()
+            if r:                              # (round 0 compiles)
+                times[k].append((time.thread_time_ns() - t0) * 1e-6)
+    return [statistics.median(t) for t in times]
+
+
+def cpu_scene(name, args) -> None:
+    """``--cpu``: see the module doc."""
+    scene = harness.load_scene(str(ROOT / "scenes_xml" / f"{name}.xml"),
+                               width=str(args.image), height=str(args.image))
+    integ = {k: mi.load_dict({"type": "shadowmap", "method": m})
+             for k, m in (("unshadowed", "unshadowed"), ("virtual", args.method))}
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    rows, compiled = [], 0
+    try:
+        for j in range(3):   # compile, build; the first move compiles its kernels
+            old = move_camera(scene, 0.05 * (1 + j), 1.0)
+            for i in integ.values():
+                render_timed(scene, i, args.spp, 0)
+            set_camera(scene, old)
+            render_timed(scene, integ["virtual"], args.spp, 0)
+        for j in range(args.cpu):
+            old = move_camera(scene, 0.05 * (4 + j), 1.0)
+            try:
+                moved = _cpu_frame(scene, integ["virtual"], args.spp)
+                unsh = _cpu_frame(scene, integ["unshadowed"], args.spp)
+            finally:
+                set_camera(scene, old)
+            render_timed(scene, integ["virtual"], args.spp, 0)
+            compiled += moved[3] + unsh[3]
+            rows.append((moved[0], unsh[0], moved[2], moved[1] - moved[2], unsh[1],
+                         moved[0] - moved[1], unsh[0] - unsh[1]))
+        old = move_camera(scene, 0.05 * 4, 1.0)        # (the first measured move's view)
+        try:
+            rays = _mark_rays(scene, scene.sensors()[0], args.cpu)
+        finally:
+            set_camera(scene, old)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        dr.set_thread_count(threads)
+    m = [statistics.median(r[k] for r in rows) for k in range(7)]
+    print(f"| {name} | {m[0]:.1f} | {m[1]:.1f} | {m[0] / m[1]:.2f} | {m[2]:.1f} | "
+          f"{m[3]:.1f} / {m[4]:.1f} | {m[5]:.1f} / {m[6]:.1f} | {rays[0]:.1f} / {rays[1]:.1f} "
+          f"/ {rays[2]:.1f} |" + (f" ({compiled} kernels COMPILED)" if compiled else ""),
+          flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=SCENES)
@@ -169,10 +294,22 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="profile N moved frames instead (see the module doc)")
     ap.add_argument("--top", type=int, default=25, help="--profile: functions listed")
+    ap.add_argument("--cpu", type=int, default=0, metavar="N",
+                    help="one thread's CPU time of N moved frames, by part (module doc)")
     args = ap.parse_args(argv)
     if args.profile:
         for name in args.scenes:
             profile_scene(name, args)
+        return 0
+    if args.cpu:
+        print(f"# {args.method}, {args.image}^2, {args.spp} spp, one thread's CPU time, "
+              f"medians of {args.cpu} moves\n")
+        print("| scene | moved [ms] | unshadowed [ms] | ratio | mark pass [ms] | rest of the "
+              "first pass, moved / unsh. [ms] | render, moved / unsh. [ms] | mark rays: hits "
+              "/ + surface / + footprints [ms] |")
+        print("|---|---|---|---|---|---|---|---|")
+        for name in args.scenes:
+            cpu_scene(name, args)
         return 0
     print(f"# {args.method}, {args.image}^2, {args.spp} spp, median of {args.rounds} "
           "interleaved rounds; ratios over the unshadowed frame\n")

@@ -216,3 +216,21 @@ def test_bench_virtual_move_profiles_a_moved_frame():
     assert extra == sorted(extra, reverse=True)
     kernels = [line for line in lines if "JIT kernels:" in line]
     assert len(kernels) == 2 and "COMPILED" not in out
+
+
+def test_bench_virtual_move_cuts_a_moved_frame_on_one_thread():
+    # --cpu: one thread's CPU time of moved and unshadowed frames, cut into the mark
+    # pass, the rest of the first pass and the render, and the mark pass's camera rays
+    # as kernels of their own; a move compiles nothing
+    out = run_bench("bench_virtual_move.py", "--cpu", "2", "--scenes", "far_point",
+                    "--image", "32", "--spp", "1")
+    rows = [line for line in out.splitlines() if line.startswith("| far_point |")]
+    assert len(rows) == 1 and "COMPILED" not in out
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    moved, unsh, ratio, mark = (float(c) for c in cells[1:5])
+    first, render, rays = ([float(x) for x in c.split(" / ")] for c in cells[5:8])
+    assert moved > unsh > 0.0 and abs(ratio - moved / unsh) < 0.01 + 0.01 * ratio
+    # the mark pass and the rest of the first pass are a moved frame's, not the render's
+    assert 0.0 < mark < moved and first[0] > first[1] >= 0.0
+    assert abs(mark + first[0] + render[0] - moved) < 0.05 + 0.01 * moved
+    assert len(rays) == 3 and all(r > 0.0 for r in rays)

@@ -3,7 +3,7 @@ repository's. One run, by hand:
 
     python benchmarks/bench_unseen.py [--seeds 8] [--first-seed 0] [--image 128] [--spp 16]
                                       [--kinds world 1e5 1e6 terrain] [--methods hard pcf]
-                                      [--texels-only]
+                                      [--texels-only] [--texel-image 256]
 
 ``--first-seed``: run seeds ``first .. first + seeds - 1`` (the unseen worlds beyond the
 default 0-7, e.g. ``--kinds terrain --first-seed 8 --seeds 22``).
@@ -23,6 +23,18 @@ how much the reference itself misclassifies from its camera samples alone.
 pixel, rendered at 1 spp (the mark pass reads the pixels' centres, so the texels do not
 depend on the spp): a scan of many seeds at 256^2 for the texel target.
 
+Local-light kinds (``--kinds spot area sphere_light room mixed scale_1e-3 scale_1e4``,
+each run alone; :func:`random_local_lights`): spots narrow, wide, over 80 degrees (a
+cube map) or grazing the ground; one-sided rectangle and disk lights, small and large;
+sphere lights; a point light 0.02-0.3 from a closed room's ceiling, wall or a box top;
+2-4 lights of mixed types, and that scene scaled by 1e-3 and 1e4. Each method on
+virtual maps (defaults) and on full maps (``virtual=false``) at the automatic resolution
+and at the largest power of two whose faces hold no more texels than the virtual map
+built (equal texels), against ``raytraced`` (16 shadow rays a sample under area lights)
+over every light's pixels (each light's in brackets), with the reference's own seed
+noise, the virtual map's texels per film pixel at ``--image`` and at ``--texel-image``
+(1 spp), non-finite values and the warnings raised.
+
 Targets (issue 11, defaults only): misclassified <= 1 % on the large world (both
 kinds), <= 0.3 % under the point light 1e5 and 1e6 away; <= 8 texels per film pixel per
 light in the first frame at a 256^2 film.
@@ -30,17 +42,187 @@ light in the first frame at a 256^2 film.
 from __future__ import annotations
 
 import argparse
+import math
 import time
+import warnings
 
 import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
 import mitsuba as mi
 import numpy as np
 
 from mi_shadowmap.metrics import misclassified
-from mi_shadowmap.scenes import random_far_point, random_large_world, random_terrain_world
+from mi_shadowmap.scenes import (_diffuse, camera, random_far_point, random_large_world,
+                                 random_terrain_world)
 from mi_shadowmap.specs import parse_assignments
 
 TARGET = {"world": 0.01, "terrain": 0.01, "1e5": 0.003, "1e6": 0.003}
+T = mi.ScalarTransform4f
+
+
+# ------------------------------------------- local lights (spot, area, near point, mixed)
+LOCAL_KINDS = ("spot", "area", "sphere_light", "room", "mixed", "scale_1e-3", "scale_1e4")
+SPOT_KINDS = ("narrow", "wide", "cube", "grazing")
+AREA_KINDS = ("rectangle small", "rectangle large", "disk small", "disk large")
+ROOM_KINDS = ("under the ceiling", "beside a wall", "over a box")
+MIXED_TYPES = ("spot", "point", "rectangle", "disk", "sphere", "sun")
+
+
+def _look(origin, target):
+    up = [0, 0, 1] if abs(target[0] - origin[0]) + abs(target[2] - origin[2]) < 1e-9 * (
+        1 + abs(target[1] - origin[1])) else [0, 1, 0]
+    return T().look_at(origin=origin, target=target, up=up)
+
+
+def _spot(rng, sub: str, s: float) -> dict:
+    """A spot light of kind ``sub`` (``SPOT_KINDS``) at scale ``s``: its intensity gives
+    the point it aims at an irradiance of about 3."""
+    aim = [rng.uniform(-2, 2), 0.0, rng.uniform(-2, 2)]
+    if sub == "grazing":      # 0.3-1.5 over the ground, 5-8 away: 3-17 degrees to the floor
+        a, d = rng.uniform(0, 2 * math.pi), rng.uniform(5, 8)
+        origin = [d * math.cos(a), rng.uniform(0.3, 1.5), d * math.sin(a)]
+        aim = [-0.5 * origin[0], 0.0, -0.5 * origin[2]]
+        cutoff = rng.uniform(20, 45)
+    else:
+        origin = [rng.uniform(-4, 4), rng.uniform(4, 9), rng.uniform(-4, 4)]
+        cutoff = {"narrow": rng.uniform(5, 15), "wide": rng.uniform(50, 75),
+                  "cube": rng.uniform(80, 89)}[sub]
+    d2 = sum((o - t) ** 2 for o, t in zip(origin, aim))
+    return {"type": "spot", "cutoff_angle": cutoff, "beam_width": 0.75 * cutoff,
+            "to_world": _look([s * c for c in origin], [s * c for c in aim]),
+            "intensity": {"type": "rgb", "value": 3.0 * d2 * s * s}}
+
+
+def _area(rng, shape: str, size: float, s: float) -> dict:
+    """A one-sided ``shape`` ('rectangle', 'disk' or 'sphere') area light ``size`` wide
+    (a sphere: its radius), 2.5-7 over the ground, facing the scene, tilted up to 50
+    degrees: about 3 of irradiance under it."""
+    p = [rng.uniform(-3, 3), rng.uniform(2.5, 7), rng.uniform(-3, 3)]
+    if shape == "sphere":
+        area, light = math.pi * size * size, {"type": "sphere", "center": [s * c for c in p],
+                                              "radius": s * size}
+    else:
+        tilt = math.radians(rng.uniform(0, 50))
+        a = rng.uniform(0, 2 * math.pi)
+        aim = [p[0] + p[1] * math.tan(tilt) * math.cos(a), 0.0,
+               p[2] + p[1] * math.tan(tilt) * math.sin(a)]
+        half = 0.5 * size
+        area = 4 * half * half if shape == "rectangle" else math.pi * half * half
+        light = {"type": shape, "to_world": _look([s * c for c in p], [s * c for c in aim])
+                 @ T().scale(s * half)}
+    light["emitter"] = {"type": "area", "radiance": {"type": "rgb",
+                                                     "value": 3.0 * p[1] ** 2 / area}}
+    return light
+
+
+def _props(rng, scene: dict, s: float, extent: float = 4.0):
+    """Boxes, spheres (some floating), a post and a floating plate on the ground."""
+    for k in range(3):
+        x, z = rng.uniform(-extent, extent, 2)
+        w, h, turn = rng.uniform(0.2, 0.8), rng.uniform(0.3, 2.0), rng.uniform(0, 90)
+        scene[f"box_{k}"] = {"type": "cube", "bsdf": _diffuse(0.2, 0.3, 0.7),
+                             "to_world": T().scale(s).translate([x, h, z])
+                             .rotate([0, 1, 0], turn).scale([w, h, 0.6 * w])}
+    for k in range(3):
+        x, z = rng.uniform(-extent, extent, 2)
+        r = rng.uniform(0.15, 0.7)
+        scene[f"sphere_{k}"] = {"type": "sphere", "radius": s * r, "bsdf": _diffuse(0.7, 0.3, 0.2),
+                                "center": [s * x, s * (r + rng.uniform(0, 1.2)), s * z]}
+    x, z = rng.uniform(-extent, extent, 2)
+    scene["post"] = {"type": "cylinder", "p0": [s * x, 0.0, s * z], "radius": s * 0.06,
+                     "p1": [s * x, s * rng.uniform(1, 2.5), s * z],
+                     "bsdf": _diffuse(0.8, 0.8, 0.8)}
+    x, z = rng.uniform(-extent, extent, 2)
+    scene["plate"] = {"type": "rectangle", "bsdf": {"type": "twosided",
+                                                    "bsdf": _diffuse(0.6, 0.6, 0.3)},
+                      "to_world": T().scale(s).translate([x, rng.uniform(0.2, 1.5), z])
+                      .rotate([0, 1, 0], rng.uniform(0, 90)).rotate([1, 0, 0], 90)
+                      .scale(rng.uniform(0.3, 0.8))}
+
+
+def _room(rng, sub: str, width: int, spp: int) -> dict:
+    """A closed 8 x 4 x 8 room (two-sided walls) with a point light near its geometry."""
+    scene = {"type": "scene",
+             "room": {"type": "cube", "to_world": T().translate([0, 2, 0]).scale([4, 2, 4]),
+                      "bsdf": {"type": "twosided", "bsdf": _diffuse(0.6, 0.6, 0.6)}}}
+    _props(rng, scene, 1.0, 3.0)
+    scene["plate"]["to_world"] = T().translate([rng.uniform(-2, 2), rng.uniform(0.2, 1.5),
+                                                rng.uniform(-2, 2)]).rotate([1, 0, 0], 90) \
+        .scale(0.5)
+    gap = rng.uniform(0.02, 0.3)
+    if sub == "under the ceiling":
+        p = [rng.uniform(-3, 3), 4 - gap, rng.uniform(-3, 3)]
+    elif sub == "beside a wall":
+        p = [4 - gap, rng.uniform(0.5, 3.5), rng.uniform(-3, 3)]
+    else:
+        box = scene["box_0"]["to_world"]
+        top = box @ mi.ScalarPoint3f(0, 1, 0)
+        p = [float(top[0]), float(top[1]) + gap, float(top[2])]
+    scene["light"] = {"type": "point", "position": p,
+                      "intensity": {"type": "rgb", "value": 12.0}}
+    a = rng.uniform(0, 2 * math.pi)
+    origin = [3.5 * math.cos(a), rng.uniform(1.2, 3.5), 3.5 * math.sin(a)]
+    scene["sensor"] = camera(origin, [0.0, 1.0, 0.0], width, width, spp,
+                             fov=rng.uniform(60, 80))
+    return scene
+
+
+def random_local_lights(kind: str, seed: int, width: int = 128, spp: int = 16):
+    """A random scene of ``kind`` (``LOCAL_KINDS``) and a label of what was drawn: a 12 x
+    12 ground with 3 boxes, 3 spheres (some floating), a post and a floating plate, seen
+    from 8-14 away and 3-8 high, under a spot (``seed % 4``: narrow 5-15 degrees, wide
+    50-75, 80-89 (a cube map), grazing: 0.3-1.5 over the ground), a one-sided area light
+    (``seed % 4``: rectangle or disk, 0.05-0.3 or 2-5 wide), a sphere light (radius
+    0.05-1.2), 2-4 lights of mixed types, or that mixed scene scaled by 1e-3 or 1e4
+    (camera clip planes too); ``room``: a point light 0.02-0.3 from the ceiling, a wall
+    or a box top (``seed % 3``) inside a closed room."""
+    # the scaled kinds draw the mixed kind's scene of the same seed (scale invariance)
+    rng = np.random.default_rng([seed, LOCAL_KINDS.index("mixed" if kind.startswith(
+        "scale") else kind)])
+    if kind == "room":
+        sub = ROOM_KINDS[seed % 3]
+        return _room(rng, sub, width, spp), sub
+    s = {"scale_1e-3": 1e-3, "scale_1e4": 1e4}.get(kind, 1.0)
+    turn, r = rng.uniform(0, 2 * math.pi), rng.uniform(8, 14)
+    origin = [r * math.cos(turn), rng.uniform(3, 8), r * math.sin(turn)]
+    scene = {"type": "scene",
+             "sensor": camera(origin, [0.0, 0.5, 0.0], width, width, spp,
+                              fov=rng.uniform(35, 60), scale=s),
+             "ground": {"type": "rectangle", "bsdf": _diffuse(0.5, 0.5, 0.5),
+                        "to_world": T().scale(6 * s).rotate([1, 0, 0], -90)}}
+    _props(rng, scene, s)
+    if kind == "spot":
+        sub = SPOT_KINDS[seed % 4]
+        scene["light"] = _spot(rng, sub, s)
+    elif kind == "area":
+        sub = AREA_KINDS[seed % 4]
+        small = sub.endswith("small")
+        scene["light"] = _area(rng, sub.split()[0], rng.uniform(0.05, 0.3) if small
+                               else rng.uniform(2, 5), s)
+    elif kind == "sphere_light":
+        size = rng.uniform(0.05, 1.2)
+        sub = f"radius {size:.2f}"
+        scene["light"] = _area(rng, "sphere", size, s)
+    else:
+        types = list(rng.choice(MIXED_TYPES, size=int(rng.integers(2, 5)), replace=False))
+        sub = "+".join(types)
+        for k, t in enumerate(types):
+            if t == "spot":
+                light = _spot(rng, SPOT_KINDS[int(rng.integers(4))], s)
+            elif t == "point":
+                p = [rng.uniform(-4, 4), rng.uniform(1.5, 6), rng.uniform(-4, 4)]
+                light = {"type": "point", "position": [s * c for c in p],
+                         "intensity": {"type": "rgb", "value": 3.0 * p[1] ** 2 * s * s}}
+            elif t == "sun":
+                elev, az = math.radians(rng.uniform(15, 70)), rng.uniform(0, 2 * math.pi)
+                light = {"type": "directional", "irradiance": {"type": "rgb", "value": 3.0},
+                         "direction": [-math.cos(elev) * math.cos(az), -math.sin(elev),
+                                       -math.cos(elev) * math.sin(az)]}
+            else:
+                small = rng.random() < 0.5
+                light = _area(rng, t, (rng.uniform(0.05, 0.3) if small else
+                                       rng.uniform(0.5, 3)) * (0.4 if t == "sphere" else 1), s)
+            scene[f"light_{k}"] = light
+    return scene, sub
 
 
 def scene_dict(kind: str, seed: int, image: int, spp: int) -> dict:
@@ -85,6 +267,77 @@ def texel_scan(args, seeds, props: dict):
     print(f"\n# total {time.perf_counter() - t_start:.0f} s")
 
 
+def _render(scene, props: dict, seed: int):
+    """The visibility AOVs (one channel a light), the integrator and the warnings raised."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        integ = mi.load_dict({"type": "shadowmap", **props})
+        img = np.asarray(mi.render(scene, integrator=integ, seed=seed))
+    return img[..., 3:], integ, [str(w.message)[:80] for w in caught]
+
+
+def _score(ref, vis) -> str:
+    """Misclassified over every light's pixels (false lit / false shadow), the RMSE, and
+    with several lights each light's misclassified in brackets."""
+    mc = misclassified(ref, vis)
+    rmse = float(np.sqrt(np.mean((ref - vis) ** 2)))
+    each = "" if ref.shape[-1] == 1 else " [" + " / ".join(
+        f"{100 * misclassified(ref[..., k], vis[..., k])['misclassified']:.2f}"
+        for k in range(ref.shape[-1])) + "]"
+    return f"{mc['misclassified']:.2%} ({mc['false_lit']:.2%} / {mc['false_shadow']:.2%}), " \
+           f"{rmse:.3f}{each}"
+
+
+def local_scan(args, seeds):
+    """Local-light kinds (see the module's docstring): one row per kind, seed and
+    method."""
+    t_start = time.perf_counter()
+    print(f"# {args.image}^2, {args.spp} spp, seeds {seeds[0]}-{seeds[-1]}, variant "
+          f"{mi.variant()}; misclassified (false lit / false shadow), visibility RMSE over "
+          "every light's pixels; full maps at equal texels: the largest power-of-two "
+          "resolution whose faces hold no more texels than the virtual map\n")
+    print("| kind | seed | drawn | method | rt noise | virtual | texels / px "
+          f"{args.image}^2 / {args.texel_image}^2 | full, automatic (texels / px) | "
+          "full, equal texels (resolution) | non-finite | warnings |")
+    print("|" + "---|" * 11)
+    for kind in args.kinds:
+        for seed in seeds:
+            d, drawn = random_local_lights(kind, seed, args.image, args.spp)
+            scene = mi.load_dict(d)
+            area = any(e.get_shape() is not None for e in scene.emitters())
+            rt = {"method": "raytraced", **({"shadow_rays": 16} if area else {})}
+            ref, _, _ = _render(scene, rt, 0)
+            other, _, _ = _render(scene, rt, 5)
+            noise = _score(ref, other)
+            for m in args.methods:
+                cells, bad, warns = [], 0, []
+                try:
+                    v, integ, w = _render(mi.load_dict(d), {"method": m}, 0)
+                    texels = integ.stats["texels_built"]
+                    _, i256, _ = _render(mi.load_dict(random_local_lights(
+                        kind, seed, args.texel_image, 1)[0]), {"method": m}, 0)
+                    f, fi, wf = _render(mi.load_dict(d), {"method": m, "virtual": False}, 0)
+                    faces = fi.stats["faces_built"]
+                    res = max(16, 2 ** int(math.floor(math.log2(math.sqrt(
+                        max(texels, 1) / max(faces, 1))))))
+                    e, ei, we = _render(mi.load_dict(d), {"method": m, "virtual": False,
+                                                          "resolution": res}, 0)
+                except Exception as exc:  # noqa: BLE001  (reported, the run goes on)
+                    print(f"| {kind} | {seed} | {drawn} | {m} | {noise} | error: "
+                          f"{type(exc).__name__}: {str(exc)[:150]} | | | | | |", flush=True)
+                    continue
+                bad = sum(int(np.count_nonzero(~np.isfinite(x))) for x in (v, f, e))
+                warns = sorted(set(w + wf + we))
+                px = args.image ** 2
+                cells = [_score(ref, v), f"{texels / px:.2f} / "
+                         f"{i256.stats['texels_built'] / args.texel_image ** 2:.2f}",
+                         f"{_score(ref, f)} ({fi.stats['texels_built'] / px:.1f})",
+                         f"{_score(ref, e)} ({res})", str(bad), "; ".join(warns) or "-"]
+                print(f"| {kind} | {seed} | {drawn} | {m} | {noise} | " + " | ".join(cells)
+                      + " |", flush=True)
+    print(f"\n# total {time.perf_counter() - t_start:.0f} s")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=8, help="N seeds per kind")
@@ -95,6 +348,8 @@ def main(argv=None):
     ap.add_argument("--kinds", nargs="+", default=["world", "1e5", "1e6"],
                     help="'world', 'terrain' and/or point-light distances")
     ap.add_argument("--methods", nargs="+", default=["hard", "pcf"])
+    ap.add_argument("--texel-image", type=int, default=256,
+                    help="local-light kinds: the film of the virtual map's texel count")
     ap.add_argument("--texels-only", action="store_true",
                     help="texels per pixel only (1 spp, no reference): a fast scan")
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
@@ -104,15 +359,23 @@ def main(argv=None):
     props = parse_assignments(args.set, "--set")
     if args.seeds < 1 or args.first_seed < 0:
         ap.error("--seeds must be at least 1 and --first-seed at least 0")
+    local = [k for k in args.kinds if k in LOCAL_KINDS]
+    if local and len(local) < len(args.kinds):
+        ap.error("--kinds: local-light kinds (" + ", ".join(LOCAL_KINDS) + ") run alone")
+    if local and (args.texels_only or props):
+        ap.error("local-light kinds take neither --texels-only nor --set")
     for k in args.kinds:
-        if k not in ("world", "terrain"):
+        if k not in ("world", "terrain") + LOCAL_KINDS:
             try:
                 float(k)
             except ValueError:
-                ap.error(f"--kinds {k!r}: expected 'world', 'terrain' or a point-light "
-                         "distance")
+                ap.error(f"--kinds {k!r}: expected 'world', 'terrain', a point-light "
+                         "distance or one of " + ", ".join(LOCAL_KINDS))
     t_start = time.perf_counter()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
+    if local:
+        local_scan(args, seeds)
+        return
     if args.texels_only:
         texel_scan(args, seeds, props)
         return

@@ -38,6 +38,7 @@ from .ground_truth import (converged_reference, has_area_lights, has_soft_lights
                            reference_follows_spp, reference_sizes,
                            make_reference, score)
 from . import map_manager
+from .methods import builds_first_depth
 from .options import OptionError
 from .virtual import VirtualShadowMap
 from .scenes import load_scene
@@ -265,8 +266,9 @@ def prepare_maps(scene, methods=None, sensor=None, **params) -> list:
 
     Each method's maps come from :func:`mi_shadowmap.map_manager.prepare_maps`
     (the map cache shares the depth between them, unless ``cache_maps=False``);
-    the method with the most layers goes first and its resolution (given, or
-    automatic within ``memory_budget``) is used for all, so the layers line up.
+    the method whose texels cost most memory (first depth and layers,
+    :func:`~mi_shadowmap.map_manager.texel_cost`) goes first and its resolution (given,
+    or automatic within ``memory_budget``) is used for all, so the layers line up.
 
     Methods whose maps of one emitter differ (another view -- ``multiview``'s K views
     of an area light against the cube map of ``hard`` --, another resolution or other
@@ -334,6 +336,14 @@ def _same_map(a, b) -> bool:
                                                 np.asarray(b.depth.numpy()))
 
 
+def _texel_cost(o) -> float:
+    """Float32 arrays a texel of the full maps of ``o`` (validated options) holds
+    (:func:`~mi_shadowmap.map_manager.texel_cost`)."""
+    names = o.record.layer_names(o)
+    first = builds_first_depth(o.record, names) or getattr(o, "antialias", "never") == "always"
+    return map_manager.texel_cost(o.record, names, first)
+
+
 def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
     """Per emitter, its distinct maps (see :func:`emitter_maps`)."""
     methods = _method_list(methods)   # read twice below: an iterator was empty the second time
@@ -346,7 +356,10 @@ def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
     # method its own page pool, whose layers cannot be merged)
     opts = [o.replace(virtual=False) if o.uses_map and o.virtual and "virtual" not in o.given
             else o for o in opts]
-    order = sorted(range(len(opts)), key=lambda k: -len(opts[k].record.layer_names(opts[k])))
+    # the method whose texels cost most goes first: its resolution fits every method's
+    # budget (second_depth's full maps hold no first depth: one array, as hard's)
+    order = sorted(range(len(opts)), key=lambda k: (-_texel_cost(opts[k]),
+                                                    -len(opts[k].record.layer_names(opts[k]))))
     groups, res = None, None
     for k in order:
         o = opts[k]

@@ -258,7 +258,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     # plan the same memory, so the same resolution)
     first = builds_first_depth(record, layer_names) or aa or differentiated
     # Raises (naming the memory needed) before any map is allocated.
-    cost = float(first) + sum(record.layer_cost.get(name, 1.0) for name in layer_names)
+    cost = texel_cost(record, layer_names, first)
     res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint, budget_bytes)
     if opts.resolution is None and differentiated:
         res = _gradient_resolution(scene, sensor, film_size, math.ceil(n_faces * cost),
@@ -351,6 +351,15 @@ def _held_lru(table: collections.OrderedDict, key, held: tuple, make, limit: int
     while len(table) > limit:
         table.popitem(last=False)
     return entry[1]
+
+
+def texel_cost(record, layer_names, first_depth: bool) -> float:
+    """Float32 arrays a texel of a full map of ``record`` (a :class:`~.methods.Method`)
+    holds: its first depth where built (``first_depth``: :func:`~.methods.builds_first_depth`,
+    or the map antialiased or differentiated), and each of ``layer_names`` at its
+    ``layer_cost`` (1 unless given). The memory check sizes maps by it (:func:`plan_maps`),
+    and the harness lets the costliest method's maps pick the resolution they share."""
+    return float(first_depth) + sum(record.layer_cost.get(name, 1.0) for name in layer_names)
 
 
 def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose=None,

@@ -481,6 +481,35 @@ def test_prepare_maps_at_defaults_gives_full_maps_with_every_layer():
         harness.prepare_maps(scene, ["pcss", "second_depth"], virtual=True)
 
 
+def _layer(smap, name: str) -> np.ndarray:
+    return np.asarray((smap.depth if name == "depth" else smap.extra[name]).numpy())
+
+
+@pytest.mark.parametrize("order", [["second_depth", "mdsm"], ["mdsm", "second_depth"],
+                                   ["second_depth", "pcss", "hard"]])
+def test_shared_maps_take_the_resolution_of_the_costliest_texels(order):
+    """The harness's maps of several methods take the resolution of the method that goes
+    first. That was the one with the most layers: ``second_depth`` (one layer) tied with
+    ``mdsm`` (one layer, ``mdsm_max``), and went first as listed. Its full maps hold no
+    first depth since the fifty-first session (one float32 a texel, ``mdsm``'s two), so
+    under a ``memory_budget`` that binds (0.02 MiB, the spot light's one face) its 72^2
+    was over ``mdsm``'s budget: an OptionError, where ``["mdsm", "second_depth"]`` gave
+    51^2. Now the method whose texels cost most goes first, in any order: each layer
+    equals the layer of that method's own maps at that resolution."""
+    scene = mi.load_dict(default_scene(**SMALL))
+    params = dict(memory_budget=0.02, virtual=False, cache_maps=False)
+    shared = harness.prepare_maps(scene, order, **params)[0]
+    own = {m: harness.prepare_maps(scene, [m], **params)[0] for m in order}
+    res = min(m.resolution for m in own.values())
+    assert shared.resolution == res == (51 if "mdsm" in order else 72)
+    for m, smap in own.items():
+        if smap.resolution != res:
+            smap = harness.prepare_maps(scene, [m], resolution=res, **params)[0]
+        for layer in smap.layers():     # (pcss_near: a value per face, no to_numpy)
+            assert np.array_equal(_layer(shared, layer), _layer(smap, layer)), (m, layer)
+    assert set(shared.layers()) == {n for m in own.values() for n in m.layers()}
+
+
 @pytest.mark.parametrize("variant, fmt, plain", [
     ("llvm_ad_rgb", "rgba", "rgb"), ("llvm_ad_rgb", "luminance_alpha", "luminance"),
     ("llvm_ad_mono", "luminance_alpha", "luminance"),

@@ -30,7 +30,7 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
                          build_layer)
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
-from .methods import OptionError, builds_first_depth
+from .methods import MethodError, OptionError, builds_first_depth
 from .options import (camera_fit_pins, unused_light_properties, virtual_cube_bytes,
                       virtual_lost_to_budget)
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
@@ -116,6 +116,7 @@ class MapPlan:
     pose: object = None                  # the light's pose delta (light_views.pose)
     antialias: bool = False              # silhouette antialiasing (mi_shadowmap.antialias)
     first_depth: bool = True             # the first depths built (builds_first_depth)
+    method: str = ""                     # the method's name (for messages)
 
 
 @dataclasses.dataclass
@@ -290,7 +291,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     # be the reference view's
     maps = [None if v is None else _plan_one(scene, state if pose is None else None, v, res,
                                              layers, v.faces_needed(opts, visible, res),
-                                             diff, pose, aa, first)
+                                             diff, pose, aa, first, record.name)
             for v, pose in zip(views, poses)]
     return RenderPlan(views, maps, res, state, gains)
 
@@ -363,7 +364,7 @@ def texel_cost(record, layer_names, first_depth: bool) -> float:
 
 
 def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose=None,
-              antialias=False, first_depth=True) -> MapPlan:
+              antialias=False, first_depth=True, method="") -> MapPlan:
     """One emitter's plan. A culled depth (``faces``) is cached under
     ``("depth", faces)`` and its layers under ``("layer", name, builder, faces)`` --
     the face set of the depth they were built from -- so a layer is never taken from a
@@ -394,7 +395,30 @@ def _plan_one(scene, state, view, res, layers, faces, differentiable=False, pose
                     break
     depth_key = "depth" if faces is None else ("depth", faces)
     return MapPlan(view, faces, layers, key, cached, depth_key, differentiable, pose, antialias,
-                   first_depth)
+                   first_depth, method)
+
+
+def _layer_without_depth(scene, smap, name: str, builder, method: str) -> mi.Float:
+    """:func:`~.depth_maps.build_layer` of a map without first depths (``method``
+    registered with ``reads_depth`` False): a builder that reads ``smap.depth`` (an
+    empty array) fails in Dr.Jit, gathering from it, or builds an empty layer (a
+    reduction of it: ``pcss``'s ``pcss_near``), which the render then read as nothing,
+    without an error where its lookup did not gather it. Both are a :class:`MethodError`
+    naming the method, the layer and ``reads_depth``."""
+    cause = None
+    try:
+        data = build_layer(scene, smap, name, builder)
+    except RuntimeError as e:
+        if "empty array" not in str(e):
+            raise
+        data, cause = None, e
+    if data is None or dr.width(data) == 0:
+        raise MethodError(
+            f"shadowmap: method '{method}' was registered with reads_depth=False, so its "
+            f"maps hold no first depth, and its layer '{name}' is built from one "
+            f"(smap.depth, an empty array); register it with reads_depth=True, or build "
+            f"'{name}' from the second depths (smap.second_depth)") from cause
+    return data
 
 
 def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
@@ -448,7 +472,8 @@ def _build_one(scene, state, res, p: MapPlan, stats: MapStats) -> ShadowMap:
         entry = MAP_CACHE.get(scene, state, p.key, layer_key) if state is not None else None
         if entry is None:
             t0 = time.perf_counter()
-            data = build_layer(scene, smap, name, builder)
+            data = (build_layer(scene, smap, name, builder) if p.first_depth
+                    else _layer_without_depth(scene, smap, name, builder, p.method))
             dr.sync_thread()
             entry = (data, time.perf_counter() - t0)
             if state is not None:

@@ -252,3 +252,33 @@ def test_second_depth_full_maps_hold_no_first_depth_and_the_harness_merges_them(
         assert np.array_equal(both[0].to_numpy("depth"), hard[0].to_numpy("depth"))
         assert np.array_equal(both[0].to_numpy("second_depth"),
                               alone[0].to_numpy("second_depth"))
+
+
+def test_a_layer_built_from_the_missing_first_depth_is_an_error_naming_it():
+    """A user method registered with ``reads_depth=False`` whose full maps hold a layer
+    built from the first depth (``pcss``'s ``pcss_near``: the nearest depth of each face,
+    a reduction of ``smap.depth``) built it from the empty array: an empty layer, and the
+    render went on without an error, as its lookup (``_second_hard``) does not read it
+    (a lookup that did would have been told it read ``smap.depth``). Now it is a
+    MethodError naming the method, the layer and ``reads_depth``; with ``reads_depth``
+    True the same method renders, its ``pcss_near`` one value a face."""
+    scene = mi.load_file(str(SCENES / "spot_sphere_box.xml"), width=32, height=32)
+    layers = {"second_depth": second_depth_layer, **methods.get("pcss").layers}
+    for name, reads in (("near_misread", False), ("near_both", True)):
+        mi_shadowmap.register_method(name, _second_hard, layers=layers, reads_depth=reads)
+    try:
+        _, integ = _render(scene, method="near_both", virtual=False, cache_maps=False)
+        with pytest.raises(Exception) as err:
+            _render(scene, method="near_misread", virtual=False, cache_maps=False)
+    finally:
+        for name in ("near_misread", "near_both"):
+            mi_shadowmap.unregister_method(name)
+    smap = next(m for m in integ.maps if m is not None)
+    assert smap.extra["pcss_near"].numpy().size == smap.view.n_faces
+    chain, e = [], err.value          # (mi.render wraps it: "error while performing ...")
+    while e is not None:
+        chain.append(str(e))
+        e = e.__cause__ or e.__context__
+    print(chain)
+    assert any("'near_misread' was registered with reads_depth=False" in c
+               and "layer 'pcss_near'" in c for c in chain)

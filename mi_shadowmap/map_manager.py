@@ -405,19 +405,20 @@ def _layer_without_depth(scene, smap, name: str, builder, method: str) -> mi.Flo
     reduction of it: ``pcss``'s ``pcss_near``), which the render then read as nothing,
     without an error where its lookup did not gather it. Both are a :class:`MethodError`
     naming the method, the layer and ``reads_depth``."""
-    cause = None
+    why = "the layer came out empty"
     try:
         data = build_layer(scene, smap, name, builder)
     except RuntimeError as e:
         if "empty array" not in str(e):
             raise
-        data, cause = None, e
+        data, why = None, f"Dr.Jit: {str(e).strip().splitlines()[0]}"
     if data is None or dr.width(data) == 0:
+        # (from None: the CLI and the harness report the innermost error)
         raise MethodError(
             f"shadowmap: method '{method}' was registered with reads_depth=False, so its "
             f"maps hold no first depth, and its layer '{name}' is built from one "
-            f"(smap.depth, an empty array); register it with reads_depth=True, or build "
-            f"'{name}' from the second depths (smap.second_depth)") from cause
+            f"(smap.depth, an empty array; {why}); register it with reads_depth=True, or "
+            f"build '{name}' from the second depths (smap.second_depth)") from None
     return data
 
 

@@ -451,10 +451,13 @@ def _checked_lookup(name: str, lookup: Callable, whole_light, reads_depth=True) 
         except RuntimeError as e:
             if reads_depth is not False or not read_no_depth(e):
                 raise
+            # (from None: the CLI and the harness report the innermost cause, which
+            # was Dr.Jit's message, naming neither the method nor reads_depth)
             raise MethodError(
                 f"shadowmap: method '{name}' was registered with reads_depth=False, so its "
-                "maps hold no first depth, and its lookup read one (smap.depth); register "
-                "it with reads_depth=True") from e
+                "maps hold no first depth, and its lookup read one (smap.depth; Dr.Jit: "
+                "attempted to gather from an empty array); register it with "
+                "reads_depth=True") from None
         values = out if whole_light is True and isinstance(out, tuple) \
             and len(out) in (2, 3) else (out,)
         if not all(ok(v) for v in values):

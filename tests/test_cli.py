@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+import mi_shadowmap
 from mi_shadowmap import cli, harness, methods, options
 from mi_shadowmap.report import read_exr, read_exr_header
 
@@ -245,6 +246,40 @@ def test_maps_only_the_chosen_methods_layers(tmp_path, capsys):
     assert code == 0, err
     assert set(read_exr(str(tmp_path / "spot.exr"))) == {"depth.Y"}
     assert "spot" in out and "16^2" in out
+
+
+@pytest.mark.parametrize("method, virtual", [("misread_depth", "true"),
+                                             ("misread_depth", "false"),
+                                             ("misread_near", "false")])
+def test_a_method_reading_the_first_depth_it_gave_up_is_named(tmp_path, capsys, method,
+                                                              virtual):
+    """A plugin's method registered with ``reads_depth=False`` (its maps hold second
+    depths alone) whose lookup reads ``smap.depth`` (``hard``'s), or whose layer is built
+    from it (``pcss_near``): the CLI printed the innermost error, Dr.Jit's "attempted to
+    gather from an empty array", naming neither the method nor ``reads_depth`` (the
+    MethodError naming both was raised from it). Now the one line names both."""
+    plugin = tmp_path / "misread.py"
+    plugin.write_text(
+        "import mi_shadowmap\nfrom mi_shadowmap import methods\n"
+        "from mi_shadowmap.depth_maps import second_depth_layer\n"
+        "sd = {'second_depth': second_depth_layer}\n"
+        "mi_shadowmap.register_method('misread_depth', methods.get('hard').lookup, "
+        "layers=sd, virtual=True, reads_depth=False, replace=True)\n"
+        "mi_shadowmap.register_method('misread_near', methods.get('second_depth').lookup, "
+        "layers={**sd, **methods.get('pcss').layers}, reads_depth=False, replace=True, "
+        "properties=methods.get('second_depth').properties)\n")
+    try:
+        code, out, err = run(["compare", "--plugin", plugin, "--methods", method,
+                              "--reference", "raytraced", *TINY, "--set",
+                              f"virtual={virtual}", "--out", tmp_path / "out"], capsys)
+    finally:
+        for name in ("misread_depth", "misread_near"):
+            if name in methods.METHODS:
+                mi_shadowmap.unregister_method(name)
+    lines = [ln for ln in err.strip().splitlines() if "error:" in ln]
+    print(lines)
+    assert code == 2 and len(lines) == 1
+    assert f"'{method}' was registered with reads_depth=False" in lines[0]
 
 
 def test_broken_plugin_is_one_line(tmp_path, capsys):

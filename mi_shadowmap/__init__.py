@@ -85,6 +85,7 @@ from .options import METHODS, OptionError  # noqa: E402,F401
 from .methods import (Method, MethodError, Prop, register_method,  # noqa: E402,F401
                       unregister_method)
 from .light_views import UnsupportedEmitterError  # noqa: E402,F401
+from .packets import lit_packets  # noqa: E402,F401
 from . import harness, metrics  # noqa: E402,F401
 from .harness import compare  # noqa: E402,F401
 from .map_manager import clear_caches  # noqa: E402,F401

@@ -36,6 +36,7 @@ from .light_views import (aims_by_film, check_emitter_values, emitted_value_keys
                           unique_labels)  # noqa: F401  (re-exported)
 from .light_views.base import scene_bounds
 from .methods import MethodError, whole_light_values
+from .packets import in_lit_packets, runs_in_lit_packets
 from .rays import occlusion, surface_point
 from .variants import (SUPPORTED_VARIANTS, bsdf_eval_reaches, bsdf_to_world, check_variant,
                        tilts_shading_frame, unpolarized, variant_class)
@@ -124,6 +125,9 @@ screen is Mitsuba's projective integrators' job.
         # the render's lookups know their film pixel (Lookup.pixel: _first_pass sets it)
         self._pixels = False
         self._pixel_lane = None     # that pixel, while sample() is traced
+        # while sample() is traced: the lookups run only in packets with a lit lane
+        # (mi_shadowmap.packets: a built-in or lit_packets method, no gradients tracked)
+        self._lit_packets = False
         self._names_given: list[str] = []   # aov_names() given outside a render
         self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
         # a user method's render: a one-element counter of lookups outside [0, 1] or NaN
@@ -615,6 +619,7 @@ screen is Mitsuba's projective integrators' job.
                             and any(isinstance(m, VirtualShadowMap)
                                     and m.keep is not None for m in self.maps)
                             else None)
+        self._lit_packets = runs_in_lit_packets(record) and not _tracks_gradients(scene)
         aovs = []
         n_light = getattr(opts, record.shadow_rays) if record.shadow_rays else 1
         # A camera hit on a cylinder (or a non-mesh hit through an instance) found again
@@ -818,18 +823,26 @@ screen is Mitsuba's projective integrators' job.
         if self.opts.record.whole_light:
             # its fraction counts the light points behind a solid's face as occluded
             # (Lookup.solid_back), and weights the light sample, wherever it lies
-            whole, above, weight = whole_light_values(vis_fn(smap, lk, opts, shade))
+            out = vis_fn(smap, lk, opts, shade) if not self._lit_packets else in_lit_packets(
+                lambda lk: vis_fn(smap, lk, opts, shade), lk, shade)
+            whole, above, weight = whole_light_values(out)
             self._count_out_of_range((whole, above, weight), shade)
             return dr.select(lit, weight, 0.0), whole
         # a light sample that reaches the hit only through its solid (see _into_solid)
         lit = mi.Bool(lit) & ~self._into_solid(lk)
+        per_tap = isinstance(smap, VirtualShadowMap) and self.opts.record.virtual_per_tap
         if isinstance(smap, VirtualShadowMap):
-            # a built-in method's lookup runs only in packets with a lit lane
-            vis = smap.visibility(vis_fn, lk, opts, lit,
-                                  per_tap=self.opts.record.virtual_per_tap,
-                                  only_active=self.opts.record.builtin)
+            def run(lk):
+                return smap.visibility(vis_fn, lk, opts, lit, per_tap=per_tap)
         else:
-            vis = vis_fn(smap, lk, opts, lit)
+            def run(lk):
+                return vis_fn(smap, lk, opts, lit)
+        # a built-in (or lit_packets) method's lookup runs only in packets with a lit lane;
+        # a per-tap one draws nothing (VirtualShadowMap.visibility)
+        if self._lit_packets and not (per_tap and not self.opts.record.builtin):
+            vis = in_lit_packets(run, lk, lit, draws=not per_tap)
+        else:   # a user's per-tap lookup: its reads' loop check cannot see through it
+            vis = run(lk)
         self._count_out_of_range((vis,), lit)
         return dr.select(lit, vis, 0.0), None
 

@@ -340,7 +340,7 @@ def test_per_tap_lookups_read_unwalked_and_run_again_where_a_read_misses():
                                            ("pcf", "spot"), ("second_depth", "point")])
 def test_lookups_run_only_in_packets_with_a_lit_sample(monkeypatch, method, light):
     """A built-in method's lookup runs, binds and all, inside a symbolic conditional on
-    its lit lanes (:meth:`VirtualShadowMap.visibility`'s ``only_active``): a vector
+    its lit lanes (:func:`mi_shadowmap.packets.in_lit_packets`): a vector
     packet without a lit sample (outside the spot's cone, a face turned away from the
     light) skips it. The image is the one every packet looking up gives, bit for bit
     (``pcf`` draws its taps' seed inside it)."""
@@ -358,10 +358,9 @@ def test_lookups_run_only_in_packets_with_a_lit_sample(monkeypatch, method, ligh
     assert binds and all(binds), binds       # hard's first run's bind too
     dark = np.all(img[..., :3] == 0.0, axis=-1)          # no lit sample in the pixel
     assert 0 < dark.sum() < dark.size - 100
-    visibility = virtual.VirtualShadowMap.visibility
-    monkeypatch.setattr(virtual.VirtualShadowMap, "visibility",
-                        lambda self, *args, only_active=False, **kwargs:
-                        visibility(self, *args, **kwargs))
+    from mi_shadowmap import integrator as integrator_module
+    monkeypatch.setattr(integrator_module, "in_lit_packets",
+                        lambda run, lk, *args, **kwargs: run(lk))
     every = np.asarray(mi.render(scene, integrator=shadowmap(method=method, virtual=True),
                                  spp=4, seed=3))
     np.testing.assert_array_equal(img, every)

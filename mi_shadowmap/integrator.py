@@ -823,9 +823,10 @@ screen is Mitsuba's projective integrators' job.
         if self.opts.record.whole_light:
             # its fraction counts the light points behind a solid's face as occluded
             # (Lookup.solid_back), and weights the light sample, wherever it lies
-            out = vis_fn(smap, lk, opts, shade) if not self._lit_packets else in_lit_packets(
-                lambda lk: vis_fn(smap, lk, opts, shade), lk, shade)
-            whole, above, weight = whole_light_values(out)
+            # (every packet: in a conditional on the shaded lanes, multiview's render on
+            # cbox_area was 25 ms of 665 slower, 10 of 11 rounds; few packets are dark.
+            # benchmarks/RESULTS.md, fifty-first session, helper D)
+            whole, above, weight = whole_light_values(vis_fn(smap, lk, opts, shade))
             self._count_out_of_range((whole, above, weight), shade)
             return dr.select(lit, weight, 0.0), whole
         # a light sample that reaches the hit only through its solid (see _into_solid)
@@ -837,8 +838,8 @@ screen is Mitsuba's projective integrators' job.
         else:
             def run(lk):
                 return vis_fn(smap, lk, opts, lit)
-        # a built-in (or lit_packets) method's lookup runs only in packets with a lit lane;
-        # a per-tap one draws nothing (VirtualShadowMap.visibility)
+        # a built-in (or lit_packets) method's lookup runs only in packets with a lit lane
+        # (mi_shadowmap.packets); a per-tap one draws nothing (VirtualShadowMap.visibility)
         if self._lit_packets and not (per_tap and not self.opts.record.builtin):
             vis = in_lit_packets(run, lk, lit, draws=not per_tap)
         else:   # a user's per-tap lookup: its reads' loop check cannot see through it

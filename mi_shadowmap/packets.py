@@ -6,9 +6,11 @@ away from the light and of the outside of a spot's cone are unlit together: 53 %
 ``far_point``'s packets at 256^2 and 57 % on ``bench_virtual_cost.py``'s 1M-triangle mesh
 hold no lit sample (``benchmarks/RESULTS.md``, fiftieth session, helper D).
 :func:`in_lit_packets` runs a lookup in a symbolic ``dr.if_stmt`` on its active lanes, so
-such a packet skips it; active lanes get the same values.
+such a packet skips it; active lanes get the same values. A ``whole_light`` lookup
+(``multiview``) is not run so: it looks up at every shaded lane, and on ``cbox_area``, whose
+packets are nearly all shaded, the conditional made its render 25 ms of 665 slower.
 
-**Random numbers.** A lookup that draws (``pcf``, ``pcss``, ``multiview``) draws inside
+**Random numbers.** A lookup that draws (``pcf``, ``pcss``) draws inside
 the conditional, with the sampler as its state. Mitsuba's samplers advance a lane's random
 stream only where a draw's mask is set, but all but ``independent`` (``stratified``,
 ``multijitter``, ``ldsampler``, ``orthogonal``) also advance a dimension index in every lane
@@ -57,7 +59,8 @@ def lit_packets(lookup):
     ``.numpy()``, a Python ``if`` on a Dr.Jit value). Its images are then the same, bit
     for bit, as without the mark. A method registered with ``virtual_per_tap=True`` is
     run as before on virtual maps (its reads' check for symbolic loops cannot see
-    through the conditional). Returns ``lookup``."""
+    through the conditional), and one with ``whole_light=True`` everywhere (see the
+    module's docstring). Returns ``lookup``."""
     if not callable(lookup):
         raise MethodError(f"lit_packets: expected a lookup function, got "
                           f"{type(lookup).__name__}")
@@ -66,16 +69,17 @@ def lit_packets(lookup):
 
 
 def runs_in_lit_packets(record) -> bool:
-    """Whether the integrator may run ``record``'s lookups only in packets with an active
-    lane: a built-in map method, or a user's marked with :func:`lit_packets`."""
-    return record.uses_map and (record.builtin or getattr(record.lookup, _MARK, False) is True)
+    """Whether the integrator runs ``record``'s lookups only in packets with an active
+    lane: a built-in map method, or a user's marked with :func:`lit_packets`; not a
+    ``whole_light`` one (see the module's docstring)."""
+    return record.uses_map and not record.whole_light and (
+        record.builtin or getattr(record.lookup, _MARK, False) is True)
 
 
 def in_lit_packets(run, lk, active, draws: bool = True):
-    """``run(lk)`` -- a lookup's result at ``lk``: a visibility, or a tuple of them (a
-    ``whole_light`` lookup's) -- in a symbolic ``dr.if_stmt`` on ``active``: a vector packet
-    without an active lane skips it and reads 0 (as ``mi.Float``). Active lanes get what
-    ``run`` gives them.
+    """``run(lk)`` -- a lookup's visibility at ``lk`` -- in a symbolic ``dr.if_stmt`` on
+    ``active``: a vector packet without an active lane skips it and reads 0. Active lanes
+    get what ``run`` gives them (as ``mi.Float``).
 
     ``draws``: ``run`` may draw from ``lk.sampler`` (then the sampler is the conditional's
     state and the skipping branch makes the same draws with no lane active, see the
@@ -89,28 +93,23 @@ def in_lit_packets(run, lk, active, draws: bool = True):
         return run(lk)
     active = mi.Bool(active)
     state = (sampler,) if draws and sampler is not None else ()
-    traced = []          # the taken branch's (tuple?, values, draws), for the skipping one
+    drawn = []          # the taken branch's draws, for the skipping one
 
     def taken(*state):
         inner = lk if not state else dataclasses.replace(lk, sampler=_Draws(state[0]))
-        out = run(inner)
-        values = tuple(mi.Float(v) for v in (out if isinstance(out, tuple) else (out,)))
-        traced.append((isinstance(out, tuple), len(values),
-                       inner.sampler.kinds if state else ()))
-        return values + state
+        vis = mi.Float(run(inner))
+        drawn.append(inner.sampler.kinds if state else ())
+        return (vis,) + state
 
     def skipped(*state):
-        if not traced:   # Dr.Jit traces the true branch first, in both modes
+        if not drawn:   # Dr.Jit traces the true branch first, in both modes
             raise RuntimeError("in_lit_packets: the skipping branch was traced first")
-        _, n, kinds = traced[-1]
-        for kind in kinds:              # advance a sampler's dimension, no lane's stream
+        for kind in drawn[-1]:          # advance a sampler's dimension, no lane's stream
             getattr(state[0], kind)(False)
-        return (mi.Float(0.0),) * n + state
+        return (mi.Float(0.0),) + state
 
-    out = if_stmt(state, active, taken, skipped,
-                  label="shadowmap: lookups in packets with a lit sample", holds_loops=True)
-    is_tuple, n, _ = traced[-1]
-    return tuple(out[:n]) if is_tuple else out[0]
+    return if_stmt(state, active, taken, skipped,
+                   label="shadowmap: lookups in packets with a lit sample", holds_loops=True)[0]
 
 
 class _Draws:

@@ -1,6 +1,6 @@
 """Lookups only in the vector packets that hold a lit sample (:mod:`mi_shadowmap.packets`):
-full maps, cascades, the whole-light ``multiview``, other samplers than ``independent``
-and users' methods marked with :func:`mi_shadowmap.lit_packets`."""
+full maps, cascades, other samplers than ``independent`` and users' methods marked with
+:func:`mi_shadowmap.lit_packets`."""
 import dataclasses
 
 import drjit as dr
@@ -52,14 +52,13 @@ def _spied(monkeypatch, name):
 @pytest.mark.parametrize("method, light, props", [
     ("hard", "spot", {}), ("hard", "point", {}), ("pcf", "spot", {}),
     ("second_depth", "point", {}), ("mdsm", "spot", {}), ("vsm", "spot", {}),
-    ("pcss", "area", {}), ("multiview", "area", {"views": 16}),
+    ("pcss", "area", {}), ("bilinear", "area", {}),
     ("hard", "directional", {"cascades": 2}), ("pcf", "directional", {"cascades": 2})])
 def test_full_map_lookups_run_only_in_packets_with_a_lit_sample(monkeypatch, method, light,
                                                                 props):
-    """A built-in method's lookup on full maps (cube faces, cascades, the whole-light
-    ``multiview``) is traced inside a symbolic conditional on its lit lanes (the shaded
-    ones for ``multiview``): a vector packet without one skips it. The image, AOVs
-    included, is the one every packet looking up gives, bit for bit."""
+    """A built-in method's lookup on full maps (spot, cube faces, cascades) is traced
+    inside a symbolic conditional on its lit lanes: a vector packet without one skips it.
+    The image, AOVs included, is the one every packet looking up gives, bit for bit."""
     scene = _scene(light)
     calls = _spied(monkeypatch, method)
     props = dict(method=method, virtual=False, resolution=128, **props)

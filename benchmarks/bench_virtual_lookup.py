@@ -28,7 +28,8 @@ points (``read``), so that each row's increment is what that step adds:
   hard, rendered  the lookup as the integrator runs it (``VirtualShadowMap.visibility``:
                   unwalked, each read checking its page and tile; lanes that miss
                   run again, walked; all of it only in vector packets with a hit,
-                  ``only_active``, as the render skips packets without a lit sample)
+                  ``packets.in_lit_packets``, as the render skips packets without a
+                  lit sample)
   full: hard      ``hard`` on the full map of ``virtual=false`` (same points)
   shadow ray      one shadow ray towards a sample of the light (``raytraced``, as the
                   integrator traces it), from the same hits
@@ -69,6 +70,7 @@ from mi_shadowmap.filters.hard import hard
 from mi_shadowmap.filters.raytraced import raytraced
 from mi_shadowmap.light_views import pixel_ray_differentials
 from mi_shadowmap.light_views.multi import MultiView
+from mi_shadowmap.packets import in_lit_packets
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -185,8 +187,9 @@ def bench_scene(name: str, args) -> list:
         ("texel index", lambda: (lambda br: (br[0].texel_index(br[1].face, br[1].uv),
                                              br[1].depth))(rec())),
         ("hard", lambda: hard(bound(), lk, vo, valid)),
-        ("hard, rendered", lambda: vm.visibility(hard, lk, vo, valid, per_tap=True,
-                                                 only_active=True)),
+        ("hard, rendered", lambda: in_lit_packets(
+            lambda lk: vm.visibility(hard, lk, vo, valid, per_tap=True), lk, valid,
+            draws=False)),
         ("full: hard", lambda: hard(fm, lk, fo, valid)),
         ("shadow ray", lambda: raytraced(rt, lk_ray, rt_opts, valid & (ds.pdf > 0))),
     ]

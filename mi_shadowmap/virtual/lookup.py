@@ -500,8 +500,7 @@ class VirtualShadowMap:
         return BoundVirtualMap(self, local, res, level, (e, eok), slots, check_reads, inside,
                                tile_words, projected=(face, uv64, depth64, inside))
 
-    def visibility(self, lookup, lk, opts, active=True, per_tap: bool = False,
-                   only_active: bool = False) -> mi.Float:
+    def visibility(self, lookup, lk, opts, active=True, per_tap: bool = False) -> mi.Float:
         """``lookup(bound, lk, opts, active)`` (a method's lookup) on this map.
 
         With ``per_tap`` (``hard``) the lookup first runs at every lane's wanted level,
@@ -517,40 +516,14 @@ class VirtualShadowMap:
         render with gradients (``lk``'s point or normal tracking them) and for the other
         methods, the lookup runs once, walked.
 
-        With ``only_active`` (the integrator's built-in methods) all of it (projection,
-        level, page table, reads, a per-tap lookup's second run) sits in a symbolic
-        ``dr.if_stmt`` on ``active``: a vector packet without an active lane skips it and
-        reads 0 (a background pixel's samples, a receiver facing away from the light or
-        outside a spot's cone; at 16 spp a packet of 8 lanes is half a pixel's samples,
-        so whole packets are dark together). Active lanes get the same values. Before,
-        every packet ran the lookup: 53 % of the packets of far_point at 256^2, 16 spp
-        and 57 % on ``bench_virtual_cost.py``'s 1M-triangle mesh have no lit lane
-        (``benchmarks/RESULTS.md``, fiftieth session, helper D). A lookup that draws
-        (``pcf``, ``pcss``) does so inside it, with the sampler as the conditional's
-        state: Mitsuba's samplers draw per lane only where asked (``next_2d(active)``),
-        so the numbers are the same; a lookup given another sampler (a gradient render's
-        recorded or per-pixel numbers) runs in every packet. A user's method is left out:
-        a per-tap one's reads refuse to run inside a symbolic loop by the scope its map
-        was bound in (:meth:`BoundVirtualMap._index`), which this conditional would
-        hide."""
+        The integrator runs all of it (projection, level, page table, reads, a per-tap
+        lookup's second run) only in the vector packets with an active lane
+        (:func:`mi_shadowmap.packets.in_lit_packets`, as for full maps)."""
         if dr.grad_enabled(lk.p_world, lk.n_world):
             return lookup(self.bind(lk, active, per_tap), lk, opts, active)
         if per_tap:         # draws nothing (see above)
-            def run():
-                return self._per_tap_visibility(lookup, lk, opts, active)
-        else:
-            def run():
-                return mi.Float(lookup(self.bind(lk, active, False), lk, opts, active))
-        sampler = None if per_tap else lk.sampler
-        label = "virtual map: packets with an active lookup"
-        if not only_active or not (sampler is None or isinstance(sampler, mi.Sampler)):
-            return run()
-        if sampler is None:
-            return if_stmt((), mi.Bool(active), run, lambda: mi.Float(0.0), label=label,
-                           holds_loops=True)
-        vis, _ = if_stmt((sampler,), mi.Bool(active), lambda s: (run(), s),
-                         lambda s: (mi.Float(0.0), s), label=label, holds_loops=True)
-        return vis
+            return self._per_tap_visibility(lookup, lk, opts, active)
+        return mi.Float(lookup(self.bind(lk, active, False), lk, opts, active))
 
     def _per_tap_visibility(self, lookup, lk, opts, active) -> mi.Float:
         """:meth:`visibility` of a per-tap lookup: unwalked at every lane's wanted level,

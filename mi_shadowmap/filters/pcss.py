@@ -103,23 +103,6 @@ Deviations from the paper and why:
   penumbra 2x/4x/8x, virtual maps 0.069/0.160/0.093 before, 0.024/0.025/0.026 now
   (multiview 0.023-0.026); full maps of 1024-4096 texels 0.044/0.108/0.142 before,
   0.027-0.028 now (512: 0.027).
-  On a virtual map under a light with extent (not a directional light's angular
-  diameter, not an environment's regions) the filter kernel's cap is at least half the
-  light's width ``w_light`` on the receiver's plane (:func:`_light_width_cap`): the
-  penumbra of a blocker halfway between the receiver and the light, what the light's
-  size produces rather than a share of the face; such kernels read coarser levels down
-  to :data:`LIGHT_COARSE_RES` texels a face. A virtual map's levels are always
-  :data:`KERNEL_REF_RES` or more texels a face, so the face-width cap alone (1/16 of a
-  face) filtered a disk light 4 wide 5.6 over the ground (``bench_unseen``'s ``area``
-  seed 7, 128^2, 4 spp, against 64-ray ``raytraced``) as a near-hard shadow: 5.91 %
-  misclassified (RMSE 0.110), now 1.77 % (0.075); the 256^2 full map 2.14 %. Lights
-  smaller than the face-width cap (cbox_area, contact_hardening, a ball under a 0.6 square
-  light) render bit-identical or within their seed noise. Full maps keep the face-width
-  cap: there the light-width cap fixed that scene (1024^2: 5.80 -> 1.65 %) but raised a
-  3-wide rectangle light 2.9 over a 1.3-wide ball (``area`` seed 1, where PCSS
-  overestimates the penumbra and the cap trims it) 1.41 -> 2.36 % at 256^2 (its seed
-  noise 0.4); on virtual maps that scene moves 2.20 -> 2.25 % (``benchmarks/RESULTS.md``,
-  fifty-first session, helper H).
 * **Map borders.** Taps use the PCF tap helper
   (:func:`~.common.tap_depths`): taps off a spot/directional map are lit and
   are not blockers, as in ``pcf``. Unlike ``pcf``, taps beyond a *cube* face
@@ -419,30 +402,8 @@ def _kernel_cap(smap, half_max):
         # uniform sky: visibility 0.34 against raytraced's 0.49)
         return min(half_max, 0.5 * vmap.layout.page_size - 1.0)
     from ..virtual import coarser_levels
-    k = coarser_levels(vmap.layout, smap.level, KERNEL_REF_RES)
+    k = coarser_levels(vmap.layout, smap.level, vmap.coarse_res)
     return half_max * mi.Float(mi.UInt32(1) << k)
-
-
-#: Whether a virtual map's filter kernels under a light with extent are capped at no
-#: less than the light's own width (:func:`_light_width_cap`).
-LIGHT_WIDTH_CAP = True
-
-#: Face resolution down to which a virtual map's filter kernel under a light with extent
-#: may read coarser levels (:func:`_virtual_coarse_res`): a kernel as wide as the light
-#: spans up to half a face seen from a receiver one light width away.
-LIGHT_COARSE_RES = 64
-
-
-def _light_width_cap(smap, angular, w_light, texel, half_cap):
-    """Filter kernel's largest half-width, in texels of ``smap``: ``half_cap``
-    (:func:`_kernel_cap`) or, on a virtual map under a light with extent (not a
-    directional light's angular diameter, not an environment's regions), half the light's
-    width ``w_light`` on the receiver's plane, whichever is wider: the penumbra of a
-    blocker halfway between the receiver and the light."""
-    vmap = getattr(smap, "vmap", None)
-    if not LIGHT_WIDTH_CAP or angular or vmap is None or vmap.coarse_res is None:
-        return half_cap
-    return dr.maximum(half_cap, 0.5 * w_light / texel)
 
 
 #: Levels coarser than the receiver's a virtual map's blocker search may read (the filter
@@ -476,12 +437,7 @@ def _level_for_kernel(smap, lk: Lookup, opts, r, plane, texel, half, half_max, a
     if dr.size_v(half) == 2:     # per axis (a rectangular face): the wider fits
         half = dr.maximum(half[0], half[1])
     k = mi.UInt32(dr.maximum(dr.ceil(dr.log2(dr.maximum(half / fits, 1.0))), 0.0))
-    # down to KERNEL_REF_RES texels a face; a kernel beyond that cap (a light's own width,
-    # _light_width_cap) down to the coarsest level marked (vmap.coarse_res)
-    k_ref = coarser_levels(vmap.layout, smap.level, KERNEL_REF_RES)
-    k_all = coarser_levels(vmap.layout, smap.level, vmap.coarse_res)
-    beyond = half > half_max * mi.Float(mi.UInt32(1) << k_ref)
-    k = dr.minimum(k, dr.select(beyond, k_all, k_ref))
+    k = dr.minimum(k, coarser_levels(vmap.layout, smap.level, vmap.coarse_res))
     if max_coarser is not None:
         k = dr.minimum(k, mi.UInt32(max_coarser))
     coarse = vmap.bind(lk, active, level=smap.level + k)
@@ -536,8 +492,7 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     n_div = n_block if soft_width is None else dr.maximum(n_block, 1e-6)
     d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_div, 1.0), guard)
     w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular, origin), 0.0)
-    filter_cap = _light_width_cap(smap, angular, w_light, texel, half_cap)
-    filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, filter_cap)
+    filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, half_cap)
 
     # 3. PCF with a kernel proportional to w, only where blockers were found
     smap_f, r_f, plane_f, texel_f = _level_for_kernel(smap, lk, opts, r, plane, texel,
@@ -581,17 +536,6 @@ def _virtual_margin(view, opts) -> float:
     return 2.0 + 0.5 * opts.max_kernel
 
 
-def _virtual_coarse_res(view, opts):
-    """Face resolution down to which the mark pass builds coarser levels' tiles: none for
-    a light of size 0 or an environment's regions, :data:`LIGHT_COARSE_RES` for a light
-    with extent (its kernels may be as wide as the light, :func:`_light_width_cap`), else
-    (a directional light's angular diameter) :data:`KERNEL_REF_RES`."""
-    if _size_zero(view, opts) or getattr(view, "kind", None) == "environment":
-        return None
-    _, angular = view.light_width(opts.light_size, opts.angular_diameter)
-    return KERNEL_REF_RES if angular or not LIGHT_WIDTH_CAP else LIGHT_COARSE_RES
-
-
 METHOD = Method(
     name="pcss",
     lookup=pcss,
@@ -610,8 +554,7 @@ METHOD = Method(
         Prop("max_kernel", "float", 64.0,
              "PCSS blocker-search and filter kernels are at most max_kernel texels wide "
              "or max_kernel / 512 of the face's width, whichever is wider (so the cap "
-             "does not shrink as the map gets denser; a virtual map's filter kernel under "
-             "a light with extent: at least the light's width); a kernel wider than max_kernel "
+             "does not shrink as the map gets denser); a kernel wider than max_kernel "
              "texels (virtual maps: min(max_kernel, page_size)) filters a coarser level "
              "(virtual maps) or spreads its taps over the map's texels (full maps).",
              lo=1.0, hi=4096.0),
@@ -632,6 +575,8 @@ METHOD = Method(
     # kernels wider than max_kernel texels filter coarser levels, down to KERNEL_REF_RES;
     # not an environment's regions (their wide kernels are better regularised by the cap:
     # sky_sun zoomed, RMSE 0.052 -> 0.069 with coarser levels)
-    virtual_coarse_res=lambda o, view: _virtual_coarse_res(view, o),
+    virtual_coarse_res=lambda o, view: (None if _size_zero(view, o)
+                                        or getattr(view, "kind", None) == "environment"
+                                        else KERNEL_REF_RES),
     virtual=True, builtin=True,
 )

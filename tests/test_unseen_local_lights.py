@@ -90,7 +90,11 @@ def test_bench_unseen_runs_the_local_kinds_against_full_maps():
     "on maps of 512 or more texels a face (filters/pcss.py `_kernel_cap`, the virtual "
     "maps' `virtual_coarse_res` = KERNEL_REF_RES: marks.coarser_levels): a large light's "
     "penumbra wider than that is filtered as a near-hard shadow; a virtual map's levels "
-    "are that fine at defaults (full maps at 512-2048 the same); filters/* is helper D's"))
+    "are that fine at defaults (full maps at 512-2048 the same). A cap of at least the "
+    "light's width fixes it (1.77 %, branch wip/pcss-light-cap-51H) but its coarser "
+    "levels' tiles cost every area light's pcss 10-25 % more texels (cbox_area 6.8 -> 7.8 "
+    "a pixel at 256^2, images unchanged; a 2-5 wide disk 7.1 -> 8.2): benchmarks/RESULTS.md, "
+    "fifty-first session"))
 def test_pcss_keeps_a_large_disk_lights_penumbra_at_defaults():
     """``random_local_lights('area', 7)``: a one-sided disk light about 4 wide, 5.6 over
     the ground, at 128^2, 4 spp. `pcss` at defaults (virtual maps) misclassified 5.98 %

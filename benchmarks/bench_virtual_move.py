@@ -120,18 +120,26 @@ def _kernels(history) -> str:
     return f"{len(history)} launches {kinds}\n    JIT kernels: {rows}"
 
 
-def profile_scene(name, args) -> None:
-    """``--profile``: see the module doc."""
+def _warmed_up(name, args):
+    """The scene ``name`` at ``args.image``^2 and its ``unshadowed`` and ``virtual``
+    (``args.method``) integrators, after three moves back and forth: kernels compiled,
+    pages built (the first move compiles its kernels)."""
     scene = harness.load_scene(str(ROOT / "scenes_xml" / f"{name}.xml"),
                                width=str(args.image), height=str(args.image))
     integ = {k: mi.load_dict({"type": "shadowmap", "method": m})
              for k, m in (("unshadowed", "unshadowed"), ("virtual", args.method))}
-    for j in range(3):       # compile, build; the first move compiles its kernels
+    for j in range(3):
         old = move_camera(scene, 0.05 * (1 + j), 1.0)
         for i in integ.values():
             render_timed(scene, i, args.spp, 0)
         set_camera(scene, old)
         render_timed(scene, integ["virtual"], args.spp, 0)
+    return scene, integ
+
+
+def profile_scene(name, args) -> None:
+    """``--profile``: see the module doc."""
+    scene, integ = _warmed_up(name, args)
     profs = {k: cProfile.Profile(time.thread_time_ns, 1e-9) for k in integ}
     cpu = {k: [] for k in integ}
     history = {}
@@ -243,21 +251,12 @@ def _mark_rays(scene, sensor, n: int) -> list:
 
 def cpu_scene(name, args) -> None:
     """``--cpu``: see the module doc."""
-    scene = harness.load_scene(str(ROOT / "scenes_xml" / f"{name}.xml"),
-                               width=str(args.image), height=str(args.image))
-    integ = {k: mi.load_dict({"type": "shadowmap", "method": m})
-             for k, m in (("unshadowed", "unshadowed"), ("virtual", args.method))}
     threads = dr.thread_count()
     dr.set_thread_count(1)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     rows, compiled = [], 0
     try:
-        for j in range(3):   # compile, build; the first move compiles its kernels
-            old = move_camera(scene, 0.05 * (1 + j), 1.0)
-            for i in integ.values():
-                render_timed(scene, i, args.spp, 0)
-            set_camera(scene, old)
-            render_timed(scene, integ["virtual"], args.spp, 0)
+        scene, integ = _warmed_up(name, args)
         for j in range(args.cpu):
             old = move_camera(scene, 0.05 * (4 + j), 1.0)
             try:

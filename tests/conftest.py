@@ -189,6 +189,16 @@ def root_message(exc) -> str:
     return str(exc)
 
 
+def error_chain(exc) -> list:
+    """``exc`` and the errors it was raised from or during (``__cause__``, else
+    ``__context__``), outermost first: mi.render wraps a Python error in its own."""
+    chain = []
+    while exc is not None:
+        chain.append(exc)
+        exc = exc.__cause__ or exc.__context__
+    return chain
+
+
 def translated_scene(offset: float):
     """A unit-sized ground, sphere and box under a point light, camera included, all
     moved by ``offset`` (x), ``0.3 offset`` (y), ``-0.7 offset`` (z)."""

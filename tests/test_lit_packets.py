@@ -14,6 +14,7 @@ from mi_shadowmap import methods
 from mi_shadowmap.filters.common import receiver
 from mi_shadowmap.methods import MethodError
 from mi_shadowmap.scenes import default_scene
+from conftest import error_chain
 
 
 def _every_packet(run, lk, active, draws=True):
@@ -140,11 +141,7 @@ def test_a_marked_lookup_that_draws_without_a_mask_is_refused():
         with pytest.raises(RuntimeError) as info:
             _render(_scene("spot", size=8, spp=1), spp=1, method="lit_unmasked",
                     virtual=False, resolution=32)
-        chain, e = [], info.value
-        while e is not None:
-            chain.append(e)
-            e = e.__cause__ or e.__context__
-        errors = [c for c in chain if isinstance(c, MethodError)]
+        errors = [c for c in error_chain(info.value) if isinstance(c, MethodError)]
         assert errors and "lk.sampler.next_1d(active)" in str(errors[0])
     finally:
         mi_shadowmap.unregister_method("lit_unmasked")

@@ -15,7 +15,7 @@ from mi_shadowmap import harness, methods, virtual
 from mi_shadowmap.depth_maps import second_depth_layer
 from mi_shadowmap.scenes import default_scene, random_terrain_world
 
-from conftest import SCENES
+from conftest import SCENES, error_chain
 
 T = mi.ScalarTransform4f
 
@@ -206,11 +206,7 @@ def test_a_user_method_that_reads_second_depths_alone(virtual_maps):
     finally:
         for name in (*kinds, "hard_misread"):
             mi_shadowmap.unregister_method(name)
-    chain, e = [], err.value          # (mi.render wraps it: "error while performing ...")
-    while e is not None:
-        chain.append(str(e))
-        e = e.__cause__ or e.__context__
-    print(chain)
+    chain = [str(e) for e in error_chain(err.value)]   # (mi.render wraps it)
     assert any("'hard_misread' was registered with reads_depth=False" in c for c in chain)
     (one, integ), (both, integ_both) = out["second_hard_one"], out["second_hard_both"]
     assert 0.2 < one.mean() < 0.8
@@ -275,10 +271,6 @@ def test_a_layer_built_from_the_missing_first_depth_is_an_error_naming_it():
             mi_shadowmap.unregister_method(name)
     smap = next(m for m in integ.maps if m is not None)
     assert smap.extra["pcss_near"].numpy().size == smap.view.n_faces
-    chain, e = [], err.value          # (mi.render wraps it: "error while performing ...")
-    while e is not None:
-        chain.append(str(e))
-        e = e.__cause__ or e.__context__
-    print(chain)
+    chain = [str(e) for e in error_chain(err.value)]   # (mi.render wraps it)
     assert any("'near_misread' was registered with reads_depth=False" in c
                and "layer 'pcss_near'" in c for c in chain)

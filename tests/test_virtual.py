@@ -22,7 +22,7 @@ from mi_shadowmap.light_views.base import TEXEL_SAMPLE
 from mi_shadowmap.options import OptionError, parse_options
 from mi_shadowmap.scenes import default_scene
 
-from conftest import SCENES, open_wall_scene
+from conftest import SCENES, error_chain, open_wall_scene
 
 VIRTUAL_METHODS = ["hard", "pcf", "bilinear", "pcss", "second_depth", "mdsm", "vsm", "evsm",
                    "msm"]
@@ -432,11 +432,7 @@ def test_per_tap_lookups_that_draw_or_read_in_loops_are_refused(misuse):
         scene = mi.load_dict(default_scene(width=16, height=16, spp=1, light="spot"))
         with pytest.raises(RuntimeError) as info:
             mi.render(scene, integrator=shadowmap(method="per_tap_misuse", virtual=True), spp=1)
-        chain, e = [], info.value
-        while e is not None:
-            chain.append(e)
-            e = e.__cause__ or e.__context__
-        errors = [c for c in chain if isinstance(c, MethodError)]
+        errors = [c for c in error_chain(info.value) if isinstance(c, MethodError)]
         assert errors and "virtual_per_tap=False" in str(errors[0])
         assert ("random numbers" if misuse == "draws" else "symbolic loops") in str(errors[0])
     finally:

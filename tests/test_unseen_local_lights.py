@@ -93,7 +93,8 @@ def test_bench_unseen_runs_the_local_kinds_against_full_maps():
     "are that fine at defaults (full maps at 512-2048 the same). A cap of at least the "
     "light's width fixes it (1.77 %, branch wip/pcss-light-cap-51H) but its coarser "
     "levels' tiles cost every area light's pcss 10-25 % more texels (cbox_area 6.8 -> 7.8 "
-    "a pixel at 256^2, images unchanged; a 2-5 wide disk 7.1 -> 8.2): benchmarks/RESULTS.md, "
+    "a pixel at 256^2; a 2-5 wide disk 7.1 -> 8.2; per-point levels, wip/pcss-light-levels-51I, "
+    "save 1-3 % of that): benchmarks/RESULTS.md, "
     "fifty-first session"))
 def test_pcss_keeps_a_large_disk_lights_penumbra_at_defaults():
     """``random_local_lights('area', 7)``: a one-sided disk light about 4 wide, 5.6 over

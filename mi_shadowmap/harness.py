@@ -309,12 +309,14 @@ def emitter_maps(scene, methods=None, sensor=None, **params) -> list[EmitterMap]
 
 
 def describe_map(smap) -> str:
-    """``"CubeView, 6 face(s) of 32^2"``: a map's view and size, for messages (a virtual
-    map whose pages hold second depths alone says so: ``second_depth``'s)."""
+    """``"CubeView, 6 face(s) of 32^2"``: a map's view and size, for messages (a map
+    that holds second depths alone says so: ``second_depth``'s, virtual or full)."""
     res = getattr(smap, "resolution", None)
     store = getattr(smap, "store", None)      # a virtual map's pages: which depths
-    pages = ("" if store is None or store.casts_depth
-             else ", pages of second depths only")
+    if store is not None:
+        pages = "" if store.casts_depth else ", pages of second depths only"
+    else:
+        pages = "" if getattr(smap, "has_depth", True) else ", second depths only"
     return (f"{type(smap.view).__name__}, {smap.view.n_faces} face(s)"
             + (f" of {res}^2" if res is not None else "") + pages)
 

@@ -240,6 +240,9 @@ def test_second_depth_full_maps_hold_no_first_depth_and_the_harness_merges_them(
     hard = harness.prepare_maps(scene, ["hard"])
     alone = harness.prepare_maps(scene, ["second_depth"])
     assert alone[0].layers() == ["second_depth"] and not alone[0].has_depth
+    res = alone[0].resolution
+    assert harness.describe_map(alone[0]).endswith(f" of {res}^2, second depths only")
+    assert "second depths" not in harness.describe_map(hard[0])
     with pytest.raises(KeyError, match="not built"):
         alone[0].to_numpy("depth")
     for order in (["hard", "second_depth"], ["second_depth", "hard"]):

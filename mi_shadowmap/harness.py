@@ -38,7 +38,6 @@ from .ground_truth import (converged_reference, has_area_lights, has_soft_lights
                            reference_follows_spp, reference_sizes,
                            make_reference, score)
 from . import map_manager
-from .methods import builds_first_depth
 from .options import OptionError
 from .virtual import VirtualShadowMap
 from .scenes import load_scene
@@ -338,14 +337,6 @@ def _same_map(a, b) -> bool:
                                                 np.asarray(b.depth.numpy()))
 
 
-def _texel_cost(o) -> float:
-    """Float32 arrays a texel of the full maps of ``o`` (validated options) holds
-    (:func:`~mi_shadowmap.map_manager.texel_cost`)."""
-    names = o.record.layer_names(o)
-    first = builds_first_depth(o.record, names) or getattr(o, "antialias", "never") == "always"
-    return map_manager.texel_cost(o.record, names, first)
-
-
 def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
     """Per emitter, its distinct maps (see :func:`emitter_maps`)."""
     methods = _method_list(methods)   # read twice below: an iterator was empty the second time
@@ -359,8 +350,11 @@ def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
     opts = [o.replace(virtual=False) if o.uses_map and o.virtual and "virtual" not in o.given
             else o for o in opts]
     # the method whose texels cost most goes first: its resolution fits every method's
-    # budget (second_depth's full maps hold no first depth: one array, as hard's)
-    order = sorted(range(len(opts)), key=lambda k: (-_texel_cost(opts[k]),
+    # budget (second_depth's full maps hold no first depth, one array as hard's, unless
+    # the scene is differentiated: map_manager.holds_first_depth)
+    diff = map_manager._differentiated(scene)
+    cost = [map_manager.full_texel_cost(o, diff) for o in opts]
+    order = sorted(range(len(opts)), key=lambda k: (-cost[k],
                                                     -len(opts[k].record.layer_names(opts[k]))))
     groups, res = None, None
     for k in order:

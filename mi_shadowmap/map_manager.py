@@ -238,10 +238,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     # window's pixels are the whole film's
     film_size = (sensor.film().size() if sensor is not None and aims_by_film(sensor)
                  and _has_field_of_view(sensor) else (512, 512))
-    # full maps (also those of a virtual render's views without virtual support) build the full
-    # maps' layers: a method's layers_for may leave them out for its virtual maps
-    full_opts = opts.replace(virtual=False) if getattr(opts, "virtual", False) else opts
-    layer_names = record.layer_names(full_opts)
+    layer_names = full_map_layers(opts)   # (also a virtual render's views without support)
     n_faces = sum(v.planned_faces(opts, visible) for v in live)
     footprint = 1.0
     if opts.resolution is None and (sensor is None or aims_by_film(sensor)):
@@ -253,11 +250,8 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     aa = getattr(opts, "antialias", "never")
     aa = aa == "always" or (aa == "gradients" and diff)
     differentiated = diff or _differentiated(scene, params)
-    # no first depth for a method that reads its second depths alone (second_depth);
-    # antialiased maps and those of a scene being differentiated keep it (a gradient
-    # render's lookups follow its gradients, Integrator._gradient_render; both passes
-    # plan the same memory, so the same resolution)
-    first = builds_first_depth(record, layer_names) or aa or differentiated
+    first = holds_first_depth(record, layer_names, getattr(opts, "antialias", "never"),
+                              differentiated)
     # Raises (naming the memory needed) before any map is allocated.
     cost = texel_cost(record, layer_names, first)
     res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint, budget_bytes)
@@ -352,6 +346,36 @@ def _held_lru(table: collections.OrderedDict, key, held: tuple, make, limit: int
     while len(table) > limit:
         table.popitem(last=False)
     return entry[1]
+
+
+def full_map_layers(opts) -> tuple:
+    """The layers a full map of ``opts`` (validated) holds besides its first depth: those
+    of ``opts`` with ``virtual`` false (a method's ``layers_for`` may leave some out for
+    its virtual maps; a virtual render's views without virtual support get full maps)."""
+    full_opts = opts.replace(virtual=False) if getattr(opts, "virtual", False) else opts
+    return opts.record.layer_names(full_opts)
+
+
+def holds_first_depth(record, layer_names, antialias: str, differentiated: bool) -> bool:
+    """Whether a full map of ``record`` with the layers ``layer_names`` holds its first
+    depth: where its lookup reads it (:func:`~.methods.builds_first_depth`: not
+    ``second_depth``'s, whose lookups read the second depths alone), and always where it
+    is antialiased (``antialias`` 'always'; 'gradients' antialiases differentiated
+    renders only) or its scene is differentiated (``differentiated``: a shape or emitter
+    parameter has gradients enabled, :func:`_differentiated`; a gradient render's lookups
+    follow its gradients, ``Integrator._gradient_render``, and both passes plan the same
+    memory, so the same resolution). :func:`plan_maps` builds by it, and the harness orders the
+    methods sharing maps by it (:func:`full_texel_cost`)."""
+    return builds_first_depth(record, layer_names) or antialias == "always" or differentiated
+
+
+def full_texel_cost(opts, differentiated: bool) -> float:
+    """:func:`texel_cost` of a full map of ``opts`` (validated) in a render whose scene is
+    ``differentiated`` or not (:func:`holds_first_depth`), as :func:`plan_maps` counts it."""
+    names = full_map_layers(opts)
+    first = holds_first_depth(opts.record, names, getattr(opts, "antialias", "never"),
+                              differentiated)
+    return texel_cost(opts.record, names, first)
 
 
 def texel_cost(record, layer_names, first_depth: bool) -> float:

@@ -31,8 +31,8 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
 from .methods import MethodError, OptionError, builds_first_depth
-from .options import (camera_fit_pins, unused_light_properties, virtual_cube_bytes,
-                      virtual_lost_to_budget)
+from .options import (camera_fit_pins, cube_pages_text, mib_up, unused_light_properties,
+                      virtual_cube_bytes, virtual_lost_to_budget, virtual_map_bytes)
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
                           footprint_ratio, make_light_view, _child_sensors)
 
@@ -695,8 +695,7 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None,
 def _virtual_minimum(opts, views: list) -> int:
     """Bytes the virtual maps of ``views`` (None: none) need at least: per map its
     empty page and one page per face (the coarsest level, always built)."""
-    from .virtual import page_bytes
-    return sum((v.n_faces + 1) * page_bytes(opts) for v in views if v is not None)
+    return sum(virtual_map_bytes(opts, v.n_faces) for v in views if v is not None)
 
 
 def _within_budget(opts, views: list) -> list:
@@ -720,7 +719,7 @@ def _within_budget(opts, views: list) -> list:
             f"shadowmap: property 'memory_budget' = {opts.memory_budget:g} MiB cannot hold "
             f"the coarsest levels of the virtual maps ({faces}; one page "
             f"per face and an empty page per map, page_size^2 = {opts.page_size}^2 texels, "
-            f"{len(page_pools(layers))} layer(s)): at least {need / 2 ** 20:.3g} MiB; raise it, "
+            f"{len(page_pools(layers))} layer(s)): at least {mib_up(need)} MiB; raise it, "
             "lower page_size, or set virtual=false")
     return [None] * len(views)
 
@@ -735,16 +734,16 @@ def _warn_full_for_budget(opts, wanted: list, res: int, cube: bool = False) -> N
     pixel-light pairs false lit, against 0.32 % without a budget)."""
     live = [v for v in wanted if v is not None]
     if cube:
-        need = virtual_cube_bytes(opts.page_size)
-        what = (f"the coarsest level of a virtual cube map (6 pages of {opts.page_size}^2 "
-                "texels, which the automatic virtual maps need at least")
+        need = virtual_cube_bytes(opts)
+        what = (f"the coarsest level of a virtual cube map ({cube_pages_text(opts)}), "
+                "which the automatic virtual maps need at least")
     else:
         need = _virtual_minimum(opts, live)
         what = (f"the coarsest levels of {len(live)} virtual map(s) (one page of "
                 f"{opts.page_size}^2 texels per face and an empty page per map")
     warnings.warn(
         f"shadowmap: memory_budget = {opts.memory_budget:g} MiB cannot hold {what}: "
-        f"{math.ceil(need / 2 ** 20 * 1000) / 1000:g} MiB), "
+        f"{mib_up(need)} MiB), "
         f"so every light gets a full map of {res}^2 texels a face, which may lose shadows "
         "virtual maps keep; raise memory_budget (or lower page_size) to keep virtual "
         "maps, or set virtual=false for full maps", RuntimeWarning, stacklevel=3)

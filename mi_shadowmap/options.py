@@ -531,7 +531,7 @@ def _automatic_virtual(record, values: dict) -> bool:
     ``memory_budget`` cannot hold the coarsest level of a virtual cube map."""
     if not record.virtual or values.get("antialias") == "always":
         return False
-    if not _holds_virtual_cube(values["memory_budget"], values["page_size"]):
+    if not _holds_virtual_cube(record, values):
         return False
     return all(values.get(name, off) == off for name, off in FULL_MAP_PROPERTIES.items())
 
@@ -545,7 +545,7 @@ def virtual_lost_to_budget(opts) -> bool:
         return False
     values = opts.as_dict()
     return (_automatic_virtual(opts.record, {**values, "memory_budget": float("inf")})
-            and not _holds_virtual_cube(values["memory_budget"], values["page_size"]))
+            and not _holds_virtual_cube(opts.record, values))
 
 
 #: Properties that fit full maps to the camera, each to some lights' views (the views
@@ -594,16 +594,35 @@ def unused_light_properties(opts, kinds) -> list:
     return out
 
 
-def virtual_cube_bytes(page: int) -> int:
-    """Bytes of the coarsest level of a virtual cube map: 6 pages of ``page^2`` texels,
-    depth and one more layer, 4 bytes each."""
-    return 6 * page * page * 2 * _BYTES_PER_TEXEL
+def virtual_map_bytes(opts, n_faces: int) -> int:
+    """Bytes the virtual maps of ``opts`` (validated, its ``virtual`` true) need at least
+    for a light of ``n_faces`` faces: its coarsest level (one page a face, always built)
+    and its empty page, each of :func:`~mi_shadowmap.virtual.store.page_bytes` (the layers
+    the method's pages hold: one float32 a texel for ``hard`` and ``second_depth``, two
+    for a method that reads first and second depths)."""
+    from .virtual.store import page_bytes
+    return (n_faces + 1) * page_bytes(opts)
 
 
-def _holds_virtual_cube(budget_mib: float, page: int) -> bool:
-    """Whether ``budget_mib`` holds the coarsest level of a virtual cube map
-    (:func:`virtual_cube_bytes`)."""
-    return budget_mib * 2**20 >= virtual_cube_bytes(page)
+def virtual_cube_bytes(opts) -> int:
+    """Bytes of the coarsest level of a virtual cube map of ``opts``' method, its empty
+    page included (:func:`virtual_map_bytes` of 6 faces), whatever ``opts.virtual``."""
+    return virtual_map_bytes(_as_virtual(opts), 6)
+
+
+def _as_virtual(opts):
+    """``opts`` with ``virtual`` true (its pages' layers), not validated again: a
+    ``memory_budget`` that cannot hold them stays."""
+    if opts.virtual:
+        return opts
+    return Options({**opts.as_dict(), "virtual": True}, opts.given, opts.record)
+
+
+def _holds_virtual_cube(record, values: dict) -> bool:
+    """Whether ``values['memory_budget']`` holds the coarsest level of a virtual cube map
+    of ``record`` with ``values`` (:func:`virtual_cube_bytes`)."""
+    opts = Options({**values, "virtual": True}, frozenset(), record)
+    return values["memory_budget"] * 2**20 >= virtual_cube_bytes(opts)
 
 
 def _check_virtual(record, values: dict, given) -> None:
@@ -653,11 +672,26 @@ def _check_virtual(record, values: dict, given) -> None:
                           f"(1 - log2(page_size): a pixel then spans up to page_size "
                           "texels of its level; -8 needs page_size >= 512); raise "
                           "'page_size' or 'lod_bias'")
-    if not _holds_virtual_cube(values["memory_budget"], page):
+    if not _holds_virtual_cube(record, values):
+        opts = Options(values, given, record)
         raise OptionError(f"shadowmap: property 'memory_budget' = "
                           f"{values['memory_budget']:g} MiB cannot hold the coarsest level of "
-                          f"a virtual cube map (6 pages of {page}^2 texels); raise it, lower "
+                          f"a virtual cube map ({cube_pages_text(opts)}): at least "
+                          f"{mib_up(virtual_cube_bytes(opts))} MiB; raise it, lower "
                           "'page_size' or set virtual=false (full maps)")
+
+
+def cube_pages_text(opts) -> str:
+    """What a virtual cube map's coarsest level of ``opts`` holds, for messages."""
+    from .virtual.store import page_pools, page_layers
+    n = len(page_pools(page_layers(_as_virtual(opts))))
+    return (f"6 pages of {opts.page_size}^2 texels and an empty page, {n} float32 layer"
+            f"{'s' if n > 1 else ''} a texel")
+
+
+def mib_up(n_bytes: int) -> str:
+    """``n_bytes`` in MiB rounded up to 3 decimals (a need is never understated)."""
+    return f"{math.ceil(n_bytes / 2 ** 20 * 1000) / 1000:g}"
 
 
 def _default_text(p: Prop) -> str:

@@ -6,11 +6,19 @@ the rule the map manager builds by (:func:`mi_shadowmap.map_manager.holds_first_
 depth of a face) is missing from virtual maps without first depths as from full ones."""
 from __future__ import annotations
 
+import dataclasses
+import warnings
+
 import drjit as dr
 import mitsuba as mi
+import numpy as np
+import pytest
 
-from mi_shadowmap import harness
+import mi_shadowmap
+from mi_shadowmap import harness, methods, virtual
+from mi_shadowmap.options import OptionError, mib_up, parse_options, virtual_cube_bytes
 from mi_shadowmap.scenes import default_scene
+
 
 
 def test_shared_maps_of_a_differentiated_scene_take_the_costliest_texels():
@@ -38,3 +46,58 @@ def test_shared_maps_of_a_differentiated_scene_take_the_costliest_texels():
         dr.disable_grad(params["box.vertex_positions"])
     for order in (["pcss", "second_depth"], ["second_depth", "pcss"]):
         assert harness.prepare_maps(scene, order, **params_kw)[0].resolution == 114, order
+
+
+@pytest.mark.parametrize("method, layers", [("hard", 1), ("second_depth", 1),
+                                            ("second_depth_both", 2)])
+def test_the_budget_counts_the_layers_a_virtual_page_holds(method, layers):
+    """The options' check whether ``memory_budget`` holds a virtual cube map's coarsest
+    level counted two float32 layers a texel for every method and 6 pages (0.047 MiB at
+    32^2 pages), where the render needs the pages' own layers
+    (:func:`~mi_shadowmap.virtual.store.page_bytes`: one for ``hard`` and
+    ``second_depth``, two for a copy of ``second_depth`` that reads first depths too)
+    and the map's empty page (7 pages: 0.028 / 0.055 MiB). So under 0.03 MiB ``hard``
+    lost its automatic virtual maps, and a method of two layers passed the options under
+    0.05 MiB to fail at its render with another number. Now the options and the render
+    count alike: a point light's virtual maps render within the exact need, and one byte
+    less is refused when the options are read (``virtual=true``) or gives full maps with
+    a warning quoting that need (the automatic ``virtual``)."""
+    if method == "second_depth_both":
+        _copy(method, "second_depth", reads_depth=True)
+    try:
+        opts = parse_options({"method": method, "virtual": True})
+        need = virtual_cube_bytes(opts)
+        assert need == 7 * opts.page_size ** 2 * 4 * layers
+        scene = mi.load_dict(default_scene(width=16, height=16, spp=1, light="point"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")     # (a degraded map's warning)
+            integ = _render(scene, method=method, memory_budget=need / 2 ** 20)
+        assert isinstance(integ.maps[0], virtual.VirtualShadowMap)
+        assert integ.maps[0].store.nbytes <= need
+        short = (need - 1) / 2 ** 20
+        with pytest.raises(OptionError, match=rf"virtual cube map .*{layers} float32 layers? "
+                           rf"a texel\): at least {mib_up(need)} MiB"):
+            parse_options({"method": method, "virtual": True, "memory_budget": short})
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            integ = _render(scene, method=method, memory_budget=short)
+        assert not isinstance(integ.maps[0], virtual.VirtualShadowMap)
+        msgs = [str(w.message) for w in caught if "memory_budget" in str(w.message)]
+        assert len(msgs) == 1 and f"{mib_up(need)} MiB" in msgs[0], msgs
+    finally:
+        if method == "second_depth_both":
+            mi_shadowmap.unregister_method(method)
+
+
+def _render(scene, **props):
+    integ = mi.load_dict({"type": "shadowmap", "cache_maps": False, **props})
+    img = np.asarray(mi.render(scene, integrator=integ, spp=1, seed=0))
+    assert np.isfinite(img).all()
+    return integ
+
+
+def _copy(name: str, of: str, **changes):
+    """A user method that is ``of`` with ``changes`` (registered; unregister after)."""
+    return methods.add(dataclasses.replace(methods.get(of), name=name, builtin=False,
+                                           **changes))
+

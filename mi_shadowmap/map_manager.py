@@ -438,12 +438,18 @@ def _layer_without_depth(scene, smap, name: str, builder, method: str) -> mi.Flo
         data, why = None, f"Dr.Jit: {str(e).strip().splitlines()[0]}"
     if data is None or dr.width(data) == 0:
         # (from None: the CLI and the harness report the innermost error)
-        raise MethodError(
-            f"shadowmap: method '{method}' was registered with reads_depth=False, so its "
-            f"maps hold no first depth, and its layer '{name}' is built from one "
-            f"(smap.depth, an empty array; {why}); register it with reads_depth=True, or "
-            f"build '{name}' from the second depths (smap.second_depth)") from None
+        raise _no_first_depth(method, name, f"smap.depth, an empty array; {why}") from None
     return data
+
+
+def _no_first_depth(method: str, name: str, why: str) -> MethodError:
+    """The error of a layer ``name`` built from the first depths of a map of ``method``
+    (registered with ``reads_depth`` False: none), ``why`` saying how it showed."""
+    return MethodError(
+        f"shadowmap: method '{method}' was registered with reads_depth=False, so its "
+        f"maps hold no first depth, and its layer '{name}' is built from one ({why}); "
+        f"register it with reads_depth=True, or build '{name}' from the second depths "
+        "(smap.second_depth)")
 
 
 def build_maps(scene: mi.Scene, plan: RenderPlan) -> tuple[list, MapStats]:
@@ -651,6 +657,12 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None,
     view supports them; the others (an environment cut into more than 32 regions) get
     full maps as usual."""
     from .virtual import prepare_virtual
+    from .virtual.store import casts_first_depth, page_layers
+    if "pcss_near" in opts.record.layer_names(opts) and not casts_first_depth(
+            page_layers(opts)):
+        # as a full map's layer builder fails on the empty first depth (_build_one)
+        raise _no_first_depth(opts.record.name, "pcss_near", "virtual maps take it from "
+                              "their pages' first depths, and these pages cast none")
     if "virtual" in opts.given and maps_need_gradients(scene, params):
         # virtual pages are built detached: shadows would pass no gradient, silently
         # (an automatic virtual=true never gets here with gradients: prepare_maps checked)

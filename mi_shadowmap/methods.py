@@ -455,7 +455,7 @@ def _checked_lookup(name: str, lookup: Callable, whole_light, reads_depth=True) 
             # was Dr.Jit's message, naming neither the method nor reads_depth)
             raise MethodError(
                 f"shadowmap: method '{name}' was registered with reads_depth=False, so its "
-                "maps hold no first depth, and its lookup read one (smap.depth; Dr.Jit: "
+                "maps hold no first depth, and its lookup read one (smap.depth, pcss_near; Dr.Jit: "
                 "attempted to gather from an empty array); register it with "
                 "reads_depth=True") from None
         values = out if whole_light is True and isinstance(out, tuple) \

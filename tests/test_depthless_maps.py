@@ -16,9 +16,13 @@ import pytest
 
 import mi_shadowmap
 from mi_shadowmap import harness, methods, virtual
+from mi_shadowmap.depth_maps import second_depth_layer
+from mi_shadowmap.filters.common import receiver
+from mi_shadowmap.filters.pcss import face_near_depth
 from mi_shadowmap.options import OptionError, mib_up, parse_options, virtual_cube_bytes
 from mi_shadowmap.scenes import default_scene
 
+from conftest import SCENES, error_chain
 
 
 def test_shared_maps_of_a_differentiated_scene_take_the_costliest_texels():
@@ -101,3 +105,58 @@ def _copy(name: str, of: str, **changes):
     return methods.add(dataclasses.replace(methods.get(of), name=name, builtin=False,
                                            **changes))
 
+
+def _second_near(smap, lk, opts, active):
+    """Lit where the receiver is in front of the second depth and the face has a first
+    depth (``pcss``'s ``face_near_depth``: the layer ``pcss_near``, the nearest first
+    depth of each face)."""
+    r = receiver(smap, lk, opts)
+    ok = active & r.inside
+    near = dr.gather(mi.Float, face_near_depth(smap), r.face, ok)
+    z = dr.gather(mi.Float, smap.second_depth, smap.texel_index(r.face, r.uv), ok)
+    return dr.select(~r.inside | ((r.depth <= z) & (near < dr.inf)), 1.0, 0.0)
+
+
+@pytest.mark.parametrize("virtual_maps", [False, True])
+def test_pcss_near_is_missing_from_maps_without_first_depths(virtual_maps):
+    """``pcss_near`` is the nearest first depth of each face (``face_near_layer``, a
+    reduction of ``smap.depth``). A user method registered with ``reads_depth=False``
+    (its maps hold second depths alone) whose lookup read it failed on full maps (a
+    MethodError naming ``reads_depth``: the layer is reduced from the empty first
+    depth), but on virtual maps got the second depths' minima, another quantity, and
+    rendered. Now both fail alike, and a method that lists ``pcss_near`` among its
+    layers fails on virtual maps as on full ones (naming the layer), whether its lookup
+    reads it or not. Registered with ``reads_depth=True``, the same methods render on
+    both. spot_sphere_box, 32^2."""
+    scene = mi.load_file(str(SCENES / "spot_sphere_box.xml"), width=32, height=32)
+    second = {"second_depth": second_depth_layer}
+    listed = {**second, **methods.get("pcss").layers}
+    kinds = {"near_one": (_second_near, second, False), "near_both": (_second_near, second, True),
+             "listed_one": (_second_hard, listed, False),
+             "listed_both": (_second_hard, listed, True)}
+    for name, (lookup, layers, reads) in kinds.items():
+        mi_shadowmap.register_method(name, lookup, layers=layers, virtual=True,
+                                     reads_depth=reads)
+    errors = {}
+    try:
+        for name, (_, _, reads) in kinds.items():
+            if reads:
+                integ = _render(scene, method=name, virtual=virtual_maps)
+                assert isinstance(integ.maps[0], virtual.VirtualShadowMap) == virtual_maps
+                continue
+            with pytest.raises(Exception) as err:
+                _render(scene, method=name, virtual=virtual_maps)
+            errors[name] = [str(e) for e in error_chain(err.value)]  # (mi.render wraps it)
+    finally:
+        for name in kinds:
+            mi_shadowmap.unregister_method(name)
+    for name, chain in errors.items():
+        assert any(f"'{name}' was registered with reads_depth=False" in c for c in chain), chain
+    assert any("layer 'pcss_near'" in c for c in errors["listed_one"])
+
+
+def _second_hard(smap, lk, opts, active):
+    """``hard`` against the second depths alone."""
+    r = receiver(smap, lk, opts)
+    z = dr.gather(mi.Float, smap.second_depth, smap.texel_index(r.face, r.uv), active & r.inside)
+    return dr.select(~r.inside | (r.depth <= z), 1.0, 0.0)

@@ -601,7 +601,7 @@ class BoundVirtualMap:
         pools = vmap.store.pools
         self.depth = pools.get("depth", mi.Float())   # (none: read, an error as traced)
         self.extra = {k: v for k, v in pools.items() if k != "depth"}
-        self.extra["pcss_near"] = vmap.face_near
+        self.extra["pcss_near"] = vmap.face_near if vmap.store.casts_depth else mi.Float()
         self.depth_bounds = vmap.depth_bounds
 
     @property

@@ -6,7 +6,6 @@ the rule the map manager builds by (:func:`mi_shadowmap.map_manager.holds_first_
 depth of a face) is missing from virtual maps without first depths as from full ones."""
 from __future__ import annotations
 
-import dataclasses
 import warnings
 
 import drjit as dr
@@ -23,6 +22,7 @@ from mi_shadowmap.options import OptionError, mib_up, parse_options, virtual_cub
 from mi_shadowmap.scenes import default_scene
 
 from conftest import SCENES, error_chain
+from test_second_depth_one_layer import _copy, _second_hard
 
 
 def test_shared_maps_of_a_differentiated_scene_take_the_costliest_texels():
@@ -100,11 +100,6 @@ def _render(scene, **props):
     return integ
 
 
-def _copy(name: str, of: str, **changes):
-    """A user method that is ``of`` with ``changes`` (registered; unregister after)."""
-    return methods.add(dataclasses.replace(methods.get(of), name=name, builtin=False,
-                                           **changes))
-
 
 def _second_near(smap, lk, opts, active):
     """Lit where the receiver is in front of the second depth and the face has a first
@@ -154,9 +149,3 @@ def test_pcss_near_is_missing_from_maps_without_first_depths(virtual_maps):
         assert any(f"'{name}' was registered with reads_depth=False" in c for c in chain), chain
     assert any("layer 'pcss_near'" in c for c in errors["listed_one"])
 
-
-def _second_hard(smap, lk, opts, active):
-    """``hard`` against the second depths alone."""
-    r = receiver(smap, lk, opts)
-    z = dr.gather(mi.Float, smap.second_depth, smap.texel_index(r.face, r.uv), active & r.inside)
-    return dr.select(~r.inside | (r.depth <= z), 1.0, 0.0)

@@ -295,9 +295,12 @@ class PageStore:
         job.keys, job.masks, job.slot_ids, job.new_fine = keys, masks, slot_ids, new_fine
         if n_tiles:
             f, lv, px, py = key_fields(keys[page_i])
-            job.tkeys = page_key(f, lv, px * np.uint64(S) + (tile_b % S).astype(np.uint64),
-                                 py * np.uint64(S) + (tile_b // S).astype(np.uint64))
-            job.tslots, job.tile_b = slot_ids[page_i], tile_b
+            tx = px * np.uint64(S) + (tile_b % S).astype(np.uint64)
+            ty = py * np.uint64(S) + (tile_b // S).astype(np.uint64)
+            # cast near tiles together, whatever their level (cast_order)
+            order = cast_order(f, lv, tx, ty)
+            job.tkeys = page_key(f[order], lv[order], tx[order], ty[order])
+            job.tslots, job.tile_b = slot_ids[page_i][order], tile_b[order]
         return job
 
     def finish_build(self, job: "TileCast", fill: bool = True) -> int:
@@ -788,6 +791,32 @@ def page_minima(depth, tpp: int, on_host: bool | None = None) -> np.ndarray:
         return out
     finite = dr.select(dr.isfinite(depth), depth, dr.inf)
     return dr.block_reduce(dr.ReduceOp.Min, finite, tpp).numpy()
+
+
+def cast_order(face, level, tx, ty) -> np.ndarray:
+    """The order in which a build casts tiles ``(face, level, tx, ty)`` (numpy, tile
+    units of their level): by face, then in Morton (Z) order of each tile's corner in
+    level 0's tile units, the levels mixed, so that the tiles of one region of the map,
+    whatever their level, are cast one after another, while the BVH nodes their rays
+    visit are still in the caches. In the keys' order (level by level) every level
+    swept the whole region again: the first frame's cast on the 1M-triangle mesh (385 k
+    rays over ten levels) was 11 % slower, one thread. The depths do not depend on the
+    order."""
+    lv = np.asarray(level, np.uint64)
+    code = (_spread_bits(np.asarray(tx, np.uint64) << lv)
+            | (_spread_bits(np.asarray(ty, np.uint64) << lv) << np.uint64(1)))
+    return np.lexsort((code, np.asarray(face, np.uint64)))
+
+
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """The low 32 bits of ``x`` (``np.uint64``) moved to the even bits (a Morton code's
+    half)."""
+    x = x & np.uint64(0xFFFFFFFF)
+    for shift, mask in ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF),
+                        (4, 0x0F0F0F0F0F0F0F0F), (2, 0x3333333333333333),
+                        (1, 0x5555555555555555)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
 
 
 def morton_xy(local, T: int) -> tuple:

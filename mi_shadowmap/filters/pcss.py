@@ -103,6 +103,28 @@ Deviations from the paper and why:
   penumbra 2x/4x/8x, virtual maps 0.069/0.160/0.093 before, 0.024/0.025/0.026 now
   (multiview 0.023-0.026); full maps of 1024-4096 texels 0.044/0.108/0.142 before,
   0.027-0.028 now (512: 0.027).
+  On a virtual map under a light with extent (not a directional light's angular
+  diameter, not an environment's regions) the filter kernel's cap is at least half the
+  light's width ``w_light`` on the receiver's plane (:func:`_light_width_cap`): the
+  penumbra of a blocker halfway between the receiver and the light, what the light's
+  size produces rather than a share of the face. A kernel beyond the face-width cap
+  reads the coarser levels, down to :data:`LIGHT_COARSE_RES` texels a face, whose tile
+  under its point this frame's marks built (:func:`_built_beyond`; the levels the mark
+  pass builds for other points, their own and their kernels'); the mark pass builds no
+  level for it. A virtual map's levels are always :data:`KERNEL_REF_RES` or more texels
+  a face, so the face-width cap alone (1/16 of a face) filtered a disk light 4 wide 5.6
+  over the ground (``bench_unseen``'s ``area`` seed 7, 128^2, 4 spp, against 16-ray
+  ``raytraced``) as a near-hard shadow: 5.98 % misclassified, now 1.76 % (256^2: 5.88
+  -> 1.66 %, 512^2: 5.58 -> 1.35 %), with the texels built unchanged. Marking the
+  coarser levels for these kernels cost every area light's ``pcss`` 10-25 % more texels
+  around every point (``wip/pcss-light-cap-51H``), 8-23 % per point from the light's
+  width (``wip/pcss-light-levels-51I``), 0-4.4 % per point from the blockers five rays
+  to the light find (``wip/pcss-blocker-marks-52D``), for the same accuracy
+  (``benchmarks/RESULTS.md``, fifty-first and fifty-second sessions). Full maps keep the
+  face-width cap: there the light-width cap fixed that scene (1024^2: 5.80 -> 1.65 %)
+  but raised a 3-wide rectangle light 2.9 over a 1.3-wide ball (``area`` seed 1, where
+  PCSS overestimates the penumbra and the cap trims it) 1.41 -> 2.36 % at 256^2 (its
+  seed noise 0.4; fifty-first session, helper H).
 * **Map borders.** Taps use the PCF tap helper
   (:func:`~.common.tap_depths`): taps off a spot/directional map are lit and
   are not blockers, as in ``pcf``. Unlike ``pcf``, taps beyond a *cube* face
@@ -406,6 +428,28 @@ def _kernel_cap(smap, half_max):
     return half_max * mi.Float(mi.UInt32(1) << k)
 
 
+#: Whether a virtual map's filter kernels under a light with extent are capped at no
+#: less than the light's own width (:func:`_light_width_cap`).
+LIGHT_WIDTH_CAP = True
+
+#: Face resolution down to which a virtual map's filter kernel under a light with extent
+#: may read coarser levels (:func:`_built_beyond`): a kernel as wide as the light spans
+#: up to half a face seen from a receiver one light width away.
+LIGHT_COARSE_RES = 64
+
+
+def _light_width_cap(smap, angular, w_light, texel, half_cap):
+    """Filter kernel's largest half-width, in texels of ``smap``: ``half_cap``
+    (:func:`_kernel_cap`) or, on a virtual map under a light with extent (not a
+    directional light's angular diameter, not an environment's regions), half the light's
+    width ``w_light`` on the receiver's plane, whichever is wider: the penumbra of a
+    blocker halfway between the receiver and the light."""
+    vmap = getattr(smap, "vmap", None)
+    if not LIGHT_WIDTH_CAP or angular or vmap is None or vmap.coarse_res is None:
+        return half_cap
+    return dr.maximum(half_cap, 0.5 * w_light / texel)
+
+
 #: Levels coarser than the receiver's a virtual map's blocker search may read (the filter
 #: kernel: as many as :func:`_kernel_cap` allows). The search region is sized from the
 #: face's nearest depth, which can be far wider than any penumbra, and coarser levels
@@ -416,18 +460,19 @@ SEARCH_COARSER = 1
 
 
 def _level_for_kernel(smap, lk: Lookup, opts, r, plane, texel, half, half_max, active,
-                      max_coarser=None):
+                      max_coarser=None, light_width=False):
     """``(map, receiver, plane, texel)`` to filter a kernel ``half`` texels of ``smap``
     wide (half-width) with: ``smap`` itself on a full map (its taps spread over the
     kernel, ``filter_samples`` of them whatever its width); on a virtual map, the
     map bound again at the level ``2^k`` times coarser (``k = 0``: its own level; ``k
     = ceil(log2(half / h))``, ``h = min(half_max, page_size / 2)``: the
     texels a level's marks reach around the point; at most the levels
-    :func:`_kernel_cap` allows), with the receiver and its plane there (its biases in
-    that level's texels). (Coarsening from ``half_max`` instead left kernels of 16-32
-    texels to the neighbouring points' tiles: on a 96 x 12 film of a ground strip under
-    a 2-unit light, RMSE 0.022 against 0.013 before the kernel cap changed; 0.013
-    now.)"""
+    :func:`_kernel_cap` allows; with ``light_width``, a kernel beyond that cap at most
+    the levels built under its point, :func:`_built_beyond`), with the receiver and its
+    plane there (its biases in that level's texels). (Coarsening from ``half_max``
+    instead left kernels of 16-32 texels to the neighbouring points' tiles: on a 96 x 12
+    film of a ground strip under a 2-unit light, RMSE 0.022 against 0.013 before the
+    kernel cap changed; 0.013 now.)"""
     vmap = getattr(smap, "vmap", None)
     if vmap is None or vmap.coarse_res is None:
         return smap, r, plane, texel
@@ -437,7 +482,13 @@ def _level_for_kernel(smap, lk: Lookup, opts, r, plane, texel, half, half_max, a
     if dr.size_v(half) == 2:     # per axis (a rectangular face): the wider fits
         half = dr.maximum(half[0], half[1])
     k = mi.UInt32(dr.maximum(dr.ceil(dr.log2(dr.maximum(half / fits, 1.0))), 0.0))
-    k = dr.minimum(k, coarser_levels(vmap.layout, smap.level, vmap.coarse_res))
+    # down to virtual_coarse_res (KERNEL_REF_RES) texels a face; a kernel beyond that cap
+    # (a light's own width, _light_width_cap) down to the coarsest level built under it
+    k_ref = coarser_levels(vmap.layout, smap.level, vmap.coarse_res)
+    if light_width:
+        beyond = mi.Bool(active) & (half > half_max * mi.Float(mi.UInt32(1) << k_ref))
+        k_ref = dr.select(beyond, _built_beyond(smap, k_ref, k, beyond), k_ref)
+    k = dr.minimum(k, k_ref)
     if max_coarser is not None:
         k = dr.minimum(k, mi.UInt32(max_coarser))
     coarse = vmap.bind(lk, active, level=smap.level + k)
@@ -446,6 +497,28 @@ def _level_for_kernel(smap, lk: Lookup, opts, r, plane, texel, half, half_max, a
                             near_fallback=plane.near_fallback)
     texel2 = dr.maximum(_texel_parallel(coarse, r2, lk.p_world), 1e-30)
     return coarse, r2, plane2, texel2
+
+
+def _built_beyond(smap, k_ref, k_want, active) -> mi.UInt32:
+    """Levels coarser than ``smap``'s (a bound virtual map) that a filter kernel beyond
+    the face-width cap (:func:`_light_width_cap`) filters: up to ``k_want``, down to
+    :data:`LIGHT_COARSE_RES` texels a face, those whose tile under the point this frame's
+    marks built, every level from ``k_ref`` on (:func:`~mi_shadowmap.virtual.marks.
+    tile_marked`): ``k_ref`` where the next coarser one is not built. The mark pass builds
+    no level for these kernels: the levels coarser than ``virtual_coarse_res``'s it builds
+    for other points (their own levels, their kernels' levels) hold them."""
+    from ..virtual import coarser_levels
+    from ..virtual.marks import tile_marked
+    lay = smap.vmap.layout
+    face, uv64 = smap.projected[:2]
+    k_top = dr.minimum(k_want, coarser_levels(lay, smap.level, LIGHT_COARSE_RES))
+    k, go = mi.UInt32(k_ref), mi.Bool(active)
+    for j in range(1, int(math.log2(KERNEL_REF_RES // LIGHT_COARSE_RES)) + 1):
+        go &= k_ref + j <= k_top
+        go &= tile_marked(smap.vmap, face, uv64,
+                          dr.minimum(smap.level + k_ref + j, lay.coarsest), go)
+        k = dr.select(go, k_ref + j, k)
+    return k
 
 
 def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
@@ -492,12 +565,14 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     n_div = n_block if soft_width is None else dr.maximum(n_block, 1e-6)
     d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_div, 1.0), guard)
     w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular, origin), 0.0)
-    filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, half_cap)
+    filter_cap = _light_width_cap(smap, angular, w_light, texel, half_cap)
+    filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, filter_cap)
 
     # 3. PCF with a kernel proportional to w, only where blockers were found
     smap_f, r_f, plane_f, texel_f = _level_for_kernel(smap, lk, opts, r, plane, texel,
                                                       filter_half, half_max,
-                                                      active & has_blocker)
+                                                      active & has_blocker,
+                                                      light_width=filter_cap is not half_cap)
     if smap_f is not smap:
         filter_half = dr.clip(filter_half * texel / texel_f, 1e-3, half_max)
         soft_width = soft_compare_width(r_f, opts.soft_compare)
@@ -554,7 +629,8 @@ METHOD = Method(
         Prop("max_kernel", "float", 64.0,
              "PCSS blocker-search and filter kernels are at most max_kernel texels wide "
              "or max_kernel / 512 of the face's width, whichever is wider (so the cap "
-             "does not shrink as the map gets denser); a kernel wider than max_kernel "
+             "does not shrink as the map gets denser; a virtual map's filter kernel under "
+             "a light with extent: at least the light's width); a kernel wider than max_kernel "
              "texels (virtual maps: min(max_kernel, page_size)) filters a coarser level "
              "(virtual maps) or spreads its taps over the map's texels (full maps).",
              lo=1.0, hi=4096.0),

@@ -120,8 +120,11 @@ Deviations from the paper and why:
   around every point (``wip/pcss-light-cap-51H``), 8-23 % per point from the light's
   width (``wip/pcss-light-levels-51I``), 0-4.4 % per point from the blockers five rays
   to the light find (``wip/pcss-blocker-marks-52D``), for the same accuracy
-  (``benchmarks/RESULTS.md``, fifty-first and fifty-second sessions). Full maps keep the
-  face-width cap: there the light-width cap fixed that scene (1024^2: 5.80 -> 1.65 %)
+  (``benchmarks/RESULTS.md``, fifty-first and fifty-second sessions). The cost: where
+  PCSS overestimates the penumbra (rectangle lights 3 wide over a ball, ``area`` seeds 1
+  and 13) the face-width cap had trimmed it; at 256^2 they misclassify 0.4-0.5 points
+  more (false lit), within their seed noise at 128^2. Full maps keep the face-width
+  cap: there the light-width cap fixed that scene (1024^2: 5.80 -> 1.65 %)
   but raised a 3-wide rectangle light 2.9 over a 1.3-wide ball (``area`` seed 1, where
   PCSS overestimates the penumbra and the cap trims it) 1.41 -> 2.36 % at 256^2 (its
   seed noise 0.4; fifty-first session, helper H).

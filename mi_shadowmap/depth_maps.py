@@ -259,7 +259,8 @@ def _own_and_instanced(scene, copy, stand_ins, own_shape, surface: bool = False)
     def query(ray, coherent=True, active=True):
         pc = copy.ray_intersect_preliminary(ray, coherent=coherent, active=active)
         limit = dr.select(pc.is_valid(), pc.t, ray.maxt)
-        r = mi.Ray3f(ray.o, ray.d, limit)
+        # (maxt: mi.Ray3f(o, d, x) would set the time)
+        r = mi.Ray3f(ray.o, ray.d, limit, ray.time, ray.wavelengths)
         pi = scene.ray_intersect_preliminary(r, coherent=coherent, active=active)
         t_acc = mi.Float(0.0)
         k = dr.zeros(mi.UInt32, dr.width(limit))
@@ -272,7 +273,8 @@ def _own_and_instanced(scene, copy, stand_ins, own_shape, surface: bool = False)
             step = (pi.t * (1.0 + 1e-5) + 1e-7 * (t_acc + pi.t)
                     + 1e-6 * dr.max(dr.abs(mi.Vector3f(r.o))))
             t_acc = t_acc + step
-            r = mi.Ray3f(r.o + r.d * step, r.d, dr.maximum(r.maxt - step, 0.0))
+            r = mi.Ray3f(r.o + r.d * step, r.d, dr.maximum(r.maxt - step, 0.0), r.time,
+                         r.wavelengths)
             return r, scene.ray_intersect_preliminary(r, coherent=coherent), t_acc, k + 1
 
         r, pi, t_acc, k = dr.while_loop((r, pi, t_acc, k), passing, past)

@@ -280,7 +280,10 @@ def _on_cylinders(si, scene):
     p = dr.detach(si.p)
     d = dr.normalize(-dr.detach(si.to_world(si.wi)))     # the camera ray's direction
     back = CYLINDER_RETRACE * dr.detach(si.t)
-    again = scene.ray_intersect(mi.Ray3f(p - d * back, d, 2.0 * back),
+    # (maxt positionally after d needs time and wavelengths too: mi.Ray3f(o, d, x) sets
+    # the time, and the retrace was unbounded)
+    again = scene.ray_intersect(mi.Ray3f(p - d * back, d, 2.0 * back, si.time,
+                                         si.wavelengths),
                                 mi.RayFlags.Minimal, False, on)
     ok = on & again.is_valid() & (again.shape == si.shape)
     return si.p + dr.select(ok, dr.detach(again.p) - p, 0.0)

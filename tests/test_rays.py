@@ -626,3 +626,27 @@ def test_a_contact_shadow_far_along_one_axis(x):
     wrong = float(np.mean((near < 0.5) != (far < 0.5)))
     print(f"x={x:g}: shadowed {np.mean(near < 0.5):.4f}, misclassified {wrong:.4f}")
     assert np.mean(near < 0.5) > 0.1 and wrong < 0.015
+
+
+def test_a_cylinder_hits_retrace_stays_near_it():
+    """``_on_cylinders`` traces a camera hit again from ``CYLINDER_RETRACE t`` before it,
+    over twice that span: ``mi.Ray3f(o, d, x)`` sets the ray's ``time``, not ``maxt``, so
+    the retrace was unbounded, and a hit found inside the surface by more than that span
+    (float32 in object space) was moved to the cylinder's far wall, a radius away. The
+    span is now the ray's ``maxt``: such a point stays where the camera found it."""
+    from mi_shadowmap import rays
+    scene = mi.load_dict({
+        "type": "scene",
+        "post": {"type": "cylinder", "p0": [0, -20, -225], "p1": [0, 20, -225],
+                 "radius": 1.7},
+        "sun": {"type": "directional", "direction": [0.3, -0.2, -1.0]}})
+    ray = mi.Ray3f(mi.Point3f(0, 0, 0), mi.Vector3f(0, 0, -1))
+    si = scene.ray_intersect(ray)
+    assert bool(si.is_valid()[0])
+    near = rays._on_cylinders(si, scene)
+    assert abs(float(near.z[0]) - float(si.p.z[0])) < 1e-2     # a hit on it: kept
+    si.p = si.p + mi.Vector3f(0, 0, -1.0)        # 1.0 inside: more than 2 x 0.224
+    si.t = si.t + 1.0
+    moved = rays._on_cylinders(si, scene)
+    print(f"inside point at z = {float(si.p.z[0]):.3f}, retraced to {float(moved.z[0]):.3f}")
+    assert abs(float(moved.z[0]) - float(si.p.z[0])) < 1e-3      # before: the far wall

@@ -34,7 +34,14 @@ points (``read``), so that each row's increment is what that step adds:
   shadow ray      one shadow ray towards a sample of the light (``raytraced``, as the
                   integrator traces it), from the same hits
 
-and the ratio of one rendered lookup to one shadow ray (each over ``read``).
+and the ratio of one rendered lookup to one shadow ray (each over ``read``), and how many
+lookups run ``hard, rendered``'s second, walked run (``retries``: the lanes whose unwalked
+read found its page or tile missing, and the 8-lane packets holding one). A variant of the
+lookup that changes the levels changes that count, and every packet holding such a lane
+runs the walk (a loop of table reads) and the whole lookup again: with the biases' level
+everywhere (no pixel's keep word) large_world's retrying packets went from 0.30 to 0.54 %
+and room_two_points' from 0.012 to 1.46 %, so such a knock-out timed the retries, not the
+work it removed (``benchmarks/RESULTS.md``, fifty-second session, helper A).
 
 Each row writes its outputs (a few arrays per lane), so increments are approximate; read
 the ``hard`` rows against each other. Times are this machine's (2 shared cores).
@@ -51,6 +58,14 @@ kernel therefore holds a small aligned local array (:func:`framed`), as a render
 does; ``--unframed`` leaves it out. With ``--threads 1`` a row's time is the CPU time
 of this thread, on which Dr.Jit then runs the kernels (steady on a shared machine:
 another process's time slices are not counted); else the kernels' wall time.
+
+**Inputs from memory.** The rows' kernels read their inputs (the point, normal, both
+differentials, pixel and shape, about 60 bytes a lane) from memory, where a render kernel
+has them in registers; where LLVM places those loads decides how much of their latency
+other work hides. The lookup with its projection in float32 (less work, the same
+retries) took 2.3 ns more than the float64 one here (large_world, minimums of 25 rounds),
+and perf put the extra on the instructions after the inputs' loads; in the render kernel
+it took the same time. Compare variants of the lookup in the render kernel as well.
 """
 from __future__ import annotations
 
@@ -59,6 +74,8 @@ import pathlib
 import statistics
 import sys
 import time
+
+import numpy as np
 
 import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
 import drjit as dr
@@ -196,13 +213,27 @@ def bench_scene(name: str, args) -> list:
     rows = []
     base = None
     cpu = args.threads == 1
+    retries = retried_lookups(vm, lk, vo, valid)
     for label, fn in steps:
         if not args.unframed:
             fn = (lambda f: lambda: framed(f(), lk.p_world.x))(fn)
         t = kernel_ms(fn, args.repeats, cpu)
         base = t if base is None else base
         rows.append((name, label, t, (t - base) / max(n, 1) * 1e6))
-    return rows
+    return rows, retries
+
+
+def retried_lookups(vm, lk, opts, valid) -> tuple:
+    """``(lanes, packets, hits)``: the lanes whose ``hard, rendered`` lookup runs again,
+    walked (:meth:`~mi_shadowmap.virtual.VirtualShadowMap.visibility`: its unwalked read
+    found its page or tile missing), the 8-lane packets (an AVX2 packet of the render
+    kernel) that hold one, and the hits."""
+    first = vm.bind(lk, valid, True, walk=False)
+    hard(first, lk, opts, valid)
+    retry = (mi.Bool(valid) & first.inside & first.missed).numpy()
+    pad = (-len(retry)) % 8
+    packets = int(np.concatenate([retry, np.zeros(pad, bool)]).reshape(-1, 8).any(axis=1).sum())
+    return int(retry.sum()), packets, int(valid.numpy().sum())
 
 
 def main():
@@ -229,17 +260,22 @@ def main():
           f"{args.repeats}; ns / lookup = (kernel - read) / hits\n")
     print("| scene | step | kernel [ms] | ns / lookup over `read` |")
     print("|---|---|---|---|")
-    ratios = []
+    ratios, retried = [], []
     for name in args.scenes:
-        rows = bench_scene(name, args)
+        rows, retries = bench_scene(name, args) or ([], None)
         for scene, label, t, ns in rows:
             print(f"| {scene} | {label} | {t:.3f} | {ns:.2f} |")
+        if retries is not None:
+            lanes, packets, hits = retries
+            retried.append(f"{name} {lanes} of {hits} lanes ({100 * lanes / max(hits, 1):.3f} "
+                           f"%), {packets} 8-lane packets")
         ns = {label: v for _, label, _, v in rows}
         if rows:
             ratios.append((name, ns["hard, rendered"] / ns["shadow ray"],
                            ns["full: hard"] / ns["shadow ray"]))
     print("\none lookup / one shadow ray (each over `read`): "
           + "; ".join(f"{n} {v:.2f} (full map {f:.2f})" for n, v, f in ratios))
+    print("retries (`hard, rendered`'s walked second run): " + "; ".join(retried))
 
 
 if __name__ == "__main__":

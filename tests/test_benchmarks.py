@@ -68,6 +68,19 @@ def test_bench_virtual_lookup_times_realigned_kernels_and_a_shadow_ray():
     assert (value.numpy() == x.numpy()).all()
 
 
+def test_bench_virtual_lookup_counts_the_lookups_that_run_again_walked():
+    # a knock-out that changes the levels changes how many packets run the walked second
+    # run, which the timings then measure (benchmarks/RESULTS.md, fifty-second session)
+    out = run_bench("bench_virtual_lookup.py", "--scenes", "far_point", "--image", "16",
+                    "--spp", "2", "--repeats", "1", "--threads", "1")
+    import re
+    m = re.search(r"retries \(`hard, rendered`'s walked second run\): far_point (\d+) of "
+                  r"(\d+) lanes \([0-9.]+ %\), (\d+) 8-lane packets", out)
+    assert m, out
+    lanes, hits, packets = (int(g) for g in m.groups())
+    assert 0 < hits <= 16 * 16 * 2 and lanes <= hits and packets <= lanes
+
+
 def test_bench_environment_names_the_default_maps():
     # the scene's defaults render virtual maps (integrator.resolution None): the
     # acceptance line printed "None^2 maps"

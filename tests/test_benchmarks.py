@@ -251,3 +251,61 @@ def test_bench_virtual_move_cuts_a_moved_frame_on_one_thread():
     assert abs(mark + first[0] + render[0] - moved) < 0.2 + 0.01 * moved
     # (the rays of a 32^2 film may take under 0.05 ms: printed 0.0)
     assert len(rays) == 3 and all(r >= 0.0 for r in rays)
+
+
+def test_bench_primary_reuse_splits_the_render_without_changing_its_image():
+    # issue 11's reuse of the render's primary hits for the marks (fifty-second session,
+    # helper F): the render driven from Python in one kernel, and split into a kernel of
+    # closest hits and one of shading from the stored hits, gives Mitsuba's render
+    # loop's image bit for bit (a rectangle, spheres and meshes; two point lights)
+    out = run_bench("bench_primary_reuse.py", "--scenes", "large_world", "room_two_points",
+                    "mesh", "--triangles", "2000", "--image", "32", "--spp", "2",
+                    "--mesh-spp", "4", "--rounds", "1")
+    lines = out.splitlines()
+    for name, spp in (("large_world", 2), ("room_two_points", 2), ("mesh", 4)):
+        head = lines.index(next(x for x in lines if x.startswith(f"## {name}, 32^2, {spp} spp")))
+        rows = {}
+        for line in lines[head + 4:]:
+            if not line.startswith("| "):
+                break
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[cells[0]] = cells[1:]
+        same = {k: v[-1] for k, v in rows.items() if v[-1]}
+        assert set(same) == {"render", "shadowmap unshadowed", "one kernel", "kernel 2",
+                             "split", "kernel 2, 4 fields", "split, 4 fields"}
+        # (shadowmap's unshadowed sums differently: up to 1 ulp apart)
+        assert all(v == "True" for k, v in same.items() if k != "shadowmap unshadowed"), same
+        assert all(float(v[0]) > 0.0 for v in rows.values())
+    assert sum(x.startswith("split - render: ") for x in lines) == 3
+
+
+def test_bench_primary_reuse_gathers_the_marks_inputs_from_the_stored_hits():
+    # the marks' inputs from the split render's stored hits (each pixel's first, jittered
+    # sample) against camera_hits' (its pixel centre): the same pixels, in the marks' lane
+    # order, the point within a pixel's footprint of the centre's, the same footprints
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import numpy as np
+
+        from bench_primary_reuse import Wavefront, load
+        from mi_shadowmap.virtual.marks import camera_hits
+    finally:
+        sys.path.pop(0)
+    for name in ("large_world", "room_two_points"):
+        scene = load(name, 48, 0, "")
+        wave = Wavefront(scene, 4)
+        wave.kernel1()
+        p, n, _, dp_dx, _, valid = (np.array(x) for x in wave.mark_gather())
+        si, c_dx, c_dy, c_valid = camera_hits(scene, scene.sensors()[0])
+        c_valid = np.array(c_valid)
+        both = valid & c_valid
+        assert valid.shape == c_valid.shape and np.mean(valid == c_valid) > 0.97
+        # a jittered sample is at most half a pixel from the centre in x and in y, on
+        # the centre's plane: within the larger of the two one-pixel steps
+        step_x, step_y = (np.linalg.norm(np.array(d), axis=0)[both] for d in (c_dx, c_dy))
+        off = np.linalg.norm(p - np.array(si.p), axis=0)[both] / np.maximum(step_x, step_y)
+        assert np.median(off) < 0.6 and np.mean(off < 1.01) > 0.9
+        facing = np.sum(n * np.array(si.n), axis=0)[both]
+        assert np.mean(facing > 0.99) > 0.9
+        ratio = np.linalg.norm(dp_dx, axis=0)[both] / step_x
+        assert np.median(np.abs(ratio - 1.0)) < 0.05

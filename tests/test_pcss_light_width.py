@@ -75,3 +75,40 @@ def test_tile_marked_is_the_store_s_record():
         np.testing.assert_array_equal(got, want, err_msg=f"{k} levels coarser")
         seen.update(np.unique(got).tolist())
     assert seen == {False, True}
+
+
+def test_a_camera_moved_and_put_back_reads_the_coarser_levels_as_afresh():
+    """The coarser levels a kernel beyond the face-width cap reads are those whose tile
+    under its point *this frame's* marks built (``tile_marked`` reads the frame's page
+    table): a camera moved and put back renders what a fresh integrator renders there,
+    whatever tiles the moved frame left in the page cache. (Asking the store's records
+    instead, every tile any frame built, this put-back differed from the fresh render
+    in 4 pixels: those kernels read a level whose tile this frame did not mark, so its
+    taps fell back to the coarsest level.)"""
+    import mi_shadowmap
+    d, drawn = bench_unseen.random_local_lights("area", 7, 64, 1)
+    assert drawn == "disk large"
+    scene = mi.load_dict(d)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world")
+               and isinstance(params.properties[k][2], mi.Sensor))
+    start = mi.ScalarTransform4f(params[key].matrix.numpy()[..., 0])
+
+    def render(integ):
+        return np.asarray(mi.render(scene, integrator=integ, spp=1, seed=0))
+
+    mi_shadowmap.clear_caches()
+    fresh = render(mi.load_dict({"type": "shadowmap", "method": "pcss"}))
+    mi_shadowmap.clear_caches()
+    integ = mi.load_dict({"type": "shadowmap", "method": "pcss"})
+    render(integ)
+    params[key] = mi.ScalarTransform4f().translate([2.0, 1.0, 0.0]) @ start
+    params.update()
+    render(integ)
+    params[key] = start
+    params.update()
+    again = render(integ)
+    assert integ.stats["pages_reused"] > 0
+    differ = int(np.sum(np.any(again != fresh, axis=-1)))
+    print(f"{differ} pixels differ from the fresh render")
+    assert differ == 0

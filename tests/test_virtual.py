@@ -2203,9 +2203,9 @@ def test_a_budget_below_one_virtual_cube_warns_of_its_full_maps():
     and an empty page, ``hard``'s one float32 a texel: 0.028 MiB) turns the automatic
     ``virtual`` off when the options are read, so the render never reached the budget
     check that warns: full maps of 29^2 texels a face at 0.02 MiB, silently, where a
-    slightly larger budget too small for 24 lights warned. Now the same warning, naming what a virtual cube map needs; none where full
-    maps were asked for (``virtual=false``, a ``resolution``) or come anyway
-    (``multiview``)."""
+    slightly larger budget too small for 24 lights warned. Now the same warning, naming
+    what a virtual cube map needs; none where full maps were asked for (``virtual=false``,
+    a ``resolution``) or come anyway (``multiview``)."""
     from mi_shadowmap.depth_maps import ShadowMap
     virtual.PAGE_CACHE.clear()
     scene = many_lights_scene(1, 0)

@@ -24,8 +24,9 @@ def _morton(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _build(scene, method: str, monkeypatch, order=None) -> tuple:
-    """The image, every cast job's tile keys and each store's pools (numpy) of a frame
-    that builds its pages (``cache_maps`` false); ``order``: the cast order used."""
+    """The image, every cast job's tile keys and each store's pools and tile minima
+    (numpy) of a frame that builds its pages (``cache_maps`` false); ``order``: the cast
+    order used."""
     jobs = []
     cast = planner.cast_tiles
 
@@ -40,7 +41,9 @@ def _build(scene, method: str, monkeypatch, order=None) -> tuple:
         integ = mi.load_dict({"type": "shadowmap", "method": method, "virtual": True,
                               "cache_maps": False})
         img = np.array(mi.render(scene, integrator=integ, spp=4, seed=1))
-    pools = [{k: np.array(v) for k, v in j.store.pools.items()} for j in jobs]
+    # (the tile minima: PCSS's blocker-search bound, store.face_near)
+    pools = [{**{k: np.array(v) for k, v in j.store.pools.items()},
+              "tile_min": j.store.tile_min[:j.store.next_slot].copy()} for j in jobs]
     return img, [j.tkeys.copy() for j in jobs], pools
 
 
@@ -51,8 +54,9 @@ def test_page_build_casts_near_tiles_together_with_the_same_depths(name, method,
     """A first frame's tiles are cast by face, then in Morton order of their corners at
     level 0, the levels mixed (the keys' order went level by level, each level sweeping
     the whole region again: 11 % slower on the 1M-triangle mesh); every page's depths
-    (first and second) and the image are bit-identical to a cast in the keys' order.
-    room_two_points: two point lights' cube faces cast in one kernel."""
+    (first and second), every tile's minimum (with its tile: read in the cast order)
+    and the image are bit-identical to a cast in the keys' order. room_two_points: two
+    point lights' cube faces cast in one kernel."""
     path = [p for p in SCENE_FILES if p.stem == name][0]
     scene = mi.load_file(str(path), width=48, height=48)
     img, tkeys, pools = _build(scene, method, monkeypatch)

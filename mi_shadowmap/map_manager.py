@@ -30,7 +30,8 @@ from .depth_maps import (ShadowMap, array_nbytes, build_culled_depth, build_dept
                          build_layer)
 from .light_views.base import scene_bounds
 from .light_views.pose import light_pose
-from .methods import MethodError, OptionError, builds_first_depth
+from .methods import (MethodError, OptionError, builds_first_depth, casts_first_depth,
+                      page_layers, page_pools)
 from .options import (camera_fit_pins, cube_pages_text, mib_up, unused_light_properties,
                       virtual_cube_bytes, virtual_lost_to_budget, virtual_map_bytes)
 from .light_views import (aims_by_film, camera_visible_points, emitter_kind, emitter_labels,
@@ -657,7 +658,6 @@ def _prepare_virtual(scene, sensor, opts, views, t0, params=None,
     view supports them; the others (an environment cut into more than 32 regions) get
     full maps as usual."""
     from .virtual import prepare_virtual
-    from .virtual.store import casts_first_depth, page_layers
     if "pcss_near" in opts.record.layer_names(opts) and not casts_first_depth(
             page_layers(opts)):
         # as a full map's layer builder fails on the empty first depth (_build_one)
@@ -718,7 +718,6 @@ def _within_budget(opts, views: list) -> list:
     maps was sized by the whole budget too: 1.9x it); ``virtual=true`` given raises,
     naming what it needs. (The options check a cube map's 6 faces; an environment's
     regions are up to 32 faces.)"""
-    from .virtual import page_layers, page_pools
     live = [v for v in views if v is not None]
     need = _virtual_minimum(opts, live)
     if not live or need <= opts.budget_bytes:

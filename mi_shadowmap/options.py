@@ -26,6 +26,7 @@ from typing import Any
 
 from . import methods as _methods
 from .methods import METHODS, MAP_METHODS, OptionError, Prop  # noqa: F401  (re-exported)
+from .methods import page_bytes, page_layers, page_pools
 
 
 #: Scopes of the shared properties: used by every method; accepted by every method but
@@ -597,10 +598,9 @@ def unused_light_properties(opts, kinds) -> list:
 def virtual_map_bytes(opts, n_faces: int) -> int:
     """Bytes the virtual maps of ``opts`` (validated, its ``virtual`` true) need at least
     for a light of ``n_faces`` faces: its coarsest level (one page a face, always built)
-    and its empty page, each of :func:`~mi_shadowmap.virtual.store.page_bytes` (the layers
+    and its empty page, each of :func:`~mi_shadowmap.methods.page_bytes` (the layers
     the method's pages hold: one float32 a texel for ``hard`` and ``second_depth``, two
     for a method that reads first and second depths)."""
-    from .virtual.store import page_bytes
     return (n_faces + 1) * page_bytes(opts)
 
 
@@ -683,7 +683,6 @@ def _check_virtual(record, values: dict, given) -> None:
 
 def cube_pages_text(opts) -> str:
     """What a virtual cube map's coarsest level of ``opts`` holds, for messages."""
-    from .virtual.store import page_pools, page_layers
     n = len(page_pools(page_layers(_as_virtual(opts))))
     return (f"6 pages of {opts.page_size}^2 texels and an empty page, {n} float32 layer"
             f"{'s' if n > 1 else ''} a texel")

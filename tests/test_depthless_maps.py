@@ -2,7 +2,7 @@
 False) counted and read alike everywhere: the harness orders the methods sharing maps by
 the rule the map manager builds by (:func:`mi_shadowmap.map_manager.holds_first_depth`),
 ``memory_budget`` counts the layers a virtual page holds
-(:func:`mi_shadowmap.virtual.store.page_bytes`), and ``pcss_near`` (the nearest first
+(:func:`mi_shadowmap.methods.page_bytes`), and ``pcss_near`` (the nearest first
 depth of a face) is missing from virtual maps without first depths as from full ones."""
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def test_the_budget_counts_the_layers_a_virtual_page_holds(method, layers):
     """The options' check whether ``memory_budget`` holds a virtual cube map's coarsest
     level counted two float32 layers a texel for every method and 6 pages (0.047 MiB at
     32^2 pages), where the render needs the pages' own layers
-    (:func:`~mi_shadowmap.virtual.store.page_bytes`: one for ``hard`` and
+    (:func:`~mi_shadowmap.methods.page_bytes`: one for ``hard`` and
     ``second_depth``, two for a copy of ``second_depth`` that reads first depths too)
     and the map's empty page (7 pages: 0.028 / 0.055 MiB). So under 0.03 MiB ``hard``
     lost its automatic virtual maps, and a method of two layers passed the options under

@@ -1,5 +1,5 @@
 """``second_depth``'s virtual pages cast its second depths alone
-(:func:`mi_shadowmap.virtual.store.casts_first_depth`): its lookups read no first depth
+(:func:`mi_shadowmap.methods.casts_first_depth`): its lookups read no first depth
 (Wang & Molnar's map holds the second surface only), so a page's texel casts one depth,
 not two, and ``texels_built`` counts one. A method that reads both layers keeps both."""
 from __future__ import annotations
@@ -65,7 +65,7 @@ def test_second_depth_pages_cast_one_depth_a_texel_and_render_as_with_both():
 def test_a_method_reading_both_layers_keeps_its_first_depths():
     """A user method registered with the ``second_depth`` layer whose lookup reads the
     first depths (here ``hard``'s compare) gets them cast, in stores of its own
-    (:func:`~mi_shadowmap.virtual.store.page_layers` lists ``depth`` for it): its image
+    (:func:`~mi_shadowmap.methods.page_layers` lists ``depth`` for it): its image
     is ``hard``'s, bit for bit, also rendered after ``second_depth`` on the same scene
     (whose stores hold no first depth), and it casts both depths a texel."""
     virtual.PAGE_CACHE.clear()

@@ -7,7 +7,7 @@ TR94-019, 1994 (``shared/papers/001``). The map stores the depth of the
 only when this method is used; virtual maps' pages cast that layer alone: the lookup
 reads no first depth, ``reads_depth=False``, and the paper's Pass 1 keeps none either,
 "at the end of the pass, the front surface can be discarded";
-:func:`mi_shadowmap.virtual.store.casts_first_depth`); the lookup is the per-pixel
+:func:`mi_shadowmap.methods.casts_first_depth`); the lookup is the per-pixel
 algorithm of the paper's Figure 10:
 
 1. compare the camera sample's depth ``z`` with the second depth

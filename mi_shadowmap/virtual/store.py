@@ -10,6 +10,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..depth_maps import first_hit, second_depth_along
+# what a page holds is the method's (methods.py: options and map_manager read it too)
+from ..methods import casts_first_depth, page_bytes, page_layers, page_pools  # noqa: F401
 from ..light_views.base import TEXEL_SAMPLE
 from .layout import (MAX_TABLE, MAX_TABLE_SIDE, INVALID_SLOT, VirtualLayout, key_fields,
                      padded_array, page_key)
@@ -722,48 +724,6 @@ def _cast_rays(scene, view, o, d, second: bool, writes: list, first: bool = True
     out = depth if first else sd
     dr.eval(out)
     return out
-
-
-def page_layers(opts) -> tuple:
-    """The layers a virtual map's pages hold besides depth for ``opts``' method
-    (``pcss_near`` is derived from the page table, not stored per page); ``depth`` too
-    where a method that reads second depths also reads the first ones
-    (:attr:`~mi_shadowmap.methods.Method.reads_depth`): its pages cast both, and its
-    stores are not the ``second_depth`` method's (:func:`casts_first_depth`)."""
-    names = tuple(n for n in opts.record.layer_names(opts) if n != "pcss_near")
-    if "second_depth" in names and opts.record.reads_depth:
-        names += ("depth",)
-    return names
-
-
-def casts_first_depth(layers: tuple) -> bool:
-    """Whether pages holding ``layers`` (:func:`page_layers`) ray-cast first depths: not
-    where they hold second depths for a method that reads those alone
-    (``second_depth``: Wang & Molnar's Pass 1 discards the front surface). Its lookups
-    never read a first depth (measured with that pool filled with NaN: 5 terrain and
-    world images bit-identical). Second depths only where a lookup needs them would need first
-    depths everywhere else: with the first depth in place of the second, 0-0.4 % of the
-    lookups changed (3 terrains, 4 worlds, 256^2), but which tiles those are is not
-    known before the second depth is: with +inf (missing) in its place 2.6-99.9 % of
-    the lookups changed, in 4-52 % of the tiles. One depth a texel is the least."""
-    return "second_depth" not in layers or "depth" in layers
-
-
-def page_pools(layers: tuple) -> tuple:
-    """The pools of pages holding ``layers`` (:func:`page_layers`): ``depth`` first where
-    they cast first depths (:func:`casts_first_depth`), then the layers, each once.
-    ``second_depth``'s pages hold its second depths alone: no first-depth pool (a lookup
-    that read one anyway, through ``smap.depth``, fails as its kernel is traced,
-    gathering from an empty array), and a page costs one float32 a texel, not two."""
-    return tuple(dict.fromkeys((("depth",) if casts_first_depth(layers) else ())
-                               + tuple(layers)))
-
-
-def page_bytes(opts) -> int:
-    """Bytes of one page in the pools (:func:`page_pools` of :func:`page_layers`),
-    float32 each: ``memory_budget`` holds twice the pages of ``second_depth``, whose
-    pages hold one depth a texel, as those of ``hard``."""
-    return opts.page_size ** 2 * 4 * len(page_pools(page_layers(opts)))
 
 
 def page_minima(depth, tpp: int, on_host: bool | None = None) -> np.ndarray:

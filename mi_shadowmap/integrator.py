@@ -1147,9 +1147,10 @@ def _nested_sensor(scene, sampler, ray):
     best, best_err = fits[0], math.inf
     for s in fits:
         film = s.film()
-        size, offset = film.size(), film.crop_offset()
-        first = [offset[0] - _film_border(film) + 0.5, offset[1] - _film_border(film) + 0.5]
-        uv = mi.Point2f(first[0] / size[0], first[1] / size[1])
+        # a film position is a fraction of the crop (Mitsuba's render passes it so; of
+        # the whole film, an offset crop's ray missed its first pixel by pixels)
+        crop, first = film.crop_size(), 0.5 - _film_border(film)
+        uv = mi.Point2f(first / crop[0], first / crop[1])
         r, _ = s.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5))
         o_s, d_s = lane0(r.o), lane0(r.d)
         scale = max(float(np.linalg.norm(o_s)), float(np.linalg.norm(o)), 1e-30)

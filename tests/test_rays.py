@@ -374,8 +374,8 @@ def test_occluded_is_exact_for_spheres_from_afar():
     dist = np.sqrt(np.maximum(np.sum(o * o, 1) - b * b, 0.0))
     truth, clear = dist < r, np.abs(dist - r) > 1e-3 * r
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k]) for k in range(3)]),
-                   mi.Vector3f(*[mi.Float(-u[:, k]) for k in range(3)]),
-                   (1e4 + 3.0) * r)                          # ends past the ball
+                   mi.Vector3f(*[mi.Float(-u[:, k]) for k in range(3)]))
+    ray.maxt = (1e4 + 3.0) * r       # ends past the ball (a third argument: the time)
     base = {"type": "scene", "ball": {"type": "sphere", "radius": r},
             "box": {"type": "cube", "to_world": T().translate([0, 200, 0])}}   # off every ray
     inst = dict(base, group={"type": "shapegroup", "c": {"type": "cube"}},

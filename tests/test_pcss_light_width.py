@@ -1,6 +1,6 @@
 """``pcss`` on virtual maps under a light with extent: filter kernels as wide as the
 light's penumbra (``filters/pcss.py``'s ``_light_width_cap``) read the coarser levels this
-frame's marks built under their point (``_built_beyond``, ``virtual.marks.tile_marked``),
+frame's marks built under their point (``_built_beyond``, ``VirtualShadowMap.tile_marked``),
 and the mark pass builds no level for them."""
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def test_a_light_wide_kernel_costs_no_texels(monkeypatch):
 
 
 def test_tile_marked_is_the_store_s_record():
-    """``virtual.marks.tile_marked`` (what ``_built_beyond`` asks before a kernel reads a
+    """``VirtualShadowMap.tile_marked`` (what ``_built_beyond`` asks before a kernel reads a
     coarser level) says, at every camera point and every level from its own to 4 coarser,
     what the store's records say: the page is in the table and its tile among the frame's
     marked tiles. Both answers occur."""
@@ -70,7 +70,7 @@ def test_tile_marked_is_the_store_s_record():
     seen = set()
     for k in range(5):
         lv = dr.minimum(level + k, lay.coarsest)
-        got = marks.tile_marked(vmap, face, uv64, lv, act).numpy()[lanes]
+        got = vmap.tile_marked(face, uv64, lv, act).numpy()[lanes]
         want = _built(vmap, faces, lv.numpy()[lanes].astype(np.int64), uv)
         np.testing.assert_array_equal(got, want, err_msg=f"{k} levels coarser")
         seen.update(np.unique(got).tolist())

@@ -441,16 +441,17 @@ LIGHT_WIDTH_CAP = True
 LIGHT_COARSE_RES = 64
 
 
-def _light_width_cap(smap, angular, w_light, texel, half_cap):
-    """Filter kernel's largest half-width, in texels of ``smap``: ``half_cap``
-    (:func:`_kernel_cap`) or, on a virtual map under a light with extent (not a
-    directional light's angular diameter, not an environment's regions), half the light's
-    width ``w_light`` on the receiver's plane, whichever is wider: the penumbra of a
-    blocker halfway between the receiver and the light."""
+def _light_width_cap(smap, angular, w_light, texel, half_cap) -> tuple:
+    """``(cap, widened)``: the filter kernel's largest half-width, in texels of ``smap``:
+    ``half_cap`` (:func:`_kernel_cap`) or, on a virtual map under a light with extent
+    (not a directional light's angular diameter, not an environment's regions), half the
+    light's width ``w_light`` on the receiver's plane, whichever is wider: the penumbra
+    of a blocker halfway between the receiver and the light; and whether the light's
+    width applies (a Python bool)."""
     vmap = getattr(smap, "vmap", None)
     if not LIGHT_WIDTH_CAP or angular or vmap is None or vmap.coarse_res is None:
-        return half_cap
-    return dr.maximum(half_cap, 0.5 * w_light / texel)
+        return half_cap, False
+    return dr.maximum(half_cap, 0.5 * w_light / texel), True
 
 
 #: Levels coarser than the receiver's a virtual map's blocker search may read (the filter
@@ -506,20 +507,20 @@ def _built_beyond(smap, k_ref, k_want, active) -> mi.UInt32:
     """Levels coarser than ``smap``'s (a bound virtual map) that a filter kernel beyond
     the face-width cap (:func:`_light_width_cap`) filters: up to ``k_want``, down to
     :data:`LIGHT_COARSE_RES` texels a face, those whose tile under the point this frame's
-    marks built, every level from ``k_ref`` on (:func:`~mi_shadowmap.virtual.marks.
-    tile_marked`): ``k_ref`` where the next coarser one is not built. The mark pass builds
+    marks built, every level from ``k_ref`` on
+    (:meth:`~mi_shadowmap.virtual.lookup.VirtualShadowMap.tile_marked`): ``k_ref`` where
+    the next coarser one is not built. The mark pass builds
     no level for these kernels: the levels coarser than ``virtual_coarse_res``'s it builds
     for other points (their own levels, their kernels' levels) hold them."""
     from ..virtual import coarser_levels
-    from ..virtual.marks import tile_marked
     lay = smap.vmap.layout
     face, uv64 = smap.projected[:2]
     k_top = dr.minimum(k_want, coarser_levels(lay, smap.level, LIGHT_COARSE_RES))
     k, go = mi.UInt32(k_ref), mi.Bool(active)
     for j in range(1, int(math.log2(KERNEL_REF_RES // LIGHT_COARSE_RES)) + 1):
         go &= k_ref + j <= k_top
-        go &= tile_marked(smap.vmap, face, uv64,
-                          dr.minimum(smap.level + k_ref + j, lay.coarsest), go)
+        go &= smap.vmap.tile_marked(face, uv64,
+                                    dr.minimum(smap.level + k_ref + j, lay.coarsest), go)
         k = dr.select(go, k_ref + j, k)
     return k
 
@@ -568,14 +569,14 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     n_div = n_block if soft_width is None else dr.maximum(n_block, 1e-6)
     d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_div, 1.0), guard)
     w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular, origin), 0.0)
-    filter_cap = _light_width_cap(smap, angular, w_light, texel, half_cap)
+    filter_cap, widened = _light_width_cap(smap, angular, w_light, texel, half_cap)
     filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, filter_cap)
 
     # 3. PCF with a kernel proportional to w, only where blockers were found
     smap_f, r_f, plane_f, texel_f = _level_for_kernel(smap, lk, opts, r, plane, texel,
                                                       filter_half, half_max,
                                                       active & has_blocker,
-                                                      light_width=filter_cap is not half_cap)
+                                                      light_width=widened)
     if smap_f is not smap:
         filter_half = dr.clip(filter_half * texel / texel_f, 1e-3, half_max)
         soft_width = soft_compare_width(r_f, opts.soft_compare)

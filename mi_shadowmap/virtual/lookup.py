@@ -382,6 +382,52 @@ class VirtualShadowMap:
         e = (mi.UInt32(w1 >> 32) + mi.UInt32(ly * W + lx)) * 4
         return e, ok
 
+    def _block_at(self, face, level, uv64, active):
+        """``(res, xy, bx, by, e, eok)``: the resolution of ``level`` (per lane), ``uv64``
+        (float64 uv of ``face``) in its texels, the lower-left page ``(bx, by)`` of the
+        2 x 2 pages around the point, and their entry in the table
+        (:meth:`_block_entry`)."""
+        P = self.layout.page_size
+        res = mi.Int32(mi.UInt32(self.layout.res0) >> level)
+        xy = uv64 * mi.Float64(res)
+        bx = mi.Int32(dr.floor((xy.x - 0.5 * P) / P))
+        by = mi.Int32(dr.floor((xy.y - 0.5 * P) / P))
+        e, eok = self._block_entry(face, level, bx, by, active)
+        return res, xy, bx, by, e, eok
+
+    def _own_page(self, xy, bx, by):
+        """Which of the 2 x 2 pages whose lower-left page is ``(bx, by)`` holds the texel
+        at ``xy`` (:meth:`_block_at`): 0-3, the offset of its slot from the entry."""
+        P = self.layout.page_size
+        cx = mi.Int32(dr.floor(xy.x / P)) > bx
+        cy = mi.Int32(dr.floor(xy.y / P)) > by
+        return mi.UInt32(dr.select(cx, 1, 0) + dr.select(cy, 2, 0))
+
+    def _tile_bit(self, xy):
+        """The bit of the tile holding the texel at ``xy`` in its page's tile word."""
+        lay = self.layout
+        P, T = lay.page_size, lay.tile_size
+        ix = mi.UInt32(mi.Int32(dr.floor(xy.x)) & (P - 1)) // T
+        iy = mi.UInt32(mi.Int32(dr.floor(xy.y)) & (P - 1)) // T
+        return ix + iy * lay.tiles_per_side
+
+    def tile_marked(self, face, uv64, level, active=True):
+        """Whether this frame's marks built the tile under the points at ``uv64`` of
+        ``face`` (float64 uv, per lane) at ``level`` (per lane; ``mi.Bool``): its page in
+        the frame's page table and the tile among the frame's marked tiles, what a tap
+        there reads (:meth:`BoundVirtualMap._index`; elsewhere it reads the coarsest
+        level). Not the store's record of every tile any frame built (``tile_masks``,
+        which :meth:`bind`'s walk reads): a kernel choosing its level by it would make
+        the image depend on earlier views."""
+        level = mi.UInt32(level)
+        _, xy, bx, by, e, ok = self._block_at(face, level, uv64, active)
+        q = self._own_page(xy, bx, by)
+        ok &= dr.gather(mi.UInt32, self.dense, e + q, ok) != INVALID_SLOT
+        if self.layout.tiles_per_side == 1:
+            return ok
+        tiles = dr.gather(mi.UInt32, self.dense_tiles, e + q, ok)
+        return ok & (((tiles >> self._tile_bit(xy)) & 1) != 0)
+
     def with_view(self, view) -> "VirtualShadowMap":
         """This map read through ``view``, a view of some of its faces with the same
         float64 interface (an environment's region ``k``, per lane: its shading loop)."""
@@ -408,8 +454,8 @@ class VirtualShadowMap:
         1725 of far_point's render kernel of ``hard``; LLVM merged most of them in the
         machine code already, so what this saves is the trace and Dr.Jit's code
         generation of every frame)."""
-        lay, P = self.layout, self.layout.page_size
-        T, S = lay.tile_size, lay.tiles_per_side
+        lay = self.layout
+        S = lay.tiles_per_side
         p64 = mi.Point3d(lk.p_world) if projected is None or level is None else None
         face, uv64, depth64, inside = (self.view.project_f64(p64) if projected is None
                                        else projected)
@@ -426,23 +472,16 @@ class VirtualShadowMap:
             whether the page under it is built (None unless ``walked``: only the walk
             reads it; unread, its two gathers were no part of the kernel, but were traced
             every frame)."""
-            res = mi.Int32(mi.UInt32(lay.res0) >> level)
-            xy = uv64 * mi.Float64(res)
-            bx = mi.Int32(dr.floor((xy.x - 0.5 * P) / P))
-            by = mi.Int32(dr.floor((xy.y - 0.5 * P) / P))
-            e, eok = self._block_entry(face, level, bx, by, act)
+            res, xy, bx, by, e, eok = self._block_at(face, level, uv64, act)
             if not walked:
                 return res, bx, by, e, eok, None
-            cx = mi.Int32(dr.floor(xy.x / P)) > bx        # which of the 2 x 2 holds it
-            cy = mi.Int32(dr.floor(xy.y / P)) > by
-            q = mi.UInt32(dr.select(cx, 1, 0) + dr.select(cy, 2, 0))
+            q = self._own_page(xy, bx, by)       # which of the 2 x 2 holds it
             own = dr.gather(mi.UInt32, self.dense, e + q, eok)
             built = eok & (own != INVALID_SLOT)
             if S > 1:       # and the tile under it ray-cast (not the coarsest level's fill)
-                ix = mi.UInt32(mi.Int32(dr.floor(xy.x)) & (P - 1)) // T
-                iy = mi.UInt32(mi.Int32(dr.floor(xy.y)) & (P - 1)) // T
+                t = self._tile_bit(xy)
                 tiles = dr.gather(mi.UInt32, self.tile_masks, own, built)
-                built &= ((tiles >> (ix + iy * S)) & 1) != 0
+                built &= ((tiles >> t) & 1) != 0
             return res, bx, by, e, eok, built
 
         # the wanted level (nearly every lookup); else the next finer, else the nearest

@@ -20,7 +20,7 @@ from ..map_manager import (MAP_CACHE, ParamWatch, bsdf_flags, flag_changing_bsdf
                            scene_lease)
 from ..variants import tilts_shading_frame
 from .camera import camera_frame, has_aperture
-from .layout import INVALID_SLOT, MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
+from .layout import MAX_COARSER, NO_KEY, key_fields, page_key, sorted_unique
 from .lookup import VirtualShadowMap, effective_lod_bias
 
 #: Texels from its point up to which a point whose level the receiver biases chose finer
@@ -1169,30 +1169,6 @@ def mark_coarser(vmap_like, si, dp_dx, dp_dy, valid, coarse_res: int,
                    & (t.y < n_tiles))
         keys.append(page_key(face, lev, dr.maximum(t.x, 0), dr.maximum(t.y, 0)))
     return keys, oks
-
-
-def tile_marked(vmap, face, uv64, level, active=True):
-    """Whether this frame's marks built the tile under the points at ``uv64`` of
-    ``face`` (float64 uv, per lane) at ``level`` (per lane; ``mi.Bool``): its page in
-    the page table and the tile in the page's marked tiles (what a tap there reads; else
-    it reads the coarsest level, :meth:`~mi_shadowmap.virtual.lookup.BoundVirtualMap.
-    _index`)."""
-    lay, P = vmap.layout, vmap.layout.page_size
-    level = mi.UInt32(level)
-    res = mi.Int32(mi.UInt32(lay.res0) >> level)
-    xy = uv64 * mi.Float64(res)
-    bx = mi.Int32(dr.floor((xy.x - 0.5 * P) / P))
-    by = mi.Int32(dr.floor((xy.y - 0.5 * P) / P))
-    e, ok = vmap._block_entry(face, level, bx, by, active)
-    q = mi.UInt32(dr.select(mi.Int32(dr.floor(xy.x / P)) > bx, 1, 0)
-                  + dr.select(mi.Int32(dr.floor(xy.y / P)) > by, 2, 0))
-    ok &= dr.gather(mi.UInt32, vmap.dense, e + q, ok) != INVALID_SLOT
-    if lay.tiles_per_side == 1:
-        return ok
-    tiles = dr.gather(mi.UInt32, vmap.dense_tiles, e + q, ok)
-    ix = mi.UInt32(mi.Int32(dr.floor(xy.x)) & (P - 1)) // lay.tile_size
-    iy = mi.UInt32(mi.Int32(dr.floor(xy.y)) & (P - 1)) // lay.tile_size
-    return ok & (((tiles >> (ix + iy * lay.tiles_per_side)) & 1) != 0)
 
 
 #: (key, offset) pairs :func:`dilate_tiles` forms at once. Its margin is not capped (a

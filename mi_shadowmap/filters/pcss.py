@@ -111,11 +111,12 @@ Deviations from the paper and why:
   reads the coarser levels, down to :data:`LIGHT_COARSE_RES` texels a face, whose tile
   under its point this frame's marks built (:func:`_built_beyond`; the levels the mark
   pass builds for other points, their own and their kernels'); the mark pass builds no
-  level for it. A virtual map's levels are always :data:`KERNEL_REF_RES` or more texels
-  a face, so the face-width cap alone (1/16 of a face) filtered a disk light 4 wide 5.6
-  over the ground (``bench_unseen``'s ``area`` seed 7, 128^2, 4 spp, against 16-ray
-  ``raytraced``) as a near-hard shadow: 5.98 % misclassified, now 1.76 % (256^2: 5.88
-  -> 1.66 %, 512^2: 5.58 -> 1.35 %), with the texels built unchanged. Marking the
+  level for it. A virtual map's levels are always
+  :data:`KERNEL_REF_RES` or more texels a face, so the face-width cap alone (1/16 of a
+  face) filtered a disk light 4 wide 5.6 over the ground (``bench_unseen``'s ``area``
+  seed 7, 128^2, 4 spp, against 16-ray ``raytraced``) as a near-hard shadow: 5.98 %
+  misclassified, now 1.76 % (256^2: 5.88 -> 1.66 %, 512^2: 5.58 -> 1.35 %), with the
+  texels built unchanged. Marking the
   coarser levels for these kernels cost every area light's ``pcss`` 10-25 % more texels
   around every point (``wip/pcss-light-cap-51H``), 8-23 % per point from the light's
   width (``wip/pcss-light-levels-51I``), 0-4.4 % per point from the blockers five rays
@@ -128,6 +129,19 @@ Deviations from the paper and why:
   but raised a 3-wide rectangle light 2.9 over a 1.3-wide ball (``area`` seed 1, where
   PCSS overestimates the penumbra and the cap trims it) 1.41 -> 2.36 % at 256^2 (its
   seed noise 0.4; fifty-first session, helper H).
+  A widened kernel whose level is not built under its point keeps its world
+  width at the coarsest level that is (:data:`KEEP_KERNEL_WIDTH`; its taps beyond the
+  tiles marked there read what any far tap reads: the neighbouring points' pages, else the
+  coarsest level), not ``max_kernel`` texels of it, which had made the penumbra near-hard
+  wherever the levels are fine (64^2, 4 spp: ``lod_bias`` -4 3.37 -> 1.59 % misclassified,
+  2.54 -> 0.20 % false shadow; ``max_kernel`` 1 5.96 -> 1.59 %; ``benchmarks/RESULTS.md``,
+  fifty-third session, helper B). The light's width these kernels' estimate takes is at
+  most twice the receiver's distance from it, the width a cube face spans there
+  (:func:`_light_seen`): a rectangle light 1200 wide 8 above a 12-wide ground (100 times
+  it) gave a blocker 1 unit tall a penumbra ~170 units wide and left the ground nearly
+  unshadowed, 8.06 % misclassified (RMSE 0.1785) against 6.71 % (0.1414) with the
+  face-width cap alone, now 6.69 % (0.1491); lights no wider than that (every other light
+  measured) are unchanged.
 * **Map borders.** Taps use the PCF tap helper
   (:func:`~.common.tap_depths`): taps off a spot/directional map are lit and
   are not blockers, as in ``pcf``. Unlike ``pcf``, taps beyond a *cube* face
@@ -441,17 +455,47 @@ LIGHT_WIDTH_CAP = True
 LIGHT_COARSE_RES = 64
 
 
-def _light_width_cap(smap, angular, w_light, texel, half_cap) -> tuple:
-    """``(cap, widened)``: the filter kernel's largest half-width, in texels of ``smap``:
-    ``half_cap`` (:func:`_kernel_cap`) or, on a virtual map under a light with extent
-    (not a directional light's angular diameter, not an environment's regions), half the
-    light's width ``w_light`` on the receiver's plane, whichever is wider: the penumbra
-    of a blocker halfway between the receiver and the light; and whether the light's
-    width applies (a Python bool)."""
+#: Whether the light's width a virtual map's widened kernels (:func:`_light_width_cap`)
+#: take is at most what a cube face spans at the receiver (:func:`_light_seen`).
+LIGHT_SEEN = True
+
+#: Whether a widened kernel whose level is not built under its point keeps its width at
+#: the coarsest level that is (:func:`_built_beyond`) instead of ``max_kernel`` texels.
+KEEP_KERNEL_WIDTH = True
+
+
+def _light_width_cap(smap, angular, w_light, texel, half_cap, d_light) -> tuple:
+    """``(cap, widened, w_seen)``: the filter kernel's largest half-width, in texels of
+    ``smap``: ``half_cap`` (:func:`_kernel_cap`) or, on a virtual map under a light with
+    extent (not a directional light's angular diameter, not an environment's regions),
+    half the light's width on the receiver's plane, whichever is wider: the penumbra of a
+    blocker halfway between the receiver and the light; whether the light's width
+    applies (a Python bool); and that width, ``w_seen`` (world units, per lane:
+    :func:`_light_seen` of the receiver's axial distance ``d_light`` from the light;
+    ``w_light`` where the light's width does not apply)."""
     vmap = getattr(smap, "vmap", None)
     if not LIGHT_WIDTH_CAP or angular or vmap is None or vmap.coarse_res is None:
-        return half_cap, False
-    return dr.maximum(half_cap, 0.5 * w_light / texel), True
+        return half_cap, False, w_light
+    w_seen = _light_seen(w_light, d_light) if LIGHT_SEEN else w_light
+    return dr.maximum(half_cap, 0.5 * w_seen / texel), True, w_seen
+
+
+def _light_seen(w_light, d_light) -> mi.Float:
+    """The light's width PCSS's estimate takes on a widened kernel: ``w_light``, at most
+    ``2 d_light``, the width a cube face (90 degrees) spans at the receiver's axial
+    distance ``d_light`` from the light: the part of the light within 45 degrees of the
+    receiver's line to its centre. In Fernando's terms, the light's size in a 90-degree
+    map's uv at the receiver's depth (``LIGHT_SIZE_UV * NEAR_PLANE / z_receiver``) is at
+    most the whole map. A light point further off is seen from the receiver along a
+    grazing ray, whose occluders no compare at the blocker's depth through the light's
+    centre reads: a rectangle 1200 wide 8 above a 12-wide ground (100 times it) gave a
+    blocker 1 unit tall a penumbra ~170 units wide and left the ground nearly unshadowed
+    (``benchmarks/RESULTS.md``, fifty-third session, helper B). Not the width of the
+    receiver's own face: a far light's face is aimed at the scene alone, a fraction of a
+    degree wide, narrower than the light (2.3 degrees seen from the ground), whose whole
+    width is its penumbra's (``test_kernels_on_a_rectangular_face_keep_their_world_width``
+    with the face's width: RMSE 0.063 against ``raytraced``, 0.047 without)."""
+    return dr.minimum(w_light, 2.0 * d_light)
 
 
 #: Levels coarser than the receiver's a virtual map's blocker search may read (the filter
@@ -568,8 +612,10 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     # below 1e-6 (their shadow is scaled by the count below) keep the division sane
     n_div = n_block if soft_width is None else dr.maximum(n_block, 1e-6)
     d_blocker = dr.maximum(z_sum / dr.select(has_blocker, n_div, 1.0), guard)
-    w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_light, angular, origin), 0.0)
-    filter_cap, widened = _light_width_cap(smap, angular, w_light, texel, half_cap)
+    d_light = d_r + origin     # the receiver's axial distance from the light
+    filter_cap, widened, w_seen = _light_width_cap(smap, angular, w_light, texel, half_cap,
+                                                   d_light)
+    w_penumbra = dr.maximum(_spread(d_r, d_blocker, w_seen, angular, origin), 0.0)
     filter_half = dr.clip(0.5 * w_penumbra / texel, 1e-3, filter_cap)
 
     # 3. PCF with a kernel proportional to w, only where blockers were found
@@ -577,8 +623,12 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
                                                       filter_half, half_max,
                                                       active & has_blocker,
                                                       light_width=widened)
-    if smap_f is not smap:
-        filter_half = dr.clip(filter_half * texel / texel_f, 1e-3, half_max)
+    if smap_f is not smap:     # the same world width, in its texels
+        # at most max_kernel texels there; a widened kernel whose level is not built
+        # under its point keeps its width at the coarsest level that is (_built_beyond)
+        keep = widened and KEEP_KERNEL_WIDTH
+        filter_half = dr.maximum(filter_half * texel / texel_f, 1e-3)
+        filter_half = filter_half if keep else dr.minimum(filter_half, half_max)
         soft_width = soft_compare_width(r_f, opts.soft_compare)
     rnd_f = lk.sampler.next_2d(active)
     vis = pcf_plane(smap_f, lk, r_f, plane_f, filter_half, opts.filter_samples, opts.pattern,
@@ -634,7 +684,8 @@ METHOD = Method(
              "PCSS blocker-search and filter kernels are at most max_kernel texels wide "
              "or max_kernel / 512 of the face's width, whichever is wider (so the cap "
              "does not shrink as the map gets denser; a virtual map's filter kernel under "
-             "a light with extent: at least the light's width); a kernel wider than max_kernel "
+             "a light with extent: at least the light's width, at most twice its distance); "
+             "a kernel wider than max_kernel "
              "texels (virtual maps: min(max_kernel, page_size)) filters a coarser level "
              "(virtual maps) or spreads its taps over the map's texels (full maps).",
              lo=1.0, hi=4096.0),

@@ -136,8 +136,8 @@ Deviations from the paper and why:
   wherever the levels are fine (64^2, 4 spp: ``lod_bias`` -4 3.37 -> 1.59 % misclassified,
   2.54 -> 0.20 % false shadow; ``max_kernel`` 1 5.96 -> 1.59 %; 128^2: ``lod_bias`` -4
   5.72 -> 1.46 %, ``page_size`` 16 2.21 -> 1.70 %, 256^2 3.95 -> 1.79 %; the texels
-  built equal; ``benchmarks/RESULTS.md``, fifty-third session, helper B). The light's width these kernels' estimate takes is at
-  most twice the receiver's distance from it, the width a cube face spans there
+  built equal; ``benchmarks/RESULTS.md``, fifty-third session, helper B). The light's
+  width these kernels' estimate takes is at most twice the receiver's distance from it, the width a cube face spans there
   (:func:`_light_seen`): a rectangle light 1200 wide 8 above a 12-wide ground (100 times
   it) gave a blocker 1 unit tall a penumbra ~170 units wide and left the ground nearly
   unshadowed, 8.06 % misclassified (RMSE 0.1785) against 6.71 % (0.1414) with the

@@ -129,22 +129,22 @@ Deviations from the paper and why:
   but raised a 3-wide rectangle light 2.9 over a 1.3-wide ball (``area`` seed 1, where
   PCSS overestimates the penumbra and the cap trims it) 1.41 -> 2.36 % at 256^2 (its
   seed noise 0.4; fifty-first session, helper H).
-  A widened kernel whose level is not built under its point keeps its world
-  width at the coarsest level that is (:data:`KEEP_KERNEL_WIDTH`; its taps beyond the
-  tiles marked there read what any far tap reads: the neighbouring points' pages, else the
-  coarsest level), not ``max_kernel`` texels of it, which had made the penumbra near-hard
-  wherever the levels are fine (64^2, 4 spp: ``lod_bias`` -4 3.37 -> 1.59 % misclassified,
-  2.54 -> 0.20 % false shadow; ``max_kernel`` 1 5.96 -> 1.59 %; 128^2: ``lod_bias`` -4
-  5.72 -> 1.46 %, ``page_size`` 16 2.21 -> 1.70 %, 256^2 3.95 -> 1.79 %; the texels
-  built equal; ``benchmarks/RESULTS.md``, fifty-third session, helper B). The light's
-  width these kernels' estimate takes is at most twice the receiver's distance from it, the width a cube face spans there
-  (:func:`_light_seen`): a rectangle light 1200 wide 8 above a 12-wide ground (100 times
-  it) gave a blocker 1 unit tall a penumbra ~170 units wide and left the ground nearly
-  unshadowed, 8.06 % misclassified (RMSE 0.1785) against 6.71 % (0.1414) with the
-  face-width cap alone, now 6.79 % (0.1491) at 64^2 (128^2: 7.67 -> 6.84 %, cap off
-  6.19 %; 256^2: 6.85 -> 6.87 %, 6.22 %; RMSE 0.1748 -> 0.1612 and 0.1670 -> 0.1553,
-  cap off 0.1490 and 0.1469): not all the way back, PCSS's one blocker plane under a
-  light 150 times its distance is the rest (the area light's reference there is the
+  A widened kernel whose level is not built under its point keeps its world width at the
+  coarsest level that is (:data:`KEEP_KERNEL_WIDTH`; its taps beyond the tiles marked
+  there read what any far tap reads: the neighbouring points' pages, else the coarsest
+  level), not ``max_kernel`` texels of it, which had made the penumbra near-hard wherever
+  the levels are fine (64^2, 4 spp: ``lod_bias`` -4 3.37 -> 1.59 % misclassified, 2.54 ->
+  0.20 % false shadow; ``max_kernel`` 1 5.96 -> 1.59 %; 128^2: ``lod_bias`` -4 5.72 ->
+  1.46 %, ``page_size`` 16 2.21 -> 1.70 %, 256^2 3.95 -> 1.79 %; the texels built equal;
+  ``benchmarks/RESULTS.md``, fifty-third session, helper B). The light's width these
+  kernels' estimate takes is at most twice the receiver's distance from it, the width a
+  cube face spans there (:func:`_light_seen`): a rectangle light 1200 wide 8 above a
+  12-wide ground (100 times it) gave a blocker 1 unit tall a penumbra ~170 units wide and
+  left the ground nearly unshadowed, 8.06 % misclassified (RMSE 0.1785) against 6.71 %
+  (0.1414) with the face-width cap alone, now 6.79 % (0.1491) at 64^2 (128^2: 7.67 -> 6.84
+  %, cap off 6.19 %; 256^2: 6.85 -> 6.87 %, 6.22 %; RMSE 0.1748 -> 0.1612 and 0.1670 ->
+  0.1553, cap off 0.1490 and 0.1469): not all the way back, PCSS's one blocker plane under
+  a light 150 times its distance is the rest (the area light's reference there is the
   horizon's occlusion); lights no wider than twice their distance (every other light
   measured) are unchanged.
 * **Map borders.** Taps use the PCF tap helper

@@ -143,10 +143,10 @@ Deviations from the paper and why:
   left the ground nearly unshadowed, 8.06 % misclassified (RMSE 0.1785) against 6.71 %
   (0.1414) with the face-width cap alone, now 6.79 % (0.1491) at 64^2 (128^2: 7.67 -> 6.84
   %, cap off 6.19 %; 256^2: 6.85 -> 6.87 %, 6.22 %; RMSE 0.1748 -> 0.1612 and 0.1670 ->
-  0.1553, cap off 0.1490 and 0.1469): not all the way back, PCSS's one blocker plane under
-  a light 150 times its distance is the rest (the area light's reference there is the
-  horizon's occlusion); lights no wider than twice their distance (every other light
-  measured) are unchanged.
+  0.1553, cap off 0.1490 and 0.1469): not all the way back: 13.6 % of its filter taps
+  (128^2) read the coarsest level, no finer one being built there (marking the levels down
+  to 64 texels a face, 12 % more texels: 6.20 %); lights no wider than twice their
+  distance (every other light measured) are unchanged.
 * **Map borders.** Taps use the PCF tap helper
   (:func:`~.common.tap_depths`): taps off a spot/directional map are lit and
   are not blockers, as in ``pcf``. Unlike ``pcf``, taps beyond a *cube* face

@@ -11,7 +11,9 @@ AOV, the misclassified pixels of both against ``raytraced``, the pixels the cach
 has lit where both the fresh frame and ``raytraced`` have shadow, and the page stats.
 
     python benchmarks/probe_page_cache.py [--moves 24] [--size 64] [--spp 4] [--seed 0]
-        [--configs room_hard large_hard ...]
+        [--configs room_hard large_hard ...] [--budgets none small tiny]
+        [--edits none shape light back dark] [--shared budget=tiny|method=pcf]
+        [--page-size 8] [--variant llvm_ad_mono]
 
 Prints one line per pose where anything differs and a summary line per configuration.
 """
@@ -19,13 +21,15 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+import sys
 import time
 import warnings
 
 import mitsuba as mi
 
-if __name__ == "__main__":
-    mi.set_variant("llvm_ad_rgb")
+if __name__ == "__main__":       # --variant NAME (before anything reads a variant)
+    mi.set_variant(sys.argv[sys.argv.index("--variant") + 1] if "--variant" in sys.argv
+                   else "llvm_ad_rgb")
 
 import numpy as np  # noqa: E402
 
@@ -46,6 +50,9 @@ CONFIGS = {
                  "spot.to_world"),
     "cbox_pcss": ("cbox_area", "pcss", 0.04, 0.4, None, "light_quad.vertex_positions"),
     "contact_pcss": ("contact_hardening", "pcss", 0.05, 0.5, None, None),
+    "sky_hard": ("sky_sun", "hard", 0.08, 1.0, "box.vertex_positions", None),
+    "far_point_pcf": ("far_point", "pcf", 0.1, 2.0, "box_small.vertex_positions",
+                      "light.position"),
 }
 
 
@@ -113,7 +120,8 @@ def run(name: str, moves: int, size: int, spp: int, seed: int, budget: float | N
         page_size: int | None = None) -> dict:
     """One configuration's path; returns the totals. ``shared``: the extra properties
     of a second long-lived integrator rendering every pose after the first (sharing its
-    page stores where the layers agree: another method, another budget); ``edit_kind``
+    page stores where the layers agree: another method, another budget), the first then
+    rendering it again; ``edit_kind``
     ``"back"``: the light moved at a third of the path and put back at two thirds."""
     file, method, small, big, shape_key, light_key = CONFIGS[name]
     path = str(SCENES / f"{file}.xml")
@@ -122,7 +130,9 @@ def run(name: str, moves: int, size: int, spp: int, seed: int, budget: float | N
         props["memory_budget"] = budget
     if page_size is not None:
         props["page_size"] = page_size
-    every = [props] + ([{**props, **shared}] if shared else [])
+    # with a second integrator: the first renders each pose again after it (a still
+    # camera whose store the second one changed: evicted, shrunk, grown)
+    every = [props] + ([{**props, **shared}, props] if shared else [])
     scene = load_scene(path, width=str(size), height=str(size))
     twin = load_scene(path, width=str(size), height=str(size))
     params, tparams = mi.traverse(scene), mi.traverse(twin)
@@ -130,11 +140,14 @@ def run(name: str, moves: int, size: int, spp: int, seed: int, budget: float | N
     start = np.array(params[key].matrix, np.float64).reshape(4, 4)
     rng = np.random.default_rng(seed)
     poses = camera_path(start, moves, small, big, rng)
-    integs = [mi.load_dict(p) for p in every]
+    integs = [mi.load_dict(p) for p in every[:2]]
+    integs += integs[:len(every) - len(integs)]
     edit_key = {"shape": shape_key, "light": light_key, "back": light_key}.get(edit_kind)
     if edit_kind == "dark":     # the first light's emitted value 0, then back
-        edit_key = next(k for k in params.keys() if k.endswith(
-            ("intensity.value", "irradiance.value", "radiance.value")))
+        edit_key = next((k for k in params.keys() if k.endswith(
+            ("intensity.value", "irradiance.value", "radiance.value"))), None)
+        if edit_key is None:
+            return None
     amount = 0.0
     if edit_key:
         amount = 0.05 if "vertex" in edit_key or "position" in edit_key else 0.3
@@ -233,6 +246,7 @@ def main():
                     help="none, shape, light, back (the light moved and put back), dark (a "
                     "light's emitted value 0, then back)")
     ap.add_argument("--page-size", type=int, default=None)
+    ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--shared", default=None,
                     help="a second long-lived integrator on the same scene: 'method=NAME', "
                     "'budget=none|small|tiny'")
@@ -253,6 +267,8 @@ def main():
                     continue
                 tot = run(name, args.moves, args.size, args.spp, args.seed, budget, kind,
                           shared=shared, page_size=args.page_size)
+                if tot is None:         # no emitted value to darken
+                    continue
                 print(f"{name} budget={b}{'' if budget is None else f' ({budget:.3f} MiB)'} "
                       f"edit={e} shared={args.shared} page_size={args.page_size}: "
                       + ", ".join(f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}"

@@ -425,6 +425,12 @@ class PageStore:
         ``f + 1`` (:class:`PageStore`), so it needs no table. The fourth array holds
         each slot's tile mask (which of its tiles are ray-cast), the fifth the tile mask
         of each entry of ``dense`` (0 where none is built): read with its slot, not after.
+        With ``frame`` both are of the frame's tiles alone (the slot's ray-cast tiles
+        among its marks; 0 for a slot the frame does not read), so ``bind``'s walk, which
+        reads the fourth by slot, and the taps, which read the fifth by entry, see the
+        same tiles (``tests/test_page_cache_paths.py``); a walk reading every tile the
+        slot ever had cast made a long-lived integrator's frame differ from a fresh one's
+        (6 pixels of ``pcf`` on room_two_points along a camera path, a scratch run).
         """
         token = (self.version,) if frame is None else (
             self.version, hash(frame[0].tobytes()), hash(frame[2].tobytes()))

@@ -51,7 +51,7 @@ CONFIGS = {
     "cbox_pcss": ("cbox_area", "pcss", 0.04, 0.4, None, "light_quad.vertex_positions"),
     "contact_pcss": ("contact_hardening", "pcss", 0.05, 0.5, None, None),
     "sky_hard": ("sky_sun", "hard", 0.08, 1.0, "box.vertex_positions", None),
-    "far_point_pcf": ("far_point", "pcf", 0.1, 2.0, "box_small.vertex_positions",
+    "far_point_pcf": ("far_point", "pcf", 0.1, 2.0, "box_big.vertex_positions",
                       "light.position"),
 }
 
@@ -132,7 +132,8 @@ def run(name: str, moves: int, size: int, spp: int, seed: int, budget: float | N
         props["page_size"] = page_size
     # with a second integrator: the first renders each pose again after it (a still
     # camera whose store the second one changed: evicted, shrunk, grown)
-    every = [props] + ([{**props, **shared}, props] if shared else [])
+    other = {k: v for k, v in {**props, **(shared or {})}.items() if v is not None}
+    every = [props] + ([other, props] if shared is not None else [])
     scene = load_scene(path, width=str(size), height=str(size))
     twin = load_scene(path, width=str(size), height=str(size))
     params, tparams = mi.traverse(scene), mi.traverse(twin)
@@ -253,13 +254,14 @@ def main():
     args = ap.parse_args()
     for name in args.configs:
         for b in args.budgets:
-            budget = parse_budget(b, name, args.size)
+            budget = parse_budget(b, name, args.size, args.page_size)
             shared = None
             if args.shared:
                 what, value = args.shared.split("=")
                 shared = ({"method": value} if what == "method" else
-                          {} if parse_budget(value, name, args.size) is None else
-                          {"memory_budget": parse_budget(value, name, args.size)})
+                          {"memory_budget": None} if value == "none" else
+                          {"memory_budget": parse_budget(value, name, args.size,
+                                                         args.page_size)})
             for e in args.edits:
                 kind = None if e == "none" else e
                 if kind in ("shape", "light", "back") and CONFIGS[name][
@@ -275,20 +277,21 @@ def main():
                                   for k, v in tot.items()), flush=True)
 
 
-def parse_budget(b: str, name: str, size: int):
+def parse_budget(b: str, name: str, size: int, page_size: int | None = None):
     if b == "none":
         return None
     if b in ("small", "tiny"):
-        return small_budget(name, size, 2 if b == "small" else 6)
+        return small_budget(name, size, 2 if b == "small" else 6, page_size)
     return float(b)
 
 
-def small_budget(name: str, size: int, div: int = 2) -> float:
+def small_budget(name: str, size: int, div: int = 2, page_size: int | None = None) -> float:
     """The pages the first frame of ``name`` marks, divided by ``div``, with every
     map's fixed slots (MiB): a budget that degrades every frame's finest pages."""
     file, method = CONFIGS[name][:2]
     scene = load_scene(str(SCENES / f"{file}.xml"), width=str(size), height=str(size))
-    integ = mi.load_dict({"type": "shadowmap", "method": method, "cache_maps": False})
+    integ = mi.load_dict({"type": "shadowmap", "method": method, "cache_maps": False,
+                          **({} if page_size is None else {"page_size": page_size})})
     mi.render(scene, integrator=integ, spp=1)
     stores = {id(m.store): m.store for m in integ.maps if hasattr(m, "store")}
     st = next(iter(stores.values()))

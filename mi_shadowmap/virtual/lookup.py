@@ -416,9 +416,10 @@ class VirtualShadowMap:
         ``face`` (float64 uv, per lane) at ``level`` (per lane; ``mi.Bool``): its page in
         the frame's page table and the tile among the frame's marked tiles, what a tap
         there reads (:meth:`BoundVirtualMap._index`; elsewhere it reads the coarsest
-        level). Not the store's record of every tile any frame built (``tile_masks``,
-        which :meth:`bind`'s walk reads): a kernel choosing its level by it would make
-        the image depend on earlier views."""
+        level). The page table holds this frame's tiles alone (:meth:`PageStore.table`
+        with a frame; ``bind``'s walk reads the same tiles by slot), not every tile an
+        earlier view built: a kernel choosing its level by those would make the image
+        depend on earlier views (``tests/test_page_cache_paths.py``)."""
         level = mi.UInt32(level)
         _, xy, bx, by, e, ok = self._block_at(face, level, uv64, active)
         q = self._own_page(xy, bx, by)

@@ -352,7 +352,7 @@ def _map_groups(scene, methods, sensor, params) -> list[list[EmitterMap]]:
     # the method whose texels cost most goes first: its resolution fits every method's
     # budget (second_depth's full maps hold no first depth, one array as hard's, unless
     # the scene is differentiated: map_manager.holds_first_depth)
-    diff = map_manager._differentiated(scene)
+    diff = map_manager.differentiated(scene)
     cost = [map_manager.full_texel_cost(o, diff) for o in opts]
     order = sorted(range(len(opts)), key=lambda k: (-cost[k],
                                                     -len(opts[k].record.layer_names(opts[k]))))

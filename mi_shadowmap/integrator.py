@@ -42,7 +42,7 @@ from .variants import (SUPPORTED_VARIANTS, bsdf_eval_reaches, bsdf_to_world, che
                        tilts_shading_frame, unpolarized, variant_class)
 from .virtual import VirtualShadowMap, camera_frame, camera_state
 from .map_manager import (MAP_CACHE, MapCache, MapStats, ParamWatch,  # noqa: F401  (re-exported)
-                          _differentiated, prepare_maps, scene_lease, scene_token)
+                          differentiated, prepare_maps, scene_lease, scene_token)
 
 
 class ShadowMapIntegratorMixin:
@@ -257,7 +257,7 @@ screen is Mitsuba's projective integrators' job.
         step = (name in self.STEP_METHODS
                 and not (name == "multiview" and self.opts.filter != "hard")) or (
             name in self.SOFT_COMPARE_METHODS and not self.opts.soft_compare > 0)
-        if not step or not _differentiated(scene):
+        if not step or not differentiated(scene):
             return
         self._no_gradient_warned = True
         fix = ("set soft_compare > 0 (e.g. 2)" if name in self.SOFT_COMPARE_METHODS

@@ -250,13 +250,13 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
     diff = maps_need_gradients(scene, params)
     aa = getattr(opts, "antialias", "never")
     aa = aa == "always" or (aa == "gradients" and diff)
-    differentiated = diff or _differentiated(scene, params)
+    grads = diff or differentiated(scene, params)
     first = holds_first_depth(record, layer_names, getattr(opts, "antialias", "never"),
-                              differentiated)
+                              grads)
     # Raises (naming the memory needed) before any map is allocated.
     cost = texel_cost(record, layer_names, first)
     res = opts.map_resolution(film_size, math.ceil(n_faces * cost), footprint, budget_bytes)
-    if opts.resolution is None and differentiated:
+    if opts.resolution is None and grads:
         res = _gradient_resolution(scene, sensor, film_size, math.ceil(n_faces * cost),
                                    opts.budget_bytes if budget_bytes is None else budget_bytes,
                                    res)
@@ -274,7 +274,7 @@ def plan_maps(scene: mi.Scene, sensor, opts, views=None, params=None,
              if opts.cache_maps and not (diff or aa) else None)
     layers = {name: record.layers[name] for name in layer_names}
     poses = [None] * len(views)
-    if differentiated:
+    if grads:
         # a light whose pose has gradients: its reference view and pose delta, attached
         # in the gradient pass and detached in mi.render's primal pass (under
         # dr.suspend_grad), so that neither holds the moving light as kernel literals
@@ -363,7 +363,7 @@ def holds_first_depth(record, layer_names, antialias: str, differentiated: bool)
     ``second_depth``'s, whose lookups read the second depths alone), and always where it
     is antialiased (``antialias`` 'always'; 'gradients' antialiases differentiated
     renders only) or its scene is differentiated (``differentiated``: a shape or emitter
-    parameter has gradients enabled, :func:`_differentiated`; a gradient render's lookups
+    parameter has gradients enabled, :func:`differentiated`; a gradient render's lookups
     follow its gradients, ``Integrator._gradient_render``, and both passes plan the same
     memory, so the same resolution). :func:`plan_maps` builds by it, and the harness orders the
     methods sharing maps by it (:func:`full_texel_cost`)."""
@@ -538,7 +538,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
     """
     t0 = time.perf_counter()
     params = _traverse(scene, opts)    # once per render: read by every check below
-    if opts.uses_map and _keeps_gradient_resolution(scene) and not _differentiated(scene,
+    if opts.uses_map and _keeps_gradient_resolution(scene) and not differentiated(scene,
                                                                                    params):
         _forget_gradient_resolutions(scene)    # gradients disabled since: follow the scene
     kinds = {emitter_kind(e) for e in scene.emitters()}
@@ -561,7 +561,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
                 "'virtual' out")
         opts = opts.replace(virtual=False)     # automatic: full maps
     if opts.uses_map and opts.virtual and not (
-            "virtual" not in opts.given and _differentiated(scene, params)):
+            "virtual" not in opts.given and differentiated(scene, params)):
         # the automatic virtual=true: a scene being differentiated gets full maps (in the
         # AD graph), in its primal render too, so loss and gradient see the same maps
         return _prepare_virtual(scene, sensor, opts, views, t0, params, pixels, camera)
@@ -569,7 +569,7 @@ def prepare_maps(scene: mi.Scene, sensor, opts, views=None,
     maps, stats = build_maps(scene, plan)
     if (opts.uses_map and virtual_lost_to_budget(opts)
             and (sensor is None or aims_by_film(sensor))
-            and not _differentiated(scene, params)):
+            and not differentiated(scene, params)):
         # the automatic virtual=true, but for a budget below one virtual cube map's
         # coarsest level (the options' check, whatever the lights): as _prepare_virtual's
         # budget check, one warning a render (it was silent below 0.047 MiB at the
@@ -643,7 +643,7 @@ def maps_need_gradients(scene: mi.Scene, params=None) -> bool:
     return False
 
 
-def _differentiated(scene: mi.Scene, params=None) -> bool:
+def differentiated(scene: mi.Scene, params=None) -> bool:
     """Whether a shape or emitter parameter has gradients enabled, whatever the current
     AD scope: ``mi.render(scene, params)`` renders its primal image under
     ``dr.suspend_grad()`` (where :func:`maps_need_gradients` is False) and its gradient

@@ -33,7 +33,8 @@ and at the largest power of two whose faces hold no more texels than the virtual
 built (equal texels), against ``raytraced`` (16 shadow rays a sample under area lights)
 over every light's pixels (each light's in brackets), with the reference's own seed
 noise, the virtual map's texels per film pixel at ``--image`` and at ``--texel-image``
-(1 spp), non-finite values and the warnings raised.
+(1 spp), non-finite values and the warnings raised. ``--virtual-only``: no full maps (a
+sweep of many seeds at defaults).
 
 Targets (issue 11, defaults only): misclassified <= 1 % on the large world (both
 kinds), <= 0.3 % under the point light 1e5 and 1e6 away; <= 8 texels per film pixel per
@@ -316,23 +317,30 @@ def local_scan(args, seeds):
                     texels = integ.stats["texels_built"]
                     _, i256, _ = _render(mi.load_dict(random_local_lights(
                         kind, seed, args.texel_image, 1)[0]), {"method": m}, 0)
-                    f, fi, wf = _render(mi.load_dict(d), {"method": m, "virtual": False}, 0)
-                    faces = fi.stats["faces_built"]
-                    res = max(16, 2 ** int(math.floor(math.log2(math.sqrt(
-                        max(texels, 1) / max(faces, 1))))))
-                    e, ei, we = _render(mi.load_dict(d), {"method": m, "virtual": False,
-                                                          "resolution": res}, 0)
+                    f = e = None
+                    wf = we = []
+                    if not args.virtual_only:
+                        f, fi, wf = _render(mi.load_dict(d), {"method": m,
+                                                              "virtual": False}, 0)
+                        faces = fi.stats["faces_built"]
+                        res = max(16, 2 ** int(math.floor(math.log2(math.sqrt(
+                            max(texels, 1) / max(faces, 1))))))
+                        e, ei, we = _render(mi.load_dict(d), {
+                            "method": m, "virtual": False, "resolution": res}, 0)
                 except Exception as exc:  # noqa: BLE001  (reported, the run goes on)
                     print(f"| {kind} | {seed} | {drawn} | {m} | {noise} | error: "
                           f"{type(exc).__name__}: {str(exc)[:150]} | | | | | |", flush=True)
                     continue
-                bad = sum(int(np.count_nonzero(~np.isfinite(x))) for x in (v, f, e))
+                bad = sum(int(np.count_nonzero(~np.isfinite(x))) for x in (v, f, e)
+                          if x is not None)
                 warns = sorted(set(w + wf + we))
                 px = args.image ** 2
+                full = ["-", "-"] if f is None else [
+                    f"{_score(ref, f)} ({fi.stats['texels_built'] / px:.1f})",
+                    f"{_score(ref, e)} ({res})"]
                 cells = [_score(ref, v), f"{texels / px:.2f} / "
                          f"{i256.stats['texels_built'] / args.texel_image ** 2:.2f}",
-                         f"{_score(ref, f)} ({fi.stats['texels_built'] / px:.1f})",
-                         f"{_score(ref, e)} ({res})", str(bad), "; ".join(warns) or "-"]
+                         *full, str(bad), "; ".join(warns) or "-"]
                 print(f"| {kind} | {seed} | {drawn} | {m} | {noise} | " + " | ".join(cells)
                       + " |", flush=True)
     print(f"\n# total {time.perf_counter() - t_start:.0f} s")
@@ -350,6 +358,8 @@ def main(argv=None):
     ap.add_argument("--methods", nargs="+", default=["hard", "pcf"])
     ap.add_argument("--texel-image", type=int, default=256,
                     help="local-light kinds: the film of the virtual map's texel count")
+    ap.add_argument("--virtual-only", action="store_true",
+                    help="local-light kinds: no full maps (their columns read '-')")
     ap.add_argument("--texels-only", action="store_true",
                     help="texels per pixel only (1 spp, no reference): a fast scan")
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
@@ -364,6 +374,8 @@ def main(argv=None):
         ap.error("--kinds: local-light kinds (" + ", ".join(LOCAL_KINDS) + ") run alone")
     if local and (args.texels_only or props):
         ap.error("local-light kinds take neither --texels-only nor --set")
+    if args.virtual_only and not local:
+        ap.error("--virtual-only is for local-light kinds (the others build no full maps)")
     for k in args.kinds:
         if k not in ("world", "terrain") + LOCAL_KINDS:
             try:

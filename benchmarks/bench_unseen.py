@@ -3,7 +3,7 @@ repository's. One run, by hand:
 
     python benchmarks/bench_unseen.py [--seeds 8] [--first-seed 0] [--image 128] [--spp 16]
                                       [--kinds world 1e5 1e6 terrain] [--methods hard pcf]
-                                      [--texels-only] [--texel-image 256]
+                                      [--texels-only] [--texel-image 256] [--virtual-only]
 
 ``--first-seed``: run seeds ``first .. first + seeds - 1`` (the unseen worlds beyond the
 default 0-7, e.g. ``--kinds terrain --first-seed 8 --seeds 22``).
@@ -23,11 +23,16 @@ how much the reference itself misclassifies from its camera samples alone.
 pixel, rendered at 1 spp (the mark pass reads the pixels' centres, so the texels do not
 depend on the spp): a scan of many seeds at 256^2 for the texel target.
 
-Local-light kinds (``--kinds spot area sphere_light room mixed scale_1e-3 scale_1e4``,
-each run alone; :func:`random_local_lights`): spots narrow, wide, over 80 degrees (a
-cube map) or grazing the ground; one-sided rectangle and disk lights, small and large;
-sphere lights; a point light 0.02-0.3 from a closed room's ceiling, wall or a box top;
-2-4 lights of mixed types, and that scene scaled by 1e-3 and 1e4. Each method on
+Local-light kinds (``--kinds spot area sphere_light room mixed scale_1e-3 scale_1e4
+feature``, each run alone; :func:`random_local_lights`): spots narrow, wide, over 80
+degrees (a cube map) or grazing the ground; one-sided rectangle and disk lights, small
+and large; sphere lights; a point light 0.02-0.3 from a closed room's ceiling, wall or a
+box top; 2-4 lights of mixed types, and that scene scaled by 1e-3 and 1e4; ``feature``
+(``seed % 9``, ``FEATURE_KINDS``): instances of a shapegroup, an open PLY mesh light, a
+strip light 2-6 long and 0.02-0.1 wide, a sun through a closed room's window, hair-like
+``linearcurve`` strands, two lights at one position, a sun along an axis, a thin-lens
+or an orthographic camera (the mesh and curve files are written to the temporary
+directory). Each method on
 virtual maps (defaults) and on full maps (``virtual=false``) at the automatic resolution
 and at the largest power of two whose faces hold no more texels than the virtual map
 built (equal texels), against ``raytraced`` (16 shadow rays a sample under area lights)
@@ -44,6 +49,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import tempfile
 import time
 import warnings
 
@@ -51,6 +58,7 @@ import mi_shadowmap  # noqa: F401  (LLVM set-up, registration)
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowmap import procedural
 from mi_shadowmap.metrics import misclassified
 from mi_shadowmap.scenes import (_diffuse, camera, random_far_point, random_large_world,
                                  random_terrain_world)
@@ -61,11 +69,14 @@ T = mi.ScalarTransform4f
 
 
 # ------------------------------------------- local lights (spot, area, near point, mixed)
-LOCAL_KINDS = ("spot", "area", "sphere_light", "room", "mixed", "scale_1e-3", "scale_1e4")
+LOCAL_KINDS = ("spot", "area", "sphere_light", "room", "mixed", "scale_1e-3", "scale_1e4",
+               "feature")
 SPOT_KINDS = ("narrow", "wide", "cube", "grazing")
 AREA_KINDS = ("rectangle small", "rectangle large", "disk small", "disk large")
 ROOM_KINDS = ("under the ceiling", "beside a wall", "over a box")
 MIXED_TYPES = ("spot", "point", "rectangle", "disk", "sphere", "sun")
+FEATURE_KINDS = ("instances", "mesh light", "strip light", "window", "curves", "twin lights",
+                 "axis sun", "thinlens", "orthographic")
 
 
 def _look(origin, target):
@@ -167,6 +178,145 @@ def _room(rng, sub: str, width: int, spp: int) -> dict:
     return scene
 
 
+def _sun(direction) -> dict:
+    return {"type": "directional", "irradiance": {"type": "rgb", "value": 3.0},
+            "direction": list(direction)}
+
+
+def _scratch_file(name: str) -> str:
+    """A path in the temporary directory for a feature's mesh or curve file."""
+    return os.path.join(tempfile.gettempdir(), f"mi_shadowmap_unseen_{os.getpid()}_{name}")
+
+
+def _strands(rng, path: str):
+    """30-60 ``linearcurve`` strands, 1-2.5 high, in ``path`` (x y z radius lines)."""
+    with open(path, "w") as fh:
+        for _ in range(int(rng.integers(30, 61))):
+            x, z = rng.uniform(-3, 3, 2)
+            h, bend, phase = rng.uniform(1, 2.5), rng.uniform(0.05, 0.3), rng.uniform(0, 6)
+            for j in range(6):
+                fh.write(f"{x + bend * math.sin(j + phase):.5f} {0.02 + h * j / 5:.5f} "
+                         f"{z + bend * math.cos(1.3 * j + phase):.5f} 0.03\n")
+            fh.write("\n")
+
+
+def _window_room(rng, scene: dict):
+    """The props' scene closed into an 8 x 3 x 8 room (two-sided walls, a roof) whose -x
+    wall has a window 2-4 wide and 0.8-1.6 high: the only way in for a sun from -x."""
+    del scene["post"], scene["plate"]
+    two = {"type": "twosided", "bsdf": _diffuse(0.6, 0.6, 0.6)}
+
+    def wall(name, centre, turn, half):
+        scene[name] = {"type": "rectangle", "bsdf": two, "to_world": T().translate(centre)
+                       .rotate([0, 1, 0], turn).scale([half[0], half[1], 1])}
+    scene["roof"] = {"type": "rectangle", "bsdf": two,
+                     "to_world": T().translate([0, 3, 0]).rotate([1, 0, 0], 90).scale(4)}
+    wall("wall_x", [4, 1.5, 0], -90, [4, 1.5])
+    wall("wall_z", [0, 1.5, 4], 180, [4, 1.5])
+    wall("wall_mz", [0, 1.5, -4], 0, [4, 1.5])
+    w, h = rng.uniform(1, 2), rng.uniform(0.4, 0.8)
+    z0, y0 = rng.uniform(-1.5, 1.5), rng.uniform(0.6 + h, 2.2 - h)
+    for name, (z_lo, z_hi, y_lo, y_hi) in {"w_left": (-4, z0 - w, 0, 3),
+                                           "w_right": (z0 + w, 4, 0, 3),
+                                           "w_low": (z0 - w, z0 + w, 0, y0 - h),
+                                           "w_high": (z0 - w, z0 + w, y0 + h, 3)}.items():
+        wall(name, [-4, 0.5 * (y_lo + y_hi), 0.5 * (z_lo + z_hi)], 90,
+             [0.5 * (z_hi - z_lo), 0.5 * (y_hi - y_lo)])
+    elev = math.radians(rng.uniform(15, 40))
+    turn = math.radians(rng.uniform(-25, 25))
+    scene["light"] = _sun([math.cos(elev) * math.cos(turn), -math.sin(elev),
+                           math.cos(elev) * math.sin(turn)])
+    a = rng.uniform(-0.6, 0.6)
+    scene["sensor"]["to_world"] = T().look_at(origin=[3.2, rng.uniform(1.2, 2.2), 3.2 * a],
+                                              target=[-1.0, 0.6, -0.5 * a], up=[0, 1, 0])
+    scene["sensor"]["fov"] = rng.uniform(60, 80)
+
+
+def _feature(rng, sub: str, scene: dict, seed: int):
+    """Adds what ``sub`` (``FEATURE_KINDS``) draws to the props' ``scene``: a Mitsuba
+    feature the other kinds do not make, lit by a wide spot unless it is a light."""
+    light = _spot(rng, "wide", 1.0)
+    if sub == "instances":       # a shapegroup (a cube and a ball) placed 4-7 times
+        scene["group"] = {"type": "shapegroup",
+                          "cube": {"type": "cube", "bsdf": _diffuse(0.3, 0.6, 0.3),
+                                   "to_world": T().scale([0.3, 0.6, 0.3])},
+                          "ball": {"type": "sphere", "radius": 0.3, "center": [0, 1.0, 0],
+                                   "bsdf": _diffuse(0.6, 0.6, 0.3)}}
+        for k in range(int(rng.integers(4, 8))):
+            x, z = rng.uniform(-4, 4, 2)
+            scene[f"instance_{k}"] = {
+                "type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                "to_world": T().translate([x, rng.uniform(0.6, 1.5), z])
+                .rotate([0, 1, 0], rng.uniform(0, 90)).scale(rng.uniform(0.6, 1.6))}
+    elif sub == "mesh light":    # an open PLY mesh, two quads folded, emitting downwards
+        w, fold = rng.uniform(0.3, 2.0), rng.uniform(0, 60)
+        c, s = math.cos(math.radians(fold)), math.sin(math.radians(fold))
+        v = np.array([[-1, 0, -1], [0, 0, -1], [0, 0, 1], [-1, 0, 1],
+                      [c, s, -1], [c, s, 1]], float) * [w, w, 0.5 * w]
+        path = _scratch_file(f"panel_{seed}.ply")
+        procedural.write_ply(path, v, [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+        h = rng.uniform(3, 6)
+        light = {"type": "ply", "filename": path, "emitter": {
+            "type": "area", "radiance": {"type": "rgb", "value": 3.0 * h * h / (2 * w * w)}},
+            "to_world": T().translate([rng.uniform(-2, 2), h, rng.uniform(-2, 2)])
+            .rotate([0, 1, 0], rng.uniform(0, 180))}
+    elif sub == "strip light":   # a rectangle 2-6 long and 0.02-0.1 wide
+        long_, short = rng.uniform(2, 6), rng.uniform(0.02, 0.1)
+        p = [rng.uniform(-2, 2), rng.uniform(3, 6), rng.uniform(-2, 2)]
+        light = {"type": "rectangle",
+                 "to_world": _look(p, [p[0] + rng.uniform(-1, 1), 0.0, p[2]])
+                 @ T().rotate([0, 0, 1], rng.uniform(0, 180))
+                 .scale([0.5 * long_, 0.5 * short, 1.0]),
+                 "emitter": {"type": "area", "radiance": {
+                     "type": "rgb", "value": 3.0 * p[1] ** 2 / (long_ * short)}}}
+    elif sub == "window":
+        _window_room(rng, scene)
+        return
+    elif sub == "curves":        # hair-like strands (Mitsuba's linearcurve)
+        path = _scratch_file(f"strands_{seed}.txt")
+        _strands(rng, path)
+        scene["strands"] = {"type": "linearcurve", "filename": path,
+                            "bsdf": _diffuse(0.7, 0.5, 0.2)}
+    elif sub == "twin lights":   # two lights of one type at one position
+        if rng.random() < 0.5:
+            p = [rng.uniform(-3, 3), rng.uniform(2, 6), rng.uniform(-3, 3)]
+            light = {"type": "point", "position": p,
+                     "intensity": {"type": "rgb", "value": 1.5 * p[1] ** 2}}
+            scene["light_b"] = dict(light, intensity={"type": "rgb", "value": 4 * p[1] ** 2})
+        else:
+            scene["light_b"] = _spot(rng, "wide", 1.0)
+            scene["light_b"]["to_world"] = _look(
+                list(light["to_world"].translation()), [rng.uniform(-2, 2), 0.0,
+                                                        rng.uniform(-2, 2)])
+    elif sub == "axis sun":      # a sun along -y, or along +-x / +-z onto a two-sided wall
+        axis = int(rng.integers(3))
+        if axis == 0:
+            light = _sun([0, -1, 0])
+        else:
+            sign = 1.0 if rng.random() < 0.5 else -1.0
+            d = [0.0, 0.0, 0.0]
+            d[2 * axis - 2] = sign
+            light = _sun(d)
+            centre = [0.0, 2.0, 0.0]
+            centre[2 * axis - 2] = 5.0 * sign
+            scene["wall"] = {"type": "rectangle", "bsdf": {"type": "twosided",
+                                                           "bsdf": _diffuse(0.5, 0.5, 0.5)},
+                             "to_world": T().translate(centre).rotate(
+                                 [0, 1, 0], 90 if axis == 1 else 0).scale([6, 2, 1])}
+    elif sub in ("thinlens", "orthographic"):
+        sensor = scene["sensor"]
+        origin = np.array(sensor["to_world"].translation())
+        dist = float(np.linalg.norm(origin - [0.0, 0.5, 0.0]))
+        if sub == "thinlens":
+            sensor.update(type="thinlens", aperture_radius=rng.uniform(0.02, 0.3),
+                          focus_distance=dist * rng.uniform(0.7, 1.2))
+        else:
+            half = dist * math.tan(math.radians(0.5 * sensor.pop("fov")))
+            sensor.update(type="orthographic",
+                          to_world=sensor["to_world"] @ T().scale([half, half, 1]))
+    scene["light"] = light
+
+
 def random_local_lights(kind: str, seed: int, width: int = 128, spp: int = 16):
     """A random scene of ``kind`` (``LOCAL_KINDS``) and a label of what was drawn: a 12 x
     12 ground with 3 boxes, 3 spheres (some floating), a post and a floating plate, seen
@@ -175,7 +325,8 @@ def random_local_lights(kind: str, seed: int, width: int = 128, spp: int = 16):
     (``seed % 4``: rectangle or disk, 0.05-0.3 or 2-5 wide), a sphere light (radius
     0.05-1.2), 2-4 lights of mixed types, or that mixed scene scaled by 1e-3 or 1e4
     (camera clip planes too); ``room``: a point light 0.02-0.3 from the ceiling, a wall
-    or a box top (``seed % 3``) inside a closed room."""
+    or a box top (``seed % 3``) inside a closed room; ``feature``: see
+    ``FEATURE_KINDS`` and :func:`_feature`."""
     # the scaled kinds draw the mixed kind's scene of the same seed (scale invariance)
     rng = np.random.default_rng([seed, LOCAL_KINDS.index("mixed" if kind.startswith(
         "scale") else kind)])
@@ -199,6 +350,9 @@ def random_local_lights(kind: str, seed: int, width: int = 128, spp: int = 16):
         small = sub.endswith("small")
         scene["light"] = _area(rng, sub.split()[0], rng.uniform(0.05, 0.3) if small
                                else rng.uniform(2, 5), s)
+    elif kind == "feature":
+        sub = FEATURE_KINDS[seed % len(FEATURE_KINDS)]
+        _feature(rng, sub, scene, seed)
     elif kind == "sphere_light":
         size = rng.uniform(0.05, 1.2)
         sub = f"radius {size:.2f}"

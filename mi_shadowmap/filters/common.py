@@ -511,6 +511,22 @@ def footprint_texels(smap, lk: Lookup, r: Receiver, equal_variance: bool = False
     return dr.minimum(w, mi.Float(res))   # res: per lane on virtual maps
 
 
+def taps_cross_seams(smap, cross_seams: bool = True) -> bool:
+    """Whether a tap on ``smap`` off its face continues on the neighbouring face (a
+    cube map's seam): ``cross_seams`` (the filter's wish) unless the map's view says
+    its taps cannot cross (``view.taps_cross_seams`` False: a virtual map's
+    :class:`~mi_shadowmap.light_views.local.LocalView`, whose taps are clamped to their
+    face's border texel). Full maps cross. Every tap helper here asks it, so a user
+    method's taps get the same answer.
+
+    A clamped tap reads the border texel: an occluder seen only across the seam
+    within the kernel is missed, a partial error bounded by the share of taps beyond
+    the edge; where the neighbouring face's pages are not built (the marks build a
+    point's own face) a crossing tap read the coarsest level, a wider error
+    (``benchmarks/RESULTS.md``, fifty-third session, helper E)."""
+    return bool(cross_seams) and getattr(smap.view, "taps_cross_seams", True)
+
+
 def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
                plane: ReceiverPlane | None = None, active=True, cross_seams: bool = True,
                lateral_texels=None):
@@ -521,7 +537,8 @@ def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
     it hits (the view's :meth:`~mi_shadowmap.light_views.LightView.tap_texel`: off a
     perspective/orthographic map
     ``inside`` is False -- such a tap is lit and blocks nothing; cube taps
-    continue on the neighbouring face, or with ``cross_seams`` False are
+    continue on the neighbouring face, or with ``cross_seams`` False or on a map
+    whose taps cannot cross (:func:`taps_cross_seams`: virtual maps) are
     clamped to the face); ``z_receiver`` is ``r.depth`` (biases applied) or,
     with ``plane``, the receiver plane's depth along that texel's ray through
     its centre (:func:`plane_depth_at`, same biases, clamped by the tap's
@@ -530,7 +547,8 @@ def tap_depths(smap, r: Receiver, face, xy_texel: mi.Point2f,
     the coarsest level, whose texel holds the depth along its own ray: it is compared
     with the nearer of the plane's depths at the tap's texel and at that ray's point.
     """
-    f2, i, j, inside = smap.view.tap_texel(face, xy_texel, smap.resolution, cross_seams)
+    f2, i, j, inside = smap.view.tap_texel(face, xy_texel, smap.resolution,
+                                           taps_cross_seams(smap, cross_seams))
     centre = None
     if plane is not None and hasattr(smap, "fetch_centre"):
         # a virtual map: a tap whose page is not built reads the coarsest level, whose
@@ -655,7 +673,7 @@ def soft_tap(smap, z_map, z, inside, width, face, xy_texel, active=True,
         return soft_tap_lit(z_map, z, inside, width)
     res = smap.resolution
     f2, i, j, _ = smap.view.tap_texel(face, dr.detach(xy_texel) if smooth else xy_texel, res,
-                                      cross_seams)
+                                      taps_cross_seams(smap, cross_seams))
     lit = _covered_tap(smap, f2, i, j, z, inside, width, active)
     if not moving:
         return lit
@@ -698,7 +716,8 @@ def soft_blocker(smap, z_map, z, inside, width, face, xy_texel, active=True,
     if getattr(smap, "coverage", None) is None and not moving:
         return _blocker_weight(z_map, z, inside, width)
     res = smap.resolution
-    f2, i, j, _ = smap.view.tap_texel(face, dr.detach(xy_texel), res, cross_seams)
+    f2, i, j, _ = smap.view.tap_texel(face, dr.detach(xy_texel), res,
+                                      taps_cross_seams(smap, cross_seams))
     b, bz = _covered_blocker(smap, f2, i, j, z, inside, width, active)
     if not moving:
         return b, bz

@@ -64,6 +64,17 @@ class LocalView:
 
     projection = "local"
 
+    #: Whether a filter's tap off the face continues on the neighbouring face (a cube
+    #: map's seam): False, every tap is clamped to its face's border texel (the filters
+    #: read it through :func:`~mi_shadowmap.filters.common.taps_cross_seams`). The
+    #: marks build each point's tiles on its own face only, so a tap across the seam
+    #: read the coarsest level there, a texel 4-8 times as wide whose depth lies in
+    #: front of the receiver's plane: ``pcf`` beside cbox_area's seams erred 0.140
+    #: against ``raytraced``, 0.061 clamped (full maps 0.070); building and reading the
+    #: neighbouring face's tiles (0.073) cost 3.9 % more texels and ~8 % of ``pcf``'s
+    #: render (``benchmarks/RESULTS.md``, fifty-third session, helpers A and E).
+    taps_cross_seams = False
+
     def __init__(self, inner, face, res_level, origin, bound=None, depth_origin=None,
                  lazy_frame: bool = False):
         self.inner = inner
@@ -286,7 +297,8 @@ class LocalView:
         """Texel of a tap at local coordinates ``xy_texel``: local ``(i, j)`` (global
         minus ``origin``); off the face, the neighbouring face's texel (cube maps) or
         ``inside`` False, as the wrapped view's :meth:`face_texel_f64` says; with
-        ``cross_seams`` False clamped to the face."""
+        ``cross_seams`` False clamped to the face (the filters pass
+        :attr:`taps_cross_seams`, False)."""
         # floor(xy + origin) = floor(xy) + origin: the global texel in integers (the
         # local coordinates are exact in float32); only taps off the face (a symbolic
         # dr.if_stmt: packets with one) go through the wrapped view's float64 continuation

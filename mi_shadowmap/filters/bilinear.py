@@ -37,7 +37,8 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
       ``(1-f), 1, ..., 1, f`` per axis, ``f`` the sub-texel position.
 
     Taps are :func:`~.common.tap_lit` comparisons (off-map texels lit; cube
-    seams continue on the neighbouring face), looped in one
+    seams continue on the neighbouring face on a full map and are clamped to the
+    face on a virtual one, see the deviations), looped in one
     ``dr.while_loop``. With ``receiver_plane`` (default on) each texel is
     compared with the receiver's tangent-plane depth along its ray.
 
@@ -57,6 +58,15 @@ def bilinear(smap, lk: Lookup, opts, active=True) -> mi.Float:
       place the footprint; we weight the compares by the sub-texel position,
       as today's hardware PCF does (the issue asks for it), which removes the
       blockiness of equal weights and centres the footprint on the receiver.
+    * *Cube maps* are not in the paper. On a virtual map texels beyond a cube
+      face's edge are clamped to it (:func:`~.common.taps_cross_seams`): the marks
+      build a point's pages on its own face only, and a texel across the seam read
+      the coarsest level, whose depth lies in front of the receiver's plane
+      (cbox_area's back wall beside the side walls: 0.078 against ``raytraced``;
+      clamped 0.037, full maps 0.036). The border texel stands in for the
+      neighbouring face's: an occluder seen only across the seam within the kernel is
+      missed, by at most the weight of the texels beyond the edge
+      (``benchmarks/RESULTS.md``, fifty-third session, helper E).
     * *Larger kernels* are one box filter of ``k x k`` texels, not the
       paper's accumulation of separate 2x2 passes (same footprint for
       ``k = 4``, smoother weights).

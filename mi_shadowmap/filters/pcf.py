@@ -256,8 +256,19 @@ def pcf(smap, lk: Lookup, opts, active=True) -> mi.Float:
       The default keeps Reeves' region (the pixel) as the issue specifies.
     * *Bounding box of finite depths* (a storage/culling optimisation) is not
       needed: texels with no surface hold ``+inf`` and are lit.
-    * *Cube maps* (point/area lights) are not in the paper: samples that leave
-      a cube face continue on the neighbouring face.
+    * *Cube maps* (point/area lights) are not in the paper: on a full map samples
+      that leave a cube face continue on the neighbouring face; on a virtual map they
+      are clamped to their face (:func:`~.common.taps_cross_seams`), as ``pcss``'s
+      are: the marks build each point's pages on its own face only, and a sample
+      across the seam read the coarsest level there, a texel 4 times as wide whose
+      depth lies in front of the receiver's plane (cbox_area's back wall beside the
+      side walls, 81 pixels: 0.140 against ``raytraced``; clamped 0.061, full maps
+      0.070). A clamped sample reads its face's border texel: an occluder seen only
+      across the seam within the region is missed, an error bounded by the share of
+      samples beyond the edge (a rod whose shadow lies just across a seam, 32^2 pixels
+      0.03 wide: its lit side's pixels 0.007 off ``raytraced`` on average, at most
+      0.036; crossing 0.002, at most 0.017; ``benchmarks/RESULTS.md``, fifty-third
+      session, helper E).
     * *Smooth compare* (``soft_compare``, default 0 = the paper's step,
       bit-identical). With ``soft_compare = s > 0`` each sample is lit by
       ``smoothstep(1 + (z_map - z_receiver) / w)`` with

@@ -68,7 +68,7 @@ class LocalView:
     #: map's seam): False, every tap is clamped to its face's border texel (the filters
     #: read it through :func:`~mi_shadowmap.filters.common.taps_cross_seams`). The
     #: marks build each point's tiles on its own face only, so a tap across the seam
-    #: read the coarsest level there, a texel 4-8 times as wide whose depth lies in
+    #: read the coarsest level there, a texel 4 times as wide whose depth lies in
     #: front of the receiver's plane: ``pcf`` beside cbox_area's seams erred 0.140
     #: against ``raytraced``, 0.061 clamped (full maps 0.070); building and reading the
     #: neighbouring face's tiles (0.073) cost 3.9 % more texels and ~8 % of ``pcf``'s

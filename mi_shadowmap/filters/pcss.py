@@ -149,7 +149,7 @@ Deviations from the paper and why:
   distance (every other light measured) are unchanged.
 * **Map borders.** Taps use the PCF tap helper
   (:func:`~.common.tap_depths`): taps off a spot/directional map are lit and
-  are not blockers, as in ``pcf``. Unlike ``pcf``, taps beyond a *cube* face
+  are not blockers, as in ``pcf``. Unlike ``pcf`` on a full map, taps beyond a *cube* face
   are clamped to the receiver's face instead of continuing on the
   neighbouring face: crossing the seams was measured slightly worse
   (cbox_area, 64^2, 256^2 maps, 4 seeds: RMSE 0.09690 vs 0.09678 against the

@@ -514,7 +514,7 @@ def footprint_texels(smap, lk: Lookup, r: Receiver, equal_variance: bool = False
 def taps_cross_seams(smap, cross_seams: bool = True) -> bool:
     """Whether a tap on ``smap`` off its face continues on the neighbouring face (a
     cube map's seam): ``cross_seams`` (the filter's wish) unless the map's view says
-    its taps cannot cross (``view.taps_cross_seams`` False: a virtual map's
+    its taps cannot cross (``view.taps_cross_seams`` False: a virtual cube map's
     :class:`~mi_shadowmap.light_views.local.LocalView`, whose taps are clamped to their
     face's border texel). Full maps cross. Every tap helper here asks it, so a user
     method's taps get the same answer.

@@ -64,16 +64,20 @@ class LocalView:
 
     projection = "local"
 
-    #: Whether a filter's tap off the face continues on the neighbouring face (a cube
-    #: map's seam): False, every tap is clamped to its face's border texel (the filters
-    #: read it through :func:`~mi_shadowmap.filters.common.taps_cross_seams`). The
-    #: marks build each point's tiles on its own face only, so a tap across the seam
-    #: read the coarsest level there, a texel 4 times as wide whose depth lies in
-    #: front of the receiver's plane: ``pcf`` beside cbox_area's seams erred 0.140
-    #: against ``raytraced``, 0.061 clamped (full maps 0.070); building and reading the
-    #: neighbouring face's tiles (0.073) cost 3.9 % more texels and ~8 % of ``pcf``'s
-    #: render (``benchmarks/RESULTS.md``, fifty-third session, helpers A and E).
-    taps_cross_seams = False
+    @property
+    def taps_cross_seams(self) -> bool:
+        """Whether a filter's tap off the face continues on the neighbouring face (a
+        cube map's seam; the filters read it through
+        :func:`~mi_shadowmap.filters.common.taps_cross_seams`): False on a view with
+        seams (more than one face), where every tap is clamped to its face's border
+        texel. The marks build each point's tiles on its own face only, so a tap across
+        the seam read the coarsest level there, a texel 4 times as wide whose depth lies
+        in front of the receiver's plane: ``pcf`` beside cbox_area's seams erred 0.140
+        against ``raytraced``, 0.061 clamped (full maps 0.070); building and reading the
+        neighbouring face's tiles (0.073) cost 3.9 % more texels and ~8 % of ``pcf``'s
+        render (``benchmarks/RESULTS.md``, fifty-third session, helpers A and E). True on
+        a one-face view (spot, sun): a tap off its map is lit, as on a full map."""
+        return self.inner.n_faces == 1
 
     def __init__(self, inner, face, res_level, origin, bound=None, depth_origin=None,
                  lazy_frame: bool = False):
@@ -298,7 +302,7 @@ class LocalView:
         minus ``origin``); off the face, the neighbouring face's texel (cube maps) or
         ``inside`` False, as the wrapped view's :meth:`face_texel_f64` says; with
         ``cross_seams`` False clamped to the face (the filters pass
-        :attr:`taps_cross_seams`, False)."""
+        :attr:`taps_cross_seams`: False on a cube)."""
         # floor(xy + origin) = floor(xy) + origin: the global texel in integers (the
         # local coordinates are exact in float32); only taps off the face (a symbolic
         # dr.if_stmt: packets with one) go through the wrapped view's float64 continuation

@@ -58,3 +58,28 @@ def test_filter_beside_a_cube_seam_is_lit_like_raytraced(method, variant):
     assert err_full < 0.1
     assert err < err_full + 0.02, (err, err_full)
     dr.sync_thread()
+
+
+@pytest.mark.parametrize("scene_name, extra, kind, crosses", [
+    ("cbox_area", {}, "CubeView", False),
+    ("spot_sphere_box", {}, "PerspectiveView", True),
+    ("directional_mesh", {}, "OrthoView", True),
+    ("directional_mesh", {"cascades": 2}, "CascadedView", True)])
+def test_only_a_cube_clamps_virtual_taps(monkeypatch, scene_name, extra, kind, crosses):
+    """A virtual map's taps are clamped on a view with seams (a cube) alone: off a spot's,
+    a sun's or a cascade's face a tap is off the map, lit, as on its full map (a view of
+    several faces without seams, cascades, clamped them: 131 of 96^2 pixels of
+    directional_mesh's wide-kernel ``pcf`` changed, by up to 0.125)."""
+    mi.set_variant("llvm_ad_rgb")
+    from mi_shadowmap.light_views.local import LocalView
+    seen = {}
+    read = LocalView.taps_cross_seams.fget
+
+    def spy(view):
+        seen[type(view.inner).__name__] = read(view)
+        return seen[type(view.inner).__name__]
+    monkeypatch.setattr(LocalView, "taps_cross_seams", property(spy))
+    scene = mi.load_file(str(SCENES / f"{scene_name}.xml"), width="32", height="24", spp="1")
+    mi_shadowmap.clear_caches()
+    render_np(scene, {"type": "shadowmap", "method": "pcf", "virtual": True, **extra}, spp=1)
+    assert seen == {kind: crosses}

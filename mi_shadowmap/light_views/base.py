@@ -56,6 +56,11 @@ class LightView:
     #: it, and the ray never reaches it. Parallel rays (orthographic maps) start on a
     #: plane before the scene: a negative depth is a real one there.
     rays_from_point = False
+    #: Whether a face's edge is a seam with a neighbouring face, on which a tap off the
+    #: face continues (cube maps, :meth:`tap_texel`); else a tap off a face is off the
+    #: map (``inside`` False: lit), also where the view has several faces (cascades, an
+    #: environment's regions).
+    has_seams = False
 
     # ----------------------------------------------------------- the interface
     @property

@@ -102,6 +102,7 @@ class CubeView(LightView):
 
     projection = "cube"
     rays_from_point = True
+    has_seams = True
     tan_half = 1.0
 
     @property

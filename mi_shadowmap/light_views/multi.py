@@ -226,6 +226,10 @@ class MultiView(LightView):
         return self.sub.rays_from_point
 
     @property
+    def has_seams(self) -> bool:
+        return self.sub.has_seams
+
+    @property
     def n_views(self) -> int:
         return len(self.positions)
 
@@ -467,6 +471,10 @@ class SubView(LightView):
     @property
     def rays_from_point(self) -> bool:
         return self.inner.rays_from_point
+
+    @property
+    def has_seams(self) -> bool:
+        return self.inner.has_seams
 
     @property
     def n_faces(self) -> int:

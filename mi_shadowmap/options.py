@@ -98,7 +98,7 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Virtual maps: texels per side of a page, a power of two. Filter taps within "
          "page_size / 2 texels read the 2 x 2 pages a lookup binds; wider taps read "
          "their own pages where neighbouring points had them built, else the coarsest "
-         "level (taps of narrower kernels across a cube seam: the coarsest level). "
+         "level; taps are clamped to their cube face. "
          "Pages are ray-cast in tiles of max(8, page_size / 4) texels "
          "per side, only those the lookups read.", lo=8, hi=1024),
     Prop("lod_bias", "float", -0.5,

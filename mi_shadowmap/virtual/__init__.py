@@ -59,8 +59,8 @@ holds the 2 x 2 block's four slots: no loop). The filter's taps then read throug
 :meth:`BoundVirtualMap.fetch`: a tap inside those pages reads its page's slot (the
 four gathered once per lookup, or, for a method with ``virtual_per_tap`` such as
 ``hard``, each tap's own slot gathered when it reads), a tap outside them (a wide
-kernel; taps are clamped to their cube face) the coarsest level, whose page of face ``f`` is always in slot
-``f + 1`` (no gather). Filters see a
+kernel; taps are clamped to their cube face) the coarsest level, whose page of face
+``f`` is always in slot ``f + 1`` (no gather). Filters see a
 :class:`~mi_shadowmap.light_views.local.LocalView`: coordinates local to
 the lookup, so float32 stays exact at any level.
 

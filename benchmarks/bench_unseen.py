@@ -48,6 +48,7 @@ light in the first frame at a 256^2 film.
 from __future__ import annotations
 
 import argparse
+import atexit
 import math
 import os
 import tempfile
@@ -183,9 +184,24 @@ def _sun(direction) -> dict:
             "direction": list(direction)}
 
 
+_SCRATCH: set = set()     # the feature files this process wrote (removed at its exit)
+
+
 def _scratch_file(name: str) -> str:
-    """A path in the temporary directory for a feature's mesh or curve file."""
-    return os.path.join(tempfile.gettempdir(), f"mi_shadowmap_unseen_{os.getpid()}_{name}")
+    """A path in the temporary directory for a feature's mesh or curve file, removed
+    when the process exits."""
+    path = os.path.join(tempfile.gettempdir(), f"mi_shadowmap_unseen_{os.getpid()}_{name}")
+    _SCRATCH.add(path)
+    return path
+
+
+@atexit.register
+def _remove_scratch():
+    for path in _SCRATCH:
+        try:
+            os.remove(path)
+        except OSError:
+            pass
 
 
 def _strands(rng, path: str):

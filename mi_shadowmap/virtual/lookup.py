@@ -411,6 +411,18 @@ class VirtualShadowMap:
         iy = mi.UInt32(mi.Int32(dr.floor(xy.y)) & (P - 1)) // T
         return ix + iy * lay.tiles_per_side
 
+    def _built_at(self, xy, bx, by, e, eok):
+        """Whether the page holding the texel at ``xy`` among the 2 x 2 pages of table
+        entry ``e`` (:meth:`_block_at`) is built, and with tiles, the tile under it
+        ray-cast (not the coarsest level's fill): this frame's tiles alone
+        (:meth:`tile_marked`)."""
+        own = dr.gather(mi.UInt32, self.dense, e + self._own_page(xy, bx, by), eok)
+        built = eok & (own != INVALID_SLOT)
+        if self.layout.tiles_per_side > 1:
+            tiles = dr.gather(mi.UInt32, self.tile_masks, own, built)
+            built &= ((tiles >> self._tile_bit(xy)) & 1) != 0
+        return built
+
     def tile_marked(self, face, uv64, level, active=True):
         """Whether this frame's marks built the tile under the points at ``uv64`` of
         ``face`` (float64 uv, per lane) at ``level`` (per lane; ``mi.Bool``): its page in
@@ -420,14 +432,8 @@ class VirtualShadowMap:
         with a frame; ``bind``'s walk reads the same tiles by slot), not every tile an
         earlier view built: a kernel choosing its level by those would make the image
         depend on earlier views (``tests/test_page_cache_paths.py``)."""
-        level = mi.UInt32(level)
-        _, xy, bx, by, e, ok = self._block_at(face, level, uv64, active)
-        q = self._own_page(xy, bx, by)
-        ok &= dr.gather(mi.UInt32, self.dense, e + q, ok) != INVALID_SLOT
-        if self.layout.tiles_per_side == 1:
-            return ok
-        tiles = dr.gather(mi.UInt32, self.dense_tiles, e + q, ok)
-        return ok & (((tiles >> self._tile_bit(xy)) & 1) != 0)
+        _, xy, bx, by, e, ok = self._block_at(face, mi.UInt32(level), uv64, active)
+        return self._built_at(xy, bx, by, e, ok)
 
     def with_view(self, view) -> "VirtualShadowMap":
         """This map read through ``view``, a view of some of its faces with the same
@@ -456,7 +462,6 @@ class VirtualShadowMap:
         machine code already, so what this saves is the trace and Dr.Jit's code
         generation of every frame)."""
         lay = self.layout
-        S = lay.tiles_per_side
         p64 = mi.Point3d(lk.p_world) if projected is None or level is None else None
         face, uv64, depth64, inside = (self.view.project_f64(p64) if projected is None
                                        else projected)
@@ -476,14 +481,7 @@ class VirtualShadowMap:
             res, xy, bx, by, e, eok = self._block_at(face, level, uv64, act)
             if not walked:
                 return res, bx, by, e, eok, None
-            q = self._own_page(xy, bx, by)       # which of the 2 x 2 holds it
-            own = dr.gather(mi.UInt32, self.dense, e + q, eok)
-            built = eok & (own != INVALID_SLOT)
-            if S > 1:       # and the tile under it ray-cast (not the coarsest level's fill)
-                t = self._tile_bit(xy)
-                tiles = dr.gather(mi.UInt32, self.tile_masks, own, built)
-                built &= ((tiles >> t) & 1) != 0
-            return res, bx, by, e, eok, built
+            return res, bx, by, e, eok, self._built_at(xy, bx, by, e, eok)
 
         # the wanted level (nearly every lookup); else the next finer, else the nearest
         # coarser level built there, one level at a time up to the coarsest (always

@@ -215,6 +215,30 @@ def test_bench_virtual_cost_cpu_mode_times_each_frames_parts_on_one_thread():
     assert lookup and "of a ray" in lookup[0] and "nan" not in lookup[0]
 
 
+def test_bench_lookup_kernel_times_the_still_frames_trace_and_kernels_on_one_thread():
+    # issue 11's still frame: the virtual lookup's excess over full maps, cut into the
+    # host's trace and the kernels by one thread's CPU time; the virtual frame twice a
+    # round (the same kernel: the method's resolution), nothing compiled after round 0
+    out = run_bench("bench_lookup_kernel.py", "--scenes", "far_point", "--image", "32",
+                    "--spp", "1", "--rounds", "2")
+    assert "one thread's CPU time" in out and "load average" in out
+    rows = {}
+    for line in out.splitlines():
+        if line.startswith("| far_point |"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[cells[1]] = cells[2:]
+    assert list(rows) == ["virtual", "virtual again", "full", "unshadowed"]
+    for name, (trace, kern, diff, span, smaller, ops, compiled) in rows.items():
+        assert float(trace) > 0.0 and float(kern) > 0.0, name
+        lo, hi = (float(x) for x in span.replace("..", " ").split())
+        assert lo <= float(diff) <= hi and smaller.endswith("/2") and compiled == "0", name
+    assert float(rows["virtual"][2]) == 0.0           # (the reference of the differences)
+    ops = {name: int(cells[5]) for name, cells in rows.items()}
+    # the same kernel twice; the virtual lookup larger than a full map's, which is
+    # larger than no lookup
+    assert ops["virtual"] == ops["virtual again"] > ops["full"] > ops["unshadowed"]
+
+
 def test_bench_virtual_move_profiles_a_moved_frame():
     # --profile: per function the moved frame's own CPU time against the unshadowed
     # frame's at the same camera, and both frames' kernels; a move compiles nothing

@@ -136,3 +136,52 @@ def test_a_moves_mark_pass_launches_three_kernels_over_its_pixels(monkeypatch):
     assert np.array_equal(img, np.asarray(mi.render(scene, integrator=ref, spp=2)))
     for key in ("texels_built", "pages_marked", "pages_built"):
         assert ref.stats[key] == integ.stats[key], key
+
+
+def test_the_dedupe_reads_its_stored_keys_with_the_same_marks(monkeypatch):
+    """The dedupe's first kernel stores the candidates' keys (``STORED_KEY_BYTES``) and
+    its second and third read them back, where they recomputed each key from the mark
+    pass's stored points (29 bytes a candidate, and the key's operations: the third
+    kernel of a room_two_points camera move 214 -> 46 operations). A first frame and a
+    move of room_two_points (two point lights: two candidate lists) give the image,
+    texels, pages and level histogram of the recomputed keys, and the later kernels hold
+    fewer operations."""
+    scene = mi.load_file(str(SCENES / "room_two_points.xml"), width=64, height=64)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world")
+               and isinstance(params.properties[k][2], mi.Sensor))
+    start = type(params[key])(params[key])
+    keys = ("texels_built", "pages_marked", "pages_built", "pages_reused")
+
+    def frames(stored_bytes):
+        monkeypatch.setattr(marks, "STORED_KEY_BYTES", stored_bytes)
+        virtual.PAGE_CACHE.clear()
+        integ = shadowmap(method="hard", cache_maps=False)
+        out, ops = [], []
+        for k in (0, 1):
+            params[key] = start @ T().translate([0.05 * k, 0, 0]) @ T().rotate([0, 1, 0], k)
+            params.update()
+            dr.kernel_history()
+            out.append((np.asarray(mi.render(scene, integrator=integ, spp=2)),
+                        tuple(integ.stats[n] for n in keys),
+                        str(integ.stats["level_histogram"])))
+            ops.append([h["operation_count"] for h in dr.kernel_history()
+                        if h["type"] == dr.KernelType.JIT and h["size"] == 64 * 64])
+        return out, ops
+
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        stored, ops = frames(1 << 23)
+        recomputed, ops_ref = frames(0)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+        params[key] = start
+        params.update()
+    for (img, stats, hist), (img_ref, stats_ref, hist_ref) in zip(stored, recomputed):
+        assert np.array_equal(img, img_ref)
+        assert stats == stats_ref
+        assert hist == hist_ref
+    print("mark pass kernels' operations, stored keys:", ops[1], "recomputed:", ops_ref[1])
+    assert len(ops[1]) == len(ops_ref[1]) == 3
+    assert ops[1][1] < ops_ref[1][1] and ops[1][2] < ops_ref[1][2]

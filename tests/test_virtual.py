@@ -1923,13 +1923,16 @@ def test_morton_order_visits_every_texel_of_a_tile_once(T):
         assert (i[:8].max(), j[:8].max()) == (3, 1)
 
 
+@pytest.mark.parametrize("stored", [True, False])
 @pytest.mark.parametrize("bits", [4, 14])
-def test_mark_dedupe_returns_every_distinct_key(bits):
+def test_mark_dedupe_returns_every_distinct_key(bits, stored, monkeypatch):
     """The mark pass's hash-table dedupe (:func:`~mi_shadowmap.virtual.marks.dedupe_many`)
     returns, per light, exactly the distinct keys of its valid candidates (repeats allowed,
     none missed): with tables of 2^14 slots (the default) and of 16 slots, where most keys
-    lose their slot in both rounds and come back as candidates. Then the sort-based helpers give
-    ``np.unique``'s answers."""
+    lose their slot in both rounds and come back as candidates; its later rounds reading
+    the keys its first kernel stored (``STORED_KEY_BYTES``) or recomputing them. Then the
+    sort-based helpers give ``np.unique``'s answers."""
+    monkeypatch.setattr(marks, "STORED_KEY_BYTES", (1 << 23) if stored else 0)
     rng = np.random.default_rng(11)
     groups, want = [], []
     for n_keys in (300, 40, 0):                 # lights with many, few and no keys
@@ -1958,13 +1961,16 @@ def test_mark_dedupe_returns_every_distinct_key(bits):
     assert np.array_equal(layout.with_keys(np.zeros(0, np.uint64), more), more)
 
 
-def test_mark_dedupe_spills_per_partition(monkeypatch):
+@pytest.mark.parametrize("stored", [True, False])
+def test_mark_dedupe_spills_per_partition(stored, monkeypatch):
     """:func:`~mi_shadowmap.virtual.marks.dedupe_many` with partitions (an environment's
     regions, each with its own slots) keeps ``SPILL`` twice-lost candidates per partition,
     not per list: a batch of regions whose candidates lose both slots a few hundred times
     together, fewer than ``SPILL`` each, runs the dedupe's three kernels and no fourth
     (at 256^2 under sky_sun each batch of 8 regions overflowed 4096 and read back all its
-    524 k candidates); every distinct key is returned, as with the fourth kernel."""
+    524 k candidates); every distinct key is returned, as with the fourth kernel; the
+    later rounds reading the stored keys (``STORED_KEY_BYTES``) or recomputing them."""
+    monkeypatch.setattr(marks, "STORED_KEY_BYTES", (1 << 23) if stored else 0)
     monkeypatch.setattr(marks, "SPILL", 64)
     rng = np.random.default_rng(4)
     n_parts, per = 12, 100

@@ -48,6 +48,16 @@ MAX_SPREAD = 32.0
 #: extra kernel a batch (0.8 ms) and the host reading all its 524 k candidates.
 SPILL = 4096
 
+#: :func:`dedupe_many` stores its candidates' keys in its first kernel (8 bytes a
+#: candidate, ``NO_KEY`` where not a candidate) when all its lists' candidates together
+#: hold at most this many bytes, and its second and third kernels read them back; above
+#: it (a ``pcss`` mark under a 16-region sky: 25 lists, 60 MB) those kernels recompute
+#: the keys from the mark pass's stored points, as storing and reading every list was
+#: bound by memory there. A camera move of room_two_points (two lists of 65,536
+#: candidates, 1 MB) read 29 bytes of points a candidate in each of those kernels and
+#: recomputed its key (``benchmarks/RESULTS.md``, the fifty-fourth session, helper A).
+STORED_KEY_BYTES = 1 << 23
+
 
 #: The mark pass of a camera with a lens (``thinlens``, ``aperture_radius`` > 0) traces
 #: each pixel through ``LENS_GRID``^2 points of its lens (cell centres of a square grid,
@@ -1292,11 +1302,20 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     slot = [slots_of(k, 0x9E3779B97F4A7C15, pt) for (k, _), pt in zip(flat, flat_parts)]
     for t, (k, ok), s in zip(tables, flat, slot):
         dr.scatter(t, k, s, ok)
-    # the keys are not stored: each round recomputes them from their inputs (the mark
-    # pass's points: evaluated before, or in this first round's kernel, ``first``), a few
-    # integer operations where storing every candidate list (25 of a pcss mark under a
-    # 16-region sky, 60 MB) and reading it back twice was bound by memory
-    dr.eval(*tables, *first)
+    # the keys stored by this first kernel (NO_KEY: not a candidate) where they are few
+    # (STORED_KEY_BYTES), and read back by the later rounds; else each round recomputes
+    # them from their inputs (the mark pass's points: evaluated before, or in this first
+    # round's kernel, ``first``), a few integer operations where storing every candidate
+    # list (25 of a pcss mark under a 16-region sky, 60 MB) and reading it back twice was
+    # bound by memory. (Either way a candidate's key has the same bits in every round:
+    # the same operations on the same values.)
+    stored = ()
+    if 8 * sum(dr.width(k) for k, _ in flat) <= STORED_KEY_BYTES:
+        stored = [dr.select(ok, k, mi.UInt64(NO_KEY)) for k, ok in flat]
+    dr.eval(*tables, *first, *stored)
+    if stored:
+        flat = [(k, k != mi.UInt64(NO_KEY)) for k in stored]
+        slot = [slots_of(k, 0x9E3779B97F4A7C15, pt) for (k, _), pt in zip(flat, flat_parts)]
     extra = list(second()) if second is not None else []
     # the second round, in one kernel with the first round's losers
     tables2 = [table(pt) for pt in flat_parts]

@@ -11,6 +11,7 @@ harness (a loaded scene, a dict, an XML path with ``$`` parameters) into an
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -53,7 +54,8 @@ def load_scene(scene, **xml_params) -> mi.Scene:
     if isinstance(scene, mi.Scene):
         return scene
     if isinstance(scene, dict):
-        return mi.load_dict(scene)
+        with _loading_threads():
+            return mi.load_dict(scene)
     if not isinstance(scene, (str, bytes, os.PathLike)):
         other = scene_variant(scene)
         if other is not None:      # os.fspath said "expected str ..., not Scene"
@@ -67,7 +69,8 @@ def load_scene(scene, **xml_params) -> mi.Scene:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"scene file not found: {path}")
     try:
-        return mi.load_file(path, **{k: str(v) for k, v in xml_params.items()})
+        with _loading_threads():
+            return mi.load_file(path, **{k: str(v) for k, v in xml_params.items()})
     except RuntimeError as e:
         # Mitsuba's parser names the parameters no file of the scene (its <include>d
         # files too, resolved as Mitsuba resolves them) refers to: "Found unused
@@ -81,6 +84,23 @@ def load_scene(scene, **xml_params) -> mi.Scene:
                          + " (neither it nor the files it includes use it; declare "
                            "<default name=... value=.../> and use $name to make it "
                            "settable)") from None
+
+
+@contextlib.contextmanager
+def _loading_threads():
+    """Two Dr.Jit threads while Mitsuba loads a scene, where the user set one
+    (``dr.set_thread_count(1)``, a setting users debug with), restored after: Mitsuba
+    3.9.1 reads EXR textures (an ``envmap``, a ``bitmap``) through tasks on that pool,
+    and with one thread it waits for them forever (loading ``scenes_xml/sky_sun.xml``
+    never returned). The renders still run on the one thread the user asked for."""
+    one = dr.thread_count() == 1
+    if one:
+        dr.set_thread_count(2)
+    try:
+        yield
+    finally:
+        if one:
+            dr.set_thread_count(1)
 
 
 def scene_variant(obj) -> str | None:

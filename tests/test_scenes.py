@@ -169,3 +169,33 @@ def test_readme_scene_table_lists_every_scene_file():
     files = {p.name for p in (root / "scenes_xml").glob("*.xml")}
     assert rows == files, (f"README lacks {sorted(files - rows)}; "
                            f"lists missing files {sorted(rows - files)}")
+
+
+@pytest.mark.parametrize("form", ["xml", "dict"])
+def test_load_scene_with_an_exr_texture_under_one_drjit_thread(form):
+    """Mitsuba 3.9.1 waits forever reading an EXR after ``dr.set_thread_count(1)`` (a
+    setting users debug with): ``load_scene`` of ``sky_sun.xml`` (an ``envmap`` from an
+    EXR) never returned. It now loads with two threads and gives the user's one back,
+    and the render runs. In a subprocess: a hang must not hang the suite."""
+    import pathlib
+    import subprocess
+    import sys
+    root = pathlib.Path(__file__).resolve().parents[1]
+    exr = root / "scenes_xml" / "textures" / "sky_sun.exr"
+    scene = (repr(str(root / "scenes_xml" / "sky_sun.xml")) + ", width=16, height=16"
+             if form == "xml" else
+             "{'type': 'scene', 'sky': {'type': 'envmap', 'filename': %r}}" % str(exr))
+    code = (
+        "import mi_shadowmap, drjit as dr, mitsuba as mi\n"
+        "from mi_shadowmap.scenes import load_scene\n"
+        "dr.set_thread_count(1)\n"
+        f"scene = load_scene({scene})\n"
+        "assert dr.thread_count() == 1, dr.thread_count()\n"
+        "if scene.sensors():\n"
+        "    img = mi.render(scene, spp=1)\n"
+        "    assert dr.all(dr.isfinite(img), axis=None)\n"
+        "print('loaded', len(scene.emitters()))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=240, cwd=root)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "loaded 1" in out.stdout

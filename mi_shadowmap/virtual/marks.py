@@ -1299,7 +1299,10 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
         return dr.full(mi.UInt64, NO_KEY, (1 if pt is None else int(pt[1])) << bits)
 
     tables = [table(pt) for pt in flat_parts]
-    slot = [slots_of(k, 0x9E3779B97F4A7C15, pt) for (k, _), pt in zip(flat, flat_parts)]
+    def first_slots(flat):
+        return [slots_of(k, 0x9E3779B97F4A7C15, pt) for (k, _), pt in zip(flat, flat_parts)]
+
+    slot = first_slots(flat)
     for t, (k, ok), s in zip(tables, flat, slot):
         dr.scatter(t, k, s, ok)
     # the keys stored by this first kernel (NO_KEY: not a candidate) where they are few
@@ -1315,7 +1318,7 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     dr.eval(*tables, *first, *stored)
     if stored:
         flat = [(k, k != mi.UInt64(NO_KEY)) for k in stored]
-        slot = [slots_of(k, 0x9E3779B97F4A7C15, pt) for (k, _), pt in zip(flat, flat_parts)]
+        slot = first_slots(flat)
     extra = list(second()) if second is not None else []
     # the second round, in one kernel with the first round's losers
     tables2 = [table(pt) for pt in flat_parts]

@@ -21,9 +21,11 @@ Source: the PCSS thesis (``papers/002_3c13a5335145be05.txt``, sec. 2.1.5,
    parallel to the map plane, i.e. at the receiver's axial depth), with
    ``filter_samples`` taps, capped as below ("Kernel cap").
 
-Light size ``w_light``: the ``light_size`` property when given, otherwise
-the size derived from an area emitter's shape
-(:func:`~mi_shadowmap.light_views.area_light_size`); point and spot lights
+Light size ``w_light``: the ``light_size`` property when given (a square of that
+width), otherwise, for a planar area light (a rectangle, a disk, a planar mesh), the
+light's own parallelogram as each receiver sees it across its map face
+(:func:`_light_shape`, see "Light shape" below), and for any other area light the size
+derived from its shape (:func:`~mi_shadowmap.light_views.area_light_size`); point and spot lights
 have size 0 unless ``light_size`` > 0 (then they are treated as a square
 light of that width at their position, like Godot's light size).
 Directional lights use ``angular_diameter`` (degrees): with ``s = 2
@@ -165,6 +167,27 @@ Deviations from the paper and why:
   blockers nor shadowing taps (nothing behind the light can occlude it):
   this removes false blockers where walls meet a ceiling the light hangs
   under. Not in the paper, which has no light geometry beyond its width.
+* **Light shape.** Fernando's light is a square parallel to the map, one ``w_light``. A
+  planar area light here is its own parallelogram (:func:`_light_shape`): both steps'
+  taps are mapped from the square pattern onto the light's two half-axes as the receiver
+  sees them across its map face (each light point's offset across the face minus its
+  offset along the face's axis times the receiver's tangent coordinates, the similar
+  triangles with the light point off the map's plane), scaled by the same
+  similar-triangles ratio: an anisotropic kernel, where the paper's is square. Why: the
+  square of the light's area (0.35 for a strip 6 x 0.02) gave a strip's penumbra far too
+  narrow along it and far too wide across it, on every face alike, also those that see
+  the light edge-on. Measured (``benchmarks/RESULTS.md``, fifty-fifth session, helper A;
+  128^2, 64 spp, 2 render seeds, RMSE against ``raytraced`` with 64 shadow rays, virtual
+  / full): strip 6 x 0.02 0.116 -> 0.071 / 0.116 -> 0.067, strip 4 x 0.08 0.078 -> 0.053
+  / 0.078 -> 0.048, rectangle 4:1 0.049 -> 0.046 / 0.049 -> 0.041, the strip turned 45
+  degrees 0.152 -> 0.083 / 0.152 -> 0.072, a square 0.027 -> 0.026 / 0.026 -> 0.025,
+  cbox_area and contact_hardening unchanged to 1e-4. Misclassified at 0.5 falls with
+  them (strip 6 x 0.02 1.64 -> 1.50 / 1.58 -> 1.42 %) but for the turned strip on a
+  virtual map, 1.91 -> 2.03 % (full 1.83 -> 1.44 %: false light where PCSS's one blocker
+  depth shrinks the umbrae of a ball and a plate, which the near-hard square kept dark).
+  The parallelogram's bounding box (no shear) and the light's axes projected on the face
+  without the axial term were worse (virtual maps, misclassified on the square / the
+  strip 6 x 0.02: 0.99 / 1.88 % and 0.63 / 1.83 %, against 0.62 / 1.50 % with both).
 * **Light geometry.** The depth map is rendered from the light's centre, so
   penumbrae are estimated from one view (the usual PCSS assumption): the
   blocker average takes occluders' front faces, which shrinks umbrae.
@@ -297,7 +320,8 @@ def _own_texel(smap, r: Receiver, plane: ReceiverPlane, active, soft_width):
 
 
 def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
-                   n: int, pattern: str, rnd: mi.Point2f, active, soft_width=None):
+                   n: int, pattern: str, rnd: mi.Point2f, active, soft_width=None,
+                   shape=None):
     """PCSS step 1 (Fernando 2005): mean depth of the blockers in a search region.
 
     ``n`` taps (``tap_offset`` pattern) over the region of half-width
@@ -309,7 +333,8 @@ def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_tex
     Returns ``(sum of blocker depths, number of blockers)``; one
     ``dr.while_loop``. ``soft_width``: each tap counts as ``1 -`` its smooth
     compare, coverage-blended on an antialiased map (:func:`~.common.soft_blocker`),
-    so both sums are continuous; None: the step.
+    so both sums are continuous; None: the step. ``shape``: the light's shape
+    (:func:`_light_shape`) that maps each tap's offset, else the square.
     """
     k = mi.UInt32(0)
     z_sum = mi.Float(0.0)
@@ -323,7 +348,7 @@ def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_tex
     own = _own_texel(smap, r, plane, active, soft_width)
 
     def body(k, z_sum, count):
-        off = tap_offset(k, n, pattern, rnd) * half_texels
+        off = _shaped(tap_offset(k, n, pattern, rnd), shape) * half_texels
         z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
                                       cross_seams=False, lateral_texels=dr.norm(off))
         if soft_width is not None:
@@ -345,14 +370,16 @@ def blocker_search(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_tex
 
 
 def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: mi.Float,
-              n: int, pattern: str, rnd: mi.Point2f, active, soft_width=None) -> mi.Float:
+              n: int, pattern: str, rnd: mi.Point2f, active, soft_width=None,
+              shape=None) -> mi.Float:
     """Percentage-closer filtering with receiver-plane depths (PCSS step 3).
 
     Fraction of ``n`` taps (``tap_offset`` pattern, half-width
     ``half_texels``) that are lit (:func:`tap_depths` against the receiver
     plane's depth; off-map taps lit, cube taps clamped to the receiver's
     face as in :func:`blocker_search`); one ``dr.while_loop``. ``soft_width``:
-    smooth taps (:func:`~.common.soft_tap_lit`), None: the step.
+    smooth taps (:func:`~.common.soft_tap_lit`), None: the step. ``shape``: as in
+    :func:`blocker_search`.
     """
     k = mi.UInt32(0)
     lit = mi.Float(0.0)
@@ -367,7 +394,7 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
     own = _own_texel(smap, r, plane, active, soft_width)
 
     def body(k, lit):
-        off = tap_offset(k, n, pattern, rnd) * half_texels
+        off = _shaped(tap_offset(k, n, pattern, rnd), shape) * half_texels
         z_map, z, inside = tap_depths(smap, r, r.face, centre + off, plane, active,
                                       cross_seams=False, lateral_texels=dr.norm(off))
         if soft_width is not None:
@@ -382,6 +409,76 @@ def pcf_plane(smap, lk: Lookup, r: Receiver, plane: ReceiverPlane, half_texels: 
 
     k, lit = dr.while_loop((k, lit), cond, body, max_iterations=-1)   # a sum, as above
     return lit / n
+
+
+def _shaped(offset: mi.Point2f, shape) -> mi.Point2f:
+    """A tap's ``offset`` (units of the kernel's half-width) mapped through the light's
+    ``shape`` (:func:`_light_shape`: its two columns), or kept (``shape`` None: the
+    square)."""
+    if shape is None:
+        return offset
+    a, b = shape
+    return mi.Point2f(a.x * offset.x + b.x * offset.y, a.y * offset.x + b.y * offset.y)
+
+
+def _light_shape(smap, r: Receiver, p_world, texel):
+    """``(w_light, shape, fit)`` of a planar area light seen from the receiver, per lane, or
+    None (the square of :func:`~mi_shadowmap.light_views.area_light_size`: a light
+    that is not planar, or not an area light).
+
+    The light's half-axes ``e_1, e_2`` (:func:`~mi_shadowmap.light_views.
+    area_light_axes`) as the receiver sees them across the map face's plane: each
+    light point ``c + L`` moves the receiver's blocker region by ``L_perp - uv L_axial``
+    (``uv`` the receiver's tangent coordinates on the face, ``L_axial`` along the face's
+    axis: the similar triangles of the module docstring with the light point off the
+    map's plane, to first order in ``L / d``), which is the map's
+    :meth:`~mi_shadowmap.light_views.base.LightView.uv_differential` of ``L`` at the
+    receiver, in world units there (``res`` texels of width ``texel``). ``w_light`` is
+    twice the larger of that parallelogram's half-extents along the face's two axes, so
+    every cap, level and mark sized from it still holds the kernel (they are PCSS's
+    scalar light width); ``shape`` its two columns over that half-width (per-axis
+    extents at most 1), which :func:`_shaped` applies to every tap; ``fit``, that
+    half-width over the longer half-axis (per lane), by which a full map's kernel cap
+    grows, so that it bounds the light's longer half-axis as it bounded the square's
+    half-side, whatever the light's turn on the face: capping the half-extent instead
+    shrank a tilted disk 4 wide's penumbrae (``bench_unseen``'s ``area`` seed 7, full
+    256^2, 4 spp: 2.14 % misclassified with the square, 5.13 % so, 1.99 % with ``fit``;
+    with ``max_kernel`` 256, no cap reached, 2.15 % and 2.04 %). A virtual map's cap
+    grows by no more than 1 (``fit`` < 1 only trims it: a strip along a face's diagonal,
+    128^2, 64 spp, 2.37 -> 2.03 %): its marks and levels hold the half-extent's reach.
+
+    Deviation from Fernando 2005, whose light is a square parallel to the map (one
+    ``w_light``; this module read every area light as the square of its area): the
+    search region and the filter kernel take the light's own parallelogram, scaled by
+    the same similar-triangles ratio along both axes. A strip light 6 x 0.02 read as a
+    0.35 square had a penumbra far too narrow along the strip and far too wide across it
+    (``pcss`` 1.10 % misclassified, as ``hard``; a face that sees the light edge-on saw
+    the same square). A square light seen face-on gives ``w_light`` its side and the
+    identity shape (to rounding: ``sqrt(area)`` before)."""
+    view = smap.view
+    if getattr(view, "kind", None) != "area":
+        return None
+    light = getattr(view, "ignore_shape", None)
+    if light is None:
+        return None
+    from ..light_views.base import opaque_point
+    from ..light_views.cube import light_axes_of
+    axes = light_axes_of(light)
+    if axes is None:
+        return None
+    res = smap.resolution if isinstance(smap.resolution, int) else mi.Float(smap.resolution)
+    cols = [view.uv_differential(r.face, p_world, mi.Vector3f(opaque_point(e))) * res * texel
+            for e in axes]
+    a, b = (mi.Point2f(c) for c in cols)
+    half = dr.maximum(dr.maximum(dr.abs(a.x) + dr.abs(b.x), dr.abs(a.y) + dr.abs(b.y)), 1e-30)
+    inv = dr.rcp(half)
+    fit = half / dr.maximum(dr.maximum(dr.norm(a), dr.norm(b)), 1e-30)
+    return 2.0 * half, (a * inv, b * inv), fit
+
+
+#: Whether ``pcss`` reads a planar area light's own shape (:func:`_light_shape`) rather
+#: than the square of its area.
+LIGHT_SHAPE = True
 
 
 def _spread(d_r, d, w_light, angular, depth_origin=0.0):
@@ -591,6 +688,17 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     half_max = 0.5 * opts.max_kernel
     half_cap = _kernel_cap(smap, half_max)
     texel = dr.maximum(_texel_parallel(smap, r, lk.p_world), 1e-30)
+    # a planar area light's own shape (not a user's light_size: the square it means)
+    shaped = None if angular or opts.light_size is not None or not LIGHT_SHAPE else \
+        _light_shape(smap, r, lk.p_world, texel)
+    shape = None
+    if shaped is not None:
+        w_light, shape, fit = shaped
+        # the cap bounds the light's longer half-axis, as it bounded the square's
+        # half-side (the same world width at every turn of the light); on a virtual map
+        # never beyond the half-extent, which its marks and levels hold
+        virtual_map = getattr(smap, "vmap", None) is not None
+        half_cap = half_cap * (dr.minimum(fit, 1.0) if virtual_map else fit)
 
     # 1. blocker search over the similar-triangles region
     near = dr.gather(mi.Float, face_near_depth(smap), r.face, active)
@@ -609,7 +717,7 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
     rnd_b = lk.sampler.next_2d(active)
     z_sum, n_block = blocker_search(smap_b, lk, r_b, plane_b, search_half,
                                     opts.blocker_samples, opts.pattern, rnd_b, active,
-                                    soft_width)
+                                    soft_width, shape)
     has_blocker = n_block > 0
 
     # 2. penumbra estimate (thesis eq. 2), guarded for d_blocker -> 0
@@ -637,7 +745,7 @@ def pcss(smap, lk: Lookup, opts, active=True) -> mi.Float:
         soft_width = soft_compare_width(r_f, opts.soft_compare)
     rnd_f = lk.sampler.next_2d(active)
     vis = pcf_plane(smap_f, lk, r_f, plane_f, filter_half, opts.filter_samples, opts.pattern,
-                    rnd_f, active & has_blocker, soft_width)
+                    rnd_f, active & has_blocker, soft_width, shape)
     if soft_width is not None:
         # Less than one blocker tap's worth found: the shadow scaled by it, so that
         # visibility is continuous as the first blocker enters the search.
@@ -681,8 +789,10 @@ METHOD = Method(
         Prop("filter_samples", "int", 16, "PCSS filtering (PCF) taps (Fernando's "
              "PCF_NUM_SAMPLES).", lo=1, hi=4096),
         Prop("light_size", "float", None,
-             "Light width in world units for PCSS. Default: derived from an area emitter's "
-             "shape (side of the square of equal projected area, see light_views), 0 for "
+             "Light width in world units for PCSS (a square of that width). Default: a "
+             "planar area emitter's own shape (rectangle, disk, planar mesh: its "
+             "parallelogram as each receiver sees it), another area emitter's side of the "
+             "square of equal projected area (see light_views), 0 for "
              "point, spot and projector lights (hard shadows); > 0 gives them a PCSS "
              "penumbra.", lo=0.0, lights=("point", "spot", "projector", "area")),
         Prop("max_kernel", "float", 64.0,

@@ -35,7 +35,8 @@ import numpy as np
 
 from .base import LightView, scene_bounds
 from .cascaded import CascadedView, cascaded_view, split_depths
-from .cube import CubeView, area_light_size, area_view, point_view, projector_view
+from .cube import (CubeView, area_light_axes, area_light_size, area_view, point_view,
+                   projector_view)
 from .ortho import OrthoView, directional_view
 from .perspective import PerspectiveView, box_view, spot_view
 from .multi import MultiView, multi_view
@@ -44,7 +45,8 @@ __all__ = ["LightView", "PerspectiveView", "OrthoView", "CascadedView", "CubeVie
            "MultiView", "multi_view", "make_light_view", "emitter_kind", "emitter_label",
            "emitter_labels", "unique_labels",
            "emitter_class",
-           "area_light_size", "cascaded_view", "split_depths", "camera_visible_points",
+           "area_light_axes", "area_light_size", "cascaded_view", "split_depths",
+           "camera_visible_points",
            "footprint_ratio", "PIXEL_BLOCK", "block_pixels", "pixel_centres",
            "pixel_ray_differentials",
            "pixel_step", "pixel_steps",

@@ -292,6 +292,92 @@ def area_light_size(shape) -> float:
     return math.sqrt(max(a_proj, 0.0))
 
 
+def area_light_axes(shape) -> tuple | None:
+    """The light's two world half-axes ``(e_1, e_2)`` (3-tuples) for PCSS's anisotropic
+    kernels (:mod:`~mi_shadowmap.filters.pcss`): the planar light is read as the
+    parallelogram ``centre + a e_1 + b e_2``, ``a, b`` in ``[-1, 1]``; None for a shape
+    that is not planar (a sphere, a closed or folded mesh), which keeps the square of
+    :func:`area_light_size`.
+
+    * a ``rectangle`` (``[-1, 1]^2`` in its frame): its frame's x and y, exact;
+    * a ``disk`` (radius 1 in its frame): its frame's x and y times ``sqrt(pi) / 2``, the
+      square of the disk's area in its plane (the width :func:`area_light_size` gives, so
+      that a disk seen face-on keeps its width; an ellipse from a non-uniform scale keeps
+      its axes' ratio);
+    * a planar mesh: the rectangle of the same in-plane second moments (a uniform
+      rectangle of half-sides ``h`` has variance ``h^2 / 3`` along each side): exact for
+      a rectangle, whatever its triangles; where the two in-plane moments agree within
+      1e-4 (a square, a regular polygon), the first triangle's shortest edge is the
+      first axis, so that a square quad keeps its sides' directions.
+
+    Why: a strip light 6 x 0.02 was read as the 0.35 square of its area, its penumbra
+    along the strip far too narrow and across it far too wide (``benchmarks/
+    RESULTS.md``, fifty-third session, helper C: ``pcss`` 1.10 % misclassified, as
+    ``hard``)."""
+    cls = shape.class_name()
+    params = mi.traverse(shape)
+    if cls in ("Rectangle", "Disk") and "to_world" in params.keys():
+        m = np.array(params["to_world"].matrix, dtype="f8").reshape(-1, 4, 4)[0]
+        k = 1.0 if cls == "Rectangle" else 0.5 * math.sqrt(math.pi)
+        return tuple(tuple(float(c) for c in k * m[:3, i]) for i in (0, 1))
+    if "vertex_positions" not in params.keys() or "faces" not in params.keys():
+        return None
+    v = np.array(params["vertex_positions"], dtype="f8").reshape(-1, 3)
+    f = np.array(params["faces"], dtype="i8").reshape(-1, 3)
+    if len(f) == 0:
+        return None
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area_vec = 0.5 * np.cross(b - a, c - a)
+    area = np.linalg.norm(area_vec, axis=1)
+    total = float(area.sum())
+    if not total > 0.0:
+        return None
+    normal = area_vec.sum(axis=0)
+    if np.linalg.norm(normal) < (1.0 - 1e-3) * total:   # not planar (or two-faced)
+        return None
+    normal /= np.linalg.norm(normal)
+    # area-weighted moments of uniform triangles: E[x x^T] = (sum v v^T + s s^T) / 12
+    s = a + b + c
+    mean = (area[:, None] * s / 3.0).sum(axis=0) / total
+    second = sum(np.einsum("n,ni,nj->ij", area, x, x) for x in (a, b, c, s)) / (12.0 * total)
+    cov = second - np.outer(mean, mean)
+    lam, vec = np.linalg.eigh(cov)            # ascending; the smallest: the normal
+    lam1, lam2 = float(lam[2]), float(lam[1])
+    ax1 = vec[:, 2]
+    if lam1 - lam2 <= 1e-4 * lam1:            # isotropic in its plane: a side's direction
+        edges = [b[0] - a[0], c[0] - b[0], a[0] - c[0]]
+        ax1 = min(edges, key=np.linalg.norm)
+        ax1 = ax1 - normal * float(ax1 @ normal)
+        ax1 /= np.linalg.norm(ax1)
+        lam2 = lam1 = 0.5 * (lam1 + lam2)
+    ax2 = np.cross(normal, ax1)
+    h1, h2 = math.sqrt(3.0 * max(lam1, 0.0)), math.sqrt(3.0 * max(lam2, 0.0))
+    return (tuple(float(x) for x in h1 * ax1), tuple(float(x) for x in h2 * ax2))
+
+
+#: ``id(shape) -> (shape, area_light_axes(shape))`` of the area lights' shapes whose views
+#: were made (:func:`area_view`), the last 64: PCSS reads them while its lookups are
+#: traced, inside symbolic loops, where reading a shape's parameters (an evaluation)
+#: is not allowed. Holding the shape keeps its id from being reused.
+_AXES: dict = {}
+
+
+def light_axes_of(shape) -> tuple | None:
+    """:func:`area_light_axes` of ``shape``, computed once (by :func:`area_view`, outside
+    any symbolic operation); None for a shape no area view was made of."""
+    hit = _AXES.get(id(shape))
+    return hit[1] if hit is not None and hit[0] is shape else None
+
+
+def _remember_axes(shape) -> None:
+    """Computes ``shape``'s axes again at every view made of it: a light moved, turned or
+    scaled through ``params.update()`` is the same shape object with new axes."""
+    _AXES.pop(id(shape), None)
+    if len(_AXES) >= 64:
+        del _AXES[next(iter(_AXES))]
+    _AXES[id(shape)] = (shape, area_light_axes(shape))
+
+
 def planar_normal(shape):
     """The emitting normal of a planar shape (all of 64 sampled normals within
     1e-3 of each other), else None (spheres, curved or closed meshes)."""
@@ -343,5 +429,6 @@ def area_view(emitter, scene, label: str) -> CubeView:
     bbox = shape.bbox()
     centre = mi.ScalarPoint3f(bbox.center())
     size = area_light_size(typed[0] if typed else shape)
+    _remember_axes(shape)
     return CubeView("area", centre, mi.ScalarTransform4f(), light_size=size,
                     ignore_shape=shape, light_normal=planar_normal(shape), label=label)

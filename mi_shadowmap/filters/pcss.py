@@ -456,16 +456,11 @@ def _light_shape(smap, r: Receiver, p_world, texel):
     the same square). A square light seen face-on gives ``w_light`` its side and the
     identity shape (to rounding: ``sqrt(area)`` before)."""
     view = smap.view
-    if getattr(view, "kind", None) != "area":
-        return None
-    light = getattr(view, "ignore_shape", None)
-    if light is None:
-        return None
-    from ..light_views.base import opaque_point
-    from ..light_views.cube import light_axes_of
-    axes = light_axes_of(light)
+    axes = getattr(view, "light_axes", None) if getattr(view, "kind", None) == "area" \
+        else None
     if axes is None:
         return None
+    from ..light_views.base import opaque_point
     res = smap.resolution if isinstance(smap.resolution, int) else mi.Float(smap.resolution)
     cols = [view.uv_differential(r.face, p_world, mi.Vector3f(opaque_point(e))) * res * texel
             for e in axes]

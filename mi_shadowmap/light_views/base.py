@@ -39,7 +39,9 @@ class LightView:
     view direction; the identity for cube views), ``light_size`` (world width
     of the light, 0 for a point), ``ignore_shape`` (the emitter's own shape,
     which never occludes it), ``light_normal`` (the emitting normal of a
-    planar one-sided area light, else None) and ``label``.
+    planar one-sided area light, else None), ``label`` and ``light_axes`` (a planar
+    area light's two world half-axes, :func:`~mi_shadowmap.light_views.area_light_axes`,
+    for PCSS's kernels; else None).
     """
     kind: str
     position: mi.ScalarPoint3f
@@ -48,6 +50,7 @@ class LightView:
     ignore_shape: object = None
     light_normal: tuple | None = None
     label: str = ""
+    light_axes: tuple | None = None
 
     #: A short name of the projection, for messages and file names only.
     projection = "abstract"

@@ -355,29 +355,6 @@ def area_light_axes(shape) -> tuple | None:
     return (tuple(float(x) for x in h1 * ax1), tuple(float(x) for x in h2 * ax2))
 
 
-#: ``id(shape) -> (shape, area_light_axes(shape))`` of the area lights' shapes whose views
-#: were made (:func:`area_view`), the last 64: PCSS reads them while its lookups are
-#: traced, inside symbolic loops, where reading a shape's parameters (an evaluation)
-#: is not allowed. Holding the shape keeps its id from being reused.
-_AXES: dict = {}
-
-
-def light_axes_of(shape) -> tuple | None:
-    """:func:`area_light_axes` of ``shape``, computed once (by :func:`area_view`, outside
-    any symbolic operation); None for a shape no area view was made of."""
-    hit = _AXES.get(id(shape))
-    return hit[1] if hit is not None and hit[0] is shape else None
-
-
-def _remember_axes(shape) -> None:
-    """Computes ``shape``'s axes again at every view made of it: a light moved, turned or
-    scaled through ``params.update()`` is the same shape object with new axes."""
-    _AXES.pop(id(shape), None)
-    if len(_AXES) >= 64:
-        del _AXES[next(iter(_AXES))]
-    _AXES[id(shape)] = (shape, area_light_axes(shape))
-
-
 def planar_normal(shape):
     """The emitting normal of a planar shape (all of 64 sampled normals within
     1e-3 of each other), else None (spheres, curved or closed meshes)."""
@@ -429,6 +406,8 @@ def area_view(emitter, scene, label: str) -> CubeView:
     bbox = shape.bbox()
     centre = mi.ScalarPoint3f(bbox.center())
     size = area_light_size(typed[0] if typed else shape)
-    _remember_axes(shape)
+    # (a light moved, turned or scaled through params.update() gets a new view: its
+    # axes are read again)
     return CubeView("area", centre, mi.ScalarTransform4f(), light_size=size,
-                    ignore_shape=shape, light_normal=planar_normal(shape), label=label)
+                    ignore_shape=shape, light_normal=planar_normal(shape), label=label,
+                    light_axes=area_light_axes(shape))

@@ -239,8 +239,22 @@ def validate_property(name: str, value) -> None:
     raise first
 
 
+def check_no_shared_method(params: dict) -> None:
+    """``method`` among the shared properties is an error: every spec names its own
+    method, so a shared one (``compare(scene, methods=["hard"], method="pcf")``, the
+    CLI's ``--set method=pcf``) was dropped without a word and every listed method
+    rendered."""
+    if "method" in params:
+        raise OptionError(
+            f"shadowmap: 'method' = {params['method']!r} is not a shared property: name "
+            "the methods with 'methods' (on the command line --methods; in a sweep grid "
+            "its 'method' axis)")
+
+
 def check_shared_params(specs: list[dict], params: dict) -> None:
-    """A shared parameter that no chosen method uses is an error (typo guard)."""
+    """A shared parameter that no chosen method uses is an error (typo guard), and so
+    is a shared ``method`` (:func:`check_no_shared_method`)."""
+    check_no_shared_method(params)
     for k in params:
         if k in RENDER_KEYS:
             continue

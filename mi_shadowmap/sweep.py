@@ -27,7 +27,7 @@ from .ground_truth import (has_soft_lights, make_reference, reference_sizes, sco
 from .options import OptionError, parse_options
 from .scenes import load_scene
 from .specs import (REFERENCE_METHOD, RENDER_KEYS, available_methods, check_run_args,
-                    derived_seed, map_methods,
+                    check_no_shared_method, derived_seed, map_methods,
                     property_record, spec_name, users_of, uses_property, validate_property,
                     validate_spec)
 from .tables import columns, format_sweep, write_csv, write_json
@@ -137,7 +137,9 @@ def default_grid() -> list[dict]:
 def with_shared(grid, params: dict) -> list[dict]:
     """``grid`` (a dict or a list of sub-grids) with the shared ``params`` added as
     fixed axes of every sub-grid that has a method using them (a sub-grid's own
-    axis wins). A shared property that no method of the grid uses is an error."""
+    axis wins). A shared property that no method of the grid uses is an error, and so
+    is a shared ``method`` (the grid's own axis names the methods)."""
+    check_no_shared_method(params)
     subgrids = [grid] if isinstance(grid, dict) else list(grid)
     out = []
     for g in subgrids:

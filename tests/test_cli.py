@@ -110,6 +110,11 @@ def test_no_command_runs_compare_on_xml(tmp_path, capsys):
      "argument --repeats: must be an integer >= 1"),
     (["tune", "--max-error", "0.02", "--seed", "-1"],
      "argument --seed: must be an integer in [0, 2^32)"),
+    # --set method=... was ignored without a word (every method rendered, or the grid's)
+    (["compare", "--set", "method=pcf"], "'method' = 'pcf' is not a shared property"),
+    (["sweep", "--grid", "method=hard", "--set", "method=pcf"], "--methods"),
+    (["maps", "--set", "method=pcf"], "'method' = 'pcf' is not a shared property"),
+    (["tune", "--max-error", "0.02", "--set", "method=pcf"], "not a shared property"),
 ])
 def test_bad_input_one_line_error(argv, match, tmp_path, capsys):
     out_dir = tmp_path / "never"

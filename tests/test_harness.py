@@ -155,6 +155,8 @@ def test_written_error_layers_are_against_the_reference_a_method_is_scored_again
     ({"methods": ["hard"], "shadow_rays": 4}, "shadow_rays"),   # used by no listed method
     ({"methods": [{"resolution": 64}]}, "method"),
     ({"methods": ["hard"], "reference": "raytraced:shadow_rayz=4"}, "shadow_rayz"),
+    # a shared 'method' was dropped without a word: every spec has its own method
+    ({"methods": ["hard"], "method": "pcf"}, "'method' = 'pcf' is not a shared property"),
 ])
 def test_bad_input_rejected_before_rendering(kwargs, match):
     """Validation happens before the scene is even loaded: a missing scene file
@@ -402,6 +404,10 @@ def test_with_shared_adds_fixed_axes_where_used():
                     {"method": "hard", "resolution": [16]}]
     with pytest.raises(OptionError, match="shadow_rays"):
         harness.with_shared([{"method": "hard"}], {"shadow_rays": 2})
+    with pytest.raises(OptionError, match="'method' = 'pcf' is not a shared property"):
+        harness.with_shared([{"method": "hard"}], {"method": "pcf"})   # ignored before
+    with pytest.raises(OptionError, match="'method' = 'pcf' is not a shared property"):
+        harness.map_specs(["hard"], {"method": "pcf"})
 
 
 # --------------------------------------------------------------------------- tables

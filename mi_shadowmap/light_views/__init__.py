@@ -159,8 +159,8 @@ def make_light_view(emitter, scene, index: int, label: str | None = None) -> Lig
         return view
     raise UnsupportedEmitterError(
         f"shadowmap: emitter '{label}' ({emitter_class(emitter)}) is not supported; "
-        f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}, and envmap and "
-        "constant (environment='shadowed' or 'unshadowed')"
+        f"supported emitter types: {', '.join(SUPPORTED_EMITTERS)}, and envmap, "
+        "constant and sunsky (environment='shadowed' or 'unshadowed')"
         + ("; for environment/constant emitters set environment='unshadowed' to light "
            "them without shadows" if kind == "environment" else ""))
 

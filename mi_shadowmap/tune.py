@@ -805,7 +805,12 @@ class _Tuner:
     # ------------------------------------------------------------- run
     def run(self) -> dict:
         try:
-            return self._run()
+            result = self._run()
+            # the bar's total is an estimate raised as the search goes on: a finished
+            # tune closes at its count (its last line in a log read 99 %, or 67 % after
+            # a time limit, as if cut short); a stopped one keeps where it stopped
+            self.bar.total = self.bar.n
+            return result
         except (Exception, KeyboardInterrupt) as e:   # Ctrl-C, a bug, no pick: keep the search
             try:
                 e.tune_result = self.partial(e)

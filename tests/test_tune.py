@@ -135,6 +135,20 @@ def test_the_largest_seed_is_a_seed_tune_takes():
     assert res["method"] == "hard"
 
 
+def test_a_finished_tunes_last_progress_line_is_complete(capsys):
+    """The bar's total is an estimate, raised as the search goes on; a finished tune's
+    last line in a log (stderr not a terminal: capsys here) read ``tune:  99%|...|
+    113/114`` (67 % after a time limit), as if the run had been cut short. Now it
+    closes at its count: 100 %."""
+    res = tune(SPOT, 0.5, methods=["hard"], scene_params={"width": 16, "height": 16},
+               max_spp=2, search_size=8, repeats=1, progress=True)
+    assert res["method"] == "hard"
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("tune:")]
+    assert lines and "100%" in lines[-1], lines
+    n, total = re.search(r"\| *(\d+)/(\d+) ", lines[-1]).groups()
+    assert n == total, lines[-1]
+
+
 def test_time_limit_and_loaded_scene_restored():
     """A loaded scene works (its film is shrunk for the search and restored); the time
     limit ends the run soon after it, with a pick or an error naming the best error."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import importlib.util
 import json
 import math
@@ -233,7 +234,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "layer, cube faces stacked vertically. Methods whose "
                                    "maps of an emitter differ (multiview's views of an area "
                                    "light beside a cube map; another resolution) get one "
-                                   "file per map, <emitter>_<method>.exr.")
+                                   "file per map, <emitter>_<method>.exr. These are full "
+                                   "maps, as virtual=false renders them (at the automatic "
+                                   "resolution unless --set resolution=N), although renders "
+                                   "default to virtual maps; --set virtual=true writes the "
+                                   "virtual pages a render builds instead (pages stacked "
+                                   "vertically; each page's face, level and position in the "
+                                   "header attributes page_face, page_level, page_px, "
+                                   "page_py).")
     _add_scene_args(m, sizes=False, out="out/maps")
     m.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                    help=_methods_help("build the layers these methods use (default: every "
@@ -826,7 +834,8 @@ def main(argv=None) -> int:
     debug = debug or bool(getattr(args, "debug", False))
     try:
         with one_line_warnings():
-            import mi_shadowmap  # noqa: F401  (LLVM set-up and registration)
+            # the package's import does the LLVM set-up and the registration
+            importlib.import_module("mi_shadowmap")
             if variant is not None:
                 set_variant(variant)
             for path in plugins:

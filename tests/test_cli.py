@@ -495,6 +495,8 @@ def test_maps_help_lists_only_methods_with_maps(capsys):
     for name in harness.map_methods():
         assert name in text
     assert "raytraced" not in text and "unshadowed" not in text
+    # renders default to virtual maps, but maps writes full ones unless told: it said not
+    assert "full maps" in text and "virtual=true" in text
 
 
 @pytest.mark.parametrize("argv, match", [

@@ -456,6 +456,25 @@ def scene_integrator_params(args, scene, sets: dict, used) -> dict:
     return {**taken, **sets}
 
 
+def check_param_method(args, props: dict) -> None:
+    """``--param method=X`` that filled the method of the scene's shadowmap integrator
+    (every scene of ``scenes_xml/`` takes ``$method``), with no methods named: an error
+    naming ``--methods`` (a sweep's ``--grid``). The commands do not take that method,
+    so every method rendered without a word."""
+    given = {}
+    for item in getattr(args, "param", None) or []:
+        name, _, value = item.partition("=")
+        given[name.strip().lstrip("$")] = value.strip()
+    named = args.grid if args.command == "sweep" else args.methods
+    if "method" not in given or named or props.get("method") != given["method"]:
+        return
+    how = ("--grid 'method=" + given["method"] + " ...'" if args.command == "sweep"
+           else f"--methods {given['method']}")
+    raise ValueError(f"--param method={given['method']} fills the scene's $method, the "
+                     "method of its <integrator type=\"shadowmap\">, which mi-shadowmap "
+                     f"{args.command} does not take: name the methods with {how}")
+
+
 def scene_integrator_base(args, scene) -> dict:
     """The scene's shadowmap integrator properties the commands take (none with
     ``--ignore-scene-integrator``); notes on the ones not taken."""
@@ -468,6 +487,7 @@ def scene_integrator_base(args, scene) -> dict:
              "method renders with the shadowmap integrator")
         return {}
     props = props or {}
+    check_param_method(args, props)
     dropped = {k: props[k] for k in NOT_INHERITED if k in props and k != "method"}
     if dropped and args.command != "maps":
         note(f"the scene's shadowmap integrator sets {_fmt(dropped)}, not taken (frames "

@@ -714,6 +714,33 @@ def test_a_scene_parameter_without_default_is_given_with_param(tmp_path, capsys)
     assert code == 2 and "built-in scene" in err, err
 
 
+@pytest.mark.parametrize("command", [
+    ["compare"], ["sweep"], ["maps"], ["tune", "--max-error", "0.05"]])
+def test_param_method_is_not_dropped_without_a_word(command, tmp_path, capsys):
+    """Every scene of scenes_xml/ takes $method, the method of its shadowmap integrator,
+    which the commands do not take (--methods, a sweep grid choose): ``--param
+    method=pcf`` then rendered every method without a word. Without --methods (--grid)
+    it is an error naming them; with them, $method changes nothing that is rendered."""
+    scene = SCENES / "spot_sphere_box.xml"
+    out_dir = tmp_path / "never"
+    code, out, err = run(command + [scene, "--param", "method=pcf", "--out", out_dir],
+                         capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert "--param method=pcf" in lines[0], err
+    assert ("--grid" if command[0] == "sweep" else "--methods pcf") in lines[0], err
+    assert not out_dir.exists()
+    # named: the file's $method is filled and the named methods render
+    small = ["--width", "16", "--height", "16", "--spp", "1", "--repeats", "1"]
+    named = {"compare": small + ["--methods", "hard"],
+             "sweep": small + ["--grid", "method=hard resolution=32"],
+             "maps": ["--methods", "hard", "--set", "resolution=32"]}.get(command[0])
+    if named is not None:    # (tune's search is the longest; compare stands for it)
+        code, out, err = run([command[0], scene, "--param", "method=pcf", *named,
+                              "--out", tmp_path / "ok"], capsys)
+        assert code == 0, err
+
+
 def test_progress_in_a_log_is_lines(tmp_path, capsys):
     """stderr that is not a terminal (a log, a pipe; capsys here): tqdm drew its bar with
     carriage returns there too, every redraw on one line of the log, and a bar that does

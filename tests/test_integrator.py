@@ -91,6 +91,23 @@ def test_aov_names_and_ranges():
     assert integ2.aov_names() == ["vis_point"]
 
 
+def test_the_readmes_ways_of_writing_an_image_keep_the_picture(tmp_path):
+    """The README's "Use from Python" writes the film (its channels named) and the colour
+    alone: Mitsuba's ``write_bitmap(path, img)`` of the whole image wrote one light's
+    visibility as alpha, unnamed channels for more, and failed for a PNG."""
+    import OpenEXR
+    path = [p for p in SCENE_FILES if p.stem == "room_two_points"][0]
+    scene = mi.load_file(str(path), width=16, height=16)
+    img = mi.render(scene, spp=1)
+    scene.sensors()[0].film().write(str(tmp_path / "film.exr"))
+    with OpenEXR.File(str(tmp_path / "film.exr")) as f:
+        assert set(f.channels()) == {"RGB", "vis_key", "vis_fill"}
+        np.testing.assert_allclose(f.channels()["vis_key"].pixels,
+                                   np.asarray(img)[..., 3:4].reshape(16, 16), atol=1e-6)
+    mi.util.write_bitmap(str(tmp_path / "colour.png"), img[..., :3], write_async=False)
+    assert mi.Bitmap(str(tmp_path / "colour.png")).channel_count() == 3
+
+
 def test_maps_built_once_per_render(monkeypatch):
     calls = []
     real = mm_mod.build_depth_map

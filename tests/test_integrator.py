@@ -106,6 +106,19 @@ def test_the_readmes_ways_of_writing_an_image_keep_the_picture(tmp_path):
                                    np.asarray(img)[..., 3:4].reshape(16, 16), atol=1e-6)
     mi.util.write_bitmap(str(tmp_path / "colour.png"), img[..., :3], write_async=False)
     assert mi.Bitmap(str(tmp_path / "colour.png")).channel_count() == 3
+    # the README's stand-in for Mitsuba's `mitsuba scene.xml -D method=pcf` (which cannot
+    # load a Python plugin), run as printed from the repository's root
+    import pathlib
+    import subprocess
+    import sys
+    root = pathlib.Path(__file__).resolve().parents[1]
+    line = next(ln for ln in (root / "README.md").read_text().splitlines()
+                if ln.startswith(".venv/bin/python -c \"import mitsuba as mi, mi_shadowmap;"))
+    code = line.split(" -c ", 1)[1].strip().strip('"')
+    code = code.replace("'pcf.exr'", repr(str(tmp_path / "pcf.exr")))
+    subprocess.run([sys.executable, "-c", code], cwd=root, check=True, timeout=600)
+    with OpenEXR.File(str(tmp_path / "pcf.exr")) as f:
+        assert set(f.channels()) == {"RGB", "vis_spot"}
 
 
 def test_maps_built_once_per_render(monkeypatch):

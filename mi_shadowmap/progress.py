@@ -13,14 +13,21 @@ LOG_INTERVAL = 10.0
 
 
 class _Lines:
-    """A stream for tqdm that writes each redraw as a line of its own, blanks dropped."""
+    """A stream for tqdm that writes each redraw as a line of its own, blanks dropped,
+    and a redraw of the count the previous line showed too (a bar's close repeated its
+    last update's line when that came after the log interval: only the rate differed)."""
 
     def __init__(self, stream):
         self._stream = stream
+        self._last = None      # the previous line up to its timing: "desc: pct|bar| n/total"
 
     def write(self, text: str) -> None:
         for part in text.split("\r"):
             if part.strip():
+                key = part.split("[", 1)[0].rstrip()
+                if key == self._last:
+                    continue
+                self._last = key
                 self._stream.write(part.rstrip() + "\n")
 
     def flush(self) -> None:

@@ -758,6 +758,21 @@ def test_progress_in_a_log_is_lines(tmp_path, capsys):
     assert all(line.strip() for line in err.splitlines()), repr(err)
 
 
+def test_a_log_gets_each_progress_count_once(monkeypatch):
+    """A bar whose last update came after the log interval printed its last line, and
+    its close printed it again (compare's 'methods: 100%|...| 1/1' twice in a log after a
+    14 s method). Each count is one line now, the last one kept."""
+    import io
+    from mi_shadowmap import progress
+    monkeypatch.setattr(progress, "LOG_INTERVAL", 0.0)     # every update printed
+    buf = io.StringIO()
+    for _ in progress.bar(range(3), desc="x", file=buf):
+        pass
+    lines = buf.getvalue().splitlines()
+    counts = [ln.split("[")[0].split("|")[-1].strip() for ln in lines]
+    assert counts == ["0/3", "1/3", "2/3", "3/3"], lines
+
+
 def test_variant_before_the_command(tmp_path, capsys):
     """``--variant`` is taken before the command too, as ``--plugin`` and ``--debug``:
     ``mi-shadowmap --variant llvm_ad_mono maps ...`` ran ``compare`` on a scene file

@@ -497,6 +497,7 @@ def test_maps_help_lists_only_methods_with_maps(capsys):
     assert "raytraced" not in text and "unshadowed" not in text
     # renders default to virtual maps, but maps writes full ones unless told: it said not
     assert "full maps" in text and "virtual=true" in text
+    assert "*_span, is a header attribute" in text    # listed among the layers it prints
 
 
 @pytest.mark.parametrize("argv, match", [

@@ -252,10 +252,11 @@ def _aimed_frustum(pos, axis, p_world: np.ndarray, margin: float):
 def box_view(view: LightView, lo, hi, margin: float = 0.05):
     """A :class:`PerspectiveView` from ``view``'s light aimed at the box ``[lo, hi]``
     (numpy) whose frustum covers its 8 corners, a rectangle where its sides differ by
-    more than ``ANISO`` (:func:`_aimed_rectangle`), else a square, widened by ``margin`` of its width per side (normal offsets and filter taps at the box's edge); None if the
+    more than ``ANISO`` (:func:`_aimed_rectangle`), else a square, widened by ``margin``
+    of its width per side (normal offsets and filter taps at the box's edge); None if the
     light is inside the box's cone (a corner at or behind the light's plane). Every
     field but the projection is ``view``'s (kind, position, light size and normal,
-    ignored shape, label).
+    ignored shape, label, a planar area light's half-axes).
 
     For a light far from the scene: a cube face (90 degrees) or a wide spot cone then
     spends its texels on directions where nothing is, and a virtual map's finest level
@@ -277,10 +278,13 @@ def box_view(view: LightView, lo, hi, margin: float = 0.05):
     # (see _aimed_rectangle): within it the square's level already resolves the short
     # side, with more texels across
     rect = tan_y * ANISO < tan_x
+    # (the light's half-axes too: a far planar area light's virtual map read the square
+    # of its area where its full map read its own shape)
     return PerspectiveView(view.kind, view.position, lfw, light_size=view.light_size,
                            ignore_shape=view.ignore_shape, light_normal=view.light_normal,
                            label=view.label, tan_half=max(tan_x, 1e-300),
-                           tan_half_y=max(tan_y, 1e-300) if rect else None)
+                           tan_half_y=max(tan_y, 1e-300) if rect else None,
+                           light_axes=view.light_axes)
 
 
 def _aimed_rectangle(pos, axis, p_world: np.ndarray, margin: float):

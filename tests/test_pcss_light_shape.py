@@ -210,3 +210,50 @@ def test_a_far_strip_light_s_virtual_map_keeps_its_shape(monkeypatch):
     print(f"noise {noise:.4f}, shaped {errs[True]:.4f}, square {errs[False]:.4f}")
     assert errs[True] <= noise + 0.01
     assert errs[True] < errs[False] - 0.005
+
+
+def _mesh(vertices, faces) -> mi.Mesh:
+    mesh = mi.Mesh("light", len(vertices), len(faces))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.asarray(vertices, "f4").ravel())
+    params["faces"] = mi.UInt32(np.asarray(faces, "u4").ravel())
+    params.update()
+    return mesh
+
+
+@pytest.mark.parametrize("split", ["two triangles", "fan", "grid", "ring"])
+@pytest.mark.parametrize("turn", [0.0, 25.0])
+def test_a_square_mesh_light_keeps_its_sides_whatever_its_triangles(split, turn):
+    """A square mesh light (in-plane moments isotropic: no axis from them) is read along
+    its sides however it is triangulated: two triangles, a fan around its centre, a 2 x 2
+    grid, a square ring. The first triangle's shortest edge (6b56d0d) was a fan's
+    half-diagonal and a ring's inner diagonal: the square read as itself turned 45
+    degrees, 1.41 times as wide along the map's axes."""
+    from mi_shadowmap.light_views import area_light_axes
+    h = 0.75
+    corners = [[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]]
+    if split == "two triangles":
+        v, f, half = corners, [[0, 2, 1], [0, 3, 2]], h
+    elif split == "fan":
+        v, f, half = corners + [[0, 0, 0]], [[4, 1, 0], [4, 2, 1], [4, 3, 2], [4, 0, 3]], h
+    elif split == "grid":
+        v = [[x, 0, z] for z in (-h, 0, h) for x in (-h, 0, h)]
+        f = [t for j in range(2) for i in range(2)
+             for t in ([3 * j + i, 3 * j + i + 4, 3 * j + i + 1],
+                       [3 * j + i, 3 * j + i + 3, 3 * j + i + 4])]
+        half = h
+    else:    # outer half-side 1.5, inner 1.0: equal second moments, half-side sqrt(3.25)
+        o, i = 1.5, 1.0
+        v = [[-o, 0, -o], [o, 0, -o], [o, 0, o], [-o, 0, o],
+             [-i, 0, -i], [i, 0, -i], [i, 0, i], [-i, 0, i]]
+        f = [[0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6],
+             [3, 0, 4], [3, 4, 7]]
+        half = math.sqrt(o * o + i * i)
+    c, s = math.cos(math.radians(turn)), math.sin(math.radians(turn))
+    turned = np.asarray(v, float) @ np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]]).T
+    side = np.array([c, 0.0, s])          # the first corner's side, turned
+    for e in area_light_axes(_mesh(turned, f)):
+        e = np.asarray(e)
+        assert np.isclose(np.linalg.norm(e), half, rtol=1e-4)
+        along = abs(e @ side) / np.linalg.norm(e)
+        assert along < 1e-3 or along > 1 - 1e-6, (split, turn, e)

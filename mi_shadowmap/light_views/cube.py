@@ -307,8 +307,9 @@ def area_light_axes(shape) -> tuple | None:
     * a planar mesh: the rectangle of the same in-plane second moments (a uniform
       rectangle of half-sides ``h`` has variance ``h^2 / 3`` along each side): exact for
       a rectangle, whatever its triangles; where the two in-plane moments agree within
-      1e-4 (a square, a regular polygon), the first triangle's shortest edge is the
-      first axis, so that a square quad keeps its sides' directions.
+      1e-4 (a square, a regular polygon), the first axis runs along its outline's
+      sides (:func:`_outline_axis`), so that a square keeps its sides' directions
+      whatever its triangles.
 
     Why: a strip light 6 x 0.02 was read as the 0.35 square of its area, its penumbra
     along the strip far too narrow and across it far too wide (``benchmarks/
@@ -344,15 +345,71 @@ def area_light_axes(shape) -> tuple | None:
     lam, vec = np.linalg.eigh(cov)            # ascending; the smallest: the normal
     lam1, lam2 = float(lam[2]), float(lam[1])
     ax1 = vec[:, 2]
-    if lam1 - lam2 <= 1e-4 * lam1:            # isotropic in its plane: a side's direction
+    if lam1 - lam2 <= 1e-4 * lam1:            # isotropic in its plane: its outline's sides
         edges = [b[0] - a[0], c[0] - b[0], a[0] - c[0]]
         ax1 = min(edges, key=np.linalg.norm)
         ax1 = ax1 - normal * float(ax1 @ normal)
-        ax1 /= np.linalg.norm(ax1)
+        ax1 = _outline_axis(v, f, normal, ax1 / np.linalg.norm(ax1))
         lam2 = lam1 = 0.5 * (lam1 + lam2)
     ax2 = np.cross(normal, ax1)
     h1, h2 = math.sqrt(3.0 * max(lam1, 0.0)), math.sqrt(3.0 * max(lam2, 0.0))
     return (tuple(float(x) for x in h1 * ax1), tuple(float(x) for x in h2 * ax2))
+
+
+def _outline_axis(v: np.ndarray, f: np.ndarray, normal: np.ndarray,
+                  hint: np.ndarray) -> np.ndarray:
+    """A unit in-plane direction along the sides of a planar mesh's outline (its boundary
+    edges: those of one triangle, vertices merged by position), for a mesh whose in-plane
+    second moments are isotropic (a square, a square ring, a regular polygon), where they
+    give no direction: the edges' mean direction modulo 90 degrees (each edge's angle
+    times 4, weighted by its length), or the longest boundary edge's where that mean
+    vanishes (a regular octagon: any turn is as good); of those four, the one nearest the
+    unit ``hint`` (the first triangle's shortest edge), and ``hint`` itself where it lies
+    within 1e-3 radians of one (a square quad's side: its axes, and so its image, as
+    before, bit for bit).
+
+    Why not the hint alone (6b56d0d): a square split into two triangles has a side for
+    its first triangle's shortest edge, but one split as a fan around its centre a
+    half-diagonal (and a square ring's first triangle an inner diagonal): that square was
+    read as itself turned 45 degrees, 1.41 times as wide along the map's axes."""
+    # positions merged on a grid of 2^-20 of the mesh's extent (any scene scale)
+    span = max(float(np.ptp(v, axis=0).max()), 1e-300)
+    grid = np.round((v - v.min(axis=0)) * (2.0 ** 20 / span))
+    key = np.unique(grid, axis=0, return_inverse=True)[1].reshape(-1)
+    tri = key[f]
+    pairs = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    uniq, count = np.unique(pairs, axis=0, return_counts=True)
+    if not count.size:
+        return hint
+    ends = uniq[count == 1] if np.any(count == 1) else uniq
+    pos = np.zeros((int(key.max()) + 1, 3))
+    pos[key] = v
+    e = pos[ends[:, 1]] - pos[ends[:, 0]]
+    t1 = _any_in_plane(normal)
+    t2 = np.cross(normal, t1)
+    x, y = e @ t1, e @ t2
+    length = np.hypot(x, y)
+    if not length.max() > 0.0:
+        return hint
+    z = np.sum(length * np.exp(4j * np.arctan2(y, x)))
+    if abs(z) > 1e-6 * length.sum():
+        angle = 0.25 * float(np.angle(z))
+    else:
+        k = int(np.argmax(length))
+        angle = math.atan2(y[k], x[k])
+    toward = math.atan2(float(hint @ t2), float(hint @ t1))
+    off = (toward - angle + 0.25 * math.pi) % (0.5 * math.pi) - 0.25 * math.pi
+    if abs(off) < 1e-3:
+        return hint
+    angle = toward - off
+    return math.cos(angle) * t1 + math.sin(angle) * t2
+
+
+def _any_in_plane(normal: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to the unit ``normal``."""
+    t = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    return t / np.linalg.norm(t)
 
 
 def planar_normal(shape):

@@ -420,8 +420,10 @@ def note(text: str) -> None:
 
 
 #: Properties of a scene's shadowmap integrator that the commands do not take: the
-#: method (--methods chooses), and cache_maps (frames are timed with maps rebuilt).
-NOT_INHERITED = ("method", "cache_maps")
+#: method (--methods chooses), cache_maps (frames are timed with maps rebuilt), and
+#: visibility_aovs (the commands score and write the visibility AOVs: kept on; a scene
+#: file may set it false for a plain mi.render of the file).
+NOT_INHERITED = ("method", "cache_maps", "visibility_aovs")
 
 
 def _fmt(props: dict) -> str:
@@ -490,10 +492,13 @@ def scene_integrator_base(args, scene) -> dict:
         return {}
     props = props or {}
     check_param_method(args, props)
-    dropped = {k: props[k] for k in NOT_INHERITED if k in props and k != "method"}
+    dropped = {k: props[k] for k in ("cache_maps",) if k in props}
     if dropped and args.command != "maps":
         note(f"the scene's shadowmap integrator sets {_fmt(dropped)}, not taken (frames "
              "are timed with the maps rebuilt; --set cache_maps=true caches them)")
+    if props.get("visibility_aovs") is False and args.command != "maps":
+        note("the scene's shadowmap integrator sets visibility_aovs=false, not taken: "
+             f"mi-shadowmap {args.command} scores and writes the visibility AOVs")
     return {k: v for k, v in props.items() if k not in NOT_INHERITED}
 
 

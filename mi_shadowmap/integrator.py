@@ -129,7 +129,9 @@ screen is Mitsuba's projective integrators' job.
         # (mi_shadowmap.packets: a built-in or lit_packets method, no gradients tracked)
         self._lit_packets = False
         self._names_given: list[str] = []   # aov_names() given outside a render
-        self._film_takes_aovs = True   # False while rendering to a special film (specfilm)
+        # whether the image gets the visibility AOVs: never with visibility_aovs=false,
+        # nor while rendering to a special film (specfilm, see _film_takes_aovs)
+        self._writes_aovs = self.opts.visibility_aovs
         # a user method's render: a one-element counter of lookups outside [0, 1] or NaN
         self._out_of_range = None
         # scene_token() of the scene of the render in progress or just done (the memos
@@ -182,7 +184,9 @@ screen is Mitsuba's projective integrators' job.
         self._last_render = None
         try:
             sensor_obj = _sensor_object(scene, sensor)
-            self._film_takes_aovs = _film_takes_aovs(sensor_obj.film())
+            # (visibility_aovs=false: no specfilm warning about AOVs nobody asked for)
+            self._writes_aovs = (self.opts.visibility_aovs
+                                 and _film_takes_aovs(sensor_obj.film()))
             self._first_pass(scene, sensor_obj,
                              spp if spp > 0 else sensor_obj.sampler().sample_count())
             self._last_render = scene_token(scene)
@@ -282,7 +286,8 @@ screen is Mitsuba's projective integrators' job.
             return
         sensor_obj = _sensor_object(scene, sensor)
         film = sensor_obj.film()
-        aovs = len(scene.emitters()) if _film_takes_aovs(film) else 0
+        aovs = (len(scene.emitters())
+                if self.opts.visibility_aovs and _film_takes_aovs(film) else 0)
         expected = film.base_channels_count() + aovs
         if shape[2] != expected:
             raise ValueError(
@@ -440,16 +445,17 @@ screen is Mitsuba's projective integrators' job.
 
     def aov_names(self):
         """``vis_<emitter>`` per emitter of the last scene rendered (none before one;
-        none in a render to a film that cannot take them, see :func:`_film_takes_aovs`).
+        none with ``visibility_aovs=false``, nor in a render to a film that cannot take
+        them, see :func:`_film_takes_aovs`).
         Outside a render the list given is remembered: an integrator nesting this one
         (Mitsuba's ``aov``) sizes its channels by it when it is built, so while nested
         ``sample()`` returns values for exactly those names (:meth:`sample`)."""
         if self._nested:
             return list(self._names_given)
-        # none for a render (or after one) to a film that cannot take them; remembered
-        # like any list given, so that an integrator nesting this one sizes its channels
-        # by what sample() will return
-        names = self._names() if self._film_takes_aovs else []
+        # none with visibility_aovs=false, or for a render (or after one) to a film that
+        # cannot take them; remembered like any list given, so that an integrator nesting
+        # this one sizes its channels by what sample() will return
+        names = self._names() if self._writes_aovs else []
         if not self._in_render:
             self._names_given = list(names)
         return names
@@ -479,7 +485,9 @@ screen is Mitsuba's projective integrators' job.
             sensor = _nested_sensor(scene, sampler, ray)
             known = sensor is not None and _film_fits(sensor, sampler)
         self._first_pass(scene, sensor, max(sampler.sample_count(), 1), known)
-        missing = [n for n in self._names() if n not in self._names_given]
+        # (visibility_aovs=false: none are asked for, none missing)
+        missing = [n for n in self._names() if n not in self._names_given
+                   and self.opts.visibility_aovs]
         # after our own render() of this scene (Mitsuba's aov merges that image, whose
         # visibility AOVs are all there) nothing is missing; stokes only calls sample()
         if missing and not rendered:
@@ -692,7 +700,7 @@ screen is Mitsuba's projective integrators' job.
                         else dr.select(shade, whole, 0.0))
         if self._delta_term:
             result += _delta_lobe_term(scene, si, bsdf, sampler, valid)
-        return result, valid, aovs if (self._film_takes_aovs or self._nested) else []
+        return result, valid, aovs if (self._writes_aovs or self._nested) else []
 
     def _sample_visibility(self, smap, si, dp_dx, dp_dy, ds, sampler, lit, shade, emitter,
                            u_light=None):

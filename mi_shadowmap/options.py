@@ -154,6 +154,16 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          "Default: 0.5, or the method's own (Method.bias_defaults, listed below).",
          lo=0.0),
     Prop("hide_emitters", "bool", False, "Hide directly visible emitters."),
+    Prop("visibility_aovs", "bool", True,
+         "Append one visibility AOV per emitter (vis_<emitter>) to the rendered image, "
+         "after the film's own channels. false: the image holds the film's channels only "
+         "(RGB, or Y in a mono variant, plus alpha if the film's pixel_format has it), as "
+         "Mitsuba's direct integrator's does, so mi.util.write_bitmap(path, mi.render(scene)) "
+         "writes the picture to a PNG or an EXR; the colour is the default render's (bit for "
+         "bit at one sample a pixel; with more, to a few float32 ulps: Mitsuba's film sums "
+         "a pixel's samples in another order when it holds AOV channels). "
+         "Comparisons, sweeps, tune and the command line score the visibility AOVs and "
+         "refuse false."),
     Prop("environment", "str", "shadowed",
          "What to do with environment/constant emitters: 'shadowed' splits them into "
          "env_lights median-cut regions (Debevec 2005), each shadowed by an orthographic "
@@ -181,7 +191,8 @@ GENERAL_PROPERTIES: tuple[Prop, ...] = (
          lo=0.0, hi=1.0, lights=("directional",)),
 )
 #: Scope of each shared property (see EVERY, ACCEPTED, MAP).
-SCOPES = {"method": EVERY, "hide_emitters": EVERY, "environment": EVERY, "env_lights": MAP,
+SCOPES = {"method": EVERY, "hide_emitters": EVERY, "visibility_aovs": EVERY,
+          "environment": EVERY, "env_lights": MAP,
           "resolution": ACCEPTED, "memory_budget": ACCEPTED, "cache_maps": ACCEPTED,
           "cull_faces": MAP, "fit_frusta": MAP, "virtual": MAP, "page_size": MAP, "lod_bias": MAP, "antialias": MAP,
           "gradient_at": MAP, "gradient_light_samples": MAP, "bias": MAP, "slope_bias": MAP,

@@ -166,13 +166,33 @@ def method_spec(item, params: dict | None = None) -> dict:
 
 
 def validate_spec(spec: dict) -> options.Options:
-    """Validate one spec (integrator properties plus ``spp``); return its Options."""
+    """Validate one spec (integrator properties plus ``spp``); return its Options. A
+    spec with ``visibility_aovs=false`` is refused (:func:`check_visibility_aovs`)."""
     props = {k: v for k, v in spec.items() if k not in RENDER_KEYS}
     if "spp" in spec:
         spp = spec["spp"]
         if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
             raise OptionError(f"shadowmap: 'spp' must be an integer >= 1, got {spp!r}")
-    return options.parse_options({"type": "shadowmap", **props})
+    opts = options.parse_options({"type": "shadowmap", **props})
+    check_visibility_aovs(opts)
+    return opts
+
+
+def check_visibility_aovs(opts) -> None:
+    """``visibility_aovs=false`` in a spec is an error naming the property: every user
+    of specs (``compare``, ``sweep``, ``tune``, ``remeasure``, ``harness.render``,
+    ``maps`` and the command line, the notebooks through them) reads the visibility
+    AOVs or promises them in its result, and without them the metrics would be taken
+    from channels the image does not have (a render's channels split into colour and
+    AOVs by :func:`~mi_shadowmap.timing.split_channels`). The property is for a user's
+    own ``mi.render``."""
+    if not opts.visibility_aovs:
+        raise OptionError(
+            "shadowmap: property 'visibility_aovs' = false leaves the visibility AOVs "
+            "(vis_<emitter>) out of the image, and comparisons, sweeps, tune, maps and "
+            "harness.render read them (vis_rmse, the error layers, ...): leave "
+            "'visibility_aovs' out here; it is for your own mi.render(scene) whose image "
+            "should hold the film's channels only")
 
 
 def check_run_args(**args) -> None:

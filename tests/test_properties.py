@@ -130,6 +130,9 @@ def test_valid_parameter_sets_render_finite_visibility(props, light, seed):
         assert "memory_budget" in msg and props.get("memory_budget") is not None, msg
         return
     assert np.isfinite(img).all(), props
+    if not props.get("visibility_aovs", True):   # the film's channels only
+        assert img.shape[-1] == 3, props
+        return
     vis = img[..., 3:]
     assert vis.shape[-1] == 1
     assert vis.min() >= 0.0 and vis.max() <= 1.0, props

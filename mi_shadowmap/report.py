@@ -31,7 +31,10 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
 
     ``create=False`` only checks, creating nothing: ``out_dir`` is a writable folder,
     or its nearest existing parent is one (so that the writers, which create it, can);
-    the CLI checks so before it renders and leaves no empty folder behind an error."""
+    the CLI checks so before it renders and leaves no empty folder behind an error.
+    Either way a probe is made there and removed (:func:`_probe_writable`):
+    ``os.access`` says yes to root almost everywhere, and ``--out /proc/x`` as root
+    passed it, rendered the whole comparison and failed only then, at the folder."""
     if not create:
         path = os.path.abspath(out_dir)
         if os.path.exists(path):
@@ -39,6 +42,7 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
                 raise PermissionError(f"output folder {out_dir} is a file, not a folder")
             if not os.access(path, os.W_OK | os.X_OK):
                 raise PermissionError(f"output folder is not writable: {out_dir}")
+            _probe_writable(path, f"output folder is not writable: {out_dir}")
             return out_dir
         parent = os.path.dirname(path)
         while not os.path.exists(parent) and os.path.dirname(parent) != parent:
@@ -49,6 +53,8 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
         if not os.access(parent, os.W_OK | os.X_OK):
             raise PermissionError(f"cannot create output folder {out_dir}: {parent} is not "
                                   "writable")
+        _probe_writable(parent, f"cannot create output folder {out_dir}: no folder can "
+                                f"be made in {parent}", make_folder=True)
         return out_dir
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise PermissionError(f"output folder {out_dir} is a file, not a folder")
@@ -59,7 +65,26 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
                               f"{e.strerror or e}") from None
     if not os.path.isdir(out_dir) or not os.access(out_dir, os.W_OK | os.X_OK):
         raise PermissionError(f"output folder is not writable: {out_dir}")
+    _probe_writable(out_dir, f"output folder is not writable: {out_dir}")
     return out_dir
+
+
+def _probe_writable(folder: str, message: str, make_folder: bool = False) -> None:
+    """Make a temporary file in ``folder`` (``make_folder``: a temporary folder, as the
+    writers will make the output folder there) and remove it; a PermissionError of
+    ``message`` and the system's reason if that fails. ``os.access`` alone reads the
+    permission bits (and a read-only mount), which root passes even where nothing can
+    be made (``/proc``)."""
+    import tempfile
+    try:
+        if make_folder:
+            os.rmdir(tempfile.mkdtemp(prefix=".mi-shadowmap-probe-", dir=folder))
+        else:
+            fd, probe = tempfile.mkstemp(prefix=".mi-shadowmap-probe-", dir=folder)
+            os.close(fd)
+            os.remove(probe)
+    except OSError as e:
+        raise PermissionError(f"{message} ({e.strerror or e})") from None
 
 
 def write_exr(path: str, channels: dict, attributes: dict | None = None) -> None:

@@ -1,6 +1,7 @@
 """The ``mi-shadowmap`` command line: outputs on tiny scenes, one-line errors."""
 import csv
 import json
+import os
 import subprocess
 import sys
 
@@ -145,6 +146,62 @@ def test_out_dir_that_is_a_file_is_named_so(tmp_path, capsys):
     assert code == 2 and "is a file, not a folder" in err
     with pytest.raises(PermissionError, match="is a file, not a folder"):
         report.check_out_dir(str(blocker))
+
+
+def test_out_dir_probe_catches_what_os_access_lets_through(monkeypatch, tmp_path):
+    from mi_shadowmap import report
+    """As root ``os.access`` says yes to ``/proc``; the probe (a folder made and removed
+    in the nearest existing parent, a file in an existing folder) says no. Simulated
+    without root: ``os.access`` always true, and the probe's ``mkdtemp`` / ``mkstemp``
+    failing where they would."""
+    import tempfile
+    monkeypatch.setattr(os, "access", lambda *a, **k: True)
+    if os.path.isdir("/proc/self"):
+        with pytest.raises(PermissionError, match="cannot create output folder /proc/x"):
+            report.check_out_dir("/proc/x", create=False)
+    locked = tmp_path / "locked"
+    locked.mkdir()
+
+    def refuse(*args, dir=None, **kwargs):
+        if dir is not None and os.path.abspath(dir) == str(locked):
+            raise PermissionError(13, "Permission denied")
+        return real[kind](*args, dir=dir, **kwargs)
+    real = {"d": tempfile.mkdtemp, "s": tempfile.mkstemp}
+    kind = "d"
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    with pytest.raises(PermissionError, match="no folder can be made in .*Permission denied"):
+        report.check_out_dir(str(locked / "a" / "b"), create=False)
+    assert os.listdir(locked) == []
+    kind = "s"
+    monkeypatch.setattr(tempfile, "mkdtemp", real["d"])
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(PermissionError, match="output folder is not writable"):
+        report.check_out_dir(str(locked), create=False)
+    with pytest.raises(PermissionError, match="output folder is not writable"):
+        report.check_out_dir(str(locked))
+    monkeypatch.setattr(tempfile, "mkstemp", real["s"])
+    # a writable folder: the probes leave nothing behind
+    assert report.check_out_dir(str(locked), create=False) == str(locked)
+    assert report.check_out_dir(str(locked / "new"), create=False) == str(locked / "new")
+    assert os.listdir(locked) == []
+
+
+def test_cli_out_dir_fails_before_rendering(monkeypatch, tmp_path, capsys):
+    """``--out`` where no folder can be made: one line, status 2, nothing rendered."""
+    import tempfile
+    monkeypatch.setattr(os, "access", lambda *a, **k: True)
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+
+    def no_compare(*args, **kwargs):
+        raise AssertionError("rendered")
+    monkeypatch.setattr(harness, "compare", no_compare)
+    code, out, err = run(["compare", *TINY, "--methods", "hard", "--out", tmp_path / "out"],
+                         capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "cannot create output folder" in err and "Permission denied" in err
 
 
 def test_debug_shows_traceback(capsys):

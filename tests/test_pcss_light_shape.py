@@ -50,15 +50,11 @@ def _rmse(a, b) -> float:
     return float(np.sqrt(np.mean((a - b) ** 2)))
 
 
-@pytest.mark.parametrize("virtual", [True, False])
-def test_a_strip_light_s_penumbra_follows_the_strip(virtual, monkeypatch):
-    """A strip 6 x 0.02 over a plate: ``pcss``'s visibility RMSE against ``raytraced``
-    (32 shadow rays) lies within the reference's own seed noise + 0.02; read as the square
-    of its area (``LIGHT_SHAPE`` False, the code before) it does not. Measured at 32^2,
-    8 spp: noise 0.0455, shaped 0.056 (virtual) / 0.056 (full), square 0.126 / 0.125
-    (48^2, 4 spp, 16 rays: noise 0.075, 0.076 / 0.075 against 0.136 / 0.136)."""
+def _shaped_and_square(d, virtual, monkeypatch):
+    """``(noise, {shaped: RMSE})``: the reference's own seed noise (``raytraced``, 32
+    shadow rays, seeds 0 and 5) and ``pcss``'s visibility RMSE against it with the light's
+    own shape (True) and read as the square of its area (False, the code before)."""
     import mi_shadowmap.filters.pcss as pcss_mod
-    d = _scene(32, 8, 6.0, 0.02)
     ref = _vis(d, "raytraced", 0, shadow_rays=32)
     noise = _rmse(ref, _vis(d, "raytraced", 5, shadow_rays=32))
     errs = {}
@@ -68,6 +64,17 @@ def test_a_strip_light_s_penumbra_follows_the_strip(virtual, monkeypatch):
         assert np.isfinite(vis).all()
         errs[shaped] = _rmse(ref, vis)
     print(f"noise {noise:.4f}, shaped {errs[True]:.4f}, square {errs[False]:.4f}")
+    return noise, errs
+
+
+@pytest.mark.parametrize("virtual", [True, False])
+def test_a_strip_light_s_penumbra_follows_the_strip(virtual, monkeypatch):
+    """A strip 6 x 0.02 over a plate: ``pcss``'s visibility RMSE against ``raytraced``
+    (32 shadow rays) lies within the reference's own seed noise + 0.02; read as the square
+    of its area (``LIGHT_SHAPE`` False, the code before) it does not. Measured at 32^2,
+    8 spp: noise 0.0455, shaped 0.056 (virtual) / 0.056 (full), square 0.126 / 0.125
+    (48^2, 4 spp, 16 rays: noise 0.075, 0.076 / 0.075 against 0.136 / 0.136)."""
+    noise, errs = _shaped_and_square(_scene(32, 8, 6.0, 0.02), virtual, monkeypatch)
     assert errs[True] <= noise + 0.02
     assert errs[False] > noise + 0.05
 
@@ -191,7 +198,6 @@ def test_a_far_strip_light_s_virtual_map_keeps_its_shape(monkeypatch):
     ``pcss`` reads the strip, not the square of its area. The face dropped them: the
     image was the square's bit for bit. Measured (32^2, 8 spp, ``raytraced`` 32 shadow
     rays): noise 0.0358, shaped 0.0398, square 0.0489."""
-    import mi_shadowmap.filters.pcss as pcss_mod
     from mi_shadowmap.light_views import make_light_view
     from mi_shadowmap.light_views.perspective import box_view
     d = _scene(32, 8, 2000.0, 2.0, height=2000.0)
@@ -199,15 +205,7 @@ def test_a_far_strip_light_s_virtual_map_keeps_its_shape(monkeypatch):
     view = make_light_view(scene.emitters()[0], scene, 0)
     aimed = box_view(view, np.array([-4.0, 0.0, -4.0]), np.array([4.0, 1.0, 4.0]))
     assert aimed is not None and aimed.light_axes == view.light_axes is not None
-    ref = _vis(d, "raytraced", 0, shadow_rays=32)
-    noise = _rmse(ref, _vis(d, "raytraced", 5, shadow_rays=32))
-    errs = {}
-    for shaped in (True, False):
-        monkeypatch.setattr(pcss_mod, "LIGHT_SHAPE", shaped)
-        vis = _vis(d, "pcss", virtual=True)
-        assert np.isfinite(vis).all()
-        errs[shaped] = _rmse(ref, vis)
-    print(f"noise {noise:.4f}, shaped {errs[True]:.4f}, square {errs[False]:.4f}")
+    noise, errs = _shaped_and_square(d, True, monkeypatch)
     assert errs[True] <= noise + 0.01
     assert errs[True] < errs[False] - 0.005
 

@@ -34,7 +34,12 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
     the CLI checks so before it renders and leaves no empty folder behind an error.
     Either way a probe is made there and removed (:func:`_probe_writable`):
     ``os.access`` says yes to root almost everywhere, and ``--out /proc/x`` as root
-    passed it, rendered the whole comparison and failed only then, at the folder."""
+    passed it, rendered the whole comparison and failed only then, at the folder.
+    A broken symbolic link on the way is an error (:func:`_broken_link`)."""
+    broken = _broken_link(os.path.abspath(out_dir))
+    if broken is not None:
+        raise PermissionError(f"cannot create output folder {out_dir}: {broken} is a broken "
+                              f"symbolic link (to {os.readlink(broken)})")
     if not create:
         path = os.path.abspath(out_dir)
         if os.path.exists(path):
@@ -67,6 +72,21 @@ def check_out_dir(out_dir: str, create: bool = True) -> str:
         raise PermissionError(f"output folder is not writable: {out_dir}")
     _probe_writable(out_dir, f"output folder is not writable: {out_dir}")
     return out_dir
+
+
+def _broken_link(path: str) -> str | None:
+    """The first of ``path`` and its parents that is a symbolic link to nothing, or None.
+    ``os.path.exists`` says no of such a link, so the check above probed the folder
+    holding it and said yes, and ``os.makedirs`` failed only after the render ("File
+    exists" of the link itself, "No such file or directory" below it), as ``mkdir -p``
+    does."""
+    while True:
+        if os.path.islink(path) and not os.path.exists(path):
+            return path
+        parent = os.path.dirname(path)
+        if parent == path:
+            return None
+        path = parent
 
 
 def _probe_writable(folder: str, message: str, make_folder: bool = False) -> None:

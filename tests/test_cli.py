@@ -204,6 +204,38 @@ def test_cli_out_dir_fails_before_rendering(monkeypatch, tmp_path, capsys):
     assert "cannot create output folder" in err and "Permission denied" in err
 
 
+def test_out_dir_through_a_broken_symlink_fails_before_rendering(monkeypatch, tmp_path,
+                                                                 capsys):
+    """``--out`` that is (or passes through) a symlink to nothing: ``os.path.exists`` says
+    no, so the check probed the link's folder, said yes, and the comparison rendered in
+    full before ``os.makedirs`` failed ("File exists", "No such file or directory"), as
+    ``mkdir -p`` does. Refused before rendering, naming the link; a link to a folder
+    still works."""
+    from mi_shadowmap import report
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "missing")
+    for out in (dangling, dangling / "sub"):
+        with pytest.raises(PermissionError, match="broken symbolic link"):
+            report.check_out_dir(str(out), create=False)
+        with pytest.raises(PermissionError, match="cannot create output folder"):
+            report.check_out_dir(str(out))
+
+    def no_compare(*args, **kwargs):
+        raise AssertionError("rendered")
+    monkeypatch.setattr(harness, "compare", no_compare)
+    code, out, err = run(["compare", *TINY, "--methods", "hard", "--out", dangling / "sub"],
+                         capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "broken symbolic link" in err and str(dangling) in err
+    assert sorted(os.listdir(tmp_path)) == ["dangling"]
+    # a link to a folder, and a new folder below it
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    assert report.check_out_dir(str(tmp_path / "link"), create=False)
+    assert report.check_out_dir(str(tmp_path / "link" / "a" / "b"), create=False)
+    assert os.listdir(tmp_path / "real") == []
+
+
 def test_debug_shows_traceback(capsys):
     with pytest.raises(Exception, match="nope"):
         cli.main(["compare", "--methods", "nope", "--debug"])

@@ -14,17 +14,27 @@ LOG_INTERVAL = 10.0
 
 class _Lines:
     """A stream for tqdm that writes each redraw as a line of its own, blanks dropped,
-    and a redraw of the count the previous line showed too (a bar's close repeated its
-    last update's line when that came after the log interval: only the rate differed)."""
+    and a redraw that repeats the previous line but for its times (a bar's close repeated
+    its last update's line when that came after the log interval: only the rate
+    differed). A new postfix at the same count is a line (the sweep's reference bar names
+    the render that runs next so)."""
 
     def __init__(self, stream):
         self._stream = stream
-        self._last = None      # the previous line up to its timing: "desc: pct|bar| n/total"
+        self._last = None      # the previous line's _key()
+
+    @staticmethod
+    def _key(line: str) -> tuple:
+        """``line`` without its times: tqdm's "desc: pct|bar| n/total [elapsed<left,
+        rate, postfix]" as ("desc: pct|bar| n/total", "postfix")."""
+        head, _, times = line.partition("[")
+        fields = times.rstrip().removesuffix("]").split(", ", 2)
+        return head.rstrip(), fields[2] if len(fields) > 2 else ""
 
     def write(self, text: str) -> None:
         for part in text.split("\r"):
             if part.strip():
-                key = part.split("[", 1)[0].rstrip()
+                key = self._key(part)
                 if key == self._last:
                     continue
                 self._last = key

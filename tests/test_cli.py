@@ -863,6 +863,28 @@ def test_a_log_gets_each_progress_count_once(monkeypatch):
     assert counts == ["0/3", "1/3", "2/3", "3/3"], lines
 
 
+def test_a_log_keeps_a_progress_line_that_names_the_next_step(monkeypatch):
+    """The de-duplication of a count's lines (above) must not drop a line whose postfix
+    changed at the same count: the sweep's reference bar says which render runs next
+    (``set_postfix_str`` after ``update``), and the log kept the line of the render just
+    done, naming the finished render while the converged visibility ran for minutes."""
+    import io
+    from mi_shadowmap import progress
+    monkeypatch.setattr(progress, "LOG_INTERVAL", 0.0)     # every update printed
+    buf = io.StringIO()
+    b = progress.bar(total=2, desc="ref", unit="render", leave=False, postfix="image",
+                     file=buf)
+    b.update(1)
+    b.set_postfix_str("visibility")
+    b.update(1)
+    b.close()
+    lines = buf.getvalue().splitlines()
+    tails = [(ln.split("[")[0].split("|")[-1].strip(), ln.rstrip("]").split(", ")[-1])
+             for ln in lines]
+    assert tails == [("0/2", "image"), ("1/2", "image"), ("1/2", "visibility"),
+                     ("2/2", "visibility")], lines
+
+
 def test_variant_before_the_command(tmp_path, capsys):
     """``--variant`` is taken before the command too, as ``--plugin`` and ``--debug``:
     ``mi-shadowmap --variant llvm_ad_mono maps ...`` ran ``compare`` on a scene file

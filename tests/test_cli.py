@@ -195,14 +195,20 @@ def test_cli_out_dir_fails_before_rendering(monkeypatch, tmp_path, capsys):
         raise PermissionError(13, "Permission denied")
     monkeypatch.setattr(tempfile, "mkdtemp", refuse)
 
+    err = _refused_before_rendering(monkeypatch, capsys, tmp_path / "out")
+    assert "cannot create output folder" in err and "Permission denied" in err
+
+
+
+def _refused_before_rendering(monkeypatch, capsys, out) -> str:
+    """``compare`` with ``--out out``: status 2 and one line of error (returned), with
+    ``harness.compare`` failing the test if it is reached (nothing renders)."""
     def no_compare(*args, **kwargs):
         raise AssertionError("rendered")
     monkeypatch.setattr(harness, "compare", no_compare)
-    code, out, err = run(["compare", *TINY, "--methods", "hard", "--out", tmp_path / "out"],
-                         capsys)
+    code, _, err = run(["compare", *TINY, "--methods", "hard", "--out", out], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "cannot create output folder" in err and "Permission denied" in err
-
+    return err
 
 def test_out_dir_through_a_broken_symlink_fails_before_rendering(monkeypatch, tmp_path,
                                                                  capsys):
@@ -220,12 +226,7 @@ def test_out_dir_through_a_broken_symlink_fails_before_rendering(monkeypatch, tm
         with pytest.raises(PermissionError, match="cannot create output folder"):
             report.check_out_dir(str(out))
 
-    def no_compare(*args, **kwargs):
-        raise AssertionError("rendered")
-    monkeypatch.setattr(harness, "compare", no_compare)
-    code, out, err = run(["compare", *TINY, "--methods", "hard", "--out", dangling / "sub"],
-                         capsys)
-    assert code == 2 and len(err.strip().splitlines()) == 1
+    err = _refused_before_rendering(monkeypatch, capsys, dangling / "sub")
     assert "broken symbolic link" in err and str(dangling) in err
     assert sorted(os.listdir(tmp_path)) == ["dangling"]
     # a link to a folder, and a new folder below it

@@ -296,7 +296,8 @@ screen is Mitsuba's projective integrators' job.
                 "Nested in Mitsuba's 'aov' integrator, that integrator splits the gradient "
                 "by the AOV names this one gave when it was built (none before it had "
                 "rendered a scene): render the scene once with the shadowmap integrator, "
-                "then build the 'aov' integrator around it (in Python), or differentiate "
+                "then build the 'aov' integrator around it (in Python), give this one "
+                "visibility_aovs=false (no AOV channels to split), or differentiate "
                 "the shadowmap integrator alone")
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):

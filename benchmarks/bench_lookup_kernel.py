@@ -33,17 +33,17 @@ trace) moved the kernel by less than the same code timed twice.
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import statistics
 import sys
 import time
 
-from mi_shadowmap import harness  # (first: the package's LLVM set-up, registration)
+import mi_shadowmap  # noqa: F401  (first: the package's LLVM set-up, registration)
 import drjit as dr
-import mitsuba as mi
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from bench_virtual_move import frame_parser, scene_and_integrators  # noqa: E402
+
 SCENES = ["room_two_points", "large_world", "far_point"]
 #: The configurations timed, in the order of a round (reversed every other round).
 CONFIGS = ("virtual", "virtual again", "full", "unshadowed")
@@ -70,12 +70,7 @@ def _frame(scene, integrator, spp: int) -> tuple:
 def bench_scene(name: str, args) -> list:
     """Rows ``(config, trace, kernels, diff, lo, hi, faster, ops, compiled)`` of one scene
     (see the module doc)."""
-    scene = harness.load_scene(str(ROOT / "scenes_xml" / f"{name}.xml"),
-                               width=str(args.image), height=str(args.image))
-    props = {"unshadowed": {"method": "unshadowed"},
-             "full": {"method": args.method, "virtual": False},
-             "virtual": {"method": args.method}}
-    integ = {k: mi.load_dict({"type": "shadowmap", **v}) for k, v in props.items()}
+    scene, integ = scene_and_integrators(name, args)
     integ["virtual again"] = integ["virtual"]
     times = {k: [] for k in CONFIGS}
     for r in range(args.rounds + 1):          # (round 0: kernels compiled, maps built)
@@ -96,13 +91,7 @@ def bench_scene(name: str, args) -> list:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=SCENES)
-    ap.add_argument("--method", default="hard")
-    ap.add_argument("--image", type=int, default=256)
-    ap.add_argument("--spp", type=int, default=16)
-    ap.add_argument("--rounds", type=int, default=25)
-    args = ap.parse_args(argv)
+    args = frame_parser(__doc__, SCENES, 25).parse_args(argv)
     threads = dr.thread_count()
     dr.set_thread_count(1)
     dr.set_flag(dr.JitFlag.KernelHistory, True)

@@ -69,13 +69,20 @@ SCENES = ["large_world", "far_point", "spot_sphere_box", "directional_mesh",
           "room_two_points", "cbox_area", "contact_hardening", "spectral_point"]
 
 
-def bench_scene(name, args) -> dict:
+def scene_and_integrators(name, args) -> tuple:
+    """``scenes_xml/<name>.xml`` at ``args.image``^2 and its ``unshadowed``, ``full``
+    (``args.method``, ``virtual=false``) and ``virtual`` (``args.method``) integrators
+    (also ``bench_lookup_kernel.py``'s)."""
     scene = harness.load_scene(str(ROOT / "scenes_xml" / f"{name}.xml"),
                                width=str(args.image), height=str(args.image))
-    integ = {"unshadowed": {"method": "unshadowed"},
+    props = {"unshadowed": {"method": "unshadowed"},
              "full": {"method": args.method, "virtual": False},
              "virtual": {"method": args.method}}
-    integ = {k: mi.load_dict({"type": "shadowmap", **v}) for k, v in integ.items()}
+    return scene, {k: mi.load_dict({"type": "shadowmap", **v}) for k, v in props.items()}
+
+
+def bench_scene(name, args) -> dict:
+    scene, integ = scene_and_integrators(name, args)
     for i in integ.values():                        # compile, build, prime the caches
         render_timed(scene, i, args.spp, 0)
     times = {k: [] for k in ("unshadowed", "full", "virtual", "move", "move_unshadowed")}
@@ -283,13 +290,21 @@ def cpu_scene(name, args) -> None:
           flush=True)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=SCENES)
+def frame_parser(doc: str, scenes: list, rounds: int) -> argparse.ArgumentParser:
+    """The arguments of this script's and ``bench_lookup_kernel.py``'s frames: the
+    scenes, ``--method``, the image, spp and rounds; the description is ``doc``'s first
+    paragraph."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=scenes)
     ap.add_argument("--method", default="hard")
     ap.add_argument("--image", type=int, default=256)
     ap.add_argument("--spp", type=int, default=16)
-    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=rounds)
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = frame_parser(__doc__, SCENES, 3)
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="profile N moved frames instead (see the module doc)")
     ap.add_argument("--top", type=int, default=25, help="--profile: functions listed")

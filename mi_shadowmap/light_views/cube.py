@@ -279,17 +279,25 @@ def area_light_size(shape) -> float:
     from . import emitter_class
     area = float(dr.ravel(shape.surface_area())[0])
     cls = emitter_class(shape)
-    if shape.is_mesh() and hasattr(shape, "vertex_positions_buffer"):
-        v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype("f8")
-        f = shape.faces_buffer().numpy().reshape(-1, 3)
-        area_vectors = 0.5 * np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-        proj = float(np.linalg.norm(area_vectors.sum(axis=0)))
+    mesh = _triangles(shape)
+    if mesh is not None:
+        proj = float(np.linalg.norm(mesh[2].sum(axis=0)))
         a_proj = max(proj, 0.25 * area)
     elif cls in ("Disk", "Rectangle"):
         a_proj = area
     else:
         a_proj = 0.25 * area
     return math.sqrt(max(a_proj, 0.0))
+
+
+def _triangles(shape) -> tuple | None:
+    """``(v, f, area_vectors)`` of a mesh (float64 vertices, int64 faces, each
+    triangle's area times its normal), or None for a shape that is not a mesh."""
+    if not (shape.is_mesh() and hasattr(shape, "vertex_positions_buffer")):
+        return None
+    v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype("f8")
+    f = shape.faces_buffer().numpy().reshape(-1, 3).astype("i8")
+    return v, f, 0.5 * np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
 
 
 def area_light_axes(shape) -> tuple | None:
@@ -321,14 +329,11 @@ def area_light_axes(shape) -> tuple | None:
         m = np.array(params["to_world"].matrix, dtype="f8").reshape(-1, 4, 4)[0]
         k = 1.0 if cls == "Rectangle" else 0.5 * math.sqrt(math.pi)
         return tuple(tuple(float(c) for c in k * m[:3, i]) for i in (0, 1))
-    if "vertex_positions" not in params.keys() or "faces" not in params.keys():
+    mesh = _triangles(shape)
+    if mesh is None or len(mesh[1]) == 0:
         return None
-    v = np.array(params["vertex_positions"], dtype="f8").reshape(-1, 3)
-    f = np.array(params["faces"], dtype="i8").reshape(-1, 3)
-    if len(f) == 0:
-        return None
+    v, f, area_vec = mesh
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area_vec = 0.5 * np.cross(b - a, c - a)
     area = np.linalg.norm(area_vec, axis=1)
     total = float(area.sum())
     if not total > 0.0:

@@ -487,8 +487,8 @@ screen is Mitsuba's projective integrators' job.
             known = sensor is not None and _film_fits(sensor, sampler)
         self._first_pass(scene, sensor, max(sampler.sample_count(), 1), known)
         # (visibility_aovs=false: none are asked for, none missing)
-        missing = [n for n in self._names() if n not in self._names_given
-                   and self.opts.visibility_aovs]
+        missing = ([n for n in self._names() if n not in self._names_given]
+                   if self.opts.visibility_aovs else [])
         # after our own render() of this scene (Mitsuba's aov merges that image, whose
         # visibility AOVs are all there) nothing is missing; stokes only calls sample()
         if missing and not rendered:

@@ -277,6 +277,34 @@ def test_bench_virtual_move_cuts_a_moved_frame_on_one_thread():
     assert len(rays) == 3 and all(r >= 0.0 for r in rays)
 
 
+def test_probe_tile_size_counts_the_smaller_tiles_and_times_the_first_pass():
+    # 4^2 tiles inside 32^2 pages against the layout's 8^2 (fifty-sixth session, helper
+    # B): the probe's layouts must take the smaller tiles (each row's texels are its
+    # tiles times the tile's texels), mark inside the same pages, and with --half-res keep
+    # hard's blocks in one list
+    out = run_bench("probe_tile_size.py", "--triangles", "2000", "--image", "16", "--spp",
+                    "1", "--rounds", "2", "--best-of", "1", "--cast-rounds", "1",
+                    "--half-res")
+    rows = {}
+    for line in out.splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if line.startswith("| 8^2 |") or line.startswith("| 4^2 |"):
+            rows[cells[0]] = cells[1:]
+    assert set(rows) == {"8^2", "4^2"}
+    num = {k: [int(c.split(" ")[0].replace(",", "")) for c in v] for k, v in rows.items()}
+    for name, side in (("8^2", 8), ("4^2", 4)):
+        texels, tiles, pages = num[name][:3]
+        assert texels == tiles * side * side > 0, (name, rows[name])
+        assert rows[name][3].endswith("(1)"), rows[name]
+    assert num["4^2"][2] == num["8^2"][2]                 # the same pages
+    assert num["4^2"][0] < num["8^2"][0] and num["4^2"][1] > num["8^2"][1]
+    parts = [line for line in out.splitlines()
+             if line.split("|")[1:2] and line.split("|")[1].strip() in
+             ("marks", "plan", "build", "first pass")]
+    assert len(parts) == 4 and all("nan" not in p for p in parts)
+    assert "The tiles cast again alone" in out
+
+
 def test_bench_primary_reuse_splits_the_render_without_changing_its_image():
     # issue 11's reuse of the render's primary hits for the marks (fifty-second session,
     # helper F): the render driven from Python in one kernel, and split into a kernel of

@@ -85,28 +85,39 @@ def test_the_corner_probes_are_traced_once_with_the_same_marks(monkeypatch):
         assert looped.stats[key] == unrolled.stats[key], key
 
 
-def test_a_moves_mark_pass_launches_three_kernels_over_its_pixels(monkeypatch):
-    """The marked points are evaluated in the kernel that scatters their keys into the
-    dedupe's first tables, and the pixels' words (``planner._pixel_keeps``) in its
-    second round: a moved frame's mark pass (camera hits to the dedupe's host reads)
-    launches three kernels over its pixels, where it launched five (the points, the
-    words, three dedupe rounds). The kept points' rings, which read the words, ride in
-    the second and third (``dedupe_many``'s ``late``). The image and texels are those of
-    the kernels apart."""
+def test_a_moves_mark_pass_launches_the_hits_then_three_kernels_over_its_pixels(monkeypatch):
+    """The camera hits are evaluated in a kernel of their own, launched before any light's
+    marks are traced (the thread pool runs it while the host traces them); the marked
+    points are evaluated in the kernel that scatters their keys into the dedupe's first
+    tables, and the pixels' words (``planner._pixel_keeps``) in its second round: a moved
+    frame's mark pass (camera hits to the dedupe's host reads) launches four kernels over
+    its pixels, the first of them before ``marked_points`` is called, where it launched
+    five (the points, the words, three dedupe rounds) and then three (the hits in the
+    first round's). The kept points' rings, which read the words, ride in the second and
+    third (``dedupe_many``'s ``late``). The image and texels are those of the hits traced
+    into the first round and of the kernels apart."""
     scene = _moved_scene()
-    hits, tiles = planner.camera_hits, planner.block_tiles
-    seen = []
+    hits, tiles, points = planner.camera_hits, planner.block_tiles, planner.marked_points
+    seen, before_marks = [], []
 
     def hits_first(*args, **kw):
         dr.kernel_history()                 # (emptied: the mark pass's kernels from here)
         return hits(*args, **kw)
 
+    def points_after(*args, **kw):
+        if not before_marks:
+            before_marks.append([k for k in dr.kernel_history()
+                                 if k["type"] == dr.KernelType.JIT])
+        return points(*args, **kw)
+
     def tiles_after(*args, **kw):
         if not seen:
-            seen.append([k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT])
+            seen.append(before_marks[0] + [k for k in dr.kernel_history()
+                                           if k["type"] == dr.KernelType.JIT])
         return tiles(*args, **kw)
 
     monkeypatch.setattr(planner, "camera_hits", hits_first)
+    monkeypatch.setattr(planner, "marked_points", points_after)
     monkeypatch.setattr(planner, "block_tiles", tiles_after)
     virtual.PAGE_CACHE.clear()
     integ = shadowmap(method="hard", cache_maps=False)
@@ -118,8 +129,20 @@ def test_a_moves_mark_pass_launches_three_kernels_over_its_pixels(monkeypatch):
     wide = [k for k in seen[0] if k["size"] >= 64 * 64]
     print("mark pass kernels (size, operations):",
           [(k["size"], k["operation_count"]) for k in seen[0]])
-    assert len(wide) == 3
-    # the reference: the points, then the words, each evaluated alone before the dedupe
+    assert sum(k["size"] >= 64 * 64 for k in before_marks[0]) == 1, \
+        "the camera hits were not launched (alone) before the marks were traced"
+    assert len(wide) == 4
+    monkeypatch.setattr(planner, "marked_points", points)
+    monkeypatch.setattr(planner, "block_tiles", tiles)
+
+    # the references: the hits traced into the first round's kernel (as they were) ...
+    def hits_fused(*args, **kw):
+        return hits(*args, **{**kw, "evaluate": False})
+
+    monkeypatch.setattr(planner, "camera_hits", hits_fused)
+    fused = shadowmap(method="hard", cache_maps=False)
+    assert np.array_equal(img, np.asarray(mi.render(scene, integrator=fused, spp=2)))
+    # ... and the points, then the words, each evaluated alone before the dedupe
     dedupe = planner.dedupe_many
 
     def apart(groups, bits=14, parts=None, first=(), second=None, late=None):
@@ -130,12 +153,11 @@ def test_a_moves_mark_pass_launches_three_kernels_over_its_pixels(monkeypatch):
         return dedupe(groups + (list(late()) if late is not None else []), bits, parts)
 
     monkeypatch.setattr(planner, "camera_hits", hits)
-    monkeypatch.setattr(planner, "block_tiles", tiles)
     monkeypatch.setattr(planner, "dedupe_many", apart)
     ref = shadowmap(method="hard", cache_maps=False)
     assert np.array_equal(img, np.asarray(mi.render(scene, integrator=ref, spp=2)))
     for key in ("texels_built", "pages_marked", "pages_built"):
-        assert ref.stats[key] == integ.stats[key], key
+        assert ref.stats[key] == integ.stats[key] == fused.stats[key], key
 
 
 def test_the_dedupe_reads_its_stored_keys_with_the_same_marks(monkeypatch):
@@ -183,5 +205,6 @@ def test_the_dedupe_reads_its_stored_keys_with_the_same_marks(monkeypatch):
         assert stats == stats_ref
         assert hist == hist_ref
     print("mark pass kernels' operations, stored keys:", ops[1], "recomputed:", ops_ref[1])
-    assert len(ops[1]) == len(ops_ref[1]) == 3
-    assert ops[1][1] < ops_ref[1][1] and ops[1][2] < ops_ref[1][2]
+    # (the camera hits, then the dedupe's three rounds)
+    assert len(ops[1]) == len(ops_ref[1]) == 4
+    assert ops[1][2] < ops_ref[1][2] and ops[1][3] < ops_ref[1][3]

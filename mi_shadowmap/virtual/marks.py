@@ -82,7 +82,8 @@ def camera_hits(scene, sensor, evaluate: bool = True, state=None):
     pixel's rays meet the tangent plane: a perspective camera's from its pinhole, as the
     render takes them, :func:`~mi_shadowmap.light_views.pinhole_footprint`; other
     sensors' from their ray differentials): ``(si, dp_dx, dp_dy, valid)``; unevaluated
-    with ``evaluate=False`` (the mark pass traces them in its own kernel). ``state``:
+    with ``evaluate=False`` (for a caller that traces them into a kernel of its own; the
+    mark pass evaluates them first, see :func:`~.planner.prepare_virtual`). ``state``:
     the sensor's :func:`~.camera.camera_state` if read already (:func:`~.camera.
     camera_frame`)."""
     frame = camera_frame(sensor, state)
@@ -1248,7 +1249,7 @@ def dedupe_many(groups: list, bits: int = 14, parts: list | None = None, first=(
     ``keys[i][oks[i]]`` without repeats (neighbouring pixels read the same pages: 4 x
     65 k candidates hold a few thousand keys), so that the host sorts a few thousand keys
     (:func:`sorted_unique`) instead of all candidates: one kernel computes every light's
-    keys (and the camera hits they come from) and scatters each list into its hash table of
+    keys (from the camera hits) and scatters each list into its hash table of
     ``2^bits`` slots; a second finds the candidates whose key lost its slot to another
     key and scatters them into a second table (another hash); a third finds those that
     lost there too and appends their keys to a buffer of :data:`SPILL` per list and

@@ -163,8 +163,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     probe = bool(pixels) and sensor is not None and is_pinhole(sensor)
     mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias, reach[i], probe)
                 for i in stores}
-    # the mark pass: every light whose marks are stale, from one set of camera hits traced
-    # in the same kernel as all their marks (a still camera reuses its marks)
+    # the mark pass: every light whose marks are stale, from one set of camera hits (their
+    # own kernel, then one kernel for all the marks; a still camera reuses its marks)
     # a light whose radiance is exactly 0 lights no sample, so no lookup of its map
     # reaches the image or its visibility AOV (both 0 where it does not contribute);
     # its map keeps the coarsest level only (no marks), until it is lit again
@@ -183,18 +183,24 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         plain = [i for i in stale if not hasattr(stores[i].layout.view, "mark_views")]
         multi = [i for i in stale if i not in plain]
         # every lit light marked from its own view (a first frame, a camera move): one
-        # kernel for all of them and the camera hits, dark lights included (their marks
-        # are dropped), so that the kernel is the same whichever lights are dark (one
-        # kernel per light there launched 36-41 kernels a camera move, not 11-16, for
-        # 8 lights one of them dark); some of them only (a light moved, or lit again):
-        # one kernel per light on hits evaluated first, so which lights are stale does
-        # not shape a kernel (fused, each new set of stale lights -- one point light,
-        # two, a point and a spot -- compiled its own)
+        # kernel for all of them, dark lights included (their marks are dropped), so
+        # that the kernel is the same whichever lights are dark (one kernel per light
+        # there launched 36-41 kernels a camera move, not 11-16, for 8 lights one of
+        # them dark); some of them only (a light moved, or lit again): one kernel per
+        # light, so which lights are stale does not shape a kernel (fused, each new set
+        # of stale lights -- one point light, two, a point and a spot -- compiled its own)
         every = [i for k, i in enumerate(stores)
                  if not hasattr(stores[i].layout.view, "mark_views")
                  and all(stores[j] is not stores[i] for j in list(stores)[:k])]
         fused = plain == [i for i in every if not dark[i]]
-        hits = camera_hits(scene, sensor, evaluate=not (multi or fused), state=cam)
+        # the camera hits in a kernel of their own, launched before the marks are traced
+        # (an environment's below, with whether each hit transmits): Dr.Jit launches it
+        # on its thread pool and returns, so with two threads the pool runs the hits
+        # while this thread traces every light's marks (about 2 ms of room_two_points'
+        # camera move), where traced into the mark kernel they ran only after it (a
+        # moved frame's first pass 15.1 -> 13.1 ms of the main thread's CPU, 16/16
+        # paired, for +0.4 ms of kernel work; benchmarks/RESULTS.md, fifty-sixth session)
+        hits = camera_hits(scene, sensor, evaluate=not multi, state=cam)
         if multi:
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
@@ -251,7 +257,7 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             optional = np.setdiff1d(extra, own, assume_unique=True)
             stores[i].remember_mark((mark_key[i], with_keys(own, optional), optional, keep))
 
-        # every light's marked points first (one kernel with the camera hits), then the
+        # every light's marked points first (one kernel after the camera hits'), then the
         # candidate tiles from them in each dedupe round (a few integer operations)
         # the pinhole the probes' corners are seen from (marks.probe_keeps)
         eye = camera_frame(sensor, cam)[0] if probe else None

@@ -42,7 +42,12 @@ tables) and the render (``sample()`` traced, the render kernel, the film); media
 the mark pass's camera rays alone, as kernels of their own (one thread, medians of
 ``N``): their closest hits (``ray_intersect_preliminary``), with their surface interaction
 (``ray_intersect``, ``RayFlags.Minimal``) and with their footprints
-(``marks.camera_hits``), against the whole mark pass.
+(``marks.camera_hits``), against the whole mark pass. With one thread every kernel runs
+as it is launched (Dr.Jit 1.5: ``set_thread_count(n)`` is ``n - 1`` pool threads and the
+calling thread; with 1, no pool), so ``--cpu`` does not show host work that the pool
+overlaps with a kernel (two threads: the mark pass's camera hits run while the host
+traces the marks, fifty-sixth session); the main thread's CPU at the default thread
+count (``--profile``) does, where the machine leaves the pool a core.
 """
 from __future__ import annotations
 

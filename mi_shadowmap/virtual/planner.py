@@ -198,8 +198,9 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         # on its thread pool and returns, so with two threads the pool runs the hits
         # while this thread traces every light's marks (about 2 ms of room_two_points'
         # camera move), where traced into the mark kernel they ran only after it (a
-        # moved frame's first pass 15.1 -> 13.1 ms of the main thread's CPU, 16/16
-        # paired, for +0.4 ms of kernel work; benchmarks/RESULTS.md, fifty-sixth session)
+        # moved frame's first pass 1-2 ms shorter on a quiet machine, 16/16 and 18/24
+        # paired, for +0.4 ms of kernel work; none with the second core taken or with
+        # one thread; benchmarks/RESULTS.md, fifty-sixth session)
         hits = camera_hits(scene, sensor, evaluate=not multi, state=cam)
         if multi:
             si_m, valid_m = hits[0], hits[3]

@@ -201,7 +201,17 @@ def _copy(scene, shapes) -> tuple:
                 stand_ins[id(sh)] = entries[f"shape_{k}"]
         else:
             entries[f"shape_{k}"] = sh
-    return mi.load_dict({"type": "scene", **entries}), stand_ins
+    # Mitsuba's load_dict gives every object it is handed the id of its key: the
+    # scene's own shapes came back as 'shape_<k>', so after the first render of a scene
+    # with a cylinder mi.traverse(scene) named its parameters 'shape_2.to_world' (not
+    # 'lamp.to_world'), and two area lights whose emitters share an id changed their
+    # AOVs from vis_<shape id> to vis_shape_<k> at the second render; the ids restored
+    ids = [(sh, sh.id()) for sh in entries.values()]
+    try:
+        return mi.load_dict({"type": "scene", **entries}), stand_ins
+    finally:
+        for sh, name in ids:
+            sh.set_id(name)
 
 
 # id(scene) -> (scene, key, (copy of its own shapes, stand-ins) or None, held buffers);

@@ -317,3 +317,33 @@ def test_kept_traversals_go_with_their_scenes():
     assert len(ms._TRAVERSALS) == ms._MAX_SCENES        # one post each
     # a remembered scene's copy is still kept without a new traversal
     assert ms.map_scene(scenes[-1]) is ms._MEMO[id(scenes[-1])][2]
+
+
+@pytest.mark.parametrize("extra", [None, BOX_INSTANCE], ids=["copy", "own_shapes_copy"])
+def test_the_copy_leaves_the_scenes_shape_ids_alone(extra):
+    """Mitsuba's load_dict gives an object it is handed its key as id: the copy renamed
+    the scene's own shapes 'shape_<k>', so after a first render of a scene with a
+    cylinder ``mi.traverse(scene)`` had 'shape_1.to_world' where 'lamp.to_world' was, and
+    two area lights whose emitters share Mitsuba's id 'emitter' (their AOVs named by
+    their shapes) turned from vis_lamp / vis_panel to vis_shape_<k> at the second render.
+    With instances the copy is :func:`own_shapes_copy`'s, the same loss."""
+    lamp = {"type": "rectangle", "emitter": {"type": "area", "radiance": 1.0}}
+    scene = post_scene(extra={
+        "lamp": {**lamp, "to_world": T().translate([0.5, 2.5, 0.5]).rotate([1, 0, 0], 90)
+                 .scale(0.2)},
+        "panel": {**lamp, "to_world": T().translate([-0.5, 2.5, 0.5]).rotate([1, 0, 0], 90)
+                  .scale(0.2)}, **(extra or {})})
+    ids = [sh.id() for sh in scene.shapes()]
+    keys = set(mi.traverse(scene).keys())
+    names = []
+    for method in ("hard", "raytraced", "hard"):
+        integ = mi.load_dict({"type": "shadowmap", "method": method})
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")     # (with instances: the kept cylinders')
+            mi.render(scene, integrator=integ, spp=1)
+        names.append(integ.aov_names())
+    assert {"lamp", "panel"} <= set(ids)
+    assert [sh.id() for sh in scene.shapes()] == ids
+    assert set(mi.traverse(scene).keys()) == keys
+    assert names[0] == names[1] == names[2]
+    assert {"vis_lamp", "vis_panel"} <= set(names[0])

@@ -24,7 +24,7 @@ def _visibility(d: dict, method: str, seed: int = 0, **props):
     """Every light's visibility AOV of a fresh render of ``d``, and the integrator."""
     integ = mi.load_dict({"type": "shadowmap", "method": method, **props})
     img = np.asarray(mi.render(mi.load_dict(d), integrator=integ, seed=seed))
-    return img[..., 3:], integ
+    return bench_unseen.by_name(img[..., 3:], integ.aov_names()), integ
 
 
 @pytest.mark.parametrize("seed", range(len(bench_unseen.FEATURE_KINDS)))
@@ -61,3 +61,27 @@ def test_bench_unseen_runs_the_feature_kind_virtual_only():
     assert [r[3].strip() for r in rows] == ["instances"]
     assert all(r[8].strip() == r[9].strip() == "-" for r in rows)   # no full maps
     assert all(r[10].strip() == "0" for r in rows)                  # no non-finite value
+
+
+def test_bench_unseen_scores_each_light_against_its_own_reference_channel():
+    """The bench renders the reference and each method on loads of their own, and
+    Mitsuba's emitter order is not the dict's (the shapes' lights come after the others
+    here; two shape lights of one type come in either order from one load to the next):
+    its channels are put in the order of the AOVs' names, so channel k is one light in
+    every render. Here the lamp (AOV ``vis_emitter``, Mitsuba's id of a nested emitter;
+    it faces away from everything: visibility 0) is the scene's second emitter and the
+    sun (``vis_z_sun``) its first."""
+    d = {"type": "scene",
+         "sensor": bench_unseen.camera([0, 6, 8], [0, 0, 0], 16, 16, 1),
+         "ground": {"type": "rectangle", "to_world": bench_unseen.T().scale(6)
+                    .rotate([1, 0, 0], -90)},
+         "a_lamp": {"type": "rectangle", "emitter": {"type": "area", "radiance": 1.0},
+                    "to_world": bench_unseen.T().translate([0, 3, 0])
+                    .rotate([1, 0, 0], -90).scale(0.3)},
+         "z_sun": bench_unseen._sun([0.2, -1, 0.3])}
+    scene = mi.load_dict(d)
+    assert [e.get_shape() is not None for e in scene.emitters()] == [False, True]
+    vis, integ, _ = bench_unseen._render(scene, {"method": "hard"}, 0)
+    assert integ.aov_names() == ["vis_z_sun", "vis_emitter"]
+    assert np.all(vis[..., 0] == 0)                 # the lamp
+    assert np.mean(vis[..., 1] == 1) > 0.5          # the sun on the ground (83 %)

@@ -548,6 +548,18 @@ def _transmits(shape) -> bool:
     return bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
 
 
+def _two_sided(shape) -> bool:
+    """Whether a shape's BSDF reflects light on the back side of its faces too
+    (Mitsuba's ``twosided``; not ``principled``, whose flags name a back side it does not
+    reflect on): a closed mesh of it may be seen from inside (a room), where its faces
+    are lit from behind their geometric face. Its faces enter :func:`solid_face_tables`
+    (flat ones too) so that the integrator's ``_into_solid`` takes them as occluded
+    where the light is outside their part."""
+    bsdf = shape.bsdf()
+    return (bsdf is not None and bsdf.class_name() != "Principled"
+            and mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
+
+
 #: ``[key, answer, watched]`` of the last :func:`_solid_candidates` (the answer holds the
 #: shapes: their ids, in the key, are not reused while it lives; ``watched``: what
 #: ``params.update()`` may change of the answer, :func:`_candidates_edited`).
@@ -577,7 +589,12 @@ def _solid_candidates(scene: mi.Scene) -> tuple:
         from .map_manager import bsdf_flags, flag_changing_bsdfs
         shapes = listed + _grouped_shapes(scene, listed)
         meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
-        glass = [m and _transmits(sh) for sh, m in zip(shapes, meshes)]
+        # every face of a transmitting mesh, and of a listed mesh whose BSDF reflects on
+        # both sides (a room built as a closed twosided mesh: seen from inside, its faces
+        # are lit only from behind their geometric face, which a light outside the room
+        # cannot reach; see _two_sided)
+        glass = [m and (_transmits(sh) or (k < len(listed) and _two_sided(sh)))
+                 for k, (sh, m) in enumerate(zip(shapes, meshes))]
         use = [m and (g or sh.has_vertex_normals())
                for sh, m, g in zip(shapes, meshes, glass)]
         flagged = flag_changing_bsdfs(sh.bsdf() for sh, m in zip(shapes, meshes) if m)

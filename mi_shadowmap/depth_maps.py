@@ -553,8 +553,10 @@ def _two_sided(shape) -> bool:
     (Mitsuba's ``twosided``; not ``principled``, whose flags name a back side it does not
     reflect on): a closed mesh of it may be seen from inside (a room), where its faces
     are lit from behind their geometric face. Its faces enter :func:`solid_face_tables`
-    (flat ones too) so that the integrator's ``_into_solid`` takes them as occluded
-    where the light is outside their part."""
+    (flat ones too; for ``second_depth`` alone, :func:`solid_face_tables`'s
+    ``two_sided``: the other methods' first depths shadow the room's inside already,
+    and the tables' per-hit test cost 2-6 % of a room's frame) so that the integrator's
+    ``_into_solid`` takes them as occluded where the light is outside their part."""
     bsdf = shape.bsdf()
     return (bsdf is not None and bsdf.class_name() != "Principled"
             and mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
@@ -566,7 +568,7 @@ def _two_sided(shape) -> bool:
 _CANDIDATES: list = [None, None, None]
 
 
-def _solid_candidates(scene: mi.Scene) -> tuple:
+def _solid_candidates(scene: mi.Scene, two_sided: bool = False) -> tuple:
     """``(shapes, use, glass, n_listed)`` for :func:`solid_face_tables`: the scene's shapes
     (``scene.shapes()``, ``n_listed`` of them, then a shapegroup's meshes, which an
     instance's hits name: as in _face_tables, an instance maps a solid's outside to its
@@ -584,16 +586,16 @@ def _solid_candidates(scene: mi.Scene) -> tuple:
     normals were removed
     raised an ``IndexError`` (``tests/test_cache_edits.py``)."""
     listed = list(scene.shapes())
-    key = (id(scene), tuple(id(sh) for sh in listed))
+    key = (id(scene), tuple(id(sh) for sh in listed), two_sided)
     if _CANDIDATES[0] != key or (_CANDIDATES[2] and _candidates_edited(*_CANDIDATES[2])):
         from .map_manager import bsdf_flags, flag_changing_bsdfs
         shapes = listed + _grouped_shapes(scene, listed)
         meshes = [sh.is_mesh() and hasattr(sh, "faces_buffer") for sh in shapes]
-        # every face of a transmitting mesh, and of a listed mesh whose BSDF reflects on
-        # both sides (a room built as a closed twosided mesh: seen from inside, its faces
-        # are lit only from behind their geometric face, which a light outside the room
-        # cannot reach; see _two_sided)
-        glass = [m and (_transmits(sh) or (k < len(listed) and _two_sided(sh)))
+        # every face of a transmitting mesh, and with ``two_sided`` (second_depth) of a
+        # listed mesh whose BSDF reflects on both sides (a room built as a closed twosided
+        # mesh: seen from inside, its faces are lit only from behind their geometric face,
+        # which a light outside the room cannot reach; see _two_sided)
+        glass = [m and (_transmits(sh) or (two_sided and k < len(listed) and _two_sided(sh)))
                  for k, (sh, m) in enumerate(zip(shapes, meshes))]
         use = [m and (g or sh.has_vertex_normals())
                for sh, m, g in zip(shapes, meshes, glass)]
@@ -617,12 +619,14 @@ def _candidates_edited(plain: list, flagged: list, flags: tuple) -> bool:
             or bsdf_flags(flagged) != flags)
 
 
-def solid_face_tables(scene: mi.Scene):
+def solid_face_tables(scene: mi.Scene, two_sided: bool = False):
     """``(offset, solid, part, shells)`` tables of the faces that bound a solid with
     outward normals (:func:`face_solidity`) among the scene's meshes with vertex normals
     or a BSDF that transmits (less the flat-shaded faces of a BSDF that does not
     transmit, :func:`_flat_shaded_faces`: their shading frame is their geometric one,
-    though they still bound their part's shell), or None where no such face exists:
+    though they still bound their part's shell), with ``two_sided`` also every face of a
+    closed mesh whose BSDF reflects on both sides (:func:`_two_sided`), or None where no
+    such face exists:
     ``offset[id]``
     (``mi.Int32``, by shape registry id) is a mesh's first row in ``solid`` (``mi.Bool``,
     indexed by ``prim_index``), -1 for other shapes; ``part`` (``mi.Int32`` by row, or
@@ -648,7 +652,7 @@ def solid_face_tables(scene: mi.Scene):
     occluding: its instances' placements are read every render). Remembered while the
     candidates (:func:`_solid_candidates`) and their vertex, face and vertex-normal
     buffers are the same."""
-    shapes, use, glass, n_listed = _solid_candidates(scene)
+    shapes, use, glass, n_listed = _solid_candidates(scene, two_sided)
     # the vertex normals too: which faces are flat-shaded (_flat_shaded_faces) follows
     # them (kept by vertices and faces alone, a ball's normals smoothed through
     # params.update() kept its flat faces' empty table, and the terminator's faces
@@ -663,7 +667,7 @@ def solid_face_tables(scene: mi.Scene):
         # a mesh listed for its normals has none now (params.update() removed them:
         # _flat_shaded_faces indexed the empty buffer, an IndexError): the candidates again
         _CANDIDATES[0] = None
-        shapes, use, glass, n_listed = _solid_candidates(scene)
+        shapes, use, glass, n_listed = _solid_candidates(scene, two_sided)
         held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(),
                  sh.vertex_normals_buffer()) for sh, m in zip(shapes, use) if m]
         key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)

@@ -535,7 +535,9 @@ screen is Mitsuba's projective integrators' job.
         # (cubes, rectangles); second_depth's builds have it already
         reads_second = (self.opts.uses_map
                         and "second_depth" in self.opts.record.layer_names(self.opts))
-        self._solid_faces = solid_face_tables(scene) if self.opts.uses_map else None
+        # (second_depth: the faces of closed twosided meshes too, a room seen from inside)
+        self._solid_faces = (solid_face_tables(scene, two_sided=reads_second)
+                             if self.opts.uses_map else None)
         # per map (by id): which closed parts of the solid meshes its light is outside of
         # (every render: lights move); only where the scene has such parts
         self._light_outside = {}

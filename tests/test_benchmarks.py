@@ -248,7 +248,10 @@ def test_bench_virtual_move_profiles_a_moved_frame():
     assert lines[0].startswith("## far_point: moved frame")
     rows = [line for line in lines if line.startswith("| ") and "[ms]" not in line]
     assert len(rows) == 8
-    assert any(row.startswith("| planner.py:prepare_virtual |") for row in rows)
+    # the virtual maps' own functions among the rows (prepare_virtual's steps are methods
+    # of planner._FirstPass: none of them alone is in the top 8 of a 32^2 frame)
+    assert any(row.split("|")[1].strip().split(":")[0] in ("planner.py", "marks.py")
+               for row in rows)
     extra = [float(row.strip("|").split("|")[3]) for row in rows]
     assert extra == sorted(extra, reverse=True)
     kernels = [line for line in lines if "JIT kernels:" in line]

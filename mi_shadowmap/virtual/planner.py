@@ -128,55 +128,99 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
     ``camera``: ``sensor``'s :func:`~.camera.camera_state` where the caller read it in
     this render (the integrator's first pass, which shares it with the render's pinhole
     frame: one read of every camera parameter a render, not two); default: read here.
+
+    The steps, in order (each a method of :class:`_FirstPass`, which holds what they
+    share): the views' stores, the mark pass, the memory plan, the build, and the maps
+    published with the render's stats.
     """
-    from ..map_manager import MAP_CACHE
-    from ..light_views import is_pinhole
-    layer_names = page_layers(opts)
-    # the shapes' state: a store is keyed by its light's view too, so a moved light (new
-    # view) rebuilds its own pages and keeps every other light's (retired below)
-    state = (MAP_CACHE.scene_state(scene, params, shapes_only=True) if opts.cache_maps
-             else None)
-    cam = (camera if camera is not None else camera_state(sensor)) if sensor is not None \
-        else None
-    margins, coarse, stores = {}, {}, {}
-    for i, view in enumerate(views):
-        if view is None or not getattr(view, "supports_virtual", False):
-            continue
-        fingerprint = PAGE_CACHE.fingerprint(view)
-        # one view's stores per light (a light moved every frame, cascades following the
-        # camera: the previous view's pages are dropped, not piled up)
-        # (per kind of view: integrators whose options give one light other views --
-        # cascades, an environment's region count -- do not drop each other's)
-        PAGE_CACHE.retire(scene, state, (view.label, type(view).__name__, view.n_faces),
-                          fingerprint)
-        layout = PAGE_CACHE.layout(scene, state, view, fingerprint, opts)
-        key = (fingerprint, layout.res0, layout.page_size, layer_names)
-        store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))
-                 if state is not None else PageStore(layout, layer_names))
-        store.frame += 1
-        stores[i] = store
-        margins[i] = virtual_margin_of(opts.record, opts, view)
-        coarse[i] = virtual_coarse_res_of(opts.record, opts, view)
-    reach = {i: reach_of(opts, stores[i].layout.view) for i in stores}
-    # per-pixel decisions of the biases' level: a perspective camera's pixels (one camera
-    # hit a pixel, whose lane the lookups find from their point: Lookup.pixel)
-    probe = bool(pixels) and sensor is not None and is_pinhole(sensor)
-    mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias, reach[i], probe)
+    run = _FirstPass(scene, sensor, opts, stats, pixels, camera)
+    run.open_stores(views, params)
+    run.mark()
+    run.plan_memory(budget_bytes)
+    run.build()
+    return run.publish(views)
+
+
+class _FirstPass:
+    """One render's first pass with ``virtual=true`` (:func:`prepare_virtual`), its steps
+    in the order they run. Per view ``i`` of the render (those that support virtual
+    maps): ``stores[i]`` (views of one light share a store), ``margins[i]``,
+    ``coarse[i]``, ``reach[i]``, ``mark_key[i]`` (what its remembered marks are keyed
+    by) and ``dark[i]`` (its light lights no sample); ``uniq``: one view per store, which
+    plans and builds it; ``plans[i]``, ``fits[i]``, ``budgets[i]``, ``builds[i]``: the
+    memory plan's and the build's per store."""
+
+    def __init__(self, scene, sensor, opts, stats, pixels, camera):
+        self.scene, self.sensor, self.opts, self.stats = scene, sensor, opts, stats
+        self.pixels, self.camera = pixels, camera
+
+    # ------------------------------------------------------------ 1. the stores
+    def open_stores(self, views, params) -> None:
+        """The stores of this render's views from the page cache (their layouts kept
+        with them), each view's margin, coarse levels, reach and mark key, and which
+        lights are dark. Reads the views and the scene's state; writes ``cam``,
+        ``probe``, ``stores``, ``margins``, ``coarse``, ``reach``, ``mark_key``,
+        ``dark``."""
+        from ..map_manager import MAP_CACHE
+        from ..light_views import is_pinhole
+        scene, sensor, opts = self.scene, self.sensor, self.opts
+        camera = self.camera
+        layer_names = page_layers(opts)
+        # the shapes' state: a store is keyed by its light's view too, so a moved light (new
+        # view) rebuilds its own pages and keeps every other light's (retired below)
+        state = (MAP_CACHE.scene_state(scene, params, shapes_only=True) if opts.cache_maps
+                 else None)
+        cam = (camera if camera is not None else camera_state(sensor)) if sensor is not None \
+            else None
+        margins, coarse, stores = {}, {}, {}
+        for i, view in enumerate(views):
+            if view is None or not getattr(view, "supports_virtual", False):
+                continue
+            fingerprint = PAGE_CACHE.fingerprint(view)
+            # one view's stores per light (a light moved every frame, cascades following the
+            # camera: the previous view's pages are dropped, not piled up)
+            # (per kind of view: integrators whose options give one light other views --
+            # cascades, an environment's region count -- do not drop each other's)
+            PAGE_CACHE.retire(scene, state, (view.label, type(view).__name__, view.n_faces),
+                              fingerprint)
+            layout = PAGE_CACHE.layout(scene, state, view, fingerprint, opts)
+            key = (fingerprint, layout.res0, layout.page_size, layer_names)
+            store = (PAGE_CACHE.store(scene, state, key, lambda: PageStore(layout, layer_names))
+                     if state is not None else PageStore(layout, layer_names))
+            store.frame += 1
+            stores[i] = store
+            margins[i] = virtual_margin_of(opts.record, opts, view)
+            coarse[i] = virtual_coarse_res_of(opts.record, opts, view)
+        reach = {i: reach_of(opts, stores[i].layout.view) for i in stores}
+        # per-pixel decisions of the biases' level: a perspective camera's pixels (one camera
+        # hit a pixel, whose lane the lookups find from their point: Lookup.pixel)
+        probe = bool(self.pixels) and sensor is not None and is_pinhole(sensor)
+        mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias, reach[i], probe)
+                    for i in stores}
+        # a light whose radiance is exactly 0 lights no sample, so no lookup of its map
+        # reaches the image or its visibility AOV (both 0 where it does not contribute);
+        # its map keeps the coarsest level only (no marks), until it is lit again
+        emitters = scene.emitters()
+        dark = {i: len(emitters) == len(views) and _dark(emitters[i], stores[i])
                 for i in stores}
-    # the mark pass: every light whose marks are stale, from one set of camera hits (their
-    # own kernel, then one kernel for all the marks; a still camera reuses its marks)
-    # a light whose radiance is exactly 0 lights no sample, so no lookup of its map
-    # reaches the image or its visibility AOV (both 0 where it does not contribute);
-    # its map keeps the coarsest level only (no marks), until it is lit again
-    emitters = scene.emitters()
-    dark = {i: len(emitters) == len(views) and _dark(emitters[i], stores[i])
-            for i in stores}
-    dark = {i: all(dark[j] for j in stores if stores[j] is stores[i]) for i in stores}
-    stale = [i for i, st in stores.items() if cam is not None and not dark[i]
-             and not st.recall_mark(mark_key[i])]
-    stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
-             if all(stores[j] is not stores[i] for j in stale[:k])]
-    if stale:
+        dark = {i: all(dark[j] for j in stores if stores[j] is stores[i]) for i in stores}
+        self.cam, self.probe, self.stores = cam, probe, stores
+        self.margins, self.coarse, self.reach = margins, coarse, reach
+        self.mark_key, self.dark = mark_key, dark
+
+    # ------------------------------------------------------------ 2. the mark pass
+    def mark(self) -> None:
+        """The mark pass: every light whose marks are stale, from one set of camera hits
+        (their own kernel, then one kernel for all the marks; a still camera reuses its
+        marks). Reads the stores and their mark keys; writes each stale store's mark
+        (:meth:`PageStore.remember_mark`, through :meth:`_settle`)."""
+        stores, dark, cam = self.stores, self.dark, self.cam
+        stale = [i for i, st in stores.items() if cam is not None and not dark[i]
+                 and not st.recall_mark(self.mark_key[i])]
+        stale = [i for k, i in enumerate(stale)         # views sharing a store: marked once
+                 if all(stores[j] is not stores[i] for j in stale[:k])]
+        if not stale:
+            return
         # lights marked from their own view: all in one pass; an environment's regions
         # (mark_lanes): in one pass too, a lane per region and hit, from hits evaluated
         # once (and whether each hit's BSDF transmits: light reaches it from behind too)
@@ -201,70 +245,35 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
         # moved frame's first pass 1-2 ms shorter on a quiet machine, 16/16 and 18/24
         # paired, for +0.4 ms of kernel work; none with the second core taken or with
         # one thread; benchmarks/RESULTS.md, fifty-sixth session)
-        hits = camera_hits(scene, sensor, evaluate=not multi, state=cam)
+        hits = camera_hits(self.scene, self.sensor, evaluate=not multi, state=cam)
+        through = None
         if multi:
             si_m, valid_m = hits[0], hits[3]
             through = valid_m & mi.has_flag(si_m.bsdf().flags(), mi.BSDFFlags.Transmission)
             # the hits and whether each one's BSDF transmits in one kernel (two kernels
             # before: 2.0 + 0.9 ms at 256^2 under sky_sun)
             dr.eval(si_m.p, si_m.n, hits[1], hits[2], valid_m, through)
-        shapes = {}     # per light: mark_blocks' (per_axis, bits), for block_tiles
+        self.hits = hits
+        self.shapes = {}    # per light: mark_blocks' (per_axis, bits), for block_tiles
         # a kernel of so many footprints (Method.virtual_footprint: pcf's region), or None
-        footprints = (None if opts.record.virtual_footprint is None
-                      else float(opts.record.virtual_footprint(opts)))
+        self.footprints = (None if self.opts.record.virtual_footprint is None
+                           else float(self.opts.record.virtual_footprint(self.opts)))
+        self._mark_own_views(plain, every, fused)
+        self._mark_regions(multi, through)
 
-        def marks(i, marker, points, border=None):
-            """The candidate lists of light ``i`` (its own levels', then the coarser
-            levels' its kernels may filter, :func:`mark_coarser`) from its evaluated
-            :func:`marked_points` ``points``."""
-            # its own levels' tiles as blocks (mark_blocks): one group, the blocks' shapes
-            # in their keys (else one group per block shape); the points that kept the
-            # biases' level (where the marks decide it per pixel) marked on the host
-            # (kept_tiles), from their footprints' sides evaluated with the points
-            per_axis = block_axis(marker, margins[i], border is not None)
-            shapes[i] = (per_axis, shape_bits(marker.layout, per_axis))
-            apart = marker.scene is not None and _kept_by_biases(marker)
-            if apart:
-                axes[i] = kept_axes(marker, *hits[:3], points)
-            keys, oks = mark_blocks(marker, points, margin=margins[i], bits=shapes[i][1],
-                                    border=border, footprints=footprints or 0.0,
-                                    host_kept=apart)
-            out = [([k], [ok]) for k, ok in zip(keys, oks)]
-            if coarse[i]:
-                out.append(mark_coarser(marker, None, None, None, None,
-                                        coarse_res=coarse[i], points=points))
-            return out
-
-        def tiles(i, found, kept=None):
-            """Light ``i``'s tile keys from its :func:`marks` groups' keys (and its kept
-            points' tiles, :func:`kept_tiles`): ``(own levels', coarser levels')`` (the
-            latter empty without ``virtual_coarse_res``)."""
-            n = len(found) - bool(coarse[i])
-            own = block_tiles(found[:n], *shapes[i])
-            if kept is not None and len(kept):
-                own = sorted_unique(np.concatenate([own, kept]))
-            extra = (dilate_tiles(found[n], stores[i].layout, margins[i]) if coarse[i]
-                     else np.zeros(0, np.uint64))
-            return own, extra
-
-        def settle(i, parts, keep=None):
-            """Light ``i``'s mark: every tile, and those only the coarser levels' kernels
-            read (a full budget drops them first), and its pixels' ``keep``
-            (:meth:`VirtualShadowMap.keeps`; None: no probe)."""
-            # (each part's own tiles sorted and distinct already: block_tiles)
-            own = (parts[0][0] if len(parts) == 1 else
-                   sorted_unique(np.concatenate([p[0] for p in parts])))
-            extra = sorted_unique(np.concatenate([p[1] for p in parts]))
-            optional = np.setdiff1d(extra, own, assume_unique=True)
-            stores[i].remember_mark((mark_key[i], with_keys(own, optional), optional, keep))
-
+    def _mark_own_views(self, plain, every, fused) -> None:
+        """The stale lights ``plain`` marked from their own views: ``every`` such light in
+        one batch where ``fused``, else one batch a light; settles each lit one's
+        mark."""
+        sensor, opts, stores, hits = self.sensor, self.opts, self.stores, self.hits
+        probe, reach, footprints = self.probe, self.reach, self.footprints
         # every light's marked points first (one kernel after the camera hits'), then the
         # candidate tiles from them in each dedupe round (a few integer operations)
         # the pinhole the probes' corners are seen from (marks.probe_keeps)
-        eye = camera_frame(sensor, cam)[0] if probe else None
+        eye = camera_frame(sensor, self.cam)[0] if probe else None
         for batch in ([every] if fused and plain else [[i] for i in plain]):
             markers = [Marker(stores[i].layout, opts.lod_bias, reach=reach[i],
-                              scene=scene if probe and reach[i] is not None else None,
+                              scene=self.scene if probe and reach[i] is not None else None,
                               eye=eye)
                        for i in batch]
             points = [marked_points(mk, *hits) for mk in markers]
@@ -275,7 +284,8 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
             edge = _film_border(sensor, dr.width(hits[3])) if footprints is not None \
                 else None
             axes = {}
-            groups = [marks(i, mk, pt, edge) for i, mk, pt in zip(batch, markers, points)]
+            groups = [self._marks(i, mk, pt, edge, axes)
+                      for i, mk, pt in zip(batch, markers, points)]
             keeps, read = {}, {}
 
             def neighbours():
@@ -297,16 +307,22 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                     if edge is not None else None)
             for i, mk, pt, gs in zip(batch, markers, points, groups):
                 mine, found = found[:len(gs)], found[len(gs):]
-                if not dark[i]:
-                    kept = (kept_tiles(mk, pt, axes[i], read[i], margins[i],
+                if not self.dark[i]:
+                    kept = (kept_tiles(mk, pt, axes[i], read[i], self.margins[i],
                                        footprints or 0.0, film) if i in axes else None)
-                    settle(i, [tiles(i, mine, kept)], keeps.get(i))
+                    self._settle(i, [self._tiles(i, mine, kept)], keeps.get(i))
+
+    def _mark_regions(self, multi, through) -> None:
+        """The stale environments ``multi`` marked by regions: every (region, camera hit)
+        pair a lane, as many regions a kernel as ``MARK_LANES`` lanes hold (``through``:
+        whether each hit's BSDF transmits); settles each one's mark."""
+        sensor, opts, stores, hits = self.sensor, self.opts, self.stores, self.hits
         # an environment's regions: every (region, camera hit) pair a lane, as many
         # regions a kernel as MARK_LANES lanes hold (16 regions of a 128^2 film: one
         # kernel, where one per region launched 48 kernels and 900 table memsets a
         # camera move); each region keeps its own hash slots (dedupe_many's parts)
         n_pts = dr.width(hits[3])
-        edge_m = (_film_border(sensor, n_pts) if multi and footprints is not None
+        edge_m = (_film_border(sensor, n_pts) if multi and self.footprints is not None
                   else None)
         for i in multi:
             view = stores[i].layout.view
@@ -323,187 +339,273 @@ def prepare_virtual(scene, sensor, opts, views, stats, params=None,
                        *(dr.gather(type(a), a, pt) for a in hits[1:]))
                 thr = dr.gather(mi.Bool, through, pt)
                 mark_view, mark_active = view.mark_lanes(local + dr.opaque(mi.UInt32, k0))
-                marker = Marker(stores[i].layout, opts.lod_bias, mark_view, reach[i])
+                marker = Marker(stores[i].layout, opts.lod_bias, mark_view, self.reach[i])
                 points = marked_points(marker, *pts,
                                        active=lambda p, n, f=mark_active, t=thr: f(p, n, t))
                 dr.eval(*points)
-                gs = marks(i, marker, points,
-                           None if edge_m is None else dr.gather(mi.Bool, edge_m, pt))
-                parts.append(tiles(i, dedupe_many(gs, parts=[(local, nk)] * len(gs))))
-            settle(i, parts)
-    # memory: the budget's pages shared by need (share_pages), then the pages each map's
-    # marks keep (fit_marks); a degraded map's unused pages go to the next degraded one
-    per_page = page_bytes(opts)
-    budget_bytes = opts.budget_bytes if budget_bytes is None else int(budget_bytes)
-    uniq = [i for i in stores if all(stores[j] is not stores[i] for j in stores if j < i)]
-    plans = {}
-    for i in uniq:
-        store = stores[i]
-        layout = store.layout
-        view = layout.view      # the emitter's view, or one face aimed at a far scene
-        if store.lit_faces is None:
-            store.lit_faces = _lit_faces(view)
-            store.coarse_keys = np.sort(np.array([page_key(f, layout.coarsest, 0, 0)
-                                                  for f in store.lit_faces],
-                                                 np.uint64).reshape(-1))
-        mark = store.last_mark if cam is not None and not dark[i] else None
-        memo = store.plan_memo      # the same marks as the last render: the same tiles
-        if memo is not None and memo[0] is mark and memo[1] is store.coarse_keys:
-            tiles, n_pages = memo[2], memo[3]
-        else:
-            marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
-            tiles = with_keys(marked, store.coarse_keys)
-            # the pages and their tile masks (what the build reads when the tiles fit the
-            # budget; their count is the plan's), computed once: _fit_marks and the build
-            # take them from the memo (one tile_pages, where two _n_pages and a
-            # tile_pages of the same tiles took 0.31 ms a camera move on large_world)
-            pages = tile_pages(tiles, layout)
-            n_pages = len(pages[0])
-            store.plan_memo = (mark, store.coarse_keys, tiles, n_pages, pages)
-        # slots: the empty page (slot 0) and unlit faces' reserved coarsest slots (empty
-        # pages) besides the pages
-        fixed = 1 + view.n_faces - len(store.lit_faces)
-        plans[i] = [mark, tiles, fixed, n_pages]
-    alloc = share_pages(budget_bytes // per_page,
-                        [plans[i][2] + len(stores[i].lit_faces) for i in uniq],
-                        [plans[i][2] + plans[i][3] for i in uniq],
-                        [stores[i].capacity for i in uniq])
-    fits = {}
-    for i, slots in zip(uniq, alloc):
-        fits[i] = _fit_marks(stores[i], plans[i][0], plans[i][1], slots - plans[i][2])
-    spare = budget_bytes // per_page - sum(alloc)
-    for k, i in enumerate(uniq):        # degraded maps keep the pages they use ...
-        if fits[i][1]:
-            spare += alloc[k] - plans[i][2] - fits[i][2]
-            alloc[k] = plans[i][2] + fits[i][2]
-    for k, i in enumerate(uniq):        # ... and the next take what is left, in turn
-        if fits[i][1] and spare > 0:
-            fits[i] = _fit_marks(stores[i], plans[i][0], plans[i][1],
-                                 alloc[k] + spare - plans[i][2])
-            spare -= plans[i][2] + fits[i][2] - alloc[k]
-            alloc[k] = plans[i][2] + fits[i][2]
-    budgets = {i: alloc[k] - plans[i][2] for k, i in enumerate(uniq)}
-    # every store whose pages changed: its pages planned (evictions, slots, the tiles to
-    # cast), then every light's tiles cast together (cast_tiles: one kernel where the
-    # lights allow it, on a camera move of room_two_points one for its two point lights)
-    builds = {}
-    for i in uniq:
-        store = stores[i]
-        mark, budget_pages = plans[i][0], budgets[i]
-        store.max_pages = budget_pages + plans[i][2]
-        settled = store.settled
-        if (settled is not None and settled[0] is mark and settled[1] == budget_pages
-                and settled[2] == store.version):
-            continue
-        tiles, degraded, _ = fits[i]
-        needed, masks = _tile_pages(store, tiles)
-        have, _ = store.lookup(needed)
-        over = store.n_pages + int((~have).sum()) - budget_pages
-        if over > 0:
-            store.evict(needed, over)
-        store.shrink(store.max_pages)   # a smaller budget, or share of it, than before
-        t0 = time.perf_counter()
-        builds[i] = (store.plan_build(needed, masks), needed, masks, degraded,
-                     time.perf_counter() - t0)
-    # (every store a range, an empty one where its pages did not change: which lights
-    # build -- a camera move: all lit ones; a moved light: some -- shapes no kernel)
-    jobs = [builds[i][0] if i in builds else TileCast(stores[i]) for i in uniq]
-    t0 = time.perf_counter()
-    # the new pages' fills launched behind the cast before the host reads the cast's
-    # depths (the tiles' minima): one wait for both, not one for the cast and another
-    # for the fills (the fills read no minimum)
-    cast_tiles(scene, jobs, minima=False)
-    fill_new_pages(jobs)
-    read_minima(jobs)
-    dr.sync_thread()
-    cast_dt = time.perf_counter() - t0
-    cast_n = sum(b[0].n_tiles for b in builds.values())
-    degraded_maps = []
-    out = []
-    # a probed render's light without a mark (dark): no pixel keeps the biases' level,
-    # through bits of the same types (the render kernel is the one a lit light compiles)
-    no_keep = ((dr.zeros(mi.UInt32, 1), dr.opaque(mi.UInt32, 0), dr.opaque(mi.UInt32, 0))
-               if probe else None)
-    for i, view in enumerate(views):
-        if i not in stores:
-            out.append(None)
-            continue
-        store = stores[i]
-        layout = store.layout
-        view = layout.view
-        first = i in budgets
-        if not first:        # a store another view of this render shares: planned there
-            i0 = next(j for j in uniq if stores[j] is store)
-            mark, fixed, budget_pages = plans[i0][0], plans[i0][2], budgets[i0]
-        else:
-            mark, fixed, budget_pages = plans[i][0], plans[i][2], budgets[i]
-        store.max_pages = budget_pages + fixed
-        settled = store.settled
-        if (settled is not None and settled[0] is mark and settled[1] == budget_pages
-                and settled[2] == store.version):
-            # the same marks, budget and pages as the last render (a still camera): every
-            # needed page is built; only their last use is recorded
-            needed, slots, masks, hist, degraded = settled[3:]
-            n_cast = 0
-            dt = 0.0
-            store.slot_frame[slots] = store.frame
-        else:
-            job, needed, masks, degraded, dt = builds[i if first else i0]
-            t0 = time.perf_counter()
-            stats.texels_built += store.finish_build(job, fill=False)
-            n_cast = store.pages_cast
-            store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page
-            dr.sync_thread()
-            # its time: planning and finishing its build, and its share of the cast
-            dt += time.perf_counter() - t0 + cast_dt * job.n_tiles / max(cast_n, 1)
-            store.cast_seconds += dt
-            store.cast_pages += n_cast
-            # every needed page is built now, in the slot the build gave it (a lookup
-            # after the build found the same, all of them present)
-            built = store.built_slots
-            if built is not None and built[0] is needed:
-                slots = built[1]
+                # (a region's marker has no scene: no point is kept apart, axes unused)
+                gs = self._marks(i, marker, points,
+                                 None if edge_m is None else dr.gather(mi.Bool, edge_m, pt),
+                                 {})
+                parts.append(self._tiles(i, dedupe_many(gs, parts=[(local, nk)] * len(gs))))
+            self._settle(i, parts)
+
+    def _marks(self, i, marker, points, border, axes) -> list:
+        """The candidate lists of light ``i`` (its own levels', then the coarser
+        levels' its kernels may filter, :func:`mark_coarser`) from its evaluated
+        :func:`marked_points` ``points``; its kept points' footprints' sides
+        (:func:`kept_axes`) into ``axes[i]`` where the biases' level is decided per
+        pixel."""
+        # its own levels' tiles as blocks (mark_blocks): one group, the blocks' shapes
+        # in their keys (else one group per block shape); the points that kept the
+        # biases' level (where the marks decide it per pixel) marked on the host
+        # (kept_tiles), from their footprints' sides evaluated with the points
+        margin, coarse = self.margins[i], self.coarse[i]
+        per_axis = block_axis(marker, margin, border is not None)
+        self.shapes[i] = (per_axis, shape_bits(marker.layout, per_axis))
+        apart = marker.scene is not None and _kept_by_biases(marker)
+        if apart:
+            axes[i] = kept_axes(marker, *self.hits[:3], points)
+        keys, oks = mark_blocks(marker, points, margin=margin, bits=self.shapes[i][1],
+                                border=border, footprints=self.footprints or 0.0,
+                                host_kept=apart)
+        out = [([k], [ok]) for k, ok in zip(keys, oks)]
+        if coarse:
+            out.append(mark_coarser(marker, None, None, None, None,
+                                    coarse_res=coarse, points=points))
+        return out
+
+    def _tiles(self, i, found, kept=None) -> tuple:
+        """Light ``i``'s tile keys from its :meth:`_marks` groups' keys (and its kept
+        points' tiles, :func:`kept_tiles`): ``(own levels', coarser levels')`` (the
+        latter empty without ``virtual_coarse_res``)."""
+        coarse = self.coarse[i]
+        n = len(found) - bool(coarse)
+        own = block_tiles(found[:n], *self.shapes[i])
+        if kept is not None and len(kept):
+            own = sorted_unique(np.concatenate([own, kept]))
+        extra = (dilate_tiles(found[n], self.stores[i].layout, self.margins[i]) if coarse
+                 else np.zeros(0, np.uint64))
+        return own, extra
+
+    def _settle(self, i, parts, keep=None) -> None:
+        """Light ``i``'s mark: every tile, and those only the coarser levels' kernels
+        read (a full budget drops them first), and its pixels' ``keep``
+        (:meth:`VirtualShadowMap.keeps`; None: no probe)."""
+        # (each part's own tiles sorted and distinct already: block_tiles)
+        own = (parts[0][0] if len(parts) == 1 else
+               sorted_unique(np.concatenate([p[0] for p in parts])))
+        extra = sorted_unique(np.concatenate([p[1] for p in parts]))
+        optional = np.setdiff1d(extra, own, assume_unique=True)
+        self.stores[i].remember_mark((self.mark_key[i], with_keys(own, optional), optional,
+                                      keep))
+
+    # ------------------------------------------------------------ 3. the memory plan
+    def plan_memory(self, budget_bytes) -> None:
+        """The budget's pages shared by need (:func:`share_pages`), then the pages each
+        map's marks keep (:func:`_fit_marks`); a degraded map's unused pages go to the
+        next degraded one. Reads the stores' marks; writes ``per_page``,
+        ``budget_bytes``, ``uniq``, ``plans[i]`` (``[mark, tiles, fixed slots,
+        pages]``), ``fits[i]`` (``_fit_marks``'), ``budgets[i]`` (pages)."""
+        stores, opts = self.stores, self.opts
+        per_page = page_bytes(opts)
+        budget_bytes = opts.budget_bytes if budget_bytes is None else int(budget_bytes)
+        uniq = [i for i in stores if all(stores[j] is not stores[i] for j in stores if j < i)]
+        plans = {}
+        for i in uniq:
+            store = stores[i]
+            layout = store.layout
+            view = layout.view      # the emitter's view, or one face aimed at a far scene
+            if store.lit_faces is None:
+                store.lit_faces = _lit_faces(view)
+                store.coarse_keys = np.sort(np.array([page_key(f, layout.coarsest, 0, 0)
+                                                      for f in store.lit_faces],
+                                                     np.uint64).reshape(-1))
+            mark = store.last_mark if self.cam is not None and not self.dark[i] else None
+            memo = store.plan_memo      # the same marks as the last render: the same tiles
+            if memo is not None and memo[0] is mark and memo[1] is store.coarse_keys:
+                tiles, n_pages = memo[2], memo[3]
             else:
-                present, slots = store.lookup(needed)
-                needed, slots, masks = needed[present], slots[present], masks[present]
-            store.slot_frame[slots] = store.frame
-            levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
-            hist = np.bincount(levels, minlength=layout.n_levels)
-            store.settled = (mark, budget_pages, store.version, needed, slots, masks,
-                             hist, degraded)
-        if degraded and first:
-            degraded_maps.append((view.label, degraded))
-        stats.pages_marked += int(len(needed))
-        stats.pages_built += int(n_cast)
-        stats.pages_reused += int(len(needed) - n_cast)
-        stats.level_histogram = _add_hist(stats.level_histogram, hist)
-        stats.maps_built += int(n_cast > 0)
-        stats.maps_reused += int(n_cast == 0)
-        # casting every page read from scratch: this frame's casts, and the reused pages
-        # at the store's mean time a page
-        stats.naive_build_seconds += dt + (len(needed) - n_cast) * (
-            store.cast_seconds / max(store.cast_pages, 1))
-        keep = mark[3] if mark is not None else None
-        if keep is None and probe and reach[i] is not None \
-                and not hasattr(view, "mark_views"):
-            keep = no_keep
-        out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
-                                    opts.lod_bias, margins[i], coarse.get(i),
-                                    frame=(needed, slots, masks), reach=reach[i],
-                                    keep=keep))
-    if degraded_maps:
-        # one warning a render, whatever the number of lights
+                marked = mark[1] if mark is not None else np.zeros(0, np.uint64)
+                tiles = with_keys(marked, store.coarse_keys)
+                # the pages and their tile masks (what the build reads when the tiles fit the
+                # budget; their count is the plan's), computed once: _fit_marks and the build
+                # take them from the memo (one tile_pages, where two _n_pages and a
+                # tile_pages of the same tiles took 0.31 ms a camera move on large_world)
+                pages = tile_pages(tiles, layout)
+                n_pages = len(pages[0])
+                store.plan_memo = (mark, store.coarse_keys, tiles, n_pages, pages)
+            # slots: the empty page (slot 0) and unlit faces' reserved coarsest slots (empty
+            # pages) besides the pages
+            fixed = 1 + view.n_faces - len(store.lit_faces)
+            plans[i] = [mark, tiles, fixed, n_pages]
+        alloc = share_pages(budget_bytes // per_page,
+                            [plans[i][2] + len(stores[i].lit_faces) for i in uniq],
+                            [plans[i][2] + plans[i][3] for i in uniq],
+                            [stores[i].capacity for i in uniq])
+        fits = {}
+        for i, slots in zip(uniq, alloc):
+            fits[i] = _fit_marks(stores[i], plans[i][0], plans[i][1], slots - plans[i][2])
+        spare = budget_bytes // per_page - sum(alloc)
+        for k, i in enumerate(uniq):        # degraded maps keep the pages they use ...
+            if fits[i][1]:
+                spare += alloc[k] - plans[i][2] - fits[i][2]
+                alloc[k] = plans[i][2] + fits[i][2]
+        for k, i in enumerate(uniq):        # ... and the next take what is left, in turn
+            if fits[i][1] and spare > 0:
+                fits[i] = _fit_marks(stores[i], plans[i][0], plans[i][1],
+                                     alloc[k] + spare - plans[i][2])
+                spare -= plans[i][2] + fits[i][2] - alloc[k]
+                alloc[k] = plans[i][2] + fits[i][2]
+        self.per_page, self.budget_bytes, self.uniq = per_page, budget_bytes, uniq
+        self.plans, self.fits = plans, fits
+        self.budgets = {i: alloc[k] - plans[i][2] for k, i in enumerate(uniq)}
+
+    # ------------------------------------------------------------ 4. the build
+    def build(self) -> None:
+        """Every store whose pages changed: its pages planned (evictions, slots, the tiles
+        to cast), then every light's tiles cast together (:func:`cast_tiles`: one kernel
+        where the lights allow it, on a camera move of room_two_points one for its two
+        point lights), the new pages filled and the tiles' minima read. Reads the memory
+        plan; writes ``builds[i]`` (``(job, needed, masks, degraded, seconds)``, stores
+        whose pages did not change have none), ``cast_dt`` and ``cast_n``."""
+        stores, plans, budgets = self.stores, self.plans, self.budgets
+        builds = {}
+        for i in self.uniq:
+            store = stores[i]
+            mark, budget_pages = plans[i][0], budgets[i]
+            store.max_pages = budget_pages + plans[i][2]
+            settled = store.settled
+            if (settled is not None and settled[0] is mark and settled[1] == budget_pages
+                    and settled[2] == store.version):
+                continue
+            tiles, degraded, _ = self.fits[i]
+            needed, masks = _tile_pages(store, tiles)
+            have, _ = store.lookup(needed)
+            over = store.n_pages + int((~have).sum()) - budget_pages
+            if over > 0:
+                store.evict(needed, over)
+            store.shrink(store.max_pages)   # a smaller budget, or share of it, than before
+            t0 = time.perf_counter()
+            builds[i] = (store.plan_build(needed, masks), needed, masks, degraded,
+                         time.perf_counter() - t0)
+        # (every store a range, an empty one where its pages did not change: which lights
+        # build -- a camera move: all lit ones; a moved light: some -- shapes no kernel)
+        jobs = [builds[i][0] if i in builds else TileCast(stores[i]) for i in self.uniq]
+        t0 = time.perf_counter()
+        # the new pages' fills launched behind the cast before the host reads the cast's
+        # depths (the tiles' minima): one wait for both, not one for the cast and another
+        # for the fills (the fills read no minimum)
+        cast_tiles(self.scene, jobs, minima=False)
+        fill_new_pages(jobs)
+        read_minima(jobs)
+        dr.sync_thread()
+        self.cast_dt = time.perf_counter() - t0
+        self.cast_n = sum(b[0].n_tiles for b in builds.values())
+        self.builds = builds
+
+    # ------------------------------------------------------------ 5. publishing
+    def publish(self, views) -> list:
+        """One :class:`VirtualShadowMap` per view of ``views`` (None where it has no
+        store): each store's build finished (or, where its marks, budget and pages are
+        the last render's, its pages' last use recorded), the render's ``stats``
+        updated, and one warning naming the degraded maps."""
+        stores, plans, budgets, stats = self.stores, self.plans, self.budgets, self.stats
+        degraded_maps = []
+        out = []
+        # a probed render's light without a mark (dark): no pixel keeps the biases' level,
+        # through bits of the same types (the render kernel is the one a lit light compiles)
+        no_keep = ((dr.zeros(mi.UInt32, 1), dr.opaque(mi.UInt32, 0), dr.opaque(mi.UInt32, 0))
+                   if self.probe else None)
+        for i, view in enumerate(views):
+            if i not in stores:
+                out.append(None)
+                continue
+            store = stores[i]
+            layout = store.layout
+            view = layout.view
+            first = i in budgets
+            if not first:        # a store another view of this render shares: planned there
+                i0 = next(j for j in self.uniq if stores[j] is store)
+                mark, fixed, budget_pages = plans[i0][0], plans[i0][2], budgets[i0]
+            else:
+                mark, fixed, budget_pages = plans[i][0], plans[i][2], budgets[i]
+            store.max_pages = budget_pages + fixed
+            settled = store.settled
+            if (settled is not None and settled[0] is mark and settled[1] == budget_pages
+                    and settled[2] == store.version):
+                # the same marks, budget and pages as the last render (a still camera): every
+                # needed page is built; only their last use is recorded
+                needed, slots, masks, hist, degraded = settled[3:]
+                n_cast = 0
+                dt = 0.0
+                store.slot_frame[slots] = store.frame
+            else:
+                job, needed, masks, degraded, dt = self.builds[i if first else i0]
+                t0 = time.perf_counter()
+                stats.texels_built += store.finish_build(job, fill=False)
+                n_cast = store.pages_cast
+                store._grow(store.next_slot)   # never an empty pool: slot 0, the empty page
+                dr.sync_thread()
+                # its time: planning and finishing its build, and its share of the cast
+                dt += (time.perf_counter() - t0
+                       + self.cast_dt * job.n_tiles / max(self.cast_n, 1))
+                store.cast_seconds += dt
+                store.cast_pages += n_cast
+                # every needed page is built now, in the slot the build gave it (a lookup
+                # after the build found the same, all of them present)
+                built = store.built_slots
+                if built is not None and built[0] is needed:
+                    slots = built[1]
+                else:
+                    present, slots = store.lookup(needed)
+                    needed, slots, masks = needed[present], slots[present], masks[present]
+                store.slot_frame[slots] = store.frame
+                levels = ((needed >> np.uint64(54)) & np.uint64(31)).astype(int)
+                hist = np.bincount(levels, minlength=layout.n_levels)
+                store.settled = (mark, budget_pages, store.version, needed, slots, masks,
+                                 hist, degraded)
+            if degraded and first:
+                degraded_maps.append((view.label, degraded))
+            stats.pages_marked += int(len(needed))
+            stats.pages_built += int(n_cast)
+            stats.pages_reused += int(len(needed) - n_cast)
+            stats.level_histogram = _add_hist(stats.level_histogram, hist)
+            stats.maps_built += int(n_cast > 0)
+            stats.maps_reused += int(n_cast == 0)
+            # casting every page read from scratch: this frame's casts, and the reused pages
+            # at the store's mean time a page
+            stats.naive_build_seconds += dt + (len(needed) - n_cast) * (
+                store.cast_seconds / max(store.cast_pages, 1))
+            keep = mark[3] if mark is not None else None
+            if keep is None and self.probe and self.reach[i] is not None \
+                    and not hasattr(view, "mark_views"):
+                keep = no_keep
+            out.append(VirtualShadowMap(store, {"pages": int(len(needed)), "new": int(n_cast)},
+                                        self.opts.lod_bias, self.margins[i],
+                                        self.coarse.get(i), frame=(needed, slots, masks),
+                                        reach=self.reach[i], keep=keep))
+        if degraded_maps:
+            self._warn_degraded(degraded_maps)
+        return out
+
+    def _warn_degraded(self, degraded_maps) -> None:
+        """The one warning a render, whatever the number of lights, naming the maps whose
+        marked pages were replaced by coarser ones (``(label, pages)``) and the budget
+        that would hold every marked page."""
+        opts, per_page, uniq, plans = self.opts, self.per_page, self.uniq, self.plans
+        budget_bytes = self.budget_bytes
         need = sum(plans[i][2] + plans[i][3] for i in uniq) * per_page + (
             opts.budget_bytes - budget_bytes)
         names = ", ".join(f"'{name}' ({n})" for name, n in degraded_maps[:4]) + (
             f", and {len(degraded_maps) - 4} more" if len(degraded_maps) > 4 else "")
+        # stacklevel: this method, publish, prepare_virtual, then its caller's caller
         warnings.warn(f"shadowmap: memory_budget = {opts.memory_budget:g} MiB holds "
                       f"{budget_bytes // per_page} pages of {opts.page_size}^2 for "
                       f"{len(uniq)} virtual map(s); {len(degraded_maps)} of them had marked "
                       f"pages replaced by coarser ones (pages): {names}; memory_budget = "
                       f"{math.ceil(need / 2 ** 20 * 100) / 100:g} MiB would hold every "
-                      "marked page", RuntimeWarning, stacklevel=3)
-    return out
+                      "marked page", RuntimeWarning, stacklevel=5)
 
 
 def reach_of(opts, view):

@@ -7,6 +7,7 @@ and far-point-light scenes at defaults, the page cache across camera moves
 """
 from __future__ import annotations
 
+import linecache
 import math
 import warnings
 
@@ -1555,6 +1556,26 @@ def test_methods_rendered_in_turn_keep_their_own_marks(monkeypatch):
     for m, i in integs.items():          # the moved-back camera's marks, recalled
         assert np.array_equal(vis_of(scene, i, spp=1), first[m])
     assert len(traced) == 3 * n
+
+
+def test_the_degraded_maps_warning_points_at_the_first_pass_caller():
+    """The one warning a render about degraded maps (``memory_budget`` too small for the
+    marked pages) is raised in the last of prepare_virtual's steps
+    (``planner._FirstPass``), below it; its ``stacklevel`` still names the line of
+    ``map_manager.prepare_maps`` that asks for the virtual maps, as when prepare_virtual raised it
+    itself, not the planner's own lines (which a ``-W`` filter or a user's log would
+    show instead)."""
+    virtual.PAGE_CACHE.clear()
+    scene = mi.load_dict(default_scene(width=32, height=32, spp=1, light="point"))
+    integ = shadowmap(method="hard", virtual=True, memory_budget=0.06)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        vis_of(scene, integ, spp=1)
+    found = [w for w in caught if "replaced by coarser" in str(w.message)]
+    assert len(found) == 1, [str(w.message) for w in caught]
+    line = linecache.getline(found[0].filename, found[0].lineno)
+    assert found[0].filename.endswith("map_manager.py"), found[0].filename
+    assert "_prepare_virtual(" in line, line      # prepare_maps' call, not the planner's
 
 
 def test_recalled_marks_give_a_fresh_integrators_images():

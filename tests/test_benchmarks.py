@@ -364,3 +364,22 @@ def test_bench_primary_reuse_gathers_the_marks_inputs_from_the_stored_hits():
         assert np.mean(facing > 0.99) > 0.9
         ratio = np.linalg.norm(dp_dx, axis=0)[both] / step_x
         assert np.median(np.abs(ratio - 1.0)) < 0.05
+
+
+def test_probe_same_frames_finds_equal_frames_equal_and_a_changed_one(tmp_path):
+    # two recordings of one commit compare equal (exit 0); a copy with one pixel of one
+    # frame changed does not (exit 1, the array named)
+    import numpy as np
+    files = [str(tmp_path / f"{k}.npz") for k in "ab"]
+    for f in files:
+        out = run_bench("probe_same_frames.py", "record", f, "--scenes", "spot_sphere_box",
+                        "--methods", "hard", "--image", "32", "--spp", "1", "--no-extras")
+        assert "5 frames" in out
+    assert "different: 0" in run_bench("probe_same_frames.py", "compare", *files)
+    arrays = dict(np.load(files[1]))
+    arrays["spot_sphere_box/hard/move1/img"][3, 4, 0] += 1.0
+    np.savez(str(tmp_path / "c.npz"), **arrays)
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "probe_same_frames.py"),
+                           "compare", files[0], str(tmp_path / "c.npz")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and "spot_sphere_box/hard/move1/img" in proc.stdout

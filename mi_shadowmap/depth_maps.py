@@ -658,9 +658,14 @@ def solid_face_tables(scene: mi.Scene, two_sided: bool = False):
     # params.update() kept its flat faces' empty table, and the terminator's faces
     # facing away from a point light were lit: 14 of 4096 pixels misclassified against
     # raytraced, a fresh integrator 4; tests/test_cache_edits.py)
+    # and which of them take every face (``glass``: a transmitting mesh, or with
+    # ``two_sided`` a twosided one): kept by the buffers alone, a room's cube (vertex
+    # normals, so listed either way) kept the tables of a ``hard`` render before, without
+    # its flat faces, and second_depth read the room lit (99.7 % of a view misclassified)
     held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(), sh.vertex_normals_buffer())
             for sh, m in zip(shapes, use) if m]
-    key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)
+    key = tuple((id(sh), v.index, f.index, n.index, g)
+                for (sh, v, f, n), g in zip(held, compress(glass, use)))
     if _SOLID_TABLES_MEMO[0] is not None and _SOLID_TABLES_MEMO[0][0] == key:
         return _SOLID_TABLES_MEMO[1]
     if any(n.index == 0 and not g for (_, _, _, n), g in zip(held, compress(glass, use))):
@@ -670,7 +675,8 @@ def solid_face_tables(scene: mi.Scene, two_sided: bool = False):
         shapes, use, glass, n_listed = _solid_candidates(scene, two_sided)
         held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(),
                  sh.vertex_normals_buffer()) for sh, m in zip(shapes, use) if m]
-        key = tuple((id(sh), v.index, f.index, n.index) for sh, v, f, n in held)
+        key = tuple((id(sh), v.index, f.index, n.index, g)
+                    for (sh, v, f, n), g in zip(held, compress(glass, use)))
     tables = None
     if held:
         ids = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)).numpy().astype(np.int64)

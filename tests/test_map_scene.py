@@ -347,3 +347,21 @@ def test_the_copy_leaves_the_scenes_shape_ids_alone(extra):
     assert set(mi.traverse(scene).keys()) == keys
     assert names[0] == names[1] == names[2]
     assert {"vis_lamp", "vis_panel"} <= set(names[0])
+
+
+def test_a_copy_that_fails_leaves_the_scenes_shape_ids_alone(monkeypatch):
+    """Mitsuba's load_dict renames the shapes it is handed before it fails on a later
+    entry (every shape of the scene 'shape_<k>', measured); the copy's ``finally`` gives
+    them back their ids, and the scene is kept with a warning."""
+    scene = post_scene(extra={"lamp": {"type": "sphere", "center": [1, 0.5, 0],
+                                       "radius": 0.3}})
+    ids = [sh.id() for sh in scene.shapes()]
+    real = mi.load_dict
+    monkeypatch.setattr(mi, "load_dict", lambda d: real({**d, "zz": {"type": "no such"}}))
+    ms.clear()
+    with pytest.warns(RuntimeWarning, match="did not copy the scene"):
+        assert ms.map_scene(scene) is scene
+    monkeypatch.undo()
+    assert {"post", "lamp"} <= set(ids)
+    assert [sh.id() for sh in scene.shapes()] == ids
+    ms.clear()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-import pytest
 
 from mi_shadowmap import virtual
 from mi_shadowmap.control_flow import if_stmt
@@ -211,12 +210,6 @@ def test_the_dedupe_reads_its_stored_keys_with_the_same_marks(monkeypatch):
     assert ops[1][2] < ops_ref[1][2] and ops[1][3] < ops_ref[1][3]
 
 
-@pytest.mark.xfail(strict=True, reason="69f54be evaluates the camera hits alone for every "
-                   "camera; through a lens they are LENS_GRID^2 = 9 lanes a pixel and held "
-                   "through the mark pass: a 1024^2 thinlens frame's peak +440 MiB "
-                   "(1.78 -> 2.22 GiB), for a gain measured on pinholes only (helper E, "
-                   "fifty-sixth session); fix in planner.prepare_virtual, e.g. evaluate=not "
-                   "(multi or fused and not is_pinhole(sensor))")
 def test_a_lens_cameras_hits_are_traced_into_the_mark_kernel(monkeypatch):
     """Through a lens the mark pass traces every pixel through 3 x 3 points of the lens
     (``marks.LENS_GRID``), so its camera hits are 9 lanes a pixel (their points, normals,

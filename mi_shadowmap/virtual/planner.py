@@ -244,8 +244,13 @@ class _FirstPass:
         # camera move), where traced into the mark kernel they ran only after it (a
         # moved frame's first pass 1-2 ms shorter on a quiet machine, 16/16 and 18/24
         # paired, for +0.4 ms of kernel work; none with the second core taken or with
-        # one thread; benchmarks/RESULTS.md, fifty-sixth session)
-        hits = camera_hits(self.scene, self.sensor, evaluate=not multi, state=cam)
+        # one thread; benchmarks/RESULTS.md, fifty-sixth session). Not through a lens:
+        # its marks trace 3 x 3 lens points a pixel (marks.LENS_GRID), whose stored hits
+        # raised a 1024^2 thinlens frame's peak memory 1.78 -> 2.22 GiB (helper E), for a
+        # gain measured on pinholes only; they are traced into the marks' kernel, as before
+        from ..light_views import is_pinhole
+        lens = fused and not is_pinhole(self.sensor)
+        hits = camera_hits(self.scene, self.sensor, evaluate=not (multi or lens), state=cam)
         through = None
         if multi:
             si_m, valid_m = hits[0], hits[3]

@@ -187,6 +187,7 @@ screen is Mitsuba's projective integrators' job.
             # (visibility_aovs=false: no specfilm warning about AOVs nobody asked for)
             self._writes_aovs = (self.opts.visibility_aovs
                                  and _film_takes_aovs(sensor_obj.film()))
+            self._check_hit_precision(scene, sensor_obj)
             self._first_pass(scene, sensor_obj,
                              spp if spp > 0 else sensor_obj.sampler().sample_count())
             self._last_render = scene_token(scene)
@@ -207,6 +208,18 @@ screen is Mitsuba's projective integrators' job.
             self._out_of_range = None
             set_sigint_action(self._sigint_before)   # as it was, whatever happened
             self._sigint_before = self._sigint_after = None
+
+    @staticmethod
+    def _check_hit_precision(scene, sensor) -> None:
+        """:func:`warn_if_hits_imprecise` once per scene and sensor, whatever the
+        integrator (its probe is a kernel launch of its own: a camera path, or a fresh
+        integrator a frame, launches no more kernels than before after the first
+        frame). A camera moved later is not probed again."""
+        seen = _PRECISION_CHECKED.setdefault(scene_lease(scene), [])
+        if any(s is sensor for s in seen):
+            return
+        seen.append(sensor)      # held: Mitsuba then hands out this same object
+        warn_if_hits_imprecise(scene, sensor)
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
     #: (``pcf``'s, ``bilinear``'s and ``pcss``'s taps, ``max_iterations=-1``; ``pcss``
@@ -1101,6 +1114,79 @@ def _film_takes_aovs(film) -> bool:
         "leaves out the visibility AOVs (vis_<emitter>); the image itself is complete. "
         "Render to an 'hdrfilm' to get them", RuntimeWarning, stacklevel=4)
     return False
+
+
+#: The sensors each scene (its :func:`scene_lease`) was probed for by
+#: :func:`warn_if_hits_imprecise`.
+_PRECISION_CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: Camera rays per film side of :func:`warn_if_hits_imprecise`'s probe.
+PRECISION_PROBE = 16
+
+
+def warn_if_hits_imprecise(scene, sensor, probe: int = PRECISION_PROBE) -> float:
+    """Warn when Mitsuba's own surface interactions put the camera's hits off their
+    rays by more than a pixel (or give them no normal), and return that error in
+    pixels (0 where no probe ray hits).
+
+    Mitsuba computes a hit's position from the shape's local coordinates (a
+    rectangle's, a disk's) or from barycentrics (a mesh's triangle) in float32, so a
+    shape scaled ``s`` places its hits about ``7e-8 s`` from the ray: a ground rectangle
+    1e10 wide under a scene 1 unit across, seen from 10 units, puts them 723 units off
+    (median of a 48^2 view; 6.75 at 1e8, 0.07 at 1e6) and, at 1e10, with a zero normal,
+    so their shadow rays hit the ground itself. Every method then shades other points
+    than the pixels see -- the ``raytraced`` reference too -- and a virtual map marks
+    its pages where those points fall (pages across a whole face at level 0, more than
+    the page table holds). No shadow map can mend that; the warning names the shapes
+    whose size explains it (split a huge ground into tiles, or shrink it).
+
+    The probe traces ``probe^2`` rays through pixel centres and their neighbours one
+    pixel to the right (a kernel once per scene and sensor:
+    :meth:`ShadowMapIntegratorMixin._check_hit_precision`)."""
+    film = sensor.film()
+    w, h = (int(x) for x in film.crop_size())     # sample_ray's [0, 1]^2: the crop
+    nx, ny = min(probe, w), min(probe, h)
+    px, py = np.meshgrid((np.arange(nx) + 0.5) * w / nx, (np.arange(ny) + 0.5) * h / ny)
+    px, py = px.ravel(), py.ravel()
+    u, v = np.concatenate([px, px + 1.0]) / w, np.concatenate([py, py]) / h
+    with dr.suspend_grad():
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(u), mi.Float(v)),
+                                   mi.Point2f(0.5, 0.5))
+        si = scene.ray_intersect(mi.Ray3f(ray))
+        dr.eval(ray.o, ray.d, si.p, si.n, si.t)      # one kernel
+        k = len(px)         # (a pinhole's ray origin may be one lane: broadcast)
+        o, d, p, n = (np.stack([np.broadcast_to(np.asarray(c, np.float64), (2 * k,))
+                                for c in a], 1) for a in (ray.o, ray.d, si.p, si.n))
+        t = np.broadcast_to(np.asarray(si.t, np.float64), (2 * k,))
+    hit = np.flatnonzero(np.isfinite(t[:k]) & (t[:k] > 0))
+    if not len(hit):
+        return 0.0
+    t = t[hit, None]
+    on_ray = o[hit] + d[hit] * t
+    pixel = np.linalg.norm(o[k + hit] + d[k + hit] * t - on_ray, axis=1)   # one pixel over
+    err = np.linalg.norm(p[hit] - on_ray, axis=1)
+    no_normal = int((np.linalg.norm(n[hit], axis=1) < 0.5).sum())
+    worst = float((err / np.maximum(pixel, 1e-30)).max())
+    if worst <= 1.0 and not no_normal:
+        return worst
+    # the shapes whose float32 step (their box's widest side 2^-24) is near that error
+    big = []
+    for shape in scene.shapes():
+        b = shape.bbox()
+        if b.valid():
+            side = float(dr.max(b.max - b.min))
+            if side * 2.0 ** -24 >= 0.1 * float(err.max()):
+                big.append((side, shape.id() or shape.class_name()))
+    names = ", ".join(f"'{name}' ({side:.3g} wide)"
+                      for side, name in sorted(big, reverse=True)[:3])
+    warnings.warn(
+        f"shadowmap: Mitsuba places this view's hits up to {float(err.max()):.3g} "
+        f"units ({worst:.3g} pixels) off the camera's rays"
+        + (f", {no_normal} of {len(hit)} probed without a normal" if no_normal else "")
+        + f" (float32 surface interactions of a shape far wider than the view: "
+        f"{names or 'none found'}): every method shades other points than the pixels "
+        "see, the 'raytraced' reference too. Split or shrink the shape",
+        RuntimeWarning, stacklevel=5)
+    return worst
 
 
 def _warn_if_enclosing(scene, view, method: str) -> None:

@@ -27,6 +27,7 @@ Every render must have zero NaN/Inf pixels and AOVs and visibility in
 from __future__ import annotations
 
 import math
+import warnings
 
 import mitsuba as mi
 import numpy as np
@@ -501,3 +502,52 @@ def test_a_mesh_vertex_that_is_not_finite_bounds_nothing(light, value):
     for props in ({}, {"virtual": False}):
         _, vis = render(scene, "hard", **props)
         assert misclassified(ref, vis) <= 0.01, props
+
+
+def huge_ground_scene(size: float) -> dict:
+    """A box 1 unit wide seen from 6 units, on a ground rectangle ``size`` wide, under a
+    spot (helper C's extreme of the fifty-sixth session, smaller)."""
+    return base(ground(size), spot((1.0, 5.0, 2.0), (0.25, 0.25, 0.0)),
+                {"box": {"type": "cube", "bsdf": diffuse(0.5),
+                         "to_world": T().translate([0.25, 0.5, 0.0]).scale(0.5)}})
+
+
+@pytest.mark.parametrize("props", [{"method": "raytraced"}, {"method": "hard"},
+                                   {"method": "hard", "virtual": False}])
+def test_a_huge_ground_warns_that_mitsuba_places_its_hits_off_the_rays(props):
+    """Mitsuba computes a rectangle's hit from its local coordinates in float32: a ground
+    1e10 wide puts the camera's hits about 700 units off their rays, with zero normals
+    (a 48^2 view, the median; 7e-8 of the scale at any scale). Every method, the
+    ``raytraced`` reference too, then shades other points than the pixels see, so
+    no comparison with the reference can tell a right map from a wrong one (hard,
+    48^2: 22.7 / 26.9 / 37.2 % misclassified by virtual maps, 7.3 / 0.0 / 25.4 % by full
+    maps under a rectangle, a spot and a point light). The render says so, once per
+    scene and sensor, naming the ground; a 1e3-wide ground (hits 1e-4 units off) says
+    nothing."""
+    def warned(size, renders=1):
+        scene = mi.load_dict(huge_ground_scene(size))
+        out = []
+        for _ in range(renders):
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                render(scene, **props)
+            out.append([str(w.message) for w in caught
+                        if "off the camera's rays" in str(w.message)])
+        return out
+    first, again = warned(1e10, renders=2)
+    assert len(first) == 1 and "'ground' (2e+10 wide)" in first[0], first
+    assert "without a normal" in first[0] and "'raytraced' reference too" in first[0]
+    assert again == []                           # once per scene and sensor
+    assert warned(1e3) == [[]]
+
+
+def test_hit_precision_probe_measures_pixels():
+    """:func:`warn_if_hits_imprecise` returns the largest hit error in pixels of the view
+    (32^2): ~0 for a 4-wide ground, above 10 for a 1e8-wide one (the error grows as
+    7e-8 of the ground's scale, the pixel as the distance)."""
+    from mi_shadowmap.integrator import warn_if_hits_imprecise
+    small = mi.load_dict(huge_ground_scene(4.0))
+    assert warn_if_hits_imprecise(small, small.sensors()[0]) < 1e-3
+    large = mi.load_dict(huge_ground_scene(1e8))
+    with pytest.warns(RuntimeWarning, match="off the camera's rays"):
+        assert warn_if_hits_imprecise(large, large.sensors()[0]) > 10.0

@@ -469,11 +469,12 @@ class PageStore:
         W, H = w + 1, h + 1
         fits = (W * H <= MAX_TABLE) & (np.maximum(W, H) <= MAX_TABLE_SIDE)
         every = bool(fits.all())
-        if not every:
-            for g, ww, hh in zip(groups[~fits], w[~fits], h[~fits]):
-                warnings.warn(f"shadowmap: virtual map '{lay.view.label}': level "
-                              f"{g % L} spans {ww} x {hh} pages, more than the page table "
-                              "holds; its lookups use other levels", RuntimeWarning)
+        if not every:       # one warning a table (six a frame of three lights before)
+            spans = "; ".join(f"face {g // L} level {g % L}: {ww} x {hh}" for g, ww, hh in
+                              zip(groups[~fits], w[~fits], h[~fits]))
+            warnings.warn(f"shadowmap: virtual map '{lay.view.label}': pages spanning more "
+                          f"than the page table holds ({spans} pages); their lookups use "
+                          "other levels", RuntimeWarning)
         entries = np.where(fits, W * H, 0)
         base = np.cumsum(entries) - entries
         total = int(entries.sum())

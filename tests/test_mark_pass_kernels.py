@@ -85,6 +85,28 @@ def test_the_corner_probes_are_traced_once_with_the_same_marks(monkeypatch):
         assert looped.stats[key] == unrolled.stats[key], key
 
 
+def _watch_before_marks(monkeypatch) -> tuple:
+    """``(camera_hits, marked_points, before)``: the planner's own two functions, which
+    ``monkeypatch`` replaces by watchers, and the list that receives, at the first call of
+    ``marked_points``, the JIT kernels launched since ``camera_hits`` was called."""
+    hits, points = planner.camera_hits, planner.marked_points
+    before = []
+
+    def hits_first(*args, **kw):
+        dr.kernel_history()                 # (emptied: the mark pass's kernels from here)
+        return hits(*args, **kw)
+
+    def points_after(*args, **kw):
+        if not before:
+            before.append([k for k in dr.kernel_history()
+                           if k["type"] == dr.KernelType.JIT])
+        return points(*args, **kw)
+
+    monkeypatch.setattr(planner, "camera_hits", hits_first)
+    monkeypatch.setattr(planner, "marked_points", points_after)
+    return hits, points, before
+
+
 def test_a_moves_mark_pass_launches_the_hits_then_three_kernels_over_its_pixels(monkeypatch):
     """The camera hits are evaluated in a kernel of their own, launched before any light's
     marks are traced (the thread pool runs it while the host traces them); the marked
@@ -97,18 +119,9 @@ def test_a_moves_mark_pass_launches_the_hits_then_three_kernels_over_its_pixels(
     third (``dedupe_many``'s ``late``). The image and texels are those of the hits traced
     into the first round and of the kernels apart."""
     scene = _moved_scene()
-    hits, tiles, points = planner.camera_hits, planner.block_tiles, planner.marked_points
-    seen, before_marks = [], []
-
-    def hits_first(*args, **kw):
-        dr.kernel_history()                 # (emptied: the mark pass's kernels from here)
-        return hits(*args, **kw)
-
-    def points_after(*args, **kw):
-        if not before_marks:
-            before_marks.append([k for k in dr.kernel_history()
-                                 if k["type"] == dr.KernelType.JIT])
-        return points(*args, **kw)
+    tiles = planner.block_tiles
+    hits, points, before_marks = _watch_before_marks(monkeypatch)
+    seen = []
 
     def tiles_after(*args, **kw):
         if not seen:
@@ -116,8 +129,6 @@ def test_a_moves_mark_pass_launches_the_hits_then_three_kernels_over_its_pixels(
                                            if k["type"] == dr.KernelType.JIT])
         return tiles(*args, **kw)
 
-    monkeypatch.setattr(planner, "camera_hits", hits_first)
-    monkeypatch.setattr(planner, "marked_points", points_after)
     monkeypatch.setattr(planner, "block_tiles", tiles_after)
     virtual.PAGE_CACHE.clear()
     integ = shadowmap(method="hard", cache_maps=False)
@@ -223,21 +234,7 @@ def test_a_lens_cameras_hits_are_traced_into_the_mark_kernel(monkeypatch):
         "type": "thinlens", "fov": 40.0, "aperture_radius": 0.05, "focus_distance": 5.0,
         "to_world": T().look_at(origin=[0, 2, 6], target=[0, 0, 0], up=[0, 1, 0]),
         "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}}})
-    hits, points = planner.camera_hits, planner.marked_points
-    before_marks = []
-
-    def hits_first(*args, **kw):
-        dr.kernel_history()                 # (emptied: the mark pass's kernels from here)
-        return hits(*args, **kw)
-
-    def points_after(*args, **kw):
-        if not before_marks:
-            before_marks.append([k for k in dr.kernel_history()
-                                 if k["type"] == dr.KernelType.JIT])
-        return points(*args, **kw)
-
-    monkeypatch.setattr(planner, "camera_hits", hits_first)
-    monkeypatch.setattr(planner, "marked_points", points_after)
+    _, _, before_marks = _watch_before_marks(monkeypatch)
     virtual.PAGE_CACHE.clear()
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:

@@ -214,11 +214,15 @@ screen is Mitsuba's projective integrators' job.
         """:func:`warn_if_hits_imprecise` once per scene and sensor, whatever the
         integrator (its probe is a kernel launch of its own: a camera path, or a fresh
         integrator a frame, launches no more kernels than before after the first
-        frame). A camera moved later is not probed again."""
+        frame). A camera moved later is not probed again. The last
+        :data:`PRECISION_SENSORS` sensors of a scene are remembered (held, so that an
+        ``is`` test names them: a render loop that makes a sensor a frame would
+        otherwise keep every sensor and its film alive); an older one is probed again."""
         seen = _PRECISION_CHECKED.setdefault(scene_lease(scene), [])
         if any(s is sensor for s in seen):
             return
         seen.append(sensor)      # held: Mitsuba then hands out this same object
+        del seen[:-PRECISION_SENSORS]
         warn_if_hits_imprecise(scene, sensor)
 
     #: Methods whose lookups keep no differentiable state in a ``dr.while_loop`` but sums
@@ -1121,6 +1125,8 @@ def _film_takes_aovs(film) -> bool:
 _PRECISION_CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: Camera rays per film side of :func:`warn_if_hits_imprecise`'s probe.
 PRECISION_PROBE = 16
+#: Sensors a scene's probe remembers (:meth:`ShadowMapIntegratorMixin._check_hit_precision`).
+PRECISION_SENSORS = 4
 
 
 def warn_if_hits_imprecise(scene, sensor, probe: int = PRECISION_PROBE) -> float:

@@ -551,3 +551,30 @@ def test_hit_precision_probe_measures_pixels():
     large = mi.load_dict(huge_ground_scene(1e8))
     with pytest.warns(RuntimeWarning, match="off the camera's rays"):
         assert warn_if_hits_imprecise(large, large.sensors()[0]) > 10.0
+
+
+def test_the_hit_precision_probe_holds_a_few_sensors_a_scene():
+    """The probe runs once per scene and sensor and holds the sensors it saw (an ``is``
+    test needs them alive): a loop that renders one scene through a new sensor each
+    frame held every sensor and its film. It holds the last ``PRECISION_SENSORS``;
+    a sensor dropped from them is probed again (and warns again, where it warns)."""
+    from mi_shadowmap import integrator as integ_mod
+    from mi_shadowmap.map_manager import scene_lease
+    scene_dict = huge_ground_scene(1e10)
+    scene = mi.load_dict(scene_dict)
+    sensors = [mi.load_dict(scene_dict["sensor"])
+               for _ in range(integ_mod.PRECISION_SENSORS + 2)]
+    shadowmap = mi.load_dict({"type": "shadowmap", "method": "raytraced"})
+
+    def warns(sensor):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            mi.render(scene, sensor=sensor, integrator=shadowmap, spp=1)
+        return sum("off the camera's rays" in str(w.message) for w in caught)
+
+    assert [warns(s) for s in sensors] == [1] * len(sensors)
+    held = integ_mod._PRECISION_CHECKED[scene_lease(scene)]
+    assert len(held) == integ_mod.PRECISION_SENSORS
+    assert all(a is b for a, b in zip(held, sensors[-integ_mod.PRECISION_SENSORS:]))
+    assert warns(sensors[-1]) == 0                  # remembered: not probed again
+    assert warns(sensors[0]) == 1                   # dropped: probed again

@@ -599,7 +599,7 @@ def _solid_candidates(scene: mi.Scene, two_sided: bool = False) -> tuple:
         # inside: 99.7 % of a 32^2 view misclassified, 0 now; its parts' lights are
         # tested in every instance's placement, lights_outside)
         glass = [m and (_transmits(sh) or (two_sided and _two_sided(sh)))
-                 for k, (sh, m) in enumerate(zip(shapes, meshes))]
+                 for sh, m in zip(shapes, meshes)]
         use = [m and (g or sh.has_vertex_normals())
                for sh, m, g in zip(shapes, meshes, glass)]
         flagged = flag_changing_bsdfs(sh.bsdf() for sh, m in zip(shapes, meshes) if m)
@@ -620,6 +620,17 @@ def _candidates_edited(plain: list, flagged: list, flags: tuple) -> bool:
     from .map_manager import bsdf_flags     # (map_manager imports this module)
     return (any(sh.has_vertex_normals() for sh in plain)
             or bsdf_flags(flagged) != flags)
+
+
+def _held_buffers(shapes, use, glass) -> tuple:
+    """``(held, key)`` of :func:`solid_face_tables`: each used shape with its vertex,
+    face and vertex-normal buffers, and the memo's key (their ids and buffer indices,
+    and whether the shape takes every face, ``glass``)."""
+    held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(), sh.vertex_normals_buffer())
+            for sh, m in zip(shapes, use) if m]
+    key = tuple((id(sh), v.index, f.index, n.index, g)
+                for (sh, v, f, n), g in zip(held, compress(glass, use)))
+    return held, key
 
 
 def solid_face_tables(scene: mi.Scene, two_sided: bool = False):
@@ -665,10 +676,7 @@ def solid_face_tables(scene: mi.Scene, two_sided: bool = False):
     # ``two_sided`` a twosided one): kept by the buffers alone, a room's cube (vertex
     # normals, so listed either way) kept the tables of a ``hard`` render before, without
     # its flat faces, and second_depth read the room lit (99.7 % of a view misclassified)
-    held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(), sh.vertex_normals_buffer())
-            for sh, m in zip(shapes, use) if m]
-    key = tuple((id(sh), v.index, f.index, n.index, g)
-                for (sh, v, f, n), g in zip(held, compress(glass, use)))
+    held, key = _held_buffers(shapes, use, glass)
     if _SOLID_TABLES_MEMO[0] is not None and _SOLID_TABLES_MEMO[0][0] == key:
         return _SOLID_TABLES_MEMO[1]
     if any(n.index == 0 and not g for (_, _, _, n), g in zip(held, compress(glass, use))):
@@ -676,10 +684,7 @@ def solid_face_tables(scene: mi.Scene, two_sided: bool = False):
         # _flat_shaded_faces indexed the empty buffer, an IndexError): the candidates again
         _CANDIDATES[0] = None
         shapes, use, glass, n_listed = _solid_candidates(scene, two_sided)
-        held = [(sh, sh.vertex_positions_buffer(), sh.faces_buffer(),
-                 sh.vertex_normals_buffer()) for sh, m in zip(shapes, use) if m]
-        key = tuple((id(sh), v.index, f.index, n.index, g)
-                    for (sh, v, f, n), g in zip(held, compress(glass, use)))
+        held, key = _held_buffers(shapes, use, glass)
     tables = None
     if held:
         ids = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)).numpy().astype(np.int64)

@@ -159,7 +159,7 @@ class _FirstPass:
         """The stores of this render's views from the page cache (their layouts kept
         with them), each view's margin, coarse levels, reach and mark key, and which
         lights are dark. Reads the views and the scene's state; writes ``cam``,
-        ``probe``, ``stores``, ``margins``, ``coarse``, ``reach``, ``mark_key``,
+        ``pinhole``, ``probe``, ``stores``, ``margins``, ``coarse``, ``reach``, ``mark_key``,
         ``dark``."""
         from ..map_manager import MAP_CACHE
         from ..light_views import is_pinhole
@@ -194,7 +194,8 @@ class _FirstPass:
         reach = {i: reach_of(opts, stores[i].layout.view) for i in stores}
         # per-pixel decisions of the biases' level: a perspective camera's pixels (one camera
         # hit a pixel, whose lane the lookups find from their point: Lookup.pixel)
-        probe = bool(self.pixels) and sensor is not None and is_pinhole(sensor)
+        pinhole = sensor is not None and is_pinhole(sensor)
+        probe = bool(self.pixels) and pinhole
         mark_key = {i: (cam, margins[i], coarse[i], opts.lod_bias, reach[i], probe)
                     for i in stores}
         # a light whose radiance is exactly 0 lights no sample, so no lookup of its map
@@ -204,7 +205,7 @@ class _FirstPass:
         dark = {i: len(emitters) == len(views) and _dark(emitters[i], stores[i])
                 for i in stores}
         dark = {i: all(dark[j] for j in stores if stores[j] is stores[i]) for i in stores}
-        self.cam, self.probe, self.stores = cam, probe, stores
+        self.cam, self.pinhole, self.probe, self.stores = cam, pinhole, probe, stores
         self.margins, self.coarse, self.reach = margins, coarse, reach
         self.mark_key, self.dark = mark_key, dark
 
@@ -248,8 +249,7 @@ class _FirstPass:
         # its marks trace 3 x 3 lens points a pixel (marks.LENS_GRID), whose stored hits
         # raised a 1024^2 thinlens frame's peak memory 1.78 -> 2.22 GiB (helper E), for a
         # gain measured on pinholes only; they are traced into the marks' kernel, as before
-        from ..light_views import is_pinhole
-        lens = fused and not is_pinhole(self.sensor)
+        lens = fused and not self.pinhole
         hits = camera_hits(self.scene, self.sensor, evaluate=not (multi or lens), state=cam)
         through = None
         if multi:
